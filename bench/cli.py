@@ -1,0 +1,26 @@
+"""``sortie bench``: run one benchmark suite, print its table, write its JSON."""
+
+from __future__ import annotations
+
+import importlib
+
+SUITES = ("terrain",)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("bench", help="run a benchmark suite", description=(
+        "Run one benchmark suite, print a table and optionally write "
+        '{"suite", "quick", "metrics", "params"} JSON.'))
+    p.add_argument("suite", choices=SUITES, help="which suite to run")
+    p.add_argument("--quick", action="store_true", help="smaller run that finishes in under 60 s")
+    p.add_argument("--json", metavar="PATH", help="write the report as JSON to PATH")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    report = importlib.import_module(f"bench.{args.suite}").run(quick=args.quick)
+    report.print_table()
+    if args.json:
+        report.write(args.json)
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,59 @@
+"""What every benchmark suite shares: timing, the report, its table and JSON."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass
+class Report:
+    """One suite's run: metrics (name -> number) and the parameters that shaped it."""
+
+    suite: str
+    quick: bool
+    metrics: dict[str, float] = field(default_factory=dict)
+    params: dict = field(default_factory=dict)
+    # Free-form series for plots (e.g. speed against error); not part of the contract keys.
+    series: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {"suite": self.suite, "quick": self.quick, "metrics": self.metrics,
+                "params": self.params, "series": self.series}
+
+    def write(self, path: str | Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_json(), indent=2, sort_keys=True) + "\n")
+
+    def print_table(self) -> None:
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=f"sortie bench {self.suite}{' (quick)' if self.quick else ''}")
+        table.add_column("metric")
+        table.add_column("value", justify="right")
+        for name, value in self.metrics.items():
+            table.add_row(name, f"{value:.6g}" if isinstance(value, float) else str(value))
+        Console().print(table)
+
+
+def best_time(fn, repeat: int, number: int = 1) -> float:
+    """Best wall time (s) of ``number`` calls, over ``repeat`` rounds: the least
+    disturbed run is the best estimate of the code's own cost on a shared machine."""
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        times.append((time.perf_counter() - t0) / number)
+    return min(times)
+
+
+def percentile(samples, q: float) -> float:
+    """q-th percentile (0..100) of samples by linear interpolation."""
+    return float(statistics.quantiles(sorted(samples), n=1000, method="inclusive")[int(q * 10) - 1]) \
+        if len(samples) > 1 else float(samples[0])

@@ -1,0 +1,1 @@
+"""Sortie client package (see ARCHITECTURE.md)."""

@@ -1,0 +1,1 @@
+"""Sortie fdm package (see ARCHITECTURE.md)."""

@@ -1,0 +1,1 @@
+"""Sortie server package (see ARCHITECTURE.md)."""

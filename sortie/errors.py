@@ -1,0 +1,59 @@
+"""The one error root of Sortie and its mapping to gRPC status codes.
+
+Library code raises these; servicers catch :class:`SortieError` and call
+:func:`grpc_code` once, so every service reports the same failure the same way.
+"""
+
+from __future__ import annotations
+
+
+class SortieError(Exception):
+    """Root of every error Sortie raises on purpose."""
+
+
+class InvalidArgument(SortieError, ValueError):
+    """An input value is malformed: NaN, out of range, wrong shape.
+
+    The message always names the field, and the index when the field is an array.
+    """
+
+    def __init__(self, field: str, message: str, index: int | None = None, value=None):
+        where = f"{field}[{index}]" if index is not None else field
+        shown = "" if value is None else f" (got {value!r})"
+        super().__init__(f"{where}: {message}{shown}")
+        self.field = field
+        self.index = index
+        self.value = value
+
+
+class LimitExceeded(SortieError):
+    """A request is larger than a documented limit (batch size, rate, queue length)."""
+
+    def __init__(self, field: str, size: int, limit: int):
+        super().__init__(f"{field}: {size} exceeds the limit of {limit}")
+        self.field = field
+        self.size = size
+        self.limit = limit
+
+
+class DataFormatError(SortieError):
+    """A data file (DEM, recording) cannot be read as the format it claims to be."""
+
+
+class NotFound(SortieError):
+    """A named thing (file, agent, recording) does not exist."""
+
+
+def grpc_code(error: BaseException):
+    """Map an exception to a ``grpc.StatusCode``; anything unexpected is INTERNAL."""
+    import grpc
+
+    if isinstance(error, InvalidArgument):
+        return grpc.StatusCode.INVALID_ARGUMENT
+    if isinstance(error, LimitExceeded):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED
+    if isinstance(error, NotFound):
+        return grpc.StatusCode.NOT_FOUND
+    if isinstance(error, DataFormatError):
+        return grpc.StatusCode.FAILED_PRECONDITION
+    return grpc.StatusCode.INTERNAL

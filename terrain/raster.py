@@ -1,0 +1,294 @@
+"""A georeferenced grid of height posts and its bilinear surface.
+
+A :class:`Raster` is the unit every query works on: a (rows, cols) array of
+heights whose row 0 is the southernmost row and column 0 the westernmost,
+posts (not cell areas) at the coordinates its :class:`Georef` gives. Readers in
+:mod:`terrain.dem` turn files into this one layout, flipping rows and shifting
+PixelIsArea grids by half a cell, so no query has to know a file's quirks.
+
+Kernels here are numba functions over plain arrays; the class only holds and
+validates them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numba
+import numpy as np
+
+from terrain.geodesy import WGS84_A_M, WEB_MERCATOR_MAX_LAT_DEG, radii_of_curvature
+
+CRS_GEOGRAPHIC = 0  # EPSG:4326: x = longitude (deg), y = latitude (deg)
+CRS_WEB_MERCATOR = 1  # EPSG:3857: x, y in projected metres
+CRS_NAMES = {CRS_GEOGRAPHIC: "EPSG:4326", CRS_WEB_MERCATOR: "EPSG:3857"}
+
+# Per-point status codes; the values equal sortie.v1.PointStatus.
+STATUS_OK = 1  # inside the data, every contributing post measured
+STATUS_FILLED = 2  # inside, but a contributing post was a void filled by rule
+STATUS_OUTSIDE = 3  # no terrain covers the point: height is NaN
+
+# A fractional index this close to an integer is taken as that post, so that
+# (lat, lon) computed as origin + k * spacing hit the post exactly despite
+# rounding (1e-9 of a 90 m post is 0.1 micrometre).
+POST_SNAP_TOLERANCE = 1e-9
+
+TWO_PI_A_M = 2.0 * math.pi * WGS84_A_M
+
+
+@dataclass(frozen=True)
+class Georef:
+    """Where the posts of a raster are.
+
+    Post (row r, col c) lies at x = x0 + c * dx, y = y0 + r * dy with dx, dy > 0,
+    x, y in the units of ``crs`` (degrees for EPSG:4326, metres for EPSG:3857).
+    """
+
+    crs: int
+    x0: float
+    y0: float
+    dx: float
+    dy: float
+
+    def __post_init__(self):
+        if self.crs not in CRS_NAMES:
+            raise ValueError(f"crs must be one of {sorted(CRS_NAMES)}, got {self.crs!r}")
+        for name in ("x0", "y0", "dx", "dy"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"Georef.{name} must be finite, got {getattr(self, name)!r}")
+        if not (self.dx > 0 and self.dy > 0):
+            raise ValueError(f"Georef spacing must be positive, got dx={self.dx}, dy={self.dy}")
+
+    @property
+    def crs_name(self) -> str:
+        return CRS_NAMES[self.crs]
+
+    def post_xy(self, rows, cols):
+        """Native (x, y) of posts at (rows, cols); arrays broadcast."""
+        return (self.x0 + np.asarray(cols, np.float64) * self.dx,
+                self.y0 + np.asarray(rows, np.float64) * self.dy)
+
+
+@numba.njit(cache=True, nogil=True)
+def _snap(v):
+    r = math.floor(v + 0.5)
+    if abs(v - r) < POST_SNAP_TOLERANCE:
+        return r
+    return v
+
+
+@numba.njit(cache=True, nogil=True)
+def fractional_index(lat, lon, crs, x0, y0, dx, dy):
+    """(lat, lon) degrees -> (row, col) as floats in the raster's index space.
+
+    Longitude wraps: x is taken east of x0 modulo a full turn, so a raster that
+    crosses the antimeridian answers for both -179.9 and 180.1.
+    """
+    if crs == CRS_GEOGRAPHIC:
+        x = lon
+        y = lat
+        turn = 360.0
+    else:
+        x = WGS84_A_M * math.radians(lon)
+        clat = min(max(lat, -WEB_MERCATOR_MAX_LAT_DEG), WEB_MERCATOR_MAX_LAT_DEG)
+        y = WGS84_A_M * math.log(math.tan(math.pi / 4.0 + math.radians(clat) / 2.0))
+        if clat != lat:
+            y = math.nan
+        turn = TWO_PI_A_M
+    d = x - x0
+    if d < 0.0 or d >= turn:  # only wrapped longitudes pay for the modulo
+        d = d % turn
+        if turn - d < POST_SNAP_TOLERANCE * dx:
+            d -= turn
+    return _snap((y - y0) / dy), _snap(d / dx)
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell(v, n):
+    """Cell index and fraction for a fractional index v in [0, n - 1]."""
+    i = int(math.floor(v))
+    if i >= n - 1:
+        i = n - 2
+    return i, v - i
+
+
+@numba.njit(cache=True, nogil=True)
+def bilinear_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_h, out_status):
+    """Fill out_h/out_status for points whose status is still STATUS_OUTSIDE.
+
+    heights: (ny, nx) float32/float64 posts; filled: (ny, nx) uint8, 1 where a
+    void was filled (or shape (0, 0) when none were). Points already answered
+    by a higher-priority raster are left alone. Exact at posts: the lerp form
+    returns the post value bit for bit when both fractions are 0 or 1.
+    """
+    ny, nx = heights.shape
+    has_filled = filled.shape[0] > 0
+    for k in range(lat.shape[0]):
+        if out_status[k] != STATUS_OUTSIDE:
+            continue
+        r, c = fractional_index(lat[k], lon[k], crs, x0, y0, dx, dy)
+        if not (r >= 0.0 and r <= ny - 1 and c >= 0.0 and c <= nx - 1):
+            continue
+        i, fy = _cell(r, ny)
+        j, fx = _cell(c, nx)
+        h00 = np.float64(heights[i, j])
+        h01 = np.float64(heights[i, j + 1])
+        h10 = np.float64(heights[i + 1, j])
+        h11 = np.float64(heights[i + 1, j + 1])
+        south = h00 * (1.0 - fx) + h01 * fx
+        north = h10 * (1.0 - fx) + h11 * fx
+        out_h[k] = south * (1.0 - fy) + north * fy
+        status = STATUS_OK
+        if has_filled and (filled[i, j] | filled[i, j + 1] | filled[i + 1, j] | filled[i + 1, j + 1]):
+            status = STATUS_FILLED
+        out_status[k] = status
+
+
+@numba.njit(cache=True, nogil=True)
+def gradient_into(heights, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, out_status):
+    """Partial derivatives of the bilinear surface in index units (m per post).
+
+    On a cell edge the cell to the north-east is used (the last cell at the
+    far edges), matching bilinear_into's choice.
+    """
+    ny, nx = heights.shape
+    for k in range(lat.shape[0]):
+        if out_status[k] != STATUS_OUTSIDE:
+            continue
+        r, c = fractional_index(lat[k], lon[k], crs, x0, y0, dx, dy)
+        if not (r >= 0.0 and r <= ny - 1 and c >= 0.0 and c <= nx - 1):
+            continue
+        i, fy = _cell(r, ny)
+        j, fx = _cell(c, nx)
+        h00 = np.float64(heights[i, j])
+        h01 = np.float64(heights[i, j + 1])
+        h10 = np.float64(heights[i + 1, j])
+        h11 = np.float64(heights[i + 1, j + 1])
+        out_dcol[k] = (h01 - h00) * (1.0 - fy) + (h11 - h10) * fy
+        out_drow[k] = (h10 - h00) * (1.0 - fx) + (h11 - h01) * fx
+        out_status[k] = STATUS_OK
+
+
+def metres_per_index(crs: int, dx: float, dy: float, lat_deg):
+    """Ground metres per column step (east) and per row step (north) at lat."""
+    m, n = radii_of_curvature(lat_deg)
+    lat = np.radians(np.asarray(lat_deg, dtype=np.float64))
+    if crs == CRS_GEOGRAPHIC:
+        return np.radians(dx) * n * np.cos(lat), np.radians(dy) * m
+    # EPSG:3857: x = a*lon, y = a*ln tan(pi/4 + lat/2) => dlon = dx/a, dlat = cos(lat) dy/a.
+    return dx / WGS84_A_M * n * np.cos(lat), dy / WGS84_A_M * np.cos(lat) * m
+
+
+@dataclass(eq=False)
+class Raster:
+    """Height posts on a georeferenced grid; row 0 south, column 0 west.
+
+    heights: (ny, nx) float32 or float64, metres above ``vertical_datum``; NaN
+    only where a void could not be filled. filled: (ny, nx) bool, True where
+    the post is a filled void, or None when the source had none.
+    """
+
+    heights: np.ndarray
+    georef: Georef
+    name: str = "raster"
+    vertical_datum: str = "EGM96 geoid (mean sea level)"
+    filled: np.ndarray | None = None
+    source: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        h = np.asarray(self.heights)
+        if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
+            raise ValueError(f"heights must be (ny>=2, nx>=2), got shape {h.shape}")
+        if h.dtype not in (np.float32, np.float64):
+            raise ValueError(f"heights must be float32 or float64, got {h.dtype}")
+        h = np.ascontiguousarray(h)
+        h.flags.writeable = False
+        self.heights = h
+        if self.filled is not None:
+            f = np.ascontiguousarray(self.filled, dtype=np.uint8)
+            if f.shape != h.shape:
+                raise ValueError(f"filled must have shape {h.shape}, got {f.shape}")
+            f.flags.writeable = False
+            self.filled = f if f.any() else None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.heights.shape
+
+    @cached_property
+    def _filled_arg(self) -> np.ndarray:
+        return self.filled if self.filled is not None else np.zeros((0, 0), np.uint8)
+
+    @cached_property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(lat_min, lon_min, lat_max, lon_max) in degrees of the outermost posts.
+
+        lon_max may exceed 180 for a raster that crosses the antimeridian.
+        """
+        from terrain.geodesy import web_mercator_inverse
+
+        ny, nx = self.shape
+        g = self.georef
+        x1, y1 = g.post_xy(ny - 1, nx - 1)
+        if g.crs == CRS_GEOGRAPHIC:
+            return (g.y0, g.x0, float(y1), float(x1))
+        lat0, lon0 = web_mercator_inverse(g.x0, g.y0)
+        lat1, lon1 = web_mercator_inverse(x1, y1)
+        return (float(lat0), float(lon0), float(lat1), float(lon1))
+
+    @cached_property
+    def post_spacing_m(self) -> tuple[float, float]:
+        """Ground spacing (east, north) in metres at the raster's centre latitude."""
+        lat_c = 0.5 * (self.bounds[0] + self.bounds[2])
+        ex, ny_ = metres_per_index(self.georef.crs, self.georef.dx, self.georef.dy, lat_c)
+        return float(ex), float(ny_)
+
+    def heights_into(self, lat, lon, out_h, out_status) -> None:
+        """Answer the points of lat/lon (float64 (n,)) still marked OUTSIDE."""
+        g = self.georef
+        bilinear_into(self.heights, self._filled_arg, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy,
+                      out_h, out_status)
+
+    def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
+        """Surface slope dh/d(east metre), dh/d(north metre) for points still OUTSIDE."""
+        g = self.georef
+        todo = out_status == STATUS_OUTSIDE
+        dcol = np.zeros(lat.shape[0])
+        drow = np.zeros(lat.shape[0])
+        st = out_status.copy()
+        gradient_into(self.heights, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, dcol, drow, st)
+        hit = todo & (st != STATUS_OUTSIDE)
+        if hit.any():
+            mx, my = metres_per_index(g.crs, g.dx, g.dy, lat[hit])
+            out_de[hit] = dcol[hit] / mx
+            out_dn[hit] = drow[hit] / my
+            out_status[hit] = st[hit]
+
+    def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float):
+        """This raster if it covers the box (degrees) entirely, else None."""
+        lat0, lon0, lat1, lon1 = self.bounds
+        lon_span = lon1 - lon0
+        west = (lon_min - lon0) % 360.0
+        east = west + (lon_max - lon_min)
+        if lat_min >= lat0 and lat_max <= lat1 and east <= lon_span:
+            return self
+        return None
+
+    def describe(self) -> dict:
+        """Metadata for services and tools (bounds in degrees, spacing in metres)."""
+        lat0, lon0, lat1, lon1 = self.bounds
+        sx, sy = self.post_spacing_m
+        return {
+            "name": self.name,
+            "kind": "dem",
+            "source": self.source,
+            "crs": self.georef.crs_name,
+            "lat_min": lat0, "lon_min": lon0, "lat_max": lat1, "lon_max": lon1,
+            "rows": self.shape[0], "cols": self.shape[1],
+            "spacing_east_m": sx, "spacing_north_m": sy,
+            "vertical_datum": self.vertical_datum,
+            "filled_posts": int(self.filled.sum()) if self.filled is not None else 0,
+        }

@@ -1,0 +1,72 @@
+"""Input checks shared by the library and the services.
+
+Every failure is an :class:`sortie.errors.InvalidArgument` that names the field
+and the first offending index, so a gRPC client can find its bad point.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sortie.errors import InvalidArgument, LimitExceeded
+
+# Longitudes wrap, but a value beyond one extra turn is almost surely a unit or
+# field mix-up (radians, E7 integers), so it is rejected rather than wrapped.
+LON_ABS_MAX_DEG = 540.0
+
+
+def as_1d_f64(name: str, values) -> np.ndarray:
+    """A (n,) float64 view or copy of values; raises naming ``name`` otherwise."""
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise InvalidArgument(name, f"must be a 1-D array, got shape {arr.shape}")
+    return np.ascontiguousarray(arr)
+
+
+def first_bad(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0])
+
+
+def check_finite(name: str, arr: np.ndarray) -> None:
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        i = first_bad(bad)
+        raise InvalidArgument(name, "must be finite", index=i, value=float(arr[i]))
+
+
+def check_latlon(lat, lon, prefix: str = "", max_points: int | None = None):
+    """Validated (lat, lon) float64 (n,) arrays in degrees; argument order (lat, lon)."""
+    lat_name, lon_name = f"{prefix}lat", f"{prefix}lon"
+    lat = as_1d_f64(lat_name, lat)
+    lon = as_1d_f64(lon_name, lon)
+    if lat.shape != lon.shape:
+        raise InvalidArgument(lon_name, f"must have as many values as {lat_name} ({lat.size}), got {lon.size}")
+    if max_points is not None and lat.size > max_points:
+        raise LimitExceeded(lat_name, lat.size, max_points)
+    check_finite(lat_name, lat)
+    check_finite(lon_name, lon)
+    bad = np.abs(lat) > 90.0
+    if bad.any():
+        i = first_bad(bad)
+        raise InvalidArgument(lat_name, "must be within [-90, 90] degrees", index=i, value=float(lat[i]))
+    bad = np.abs(lon) > LON_ABS_MAX_DEG
+    if bad.any():
+        i = first_bad(bad)
+        raise InvalidArgument(lon_name, f"must be within [-{LON_ABS_MAX_DEG:g}, {LON_ABS_MAX_DEG:g}] degrees",
+                              index=i, value=float(lon[i]))
+    return lat, lon
+
+
+def check_heights(name: str, h, n: int) -> np.ndarray:
+    """Validated (n,) float64 heights in metres."""
+    h = as_1d_f64(name, h)
+    if h.size != n:
+        raise InvalidArgument(name, f"must have {n} values, got {h.size}")
+    check_finite(name, h)
+    bad = np.abs(h) > 1.0e8
+    if bad.any():
+        i = first_bad(bad)
+        raise InvalidArgument(name, "must be within +-1e8 m", index=i, value=float(h[i]))
+    return h

