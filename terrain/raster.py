@@ -118,7 +118,7 @@ def _cell(v, n):
 def bilinear_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_h, out_status):
     """Fill out_h/out_status for points whose status is still STATUS_OUTSIDE.
 
-    heights: (ny, nx) float32/float64 posts; filled: (ny, nx) uint8, 1 where a
+    heights: (ny, nx) float32/float64 posts, NaN where no data; filled: (ny, nx) uint8, 1 where a
     void was filled (or shape (0, 0) when none were). Points already answered
     by a higher-priority raster are left alone. Exact at posts: the lerp form
     returns the post value bit for bit when both fractions are 0 or 1.
@@ -139,7 +139,10 @@ def bilinear_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_h, out_sta
         h11 = np.float64(heights[i + 1, j + 1])
         south = h00 * (1.0 - fx) + h01 * fx
         north = h10 * (1.0 - fx) + h11 * fx
-        out_h[k] = south * (1.0 - fy) + north * fy
+        h = south * (1.0 - fy) + north * fy
+        if h != h:  # a NaN post is a hole in coverage: leave it to the next source
+            continue
+        out_h[k] = h
         status = STATUS_OK
         if has_filled and (filled[i, j] | filled[i, j + 1] | filled[i + 1, j] | filled[i + 1, j + 1]):
             status = STATUS_FILLED
@@ -166,6 +169,8 @@ def gradient_into(heights, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, ou
         h01 = np.float64(heights[i, j + 1])
         h10 = np.float64(heights[i + 1, j])
         h11 = np.float64(heights[i + 1, j + 1])
+        if (h00 + h01 + h10 + h11) != (h00 + h01 + h10 + h11):
+            continue
         out_dcol[k] = (h01 - h00) * (1.0 - fy) + (h11 - h10) * fy
         out_drow[k] = (h10 - h00) * (1.0 - fx) + (h11 - h01) * fx
         out_status[k] = STATUS_OK

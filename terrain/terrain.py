@@ -71,3 +71,42 @@ class Terrain:
     def describe(self) -> list[dict]:
         """One dict per source: name, kind, bounds, resolution, vertical datum."""
         return [source.describe() for source in self.sources]
+
+
+@dataclass(frozen=True)
+class ProfileResult:
+    """Heights along one geodesic: every array (n_samples,) float64 except status."""
+
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    distance_m: np.ndarray  # along the geodesic from the start point
+    height_msl_m: np.ndarray
+    status: np.ndarray
+
+
+@dataclass(frozen=True)
+class SegmentResult:
+    """First intersection of each straight (ECEF) segment a -> b with the surface.
+
+    hit: (n,) bool; distance_m: (n,) straight-line metres from a to the hit
+    (NaN if none); lat_deg, lon_deg, height_msl_m: (n,) the hit point;
+    normal_enu: (n, 3) surface normal at the hit; status: (n,) uint8, OUTSIDE
+    when the segment leaves the terrain before any hit.
+    """
+
+    hit: np.ndarray
+    distance_m: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    height_msl_m: np.ndarray
+    normal_enu: np.ndarray
+    status: np.ndarray
+
+
+@dataclass(frozen=True)
+class LosResult:
+    """visible: (n,) bool, True when no terrain lies strictly between a and b;
+    status: (n,) uint8 (OUTSIDE when the ray leaves the terrain: visible False)."""
+
+    visible: np.ndarray
+    status: np.ndarray
