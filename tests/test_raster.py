@@ -1,0 +1,112 @@
+"""Bilinear kernel oracles: exact at posts, scipy agreement, wrapping, coverage."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.interpolate import RegularGridInterpolator
+
+from sortie.errors import InvalidArgument
+from terrain.raster import (CRS_GEOGRAPHIC, CRS_WEB_MERCATOR, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE,
+                            Georef, Raster)
+from terrain.terrain import Terrain
+
+
+def _raster(ny=33, nx=45, seed=0, x0=9.0, y0=47.0, d=1 / 1200, dtype=np.float32):
+    h = np.random.default_rng(seed).normal(500.0, 200.0, (ny, nx)).astype(dtype)
+    return Raster(h, Georef(CRS_GEOGRAPHIC, x0, y0, d, d))
+
+
+def test_exact_at_posts_bit_for_bit():
+    r = _raster(dtype=np.float64)
+    rows, cols = np.meshgrid(np.arange(33), np.arange(45), indexing="ij")
+    lat = 47.0 + rows.ravel() / 1200
+    lon = 9.0 + cols.ravel() / 1200
+    res = Terrain([r]).heights(lat, lon)
+    assert np.array_equal(res.height_msl_m, r.heights[rows.ravel(), cols.ravel()])
+    assert (res.status == STATUS_OK).all()
+
+
+def test_matches_scipy_linear():
+    r = _raster()
+    rng = np.random.default_rng(3)
+    lat = rng.uniform(47.0, 47.0 + 32 / 1200, 5000)
+    lon = rng.uniform(9.0, 9.0 + 44 / 1200, 5000)
+    ref = RegularGridInterpolator((47.0 + np.arange(33) / 1200, 9.0 + np.arange(45) / 1200),
+                                  r.heights.astype(np.float64))(np.c_[lat, lon])
+    # 1e-6 m: both are float64 bilinear; the only difference is rounding order.
+    np.testing.assert_allclose(Terrain([r]).heights(lat, lon).height_msl_m, ref, atol=1e-6, rtol=0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(fr=st.floats(0, 32), fc=st.floats(0, 44))
+def test_bilinear_bounded_by_cell_corners(fr, fc):
+    r = _raster()
+    h = Terrain([r]).heights(47.0 + fr / 1200, 9.0 + fc / 1200).height_msl_m[0]
+    i, j = min(int(fr), 31), min(int(fc), 43)
+    corners = r.heights[i:i + 2, j:j + 2]
+    assert corners.min() - 1e-9 <= h <= corners.max() + 1e-9
+
+
+def test_outside_nan_holes_and_priority():
+    a = _raster(seed=1)
+    hole = np.array(a.heights)
+    hole[10, 10] = np.nan
+    a_holed = Raster(hole, a.georef)
+    b = _raster(seed=2)
+    t = Terrain([a_holed, b])
+    lat = np.array([47.0 + 10 / 1200, 47.0 + 20 / 1200, 10.0])
+    lon = np.array([9.0 + 10 / 1200, 9.0 + 20 / 1200, 10.0])
+    res = t.heights(lat, lon)
+    assert res.height_msl_m[0] == b.heights[10, 10]  # hole answered by the next source
+    assert res.height_msl_m[1] == a.heights[20, 20]  # first source wins where it has data
+    assert res.status[2] == STATUS_OUTSIDE and np.isnan(res.height_msl_m[2])
+
+
+def test_filled_status():
+    r = _raster()
+    filled = np.zeros(r.shape, bool)
+    filled[5, 5] = True
+    t = Terrain([Raster(np.array(r.heights), r.georef, filled=filled)])
+    res = t.heights([47.0 + 5.5 / 1200, 47.0 + 20 / 1200], [9.0 + 4.5 / 1200, 9.0 + 20 / 1200])
+    assert list(res.status) == [STATUS_FILLED, STATUS_OK]
+
+
+def test_antimeridian_wrap():
+    # A raster from 179.5 E eastwards across 180 answers for -179.9 and 180.1 alike.
+    r = _raster(ny=11, nx=13, x0=179.5, y0=0.0, d=0.1)
+    t = Terrain([r])
+    a = t.heights([0.5, 0.5], [-179.9, 180.1])
+    assert a.height_msl_m[0] == pytest.approx(a.height_msl_m[1], abs=1e-9)
+    assert (a.status == STATUS_OK).all()
+    assert t.heights([0.5], [179.4]).status[0] == STATUS_OUTSIDE
+
+
+def test_web_mercator_raster_posts():
+    from terrain.geodesy import web_mercator_inverse
+
+    h = np.arange(20, dtype=np.float32).reshape(4, 5)
+    g = Georef(CRS_WEB_MERCATOR, -12601676.0, 4300000.0, 76.4, 76.4)
+    lat, lon = web_mercator_inverse(-12601676.0 + 3 * 76.4, 4300000.0 + 2 * 76.4)
+    assert Terrain([Raster(h, g)]).heights(lat, lon).height_msl_m[0] == pytest.approx(h[2, 3], abs=1e-6)
+
+
+def test_normals_of_a_plane():
+    # h = 0.01 * east metres: slope atan(0.01), normal (-0.01, 0, 1)/|.|.
+    g = Georef(CRS_GEOGRAPHIC, 9.0, 47.0, 1 / 1200, 1 / 1200)
+    r0 = Raster(np.zeros((3, 3)), g)
+    ex, _ = r0.post_spacing_m
+    cols = np.arange(50)
+    h = np.tile(0.01 * cols * ex, (50, 1))
+    t = Terrain([Raster(h, g)])
+    res = t.normals([47.02], [9.02])
+    # 1e-4 rel: the east spacing varies with latitude across the raster (cos lat).
+    assert res.slope_deg[0] == pytest.approx(np.degrees(np.arctan(0.01)), rel=1e-3)
+    np.testing.assert_allclose(res.normal_enu[0], np.array([-0.01, 0, 1]) / np.hypot(0.01, 1), atol=1e-4)
+
+
+@pytest.mark.parametrize("lat,lon,field", [([np.nan], [0.0], "lat[0]"), ([0.0, 91.0], [0.0, 0.0], "lat[1]"),
+                                           ([0.0], [np.inf], "lon[0]"), ([0.0, 1.0], [0.0], "lon")])
+def test_bad_input_names_field_and_index(lat, lon, field):
+    with pytest.raises(InvalidArgument, match=field.replace("[", r"\[").replace("]", r"\]")):
+        Terrain([_raster()]).heights(lat, lon)
