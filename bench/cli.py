@@ -14,6 +14,7 @@ def add_parser(sub) -> None:
     p.add_argument("suite", choices=SUITES, help="which suite to run")
     p.add_argument("--quick", action="store_true", help="smaller run that finishes in under 60 s")
     p.add_argument("--json", metavar="PATH", help="write the report as JSON to PATH")
+    p.add_argument("--plots", metavar="DIR", help="write speed-against-error plots (PNG) to DIR")
     p.set_defaults(func=run)
 
 
@@ -23,4 +24,11 @@ def run(args) -> int:
     if args.json:
         report.write(args.json)
         print(f"wrote {args.json}")
+    if args.plots:
+        from pathlib import Path
+
+        from bench.plots import PLOTTERS
+
+        for path in PLOTTERS[args.suite](report.to_json(), Path(args.plots)):
+            print(f"wrote {path}")
     return 0
