@@ -110,3 +110,15 @@ def test_normals_of_a_plane():
 def test_bad_input_names_field_and_index(lat, lon, field):
     with pytest.raises(InvalidArgument, match=field.replace("[", r"\[").replace("]", r"\]")):
         Terrain([_raster()]).heights(lat, lon)
+
+
+def test_post_beside_a_hole_keeps_its_value():
+    # Zero-weight corners are not read: a post next to a NaN hole or a filled
+    # void answers with its own value and status.
+    r = _raster(dtype=np.float64)
+    h = np.array(r.heights)
+    h[5, 6] = np.nan
+    h[6, 5] = np.nan
+    res = Terrain([Raster(h, r.georef)]).heights([47.0 + 5 / 1200, 47.0 + 5.5 / 1200], [9.0 + 5 / 1200, 9.0 + 5 / 1200])
+    assert res.height_msl_m[0] == h[5, 5] and res.status[0] == STATUS_OK
+    assert res.status[1] == STATUS_OUTSIDE  # between a post and a hole: no data

@@ -1,0 +1,370 @@
+"""Fractal detail synthesis under real elevation data.
+
+Geometry-clipmap thesis §3.1.9 (after Losasso & Hoppe 2004): where the data
+become too sparse, detail is made by "adding uncorrelated Gaussian noise to the
+upsampled terrain at the sub sample level", the noise variance at each level
+scaled "to equal that in actual terrain, i.e. the variance of the residuals"
+of the compression pyramid (§3.1.8: finer levels predicted from coarser ones
+by interpolatory subdivision).
+
+Here, in a raster's index space (row, col; posts at integers):
+
+* Pyramid residuals (:func:`pyramid_residual_variance`): level l + 1 keeps
+  every other post of level l; level l is predicted from it by bilinear
+  subdivision (edge midpoints: mean of 2, centres: mean of 4) and the residual
+  variance is taken over the new posts only.
+* The variance decays about log-linearly with level; a least-squares line
+  through log2 of the finest measured levels (:func:`fit_sub_level_std`) is
+  extrapolated to the sub-sample levels l = -1, -2, ..., -K, whose lattices
+  have spacing 2^-k posts, down to about ``finest_spacing_m``.
+* Level k's noise lives on its lattice: zero at the posts of the coarser
+  lattice (so the real posts keep their exact heights), sigma_k times a
+  standard Gaussian at the new posts, interpolated bilinearly so the surface
+  is continuous. Since a bilinear function sampled on a finer aligned grid
+  and re-interpolated is unchanged, upsampling level by level and adding each
+  level's noise equals base bilinear + the sum of the levels' bilinear noise
+  (:func:`detail_noise`), which is what is evaluated.
+* Gaussian values come from a table of standard normal quantiles (the
+  thesis's precomputed table) indexed by a counter hash of (seed, level,
+  global lattice row, column) modulo the table size: deterministic per seed,
+  without the visible period of indexing by coordinates modulo the table.
+  Lattice coordinates are global where the raster is aligned to its own
+  spacing (SRTM tiles are), so neighbouring tiles draw the same values on
+  their shared edge.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.special import ndtri
+
+from sortie.errors import InvalidArgument
+from terrain.geodesy import WGS84_A_M
+from terrain.procedural import lattice_hash, mix64
+from terrain.raster import CRS_GEOGRAPHIC, STATUS_OUTSIDE, Georef, Raster, fractional_index, metres_per_index
+
+NOISE_TABLE_SIZE = 1 << 16  # Gaussian quantiles; a power of two so "modulo" is a mask
+FIT_LEVELS = 4  # finest pyramid levels used in the log-linear variance fit
+MAX_SUB_LEVELS = 24  # 90 m / 2^24 is 5 micrometres: deeper is never useful
+# Largest densified raster raster_for builds (32 MiB of float64); bigger boxes
+# get the finest detail level that fits.
+DETAIL_RASTER_MAX_POSTS = 1 << 22
+# A raster origin within this many posts of a whole multiple of its spacing is
+# taken as aligned to the global lattice of that spacing.
+ALIGNMENT_TOLERANCE_POSTS = 1e-6
+
+
+def noise_table(size: int = NOISE_TABLE_SIZE) -> np.ndarray:
+    """(size,) float64 standard normal quantiles at (t + 0.5) / size, exactly mean 0, variance 1."""
+    g = ndtri((np.arange(size) + 0.5) / size)
+    g -= g.mean()
+    return g / np.sqrt(np.mean(g * g))
+
+
+_TABLE = noise_table()
+_TABLE.flags.writeable = False
+
+
+def level_residuals(z: np.ndarray) -> np.ndarray:
+    """Residuals of predicting z from z[::2, ::2] by bilinear subdivision (thesis §3.1.8).
+
+    z: (ny, nx) float heights, metres; an even trailing row/column is dropped
+    so the coarse posts include the last ones. Returns (k,) float64 residuals
+    (actual - predicted) at the new posts only, NaN ones removed.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    z = z[: z.shape[0] - 1 + z.shape[0] % 2, : z.shape[1] - 1 + z.shape[1] % 2]
+    c = z[::2, ::2]
+    east = z[::2, 1::2] - 0.5 * (c[:, :-1] + c[:, 1:])
+    north = z[1::2, ::2] - 0.5 * (c[:-1] + c[1:])
+    centre = z[1::2, 1::2] - 0.25 * ((c[:-1, :-1] + c[:-1, 1:]) + (c[1:, :-1] + c[1:, 1:]))
+    res = np.concatenate([east.ravel(), north.ravel(), centre.ravel()])
+    return res[np.isfinite(res)]
+
+
+def pyramid_residual_variance(heights: np.ndarray, min_residuals: int = 64) -> np.ndarray:
+    """(L,) float64 residual variance (m^2) per pyramid level, finest (l = 0) first.
+
+    heights: (ny, nx) float, metres, NaN for no data. Level l + 1 is every
+    other post of level l; levels stop when fewer than min_residuals finite
+    residuals remain.
+    """
+    z = np.asarray(heights, dtype=np.float64)
+    out = []
+    while min(z.shape) >= 3:
+        res = level_residuals(z)
+        if res.size < min_residuals:
+            break
+        out.append(float(np.var(res)))
+        z = z[: z.shape[0] - 1 + z.shape[0] % 2: 2, : z.shape[1] - 1 + z.shape[1] % 2: 2]
+    return np.array(out)
+
+
+def fit_sub_level_std(variances: np.ndarray, sub_levels: int, fit_levels: int = FIT_LEVELS):
+    """Noise std (m) for sub-sample levels k = 1..sub_levels, and the fit.
+
+    variances: (L,) float64 m^2 from :func:`pyramid_residual_variance`. Fits
+    log2 var = alpha + beta * l over the finest min(L, fit_levels) levels and
+    evaluates it at l = -k. beta is clamped to >= 0 (finer levels never get
+    more variance than coarser ones); with a single level, beta = 0.
+    Returns (std: (sub_levels,) float64, alpha, beta).
+    """
+    v = np.asarray(variances, dtype=np.float64)[:fit_levels]
+    lv = np.flatnonzero(v > 0).astype(np.float64)  # a flat level (variance 0) has no logarithm
+    v = v[v > 0]
+    if v.size == 0:
+        return np.zeros(sub_levels), -math.inf, 0.0
+    if v.size == 1:
+        alpha, beta = float(np.log2(v[0])), 0.0
+    else:
+        beta, alpha = (float(x) for x in np.polyfit(lv, np.log2(v), 1))
+        beta = max(beta, 0.0)
+    k = np.arange(1, sub_levels + 1, dtype=np.float64)
+    return np.sqrt(np.exp2(alpha - beta * k)), alpha, beta
+
+
+@numba.njit(cache=True, nogil=True)
+def _lattice_noise(seed_hash, level, gi, gj, std, table):
+    """Noise of one level at global lattice post (gi, gj): 0 on the coarser lattice.
+
+    The table index is lattice_hash(seed, level, gi, gj) modulo the table size.
+    """
+    if (gi | gj) & 1 == 0:
+        return 0.0
+    h = mix64(seed_hash ^ np.uint64(level))
+    h = mix64(h ^ np.uint64(gi))
+    h = mix64(h ^ np.uint64(gj))
+    return std * table[h & np.uint64(table.shape[0] - 1)]
+
+
+@numba.njit(cache=True, nogil=True)
+def _detail_kernel(rows, cols, level_std_m, seed_hash, table, ny, nx, row_offset, col_offset, col_period,
+                   out, d_row, d_col):
+    for p in range(rows.shape[0]):
+        acc = 0.0
+        acc_r = 0.0
+        acc_c = 0.0
+        for lv in range(1, level_std_m.shape[0] + 1):
+            scale = float(1 << lv)
+            u = rows[p] * scale
+            v = cols[p] * scale
+            i = min(math.floor(u), (ny - 1) * scale - 1.0)
+            j = min(math.floor(v), (nx - 1) * scale - 1.0)
+            fy = u - i
+            fx = v - j
+            gi = np.int64(i) + (row_offset << lv)
+            gj = np.int64(j) + (col_offset << lv)
+            gj1 = gj + 1
+            if col_period > 0:
+                gj = gj % (col_period << lv)
+                gj1 = gj1 % (col_period << lv)
+            std = level_std_m[lv - 1]
+            v00 = _lattice_noise(seed_hash, lv, gi, gj, std, table)
+            v01 = _lattice_noise(seed_hash, lv, gi, gj1, std, table)
+            v10 = _lattice_noise(seed_hash, lv, gi + 1, gj, std, table)
+            v11 = _lattice_noise(seed_hash, lv, gi + 1, gj1, std, table)
+            south = v00 * (1.0 - fx) + v01 * fx
+            north = v10 * (1.0 - fx) + v11 * fx
+            acc += south * (1.0 - fy) + north * fy
+            acc_r += scale * (north - south)
+            acc_c += scale * ((v01 - v00) * (1.0 - fy) + (v11 - v10) * fy)
+        out[p] = acc
+        d_row[p] = acc_r
+        d_col[p] = acc_c
+
+
+def detail_noise(rows, cols, level_std_m, seed: int, shape, row_offset: int = 0, col_offset: int = 0,
+                 col_period: int = 0):
+    """Synthesised detail at fractional raster indices: sum over sub-levels of bilinear noise.
+
+    rows, cols: (n,) float64 fractional (row, col) in the raster's index
+    space; level_std_m: (K,) float64 noise std (m) of levels k = 1..K
+    (lattice spacing 2^-k posts); shape: the raster's (ny, nx), for the
+    far-edge cell choice; row_offset, col_offset: global lattice index of the
+    raster's post (0, 0); col_period: posts per turn of longitude (0: no
+    wrap). Returns (detail, d/drow, d/dcol), each (n,) float64: metres, and
+    metres per post index (the north-east cell on a lattice line).
+    """
+    rows = np.ascontiguousarray(rows, dtype=np.float64)
+    cols = np.ascontiguousarray(cols, dtype=np.float64)
+    if rows.ndim != 1 or rows.shape != cols.shape:
+        raise ValueError(f"rows and cols must be equal (n,) arrays, got shapes {rows.shape} and {cols.shape}")
+    out, d_row, d_col = np.zeros(rows.shape), np.zeros(rows.shape), np.zeros(rows.shape)
+    seed_hash = lattice_hash(seed)[()]
+    _detail_kernel(rows, cols, np.ascontiguousarray(level_std_m, dtype=np.float64), seed_hash, _TABLE,
+                   shape[0], shape[1], row_offset, col_offset, col_period, out, d_row, d_col)
+    return out, d_row, d_col
+
+
+@numba.njit(cache=True, nogil=True)
+def _fractional_indices(lat, lon, crs, x0, y0, dx, dy):
+    """(n,) float64 (row, col) of each (lat, lon) via terrain.raster.fractional_index."""
+    rows = np.zeros(lat.shape[0])
+    cols = np.zeros(lat.shape[0])
+    for k in range(lat.shape[0]):
+        rows[k], cols[k] = fractional_index(lat[k], lon[k], crs, x0, y0, dx, dy)
+    return rows, cols
+
+
+def _bilinear_at_index(heights, rows, cols):
+    """Bilinear heights (m) at fractional indices inside the grid, float64, same cell rule as the raster."""
+    ny, nx = heights.shape
+    i = np.minimum(np.floor(rows), ny - 2).astype(np.intp)
+    j = np.minimum(np.floor(cols), nx - 2).astype(np.intp)
+    fy, fx = rows - i, cols - j
+    h = heights.astype(np.float64, copy=False)
+    south = h[i, j] * (1.0 - fx) + h[i, j + 1] * fx
+    north = h[i + 1, j] * (1.0 - fx) + h[i + 1, j + 1] * fx
+    return south * (1.0 - fy) + north * fy
+
+
+def _aligned_offset(origin: float, spacing: float) -> int:
+    q = origin / spacing
+    return int(round(q)) if abs(q - round(q)) < ALIGNMENT_TOLERANCE_POSTS else 0
+
+
+class DetailedRaster:
+    """A Raster with deterministic fractal detail below its post spacing.
+
+    A height source for :class:`terrain.terrain.Terrain`. Heights at the
+    raster's posts are exact; between them, sub-levels k = 1..K (lattice
+    spacing 2^-k posts, the finest at or below ``finest_spacing_m``) add
+    Gaussian noise whose std per level comes from the raster's own pyramid
+    residuals (or ``level_std_m`` when given, e.g. one fit shared by a
+    mosaic's tiles).
+    """
+
+    def __init__(self, raster: Raster, seed: int, finest_spacing_m: float = 1.0, fit_levels: int = FIT_LEVELS,
+                 level_std_m=None, name: str | None = None):
+        if not isinstance(raster, Raster):
+            raise TypeError(f"raster must be a terrain.raster.Raster, got {type(raster).__name__}")
+        if not (math.isfinite(finest_spacing_m) and finest_spacing_m > 0):
+            raise InvalidArgument("finest_spacing_m", "must be finite and > 0", value=finest_spacing_m)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**64:
+            raise InvalidArgument("seed", "must be an integer within [0, 2^64)", value=seed)
+        self.raster = raster
+        self.seed = int(seed)
+        self.name = name or f"{raster.name}+detail"
+        self.finest_spacing_m = float(finest_spacing_m)
+        coarse_m = max(raster.post_spacing_m)
+        self.sub_levels = min(MAX_SUB_LEVELS, max(0, math.ceil(math.log2(coarse_m / finest_spacing_m))))
+        self.residual_variance_m2 = pyramid_residual_variance(raster.heights)
+        if level_std_m is None:
+            std, self.fit_alpha, self.fit_beta = fit_sub_level_std(self.residual_variance_m2, self.sub_levels,
+                                                                   fit_levels)
+        else:
+            std = np.array(level_std_m, dtype=np.float64)
+            if std.shape != (self.sub_levels,) or not np.all(np.isfinite(std) & (std >= 0)):
+                raise InvalidArgument("level_std_m", f"must be ({self.sub_levels},) finite values >= 0", value=std)
+            self.fit_alpha, self.fit_beta = math.nan, math.nan
+        std.flags.writeable = False
+        self.level_std_m = std
+        g = raster.georef
+        self.row_offset = _aligned_offset(g.y0, g.dy)
+        self.col_offset = _aligned_offset(g.x0, g.dx)
+        turn = 360.0 / g.dx if g.crs == CRS_GEOGRAPHIC else 0.0
+        self.col_period = int(round(turn)) if turn and abs(turn - round(turn)) < ALIGNMENT_TOLERANCE_POSTS else 0
+
+    def detail_at_index(self, rows, cols, levels: int | None = None):
+        """(detail, d/drow, d/dcol) at fractional raster indices (n,) float64; see :func:`detail_noise`.
+
+        levels: use only sub-levels 1..levels (default all).
+        """
+        std = self.level_std_m if levels is None else self.level_std_m[:levels]
+        return detail_noise(rows, cols, std, self.seed, self.raster.shape, self.row_offset, self.col_offset,
+                            self.col_period)
+
+    def heights_into(self, lat, lon, out_h, out_status) -> None:
+        """Heights (m, the raster's datum) with detail for the points still OUTSIDE.
+
+        lat, lon: (n,) float64 degrees, (lat, lon) order. Exact at the raster's
+        posts; status as the raster reports it.
+        """
+        todo = out_status == STATUS_OUTSIDE
+        self.raster.heights_into(lat, lon, out_h, out_status)
+        hit = np.flatnonzero(todo & (out_status != STATUS_OUTSIDE))
+        if hit.size and self.sub_levels:
+            rows, cols = self._indices(lat[hit], lon[hit])
+            out_h[hit] += self.detail_at_index(rows, cols)[0]
+
+    def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
+        """dh/d(east metre), dh/d(north metre) of the detailed surface for points still OUTSIDE."""
+        todo = out_status == STATUS_OUTSIDE
+        self.raster.gradient_into(lat, lon, out_de, out_dn, out_status)
+        hit = np.flatnonzero(todo & (out_status != STATUS_OUTSIDE))
+        if hit.size and self.sub_levels:
+            rows, cols = self._indices(lat[hit], lon[hit])
+            _, d_row, d_col = self.detail_at_index(rows, cols)
+            g = self.raster.georef
+            mx, my = metres_per_index(g.crs, g.dx, g.dy, lat[hit])
+            out_de[hit] += d_col / mx
+            out_dn[hit] += d_row / my
+
+    def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float):
+        """A densified Raster of the detailed surface over the box, or None if not covered.
+
+        Posts on the finest sub-level lattice whose posts in the box number at
+        most DETAIL_RASTER_MAX_POSTS; its bilinear surface then equals this
+        source's wherever that is the finest level (coarser levels for big
+        boxes: the omitted detail is in ``meta["omitted_detail_std_m"]``).
+        lon_max < lon_min means the box crosses the antimeridian.
+        """
+        span = lon_max - lon_min if lon_max >= lon_min else lon_max - lon_min + 360.0
+        base = self.raster.raster_for(lat_min, lon_min, lat_max, lon_min + span)
+        if base is None or self.sub_levels == 0:
+            return base
+        g = self.raster.georef
+        ny, nx = self.raster.shape
+        (r_lo, r_hi), (c_lo, _) = _fractional_indices(np.array([lat_min, lat_max]), np.array([lon_min, lon_min]),
+                                                      g.crs, g.x0, g.y0, g.dx, g.dy)
+        c_hi = c_lo + (span if g.crs == CRS_GEOGRAPHIC else math.radians(span) * WGS84_A_M) / g.dx
+        level = self.sub_levels
+        while level > 0 and _lattice_posts(r_lo, r_hi, c_lo, c_hi, level) > DETAIL_RASTER_MAX_POSTS:
+            level -= 1
+        if level == 0:
+            return base
+        scale = float(1 << level)
+        i0 = int(math.floor(r_lo * scale))
+        i1 = max(i0 + 1, min(int(math.ceil(r_hi * scale)), int((ny - 1) * scale)))
+        i0 = min(i0, i1 - 1)
+        j0 = int(math.floor(c_lo * scale))
+        j1 = max(j0 + 1, min(int(math.ceil(c_hi * scale)), int((nx - 1) * scale)))
+        j0 = min(j0, j1 - 1)
+        rows, cols = np.meshgrid(np.arange(i0, i1 + 1) / scale, np.arange(j0, j1 + 1) / scale, indexing="ij")
+        rows, cols = rows.ravel(), cols.ravel()
+        dense = _bilinear_at_index(self.raster.heights, rows, cols) + self.detail_at_index(rows, cols, level)[0]
+        omitted = float(np.sqrt(np.sum(self.level_std_m[level:] ** 2)))
+        return Raster(dense.reshape(i1 - i0 + 1, j1 - j0 + 1),
+                      Georef(g.crs, g.x0 + j0 * g.dx / scale, g.y0 + i0 * g.dy / scale, g.dx / scale, g.dy / scale),
+                      name=self.name, vertical_datum=self.raster.vertical_datum, source=self.raster.source,
+                      meta={"detail_levels": level, "omitted_detail_std_m": omitted})
+
+    def describe(self) -> dict:
+        """The raster's description with kind "dem+detail" and the synthesis parameters."""
+        d = self.raster.describe()
+        d.update({
+            "name": self.name,
+            "kind": "dem+detail",
+            "detail_seed": self.seed,
+            "detail_levels": self.sub_levels,
+            "detail_finest_spacing_m": self.finest_spacing_m,
+            "detail_level_std_m": [float(s) for s in self.level_std_m],
+            "residual_variance_m2": [float(v) for v in self.residual_variance_m2],
+            "fit_log2_variance_alpha": self.fit_alpha,
+            "fit_log2_variance_beta": self.fit_beta,
+        })
+        return d
+
+    def _indices(self, lat, lon):
+        g = self.raster.georef
+        return _fractional_indices(np.ascontiguousarray(lat), np.ascontiguousarray(lon), g.crs, g.x0, g.y0, g.dx,
+                                   g.dy)
+
+
+def _lattice_posts(r_lo, r_hi, c_lo, c_hi, level):
+    scale = float(1 << level)
+    return (math.ceil(r_hi * scale) - math.floor(r_lo * scale) + 1) * (math.ceil(c_hi * scale)
+                                                                       - math.floor(c_lo * scale) + 1)

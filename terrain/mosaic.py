@@ -1,0 +1,274 @@
+"""Mosaic: several DEM rasters -> the fewest rasters that keep seams continuous.
+
+This is the thesis's height-raster conversion step (several tiles in, one
+terrain out). Rasters with the same CRS, post spacing and vertical datum whose
+post grids align (origins a whole number of posts apart, within
+``ALIGN_TOLERANCE_POSTS``) and that touch or overlap are copied into one
+raster over their bounding box, so the bilinear surface is continuous across
+tile seams: SRTM neighbours share their edge row or column, and cell-centred
+tiles that abut one post apart get the cell between them.
+
+Priority is input order. Where two merged rasters both have a post the earlier
+one wins, and ``meta`` records how much they disagreed. A raster joins a merge
+only if that cannot hand one of its posts priority over an earlier raster
+outside the merge (that is, no such raster lies between them in the input
+order and overlaps the merged box); otherwise it stays a separate entry.
+Aligned rasters that do not touch stay separate too, so two distant tiles
+never cost a bounding box of NaN.
+
+Gaps: posts of the merged box that no raster covers. A gap region enclosed by
+data (not touching the box's outer edge) is filled by the harmonic rule of
+:mod:`terrain.dem` and marked filled; a gap touching the outer edge stays NaN,
+which the query kernel reports as STATUS_OUTSIDE so a lower-priority source
+can answer there.
+
+Longitude wraps for geographic rasters: tiles E179 and W180 merge into one
+raster with x0 = 179 that runs on to 181 (the kernel reads longitude modulo
+360 east of x0).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.ndimage
+
+from sortie.errors import LimitExceeded
+from terrain.dem import fill_voids, read_dem
+from terrain.raster import CRS_GEOGRAPHIC, Georef, Raster, grid_bounds
+
+log = logging.getLogger(__name__)
+
+# Post grids align when every post of one lands within this fraction of a
+# post on a post of the other (1e-6 of a 90 m post is 0.1 mm).
+ALIGN_TOLERANCE_POSTS = 1e-6
+
+# Largest merged raster: a 3 x 3 block of SRTM1 tiles (10801^2 = 116.7 M
+# posts, 467 MB as float32). Anything bigger is refused rather than swapped.
+MOSAIC_MAX_POSTS = 120_000_000
+
+FULL_TURN_DEG = 360.0
+
+
+def load_sources(paths) -> list[Raster]:
+    """Read DEM files (see :func:`terrain.dem.read_dem`) and mosaic them.
+
+    paths: file paths in priority order (first wins where they overlap).
+    Returns rasters in priority order, ready for ``Terrain(sources)``.
+    """
+    return mosaic([read_dem(p) for p in paths])
+
+
+def mosaic(rasters) -> list[Raster]:
+    """Merge aligned, touching rasters; keep the rest as they are.
+
+    rasters: Raster objects in priority order. Returns a list in priority
+    order (each entry placed where its highest-priority member was); a raster
+    that merges with nothing is returned as the same object.
+    """
+    rasters = list(rasters)
+    groups: list[list[int]] = []
+    for i in range(len(rasters)):
+        home = next((g for g in groups if _can_merge(rasters, groups, g + [i])), None)
+        if home is None:
+            groups.append([i])
+            continue
+        home.append(i)
+        _absorb_bridged(rasters, groups, home)
+    return [rasters[g[0]] if len(g) == 1 else _composite([rasters[i] for i in sorted(g)])
+            for g in sorted(groups, key=min)]
+
+
+def _absorb_bridged(rasters: list[Raster], groups: list[list[int]], home: list[int]) -> None:
+    """Merge into ``home`` every group that its newest member now connects it to."""
+    absorbed = True
+    while absorbed:
+        absorbed = False
+        for other in groups:
+            if other is not home and _can_merge(rasters, groups, home + other):
+                home += other
+                groups[:] = [g for g in groups if g is not other]
+                absorbed = True
+                break
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where member rasters go in a merged grid.
+
+    georef: the merged grid's posts; shape: (ny, nx); offsets: (row, col) of
+    each member's post (0, 0) in the merged grid, in member order.
+    """
+
+    georef: Georef
+    shape: tuple[int, int]
+    offsets: tuple[tuple[int, int], ...]
+
+
+def _can_merge(rasters: list[Raster], groups: list[list[int]], members: list[int]) -> bool:
+    members = sorted(members)
+    chosen = [rasters[i] for i in members]
+    if not all(aligned(chosen[0], r) for r in chosen[1:]):
+        return False
+    placement = place(chosen)
+    if not _connected(chosen, placement):
+        return False
+    box = grid_bounds(placement.georef, placement.shape)
+    first = members[0]
+    group_start = {i: min(g) for g in groups for i in g}
+    # A raster ranked between the members, that would be listed after the
+    # merged one, must not lie under it: the later members would override it.
+    for j in range(first + 1, members[-1]):
+        if j not in members and group_start[j] > first and _boxes_intersect(box, rasters[j].bounds):
+            return False
+    return True
+
+
+def aligned(a: Raster, b: Raster) -> bool:
+    """True when a and b can share one grid: same CRS, datum, spacing, post phase."""
+    ga, gb = a.georef, b.georef
+    if ga.crs != gb.crs or a.vertical_datum != b.vertical_datum:
+        return False
+    # Spacing: b's far posts must stay within tolerance of a's grid.
+    for da, db, n in ((ga.dx, gb.dx, max(a.shape[1], b.shape[1])), (ga.dy, gb.dy, max(a.shape[0], b.shape[0]))):
+        if abs(db / da - 1.0) * (n - 1) > ALIGN_TOLERANCE_POSTS:
+            return False
+    dcol = (gb.x0 - ga.x0) / ga.dx
+    if _wraps(ga):
+        dcol %= FULL_TURN_DEG / ga.dx
+    drow = (gb.y0 - ga.y0) / ga.dy
+    return _near_whole(dcol, ga) and abs(drow - round(drow)) <= ALIGN_TOLERANCE_POSTS
+
+
+def _near_whole(dcol: float, g: Georef) -> bool:
+    if abs(dcol - round(dcol)) <= ALIGN_TOLERANCE_POSTS:
+        return True
+    # dcol taken modulo a turn may sit just below the period: that is 0.
+    return _wraps(g) and abs(dcol - FULL_TURN_DEG / g.dx) <= ALIGN_TOLERANCE_POSTS
+
+
+def _wraps(g: Georef) -> bool:
+    """Geographic grids whose posts repeat every 360 degrees can wrap in longitude."""
+    if g.crs != CRS_GEOGRAPHIC:
+        return False
+    period = FULL_TURN_DEG / g.dx
+    return abs(period - round(period)) <= ALIGN_TOLERANCE_POSTS
+
+
+def place(members: list[Raster]) -> Placement:
+    """Merged grid and member offsets for aligned rasters (see :func:`aligned`).
+
+    Geographic grids that wrap are laid out from the member whose x0 gives the
+    narrowest span, every other x0 moved east of it by whole turns; so E179
+    then W180 gives x0 = 179 and the W180 tile at 180..181.
+    """
+    ref = members[0].georef
+    dx, dy = ref.dx, ref.dy
+    xs = [m.georef.x0 for m in members]
+    if _wraps(ref):
+        best = None
+        for k, xk in enumerate(xs):
+            east = [_east_of(x, xk, dx) for x in xs]
+            span = max(e + (m.shape[1] - 1) * dx for e, m in zip(east, members))
+            if best is None or span < best[0] - 0.5 * dx:
+                best = (span, xk, east)
+        _, x0, east = best
+    else:
+        x0 = min(xs)
+        east = [x - x0 for x in xs]
+    y0 = min(m.georef.y0 for m in members)
+    offsets = tuple((round((m.georef.y0 - y0) / dy), round(e / dx)) for m, e in zip(members, east))
+    ny = max(r + m.shape[0] for (r, _), m in zip(offsets, members))
+    nx = max(c + m.shape[1] for (_, c), m in zip(offsets, members))
+    return Placement(Georef(ref.crs, x0, y0, dx, dy), (ny, nx), offsets)
+
+
+def _east_of(x: float, start: float, dx: float) -> float:
+    """Degrees from start east to x, in [0, 360); a hair below 360 is 0."""
+    d = (x - start) % FULL_TURN_DEG
+    return 0.0 if FULL_TURN_DEG - d <= ALIGN_TOLERANCE_POSTS * dx else d
+
+
+def _connected(members: list[Raster], placement: Placement) -> bool:
+    """True when the members' post boxes, grown by one post, link them all."""
+    boxes = [(r, c, r + m.shape[0] - 1, c + m.shape[1] - 1) for (r, c), m in zip(placement.offsets, members)]
+    reached = {0}
+    frontier = [0]
+    while frontier:
+        a = boxes[frontier.pop()]
+        for k, b in enumerate(boxes):
+            if k not in reached and a[0] <= b[2] + 1 and b[0] <= a[2] + 1 and a[1] <= b[3] + 1 and b[1] <= a[3] + 1:
+                reached.add(k)
+                frontier.append(k)
+    return len(reached) == len(boxes)
+
+
+def _boxes_intersect(a, b) -> bool:
+    """Whether two (lat_min, lon_min, lat_max, lon_max) boxes meet; longitude wraps."""
+    if a[0] > b[2] or b[0] > a[2]:
+        return False
+    wa, wb = a[3] - a[1], b[3] - b[1]
+    if wa >= FULL_TURN_DEG or wb >= FULL_TURN_DEG:
+        return True
+    return (b[1] - a[1]) % FULL_TURN_DEG <= wa or (a[1] - b[1]) % FULL_TURN_DEG <= wb
+
+
+def _composite(members: list[Raster]) -> Raster:
+    """One raster from aligned, connected members (priority order)."""
+    placement = place(members)
+    ny, nx = placement.shape
+    if ny * nx > MOSAIC_MAX_POSTS:
+        raise LimitExceeded(f"mosaic of {', '.join(m.name for m in members)} (posts)", ny * nx, MOSAIC_MAX_POSTS)
+    dtype = np.float32 if all(m.heights.dtype == np.float32 for m in members) else np.float64
+    heights = np.full((ny, nx), np.nan, dtype)
+    filled = np.zeros((ny, nx), bool)
+    overlap_posts = 0
+    disagreeing = 0
+    max_diff = 0.0
+    for m, (r, c) in zip(members, placement.offsets):
+        window = (slice(r, r + m.shape[0]), slice(c, c + m.shape[1]))
+        target = heights[window]
+        src = m.heights
+        has = ~np.isnan(src)
+        both = has & ~np.isnan(target)
+        if both.any():
+            diff = np.abs(target[both].astype(np.float64) - src[both])
+            overlap_posts += int(both.sum())
+            disagreeing += int(np.count_nonzero(diff))
+            max_diff = max(max_diff, float(diff.max()))
+        take = has & np.isnan(target)
+        target[take] = src[take]
+        if m.filled is not None:
+            filled[window][take] = m.filled[take].astype(bool)
+    gaps = np.isnan(heights)
+    enclosed = _enclosed(gaps)
+    if enclosed.any():
+        heights[enclosed] = fill_voids(heights, enclosed)
+        filled |= enclosed
+    meta = {
+        "format": "mosaic",
+        "members": [{"name": m.name, "source": m.source, "row": r, "col": c, "shape": m.shape}
+                    for m, (r, c) in zip(members, placement.offsets)],
+        "overlap_posts": overlap_posts,
+        "overlap_disagreeing_posts": disagreeing,
+        "overlap_max_abs_diff_m": max_diff,
+        "gap_posts_filled": int(enclosed.sum()),
+        "gap_posts_outside": int(gaps.sum() - enclosed.sum()),
+    }
+    if disagreeing:
+        log.info("mosaic: %d of %d shared posts disagree, by up to %.3f m; earlier sources win",
+                 disagreeing, overlap_posts, max_diff)
+    return Raster(heights, placement.georef, name="+".join(m.name for m in members),
+                  vertical_datum=members[0].vertical_datum, filled=filled,
+                  source="; ".join(m.source for m in members), meta=meta)
+
+
+def _enclosed(gaps: np.ndarray) -> np.ndarray:
+    """(ny, nx) bool: gap posts whose 4-connected region does not touch the outer edge."""
+    labels, n = scipy.ndimage.label(gaps)
+    if n == 0:
+        return np.zeros(gaps.shape, bool)
+    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    return gaps & ~np.isin(labels, edge)

@@ -1,0 +1,495 @@
+"""Unbounded procedural terrain by midpoint displacement on a global lattice.
+
+Ammeter & Mikhailyuk, "Generation and Rendering of Virtual Terrain", §3: the
+world is made of square blocks of (n + 1) x (n + 1) height posts, n a power of
+two. A block's corners are set first (level 0); at each level L = 1, 2, ...
+every square's centre takes the mean A of its 4 corners and every edge
+midpoint the mean of its 2 endpoints (the paper's scheme, not diamond-square),
+and each new post is displaced:
+
+    H = A + (R - W) (1 + A)^2 M / L^E                                  (§3)
+
+R uniform in [0, 1), M > 0 the maximum height, E > 1 the level exponent
+(roughness), 0 <= W <= 1 the water parameter. (The paper's prose says E = 2
+"halves" the displacement per step; its formula divides by L^E, which is what
+is implemented.)
+
+Interpretation choices, each needed to make the formula well defined:
+
+* **Normalised heights.** (1 + A)^2 only makes sense with A dimensionless, so
+  the recursion runs on a = H / M: ``a' = a + (R - W) (1 + a)^2 / L^E`` and
+  H = M a. This is the formula as written with A measured in units of M.
+* **Bounded growth.** Unclamped, (1 + a)^2 feeds on itself (a = 1 gives
+  a' = 5, then 23, ...: heights blow up for E near 1), and below a = -1 it
+  grows again, roughening the deepest water, the opposite of the paper's
+  intent. The factor is therefore (clip(1 + a, 0, 2))^2, in [0, 4], equal to
+  the paper's on the design range -1 <= a <= 1. By induction over levels
+  every height then lies in
+  ``[-W M (1 + 4 S), (1 - W) M (1 + 4 S)]`` with S = sum_{L=1}^{log2 n} L^-E
+  (:func:`height_bounds_m`), for every M > 0, E > 1, 0 <= W <= 1.
+* **Level 0.** The formula is undefined at L = 0; block corners take
+  H = (R - W) M, the formula with A = 0 and L = 1.
+* **Water.** H < 0 is lake or sea bed under water at sea level (§3: "points
+  below sea level are covered with water at height 0"). Queries
+  (``heights_into``, ``gradient_into``, ``raster_for``) answer the surface a
+  vehicle meets: posts max(H, 0), interpolated bilinearly. The raw bed H stays
+  available per block (:meth:`ProceduralTerrain.block`) for renderers that
+  draw the water plane themselves.
+
+Seamless by construction, in any generation order: blocks sit on one global
+lattice of posts (row 0 at latitude -90, column 0 at longitude -180, spacing
+360 / ``posts_per_turn`` degrees, a whole number of blocks per turn of
+longitude and per half turn of latitude), R of each post is a counter-based
+hash of (seed, global row, global column) (:func:`lattice_uniform`), and a
+post's level is fixed by its global position. A post on a shared edge is
+computed from that edge alone (endpoints and edge midpoints), so both blocks
+compute it with the same operations on the same values: bit for bit equal,
+without the paper's look-up of existing neighbours. Columns wrap modulo the
+turn, so the antimeridian is an ordinary seam. The pole rows (global rows 0
+and ``posts_per_turn / 2``) hash column 0 for every column and get no
+displacement, so each pole is a single height.
+
+Heights are metres above mean sea level; argument order is always (lat, lon)
+in degrees.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from sortie.errors import InvalidArgument, LimitExceeded
+from terrain.raster import (CRS_GEOGRAPHIC, POST_SNAP_TOLERANCE, STATUS_OK, STATUS_OUTSIDE, Georef, Raster,
+                            metres_per_index)
+
+DEFAULT_POSTS_PER_TURN = 2**19  # 360 / 2^19 deg = 0.000687 deg: 76.4 m north-south
+DEFAULT_BLOCK_CELLS = 256  # 257 x 257 posts, 19.6 km north-south per block
+# LRU capacity in blocks. A block holds bed and surface, 2 x 257^2 float64 =
+# 1.06 MB at the default size, so the default cache stays under 70 MB.
+DEFAULT_CACHE_BLOCKS = 64
+# Largest raster_for box, in posts (64 MiB of float64): a box of about
+# 220 km x 220 km at the default spacing near the equator.
+RASTER_FOR_MAX_POSTS = 1 << 23
+# Upper clamp of the roughness factor's base (1 + a): see the module docstring.
+ROUGHNESS_BASE_MAX = 2.0
+# Spherical radius used only to decide which blocks are near a viewer (IUGG mean
+# radius R1); the 0.5 % spherical error is far below a block's size.
+MEAN_EARTH_RADIUS_M = 6371008.8
+
+_GOLDEN_GAMMA = np.uint64(0x9E3779B97F4A7C15)
+_MIX_1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX_2 = np.uint64(0x94D049BB133111EB)
+_SHIFT_27, _SHIFT_30, _SHIFT_31 = np.uint64(27), np.uint64(30), np.uint64(31)
+_UNIT_53 = 2.0**-53
+
+
+@numba.njit(cache=True, nogil=True)
+def mix64(x):
+    """SplitMix64 (Steele, Lea & Flood, OOPSLA 2014) of one uint64: x + gamma, then the finaliser.
+
+    Arithmetic wraps modulo 2^64. Callable from numba kernels; the one
+    definition of the hash every lattice in terrain/ uses.
+    """
+    z = x + _GOLDEN_GAMMA
+    z = (z ^ (z >> _SHIFT_30)) * _MIX_1
+    z = (z ^ (z >> _SHIFT_27)) * _MIX_2
+    return z ^ (z >> _SHIFT_31)
+
+
+@numba.njit(cache=True, nogil=True)
+def _mix64_flat(x):
+    out = np.zeros(x.shape[0], dtype=np.uint64)
+    for k in range(x.shape[0]):
+        out[k] = mix64(x[k])
+    return out
+
+
+def splitmix64(x) -> np.ndarray:
+    """:func:`mix64` over a uint64 array of any shape; returns the same shape."""
+    x = np.asarray(x, dtype=np.uint64)
+    return _mix64_flat(np.ascontiguousarray(x).reshape(-1)).reshape(x.shape)
+
+
+def lattice_hash(seed: int, *coords) -> np.ndarray:
+    """Counter-based hash of (seed, coords...): uint64, shape of the broadcast coords.
+
+    coords: integer arrays (int64 or uint64; negative values are taken modulo
+    2^64). h = mix64(seed), then h = mix64(h ^ c) for each coordinate c, so
+    equal inputs give equal bits on every machine and in any evaluation order.
+    """
+    h = splitmix64(np.uint64(seed))
+    for c in coords:
+        c = np.asarray(c)
+        c = c.astype(np.int64).view(np.uint64) if c.dtype.kind == "i" else c.astype(np.uint64)
+        h = splitmix64(h ^ c)
+    return h
+
+
+def lattice_uniform(seed: int, rows, cols) -> np.ndarray:
+    """R in [0, 1) for global lattice posts: float64, shape of broadcast(rows, cols).
+
+    The top 53 bits of :func:`lattice_hash` scaled by 2^-53.
+    """
+    return (lattice_hash(seed, rows, cols) >> np.uint64(11)).astype(np.float64) * _UNIT_53
+
+
+def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: float,
+                          pinned_rows: np.ndarray | None = None) -> np.ndarray:
+    """Normalised heights a = H / M of one block by the paper's subdivision (§3).
+
+    uniform: (n + 1, n + 1) float64, R of each post, n a power of two.
+    pinned_rows: (n + 1,) bool, rows whose posts get no displacement (the
+    poles), or None. Returns (n + 1, n + 1) float64, dimensionless.
+
+    Vectorised per level: all centres and edge midpoints of a level are set at
+    once from the previous level's posts.
+    """
+    size = uniform.shape[0]
+    n = size - 1
+    if uniform.shape != (size, size) or n < 1 or n & (n - 1):
+        raise ValueError(f"uniform must be (n + 1, n + 1) with n a power of two, got shape {uniform.shape}")
+    moves = np.ones((size, 1)) if pinned_rows is None else (~pinned_rows).astype(np.float64)[:, None]
+    a = np.zeros((size, size))
+    a[::n, ::n] = uniform[::n, ::n] - water  # level 0: A = 0, L = 1
+    s, level = n, 1
+    while s > 1:
+        h = s // 2
+        lo, hi = slice(0, n, s), slice(s, None, s)
+        centre = 0.25 * ((a[lo, lo] + a[lo, hi]) + (a[hi, lo] + a[hi, hi]))
+        along_row = 0.5 * (a[::s, lo] + a[::s, hi])  # midpoints of east-west edges
+        along_col = 0.5 * (a[lo, ::s] + a[hi, ::s])  # midpoints of north-south edges
+        for rows, cols, mean in ((slice(h, None, s), slice(h, None, s), centre),
+                                 (slice(0, None, s), slice(h, None, s), along_row),
+                                 (slice(h, None, s), slice(0, None, s), along_col)):
+            base = np.clip(1.0 + mean, 0.0, ROUGHNESS_BASE_MAX)
+            step = (uniform[rows, cols] - water) * (base * base) / level**level_exponent
+            a[rows, cols] = mean + step * moves[rows]
+        s, level = h, level + 1
+    return a
+
+
+def height_bounds_m(max_height_m: float, level_exponent: float, water: float,
+                    block_cells: int) -> tuple[float, float]:
+    """(lowest, highest) height in metres any post of any block can take.
+
+    Each level moves a post from the mean of earlier posts by at most
+    4 (1 - W) / L^E up or 4 W / L^E down (factor clamped to [0, 4]); summing
+    over the log2(n) levels after the corners' [-W, 1 - W) gives the bound.
+    """
+    levels = int(round(math.log2(block_cells)))
+    growth = 1.0 + 4.0 * sum(lv**-level_exponent for lv in range(1, levels + 1))
+    return -water * max_height_m * growth, (1.0 - water) * max_height_m * growth
+
+
+@dataclass(frozen=True, eq=False)
+class ProceduralBlock:
+    """One generated block.
+
+    bed_msl_m, surface_msl_m: (n + 1, n + 1) float64, read-only, metres above
+    MSL; row 0 south, column 0 west; surface = max(bed, 0) (water at sea
+    level). Post (i, j) lies at lat = lat0_deg + i * spacing_deg, lon =
+    lon0_deg + j * spacing_deg.
+    """
+
+    row: int
+    col: int
+    lat0_deg: float
+    lon0_deg: float
+    spacing_deg: float
+    bed_msl_m: np.ndarray
+    surface_msl_m: np.ndarray
+
+
+class ProceduralTerrain:
+    """Endless midpoint-displacement terrain, generated in blocks as queries reach them.
+
+    A height source for :class:`terrain.terrain.Terrain` (same methods as
+    :class:`terrain.raster.Raster`). Blocks are kept in an LRU cache of at most
+    ``cache_blocks`` blocks; :meth:`retain_near` drops those no viewer is near.
+    A dropped block regenerates bit for bit. Thread-safe.
+    """
+
+    def __init__(self, seed: int, max_height_m: float = 1000.0, level_exponent: float = 2.0,
+                 water: float = 0.3, block_cells: int = DEFAULT_BLOCK_CELLS,
+                 posts_per_turn: int = DEFAULT_POSTS_PER_TURN, cache_blocks: int = DEFAULT_CACHE_BLOCKS,
+                 name: str = "procedural"):
+        _check_int("seed", seed, 0, 2**64 - 1)
+        _check_real("max_height_m", max_height_m, lambda v: v > 0, "> 0")
+        _check_real("level_exponent", level_exponent, lambda v: v > 1, "> 1")
+        _check_real("water", water, lambda v: 0 <= v <= 1, "within [0, 1]")
+        _check_int("block_cells", block_cells, 2, 2**16)
+        if block_cells & (block_cells - 1):
+            raise InvalidArgument("block_cells", "must be a power of two", value=block_cells)
+        _check_int("posts_per_turn", posts_per_turn, 2 * block_cells, 2**40)
+        if posts_per_turn % (2 * block_cells):
+            raise InvalidArgument("posts_per_turn", f"must be a multiple of 2 * block_cells = {2 * block_cells}",
+                                  value=posts_per_turn)
+        _check_int("cache_blocks", cache_blocks, 1, 2**20)
+        self.seed = int(seed)
+        self.max_height_m = float(max_height_m)
+        self.level_exponent = float(level_exponent)
+        self.water = float(water)
+        self.block_cells = int(block_cells)
+        self.posts_per_turn = int(posts_per_turn)
+        self.cache_blocks = int(cache_blocks)
+        self.name = name
+        self.spacing_deg = 360.0 / self.posts_per_turn
+        self.pole_row = self.posts_per_turn // 2  # global row of the north pole
+        self.block_rows = self.pole_row // self.block_cells
+        self.block_cols = self.posts_per_turn // self.block_cells
+        self.blocks_generated = 0
+        self.blocks_evicted = 0
+        self._cache: OrderedDict[tuple[int, int], ProceduralBlock] = OrderedDict()
+        self._lock = threading.Lock()
+
+    # -- blocks ---------------------------------------------------------------
+
+    def generate_block(self, row: int, col: int) -> ProceduralBlock:
+        """Block (row, col) computed afresh, bypassing the cache.
+
+        row in [0, block_rows) counts from the south pole; col wraps modulo
+        block_cols, counted east from longitude -180.
+        """
+        if not 0 <= row < self.block_rows:
+            raise InvalidArgument("row", f"must be within [0, {self.block_rows})", value=row)
+        col %= self.block_cols
+        n = self.block_cells
+        g_rows = row * n + np.arange(n + 1, dtype=np.int64)
+        g_cols = (col * n + np.arange(n + 1, dtype=np.int64)) % self.posts_per_turn
+        pinned = (g_rows == 0) | (g_rows == self.pole_row)
+        uniform = lattice_uniform(self.seed, g_rows[:, None], np.where(pinned[:, None], 0, g_cols[None, :]))
+        bed = self.max_height_m * midpoint_displacement(uniform, self.level_exponent, self.water, pinned)
+        surface = np.maximum(bed, 0.0)
+        bed.flags.writeable = False
+        surface.flags.writeable = False
+        return ProceduralBlock(row, col, -90.0 + row * n * self.spacing_deg, -180.0 + col * n * self.spacing_deg,
+                               self.spacing_deg, bed, surface)
+
+    def block(self, row: int, col: int) -> ProceduralBlock:
+        """Block (row, col) from the cache, generated (and the LRU one evicted) if absent."""
+        key = (int(row), int(col) % self.block_cols)
+        with self._lock:
+            found = self._cache.get(key)
+            if found is not None:
+                self._cache.move_to_end(key)
+                return found
+            made = self.generate_block(*key)
+            self.blocks_generated += 1
+            self._cache[key] = made
+            while len(self._cache) > self.cache_blocks:
+                self._cache.popitem(last=False)
+                self.blocks_evicted += 1
+            return made
+
+    def block_index(self, lat, lon) -> list[tuple[int, int]]:
+        """Distinct (row, col) of the blocks holding the points (lat, lon), (n,) degrees.
+
+        A point on a block edge belongs to the block north-east of it, as in the queries.
+        """
+        r, c = lattice_index(lat, lon, self.spacing_deg, self.posts_per_turn)
+        i = np.minimum(np.floor(r), self.pole_row - 1).astype(np.int64) // self.block_cells
+        j = np.floor(c).astype(np.int64) // self.block_cells
+        return sorted(set(zip(i.tolist(), j.tolist())))
+
+    def cached_blocks(self) -> list[tuple[int, int]]:
+        """(row, col) of the cached blocks, least recently used first."""
+        with self._lock:
+            return list(self._cache)
+
+    def retain_near(self, lat, lon, radius_m: float) -> int:
+        """Drop cached blocks farther than radius_m from every viewer; return how many.
+
+        lat, lon: (k,) float64 degrees, the viewers. A block is kept when some
+        viewer is within radius_m plus the block's circumradius of its centre
+        (spherical distance), so every block a viewer's disc touches stays.
+        """
+        lat = np.atleast_1d(np.asarray(lat, dtype=np.float64))
+        lon = np.atleast_1d(np.asarray(lon, dtype=np.float64))
+        if lat.shape != lon.shape or lat.ndim != 1:
+            raise ValueError(f"lat and lon must be equal (k,) arrays, got shapes {lat.shape} and {lon.shape}")
+        if not (math.isfinite(radius_m) and radius_m >= 0):
+            raise InvalidArgument("radius_m", "must be finite and >= 0", value=radius_m)
+        with self._lock:
+            keys = list(self._cache)
+            if not keys or lat.size == 0:
+                dropped = keys
+            else:
+                rows, cols = np.array(keys, dtype=np.float64).T
+                half = 0.5 * self.block_cells * self.spacing_deg
+                c_lat = -90.0 + (2.0 * rows + 1.0) * half
+                c_lon = -180.0 + (2.0 * cols + 1.0) * half
+                reach = radius_m + _sphere_distance_m(c_lat, c_lon, c_lat + half, c_lon + half)
+                reach = np.maximum(reach, radius_m + _sphere_distance_m(c_lat, c_lon, c_lat - half, c_lon + half))
+                dist = _sphere_distance_m(c_lat[:, None], c_lon[:, None], lat[None, :], lon[None, :])
+                far = ~(dist <= reach[:, None]).any(axis=1)
+                dropped = [k for k, f in zip(keys, far) if f]
+            for key in dropped:
+                del self._cache[key]
+            self.blocks_evicted += len(dropped)
+            return len(dropped)
+
+    # -- height-source interface ----------------------------------------------
+
+    def heights_into(self, lat, lon, out_h, out_status) -> None:
+        """Surface heights (m, MSL; water at 0) for the points still OUTSIDE.
+
+        lat, lon: (n,) float64 degrees, (lat, lon) order; out_h: (n,) float64;
+        out_status: (n,) uint8. Bilinear over the surface posts max(H, 0),
+        exact at posts. The world is unbounded: every point is answered.
+        """
+        for sel, s, fy, fx, i, j in self._cells(lat, lon, out_status):
+            out_h[sel] = _lerp2(s[i, j], s[i, j + 1], s[i + 1, j], s[i + 1, j + 1], fy, fx)
+            out_status[sel] = STATUS_OK
+
+    def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
+        """dh/d(east metre), dh/d(north metre) of the surface for points still OUTSIDE.
+
+        Derivatives of the bilinear cell (the north-east cell on a post line,
+        as in :func:`terrain.raster.gradient_into`); at the poles the pole row
+        is constant, so the east derivative is 0.
+        """
+        for sel, s, fy, fx, i, j in self._cells(lat, lon, out_status):
+            dcol = (s[i, j + 1] - s[i, j]) * (1.0 - fy) + (s[i + 1, j + 1] - s[i + 1, j]) * fy
+            drow = (s[i + 1, j] - s[i, j]) * (1.0 - fx) + (s[i + 1, j + 1] - s[i, j + 1]) * fx
+            mx, my = metres_per_index(CRS_GEOGRAPHIC, self.spacing_deg, self.spacing_deg, lat[sel])
+            out_de[sel] = dcol / mx
+            out_dn[sel] = drow / my
+            out_status[sel] = STATUS_OK
+
+    def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> Raster:
+        """A Raster of surface posts covering the box (degrees); never None.
+
+        lon_max < lon_min means the box crosses the antimeridian. The raster's
+        posts are lattice posts, so its bilinear surface is this terrain's.
+        Raises LimitExceeded beyond RASTER_FOR_MAX_POSTS posts.
+        """
+        for nm, v in (("lat_min", lat_min), ("lon_min", lon_min), ("lat_max", lat_max), ("lon_max", lon_max)):
+            _check_real(nm, v, lambda x: abs(x) <= 540.0, "within +-540 degrees")
+        if not -90.0 <= lat_min <= lat_max <= 90.0:
+            raise InvalidArgument("lat_min", f"must satisfy -90 <= lat_min <= lat_max={lat_max} <= 90",
+                                  value=lat_min)
+        span = lon_max - lon_min if lon_max >= lon_min else lon_max - lon_min + 360.0
+        sp = self.spacing_deg
+        r0 = max(0, math.floor((lat_min + 90.0) / sp))
+        r1 = min(self.pole_row, math.ceil((lat_max + 90.0) / sp))
+        if r1 == r0:
+            r0, r1 = (r0, r0 + 1) if r0 < self.pole_row else (r0 - 1, r0)
+        c0 = math.floor((lon_min + 180.0) / sp)
+        c1 = max(c0 + 1, math.ceil((lon_min + 180.0 + span) / sp))
+        posts = (r1 - r0 + 1) * (c1 - c0 + 1)
+        if posts > RASTER_FOR_MAX_POSTS:
+            raise LimitExceeded("box posts", posts, RASTER_FOR_MAX_POSTS)
+        out = np.zeros((r1 - r0 + 1, c1 - c0 + 1))
+        n = self.block_cells
+        for br in range(r0 // n, (r1 - 1) // n + 1):
+            for bc in range(c0 // n, (c1 - 1) // n + 1):
+                rs, re = max(r0, br * n), min(r1, br * n + n)
+                cs, ce = max(c0, bc * n), min(c1, bc * n + n)
+                surf = self.block(br, bc).surface_msl_m
+                out[rs - r0:re - r0 + 1, cs - c0:ce - c0 + 1] = surf[rs - br * n:re - br * n + 1,
+                                                                     cs - bc * n:ce - bc * n + 1]
+        return Raster(out, Georef(CRS_GEOGRAPHIC, -180.0 + c0 * sp, -90.0 + r0 * sp, sp, sp), name=self.name,
+                      vertical_datum="mean sea level (procedural)", source="procedural",
+                      meta={"seed": self.seed, "first_post_row": r0, "first_post_col": c0})
+
+    def describe(self) -> dict:
+        """Metadata: bounds (the whole globe), spacing, datum and generation parameters."""
+        mx, my = metres_per_index(CRS_GEOGRAPHIC, self.spacing_deg, self.spacing_deg, 0.0)
+        lo, hi = height_bounds_m(self.max_height_m, self.level_exponent, self.water, self.block_cells)
+        return {
+            "name": self.name,
+            "kind": "procedural",
+            "source": "midpoint displacement (Ammeter & Mikhailyuk)",
+            "crs": "EPSG:4326",
+            "lat_min": -90.0, "lon_min": -180.0, "lat_max": 90.0, "lon_max": 180.0,
+            "spacing_deg": self.spacing_deg,
+            "spacing_east_m": float(mx), "spacing_north_m": float(my),  # at the equator
+            "vertical_datum": "mean sea level (procedural); water surface at 0",
+            "seed": self.seed,
+            "max_height_m": self.max_height_m,
+            "level_exponent": self.level_exponent,
+            "water": self.water,
+            "block_cells": self.block_cells,
+            "posts_per_turn": self.posts_per_turn,
+            "cache_blocks": self.cache_blocks,
+            "height_min_m": lo, "height_max_m": hi,
+        }
+
+    # -- internals ------------------------------------------------------------
+
+    def _cells(self, lat, lon, out_status):
+        """Yield (sel, surface, fy, fx, i, j) per block for the points still OUTSIDE.
+
+        sel: (k,) int64 point indices; surface: the block's surface posts;
+        fy, fx: (k,) float64 cell fractions; i, j: (k,) int64 the cell's south-west
+        post within the block.
+        """
+        todo = np.flatnonzero(out_status == STATUS_OUTSIDE)
+        if todo.size == 0:
+            return
+        r, c = lattice_index(lat[todo], lon[todo], self.spacing_deg, self.posts_per_turn)
+        i = np.minimum(np.floor(r), self.pole_row - 1).astype(np.int64)
+        j = np.floor(c).astype(np.int64)
+        fy, fx = r - i, c - j
+        n = self.block_cells
+        key = (i // n) * self.block_cols + j // n
+        order = np.argsort(key, kind="stable")
+        starts = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+        for part in np.split(order, starts[1:]):
+            br, bc = divmod(int(key[part[0]]), self.block_cols)
+            yield todo[part], self.block(br, bc).surface_msl_m, fy[part], fx[part], i[part] - br * n, j[part] - bc * n
+
+
+def lattice_index(lat, lon, spacing_deg: float, posts_per_turn: int):
+    """(lat, lon) degrees -> fractional global (row, col), float64 (n,) each.
+
+    Row 0 at latitude -90, column 0 at longitude -180; columns wrap into
+    [0, posts_per_turn). Values within POST_SNAP_TOLERANCE of an integer snap
+    to it so posts are hit exactly.
+    """
+    r = (np.asarray(lat, dtype=np.float64) + 90.0) / spacing_deg
+    c = ((np.asarray(lon, dtype=np.float64) + 180.0) % 360.0) / spacing_deg
+    r, c = _snap(r), _snap(c)
+    return r, np.where(c >= posts_per_turn, c - posts_per_turn, c)
+
+
+def _snap(v: np.ndarray) -> np.ndarray:
+    near = np.floor(v + 0.5)
+    return np.where(np.abs(v - near) < POST_SNAP_TOLERANCE, near, v)
+
+
+def _lerp2(h00, h01, h10, h11, fy, fx):
+    """Bilinear blend, exact at the cell's south-west post and along rows of equal posts.
+
+    The a + (b - a) t form returns a at t = 0 and a for a == b, so a pole row
+    (all posts equal) answers its one height for every longitude; fy == 1
+    occurs only on the north-pole row and takes that row as is.
+    """
+    south = h00 + (h01 - h00) * fx
+    north = h10 + (h11 - h10) * fx
+    return np.where(fy == 1.0, north, south + (north - south) * fy)
+
+
+def _sphere_distance_m(lat1, lon1, lat2, lon2):
+    """Great-circle distance (m) on the mean-radius sphere (haversine); arrays broadcast."""
+    p1, p2 = np.radians(lat1), np.radians(lat2)
+    dp, dl = p2 - p1, np.radians(np.asarray(lon2) - np.asarray(lon1))
+    s = np.sin(0.5 * dp) ** 2 + np.cos(p1) * np.cos(p2) * np.sin(0.5 * dl) ** 2
+    return 2.0 * MEAN_EARTH_RADIUS_M * np.arcsin(np.sqrt(np.clip(s, 0.0, 1.0)))
+
+
+def _check_int(name: str, value, lo: int, hi: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:
+        raise InvalidArgument(name, f"must be an integer within [{lo}, {hi}]", value=value)
+
+
+def _check_real(name: str, value, ok, what: str) -> None:
+    """Raise InvalidArgument unless value is a finite real number with ok(value) true."""
+    if (isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating))
+            or not math.isfinite(value) or not ok(value)):
+        raise InvalidArgument(name, f"must be a finite number {what}", value=value)
