@@ -133,10 +133,16 @@ def bilinear_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_h, out_sta
             continue
         i, fy = _cell(r, ny)
         j, fx = _cell(c, nx)
-        h00 = np.float64(heights[i, j])
-        h01 = np.float64(heights[i, j + 1])
-        h10 = np.float64(heights[i + 1, j])
-        h11 = np.float64(heights[i + 1, j + 1])
+        # Corners of zero weight are not read, so a post beside a hole or a
+        # filled void keeps its own value and status.
+        j0 = j + 1 if fx == 1.0 else j
+        j1 = j if fx == 0.0 else j + 1
+        i0 = i + 1 if fy == 1.0 else i
+        i1 = i if fy == 0.0 else i + 1
+        h00 = np.float64(heights[i0, j0])
+        h01 = np.float64(heights[i0, j1])
+        h10 = np.float64(heights[i1, j0])
+        h11 = np.float64(heights[i1, j1])
         south = h00 * (1.0 - fx) + h01 * fx
         north = h10 * (1.0 - fx) + h11 * fx
         h = south * (1.0 - fy) + north * fy
@@ -144,7 +150,7 @@ def bilinear_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_h, out_sta
             continue
         out_h[k] = h
         status = STATUS_OK
-        if has_filled and (filled[i, j] | filled[i, j + 1] | filled[i + 1, j] | filled[i + 1, j + 1]):
+        if has_filled and (filled[i0, j0] | filled[i0, j1] | filled[i1, j0] | filled[i1, j1]):
             status = STATUS_FILLED
         out_status[k] = status
 
@@ -174,6 +180,22 @@ def gradient_into(heights, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, ou
         out_dcol[k] = (h01 - h00) * (1.0 - fy) + (h11 - h10) * fy
         out_drow[k] = (h10 - h00) * (1.0 - fx) + (h11 - h01) * fx
         out_status[k] = STATUS_OK
+
+
+def grid_bounds(georef: Georef, shape: tuple[int, int]) -> tuple[float, float, float, float]:
+    """(lat_min, lon_min, lat_max, lon_max) degrees of the outermost posts of a grid.
+
+    lon_max may exceed 180 for a grid that crosses the antimeridian.
+    """
+    from terrain.geodesy import web_mercator_inverse
+
+    ny, nx = shape
+    x1, y1 = georef.post_xy(ny - 1, nx - 1)
+    if georef.crs == CRS_GEOGRAPHIC:
+        return (georef.y0, georef.x0, float(y1), float(x1))
+    lat0, lon0 = web_mercator_inverse(georef.x0, georef.y0)
+    lat1, lon1 = web_mercator_inverse(x1, y1)
+    return (float(lat0), float(lon0), float(lat1), float(lon1))
 
 
 def metres_per_index(crs: int, dx: float, dy: float, lat_deg):
@@ -228,21 +250,16 @@ class Raster:
         return self.filled if self.filled is not None else np.zeros((0, 0), np.uint8)
 
     @cached_property
+    def pyramid(self):
+        """Min/max pyramid of the bilinear surface (:mod:`terrain.pyramid`), built on first use."""
+        from terrain.pyramid import build_pyramid
+
+        return build_pyramid(self.heights, self.filled)
+
+    @cached_property
     def bounds(self) -> tuple[float, float, float, float]:
-        """(lat_min, lon_min, lat_max, lon_max) in degrees of the outermost posts.
-
-        lon_max may exceed 180 for a raster that crosses the antimeridian.
-        """
-        from terrain.geodesy import web_mercator_inverse
-
-        ny, nx = self.shape
-        g = self.georef
-        x1, y1 = g.post_xy(ny - 1, nx - 1)
-        if g.crs == CRS_GEOGRAPHIC:
-            return (g.y0, g.x0, float(y1), float(x1))
-        lat0, lon0 = web_mercator_inverse(g.x0, g.y0)
-        lat1, lon1 = web_mercator_inverse(x1, y1)
-        return (float(lat0), float(lon0), float(lat1), float(lon1))
+        """(lat_min, lon_min, lat_max, lon_max) in degrees of the outermost posts."""
+        return grid_bounds(self.georef, self.shape)
 
     @cached_property
     def post_spacing_m(self) -> tuple[float, float]:
