@@ -16,8 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from terrain.raster import STATUS_OUTSIDE
+from terrain.raster import STATUS_OUTSIDE, Raster
 from terrain.validate import check_latlon
+
+
+# Least margin around the endpoints' box when a source builds a raster for rays.
+RAY_BOX_PAD_DEG = 0.01
 
 
 @dataclass(frozen=True)
@@ -68,6 +72,79 @@ class Terrain:
         slope = np.degrees(np.arctan(np.hypot(de, dn)))
         return NormalResult(normal, slope, status)
 
+    def profile(self, lat1: float, lon1: float, lat2: float, lon2: float, n_samples: int) -> ProfileResult:
+        """Heights (m, MSL) at n_samples equally spaced points along the WGS84
+        geodesic from (lat1, lon1) to (lat2, lon2), degrees."""
+        from terrain.profile import geodesic_profile
+
+        def source_heights(lat, lon):
+            res = self.heights(lat, lon)
+            return res.height_msl_m, res.status
+
+        return ProfileResult(*geodesic_profile(source_heights, lat1, lon1, lat2, lon2, n_samples))
+
+    def intersect(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> SegmentResult:
+        """First contact of each straight (ECEF) segment a -> b with the surface.
+
+        Arrays (n,) float64: (lat, lon) degrees, heights metres MSL. Each
+        segment is answered by the first source that holds it until its hit
+        (or its whole length); a segment no source holds is OUTSIDE.
+        """
+        from terrain.los import check_segments, intersect_segments
+
+        rays = check_segments(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl)
+        n = rays[0].size
+        out = SegmentResult(np.zeros(n, bool), *(np.full(n, np.nan) for _ in range(4)),
+                            np.full((n, 3), np.nan), np.full(n, STATUS_OUTSIDE, np.uint8))
+        for raster, todo in self._rasters_for(rays, out.status):
+            got = SegmentResult(*intersect_segments(raster, *(r[todo] for r in rays)))
+            for name in SegmentResult.__dataclass_fields__:
+                getattr(out, name)[todo] = getattr(got, name)
+        return out
+
+    def line_of_sight(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> LosResult:
+        """Whether each straight (ECEF) segment a -> b clears the surface.
+
+        Arrays as :meth:`intersect`. Contacts within 1 mm of an endpoint do not
+        block (a point on the ground can see); symmetric in a and b.
+        """
+        from terrain.los import check_segments, line_of_sight
+
+        rays = check_segments(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl)
+        n = rays[0].size
+        out = LosResult(np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8))
+        for raster, todo in self._rasters_for(rays, out.status):
+            visible, status = line_of_sight(raster, *(r[todo] for r in rays))
+            out.visible[todo] = visible
+            out.status[todo] = status
+        return out
+
+    def _rasters_for(self, rays, status):
+        """Yield (raster, index array) per source for the rays still OUTSIDE.
+
+        A Raster source traces every pending ray itself (its kernel marks the
+        ones that leave it); other sources hand out a raster covering the
+        pending rays' bounding box. ``status`` is updated by the caller between
+        yields, which is what moves unanswered rays on to the next source.
+        """
+        a_lat, a_lon, _, b_lat, b_lon, _ = rays
+        for source in self.sources:
+            todo = np.flatnonzero(status == STATUS_OUTSIDE)
+            if todo.size == 0:
+                return
+            if isinstance(source, Raster):
+                yield source, todo
+                continue
+            lats = np.concatenate([a_lat[todo], b_lat[todo]])
+            # Unroll b's longitude next to a's so a box never spans the long way round.
+            b_lon_near = a_lon[todo] + (b_lon[todo] - a_lon[todo] + 180.0) % 360.0 - 180.0
+            lons = np.concatenate([a_lon[todo], b_lon_near])
+            pad = RAY_BOX_PAD_DEG + ray_bulge_deg(np.abs(lats).max(), a_lat[todo], a_lon[todo],
+                                                  b_lat[todo], b_lon_near)
+            raster = source.raster_for(lats.min() - pad, lons.min() - pad, lats.max() + pad, lons.max() + pad)
+            if raster is not None:
+                yield raster, todo
+
     def describe(self) -> list[dict]:
         """One dict per source: name, kind, bounds, resolution, vertical datum."""
         return [source.describe() for source in self.sources]
@@ -110,3 +187,16 @@ class LosResult:
 
     visible: np.ndarray
     status: np.ndarray
+
+
+def ray_bulge_deg(lat_abs_max_deg: float, a_lat, a_lon, b_lat, b_lon) -> float:
+    """How far (degrees) a chord's ground track may stray poleward of its endpoints.
+
+    A great circle through two points of one parallel at latitude phi, d
+    apart, peaks about d^2 tan(phi) / (8 R^2) radians above it (small-angle
+    expansion of the great-circle vertex latitude); d is bounded here by the
+    endpoints' degree spans, generously, with R the equatorial radius.
+    """
+    d_rad = np.radians(np.hypot(np.abs(b_lat - a_lat), np.abs(b_lon - a_lon)).max())
+    tan_phi = np.tan(np.radians(min(lat_abs_max_deg, 89.0)))
+    return float(np.degrees(d_rad * d_rad * tan_phi / 8.0))

@@ -1,0 +1,179 @@
+"""Client library for the terrain query service (``sortie.v1.TerrainService``).
+
+:class:`TerrainClient` answers the same queries as :class:`terrain.terrain.Terrain`
+with the same result types, so a bot, a client or the server can swap an
+in-process Terrain for a remote one. Requests and responses go through the
+numpy wire codec (:class:`server.grpc_common.PackedCodec`): no per-value Python
+objects on either side. Failures arrive as :mod:`sortie.errors` exceptions
+carrying the server's message ("lat_deg[7]: must be within [-90, 90] degrees").
+
+Argument order is always (lat, lon), degrees WGS84; heights are metres above
+mean sea level.
+"""
+
+from __future__ import annotations
+
+import re
+
+import grpc
+import numpy as np
+
+from server.grpc_common import channel_options
+from server.terrain_service import DESCRIBE_TO_FIELD, RPCS, SERVICE_NAME, serializers
+from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound, SortieError
+from sortie.v1 import terrain_pb2 as pb
+from terrain.terrain import HeightResult, LosResult, NormalResult, ProfileResult, SegmentResult
+from terrain.validate import as_1d_f64
+
+DEFAULT_TIMEOUT_S = 30.0
+
+
+class ServiceError(SortieError):
+    """A call failed for a reason other than the request's content (unavailable,
+    deadline exceeded, internal error); ``code`` is the grpc.StatusCode."""
+
+    def __init__(self, code, message: str):
+        super().__init__(f"{code.name}: {message}")
+        self.code = code
+
+
+_INVALID = re.compile(r"^(?P<field>[A-Za-z_][\w.]*)(?:\[(?P<index>\d+)\])?: (?P<message>.*)$", re.S)
+_LIMIT = re.compile(r"^(?P<field>[A-Za-z_][\w.]*): (?P<size>\d+) exceeds the limit of (?P<limit>\d+)$")
+
+
+def error_from_rpc(error: grpc.RpcError) -> SortieError:
+    """The sortie.errors exception for a failed call; its text is the server's message."""
+    code, details = error.code(), error.details() or ""
+    if code == grpc.StatusCode.INVALID_ARGUMENT:
+        m = _INVALID.match(details)
+        if m:
+            index = int(m["index"]) if m["index"] is not None else None
+            return InvalidArgument(m["field"], m["message"], index=index)
+        return InvalidArgument("request", details)
+    if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
+        m = _LIMIT.match(details)
+        if m:
+            return LimitExceeded(m["field"], int(m["size"]), int(m["limit"]))
+    if code == grpc.StatusCode.NOT_FOUND:
+        return NotFound(details)
+    if code == grpc.StatusCode.FAILED_PRECONDITION:
+        return DataFormatError(details)
+    return ServiceError(code, details)
+
+
+_FIELD_TO_DESCRIBE = {field: key for key, field in DESCRIBE_TO_FIELD.items()}
+# The keys every source dict has (besides its details), in proto order.
+SOURCE_KEYS = tuple(_FIELD_TO_DESCRIBE.get(fd.name, fd.name)
+                    for fd in pb.TerrainSource.DESCRIPTOR.fields if fd.name != "details")
+
+
+def metadata_dict(msg: pb.GetMetadataResponse) -> dict:
+    """GetMetadata as plain Python.
+
+    {"sources": [dict per source, keyed like Terrain.describe(): name, kind,
+    source, crs, lat_min, lon_min, lat_max, lon_max (degrees), rows, cols,
+    spacing_east_m, spacing_north_m, vertical_datum, filled_posts, then the
+    source's details as text], "height_reference": str, "limits": {Limits
+    field: int}, "server_version": str}.
+    """
+    sources = []
+    for s in msg.sources:
+        entry = {key: getattr(s, DESCRIBE_TO_FIELD.get(key, key)) for key in SOURCE_KEYS}
+        entry.update(sorted(s.details.items()))
+        sources.append(entry)
+    return {
+        "sources": sources,
+        "height_reference": msg.height_reference,
+        "limits": {fd.name: getattr(msg.limits, fd.name) for fd in msg.limits.DESCRIPTOR.fields},
+        "server_version": msg.server_version,
+    }
+
+
+class TerrainClient:
+    """A connection to a terrain service; use as a context manager or call close().
+
+    address: "host:port". timeout_s: deadline of each call, seconds. Methods
+    take (n,) array-likes (scalars are one point) and return the Terrain's
+    result dataclasses with numpy arrays. Thread-safe: many threads (bots) may
+    share one client.
+    """
+
+    def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+        self.address = address
+        self.timeout_s = timeout_s
+        self._channel = grpc.insecure_channel(address, options=channel_options())
+        self._calls = {}
+        for rpc in RPCS:
+            request_serializer, _, _, response_deserializer = serializers(rpc)
+            self._calls[rpc] = self._channel.unary_unary(
+                f"/{SERVICE_NAME}/{rpc}",
+                request_serializer=request_serializer,
+                response_deserializer=response_deserializer,
+            )
+
+    def __enter__(self) -> TerrainClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._channel.close()
+
+    def wait_ready(self, timeout_s: float | None = None) -> None:
+        """Block until the channel is connected; ServiceError(UNAVAILABLE) after timeout_s."""
+        try:
+            grpc.channel_ready_future(self._channel).result(
+                timeout=self.timeout_s if timeout_s is None else timeout_s)
+        except grpc.FutureTimeoutError:
+            raise ServiceError(grpc.StatusCode.UNAVAILABLE, f"no terrain service at {self.address}") from None
+
+    def _call(self, rpc: str, request):
+        try:
+            return self._calls[rpc](request, timeout=self.timeout_s)
+        except grpc.RpcError as exc:
+            raise error_from_rpc(exc) from None
+
+    def metadata(self) -> dict:
+        """Sources, height reference and limits of the service (see :func:`metadata_dict`)."""
+        return metadata_dict(self._call("GetMetadata", pb.GetMetadataRequest()))
+
+    def describe(self) -> list[dict]:
+        """One dict per source, keyed like Terrain.describe() (details as text)."""
+        return self.metadata()["sources"]
+
+    def heights(self, lat, lon) -> HeightResult:
+        """Heights (m above MSL, NaN where OUTSIDE) at (lat, lon) degrees, (n,) each."""
+        r = self._call("GetHeights", {"lat_deg": as_1d_f64("lat", lat), "lon_deg": as_1d_f64("lon", lon)})
+        return HeightResult(r["height_msl_m"], r["status"])
+
+    def normals(self, lat, lon) -> NormalResult:
+        """Unit surface normals (n, 3) ENU and slope (deg) at (lat, lon) degrees."""
+        r = self._call("GetNormals", {"lat_deg": as_1d_f64("lat", lat), "lon_deg": as_1d_f64("lon", lon)})
+        normal = np.stack([r["normal_east"], r["normal_north"], r["normal_up"]], axis=-1)
+        return NormalResult(normal, r["slope_deg"], r["status"])
+
+    def profile(self, lat1: float, lon1: float, lat2: float, lon2: float, n_samples: int) -> ProfileResult:
+        """Heights at n_samples points along the geodesic (lat1, lon1) -> (lat2, lon2), degrees."""
+        r = self._call("GetProfile", {"start_lat_deg": float(lat1), "start_lon_deg": float(lon1),
+                                      "end_lat_deg": float(lat2), "end_lon_deg": float(lon2),
+                                      "n_samples": int(n_samples)})
+        return ProfileResult(r["lat_deg"], r["lon_deg"], r["distance_m"], r["height_msl_m"], r["status"])
+
+    def line_of_sight(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> LosResult:
+        """Whether each b (lat, lon degrees, height m MSL) is visible from its a."""
+        r = self._call("LineOfSight", _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl))
+        return LosResult(r["visible"], r["status"])
+
+    def intersect(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> SegmentResult:
+        """First terrain hit of each straight segment a -> b (lat, lon degrees, height m MSL)."""
+        r = self._call("IntersectSegments", _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl))
+        normal = np.stack([r["normal_east"], r["normal_north"], r["normal_up"]], axis=-1)
+        return SegmentResult(r["hit"], r["distance_m"], r["lat_deg"], r["lon_deg"], r["height_msl_m"],
+                             normal, r["status"])
+
+
+def _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> dict:
+    values = {"a_lat_deg": a_lat, "a_lon_deg": a_lon, "a_height_msl_m": a_h_msl,
+              "b_lat_deg": b_lat, "b_lon_deg": b_lon, "b_height_msl_m": b_h_msl}
+    return {name: as_1d_f64(name, v) for name, v in values.items()}

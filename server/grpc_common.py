@@ -1,0 +1,320 @@
+"""What every Sortie gRPC service shares: the packed-array wire codec, the one
+mapping of errors to status codes, message limits, health and reflection, and
+a graceful lifecycle.
+
+The wire codec exists for speed. Building a protobuf message from numpy arrays
+through the generated classes costs 35 to 70 ns per value (``extend`` walks
+Python floats), which for a 100,000-point height batch (7 ms to build the
+request, 7 ms the response) is several times the query itself (2.5 ms). A message made only of packed repeated numbers and scalars has a
+trivial encoding (protobuf encoding spec, "Packed Repeated Fields"): per field
+a tag varint, a length varint and the values' raw bytes, which for ``double``
+are little-endian IEEE 754. :class:`PackedCodec` writes and reads exactly those
+bytes with numpy, so the messages on the wire are the standard ones (grpcurl
+and generated stubs interoperate) while the Python side never touches a
+per-value object. Anything it does not expect (an unpacked encoding, an
+unknown field, a multi-byte enum varint) falls back to the generated class.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import signal
+import struct
+import threading
+from collections.abc import Callable, Mapping
+
+import grpc
+import numpy as np
+from google.protobuf.message import DecodeError
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from sortie.errors import InvalidArgument, LimitExceeded, SortieError, grpc_code
+
+logger = logging.getLogger(__name__)
+
+# Largest request or response, bytes. The biggest batches allowed by any
+# service (1,000,000 heights: 16 MB request; 1,000,000 normals: 33 MB
+# response) fit with room to spare; anything larger is refused by gRPC itself
+# with RESOURCE_EXHAUSTED before it is parsed.
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+
+# Seconds in-flight calls get to finish after SIGTERM before they are cancelled.
+DEFAULT_GRACE_S = 5.0
+
+_WIRE_VARINT = 0
+_WIRE_I64 = 1
+_WIRE_LEN = 2
+
+
+def channel_options() -> list[tuple[str, int]]:
+    """Options for servers and channels: message size limits both ways."""
+    return [
+        ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+        ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ]
+
+
+# --- wire codec ------------------------------------------------------------------------------
+
+def _varint(value: int) -> bytes:
+    out = bytearray()
+    while value > 0x7F:
+        out.append((value & 0x7F) | 0x80)
+        value >>= 7
+    out.append(value)
+    return bytes(out)
+
+
+def _read_varint(data: bytes, pos: int) -> tuple[int, int]:
+    """(value, position after it); raises DecodeError on truncation or overlong varints."""
+    value = 0
+    for shift in range(0, 64, 7):
+        if pos >= len(data):
+            raise DecodeError("truncated varint")
+        byte = data[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, pos
+    raise DecodeError("varint longer than 10 bytes")
+
+
+class _Field:
+    """How one field of a flat message goes to and from the wire."""
+
+    def __init__(self, fd):
+        t = fd.type
+        self.name = fd.name
+        self.repeated = fd.is_repeated
+        if self.repeated:
+            if t == fd.TYPE_DOUBLE:
+                self.dtype = np.dtype(np.float64)
+            elif t == fd.TYPE_BOOL:
+                self.dtype = np.dtype(bool)
+            elif t == fd.TYPE_ENUM:
+                self.dtype = np.dtype(np.uint8)
+            else:
+                raise TypeError(f"{fd.full_name}: packed codec has no repeated {fd.type} fields")
+            if not fd.is_packed:
+                raise TypeError(f"{fd.full_name}: repeated fields must be packed")
+            wire = _WIRE_LEN
+        elif t == fd.TYPE_DOUBLE:
+            wire = _WIRE_I64
+        elif t in (fd.TYPE_UINT32, fd.TYPE_UINT64):
+            wire = _WIRE_VARINT
+            self.mask = (1 << (32 if t == fd.TYPE_UINT32 else 64)) - 1  # parsers truncate wider varints
+        else:
+            raise TypeError(f"{fd.full_name}: packed codec has no singular {fd.type} fields")
+        self.key = (fd.number << 3) | wire
+        self.tag = _varint(self.key)
+
+    def default(self):
+        """The value of an absent field; empty arrays are shared, so read-only."""
+        if self.repeated:
+            empty = np.zeros(0, self.dtype)
+            empty.flags.writeable = False
+            return empty
+        return 0.0 if self.key & 7 == _WIRE_I64 else 0
+
+    def encode(self, value, parts: list) -> None:
+        """Append this field's wire bytes for value (omitted when it is the default)."""
+        if self.repeated:
+            if self.dtype == np.float64:
+                arr = np.ascontiguousarray(value, dtype="<f8")
+            else:
+                arr = np.asarray(value)
+                if arr.dtype != bool and arr.size and not (0 <= arr.min() and arr.max() <= 0x7F):
+                    raise ValueError(f"{self.name}: enum values must be within [0, 127] to be one-byte varints")
+                arr = np.ascontiguousarray(arr, dtype=np.uint8)  # bool -> 0/1
+            if arr.ndim != 1:
+                raise ValueError(f"{self.name}: must be 1-D, got shape {arr.shape}")
+            if arr.size:
+                parts += (self.tag, _varint(arr.nbytes), arr)
+        elif self.key & 7 == _WIRE_I64:
+            raw = struct.pack("<d", value)
+            if raw != bytes(8):  # proto3 omits +0.0 only; -0.0 is sent
+                parts += (self.tag, raw)
+        elif value:
+            parts += (self.tag, _varint(int(value)))
+
+    def decode_packed(self, data: bytes, pos: int, length: int):
+        """The values of one packed chunk, or None when only the generic parser can read it."""
+        if self.dtype == np.float64:
+            if length % 8:
+                raise DecodeError(f"{self.name}: packed double length {length} is not a multiple of 8")
+            return np.frombuffer(data, "<f8", length // 8, pos).astype(np.float64)
+        raw = np.frombuffer(data, np.uint8, length, pos)
+        if length and raw.max() > 0x7F:  # multi-byte varints: not one value per byte
+            return None
+        return raw.astype(self.dtype)
+
+
+class PackedCodec:
+    """Serialises a flat protobuf message straight from and to numpy arrays.
+
+    ``message_class`` is a generated message whose fields are all packed
+    repeated double / bool / enum, or singular double / uint32 / uint64.
+    ``encode(mapping) -> bytes`` takes {field name: array or scalar} (missing
+    names are defaults) and produces the same bytes as the generated class's
+    ``SerializeToString``. ``decode(bytes) -> dict`` returns every field:
+    repeated double as (n,) float64, bool as (n,) bool, enum as (n,) uint8,
+    scalars as float or int. Both are usable directly as gRPC serializers.
+    """
+
+    def __init__(self, message_class):
+        self.message_class = message_class
+        fields = sorted(message_class.DESCRIPTOR.fields, key=lambda fd: fd.number)
+        self.fields = [_Field(fd) for fd in fields]
+        self._by_key = {f.key: f for f in self.fields}
+        self._defaults = {f.name: f.default() for f in self.fields}
+
+    def encode(self, values: Mapping[str, object]) -> bytes:
+        parts: list = []
+        for f in self.fields:
+            if f.name in values:
+                f.encode(values[f.name], parts)
+        return b"".join(parts)
+
+    def decode(self, data: bytes) -> dict:
+        out = dict(self._defaults)
+        chunks: dict[str, list] = {}
+        pos, end = 0, len(data)
+        while pos < end:
+            key, pos = _read_varint(data, pos)
+            f = self._by_key.get(key)
+            if f is None:  # unknown field or unpacked repeated: the generic parser handles both
+                return self._decode_generic(data)
+            if f.repeated:
+                length, pos = _read_varint(data, pos)
+                if pos + length > end:
+                    raise DecodeError(f"{f.name}: truncated packed field")
+                values = f.decode_packed(data, pos, length)
+                if values is None:
+                    return self._decode_generic(data)
+                chunks.setdefault(f.name, []).append(values)
+                pos += length
+            elif f.key & 7 == _WIRE_I64:
+                if pos + 8 > end:
+                    raise DecodeError(f"{f.name}: truncated double")
+                out[f.name] = struct.unpack_from("<d", data, pos)[0]
+                pos += 8
+            else:
+                value, pos = _read_varint(data, pos)
+                out[f.name] = value & f.mask
+        for name, parts in chunks.items():  # a packed field may legally arrive in several chunks
+            out[name] = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        return out
+
+    def _decode_generic(self, data: bytes) -> dict:
+        msg = self.message_class.FromString(data)
+        out = {}
+        for f in self.fields:
+            value = getattr(msg, f.name)
+            out[f.name] = np.array(value, dtype=f.dtype) if f.repeated else value
+        return out
+
+
+# --- errors ----------------------------------------------------------------------------------
+
+_WHERE = re.compile(r"^(?P<field>[A-Za-z_][\w.]*)(?:\[(?P<index>\d+)\])?: ")
+
+
+def wire_message(error: SortieError, field_names: Mapping[str, str]) -> str:
+    """The error's message with its field renamed from the domain's name to the wire's.
+
+    Library errors name the function parameter ("lat[7]: ..."); a gRPC client
+    knows the proto field ("lat_deg[7]: ..."). Names not in field_names stay.
+    """
+    text = str(error)
+    match = _WHERE.match(text)
+    if match and match["field"] in field_names:
+        text = field_names[match["field"]] + text[len(match["field"]):]
+    return text
+
+
+def unary_handler(name: str, method: Callable, field_names: Mapping[str, str]) -> Callable:
+    """Wrap ``method(request) -> response`` into a gRPC behaviour with the one error mapping.
+
+    SortieError -> its status code (grpc_code) and message; anything else ->
+    INTERNAL, logged with its traceback. Either way only this call fails.
+    """
+    def behaviour(request, context):
+        try:
+            return method(request)
+        except SortieError as exc:
+            logger.debug("%s rejected: %s", name, exc)
+            context.abort(grpc_code(exc), wire_message(exc, field_names))
+        except Exception as exc:
+            logger.exception("%s failed", name)
+            context.abort(grpc.StatusCode.INTERNAL, f"{name}: internal error ({type(exc).__name__}: {exc})")
+
+    return behaviour
+
+
+def check_batch(request: Mapping[str, np.ndarray], names: tuple[str, ...], limit: int) -> int:
+    """Length n of the parallel arrays ``names`` of a decoded request.
+
+    Raises InvalidArgument when they differ in length or are empty, and
+    LimitExceeded when n is over ``limit``.
+    """
+    first = names[0]
+    n = len(request[first])
+    if n > limit:
+        raise LimitExceeded(first, n, limit)
+    for name in names[1:]:
+        if len(request[name]) != n:
+            raise InvalidArgument(name, f"must have as many values as {first} ({n}), got {len(request[name])}")
+    if n == 0:
+        raise InvalidArgument(first, "must hold at least one value")
+    return n
+
+
+# --- lifecycle -------------------------------------------------------------------------------
+
+class ManagedServer:
+    """A ``grpc.Server`` with health and reflection registered, and a graceful stop.
+
+    Health reports SERVING for "" and every name in ``service_names`` once
+    started, and NOT_SERVING from the moment a stop begins, so load balancers
+    and clients drain before in-flight calls are cut off.
+    """
+
+    def __init__(self, server, service_names: tuple[str, ...]):
+        self.grpc_server = server
+        self.health = health.HealthServicer()
+        self._serving = health_pb2.HealthCheckResponse.SERVING
+        self._health_names = ("", *service_names)
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, server)
+        reflection.enable_server_reflection(
+            (*service_names, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
+
+    def start(self) -> None:
+        self.grpc_server.start()
+        for name in self._health_names:
+            self.health.set(name, self._serving)
+
+    def stop(self, grace: float | None = DEFAULT_GRACE_S) -> threading.Event:
+        """Mark every service NOT_SERVING, then stop; in-flight calls get ``grace`` seconds
+        (None: cancelled at once). Returns an event set when the server has stopped.
+        Arguments are named as in ``grpc.Server``."""
+        self.health.enter_graceful_shutdown()
+        return self.grpc_server.stop(grace)
+
+    def wait_for_termination(self, timeout: float | None = None) -> bool:
+        """Block until the server stops or ``timeout`` seconds pass; True on timeout."""
+        return self.grpc_server.wait_for_termination(timeout)
+
+    def serve_until_signalled(self, grace_s: float = DEFAULT_GRACE_S,
+                              signals=(signal.SIGTERM, signal.SIGINT)) -> None:
+        """Block (main thread only) until one of ``signals``, then stop gracefully."""
+        stop = threading.Event()
+        previous = {sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in signals}
+        try:
+            stop.wait()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        logger.info("signal received: NOT_SERVING, stopping with %.1f s grace", grace_s)
+        self.stop(grace_s).wait()

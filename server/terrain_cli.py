@@ -1,0 +1,141 @@
+"""``sortie terrain``: serve the terrain query service, describe a terrain, query a server.
+
+    sortie terrain serve --dem FILE... [--procedural SEED] --port N [--host H] [--max-workers K]
+    sortie terrain info  (--dem FILE... [--procedural SEED] | --address HOST:PORT) [--json]
+    sortie terrain query --address HOST:PORT LAT LON [LAT LON ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from server.grpc_common import DEFAULT_GRACE_S
+from server.terrain_service import DEFAULT_MAX_WORKERS
+from sortie.errors import InvalidArgument
+
+
+def build_terrain(dem_paths, procedural_seed: int | None = None):
+    """A Terrain over the DEM files (in priority order), then a procedural world if a seed is given."""
+    from terrain.terrain import Terrain
+
+    sources = []
+    if dem_paths:
+        from terrain.mosaic import load_sources
+
+        sources.extend(load_sources(dem_paths))
+    if procedural_seed is not None:
+        from terrain.procedural import ProceduralTerrain
+
+        sources.append(ProceduralTerrain(seed=procedural_seed))
+    if not sources:
+        raise InvalidArgument("--dem", "give at least one DEM file or --procedural SEED")
+    return Terrain(sources)
+
+
+def add_parser(sub) -> None:
+    terrain = sub.add_parser("terrain", help="terrain query service: serve, info, query",
+                             description="Serve, describe or query the terrain query service.")
+    commands = terrain.add_subparsers(dest="terrain_command", metavar="SUBCOMMAND", required=True)
+
+    serve = commands.add_parser("serve", help="run the gRPC terrain service until SIGTERM/SIGINT",
+                                description="Run sortie.v1.TerrainService (with health and reflection) "
+                                            "until SIGTERM or SIGINT; prints the bound address.")
+    _add_terrain_args(serve)
+    serve.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
+    serve.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
+    serve.add_argument("--max-workers", type=_positive_int, default=DEFAULT_MAX_WORKERS,
+                       help="threads answering calls (default %(default)s)")
+    serve.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
+                       help="seconds in-flight calls get to finish on shutdown (default %(default)s)")
+    serve.set_defaults(func=serve_command)
+
+    info = commands.add_parser("info", help="print the metadata of a terrain or of a running service",
+                               description="Print sources, bounds, resolution, vertical datum and limits, "
+                                           "of a terrain built from files or of a service at --address.")
+    _add_terrain_args(info)
+    info.add_argument("--address", metavar="HOST:PORT", help="ask a running service instead of loading files")
+    info.add_argument("--json", action="store_true", help="print JSON instead of text")
+    info.set_defaults(func=info_command)
+
+    query = commands.add_parser("query", help="print heights from a running service",
+                                description="Print the height (m above MSL) and status of each "
+                                            "(LAT, LON) point, degrees WGS84, from a running service.")
+    query.add_argument("--address", metavar="HOST:PORT", required=True, help="the terrain service")
+    query.add_argument("latlon", nargs="+", type=float, metavar="LAT LON",
+                       help="pairs of latitude and longitude, degrees")
+    query.set_defaults(func=query_command)
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _add_terrain_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--dem", nargs="+", default=[], metavar="FILE",
+                        help="DEM files (.hgt, .asc, .tif), highest priority first")
+    parser.add_argument("--procedural", type=int, metavar="SEED",
+                        help="add a procedural world with this seed under the DEMs")
+
+
+def serve_command(args) -> int:
+    from server.terrain_service import create_server
+
+    terrain = build_terrain(args.dem, args.procedural)
+    server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers)
+    server.start()
+    print(f"sortie terrain service listening on {args.host}:{port}", flush=True)
+    server.serve_until_signalled(grace_s=args.grace_s)
+    print("sortie terrain service stopped", flush=True)
+    return 0
+
+
+def info_command(args) -> int:
+    if args.address:
+        from client.terrain_client import TerrainClient
+
+        with TerrainClient(args.address) as client:
+            meta = client.metadata()
+    else:
+        from client.terrain_client import metadata_dict
+        from server.terrain_service import metadata_message
+
+        meta = metadata_dict(metadata_message(build_terrain(args.dem, args.procedural)))
+    print(json.dumps(meta, indent=2) if args.json else format_metadata(meta))
+    return 0
+
+
+def format_metadata(meta: dict) -> str:
+    """Readable text for a metadata dict (see client.terrain_client.metadata_dict)."""
+    from client.terrain_client import SOURCE_KEYS
+
+    lines = [meta["height_reference"]]
+    for i, s in enumerate(meta["sources"], 1):
+        lines.append(f"source {i}: {s['name']} ({s['kind']}, {s['crs']}) {s['source']}".rstrip())
+        lines.append(f"  bounds: lat {s['lat_min']:.6f} .. {s['lat_max']:.6f} deg, "
+                     f"lon {s['lon_min']:.6f} .. {s['lon_max']:.6f} deg")
+        if s["rows"]:
+            lines.append(f"  posts: {s['rows']} rows x {s['cols']} cols")
+        lines.append(f"  spacing: {s['spacing_east_m']:.1f} m east x {s['spacing_north_m']:.1f} m north")
+        lines.append(f"  vertical datum: {s['vertical_datum']}; filled posts: {s['filled_posts']}")
+        lines.extend(f"  {key}: {value}" for key, value in s.items() if key not in SOURCE_KEYS)
+    lines.append("limits: " + ", ".join(f"{key} {value:,}" for key, value in meta["limits"].items()))
+    return "\n".join(lines)
+
+
+def query_command(args) -> int:
+    from client.terrain_client import TerrainClient
+    from sortie.v1 import terrain_pb2 as pb
+
+    if len(args.latlon) % 2:
+        raise InvalidArgument("LAT LON", f"needs pairs of numbers, got {len(args.latlon)} values")
+    lat, lon = args.latlon[0::2], args.latlon[1::2]
+    with TerrainClient(args.address) as client:
+        result = client.heights(lat, lon)
+    print(f"{'lat_deg':>12} {'lon_deg':>12} {'height_msl_m':>12} status")
+    for la, lo, h, st in zip(lat, lon, result.height_msl_m, result.status):
+        print(f"{la:12.6f} {lo:12.6f} {h:12.2f} {pb.PointStatus.Name(st).removeprefix('POINT_STATUS_')}")
+    return 0

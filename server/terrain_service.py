@@ -1,0 +1,207 @@
+"""The gRPC terrain query service (``sortie.v1.TerrainService``).
+
+A thin servicer: each RPC turns a decoded request (numpy arrays, see
+:class:`server.grpc_common.PackedCodec`) into one :class:`terrain.terrain.Terrain`
+call and its result back into response arrays. Validation of values (NaN,
+ranges) is the Terrain's; the servicer checks only what belongs to the wire:
+parallel arrays of equal, non-zero length, and the batch limits.
+
+The limits are the ``MAX_*`` constants below (and
+``server.grpc_common.MAX_MESSAGE_BYTES``); the proto comments state them and
+GetMetadata returns them. A request over one fails with RESOURCE_EXHAUSTED
+and a message naming the field.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from concurrent import futures
+
+import grpc
+
+from server.grpc_common import (
+    MAX_MESSAGE_BYTES,
+    ManagedServer,
+    PackedCodec,
+    channel_options,
+    check_batch,
+    unary_handler,
+)
+from sortie import __version__
+from sortie.errors import SortieError
+from sortie.v1 import terrain_pb2 as pb
+from terrain.profile import PROFILE_MAX_SAMPLES
+
+logger = logging.getLogger(__name__)
+
+SERVICE_NAME = "sortie.v1.TerrainService"
+
+MAX_HEIGHT_POINTS = 1_000_000  # per GetHeights: 16 MB request, about 25 ms of work
+MAX_NORMAL_POINTS = 1_000_000  # per GetNormals: 33 MB response
+MAX_PROFILE_SAMPLES = PROFILE_MAX_SAMPLES  # per GetProfile; enforced by terrain.profile
+MAX_LOS_RAYS = 100_000  # per LineOfSight: each ray marches the terrain between its ends
+MAX_SEGMENTS = 100_000  # per IntersectSegments
+
+# Threads answering calls; the numba kernels release the GIL, so batches from
+# different clients run in parallel.
+DEFAULT_MAX_WORKERS = min(32, (os.cpu_count() or 1) + 4)
+# Calls admitted at once per worker thread (running or queued); more are refused
+# with RESOURCE_EXHAUSTED instead of queueing without bound.
+ADMITTED_CALLS_PER_WORKER = 4
+
+HEIGHT_REFERENCE = ("heights are metres above mean sea level (each source's vertical_datum, "
+                    "the EGM96 geoid for SRTM), not above the WGS84 ellipsoid")
+
+# Terrain parameter names -> request field names, so errors name what the client sent.
+_POINT_FIELDS = {"lat": "lat_deg", "lon": "lon_deg"}
+_PROFILE_FIELDS = {"lat1": "start_lat_deg", "lon1": "start_lon_deg",
+                   "lat2": "end_lat_deg", "lon2": "end_lon_deg"}
+_RAY_NAMES = ("a_lat_deg", "a_lon_deg", "a_height_msl_m", "b_lat_deg", "b_lon_deg", "b_height_msl_m")
+# As terrain.los names them in its errors.
+_RAY_FIELDS = {"a_lat": "a_lat_deg", "a_lon": "a_lon_deg", "a_h": "a_height_msl_m",
+               "b_lat": "b_lat_deg", "b_lon": "b_lon_deg", "b_h": "b_height_msl_m"}
+
+# Terrain.describe() keys carried by TerrainSource fields of another name; a key
+# matching no field goes to TerrainSource.details as text.
+DESCRIBE_TO_FIELD = {"lat_min": "lat_min_deg", "lon_min": "lon_min_deg",
+                     "lat_max": "lat_max_deg", "lon_max": "lon_max_deg"}
+
+
+def limits_message() -> pb.Limits:
+    return pb.Limits(
+        max_height_points=MAX_HEIGHT_POINTS,
+        max_normal_points=MAX_NORMAL_POINTS,
+        max_profile_samples=MAX_PROFILE_SAMPLES,
+        max_line_of_sight_rays=MAX_LOS_RAYS,
+        max_segments=MAX_SEGMENTS,
+        max_message_bytes=MAX_MESSAGE_BYTES,
+    )
+
+
+def source_message(description: dict) -> pb.TerrainSource:
+    """One Terrain.describe() entry as a TerrainSource; unknown bounds are NaN."""
+    msg = pb.TerrainSource()
+    fields = pb.TerrainSource.DESCRIPTOR.fields_by_name
+    for name in ("lat_min_deg", "lon_min_deg", "lat_max_deg", "lon_max_deg"):
+        setattr(msg, name, math.nan)
+    for key, value in description.items():
+        name = DESCRIBE_TO_FIELD.get(key, key)
+        if name in fields and name != "details" and value is not None:
+            setattr(msg, name, type(getattr(msg, name))(value))
+        elif value is not None:
+            msg.details[key] = str(value)
+    return msg
+
+
+def metadata_message(terrain) -> pb.GetMetadataResponse:
+    """The GetMetadata response for a Terrain: its sources, datum and this server's limits."""
+    return pb.GetMetadataResponse(
+        sources=[source_message(d) for d in terrain.describe()],
+        height_reference=HEIGHT_REFERENCE,
+        limits=limits_message(),
+        server_version=__version__,
+    )
+
+
+class TerrainServicer:
+    """Converts decoded requests to Terrain calls and results to response arrays."""
+
+    def __init__(self, terrain):
+        self.terrain = terrain
+
+    def GetMetadata(self, request: pb.GetMetadataRequest) -> pb.GetMetadataResponse:
+        return metadata_message(self.terrain)
+
+    def GetHeights(self, request: dict) -> dict:
+        check_batch(request, ("lat_deg", "lon_deg"), MAX_HEIGHT_POINTS)
+        result = self.terrain.heights(request["lat_deg"], request["lon_deg"])
+        return {"height_msl_m": result.height_msl_m, "status": result.status}
+
+    def GetNormals(self, request: dict) -> dict:
+        check_batch(request, ("lat_deg", "lon_deg"), MAX_NORMAL_POINTS)
+        result = self.terrain.normals(request["lat_deg"], request["lon_deg"])
+        n = result.normal_enu
+        return {"normal_east": n[:, 0], "normal_north": n[:, 1], "normal_up": n[:, 2],
+                "slope_deg": result.slope_deg, "status": result.status}
+
+    def GetProfile(self, request: dict) -> dict:
+        # n_samples (2 ..= MAX_PROFILE_SAMPLES) is checked by the Terrain before any work.
+        result = self.terrain.profile(request["start_lat_deg"], request["start_lon_deg"],
+                                      request["end_lat_deg"], request["end_lon_deg"], request["n_samples"])
+        return {"lat_deg": result.lat_deg, "lon_deg": result.lon_deg, "distance_m": result.distance_m,
+                "height_msl_m": result.height_msl_m, "status": result.status}
+
+    def LineOfSight(self, request: dict) -> dict:
+        check_batch(request, _RAY_NAMES, MAX_LOS_RAYS)
+        result = self.terrain.line_of_sight(*(request[name] for name in _RAY_NAMES))
+        return {"visible": result.visible, "status": result.status}
+
+    def IntersectSegments(self, request: dict) -> dict:
+        check_batch(request, _RAY_NAMES, MAX_SEGMENTS)
+        result = self.terrain.intersect(*(request[name] for name in _RAY_NAMES))
+        n = result.normal_enu
+        return {"hit": result.hit, "distance_m": result.distance_m, "lat_deg": result.lat_deg,
+                "lon_deg": result.lon_deg, "height_msl_m": result.height_msl_m,
+                "normal_east": n[:, 0], "normal_north": n[:, 1], "normal_up": n[:, 2],
+                "status": result.status}
+
+
+# RPC name -> (request class, response class, parameter -> field names). Every
+# RPC but GetMetadata goes through PackedCodec in both directions.
+RPCS = {
+    "GetMetadata": (pb.GetMetadataRequest, pb.GetMetadataResponse, {}),
+    "GetHeights": (pb.GetHeightsRequest, pb.GetHeightsResponse, _POINT_FIELDS),
+    "GetNormals": (pb.GetNormalsRequest, pb.GetNormalsResponse, _POINT_FIELDS),
+    "GetProfile": (pb.GetProfileRequest, pb.GetProfileResponse, _PROFILE_FIELDS),
+    "LineOfSight": (pb.LineOfSightRequest, pb.LineOfSightResponse, _RAY_FIELDS),
+    "IntersectSegments": (pb.IntersectSegmentsRequest, pb.IntersectSegmentsResponse, _RAY_FIELDS),
+}
+PACKED_RPCS = frozenset(RPCS) - {"GetMetadata"}
+
+
+def serializers(rpc: str):
+    """(request serializer, request deserializer, response serializer, response deserializer)."""
+    request_class, response_class, _ = RPCS[rpc]
+    if rpc not in PACKED_RPCS:
+        return (request_class.SerializeToString, request_class.FromString,
+                response_class.SerializeToString, response_class.FromString)
+    req, resp = PackedCodec(request_class), PackedCodec(response_class)
+    return req.encode, req.decode, resp.encode, resp.decode
+
+
+def method_handlers(servicer: TerrainServicer) -> dict:
+    """gRPC method handlers for every RPC of the service, fast-path codecs included."""
+    handlers = {}
+    for rpc, (_, _, field_names) in RPCS.items():
+        _, request_deserializer, response_serializer, _ = serializers(rpc)
+        handlers[rpc] = grpc.unary_unary_rpc_method_handler(
+            unary_handler(f"{SERVICE_NAME}/{rpc}", getattr(servicer, rpc), field_names),
+            request_deserializer=request_deserializer,
+            response_serializer=response_serializer,
+        )
+    return handlers
+
+
+def create_server(terrain, address: str = "127.0.0.1:0",
+                  max_workers: int = DEFAULT_MAX_WORKERS) -> tuple[ManagedServer, int]:
+    """A terrain server bound to ``address`` ("host:port", port 0 for any free one).
+
+    Returns the server, not yet started (call ``start()``), and the bound port.
+    Health (SERVING for "" and sortie.v1.TerrainService once started) and
+    reflection are registered.
+    """
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="terrain-rpc"),
+        options=channel_options(),
+        maximum_concurrent_rpcs=ADMITTED_CALLS_PER_WORKER * max_workers,
+    )
+    server.add_registered_method_handlers(SERVICE_NAME, method_handlers(TerrainServicer(terrain)))
+    managed = ManagedServer(server, (SERVICE_NAME,))
+    try:
+        port = server.add_insecure_port(address)
+    except RuntimeError as exc:
+        raise SortieError(f"cannot listen on {address}: {exc}") from exc
+    logger.info("terrain service bound to %s (port %d), %d workers", address, port, max_workers)
+    return managed, port
