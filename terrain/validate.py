@@ -6,6 +6,7 @@ and the first offending index, so a gRPC client can find its bad point.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from sortie.errors import InvalidArgument, LimitExceeded
@@ -23,6 +24,18 @@ def as_1d_f64(name: str, values) -> np.ndarray:
     if arr.ndim != 1:
         raise InvalidArgument(name, f"must be a 1-D array, got shape {arr.shape}")
     return np.ascontiguousarray(arr)
+
+
+@numba.njit(cache=True, nogil=True)
+def _latlon_all_valid(lat, lon, lon_abs_max):
+    """One pass over both arrays: True when every point is finite and in range."""
+    ok = True
+    for k in range(lat.shape[0]):
+        a = lat[k]
+        b = lon[k]
+        # NaN fails every comparison, and +-inf fails the bound: one test each.
+        ok &= (abs(a) <= 90.0) & (abs(b) <= lon_abs_max)
+    return ok
 
 
 def first_bad(mask: np.ndarray) -> int:
@@ -45,6 +58,9 @@ def check_latlon(lat, lon, prefix: str = "", max_points: int | None = None):
         raise InvalidArgument(lon_name, f"must have as many values as {lat_name} ({lat.size}), got {lon.size}")
     if max_points is not None and lat.size > max_points:
         raise LimitExceeded(lat_name, lat.size, max_points)
+    if _latlon_all_valid(lat, lon, LON_ABS_MAX_DEG):
+        return lat, lon
+    # Something is wrong: find the first culprit, and name it.
     check_finite(lat_name, lat)
     check_finite(lon_name, lon)
     bad = np.abs(lat) > 90.0

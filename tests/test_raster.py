@@ -122,3 +122,47 @@ def test_post_beside_a_hole_keeps_its_value():
     res = Terrain([Raster(h, r.georef)]).heights([47.0 + 5 / 1200, 47.0 + 5.5 / 1200], [9.0 + 5 / 1200, 9.0 + 5 / 1200])
     assert res.height_msl_m[0] == h[5, 5] and res.status[0] == STATUS_OK
     assert res.status[1] == STATUS_OUTSIDE  # between a post and a hole: no data
+
+
+@pytest.mark.parametrize("crs", [CRS_GEOGRAPHIC, CRS_WEB_MERCATOR])
+def test_chunked_fast_path_matches_the_careful_path(crs):
+    """bilinear_into's vectorised path and its per-point path answer every point identically:
+    posts, near-posts within the snap tolerance, edges, wrapped longitudes, holes, filled voids,
+    points already answered, across chunk boundaries."""
+    from terrain.raster import _bilinear_point, bilinear_into, fractional_index
+
+    rng = np.random.default_rng(7)
+    ny, nx = 41, 57
+    h = rng.normal(500.0, 200.0, (ny, nx)).astype(np.float32)
+    h[rng.random((ny, nx)) < 0.03] = np.nan
+    filled = (rng.random((ny, nx)) < 0.05).astype(np.uint8)
+    g = (Georef(CRS_GEOGRAPHIC, 179.98, -10.0, 1 / 1200, 1 / 1200) if crs == CRS_GEOGRAPHIC
+         else Georef(CRS_WEB_MERCATOR, 1.0e6, 5.0e6, 30.0, 30.0))
+    n = 5000
+    rows = np.concatenate([rng.uniform(-1, ny, n), rng.integers(0, ny, n).astype(float),
+                           rng.integers(0, ny, n) + rng.choice([-1, 1], n) * rng.uniform(0, 3e-9, n)])
+    cols = np.concatenate([rng.uniform(-1, nx, n), rng.integers(0, nx, n).astype(float),
+                           rng.integers(0, nx, n) + rng.choice([-1, 1], n) * rng.uniform(0, 3e-9, n)])
+    x, y = g.post_xy(rows, cols)
+    if crs == CRS_GEOGRAPHIC:
+        lat, lon = y, np.where(rng.random(x.size) < 0.3, x - 360.0, x)
+    else:
+        from terrain.geodesy import web_mercator_inverse
+        lat, lon = web_mercator_inverse(x, y)
+    lat, lon = np.ascontiguousarray(lat), np.ascontiguousarray(lon)
+    answered = rng.random(lat.size) < 0.1
+    for f in (None, filled):
+        fa = np.zeros((0, 0), np.uint8) if f is None else f
+        out = np.where(answered, -1.0, np.nan)
+        status = np.where(answered, STATUS_OK, STATUS_OUTSIDE).astype(np.uint8)
+        bilinear_into(h, fa, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, out, status)
+        ref = np.where(answered, -1.0, np.nan)
+        ref_status = np.where(answered, STATUS_OK, STATUS_OUTSIDE).astype(np.uint8)
+        for k in np.flatnonzero(~answered):
+            r, c = fractional_index(lat[k], lon[k], g.crs, g.x0, g.y0, g.dx, g.dy)
+            _bilinear_point(h, fa, f is not None, r, c, ref, ref_status, k)
+        np.testing.assert_array_equal(status, ref_status)
+        np.testing.assert_array_equal(out, ref)
+        assert (status == STATUS_OK).sum() > n and (status == STATUS_OUTSIDE).sum() > 100
+        if f is not None:
+            assert (status == STATUS_FILLED).sum() > 100
