@@ -16,33 +16,51 @@ def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
     written = []
     series = report.get("series", {})
     if "heights" in series:
-        fig, ax = plt.subplots(figsize=(6, 4))
-        for row in series["heights"]:
-            for key, marker in (("ours_msps", "o"), ("numpy_msps", "s"), ("scipy_msps", "^")):
-                err = row["max_abs_diff_m"] if key == "ours_msps" else 0.0
-                ax.scatter(row[key], max(err, 1e-12), marker=marker,
-                           label=f"{key.split('_')[0]}" if row is series["heights"][0] else None)
-                ax.annotate(row["dem"][:12], (row[key], max(err, 1e-12)), fontsize=6)
+        rows = series["heights"]
+        # Differences below this are rounding: plotted on the floor, labelled so.
+        floor = 1e-12
+        markers = "ovD^sPX*"
+        fig, ax = plt.subplots(figsize=(7, 4.5))
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("million bilinear samples / s (one core)")
-        ax.set_ylabel("max |h - scipy| (m); scipy itself plotted at 1e-12")
+        for method, speed_key, err_key, colour in (("ours", "ours_msps", "max_abs_diff_m", "tab:blue"),
+                                                   ("plain numpy", "numpy_msps", "numpy_max_abs_diff_m", "tab:orange"),
+                                                   ("scipy (reference)", "scipy_msps", None, "tab:green")):
+            for k, row in enumerate(rows):
+                err = row.get(err_key, 0.0) if err_key else 0.0
+                ax.scatter(row[speed_key], max(err, floor), color=colour, marker=markers[k % len(markers)],
+                           label=method if k == 0 else None)
+        for k, row in enumerate(rows):  # marker legend: which DEM
+            ax.scatter([], [], color="grey", marker=markers[k % len(markers)], label=row["dem"][:24])
+        ax.axhline(1e-6, color="grey", lw=0.8, ls="--")
+        ax.annotate("goal: 1e-6 m", (0.01, 1.3e-6), xycoords=("axes fraction", "data"), fontsize=7, color="grey")
+        ax.set_xlabel("million bilinear samples / s (one core, uniform random points)")
+        ax.set_ylabel(f"max |h - scipy| (m), floor {floor:g}")
         ax.set_title("Heights: speed against error")
-        ax.legend()
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
         fig.tight_layout()
         path = out_dir / "terrain_heights_speed_vs_error.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)
         written.append(path)
     if "los_speed_vs_error" in series:
-        fig, ax = plt.subplots(figsize=(6, 4))
-        for row in series["los_speed_vs_error"]:
-            ax.scatter(row["rays_per_s"], max(row["disagreement_rate"], 1e-4))
-            ax.annotate(row["method"], (row["rays_per_s"], max(row["disagreement_rate"], 1e-4)), fontsize=7)
+        curve = series["los_speed_vs_error"]
+        n_rays = max(row.get("rays", 1) for row in curve)
+        floor = 0.5 / n_rays  # "none wrong of n_rays"
+        fig, ax = plt.subplots(figsize=(6.5, 4.5))
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for row in curve:
+            y = max(row["disagreement_rate"], floor)
+            ours = row["method"].startswith("exact")
+            ax.scatter(row["rays_per_s"], y, color="tab:blue" if ours else "tab:orange", marker="o" if ours else "s")
+            ax.annotate(row["method"], (row["rays_per_s"], y), fontsize=7, xytext=(4, 4), textcoords="offset points")
+        ax.axhline(floor, color="grey", lw=0.8, ls="--")
+        ax.annotate(f"floor: 0 of {n_rays} rays wrong", (0.01, floor * 1.08), xycoords=("axes fraction", "data"),
+                    fontsize=7, color="grey", va="bottom")
+        ax.set_ylim(floor * 0.5, 1.0)
         ax.set_xlabel("10 km rays / s (one core)")
-        ax.set_ylabel("fraction of rays answered wrongly (exact plotted at 1e-4)")
+        ax.set_ylabel("fraction of rays whose answer differs from the exact one")
         ax.set_title("Line of sight: speed against error")
         fig.tight_layout()
         path = out_dir / "terrain_los_speed_vs_error.png"

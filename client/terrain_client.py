@@ -14,18 +14,29 @@ mean sea level.
 from __future__ import annotations
 
 import re
+from collections import deque
 
 import grpc
 import numpy as np
 
 from server.grpc_common import channel_options
-from server.terrain_service import DESCRIBE_TO_FIELD, RPCS, SERVICE_NAME, serializers
+from server.terrain_service import DESCRIBE_TO_FIELD, MAX_HEIGHT_POINTS, RPCS, SERVICE_NAME, serializers
 from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound, SortieError
 from sortie.v1 import terrain_pb2 as pb
 from terrain.terrain import HeightResult, LosResult, NormalResult, ProfileResult, SegmentResult
 from terrain.validate import as_1d_f64
 
 DEFAULT_TIMEOUT_S = 30.0
+# Batches larger than these are split into chunks and the chunks pipelined, at
+# most MAX_IN_FLIGHT at a time, so a batch of any size fits the service's
+# per-call limits. Points go in chunks as large as the service allows: a call
+# costs about 0.3 ms of gRPC overhead, more than a 32k-point chunk's work
+# (measured on loopback: 100k heights in 4 chunks took 1.3x as long as in one).
+# A ray costs the server about 5 us, so ray chunks are small enough for the
+# server's threads to march several at once and large enough to hide the overhead.
+CHUNK_POINTS = MAX_HEIGHT_POINTS
+CHUNK_RAYS = 8_192
+MAX_IN_FLIGHT = 4
 
 
 class ServiceError(SortieError):
@@ -98,9 +109,17 @@ class TerrainClient:
     share one client.
     """
 
-    def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+    def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S, chunk_points: int = CHUNK_POINTS,
+                 chunk_rays: int = CHUNK_RAYS, max_in_flight: int = MAX_IN_FLIGHT):
+        for name, value in (("chunk_points", chunk_points), ("chunk_rays", chunk_rays),
+                            ("max_in_flight", max_in_flight)):
+            if not (isinstance(value, int) and value >= 1):
+                raise InvalidArgument(name, "must be an integer >= 1", value=value)
         self.address = address
         self.timeout_s = timeout_s
+        self.chunk_points = chunk_points
+        self.chunk_rays = chunk_rays
+        self.max_in_flight = max_in_flight
         self._channel = grpc.insecure_channel(address, options=channel_options())
         self._calls = {}
         for rpc in RPCS:
@@ -134,6 +153,46 @@ class TerrainClient:
         except grpc.RpcError as exc:
             raise error_from_rpc(exc) from None
 
+    def _call_chunked(self, rpc: str, request: dict, chunk: int) -> dict:
+        """One logical call over parallel arrays, sent as pipelined chunks of at most ``chunk``.
+
+        Results are concatenated in order; an error in a chunk is raised with
+        its index shifted to the whole batch's, so it names the caller's point.
+        Arrays of unequal length go whole, for the server to reject.
+        """
+        lengths = {v.shape[0] for v in request.values()}
+        n = lengths.pop() if len(lengths) == 1 else -1
+        if n <= chunk:
+            return self._call(rpc, request)
+        starts = list(range(0, n, chunk))
+        parts: list = [None] * len(starts)
+        pending: deque = deque()
+
+        def collect() -> None:
+            k, future = pending.popleft()
+            try:
+                parts[k] = future.result()
+            except grpc.RpcError as exc:
+                for _, other in pending:
+                    other.cancel()
+                error = error_from_rpc(exc)
+                if isinstance(error, InvalidArgument) and error.index is not None:
+                    text = str(error).split(": ", 1)[1]
+                    error = InvalidArgument(error.field, text, index=error.index + starts[k])
+                raise error from None
+
+        call = self._calls[rpc]
+        for k, s in enumerate(starts):
+            if len(pending) >= self.max_in_flight:
+                collect()
+            pending.append((k, call.future({name: v[s:s + chunk] for name, v in request.items()},
+                                           timeout=self.timeout_s)))
+        while pending:
+            collect()
+        first = parts[0]
+        return {name: (np.concatenate([p[name] for p in parts]) if isinstance(value, np.ndarray) else value)
+                for name, value in first.items()}
+
     def metadata(self) -> dict:
         """Sources, height reference and limits of the service (see :func:`metadata_dict`)."""
         return metadata_dict(self._call("GetMetadata", pb.GetMetadataRequest()))
@@ -144,12 +203,14 @@ class TerrainClient:
 
     def heights(self, lat, lon) -> HeightResult:
         """Heights (m above MSL, NaN where OUTSIDE) at (lat, lon) degrees, (n,) each."""
-        r = self._call("GetHeights", {"lat_deg": as_1d_f64("lat", lat), "lon_deg": as_1d_f64("lon", lon)})
+        r = self._call_chunked("GetHeights", {"lat_deg": as_1d_f64("lat", lat), "lon_deg": as_1d_f64("lon", lon)},
+                               self.chunk_points)
         return HeightResult(r["height_msl_m"], r["status"])
 
     def normals(self, lat, lon) -> NormalResult:
         """Unit surface normals (n, 3) ENU and slope (deg) at (lat, lon) degrees."""
-        r = self._call("GetNormals", {"lat_deg": as_1d_f64("lat", lat), "lon_deg": as_1d_f64("lon", lon)})
+        r = self._call_chunked("GetNormals", {"lat_deg": as_1d_f64("lat", lat), "lon_deg": as_1d_f64("lon", lon)},
+                               self.chunk_points)
         normal = np.stack([r["normal_east"], r["normal_north"], r["normal_up"]], axis=-1)
         return NormalResult(normal, r["slope_deg"], r["status"])
 
@@ -162,12 +223,13 @@ class TerrainClient:
 
     def line_of_sight(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> LosResult:
         """Whether each b (lat, lon degrees, height m MSL) is visible from its a."""
-        r = self._call("LineOfSight", _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl))
+        r = self._call_chunked("LineOfSight", _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl), self.chunk_rays)
         return LosResult(r["visible"], r["status"])
 
     def intersect(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> SegmentResult:
         """First terrain hit of each straight segment a -> b (lat, lon degrees, height m MSL)."""
-        r = self._call("IntersectSegments", _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl))
+        r = self._call_chunked("IntersectSegments", _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl),
+                               self.chunk_rays)
         normal = np.stack([r["normal_east"], r["normal_north"], r["normal_up"]], axis=-1)
         return SegmentResult(r["hit"], r["distance_m"], r["lat_deg"], r["lon_deg"], r["height_msl_m"],
                              normal, r["status"])

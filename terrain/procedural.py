@@ -311,7 +311,7 @@ class ProceduralTerrain:
         lat = np.atleast_1d(np.asarray(lat, dtype=np.float64))
         lon = np.atleast_1d(np.asarray(lon, dtype=np.float64))
         if lat.shape != lon.shape or lat.ndim != 1:
-            raise ValueError(f"lat and lon must be equal (k,) arrays, got shapes {lat.shape} and {lon.shape}")
+            raise InvalidArgument("lon", f"must be a (k,) array like lat {lat.shape}, got shape {lon.shape}")
         if not (math.isfinite(radius_m) and radius_m >= 0):
             raise InvalidArgument("radius_m", "must be finite and >= 0", value=radius_m)
         with self._lock:

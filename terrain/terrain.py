@@ -55,9 +55,29 @@ class Terrain:
         lat, lon = check_latlon(lat, lon)
         out_h = np.full(lat.shape, np.nan)
         status = np.full(lat.shape, STATUS_OUTSIDE, dtype=np.uint8)
-        for source in self.sources:
-            source.heights_into(lat, lon, out_h, status)
+        for idx, source in self._unanswered(status):
+            if idx is None:
+                source.heights_into(lat, lon, out_h, status)
+            else:
+                sub_h = np.full(idx.size, np.nan)
+                sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
+                source.heights_into(lat[idx], lon[idx], sub_h, sub_status)
+                out_h[idx] = sub_h
+                status[idx] = sub_status
         return HeightResult(out_h, status)
+
+    def _unanswered(self, status):
+        """(indices, source) for each source in priority order, indices being the
+        points no earlier source answered (None: all of them); stops once every
+        point is answered, so a point costs only the sources it reaches."""
+        for k, source in enumerate(self.sources):
+            if k == 0:
+                yield None, source
+                continue
+            idx = np.flatnonzero(status == STATUS_OUTSIDE)
+            if idx.size == 0:
+                return
+            yield (None if idx.size == status.size else idx), source
 
     def normals(self, lat, lon) -> NormalResult:
         """Surface normals (ENU) and slope of the bilinear surface at (lat, lon)."""
@@ -65,8 +85,14 @@ class Terrain:
         de = np.full(lat.shape, np.nan)
         dn = np.full(lat.shape, np.nan)
         status = np.full(lat.shape, STATUS_OUTSIDE, dtype=np.uint8)
-        for source in self.sources:
-            source.gradient_into(lat, lon, de, dn, status)
+        for idx, source in self._unanswered(status):
+            if idx is None:
+                source.gradient_into(lat, lon, de, dn, status)
+            else:
+                sub_de, sub_dn = np.full(idx.size, np.nan), np.full(idx.size, np.nan)
+                sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
+                source.gradient_into(lat[idx], lon[idx], sub_de, sub_dn, sub_status)
+                de[idx], dn[idx], status[idx] = sub_de, sub_dn, sub_status
         normal = np.stack([-de, -dn, np.ones_like(de)], axis=-1)
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
         slope = np.degrees(np.arctan(np.hypot(de, dn)))

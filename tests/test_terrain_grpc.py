@@ -64,6 +64,13 @@ def client(address):
 
 
 @pytest.fixture
+def unsplit_client(address):
+    """A client that never splits batches, to reach the server's own limits."""
+    with TerrainClient(address, timeout_s=20.0, chunk_points=1 << 40, chunk_rays=1 << 40) as c:
+        yield c
+
+
+@pytest.fixture
 def stub(address):
     """The generated stub with the generated message classes: what grpcurl-like clients send."""
     with grpc.insecure_channel(address) as channel:
@@ -220,10 +227,10 @@ def test_client_raises_sortie_errors_with_server_message(client, lat, lon, code,
     assert str(info.value).startswith(message)
 
 
-def test_oversized_batch_is_resource_exhausted(client):
+def test_oversized_batch_is_resource_exhausted(unsplit_client):
     n = terrain_service.MAX_HEIGHT_POINTS + 1
     with pytest.raises(LimitExceeded) as info:
-        client.heights(np.full(n, 47.5), np.full(n, 9.5))
+        unsplit_client.heights(np.full(n, 47.5), np.full(n, 9.5))
     assert str(info.value) == f"lat_deg: {n} exceeds the limit of {terrain_service.MAX_HEIGHT_POINTS}"
     assert (info.value.field, info.value.size) == ("lat_deg", n)
 
@@ -241,13 +248,13 @@ def test_profile_limits(stub):
     assert info.value.details().startswith("n_samples: must be at least 2")
 
 
-def test_ray_batches_are_checked(client):
+def test_ray_batches_are_checked(client, unsplit_client):
     a_lat, a_lon, a_h, b_lat, b_lon, b_h = _rays(6, seed=6)
     with pytest.raises(InvalidArgument, match=r"^b_lon_deg: must have as many values as a_lat_deg"):
         client.line_of_sight(a_lat, a_lon, a_h, b_lat, b_lon[:5], b_h)
     n = terrain_service.MAX_SEGMENTS + 1
     with pytest.raises(LimitExceeded, match=r"^a_lat_deg: "):
-        client.intersect(*(np.full(n, v) for v in (47.5, 9.5, 3000.0, 47.6, 9.6, 3000.0)))
+        unsplit_client.intersect(*(np.full(n, v) for v in (47.5, 9.5, 3000.0, 47.6, 9.6, 3000.0)))
 
 
 def test_bad_ray_values_name_the_request_field(client):
@@ -261,7 +268,7 @@ def test_bad_ray_values_name_the_request_field(client):
         client.intersect(a_lat, a_lon, a_h, b_lat, b_lon, b_h)
 
 
-def test_hostile_clients_do_not_disturb_a_concurrent_one(alps, address, client, stub):
+def test_hostile_clients_do_not_disturb_a_concurrent_one(alps, address, unsplit_client, stub):
     lat, lon = _points(10_000, seed=7)
     expected = alps.heights(lat, lon).height_msl_m
     stop = threading.Event()
@@ -284,7 +291,7 @@ def test_hostile_clients_do_not_disturb_a_concurrent_one(alps, address, client, 
                 with pytest.raises(grpc.RpcError):
                     stub.GetHeights(pb.GetHeightsRequest(lat_deg=bad_lat, lon_deg=bad_lon))
             with pytest.raises(LimitExceeded):
-                client.heights(big, big)
+                unsplit_client.heights(big, big)
     finally:
         stop.set()
         thread.join(timeout=30)
@@ -498,3 +505,26 @@ def _readline(proc: subprocess.Popen, timeout_s: float) -> str:
     if not lines:
         pytest.fail(f"no output from {proc.args} within {timeout_s} s")
     return lines[0].strip()
+
+
+def test_client_splits_large_batches_and_keeps_error_indices(address, alps):
+    """Batches beyond a chunk go as pipelined chunks: same answers, in order; an error
+    in a later chunk names the caller's index, not the chunk's."""
+    with TerrainClient(address, chunk_points=1000, chunk_rays=7, max_in_flight=3) as small:
+        lat, lon = _points(3500, seed=11)
+        assert _same(small.heights(lat, lon).height_msl_m, alps.heights(lat, lon).height_msl_m)
+        normals = small.normals(lat, lon)
+        assert _same(normals.normal_enu, alps.normals(lat, lon).normal_enu)
+        rays = _rays(30, seed=12)
+        assert _same(small.line_of_sight(*rays).visible, alps.line_of_sight(*rays).visible)
+        assert _same(small.intersect(*rays).distance_m, alps.intersect(*rays).distance_m)
+        lat[2500] = math.inf
+        with pytest.raises(InvalidArgument, match=r"^lat_deg\[2500\]: must be finite") as info:
+            small.heights(lat, lon)
+        assert info.value.index == 2500
+        a_lat, a_lon, a_h, b_lat, b_lon, b_h = rays
+        b_h[23] = math.nan
+        with pytest.raises(InvalidArgument, match=r"^b_height_msl_m\[23\]: "):
+            small.line_of_sight(a_lat, a_lon, a_h, b_lat, b_lon, b_h)
+    with pytest.raises(InvalidArgument, match="^max_in_flight: "):
+        TerrainClient(address, max_in_flight=0)
