@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import importlib
 
-SUITES = ("terrain",)
+SUITES = ("terrain", "fdm")
 
 
 def add_parser(sub) -> None:

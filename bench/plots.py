@@ -70,4 +70,49 @@ def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
     return written
 
 
-PLOTTERS = {"terrain": plot_terrain}
+def plot_fdm(report: dict, out_dir: Path) -> list[Path]:
+    """Write the fdm suite's speed-vs-error plots (dt sweeps); returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    series = report.get("series", {})
+    panels = []
+    if "dt_convergence" in series:
+        rows = series["dt_convergence"]
+        panels.append(("c172x (JSBSim): 60 s of manoeuvring vs dt = 1/1000 s",
+                       [r["cost_s_per_sim_s"] * 1e3 for r in rows], [r["position_error_m"] for r in rows],
+                       [f"1/{r['rate_hz']:g} s" for r in rows], "ms of wall time per simulated second",
+                       "position error (m)"))
+    if "ground_dt_sweep" in series:
+        rows = series["ground_dt_sweep"]
+        panels.append(("ground vehicles: median error vs dt = 0.01 s",
+                       [r["wall_s_per_sim_s_per_1000"] * 1e3 for r in rows],
+                       [max(r["median_pos_err_m"], 1e-6) for r in rows],
+                       [f"{r['dt_s']:g} s" for r in rows], "ms of wall time per simulated second per 1000 vehicles",
+                       "median position error (m)"))
+    if not panels:
+        return written
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.0 * len(panels), 4.5), squeeze=False)
+    for ax, (title, x, y, labels, xlabel, ylabel) in zip(axes[0], panels):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.plot(x, y, "o-", color="tab:blue")
+        for xi, yi, label in zip(x, y, labels):
+            ax.annotate(f"dt {label}", (xi, yi), fontsize=7, xytext=(4, 4), textcoords="offset points")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
+    fig.suptitle("Step size: speed against error")
+    fig.tight_layout()
+    path = out_dir / "fdm_dt_speed_vs_error.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+    return written
+
+
+PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm}

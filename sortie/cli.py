@@ -17,6 +17,7 @@ from sortie.errors import SortieError
 # Modules that contribute sub-commands, in --help order.
 COMMAND_MODULES = (
     "server.terrain_cli",
+    "fdm.cli",
     "bench.cli",
     "sortie.demo",
 )

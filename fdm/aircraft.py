@@ -1,0 +1,543 @@
+"""A JSBSim aircraft on Sortie terrain: initial conditions, controls, one step, state out.
+
+This is the thesis's AirplaneObject (clipmaps-jsbsim-thesis §4.3): it owns one
+``FGFDMExec``; inputs go to the flight control system, JSBSim runs one
+discrete step, and the state comes back. Everything imperial stays here: the
+caller speaks SI, geodetic WGS84 (lat, lon in that order, degrees) and the
+normalised controls of :class:`Controls`.
+
+Terrain coupling
+----------------
+JSBSim's default ground callback knows one number, the terrain elevation
+(``position/terrain-elevation-asl-ft``), and treats the ground as the ellipsoid
+raised by it: a horizontal plane. Every gear and structure contact measures
+its clearance against that one elevation, so a slope cannot tilt the ground
+under the wheels. What we do with the one number, each step while the aircraft
+is near the ground:
+
+1. place every contact point (wheels *and* structure points: wing tips, tail
+   skid, radome) from the CG, the attitude and the model's contact locations,
+   one step ahead along the current ground velocity (the step that will use
+   the elevation);
+2. ask the terrain for the height under each contact and under the CG (one
+   batched query);
+3. feed the elevation that gives the most-penetrating contact its true
+   clearance: ``E = min_i h_i - min_i (h_i - T_i)`` (h contact altitude, T
+   terrain under it). On flat ground this is exactly T; on a slope or a cliff
+   edge the first contact touches at the right instant and depth.
+
+Limitation: the ground JSBSim sees is still level, so on a slope the other
+wheels meet it at the height of the first contact, not the slope's; an
+aircraft at rest on a 10 % cross-slope sits level. A contact deeper than
+``max_penetration_m`` below its own terrain (flying into a cliff face), or any
+structure point below its terrain, is a crash; the aircraft then freezes where
+it hit (``crashed`` is set, ``step`` does nothing more).
+
+Far from the ground (CG more than ``near_ground_m`` plus twice the distance
+flown between refreshes above the last terrain height) nothing touches the
+terrain and ground effect is nil, so the elevation under the CG is refreshed
+at ``terrain_refresh_hz``, and less often the higher the aircraft is: after
+the time it needs to use half its spare height flying at its airspeed over
+slopes of at most 45 degrees, capped at ``MAX_REFRESH_S`` ("model only what a
+scene needs"). The state's AGL is as old as the last refresh there.
+``near_ground_m=math.inf`` couples every step. Where the terrain
+has no data (NaN) the ground is sea level, 0 m.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from fdm import catalog
+from fdm.events import LIMITS, EventDetector
+from fdm.state import (FT_M, RAW_COLUMNS, RAW_PROPERTIES, RAW_WIDTH, AircraftState, body_to_ned,
+                       structural_to_body_ft)
+from sortie.errors import InvalidArgument, SortieError
+from terrain.geodesy import radii_of_curvature, wrap_lon_deg
+
+LB_KG = 0.45359237  # international avoirdupois pound, exact (NIST SP 811, B.8)
+DT_MIN_S = 1e-4
+DT_MAX_S = 0.1
+DEFAULT_DT_S = 1.0 / 120.0
+# Deeper than this below its own terrain a contact is inside the ground, not on it
+# (gear compressions of the catalog's models stay well below 1 m).
+MAX_PENETRATION_M = 1.0
+# Far above the terrain its height is refreshed at least this often (AGL in the state stays fresh).
+MAX_REFRESH_S = 1.0
+
+_quiet = False
+
+
+def _jsbsim():
+    """The jsbsim module, its start-up banner and debug output silenced once."""
+    global _quiet
+    import jsbsim
+
+    if not _quiet:
+        jsbsim.FGJSBBase().debug_lvl = 0
+        _quiet = True
+    return jsbsim
+
+
+class TrimFailed(SortieError):
+    """JSBSim's trim found no steady state for the requested conditions."""
+
+
+@dataclass(frozen=True)
+class InitialConditions:
+    """Where and how an aircraft starts. Degrees, metres, m/s; (lat, lon) order.
+
+    ``alt_ref`` is "msl" (alt_m above mean sea level) or "agl" (above the
+    terrain under the aircraft). ``on_ground`` places the aircraft at rest on
+    its wheels (alt_m is ignored) and settles it with JSBSim's ground trim;
+    airborne starts are trimmed (full trim) unless ``trim`` is False.
+    ``gear_down`` None means down on the ground, up in the air.
+    """
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float = 0.0
+    alt_ref: str = "msl"
+    heading_deg: float = 0.0
+    speed_mps: float = 0.0
+    on_ground: bool = False
+    trim: bool = True
+    engines_running: bool = True
+    gear_down: bool | None = None
+
+    def validated(self) -> "InitialConditions":
+        for f in ("lat_deg", "lon_deg", "alt_m", "heading_deg", "speed_mps"):
+            v = getattr(self, f)
+            if not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise InvalidArgument(f, "must be a finite number", value=v)
+        if abs(self.lat_deg) > 90.0:
+            raise InvalidArgument("lat_deg", "must be within [-90, 90]", value=self.lat_deg)
+        if abs(self.lon_deg) > 540.0:
+            raise InvalidArgument("lon_deg", "must be within [-540, 540]", value=self.lon_deg)
+        if self.alt_ref not in ("msl", "agl"):
+            raise InvalidArgument("alt_ref", 'must be "msl" or "agl"', value=self.alt_ref)
+        if self.speed_mps < 0.0:
+            raise InvalidArgument("speed_mps", "must be >= 0", value=self.speed_mps)
+        return self
+
+
+# name: (low, high). gear_down is a bool and checked apart.
+CONTROL_RANGES = {
+    "pitch": (-1.0, 1.0),  # stick: +1 full aft (nose up); JSBSim elevator-cmd-norm = -pitch
+    "roll": (-1.0, 1.0),  # stick: +1 full right (right wing down)
+    "yaw": (-1.0, 1.0),  # pedals: +1 full right (nose right), JSBSim rudder-cmd-norm = -yaw
+    "throttle": (0.0, 1.0),  # every engine
+    "mixture": (0.0, 1.0),  # every engine (piston engines; others ignore it)
+    "flaps": (0.0, 1.0),
+    "brakes": (0.0, 1.0),  # left and right wheel brakes
+}
+
+
+@dataclass(frozen=True)
+class Controls:
+    """Normalised pilot inputs (see CONTROL_RANGES for signs and ranges)."""
+
+    pitch: float = 0.0
+    roll: float = 0.0
+    yaw: float = 0.0
+    throttle: float = 0.0
+    mixture: float = 1.0
+    flaps: float = 0.0
+    brakes: float = 0.0
+    gear_down: bool = True
+
+
+CONTROL_NAMES = tuple(f.name for f in fields(Controls))
+
+
+def validate_controls(values: dict) -> dict:
+    """The same mapping with floats; InvalidArgument naming the first bad field and value."""
+    out = {}
+    for name, v in values.items():
+        if name == "gear_down":
+            if v not in (True, False, 0, 1) or isinstance(v, float) and not v.is_integer():
+                raise InvalidArgument(name, "must be a bool", value=v)
+            out[name] = bool(v)
+            continue
+        if name not in CONTROL_RANGES:
+            raise InvalidArgument(name, f"unknown control; known: {', '.join(CONTROL_NAMES)}", value=v)
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+            raise InvalidArgument(name, "must be a number", value=v)
+        v = float(v)
+        lo, hi = CONTROL_RANGES[name]
+        if not math.isfinite(v):
+            raise InvalidArgument(name, "must be finite", value=v)
+        if not lo <= v <= hi:
+            raise InvalidArgument(name, f"must be within [{lo:g}, {hi:g}]", value=v)
+        out[name] = v
+    return out
+
+
+@dataclass(frozen=True)
+class Contact:
+    """One JSBSim contact point: 'gear' (a wheel) or 'structure'; location in structural inches."""
+
+    index: int
+    kind: str
+    location_in: tuple
+
+
+class FlatTerrain:
+    """A world of constant height (m MSL) with the terrain API (``heights(lat, lon)``)."""
+
+    def __init__(self, height_msl_m: float = 0.0):
+        self.height_msl_m = float(height_msl_m)
+
+    def heights(self, lat, lon):
+        from terrain.terrain import HeightResult
+
+        lat = np.asarray(lat, dtype=np.float64)
+        return HeightResult(np.full(lat.shape, self.height_msl_m), np.ones(lat.shape, np.uint8))
+
+
+class Aircraft:
+    """One JSBSim aircraft of the catalog, stepped on a terrain source.
+
+    ``terrain`` is anything with ``heights(lat, lon) -> .height_msl_m``: a
+    :class:`terrain.terrain.Terrain` in process, a
+    :class:`client.terrain_client.TerrainClient`, or :class:`FlatTerrain`.
+    """
+
+    def __init__(self, name: str, terrain, ic: InitialConditions, *, dt: float = DEFAULT_DT_S,
+                 terrain_refresh_hz: float = 10.0, near_ground_m: float = 150.0,
+                 max_penetration_m: float = MAX_PENETRATION_M, geoid_undulation_m: float = 0.0):
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and DT_MIN_S <= dt <= DT_MAX_S):
+            raise InvalidArgument("dt", f"must be within [{DT_MIN_S:g}, {DT_MAX_S:g}] s", value=dt)
+        if not (terrain_refresh_hz > 0 and math.isfinite(terrain_refresh_hz)):
+            raise InvalidArgument("terrain_refresh_hz", "must be positive and finite", value=terrain_refresh_hz)
+        if not near_ground_m >= 0:
+            raise InvalidArgument("near_ground_m", "must be >= 0 (inf couples every step)", value=near_ground_m)
+        ic = ic.validated()
+        self.name = catalog.resolve(name)
+        self.aircraft_class = catalog.aircraft_class(self.name)
+        self.terrain = terrain
+        self.dt = float(dt)
+        self.geoid_undulation_m = float(geoid_undulation_m)
+        self.max_penetration_m = float(max_penetration_m)
+        self.events: list = []
+        self.crashed = False
+
+        jsbsim = _jsbsim()
+        self._trim_error = jsbsim.TrimFailureError
+        fdm = jsbsim.FGFDMExec(catalog.root_dir().as_posix())
+        fdm.set_debug_level(0)
+        if not fdm.load_model(self.name):
+            raise SortieError(f"JSBSim could not load aircraft {self.name!r}")
+        fdm.disable_output()  # models may declare CSV outputs (c172x: JSBout172B.csv); the host records
+        fdm.set_dt(self.dt)
+        self.fdm = fdm
+        self._bind()
+
+        self._refresh_steps = max(1, round(1.0 / (terrain_refresh_hz * self.dt)))
+        self._max_refresh_steps = max(self._refresh_steps, round(MAX_REFRESH_S / self.dt))
+        self._near_ground_base_ft = near_ground_m / FT_M
+        self._near_ground_ft = self._near_ground_base_ft
+        self._controls = Controls()
+        self._start(ic)
+
+    # -- set-up ---------------------------------------------------------------------------------
+
+    def _node(self, name: str):
+        node = self._pm.get_node(name)
+        if node is None:
+            raise SortieError(f"aircraft {self.name!r} has no JSBSim property {name!r}")
+        return node
+
+    def _bind(self) -> None:
+        """Look every property up once; the hot loop calls bound C methods only."""
+        self._pm = self.fdm.get_property_manager()
+        n = self._node
+        self._run = self.fdm.run
+        self._get_alt_ft = n("position/geod-alt-ft").get_double_value
+        self._get_lat_rad = n("position/lat-geod-rad").get_double_value
+        self._get_lon_rad = n("position/long-gc-rad").get_double_value
+        self._get_nz = n("accelerations/Nz").get_double_value
+        self._get_wow = n("gear/wow").get_double_value
+        self._get_vt_fps = n("velocities/vt-fps").get_double_value
+        self._get_vn = n("velocities/v-north-fps").get_double_value
+        self._get_ve = n("velocities/v-east-fps").get_double_value
+        self._get_vd = n("velocities/v-down-fps").get_double_value
+        self._get_euler = [n(f"attitude/{a}-rad").get_double_value for a in ("phi", "theta", "psi")]
+        self._get_cg_in = [n(f"inertia/cg-{a}-in").get_double_value for a in "xyz"]
+        self._get_fuel_lbs = n("propulsion/total-fuel-lbs").get_double_value
+        self._get_time = n("simulation/sim-time-sec").get_double_value
+        self._set_terrain_ft = n("position/terrain-elevation-asl-ft").set_double_value
+        self._raw_getters = [n(p).get_double_value for _, p in RAW_PROPERTIES]
+        self._raw_terrain_col = RAW_COLUMNS["terrain_ft"]
+
+        engines = 0
+        while self._pm.hasNode(f"fcs/throttle-cmd-norm[{engines}]"):
+            engines += 1
+        self.n_engines = engines
+        self._set = {
+            "pitch": [n("fcs/elevator-cmd-norm").set_double_value],
+            "roll": [n("fcs/aileron-cmd-norm").set_double_value],
+            "yaw": [n("fcs/rudder-cmd-norm").set_double_value],
+            "throttle": [n(f"fcs/throttle-cmd-norm[{i}]").set_double_value for i in range(engines)],
+            "mixture": [n(f"fcs/mixture-cmd-norm[{i}]").set_double_value for i in range(engines)],
+            "flaps": [n("fcs/flap-cmd-norm").set_double_value],
+            "brakes": [n("fcs/left-brake-cmd-norm").set_double_value,
+                       n("fcs/right-brake-cmd-norm").set_double_value],
+            "gear_down": [n("gear/gear-cmd-norm").set_double_value],
+        }
+        self._sign = {"pitch": -1.0, "yaw": -1.0}
+
+        gr = self.fdm.get_ground_reactions()
+        contacts = []
+        for i in range(gr.get_num_gear_units()):
+            kind = "gear" if self._pm.hasNode(f"gear/unit[{i}]/WOW") else "structure"
+            with warnings.catch_warnings():  # the binding returns a numpy.matrix
+                warnings.simplefilter("ignore", PendingDeprecationWarning)
+                loc = tuple(float(v) for v in np.asarray(gr.get_gear_unit(i).get_location()).flat)
+            contacts.append(Contact(i, kind, loc))
+        self.contacts = tuple(contacts)
+        self._contact_locations_in = np.array([c.location_in for c in contacts]).reshape(-1, 3)
+        self._structure = np.array([c.kind == "structure" for c in contacts], dtype=bool)
+        self._detector_limits = LIMITS[self.aircraft_class]
+        self._nz_min = self._detector_limits.nz_min_g
+        self._nz_max = self._detector_limits.nz_max_g
+
+    def _terrain_msl_m(self, lat_deg, lon_deg) -> np.ndarray:
+        h = np.asarray(self.terrain.heights(np.asarray(lat_deg, np.float64),
+                                            np.asarray(lon_deg, np.float64)).height_msl_m, np.float64)
+        return np.where(np.isnan(h), 0.0, h)
+
+    def _contact_terrain(self, lat, lon, alt_m, cg_in, phi, theta, psi, ahead_ned):
+        """(terrain under the CG now then under each contact, contact altitudes), metres MSL.
+
+        Contacts are placed from the CG with the attitude, shifted by ``ahead_ned``
+        (metres), and mapped to (lat, lon) on the local tangent plane with the
+        radii of curvature (offsets of metres: the plane's error is d^2/2R < 1e-5 m).
+        """
+        r_ned = body_to_ned(structural_to_body_ft(self._contact_locations_in, cg_in) * FT_M, phi, theta, psi)
+        pts = np.vstack([np.zeros(3), r_ned + ahead_ned])  # the CG now, the contacts ahead
+        m, n = radii_of_curvature(lat)
+        p_lat = np.clip(lat + np.degrees(pts[:, 0] / (m + alt_m)), -90.0, 90.0)
+        coslat = max(math.cos(math.radians(lat)), 1e-9)
+        p_lon = wrap_lon_deg(lon + np.degrees(pts[:, 1] / ((n + alt_m) * coslat)))
+        return self._terrain_msl_m(p_lat, p_lon), alt_m - r_ned[:, 2]
+
+    def _rest_height_ft(self) -> float:
+        """CG height above level ground when the lowest wheel just touches (attitude level)."""
+        gear = [c.location_in[2] for c in self.contacts if c.kind == "gear"]
+        if not gear:
+            raise InvalidArgument("on_ground", f"aircraft {self.name!r} has no landing gear")
+        return (self._get_cg_in[2]() - min(gear)) / 12.0
+
+    def _start(self, ic: InitialConditions) -> None:
+        fdm = self.fdm
+        lon = float(wrap_lon_deg(ic.lon_deg))
+        t_m = float(self._terrain_msl_m([ic.lat_deg], [lon])[0])
+        if ic.on_ground:
+            # Level, on the highest terrain under any wheel; no structure point may be below its terrain.
+            agl_ft = self._rest_height_ft()
+            cg_in = [g() for g in self._get_cg_in]
+            alt_m = t_m + agl_ft * FT_M
+            terr, h = self._contact_terrain(ic.lat_deg, lon, alt_m, cg_in, 0.0, 0.0,
+                                            math.radians(ic.heading_deg), np.zeros(3))
+            gear = ~self._structure
+            t_m = float((terr[1:][gear] - (h[gear] - h[gear].min())).max())
+            clearance = h - h[gear].min() + t_m - terr[1:]
+            if (clearance[self._structure] < 0).any():
+                raise InvalidArgument("lat_deg", f"the ground at ({ic.lat_deg}, {ic.lon_deg}) is too steep for "
+                                                 f"{self.name} to stand on (a wing tip or the tail is below "
+                                                 "the terrain)", value=ic.lat_deg)
+        else:
+            alt_msl = ic.alt_m if ic.alt_ref == "msl" else t_m + ic.alt_m
+            if alt_msl <= t_m:
+                raise InvalidArgument("alt_m", f"an airborne start must be above the terrain ({t_m:.1f} m MSL "
+                                               "here); use on_ground=True to start on the ground", value=ic.alt_m)
+            agl_ft = (alt_msl - t_m) / FT_M
+        fdm["ic/lat-geod-deg"] = ic.lat_deg
+        fdm["ic/long-gc-deg"] = lon
+        fdm["ic/terrain-elevation-ft"] = t_m / FT_M
+        fdm["ic/h-agl-ft"] = agl_ft
+        fdm["ic/psi-true-deg"] = ic.heading_deg
+        fdm["ic/vt-fps"] = ic.speed_mps / FT_M
+        if not fdm.run_ic():
+            raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
+        if ic.engines_running:
+            fdm["propulsion/set-running"] = -1
+        gear_down = ic.on_ground if ic.gear_down is None else ic.gear_down
+        self._apply(validate_controls({"gear_down": gear_down, "mixture": 1.0,
+                                       "throttle": 0.0 if ic.on_ground else self._controls.throttle,
+                                       "brakes": 1.0 if ic.on_ground and ic.speed_mps == 0 else 0.0}))
+        self._terrain_ft = t_m / FT_M
+        self._terrain_cg_ft = self._terrain_ft
+        self._steps = 0
+        self._next_refresh = 0
+        if ic.on_ground:
+            try:
+                fdm.do_trim(2)  # JSBSim ground trim: settles height, pitch and roll on the gear
+            except self._trim_error:
+                pass  # the placement at rest height stands; the gear settles in the first steps
+        elif ic.trim:
+            self.trim()
+        self._detector = EventDetector(self._detector_limits, on_ground=ic.on_ground)
+
+    # -- controls -------------------------------------------------------------------------------
+
+    @property
+    def controls(self) -> Controls:
+        return self._controls
+
+    def set_controls(self, controls: Controls | None = None, **values) -> None:
+        """Set some or all controls. Every value is checked first; if any is bad
+        (NaN, infinite, out of range, unknown name) InvalidArgument names it and
+        nothing at all is applied."""
+        if controls is not None:
+            values = {**{f: getattr(controls, f) for f in CONTROL_NAMES}, **values}
+        self._apply(validate_controls(values))
+
+    def _apply(self, values: dict) -> None:
+        for name, v in values.items():
+            x = (1.0 if v else 0.0) if name == "gear_down" else v * self._sign.get(name, 1.0)
+            for setter in self._set[name]:
+                setter(x)
+        self._controls = replace(self._controls, **values)
+
+    def trim(self) -> None:
+        """JSBSim's full trim; TrimFailed when it finds none.
+
+        JSBSim trims at the *initial conditions* and restarts from them (as a
+        script's ``do_simple_trim`` does), so call it at the start. The trim sets throttle and the trim tabs, so afterwards a centred stick
+        (pitch = roll = yaw = 0) holds the trimmed flight.
+        """
+        try:
+            self.fdm.do_trim(1)
+        except self._trim_error as exc:
+            raise TrimFailed(f"{self.name}: JSBSim trim failed at the initial conditions ({exc}); "
+                             "try another speed or altitude, or trim=False") from None
+        throttle = self.fdm["fcs/throttle-cmd-norm[0]"] if self.n_engines else 0.0
+        self._controls = replace(self._controls, pitch=0.0, roll=0.0, yaw=0.0,
+                                 throttle=min(1.0, max(0.0, throttle)))
+
+    # -- stepping -------------------------------------------------------------------------------
+
+    @property
+    def time_s(self) -> float:
+        return self._get_time()
+
+    def step(self) -> list:
+        """One JSBSim step with terrain coupling and event detection; the events of this step."""
+        if self.crashed:
+            return []
+        self._run()
+        self._steps += 1
+        alt = self._get_alt_ft()
+        if alt - self._terrain_ft < self._near_ground_ft or self._steps >= self._next_refresh:
+            return self._couple(alt)
+        nz = self._get_nz()
+        if self._nz_min < nz < self._nz_max and self._detector._g_since is None:
+            return []
+        return self._record(self._detector.update(self._get_time(), *self._where(alt), False, False,
+                                                  self._get_vd() * FT_M, nz))
+
+    def run(self, seconds: float) -> list:
+        """Step for ``seconds`` of simulated time (whole steps); all events."""
+        out = []
+        for _ in range(int(round(seconds / self.dt))):
+            out.extend(self.step())
+            if self.crashed:
+                break
+        return out
+
+    def _where(self, alt_ft):
+        return math.degrees(self._get_lat_rad()), math.degrees(self._get_lon_rad()), alt_ft * FT_M
+
+    def _record(self, events: list) -> list:
+        if events:
+            self.events.extend(events)
+            if self._detector.crashed:
+                self.crashed = True
+        return events
+
+    def _couple(self, alt_ft: float) -> list:
+        """Terrain under the aircraft (and its contacts when near), events; see the module docstring."""
+        t = self._get_time()
+        lat_r, lon_r = self._get_lat_rad(), self._get_lon_rad()
+        lat, lon = math.degrees(lat_r), math.degrees(lon_r)
+        alt_m = alt_ft * FT_M
+        near = alt_ft - self._terrain_ft < self._near_ground_ft
+        events = []
+        if near:
+            ahead = np.array([self._get_vn(), self._get_ve(), 0.0]) * (FT_M * self.dt)
+            terr, h = self._contact_terrain(lat, lon, alt_m, [g() for g in self._get_cg_in],
+                                            *(g() for g in self._get_euler), ahead)
+            clearance = h - terr[1:]
+            self._terrain_cg_ft = terr[0] / FT_M
+            if clearance.size:
+                c_min = float(clearance.min())
+                elevation_m = float(h.min()) - c_min
+                struct_hit = bool((clearance[self._structure] < 0.0).any())
+            else:
+                c_min, elevation_m, struct_hit = alt_m - terr[0], terr[0], False
+            self._terrain_ft = elevation_m / FT_M
+            self._set_terrain_ft(self._terrain_ft)
+            if c_min < -self.max_penetration_m:
+                events += self._detector.terrain_crash(t, lat, lon, alt_m, -c_min)
+            events += self._detector.update(t, lat, lon, alt_m, self._get_wow() > 0.5, struct_hit,
+                                            self._get_vd() * FT_M, self._get_nz())
+        else:  # far from the ground: only the load factor can end the flight (checked in step)
+            terr = self._terrain_msl_m([lat], [lon])
+            self._terrain_ft = self._terrain_cg_ft = terr[0] / FT_M
+            self._set_terrain_ft(self._terrain_ft)
+            if self._detector.on_ground:  # left the near band without the take-off debounce
+                events += self._detector.update(t, lat, lon, alt_m, False, False, self._get_vd() * FT_M,
+                                                self._get_nz())
+        if self._steps >= self._next_refresh:
+            events += self._detector.fuel(t, lat, lon, alt_m, self._get_fuel_lbs() * LB_KG)
+            # Near-ground band: the set distance plus twice what can be flown before the next refresh.
+            vt_ft = self._get_vt_fps()
+            step_ft = max(vt_ft, 1.0) * self.dt
+            self._near_ground_ft = self._near_ground_base_ft + 2.0 * step_ft * self._refresh_steps
+            interval = self._refresh_steps
+            if not near:
+                # Above the band the refresh may wait until the aircraft could have used half the
+                # spare height: flown (horizontally or down) at most vt per second, over slopes of
+                # at most 45 degrees (higher cliffs than near_ground_m are the band's job).
+                spare_ft = alt_ft - self._terrain_ft - self._near_ground_ft
+                interval = min(max(int(spare_ft / (4.0 * step_ft)), self._refresh_steps), self._max_refresh_steps)
+            self._next_refresh = self._steps + interval
+        return self._record(events)
+
+    # -- state out ------------------------------------------------------------------------------
+
+    def raw_state(self, out: np.ndarray | None = None) -> np.ndarray:
+        """The raw snapshot row (see fdm.state.RAW_PROPERTIES), into ``out`` if given."""
+        row = np.empty(RAW_WIDTH) if out is None else out
+        row[:] = self.raw_values()
+        return row
+
+    def raw_values(self) -> list:
+        """The raw snapshot as a list of floats: the cheapest state out for a host that
+        stacks many (``fdm.state.state_arrays(np.array(rows))`` converts them at once)."""
+        values = [g() for g in self._raw_getters]
+        values[self._raw_terrain_col] = self._terrain_cg_ft
+        return values
+
+    def state(self) -> AircraftState:
+        """The current state in SI (fdm.state.AircraftState)."""
+        return AircraftState.from_raw(self.raw_state(), self.geoid_undulation_m)
+
+    def fuel_kg(self) -> float:
+        return self._get_fuel_lbs() * LB_KG
+
+    def set_fuel_kg(self, kg: float) -> None:
+        """Spread ``kg`` of fuel evenly over the tanks (tests, scenario set-up)."""
+        if not (math.isfinite(kg) and kg >= 0):
+            raise InvalidArgument("fuel_kg", "must be finite and >= 0", value=kg)
+        tanks = 0
+        while self._pm.hasNode(f"propulsion/tank[{tanks}]/contents-lbs"):
+            tanks += 1
+        for i in range(tanks):
+            self.fdm[f"propulsion/tank[{i}]/contents-lbs"] = kg / LB_KG / tanks

@@ -1,0 +1,221 @@
+"""Autopilots for bots: heading, altitude and speed hold, and waypoint following.
+
+They sit on top of the aircraft's own flight control system and move only the
+normalised pilot controls (:class:`fdm.aircraft.Controls`), like a pilot would:
+
+- lateral: heading error -> bank command (proportional, limited) -> roll stick
+  (PD on bank with roll-rate damping);
+- longitudinal: altitude error -> flight-path-angle command (limited) ->
+  pitch stick (PI on flight-path angle with pitch-rate damping); the
+  integrator finds the stick that holds the trim, turns included, so the
+  altitude settles without a steady error;
+- speed: airspeed error -> throttle (PI, anti-windup by clamping);
+- yaw: sideslip damper on the pedals.
+
+This is the classic successive-loop-closure structure (Beard & McLain, *Small
+Unmanned Aircraft*, 2012, ch. 6: the inner attitude loops are closed first and
+the outer loops are slower by a factor of 5-10). Gains are per aircraft class
+(:data:`GAINS`), tuned by step responses on the c172x (light) and the f16
+(fighter, whose fly-by-wire FCS turns stick into g and roll-rate demands).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from geographiclib.geodesic import Geodesic
+
+from fdm.state import FT_M, RAW_COLUMNS as _C, RAW_WIDTH
+from sortie.errors import InvalidArgument
+
+G = 9.80665  # standard gravity, m/s^2 (CGPM 1901)
+
+
+@dataclass(frozen=True)
+class Gains:
+    max_bank_rad: float  # bank limit in turns
+    k_heading: float  # bank (rad) per rad of heading error
+    kp_bank: float  # roll stick per rad of bank error
+    kd_roll_rate: float  # roll stick per rad/s of roll rate
+    ki_bank: float  # roll stick per rad*s of bank error (propeller torque, asymmetry)
+    k_alt: float  # flight-path angle (rad) per m of altitude error
+    max_climb_rad: float
+    max_descent_rad: float
+    kp_pitch: float  # pitch stick per rad of flight-path-angle error
+    ki_pitch: float  # pitch stick per rad*s
+    kd_pitch_rate: float  # pitch stick per rad/s of pitch rate
+    kp_speed: float  # throttle per m/s of speed error
+    ki_speed: float  # throttle per m
+    k_beta: float  # yaw pedal per rad of sideslip
+
+
+GAINS = {
+    "light": Gains(max_bank_rad=math.radians(25), k_heading=1.2, kp_bank=2.0, kd_roll_rate=0.3, ki_bank=0.3,
+                   k_alt=0.003, max_climb_rad=math.radians(6),
+                   max_descent_rad=math.radians(-6), kp_pitch=3.0, ki_pitch=1.0, kd_pitch_rate=0.8,
+                   kp_speed=0.08, ki_speed=0.01, k_beta=1.0),
+    "fighter": Gains(max_bank_rad=math.radians(45), k_heading=3.0, kp_bank=1.5, kd_roll_rate=0.2, ki_bank=0.2,
+                     k_alt=0.002, max_climb_rad=math.radians(10),
+                     max_descent_rad=math.radians(-10), kp_pitch=2.0, ki_pitch=0.8, kd_pitch_rate=0.4,
+                     kp_speed=0.05, ki_speed=0.01, k_beta=0.5),
+}
+GAINS["transport"] = GAINS["light"]
+
+
+def _clamp(x: float, lo: float, hi: float) -> float:
+    return lo if x < lo else hi if x > hi else x
+
+
+def wrap_pi(a: float) -> float:
+    """Angle in (-pi, pi]."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+@dataclass
+class Targets:
+    """What the autopilot holds: true heading (deg), altitude (m MSL), true airspeed (m/s).
+    None leaves that axis alone (its control stays where it is)."""
+
+    heading_deg: float | None = None
+    alt_msl_m: float | None = None
+    speed_mps: float | None = None
+
+
+class Autopilot:
+    """Heading / altitude / speed hold for one :class:`fdm.aircraft.Aircraft`.
+
+    Call :meth:`update` once per step before ``aircraft.step()`` (or use
+    :meth:`run`). The autopilot reads the SI state and writes controls; it
+    keeps its integrators, so one autopilot flies one aircraft.
+    """
+
+    def __init__(self, aircraft, targets: Targets | None = None, gains: Gains | None = None):
+        self.aircraft = aircraft
+        self.gains = gains or GAINS[aircraft.aircraft_class]
+        self.targets = targets or Targets()
+        self._i_pitch = 0.0
+        self._i_bank = 0.0
+        self._i_speed = aircraft.controls.throttle
+        self._row = np.empty(RAW_WIDTH)
+
+    def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
+        for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise InvalidArgument(name, "must be a finite number", value=v)
+        if speed_mps is not None and speed_mps <= 0:
+            raise InvalidArgument("speed_mps", "must be positive", value=speed_mps)
+        self.targets = Targets(heading_deg, alt_msl_m, speed_mps)
+
+    def update(self) -> None:
+        """Read the state, write the controls for the next step."""
+        ac = self.aircraft
+        r = ac.raw_state(self._row)
+        g = self.gains
+        dt = ac.dt
+        phi, psi, p, q = r[_C["phi_rad"]], r[_C["psi_rad"]], r[_C["p_rps"]], r[_C["q_rps"]]
+        out = {}
+        tg = self.targets
+        if tg.heading_deg is not None:
+            err = wrap_pi(math.radians(tg.heading_deg) - psi)
+            bank_cmd = _clamp(g.k_heading * err, -g.max_bank_rad, g.max_bank_rad)
+            e = bank_cmd - phi
+            u = g.kp_bank * e + self._i_bank - g.kd_roll_rate * p
+            if -1.0 < u < 1.0:
+                self._i_bank = _clamp(self._i_bank + g.ki_bank * e * dt, -0.5, 0.5)
+            out["roll"] = _clamp(u, -1.0, 1.0)
+            out["yaw"] = _clamp(-g.k_beta * r[_C["beta_rad"]], -1.0, 1.0)
+        if tg.alt_msl_m is not None:
+            vn, ve, vd = r[_C["v_north_fps"]], r[_C["v_east_fps"]], r[_C["v_down_fps"]]
+            v = max(math.sqrt(vn * vn + ve * ve + vd * vd), 1.0)
+            gamma = math.asin(_clamp(-vd / v, -1.0, 1.0))
+            gamma_cmd = _clamp(g.k_alt * (tg.alt_msl_m - r[_C["alt_ft"]] * FT_M), g.max_descent_rad,
+                               g.max_climb_rad)
+            e = gamma_cmd - gamma
+            u = g.kp_pitch * e + self._i_pitch - g.kd_pitch_rate * q
+            if -1.0 < u < 1.0:  # anti-windup: integrate only while not saturated
+                self._i_pitch = _clamp(self._i_pitch + g.ki_pitch * e * dt, -1.0, 1.0)
+            out["pitch"] = _clamp(u, -1.0, 1.0)
+        if tg.speed_mps is not None:
+            e = tg.speed_mps - r[_C["vt_fps"]] * FT_M
+            u = g.kp_speed * e + self._i_speed
+            if 0.0 < u < 1.0:
+                self._i_speed = _clamp(self._i_speed + g.ki_speed * e * dt, 0.0, 1.0)
+            out["throttle"] = _clamp(u, 0.0, 1.0)
+        if out:
+            ac.set_controls(**out)
+
+    def run(self, seconds: float) -> list:
+        """Fly for ``seconds`` of simulated time; the events."""
+        events = []
+        for _ in range(int(round(seconds / self.aircraft.dt))):
+            self.update()
+            events.extend(self.aircraft.step())
+            if self.aircraft.crashed:
+                break
+        return events
+
+
+_GEOD = Geodesic.WGS84
+
+
+class WaypointFollower:
+    """Fly a route of (lat, lon, alt_msl_m) waypoints at a speed, holding altitude per leg.
+
+    The heading target is the geodesic azimuth to the active waypoint
+    (GeographicLib, Karney 2013); a waypoint is passed within
+    ``capture_radius_m`` (default: three seconds of flight), then the next one
+    becomes active; after the last one the aircraft holds its last heading.
+    """
+
+    def __init__(self, aircraft, waypoints, speed_mps: float, capture_radius_m: float | None = None,
+                 gains: Gains | None = None):
+        pts = []
+        for i, w in enumerate(waypoints):
+            if len(w) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in w):
+                raise InvalidArgument("waypoints", "must be finite (lat, lon, alt_msl_m) triples", index=i,
+                                      value=w)
+            if abs(w[0]) > 90:
+                raise InvalidArgument("waypoints", "latitude must be within [-90, 90]", index=i, value=w)
+            pts.append(tuple(float(v) for v in w))
+        if not pts:
+            raise InvalidArgument("waypoints", "need at least one waypoint")
+        self.waypoints = pts
+        self.active = 0
+        self.capture_radius_m = capture_radius_m if capture_radius_m is not None else 3.0 * speed_mps
+        self.autopilot = Autopilot(aircraft, gains=gains)
+        self.speed_mps = speed_mps
+        self.passed: list = []  # (index, time_s, miss distance m)
+        self._row = np.empty(RAW_WIDTH)
+
+    @property
+    def done(self) -> bool:
+        return self.active >= len(self.waypoints)
+
+    def update(self) -> None:
+        ac = self.autopilot.aircraft
+        if not self.done:
+            lat, lon, alt = self.waypoints[self.active]
+            r = ac.raw_state(self._row)
+            here = math.degrees(r[_C["lat_rad"]]), math.degrees(r[_C["lon_rad"]])
+            inv = _GEOD.Inverse(*here, lat, lon)
+            if inv["s12"] < self.capture_radius_m:
+                self.passed.append((self.active, r[_C["time_s"]], inv["s12"]))
+                self.active += 1
+                if not self.done:
+                    lat, lon, alt = self.waypoints[self.active]
+                    inv = _GEOD.Inverse(*here, lat, lon)
+            if not self.done:
+                self.autopilot.set_targets(inv["azi1"] % 360.0, alt, self.speed_mps)
+        self.autopilot.update()
+
+    def run(self, seconds: float) -> list:
+        events = []
+        ac = self.autopilot.aircraft
+        for _ in range(int(round(seconds / ac.dt))):
+            self.update()
+            events.extend(ac.step())
+            if ac.crashed:
+                break
+        return events

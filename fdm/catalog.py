@@ -1,0 +1,167 @@
+"""The aircraft catalog shipped in the ``jsbsim`` wheel.
+
+An aircraft is a folder ``aircraft/NAME/`` holding ``NAME.xml`` whose root
+element is ``<fdm_config>`` (JSBSim's model file); that is exactly what
+``FGFDMExec.load_model(NAME)`` loads.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from functools import lru_cache
+from pathlib import Path
+
+from sortie.errors import NotFound
+
+# Aircraft classes select autopilot gains and crash limits. Names not listed
+# are classified from the model (jet engines and a high-g FCS make a fighter).
+CLASS_OF = {
+    "c172p": "light", "c172r": "light", "c172x": "light", "c182": "light", "c310": "light",
+    "pa28": "light", "J3Cub": "light", "dr1": "light", "Camel": "light", "p51d": "light",
+    "pc7": "light", "t6texan2": "light", "DHC6": "light", "L410": "light",
+    "f16": "fighter", "f15": "fighter", "f22": "fighter", "f104": "fighter", "A4": "fighter",
+    "F4N": "fighter", "F80C": "fighter", "T37": "fighter", "T38": "fighter", "x24b": "fighter",
+    "737": "transport", "787-8": "transport", "A320": "transport", "B747": "transport",
+    "MD11": "transport", "C130": "transport", "global5000": "transport", "fokker100": "transport",
+    "fokker50": "transport", "Concorde": "transport", "B17": "transport", "XB-70": "transport",
+}
+
+
+def root_dir() -> Path:
+    import jsbsim
+
+    return Path(jsbsim.get_default_root_dir())
+
+
+@lru_cache(maxsize=4)
+def list_aircraft(root: str | None = None) -> tuple[str, ...]:
+    """Names of the loadable aircraft models, sorted case-insensitively."""
+    base = Path(root) if root else root_dir()
+    names = []
+    for d in (base / "aircraft").iterdir():
+        f = d / f"{d.name}.xml"
+        if d.is_dir() and f.is_file() and _is_fdm_config(f):
+            names.append(d.name)
+    return tuple(sorted(names, key=str.lower))
+
+
+def _is_fdm_config(path: Path) -> bool:
+    head = path.read_text(errors="replace")[:4000]
+    return re.search(r"<fdm_config\b", head) is not None
+
+
+def resolve(name: str, root: str | None = None) -> str:
+    """The catalog's spelling of ``name`` (case-insensitive); NotFound with suggestions."""
+    names = list_aircraft(root)
+    if name in names:
+        return name
+    by_lower = {n.lower(): n for n in names}
+    if name.lower() in by_lower:
+        return by_lower[name.lower()]
+    close = difflib.get_close_matches(name.lower(), list(by_lower), n=3)
+    hint = f"; did you mean {', '.join(by_lower[c] for c in close)}?" if close else ""
+    raise NotFound(f"aircraft {name!r} is not in the JSBSim catalog ({len(names)} aircraft){hint}")
+
+
+def aircraft_class(name: str) -> str:
+    """'light', 'fighter' or 'transport' (unknown models count as 'light')."""
+    return CLASS_OF.get(name, "light")
+
+
+# Pilot inputs a replayed script may set, as (our control, JSBSim property, sign).
+_SCRIPT_INPUTS = (
+    ("pitch", "fcs/elevator-cmd-norm", -1.0),
+    ("roll", "fcs/aileron-cmd-norm", 1.0),
+    ("yaw", "fcs/rudder-cmd-norm", -1.0),
+    ("throttle", "fcs/throttle-cmd-norm", 1.0),
+    ("mixture", "fcs/mixture-cmd-norm", 1.0),
+    ("flaps", "fcs/flap-cmd-norm", 1.0),
+    ("brakes", "fcs/left-brake-cmd-norm", 1.0),
+)
+
+
+def script_trim_times(script_path: Path) -> list[float]:
+    """Times after which the script asks for a full trim (events setting
+    ``simulation/do_simple_trim`` under a ``simulation/sim-time-sec gt|ge|>= T`` condition)."""
+    import xml.etree.ElementTree as ET
+
+    times = []
+    for ev in ET.parse(script_path).getroot().iter("event"):
+        if not any(s.get("name") == "simulation/do_simple_trim" for s in ev.iter("set")):
+            continue
+        cond = " ".join((ev.findtext("condition") or "").split())
+        m = re.fullmatch(r"simulation/sim-time-sec\s+(gt|ge|>=|>)\s+([0-9.eE+-]+)", cond)
+        if not m:
+            raise NotFound(f"{script_path.name}: trim event condition {cond!r} is not a time condition")
+        times.append(float(m.group(2)))
+    return sorted(times)
+
+
+def replay_script(script: str = "c172_elevator_doublet.xml", seconds: float | None = None):
+    """Run a JSBSim script shipped in the wheel with JSBSim's own runner, then drive
+    the same aircraft through :class:`fdm.aircraft.Aircraft` with the same inputs.
+
+    Only the pilot inputs the script itself sets are replayed (a model's own
+    systems may write others, e.g. the c172x's automatic mixture control).
+
+    Inputs: the initial state the script's IC file produced (given to our wrapper
+    in SI), the pilot commands the script set at each step (recorded after each
+    of JSBSim's steps: a script sets them before the models run, so the value
+    after the step is the value that step used), and its trims at the same
+    step. Terrain: flat at the script's elevation (0 ft). Returns
+    ``(ours_ecef, reference_ecef)``, (n, 3) float64 metres, one row per step.
+    """
+    import math
+
+    import numpy as np
+
+    from fdm.aircraft import Aircraft, FlatTerrain, InitialConditions, _jsbsim
+    from fdm.state import FT_M
+    from terrain.geodesy import geodetic_to_ecef
+
+    jsbsim = _jsbsim()
+    base = root_dir()
+    path = base / "scripts" / script
+    if not path.is_file():
+        raise NotFound(f"script {script!r} is not in {base / 'scripts'}")
+    ref = jsbsim.FGFDMExec(base.as_posix())
+    ref.set_debug_level(0)
+    ref.load_script(f"scripts/{script}")
+    ref.disable_output()
+    ref.run_ic()
+    dt = ref.get_delta_t()
+    name = ref.get_model_name()
+    ic = InitialConditions(ref["position/lat-geod-deg"], ref["position/long-gc-deg"],
+                           ref["position/geod-alt-ft"] * FT_M, "msl", ref["attitude/psi-deg"],
+                           ref["velocities/vt-fps"] * FT_M, on_ground=ref["gear/wow"] > 0.5, trim=False,
+                           engines_running=ref["propulsion/engine/set-running"] > 0.5,
+                           gear_down=ref["gear/gear-cmd-norm"] > 0.5)
+    import xml.etree.ElementTree as ET
+
+    run_el = ET.parse(path).getroot().find("run")
+    scripted = {el.get("name") for el in run_el.iter("set")} | \
+        {(el.text or "").strip() for el in run_el.findall("property")}
+    replayed = [(c, p, s) for c, p, s in _SCRIPT_INPUTS if p in scripted]
+    end = seconds if seconds is not None else math.inf
+    inputs, ref_pos = [], []
+    while ref.get_sim_time() + dt <= end + 1e-9 and ref.run():
+        inputs.append({c: ref[p] * s for c, p, s in replayed})
+        ref_pos.append((ref["position/lat-geod-deg"], ref["position/long-gc-deg"], ref["position/geod-alt-ft"]))
+
+    ours = Aircraft(name, FlatTerrain(0.0), ic, dt=dt)
+    trims = script_trim_times(path)
+    our_pos = []
+    for k, values in enumerate(inputs):
+        t_next = ours.time_s + dt  # what JSBSim's IncrTime gives the script's conditions
+        while trims and t_next > trims[0]:
+            trims.pop(0)
+            ours.trim()
+        ours.set_controls(**values)
+        ours.step()
+        s = ours.raw_state()
+        our_pos.append((math.degrees(s[1]), math.degrees(s[2]), s[3]))
+    ref_pos = np.array(ref_pos)
+    our_pos = np.array(our_pos)
+    return (geodetic_to_ecef(our_pos[:, 0], our_pos[:, 1], our_pos[:, 2] * FT_M),
+            geodetic_to_ecef(ref_pos[:, 0], ref_pos[:, 1], ref_pos[:, 2] * FT_M))

@@ -1,0 +1,326 @@
+"""Route following and convoy spacing for ground vehicles (:mod:`fdm.ground`).
+
+A :class:`Route` is a polyline of (lat, lon) waypoints, degrees, (lat, lon)
+order. Each segment is measured in its own local north/east metres (radii of
+curvature at the segment's mid-latitude, longitude difference wrapped, so a
+route may cross the antimeridian): over legs of a few km the straight line in
+that frame and the vehicle's great-circle track part by d^2 tan(lat) / 8R,
+under 0.1 m for a 2 km leg at 47 degrees; offsets across a leg take the
+leg's mid-latitude east scale, a relative error of at most (dlat / 2) tan(lat)
+(0.13 % at the ends of a 15 km north-south leg at 47 degrees).
+
+Steering is pure pursuit (Coulter, "Implementation of the Pure Pursuit Path
+Tracking Algorithm", CMU-RI-TR-92-01, 1992): the goal point lies a lookahead
+distance Ld = clip(k |v|, Ld_min, Ld_max) further along the route than the
+vehicle's projection on it; the arc through the goal point has curvature
+kappa = 2 sin(alpha) / D (alpha the goal's bearing off the heading, D its
+distance), and the heading-rate command is v kappa. A tracked vehicle whose
+goal lies more than PIVOT_ALPHA_DEG off its heading stops and pivots.
+
+Speed: a route follower cruises, slows for each corner ahead (pure pursuit
+turns through a corner of angle theta over about one lookahead, so the corner
+speed is v_c = sqrt(a_lat Ld / theta), reached by braking at a before the
+turn starts: v <= sqrt(v_c^2 + 2 a d)) and brakes to stop at the route's end
+(v <= sqrt(2 a (s_end - s))); a and a_lat are half the type's limits. A convoy's leader follows the route; each
+follower keeps a constant along-route gap behind its predecessor with the
+constant-spacing law v_i = v_(i-1) + k_p (gap_i - spacing) (predecessor speed
+fed forward; Rajamani, *Vehicle Dynamics and Control*, 2nd ed. 2012, ch. 7),
+so a gap error decays with time constant 1 / k_p while speeds are within the
+vehicles' limits. The leader holds to the lowest corner ceiling of any
+vehicle in the column, so the column takes a corner as one body; a follower may exceed the cruise speed by CATCH_UP_FRAC to
+close up, and the leader eases off while the column is strung out (its speed
+scaled by 1 - excess / WAIT_DISTANCE_M, excess the largest gap beyond the
+spacing), which keeps the accordion after a corner short.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from fdm.ground import GroundVehicles
+from fdm.vehicle_types import P_ALAT, P_BRAKE, P_KIND, TRACKED
+from sortie.errors import InvalidArgument
+from terrain.geodesy import radii_of_curvature
+from terrain.validate import check_latlon
+
+PIVOT_ALPHA_DEG = 60.0
+# Lookahead distance: k |v| clipped to [min, max] metres.
+LOOKAHEAD_GAIN_S = 1.5
+LOOKAHEAD_MIN_M = 12.0
+LOOKAHEAD_MAX_M = 60.0
+# Fractions of the type's limits a controller plans with (margin for the rest).
+CURVE_LAT_ACCEL_FRAC = 0.5
+STOP_BRAKE_FRAC = 0.5
+# Constant-spacing gain (1/s): a gap error decays with a 1/k_p = 3.3 s time constant.
+SPACING_GAIN_PER_S = 0.3
+# How much faster than the cruise speed a follower may drive to close a gap.
+CATCH_UP_FRAC = 0.3
+# The leader slows by the column's largest gap excess over this distance, down to WAIT_MIN_FRAC
+# of its speed ceiling, so stragglers close up.
+WAIT_DISTANCE_M = 100.0
+WAIT_MIN_FRAC = 0.3
+# Segments searched before and after a vehicle's last segment when projecting.
+SEARCH_BEHIND = 1
+SEARCH_AHEAD = 3
+
+
+@numba.njit(cache=True, nogil=True)
+def _local(lat0, lon0, lat, lon, m, n_cos):
+    """North/east metres of (lat, lon) from (lat0, lon0) with the given scale."""
+    dlon = lon - lon0
+    if dlon >= 180.0 or dlon < -180.0:
+        dlon = (dlon + 180.0) % 360.0 - 180.0
+    return math.radians(lat - lat0) * m, math.radians(dlon) * n_cos
+
+
+@numba.njit(cache=True, nogil=True)
+def _project_kernel(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, lat, lon, hint, out_s, out_x, out_seg):
+    """Closest point of the route for each (lat, lon): arc length, signed cross-track, segment.
+
+    hint[j] < 0 searches every segment, else the window around hint[j].
+    Cross-track is positive to the right of the route's direction.
+    """
+    nseg = seg_len.shape[0]
+    for j in range(lat.shape[0]):
+        if hint[j] < 0:
+            k0, k1 = 0, nseg
+        else:
+            k0 = max(0, hint[j] - SEARCH_BEHIND)
+            k1 = min(nseg, hint[j] + SEARCH_AHEAD + 1)
+        best = math.inf
+        for k in range(k0, k1):
+            en, ee = _local(r_lat[k], r_lon[k], r_lat[k + 1], r_lon[k + 1], seg_m[k], seg_ncos[k])
+            pn, pe = _local(r_lat[k], r_lon[k], lat[j], lon[j], seg_m[k], seg_ncos[k])
+            ln = seg_len[k]
+            t = (pn * en + pe * ee) / (ln * ln)
+            t = min(max(t, 0.0), 1.0)
+            dn = pn - t * en
+            de = pe - t * ee
+            d2 = dn * dn + de * de
+            if d2 < best:
+                best = d2
+                out_s[j] = cum[k] + t * ln
+                # Right of the direction (en, ee) is (-ee, en) in (north, east).
+                out_x[j] = (pe * en - pn * ee) / ln
+                out_seg[j] = k
+
+
+class Route:
+    """A polyline of at least two (lat, lon) waypoints, degrees; no zero-length legs."""
+
+    def __init__(self, lat, lon):
+        lat, lon = check_latlon(lat, lon, prefix="route_")
+        if lat.size < 2:
+            raise InvalidArgument("route_lat", f"a route needs at least 2 waypoints, got {lat.size}")
+        self.lat = lat.copy()
+        self.lon = lon.copy()
+        mid = 0.5 * (lat[:-1] + lat[1:])
+        m, n = radii_of_curvature(mid)
+        self.seg_m = m
+        self.seg_ncos = n * np.cos(np.radians(mid))
+        dlon = (lon[1:] - lon[:-1] + 180.0) % 360.0 - 180.0
+        dn = np.radians(lat[1:] - lat[:-1]) * m
+        de = np.radians(dlon) * self.seg_ncos
+        self.seg_len = np.hypot(dn, de)
+        bad = ~(self.seg_len > 1e-3)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InvalidArgument("route_lat", "consecutive waypoints must be at least 1 mm apart", index=i + 1,
+                                  value=float(lat[i + 1]))
+        self.seg_dn = dn
+        self.seg_de = de
+        self.cum = np.concatenate([[0.0], np.cumsum(self.seg_len)])
+
+    @property
+    def length_m(self) -> float:
+        return float(self.cum[-1])
+
+    def point_at(self, s):
+        """(lat, lon, heading_deg) at arc lengths s (m, clipped to the route), arrays."""
+        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length_m)
+        k = np.clip(np.searchsorted(self.cum, s, side="right") - 1, 0, self.seg_len.size - 1)
+        t = (s - self.cum[k]) / self.seg_len[k]
+        lat = self.lat[k] + t * np.degrees(self.seg_dn[k] / self.seg_m[k])
+        lon = self.lon[k] + t * np.degrees(self.seg_de[k] / self.seg_ncos[k])
+        lon = np.where((lon >= -180.0) & (lon < 180.0), lon, (lon + 180.0) % 360.0 - 180.0)
+        heading = np.degrees(np.arctan2(self.seg_de[k], self.seg_dn[k])) % 360.0
+        return lat, lon, heading
+
+    def project(self, lat, lon, hint=None):
+        """(s, cross_track_m, segment) of each point's closest route point.
+
+        hint: (n,) int64 segments from the last call (-1: search all); the
+        search looks a few segments around it, which keeps a vehicle on its own
+        leg where the route passes near itself.
+        """
+        lat = np.ascontiguousarray(lat, dtype=np.float64)
+        lon = np.ascontiguousarray(lon, dtype=np.float64)
+        n = lat.size
+        hint = np.full(n, -1, np.int64) if hint is None else np.ascontiguousarray(hint, dtype=np.int64)
+        s = np.zeros(n)
+        x = np.zeros(n)
+        seg = np.zeros(n, np.int64)
+        _project_kernel(self.lat, self.lon, self.seg_m, self.seg_ncos, self.seg_len, self.cum, lat, lon, hint, s, x,
+                        seg)
+        return s, x, seg
+
+    def corner_speed_ceiling(self, s, lookahead_m, lat_accel_mps2, brake_mps2):
+        """Highest speed (m/s) at arc length s from which each corner ahead can be taken.
+
+        Pure pursuit turns through a corner of angle theta over about one
+        lookahead distance, at curvature theta / Ld; the corner speed keeps the
+        lateral acceleration v^2 theta / Ld within lat_accel. The turn begins
+        when the goal point reaches the corner (s = corner - Ld); before that
+        the ceiling rises with the braking distance, sqrt(v_c^2 + 2 a d). All
+        arguments broadcast over vehicles; corners behind (beyond s = corner)
+        no longer count.
+        """
+        s = np.asarray(s, dtype=np.float64)
+        out = np.full(np.broadcast(s, lookahead_m, lat_accel_mps2, brake_mps2).shape, np.inf)
+        if self.seg_len.size < 2:
+            return out
+        psi = np.arctan2(self.seg_de, self.seg_dn)
+        turn = np.abs((np.diff(psi) + np.pi) % (2 * np.pi) - np.pi)  # at waypoints 1 .. n-2
+        for w in range(turn.size):
+            if turn[w] < 1e-6:
+                continue
+            at = self.cum[w + 1]
+            v_c = np.sqrt(lat_accel_mps2 * LOOKAHEAD_MIN_M / turn[w])
+            d = np.maximum(at - lookahead_m - s, 0.0)
+            out = np.where(s <= at, np.minimum(out, np.sqrt(v_c * v_c + 2.0 * brake_mps2 * d)), out)
+        return out
+
+
+class RouteFollower:
+    """Pure-pursuit steering and a cruise/stop speed law for vehicles on one route.
+
+    vehicles: the GroundVehicles; index: which of them follow this route.
+    :meth:`update` computes and applies their commands.
+    """
+
+    def __init__(self, vehicles: GroundVehicles, route: Route, index, cruise_mps: float, stop_at_end: bool = True):
+        self.vehicles = vehicles
+        self.route = route
+        self.index = np.asarray(index, dtype=np.int64).reshape(-1)
+        if self.index.size == 0:
+            raise InvalidArgument("index", "must name at least one vehicle")
+        bad = (self.index < 0) | (self.index >= vehicles.n)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InvalidArgument("index", f"must be within [0, {vehicles.n})", index=i, value=int(self.index[i]))
+        _, vmax = vehicles.speed_limits_mps
+        if not (math.isfinite(cruise_mps) and 0.0 < cruise_mps <= float(vmax[self.index].min())):
+            raise InvalidArgument("cruise_mps", f"must be in (0, {float(vmax[self.index].min()):.3g}] m/s",
+                                  value=cruise_mps)
+        self.cruise_mps = float(cruise_mps)
+        self.stop_at_end = stop_at_end
+        self._hint = np.full(self.index.size, -1, np.int64)
+        self.s = np.zeros(self.index.size)
+        self.cross_track_m = np.zeros(self.index.size)
+        self.locate()
+
+    def locate(self) -> None:
+        """Project the vehicles onto the route (arc length s and cross-track)."""
+        v = self.vehicles
+        self.s, self.cross_track_m, self._hint = self.route.project(v.lat[self.index], v.lon[self.index], self._hint)
+
+    def _lookahead(self) -> np.ndarray:
+        return np.clip(LOOKAHEAD_GAIN_S * np.abs(self.vehicles.speed_mps[self.index]), LOOKAHEAD_MIN_M,
+                       LOOKAHEAD_MAX_M)
+
+    def _corner_ceiling(self) -> np.ndarray:
+        """Speed each vehicle may have for the route's corners ahead (m/s)."""
+        v = self.vehicles
+        t = v.table[v.type_id[self.index]]
+        return self.route.corner_speed_ceiling(self.s, self._lookahead(), CURVE_LAT_ACCEL_FRAC * t[:, P_ALAT],
+                                               STOP_BRAKE_FRAC * t[:, P_BRAKE])
+
+    def _end_ceiling(self) -> np.ndarray:
+        """Speed from which each vehicle stops at the route's end, braking gently (m/s)."""
+        v = self.vehicles
+        t = v.table[v.type_id[self.index]]
+        remaining = np.maximum(self.route.length_m - self.s, 0.0)
+        return np.sqrt(2.0 * STOP_BRAKE_FRAC * t[:, P_BRAKE] * remaining)
+
+    def _speed_ceiling(self) -> np.ndarray:
+        ceiling = np.minimum(self._corner_ceiling(), self.cruise_mps)
+        if self.stop_at_end:
+            ceiling = np.minimum(ceiling, self._end_ceiling())
+        return ceiling
+
+    def steer(self, speed_cmd: np.ndarray):
+        """(speed_cmd, yaw_rate_cmd_dps) after pure pursuit for the vehicles' current poses."""
+        v = self.vehicles
+        idx = self.index
+        speed = v.speed_mps[idx]
+        g_lat, g_lon, _ = self.route.point_at(self.s + self._lookahead())
+        m, n = radii_of_curvature(v.lat[idx])
+        dn = np.radians(g_lat - v.lat[idx]) * m
+        dlon = (g_lon - v.lon[idx] + 180.0) % 360.0 - 180.0
+        de = np.radians(dlon) * n * np.cos(np.radians(v.lat[idx]))
+        dist = np.maximum(np.hypot(dn, de), 1e-6)
+        alpha = (np.arctan2(de, dn) - np.radians(v.heading_deg[idx]) + np.pi) % (2 * np.pi) - np.pi
+        kappa = 2.0 * np.sin(alpha) / dist
+        yaw = np.degrees(speed * kappa)
+        tracked = v.table[v.type_id[idx], P_KIND] == TRACKED
+        lim = v.yaw_rate_limit_dps[idx]
+        pivot = tracked & (np.abs(alpha) > math.radians(PIVOT_ALPHA_DEG))
+        yaw = np.where(pivot, np.sign(alpha) * lim, yaw)
+        speed_cmd = np.where(pivot, 0.0, speed_cmd)
+        return speed_cmd, np.clip(yaw, -lim, lim)
+
+    def commands(self):
+        """(speed_cmd, yaw_rate_cmd_dps) for the follower's vehicles, not applied."""
+        self.locate()
+        return self.steer(self._speed_ceiling())
+
+    def update(self) -> None:
+        """Compute and apply this step's commands."""
+        speed, yaw = self.commands()
+        self.vehicles.set_controls(speed, yaw, index=self.index)
+
+
+class Convoy(RouteFollower):
+    """Vehicles in column on one route: index[0] leads, each follower keeps
+    ``spacing_m`` of route behind the one ahead of it (see module doc)."""
+
+    def __init__(self, vehicles: GroundVehicles, route: Route, index, cruise_mps: float, spacing_m: float,
+                 gain_per_s: float = SPACING_GAIN_PER_S, stop_at_end: bool = True):
+        if not (math.isfinite(spacing_m) and spacing_m > 0.0):
+            raise InvalidArgument("spacing_m", "must be a finite distance > 0", value=spacing_m)
+        if not (math.isfinite(gain_per_s) and gain_per_s > 0.0):
+            raise InvalidArgument("gain_per_s", "must be finite and > 0", value=gain_per_s)
+        super().__init__(vehicles, route, index, cruise_mps, stop_at_end)
+        self.spacing_m = float(spacing_m)
+        self.gain_per_s = float(gain_per_s)
+
+    @property
+    def gaps_m(self) -> np.ndarray:
+        """Along-route gap of each follower to its predecessor, (n - 1,) metres."""
+        return self.s[:-1] - self.s[1:]
+
+    def commands(self):
+        self.locate()
+        v = self.vehicles
+        _, vmax = v.speed_limits_mps
+        corner = self._corner_ceiling()
+        speed_cmd = self._speed_ceiling()
+        # The column moves at the speed its slowest corner allows: the leader holds to the lowest
+        # corner ceiling of any vehicle, so the column takes a corner as one body.
+        speed_cmd[0] = min(speed_cmd[0], float(corner.min()))
+        # The leader eases off while the column is strung out (after a corner or a climb).
+        excess = max(float((self.gaps_m - self.spacing_m).max()), 0.0)
+        speed_cmd[0] *= min(max(1.0 - excess / WAIT_DISTANCE_M, WAIT_MIN_FRAC), 1.0)
+        pred_speed = np.maximum(v.speed_mps[self.index[:-1]], 0.0)
+        follow = pred_speed + self.gain_per_s * (self.gaps_m - self.spacing_m)
+        # A follower may exceed the cruise speed by CATCH_UP_FRAC to close a gap, within its own
+        # limits and the corners'; when the leader stops, its predecessor's speed 0 brings it to
+        # rest spacing_m behind.
+        cap = np.minimum(np.minimum(vmax[self.index[1:]], (1.0 + CATCH_UP_FRAC) * self.cruise_mps),
+                         corner[1:])
+        speed_cmd[1:] = np.clip(follow, 0.0, cap)
+        return self.steer(speed_cmd)
+

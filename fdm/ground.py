@@ -1,0 +1,695 @@
+"""Vectorised ground vehicles on real terrain: every vehicle in one batch per step.
+
+State is a struct of arrays (lat, lon, height, heading, speed, pitch, roll,
+...), one entry per vehicle; each step runs two numba kernels over all the
+vehicles due and makes **one** batched terrain query between them, so the
+terrain source can be the in-process :class:`terrain.terrain.Terrain` or the
+gRPC :class:`client.terrain_client.TerrainClient` alike (anything with
+``heights(lat, lon) -> .height_msl_m, .status``). Argument order is always
+(lat, lon), degrees WGS84; heights are metres above mean sea level, as the
+terrain gives them (``height_msl_m``).
+
+One sub-step of one vehicle
+---------------------------
+1. *Speed.* The commanded speed is capped by the type's maximum (forward or
+   reverse) and, uphill, by the power the drivetrain delivers against grade
+   and rolling resistance: v <= eta P / (m g (f_r cos(theta) + sin(theta)))
+   (Wong, *Theory of Ground Vehicles*, 4th ed. 2008, sec. 3.1 and 3.3), theta
+   the current pitch in the travel direction. Speed approaches the target at
+   the type's acceleration, or its braking rate when slowing or reversing.
+2. *Heading.* The commanded heading rate is capped at the type's limits at the
+   sub-step's mean speed |v|: a wheeled vehicle turns no tighter than its
+   minimum radius (|r| <= |v| / R_min, so it cannot turn standing still), a
+   tracked one pivots at up to its pivot rate; both keep the lateral
+   acceleration |r v| within the type's limit. Steering is instantaneous
+   within those limits (no actuator lag).
+3. *Move.* The vehicle moves s = v_mean h cos(pitch) metres of ground along
+   the mid-step heading (second order in h). North/east metres become
+   degrees with the radii of curvature, dlat = dn / M, dlon = de / (N cos lat),
+   and the heading is transported by dlon sin(lat) (meridian convergence), so
+   straight lines stay great-circle-like at any latitude. Longitudes wrap into
+   [-180, 180): the antimeridian is seamless. Within POLAR_LAT_DEG of a pole
+   the move is made in ECEF instead (tangent-plane step, back to geodetic,
+   heading re-read in the new ENU frame), which is exact over the pole.
+4. *Terrain under the wheel base.* Five points are sampled at the proposed
+   pose in the one batched call: the centre, and front/rear at +-L/2 along the
+   heading and left/right at +-W/2 across it (L, W: the type's contact length
+   and width -- wheelbase and track, or track ground contact and gauge).
+   Height is the terrain at the centre (so the reference point is on the
+   surface exactly), pitch = atan((h_front - h_rear) / L) nose up positive,
+   roll = atan((h_left - h_right) / W) right side down positive.
+5. *Accept or stop.* The proposed pose is rejected -- the vehicle keeps its
+   previous pose and its speed drops to 0 -- when any contact point is
+   OUTSIDE the terrain or at or below WATER_LEVEL_MSL_M (a DEM carries no
+   water mask: sea is height <= 0, as SRTM stores the sea and the procedural
+   world's water is; inland lakes are not detected), when the gradient in the
+   travel direction exceeds the type's maximum gradient up or down (a cliff is
+   a gradient beyond any type's limit), or when the side slope exceeds its
+   limit. A limit only stops a move that makes it worse, so a vehicle placed
+   on a steep slope can still drive off it. ``blocked`` says why.
+
+No tunnelling at any step size
+------------------------------
+A step of length dt is split into sub-steps of at most SUBSTEP_MAX_LENGTH_FRAC
+times the contact length L (and at most SUBSTEP_MAX_TURN_DEG of heading). The
+leading contact therefore advances at most L/2 per sub-step: the ground it
+passes over lies between the old and the new leading contact, within the
+wheel base of the new pose, so any rise steeper than the type's gradient over
+a width of L/2 or more -- every cliff a DEM with posts >= L/2 apart can hold --
+is seen by one sub-step's front-to-rear gradient and stops the vehicle there.
+A blocked vehicle stays where its last accepted sub-step put it: it stops at
+a cliff foot, cliff edge or shore, never on the far side.
+
+Model only what a scene needs: level of detail by distance
+----------------------------------------------------------
+With observers set (:meth:`GroundVehicles.set_observers`), each vehicle gets a
+step divisor from the great-circle distance d to its nearest observer:
+1 within ``near_m``, then 2, 4, ... doubling every doubling of d/near_m, up
+to ``max_divisor``. Vehicle i is integrated only on ticks where
+(tick + i) % divisor == 0 -- staggered, so the work per tick stays level --
+and then over the whole time elapsed since its own last integration (at most
+``max_divisor`` ticks), with the same sub-stepping, so a far vehicle still
+never leaves the surface, it is only updated less often (its reported pose
+lags by under divisor * dt; a renderer can dead-reckon it). Divisors are
+recomputed from the current positions every DIVISOR_REFRESH_TICKS ticks and
+whenever the observers change; :meth:`sync` brings every vehicle up to the
+current time (e.g. before a recording snapshot). Because a long integration is
+still cut into sub-steps of at most L/2, a divisor of 8 saves less than 8x:
+measured 2.8x for 5,000 vehicles of which 90 % are at divisor 8 (bench fdm).
+
+Limitations: steering is instantaneous within the limits; a blocked vehicle
+stops at once (no deceleration, no damage model); water is "height <= 0 m
+MSL" only; vertical obstacles narrower than the DEM's posts do not exist for
+the model. The time of a stop depends on whether a sub-step lands beyond a
+limit's crest, so near a limit runs with different dt may part ways.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from fdm.vehicle_types import (G_MPS2, P_ACCEL, P_ALAT, P_BRAKE, P_FR, P_GRAD, P_KIND, P_LEN,
+                               P_PIVOT, P_POWER_PER_KG, P_RMIN, P_SIDE, P_VMAX, P_VREV, P_WID, P_YAWMAX,
+                               TRACKED, VehicleType, get_type, type_table)
+from sortie.errors import InvalidArgument
+from terrain.geodesy import WGS84_A_M, WGS84_E2
+from terrain.raster import STATUS_OUTSIDE
+from terrain.validate import as_1d_f64, check_finite, check_latlon, first_bad
+
+# Sea level: a contact point at or below this height (m MSL) is in the water.
+WATER_LEVEL_MSL_M = 0.0
+# A sub-step moves at most this fraction of the contact length (see module doc).
+SUBSTEP_MAX_LENGTH_FRAC = 0.5
+# ... and turns at most this far.
+SUBSTEP_MAX_TURN_DEG = 10.0
+# Poleward of this latitude moves are made in ECEF (about 11 km from a pole).
+POLAR_LAT_DEG = 89.9
+# Contact points sampled per vehicle: centre, front, rear, right, left.
+N_CONTACTS = 5
+# Divisors are recomputed every this many ticks (and when the observers change):
+# in 4 ticks at 20 Hz a vehicle moves a few metres of the km that separate bands.
+DIVISOR_REFRESH_TICKS = 4
+# Sphere radius for observer distances (IUGG mean radius): LOD only needs ~0.5 %.
+MEAN_EARTH_RADIUS_M = 6_371_008.8
+
+# Why a vehicle stopped (``blocked``); 0 while it moves freely.
+FREE = 0
+BLOCKED_SIDE_SLOPE = 1
+BLOCKED_SLOPE = 2
+BLOCKED_WATER = 3
+BLOCKED_OUTSIDE = 4
+BLOCKED_NAMES = {FREE: "free", BLOCKED_SIDE_SLOPE: "side_slope", BLOCKED_SLOPE: "slope",
+                 BLOCKED_WATER: "water", BLOCKED_OUTSIDE: "outside"}
+
+# Largest step the model accepts: a long step is sub-stepped, but beyond this
+# it is a unit mix-up (ms for s), not a simulation.
+MAX_DT_S = 60.0
+
+
+# -- geodesy kernels ----------------------------------------------------------
+
+@numba.njit(cache=True, nogil=True)
+def _radii(phi):
+    """Meridian radius M and prime-vertical radius N (m) at latitude phi (rad)."""
+    s = math.sin(phi)
+    w2 = 1.0 - WGS84_E2 * s * s
+    w = math.sqrt(w2)
+    return WGS84_A_M * (1.0 - WGS84_E2) / (w2 * w), WGS84_A_M / w
+
+
+@numba.njit(cache=True, nogil=True)
+def _wrap_lon(lon):
+    """Longitude (deg) into [-180, 180); values already there pass untouched."""
+    if lon < -180.0 or lon >= 180.0:
+        lon = (lon + 180.0) % 360.0 - 180.0
+        if lon >= 180.0:
+            lon -= 360.0
+    return lon
+
+
+@numba.njit(cache=True, nogil=True)
+def _offset(lat, lon, dn, de):
+    """(lat, lon) degrees moved dn metres north and de east on the surface.
+
+    Returns (lat2, lon2, dpsi): dpsi (rad) is the change of heading that
+    carries the move's direction into the new point's north (meridian
+    convergence). Near the poles the step is made in ECEF (see module doc).
+    """
+    if abs(lat) < POLAR_LAT_DEG:
+        phi = math.radians(lat)
+        m, n = _radii(phi)
+        dphi = dn / m
+        phi_mid = phi + 0.5 * dphi
+        dlam = de / (n * math.cos(phi_mid))
+        return lat + math.degrees(dphi), _wrap_lon(lon + math.degrees(dlam)), dlam * math.sin(phi_mid)
+    if dn == 0.0 and de == 0.0:
+        return lat, lon, 0.0
+    phi = math.radians(lat)
+    lam = math.radians(lon)
+    sp, cp = math.sin(phi), math.cos(phi)
+    sl, cl = math.sin(lam), math.cos(lam)
+    _, n = _radii(phi)
+    # ECEF position and the step along the local east/north axes.
+    x = n * cp * cl
+    y = n * cp * sl
+    z = n * (1.0 - WGS84_E2) * sp
+    dx = -sl * de - sp * cl * dn
+    dy = cl * de - sp * sl * dn
+    dz = cp * dn
+    x += dx
+    y += dy
+    z += dz
+    p = math.hypot(x, y)
+    phi2 = math.atan2(z, (1.0 - WGS84_E2) * p)  # exact on the ellipsoid; the step is ~um above it
+    lam2 = math.atan2(y, x)
+    sp2, cp2 = math.sin(phi2), math.cos(phi2)
+    sl2, cl2 = math.sin(lam2), math.cos(lam2)
+    e2 = -sl2 * dx + cl2 * dy
+    n2 = -sp2 * cl2 * dx - sp2 * sl2 * dy + cp2 * dz
+    dpsi = math.atan2(e2, n2) - math.atan2(de, dn)
+    return math.degrees(phi2), _wrap_lon(math.degrees(lam2)), dpsi
+
+
+@numba.njit(cache=True, nogil=True)
+def _heading_deg(psi):
+    """Heading (rad) -> compass degrees in [0, 360)."""
+    h = math.degrees(psi) % 360.0
+    if h >= 360.0:
+        h -= 360.0
+    return h
+
+
+# -- dynamics kernels ---------------------------------------------------------
+
+@numba.njit(cache=True, nogil=True)
+def _contacts(k, lat, lon, psi, half_l, half_w, pts_lat, pts_lon):
+    """Write the five contact points of a pose into slots 5k .. 5k + 4.
+
+    The offsets (a few metres) use the radii at the pose, computed once: the
+    latitude change across the wheel base moves them by parts in 1e7.
+    """
+    c = math.cos(psi)
+    s = math.sin(psi)
+    b = N_CONTACTS * k
+    pts_lat[b] = lat
+    pts_lon[b] = lon
+    if abs(lat) >= POLAR_LAT_DEG:
+        for q, (dn, de) in enumerate(((half_l * c, half_l * s), (-half_l * c, -half_l * s),
+                                      (-half_w * s, half_w * c), (half_w * s, -half_w * c))):
+            la, lo, _ = _offset(lat, lon, dn, de)
+            pts_lat[b + 1 + q] = la
+            pts_lon[b + 1 + q] = lo
+        return
+    phi = math.radians(lat)
+    m, n = _radii(phi)
+    to_lat = math.degrees(1.0) / m
+    to_lon = math.degrees(1.0) / (n * math.cos(phi))
+    fl, fo = half_l * c * to_lat, half_l * s * to_lon  # front
+    rl, ro = -half_w * s * to_lat, half_w * c * to_lon  # right
+    pts_lat[b + 1] = lat + fl
+    pts_lon[b + 1] = _wrap_lon(lon + fo)
+    pts_lat[b + 2] = lat - fl
+    pts_lon[b + 2] = _wrap_lon(lon - fo)
+    pts_lat[b + 3] = lat + rl
+    pts_lon[b + 3] = _wrap_lon(lon + ro)
+    pts_lat[b + 4] = lat - rl
+    pts_lon[b + 4] = _wrap_lon(lon - ro)
+
+
+@numba.njit(cache=True, nogil=True)
+def _place_kernel(lat, lon, heading_deg, type_id, table, pts_lat, pts_lon):
+    """Contact points of the vehicles where they stand."""
+    for j in range(lat.shape[0]):
+        t = type_id[j]
+        _contacts(j, lat[j], lon[j], math.radians(heading_deg[j]), 0.5 * table[t, P_LEN], 0.5 * table[t, P_WID],
+                  pts_lat, pts_lon)
+
+
+@numba.njit(cache=True, nogil=True)
+def _schedule_kernel(tick, dt, world_t, last_tick, last_t, divisor, speed, type_id, table,
+                     sub_dt, n_sub, due_only_lagging):
+    """Pick the vehicles due this tick; their elapsed time, sub-step count and length.
+
+    A vehicle is due when (tick + i) % divisor == 0 (or, with
+    due_only_lagging, whenever it lags the world time). Returns how many are
+    due; sub_dt/n_sub are set for due vehicles and n_sub = 0 for the rest.
+    """
+    count = 0
+    for j in range(speed.shape[0]):
+        if due_only_lagging:
+            due = last_tick[j] != tick
+        else:
+            due = (tick + j) % divisor[j] == 0
+        if not due:
+            n_sub[j] = 0
+            continue
+        if last_tick[j] == tick - 1 and not due_only_lagging:
+            elapsed = dt  # the common case, exactly
+        else:
+            elapsed = world_t - last_t[j]
+        t = type_id[j]
+        # Upper bound on the distance and turn of this step.
+        vmax = max(table[t, P_VMAX], table[t, P_VREV])
+        vbound = min(abs(speed[j]) + max(table[t, P_ACCEL], table[t, P_BRAKE]) * elapsed, vmax)
+        dist = vbound * elapsed
+        k = math.ceil(dist / (SUBSTEP_MAX_LENGTH_FRAC * table[t, P_LEN]))
+        kt = math.ceil(math.degrees(table[t, P_YAWMAX] * elapsed) / SUBSTEP_MAX_TURN_DEG)
+        k = max(1, k, kt)
+        n_sub[j] = k
+        sub_dt[j] = elapsed / k
+        count += 1
+    return count
+
+
+@numba.njit(cache=True, nogil=True)
+def _propose_kernel(idx, sub_dt, lat, lon, heading_deg, speed, pitch_grad, type_id, speed_cmd, yaw_cmd_dps,
+                    table, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts_lat, pts_lon):
+    """One sub-step's proposed pose for each vehicle in idx, and its contact points."""
+    for k in range(idx.shape[0]):
+        j = idx[k]
+        t = type_id[j]
+        h = sub_dt[j]
+        v = speed[j]
+        tgt = speed_cmd[j]
+        vlim = table[t, P_VMAX] if tgt >= 0.0 else table[t, P_VREV]
+        if abs(tgt) > vlim:
+            tgt = math.copysign(vlim, tgt)
+        # Power-limited speed uphill (Wong sec. 3.1): eta P = m g (f_r cos + sin) v,
+        # with cos, sin of the slope from its tangent g: (f_r + g) / sqrt(1 + g^2).
+        gp = pitch_grad[j]
+        sec = math.sqrt(1.0 + gp * gp)
+        g = gp if tgt > 0.0 else (-gp if tgt < 0.0 else 0.0)
+        if g > 0.0:
+            vcap = table[t, P_POWER_PER_KG] * sec / (G_MPS2 * (table[t, P_FR] + g))
+            if abs(tgt) > vcap:
+                tgt = math.copysign(vcap, tgt)
+        dv = tgt - v
+        rate = table[t, P_ACCEL] if (tgt * v >= 0.0 and abs(tgt) > abs(v)) else table[t, P_BRAKE]
+        step = rate * h
+        v_new = tgt if abs(dv) <= step else v + math.copysign(step, dv)
+        v_mid = 0.5 * (v + v_new)
+        av = abs(v_mid)
+        if table[t, P_KIND] == TRACKED:
+            rlim = table[t, P_PIVOT]
+        else:
+            rlim = av / table[t, P_RMIN]
+        if av > 0.0:
+            rlim = min(rlim, table[t, P_ALAT] / av)
+        r = min(max(math.radians(yaw_cmd_dps[j]), -rlim), rlim)
+        psi = math.radians(heading_deg[j])
+        psi_mid = psi + 0.5 * r * h
+        s = v_mid * h / sec  # ground distance projected on the horizontal
+        la, lo, dpsi = _offset(lat[j], lon[j], s * math.cos(psi_mid), s * math.sin(psi_mid))
+        psi2 = psi + r * h + dpsi
+        p_lat[k] = la
+        p_lon[k] = lo
+        p_psi[k] = psi2
+        p_v[k] = v_new
+        p_r[k] = math.degrees(r)
+        p_s[k] = s
+        _contacts(k, la, lo, psi2, 0.5 * table[t, P_LEN], 0.5 * table[t, P_WID], pts_lat, pts_lon)
+
+
+@numba.njit(cache=True, nogil=True)
+def _resolve_kernel(idx, type_id, table, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts_h, pts_status, water_level,
+                    lat, lon, heading_deg, speed, yaw_rate_dps, height, pitch_grad, roll_grad, blocked):
+    """Accept each proposal whose wheel base is on dry, drivable ground; stop the rest."""
+    for k in range(idx.shape[0]):
+        j = idx[k]
+        t = type_id[j]
+        b = N_CONTACTS * k
+        code = FREE
+        for q in range(N_CONTACTS):
+            if pts_status[b + q] == STATUS_OUTSIDE:
+                code = BLOCKED_OUTSIDE
+            elif pts_h[b + q] <= water_level and code < BLOCKED_WATER:
+                code = BLOCKED_WATER
+        gp = 0.0
+        gr = 0.0
+        if code == FREE:
+            gp = (pts_h[b + 1] - pts_h[b + 2]) / table[t, P_LEN]
+            gr = (pts_h[b + 4] - pts_h[b + 3]) / table[t, P_WID]
+            sig = 1.0 if p_s[k] > 0.0 else (-1.0 if p_s[k] < 0.0 else 0.0)
+            a = sig * gp
+            a0 = sig * pitch_grad[j]
+            gmax = table[t, P_GRAD]
+            if (a > gmax and a > a0) or (a < -gmax and a < a0):
+                code = BLOCKED_SLOPE
+            elif abs(gr) > table[t, P_SIDE] and abs(gr) > abs(roll_grad[j]):
+                code = BLOCKED_SIDE_SLOPE
+        blocked[j] = code
+        if code != FREE:
+            speed[j] = 0.0
+            yaw_rate_dps[j] = 0.0
+            continue
+        lat[j] = p_lat[k]
+        lon[j] = p_lon[k]
+        heading_deg[j] = _heading_deg(p_psi[k])
+        speed[j] = p_v[k]
+        yaw_rate_dps[j] = p_r[k]
+        height[j] = pts_h[b]
+        pitch_grad[j] = gp
+        roll_grad[j] = gr
+
+
+@numba.njit(cache=True, nogil=True)
+def _divisor_kernel(lat, lon, obs_xyz, near_m, max_divisor, out):
+    """Step divisor per vehicle from the great-circle distance to its nearest observer.
+
+    Distances on the mean sphere: the smallest squared chord to the observers'
+    unit vectors (obs_xyz, (m, 3)), then one arcsine; a few trig calls per
+    vehicle whatever the number of observers.
+    """
+    for j in range(lat.shape[0]):
+        p = math.radians(lat[j])
+        q = math.radians(lon[j])
+        cp = math.cos(p)
+        x = cp * math.cos(q)
+        y = cp * math.sin(q)
+        z = math.sin(p)
+        best = 4.0  # the largest squared chord of the unit sphere
+        for o in range(obs_xyz.shape[0]):
+            dx = x - obs_xyz[o, 0]
+            dy = y - obs_xyz[o, 1]
+            dz = z - obs_xyz[o, 2]
+            c2 = dx * dx + dy * dy + dz * dz
+            if c2 < best:
+                best = c2
+        d = 2.0 * MEAN_EARTH_RADIUS_M * math.asin(min(0.5 * math.sqrt(best), 1.0))
+        div = 1
+        lim = near_m
+        while d > lim and div < max_divisor:
+            div *= 2
+            lim *= 2.0
+        out[j] = div
+
+
+# -- the class over the kernels -------------------------------------------------
+
+@dataclass(frozen=True)
+class GroundState:
+    """A copy of the vehicles' state; every array (n,). Angles in degrees:
+    heading compass [0, 360), pitch nose up +, roll right side down +."""
+
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    height_msl_m: np.ndarray
+    heading_deg: np.ndarray
+    speed_mps: np.ndarray
+    yaw_rate_dps: np.ndarray
+    pitch_deg: np.ndarray
+    roll_deg: np.ndarray
+    blocked: np.ndarray
+    time_s: np.ndarray
+
+
+class GroundVehicles:
+    """All ground vehicles of a scene, stepped together.
+
+    terrain: anything with ``heights(lat, lon)`` answering ``height_msl_m``
+    and ``status`` (Terrain, TerrainClient). lat, lon: (n,) degrees, (lat, lon)
+    order; heading_deg: compass degrees; vehicle_type: one type (name or
+    :class:`VehicleType`) for all, or a sequence of them, one per vehicle.
+    Raises InvalidArgument naming the index of a vehicle placed in the water
+    or outside the terrain.
+    """
+
+    def __init__(self, terrain, lat, lon, heading_deg, vehicle_type="m1a2", water_level_msl_m=WATER_LEVEL_MSL_M):
+        lat, lon = check_latlon(lat, lon)
+        n = lat.size
+        heading = as_1d_f64("heading_deg", heading_deg)
+        if heading.size == 1 and n != 1:
+            heading = np.full(n, heading[0])
+        if heading.size != n:
+            raise InvalidArgument("heading_deg", f"must have {n} values, got {heading.size}")
+        check_finite("heading_deg", heading)
+        self.types, self.type_id = _resolve_types(vehicle_type, n)
+        self.table = type_table(self.types)
+        self.terrain = terrain
+        self.water_level_msl_m = float(water_level_msl_m)
+        self.n = n
+        self.lat = lat.copy()
+        self.lon = np.where((lon >= -180.0) & (lon < 180.0), lon, (lon + 180.0) % 360.0 - 180.0)
+        self.heading_deg = heading % 360.0
+        self.speed_mps = np.zeros(n)
+        self.yaw_rate_dps = np.zeros(n)
+        self.height_msl_m = np.zeros(n)
+        # Pitch and roll are kept as gradients (tangents); pitch_deg/roll_deg convert.
+        self.pitch_grad = np.zeros(n)
+        self.roll_grad = np.zeros(n)
+        self.blocked = np.zeros(n, np.uint8)
+        self.speed_cmd_mps = np.zeros(n)
+        self.yaw_rate_cmd_dps = np.zeros(n)
+        # Time keeping: world tick/time and each vehicle's own.
+        self.tick = 0
+        self.time_s = 0.0
+        self.last_tick = np.zeros(n, np.int64)
+        self.last_time_s = np.zeros(n)
+        self.divisor = np.ones(n, np.int64)
+        self._observers = None
+        self._divisors_stale = False
+        self.near_m = 2000.0
+        self.max_divisor = 8
+        # Scratch, sized once.
+        self._sub_dt = np.zeros(n)
+        self._n_sub = np.zeros(n, np.int64)
+        self._prop = [np.zeros(n) for _ in range(6)]
+        self._pts_lat = np.zeros(N_CONTACTS * n)
+        self._pts_lon = np.zeros(N_CONTACTS * n)
+        self._all = np.arange(n, dtype=np.int64)
+        self.vehicle_steps = 0  # integrations done (not sub-steps), for benchmarks
+        self._place()
+
+    # -- placement and state --------------------------------------------------
+
+    def _place(self) -> None:
+        _place_kernel(self.lat, self.lon, self.heading_deg, self.type_id, self.table, self._pts_lat, self._pts_lon)
+        res = self.terrain.heights(self._pts_lat, self._pts_lon)
+        h = np.asarray(res.height_msl_m).reshape(self.n, N_CONTACTS)
+        st = np.asarray(res.status).reshape(self.n, N_CONTACTS)
+        bad = (st == STATUS_OUTSIDE).any(axis=1) | ~(h > self.water_level_msl_m).all(axis=1)
+        if bad.any():
+            i = first_bad(bad)
+            where = "outside the terrain" if (st[i] == STATUS_OUTSIDE).any() else "in the water (height <= sea level)"
+            raise InvalidArgument("lat", f"vehicle placed {where} (lon {self.lon[i]!r})", index=i,
+                                  value=float(self.lat[i]))
+        lengths = self.table[self.type_id, P_LEN]
+        widths = self.table[self.type_id, P_WID]
+        self.height_msl_m[:] = h[:, 0]
+        self.pitch_grad[:] = (h[:, 1] - h[:, 2]) / lengths
+        self.roll_grad[:] = (h[:, 4] - h[:, 3]) / widths
+
+    @property
+    def pitch_deg(self) -> np.ndarray:
+        """(n,) pitch, degrees, nose up positive: atan of the front-to-rear gradient."""
+        return np.degrees(np.arctan(self.pitch_grad))
+
+    @property
+    def roll_deg(self) -> np.ndarray:
+        """(n,) roll, degrees, right side down positive: atan of the left-to-right gradient."""
+        return np.degrees(np.arctan(self.roll_grad))
+
+    def state(self) -> GroundState:
+        """A copy of the current state (see :class:`GroundState`)."""
+        return GroundState(self.lat.copy(), self.lon.copy(), self.height_msl_m.copy(), self.heading_deg.copy(),
+                           self.speed_mps.copy(), self.yaw_rate_dps.copy(), self.pitch_deg,
+                           self.roll_deg, self.blocked.copy(), self.last_time_s.copy())
+
+    def velocity_ned(self) -> np.ndarray:
+        """(n, 3) velocity north, east, down in m/s along the ground (pitch included)."""
+        psi = np.radians(self.heading_deg)
+        th = np.radians(self.pitch_deg)
+        horiz = self.speed_mps * np.cos(th)
+        return np.stack([horiz * np.cos(psi), horiz * np.sin(psi), -self.speed_mps * np.sin(th)], axis=-1)
+
+    @property
+    def speed_limits_mps(self) -> tuple[np.ndarray, np.ndarray]:
+        """(max reverse, max forward) speed per vehicle, m/s, both >= 0."""
+        return self.table[self.type_id, P_VREV], self.table[self.type_id, P_VMAX]
+
+    @property
+    def yaw_rate_limit_dps(self) -> np.ndarray:
+        """Largest heading-rate command accepted per vehicle, deg/s."""
+        return np.degrees(self.table[self.type_id, P_YAWMAX])
+
+    # -- controls ---------------------------------------------------------------
+
+    def set_controls(self, speed_mps=None, yaw_rate_dps=None, index=None) -> None:
+        """Commanded speed (m/s, negative reverses) and heading rate (deg/s,
+        positive turns right/clockwise) for the vehicles in ``index`` (all when
+        None). Every value is checked before any is applied: NaN/Inf, a speed
+        beyond the type's forward/reverse maximum or a rate beyond its
+        ``yaw_rate_limit_dps`` raise InvalidArgument naming the field and the
+        index into the given array. The model still applies its dynamic
+        limits (turn radius, lateral acceleration, slope) to valid commands.
+        """
+        if index is None:
+            idx = self._all
+        else:
+            idx = np.asarray(index)
+            if idx.ndim == 0:
+                idx = idx.reshape(1)
+            if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
+                raise InvalidArgument("index", f"must be a 1-D integer array, got {idx.dtype} shape {idx.shape}")
+            bad = (idx < 0) | (idx >= self.n)
+            if bad.any():
+                i = first_bad(bad)
+                raise InvalidArgument("index", f"must be within [0, {self.n})", index=i, value=int(idx[i]))
+            idx = idx.astype(np.int64)
+        m = idx.size
+        v = r = None
+        if speed_mps is not None:
+            v = _command("speed_mps", speed_mps, m)
+            rev, fwd = self.table[self.type_id[idx], P_VREV], self.table[self.type_id[idx], P_VMAX]
+            bad = (v > fwd) | (v < -rev)
+            if bad.any():
+                i = first_bad(bad)
+                raise InvalidArgument("speed_mps", f"must be within [-{rev[i]:.3g}, {fwd[i]:.3g}] m/s for vehicle "
+                                      f"{int(idx[i])} ({self.types[self.type_id[idx[i]]].name})", index=i,
+                                      value=float(v[i]))
+        if yaw_rate_dps is not None:
+            r = _command("yaw_rate_dps", yaw_rate_dps, m)
+            lim = np.degrees(self.table[self.type_id[idx], P_YAWMAX])
+            bad = np.abs(r) > lim
+            if bad.any():
+                i = first_bad(bad)
+                raise InvalidArgument("yaw_rate_dps", f"must be within +-{lim[i]:.3g} deg/s for vehicle "
+                                      f"{int(idx[i])} ({self.types[self.type_id[idx[i]]].name})", index=i,
+                                      value=float(r[i]))
+        if v is not None:
+            self.speed_cmd_mps[idx] = v
+        if r is not None:
+            self.yaw_rate_cmd_dps[idx] = r
+
+    # -- level of detail --------------------------------------------------------
+
+    def set_observers(self, lat, lon, near_m: float = 2000.0, max_divisor: int = 8) -> None:
+        """Observers (e.g. players' and sensors' positions), (m,) degrees: vehicles
+        far from all of them step less often (see module doc). An empty set
+        or None steps every vehicle every tick."""
+        if lat is None or np.size(lat) == 0:
+            self._observers = None
+            self.divisor[:] = 1
+            return
+        lat, lon = check_latlon(lat, lon, prefix="observer_")
+        if not (math.isfinite(near_m) and near_m > 0.0):
+            raise InvalidArgument("near_m", "must be a finite distance > 0", value=near_m)
+        if not (isinstance(max_divisor, (int, np.integer)) and 1 <= max_divisor <= 1024):
+            raise InvalidArgument("max_divisor", "must be an integer in [1, 1024]", value=max_divisor)
+        p, q = np.radians(lat), np.radians(lon)
+        self._divisors_stale = True
+        self._observers = np.ascontiguousarray(np.stack([np.cos(p) * np.cos(q), np.cos(p) * np.sin(q), np.sin(p)],
+                                                        axis=-1))
+        self.near_m = float(near_m)
+        self.max_divisor = int(max_divisor)
+
+    # -- stepping -----------------------------------------------------------------
+
+    def step(self, dt_s: float) -> int:
+        """Advance the world by dt_s seconds; returns how many vehicles were integrated."""
+        dt = float(dt_s)
+        if not (math.isfinite(dt) and 0.0 < dt <= MAX_DT_S):
+            raise InvalidArgument("dt_s", f"must be in (0, {MAX_DT_S:g}] s", value=dt_s)
+        self.tick += 1
+        self.time_s += dt
+        if self._observers is not None and (self._divisors_stale or self.tick % DIVISOR_REFRESH_TICKS == 0):
+            self._divisors_stale = False
+            _divisor_kernel(self.lat, self.lon, self._observers, self.near_m, self.max_divisor, self.divisor)
+        return self._advance(dt, due_only_lagging=False)
+
+    def sync(self) -> int:
+        """Integrate every vehicle that lags the world time up to it."""
+        return self._advance(0.0, due_only_lagging=True)
+
+    def _advance(self, dt: float, due_only_lagging: bool) -> int:
+        n_due = _schedule_kernel(self.tick, dt, self.time_s, self.last_tick, self.last_time_s, self.divisor,
+                                 self.speed_mps, self.type_id, self.table, self._sub_dt, self._n_sub,
+                                 due_only_lagging)
+        if n_due == 0:
+            return 0
+        due = self._all if n_due == self.n else np.flatnonzero(self._n_sub > 0)
+        n_max = int(self._n_sub[due].max())
+        for s in range(n_max):
+            idx = due if s == 0 else due[self._n_sub[due] > s]
+            self._substep(idx)
+        self.last_tick[due] = self.tick
+        self.last_time_s[due] = self.time_s
+        self.vehicle_steps += n_due
+        return n_due
+
+    def _substep(self, idx: np.ndarray) -> None:
+        m = idx.size
+        p = [a[:m] for a in self._prop]
+        pts_lat = self._pts_lat[:N_CONTACTS * m]
+        pts_lon = self._pts_lon[:N_CONTACTS * m]
+        _propose_kernel(idx, self._sub_dt, self.lat, self.lon, self.heading_deg, self.speed_mps, self.pitch_grad,
+                        self.type_id, self.speed_cmd_mps, self.yaw_rate_cmd_dps, self.table, *p, pts_lat, pts_lon)
+        res = self.terrain.heights(pts_lat, pts_lon)
+        _resolve_kernel(idx, self.type_id, self.table, *p, np.ascontiguousarray(res.height_msl_m, np.float64),
+                        np.ascontiguousarray(res.status, np.uint8), self.water_level_msl_m, self.lat, self.lon,
+                        self.heading_deg, self.speed_mps, self.yaw_rate_dps, self.height_msl_m, self.pitch_grad,
+                        self.roll_grad, self.blocked)
+
+
+def _command(name: str, values, m: int) -> np.ndarray:
+    arr = as_1d_f64(name, values)
+    if arr.size == 1 and m != 1:
+        arr = np.full(m, arr[0])
+    if arr.size != m:
+        raise InvalidArgument(name, f"must have {m} values (one per indexed vehicle), got {arr.size}")
+    check_finite(name, arr)
+    return arr
+
+
+def _resolve_types(vehicle_type, n: int):
+    """(list of distinct VehicleType, (n,) int64 index into it)."""
+    def one(v, i=None):
+        if isinstance(v, VehicleType):
+            return v
+        if isinstance(v, str):
+            try:
+                return get_type(v)
+            except Exception as e:
+                raise InvalidArgument("vehicle_type", str(e), index=i, value=v) from None
+        raise InvalidArgument("vehicle_type", "must be a type name or a VehicleType", index=i, value=repr(v))
+
+    if isinstance(vehicle_type, (str, VehicleType)):
+        return [one(vehicle_type)], np.zeros(n, np.int64)
+    seq = list(vehicle_type)
+    if len(seq) != n:
+        raise InvalidArgument("vehicle_type", f"must have {n} values (one per vehicle), got {len(seq)}")
+    types: list[VehicleType] = []
+    ids = np.zeros(n, np.int64)
+    pos: dict = {}
+    for i, v in enumerate(seq):
+        t = one(v, i)
+        key = id(t)
+        if key not in pos:
+            pos[key] = len(types)
+            types.append(t)
+        ids[i] = pos[key]
+    return types, ids
