@@ -148,6 +148,24 @@ def run(args) -> int:
         console.print(table)
         for entry in summary["sources"]:
             console.print(f"hillshade {entry['hillshade']['png']}")
+        alps = next((d for d in dems if d.stem == "N47E009"), None)
+        if alps is not None:
+            from sortie.demo_fdm import run_agents
+
+            with TerrainClient(address) as client:
+                agents = run_agents(client, out)
+            summary["agents"] = agents
+            table = Table(title="agents over the Alps DEM (terrain through the service)")
+            for col in ("agent", "sim s", "wall s", "km", "height m", "min AGL m", "waypoints / gaps", "events"):
+                table.add_column(col, justify="left" if col in ("agent", "events") else "right")
+            for a in agents:
+                extra = (a["waypoints_passed"] if "waypoints_passed" in a
+                         else f"{a['gap_mean_m']:.1f} m ±{a['gap_max_error_m']:.2g}")
+                table.add_row(a["agent"], f"{a['simulated_s']:.0f}", f"{a['wall_s']:.1f}", f"{a['distance_km']:.1f}",
+                              f"{a['alt_min_m']:.0f}..{a['alt_max_m']:.0f}",
+                              f"{a['min_agl_m']:.0f}" if "min_agl_m" in a else "on ground", extra,
+                              ", ".join(a.get("events", [])) or "none")
+            console.print(table)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    console.print(f"[bold green]outputs[/] in {out}: summary.json, hillshade-*.png, terrain-service.log")
+    console.print(f"[bold green]outputs[/] in {out}: summary.json, hillshade-*.png, track-*.csv, terrain-service.log")
     return 0
