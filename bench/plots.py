@@ -5,13 +5,29 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
-    """Write the terrain suite's speed-vs-error plots; returns the files written."""
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _save(fig, path: Path, written: list[Path]) -> None:
+    """Lay out, write as PNG, close, and record the file."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+
+
+def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
+    """Write the terrain suite's speed-vs-error plots; returns the files written."""
+    plt = _pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     series = report.get("series", {})
@@ -38,11 +54,7 @@ def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
         ax.set_ylabel(f"max |h - scipy| (m), floor {floor:g}")
         ax.set_title("Heights: speed against error")
         ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
-        fig.tight_layout()
-        path = out_dir / "terrain_heights_speed_vs_error.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        _save(fig, out_dir / "terrain_heights_speed_vs_error.png", written)
     if "los_speed_vs_error" in series:
         curve = series["los_speed_vs_error"]
         n_rays = max(row.get("rays", 1) for row in curve)
@@ -62,21 +74,13 @@ def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
         ax.set_xlabel("10 km rays / s (one core)")
         ax.set_ylabel("fraction of rays whose answer differs from the exact one")
         ax.set_title("Line of sight: speed against error")
-        fig.tight_layout()
-        path = out_dir / "terrain_los_speed_vs_error.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        _save(fig, out_dir / "terrain_los_speed_vs_error.png", written)
     return written
 
 
 def plot_fdm(report: dict, out_dir: Path) -> list[Path]:
     """Write the fdm suite's speed-vs-error plots (dt sweeps); returns the files written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     series = report.get("series", {})
@@ -107,11 +111,7 @@ def plot_fdm(report: dict, out_dir: Path) -> list[Path]:
         ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel(ylabel, fontsize=8)
     fig.suptitle("Step size: speed against error")
-    fig.tight_layout()
-    path = out_dir / "fdm_dt_speed_vs_error.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    written.append(path)
+    _save(fig, out_dir / "fdm_dt_speed_vs_error.png", written)
     return written
 
 
