@@ -39,25 +39,36 @@ terrain and ground effect is nil, so the elevation under the CG is refreshed
 at ``terrain_refresh_hz``, and less often the higher the aircraft is: after
 the time it needs to use half its spare height flying at its airspeed over
 slopes of at most 45 degrees, capped at ``MAX_REFRESH_S`` ("model only what a
-scene needs"). The state's AGL is as old as the last refresh there.
-``near_ground_m=math.inf`` couples every step. Where the terrain
-has no data (NaN) the ground is sea level, 0 m.
+scene needs"). Between refreshes the height band and the load factor are
+checked at ``CHECK_HZ`` (30 Hz: every 4th step at 120 Hz; the band's margin
+covers the distance flown between checks); once a load-factor exceedance
+starts, or near the ground, every step is checked, so an exceedance is seen
+at most 1/30 s late and its ``g_hold_s`` timed step by step. The state's AGL
+is as old as the last refresh there. ``near_ground_m=math.inf`` couples every
+step. Where the terrain has no data (NaN) the ground is sea level, 0 m.
+
+A check step has two halves, ``_plan`` (which terrain points are needed) and
+``_finish`` (apply their heights), so that :class:`fdm.fleet.Fleet` can
+answer a whole fleet's terrain points in one batched query per step: one
+call instead of one per aircraft, which matters most through the terrain
+service (one round trip per step for the fleet).
 """
 
 from __future__ import annotations
 
 import math
+import operator
 import warnings
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from fdm import catalog
+from fdm.contacts import contact_points, ground_clearance, place_contacts
 from fdm.events import LIMITS, EventDetector
-from fdm.state import (FT_M, RAW_COLUMNS, RAW_PROPERTIES, RAW_WIDTH, AircraftState, body_to_ned,
-                       structural_to_body_ft)
+from fdm.state import FT_M, RAW_PROPERTIES, RAW_WIDTH, AircraftState
 from sortie.errors import InvalidArgument, SortieError
-from terrain.geodesy import radii_of_curvature, wrap_lon_deg
+from terrain.geodesy import wrap_lon_deg
 
 LB_KG = 0.45359237  # international avoirdupois pound, exact (NIST SP 811, B.8)
 DT_MIN_S = 1e-4
@@ -68,6 +79,8 @@ DEFAULT_DT_S = 1.0 / 120.0
 MAX_PENETRATION_M = 1.0
 # Far above the terrain its height is refreshed at least this often (AGL in the state stays fresh).
 MAX_REFRESH_S = 1.0
+# Far above the terrain, height band and load factor are checked at this rate (Hz) between refreshes.
+CHECK_HZ = 30.0
 
 _quiet = False
 
@@ -199,6 +212,13 @@ class FlatTerrain:
         return HeightResult(np.full(lat.shape, self.height_msl_m), np.ones(lat.shape, np.uint8))
 
 
+def terrain_msl_m(terrain, lat_deg, lon_deg) -> np.ndarray:
+    """Heights (m MSL) from any terrain source; no data (NaN) is sea level, 0 m."""
+    h = np.asarray(terrain.heights(np.asarray(lat_deg, np.float64), np.asarray(lon_deg, np.float64)).height_msl_m,
+                   np.float64)
+    return np.where(np.isnan(h), 0.0, h)
+
+
 class Aircraft:
     """One JSBSim aircraft of the catalog, stepped on a terrain source.
 
@@ -239,6 +259,7 @@ class Aircraft:
 
         self._refresh_steps = max(1, round(1.0 / (terrain_refresh_hz * self.dt)))
         self._max_refresh_steps = max(self._refresh_steps, round(MAX_REFRESH_S / self.dt))
+        self._check_steps = max(1, min(round(1.0 / (CHECK_HZ * self.dt)), self._refresh_steps))
         self._near_ground_base_ft = near_ground_m / FT_M
         self._near_ground_ft = self._near_ground_base_ft
         self._controls = Controls()
@@ -271,8 +292,10 @@ class Aircraft:
         self._get_fuel_lbs = n("propulsion/total-fuel-lbs").get_double_value
         self._get_time = n("simulation/sim-time-sec").get_double_value
         self._set_terrain_ft = n("position/terrain-elevation-asl-ft").set_double_value
-        self._raw_getters = [n(p).get_double_value for _, p in RAW_PROPERTIES]
-        self._raw_terrain_col = RAW_COLUMNS["terrain_ft"]
+        # The terrain column is the host's own value (JSBSim's getter recomputes it, ~10x
+        # the cost of the others), appended last.
+        assert RAW_PROPERTIES[-1][0] == "terrain_ft"
+        self._raw_getters = [n(p).get_double_value for _, p in RAW_PROPERTIES[:-1]]
 
         engines = 0
         while self._pm.hasNode(f"fcs/throttle-cmd-norm[{engines}]"):
@@ -300,31 +323,27 @@ class Aircraft:
                 loc = tuple(float(v) for v in np.asarray(gr.get_gear_unit(i).get_location()).flat)
             contacts.append(Contact(i, kind, loc))
         self.contacts = tuple(contacts)
-        self._contact_locations_in = np.array([c.location_in for c in contacts]).reshape(-1, 3)
+        self._contact_locations_in = np.array([c.location_in for c in contacts], dtype=np.float64).reshape(-1, 3)
+        self._q_lat = np.empty(len(contacts) + 1)  # terrain query points of a check step
+        self._q_lon = np.empty(len(contacts) + 1)
+        self._q_alt = np.empty(len(contacts))  # contact altitudes, m
         self._structure = np.array([c.kind == "structure" for c in contacts], dtype=bool)
         self._detector_limits = LIMITS[self.aircraft_class]
         self._nz_min = self._detector_limits.nz_min_g
         self._nz_max = self._detector_limits.nz_max_g
 
     def _terrain_msl_m(self, lat_deg, lon_deg) -> np.ndarray:
-        h = np.asarray(self.terrain.heights(np.asarray(lat_deg, np.float64),
-                                            np.asarray(lon_deg, np.float64)).height_msl_m, np.float64)
-        return np.where(np.isnan(h), 0.0, h)
+        return terrain_msl_m(self.terrain, lat_deg, lon_deg)
 
     def _contact_terrain(self, lat, lon, alt_m, cg_in, phi, theta, psi, ahead_ned):
         """(terrain under the CG now then under each contact, contact altitudes), metres MSL.
 
         Contacts are placed from the CG with the attitude, shifted by ``ahead_ned``
-        (metres), and mapped to (lat, lon) on the local tangent plane with the
-        radii of curvature (offsets of metres: the plane's error is d^2/2R < 1e-5 m).
+        (metres), on the local tangent plane (fdm.contacts.place_contacts).
         """
-        r_ned = body_to_ned(structural_to_body_ft(self._contact_locations_in, cg_in) * FT_M, phi, theta, psi)
-        pts = np.vstack([np.zeros(3), r_ned + ahead_ned])  # the CG now, the contacts ahead
-        m, n = radii_of_curvature(lat)
-        p_lat = np.clip(lat + np.degrees(pts[:, 0] / (m + alt_m)), -90.0, 90.0)
-        coslat = max(math.cos(math.radians(lat)), 1e-9)
-        p_lon = wrap_lon_deg(lon + np.degrees(pts[:, 1] / ((n + alt_m) * coslat)))
-        return self._terrain_msl_m(p_lat, p_lon), alt_m - r_ned[:, 2]
+        p_lat, p_lon, h = contact_points(lat, lon, alt_m, cg_in, phi, theta, psi, ahead_ned,
+                                         self._contact_locations_in)
+        return self._terrain_msl_m(p_lat, p_lon), h
 
     def _rest_height_ft(self) -> float:
         """CG height above level ground when the lowest wheel just touches (attitude level)."""
@@ -375,6 +394,11 @@ class Aircraft:
         self._terrain_cg_ft = self._terrain_ft
         self._steps = 0
         self._next_refresh = 0
+        self._next_check = 1  # the first step is checked (and refreshes the terrain)
+        self._quiet_until = -1
+        self._band_floor_ft = math.inf
+        self._near = False
+        self._alt_ft = agl_ft + t_m / FT_M
         if ic.on_ground:
             try:
                 fdm.do_trim(2)  # JSBSim ground trim: settles height, pitch and roll on the gear
@@ -433,23 +457,74 @@ class Aircraft:
             return []
         self._run()
         self._steps += 1
-        alt = self._get_alt_ft()
-        if alt - self._terrain_ft < self._near_ground_ft or self._steps >= self._next_refresh:
-            return self._couple(alt)
-        nz = self._get_nz()
-        if self._nz_min < nz < self._nz_max and self._detector._g_since is None:
+        if self._steps < self._next_check or self._quiet_check():
             return []
-        return self._record(self._detector.update(self._get_time(), *self._where(alt), False, False,
-                                                  self._get_vd() * FT_M, nz))
+        return self._check()
+
+    def advance(self, steps: int) -> list:
+        """``steps`` JSBSim steps (stopping early at a crash); all their events.
+
+        The same trajectory as calling :meth:`step` that many times, bit for
+        bit, but between checks JSBSim runs in a tight loop. Far from the
+        ground checks fall on multiples of the check interval, so a host that
+        ticks the world at that interval (a 30 Hz world tick of 4 steps of
+        1/120 s) runs each aircraft's tick as one loop and one quiet check.
+        """
+        end = self._steps + steps
+        if self._quiet_tick(steps):
+            return []
+        run = self._run
+        events = []
+        while not self.crashed:
+            target = min(self._next_check, end)
+            for _ in range(target - self._steps):
+                run()
+            if target > self._steps:
+                self._steps = target
+            if self._steps < self._next_check:
+                break
+            if not self._quiet_check():
+                events += self._check()
+        return events
 
     def run(self, seconds: float) -> list:
         """Step for ``seconds`` of simulated time (whole steps); all events."""
-        out = []
-        for _ in range(int(round(seconds / self.dt))):
-            out.extend(self.step())
-            if self.crashed:
-                break
-        return out
+        return self.advance(int(round(seconds / self.dt)))
+
+    def _quiet_tick(self, steps: int) -> bool:
+        """The common tick, done here when it applies: no check due before the tick's
+        end and a quiet one (:meth:`_quiet_check`) there. False, with nothing or only
+        the JSBSim steps done, when the tick needs the general loop of :meth:`advance`."""
+        end = self._steps + steps
+        if end > self._next_check or self.crashed:
+            return False
+        run = self._run
+        for _ in range(steps):
+            run()
+        self._steps = end
+        if end < self._next_check:
+            return True
+        # _quiet_check inlined: this is the hot path of a hosted tick
+        if end < self._quiet_until and self._get_alt_ft() > self._band_floor_ft \
+                and self._nz_min < self._get_nz() < self._nz_max:
+            self._next_check = end + self._check_steps
+            return True
+        return False
+
+    def _quiet_check(self) -> bool:
+        """The common check step, done here: far from the ground, no refresh due, load
+        factor within limits; then the next one is scheduled. False when the full check
+        (:meth:`_check`) is needed."""
+        if self._steps < self._quiet_until and self._get_alt_ft() > self._band_floor_ft \
+                and self._nz_min < self._get_nz() < self._nz_max:
+            self._next_check = self._steps + self._check_steps
+            return True
+        return False
+
+    def _check(self) -> list:
+        """The full check of this step: plan, terrain heights, finish."""
+        n = self._plan()
+        return self._finish(None if n == 0 else self._terrain_msl_m(self._q_lat[:n], self._q_lon[:n]))
 
     def _where(self, alt_ft):
         return math.degrees(self._get_lat_rad()), math.degrees(self._get_lon_rad()), alt_ft * FT_M
@@ -461,39 +536,79 @@ class Aircraft:
                 self.crashed = True
         return events
 
-    def _couple(self, alt_ft: float) -> list:
-        """Terrain under the aircraft (and its contacts when near), events; see the module docstring."""
-        t = self._get_time()
-        lat_r, lon_r = self._get_lat_rad(), self._get_lon_rad()
-        lat, lon = math.degrees(lat_r), math.degrees(lon_r)
-        alt_m = alt_ft * FT_M
-        near = alt_ft - self._terrain_ft < self._near_ground_ft
-        events = []
+    # A check step has two halves so that a host stepping many aircraft
+    # (fdm.fleet.Fleet) can answer all their terrain queries in one batch:
+    # _plan writes the points this step needs into _q_lat/_q_lon, the host
+    # looks their heights up, _finish applies them.
+
+    def _plan(self) -> int:
+        """How many terrain points this check step needs (written to _q_lat/_q_lon[:n]):
+        0 (none due), 1 (under the CG, far from the ground) or 1 + contacts (near it)."""
+        alt_ft = self._get_alt_ft()
+        self._alt_ft = alt_ft
+        self._near = near = alt_ft - self._terrain_ft < self._near_ground_ft
         if near:
-            ahead = np.array([self._get_vn(), self._get_ve(), 0.0]) * (FT_M * self.dt)
-            terr, h = self._contact_terrain(lat, lon, alt_m, [g() for g in self._get_cg_in],
-                                            *(g() for g in self._get_euler), ahead)
-            clearance = h - terr[1:]
-            self._terrain_cg_ft = terr[0] / FT_M
-            if clearance.size:
-                c_min = float(clearance.min())
-                elevation_m = float(h.min()) - c_min
-                struct_hit = bool((clearance[self._structure] < 0.0).any())
+            cg = self._get_cg_in
+            dt_ft = FT_M * self.dt
+            place_contacts(math.degrees(self._get_lat_rad()), math.degrees(self._get_lon_rad()), alt_ft * FT_M,
+                           cg[0](), cg[1](), cg[2](), *(g() for g in self._get_euler),
+                           self._get_vn() * dt_ft, self._get_ve() * dt_ft,
+                           self._contact_locations_in, self._q_lat, self._q_lon, self._q_alt)
+            return self._q_lat.size
+        if self._steps >= self._next_refresh:
+            self._q_lat[0] = math.degrees(self._get_lat_rad())
+            self._q_lon[0] = math.degrees(self._get_lon_rad())
+            return 1
+        return 0
+
+    def _finish(self, terr) -> list:
+        """Events of this check step, given the terrain (m MSL, no NaN) at the planned points or None."""
+        events = self._check_g() if terr is None else self._couple(terr)
+        if self._near or self._detector._g_since is not None or self._detector.on_ground:
+            self._next_check = self._steps + 1
+            self._quiet_until = -1
+        else:
+            # Far from the ground checks fall on multiples of _check_steps (refreshes too).
+            cs = self._check_steps
+            self._next_check = min((self._steps // cs + 1) * cs, self._next_refresh)
+            self._quiet_until = self._next_refresh
+            self._band_floor_ft = self._terrain_ft + self._near_ground_ft
+        return events
+
+    def _check_g(self) -> list:
+        """Far from the ground between refreshes only the load factor can end the flight."""
+        nz = self._get_nz()
+        if self._nz_min < nz < self._nz_max and self._detector._g_since is None:
+            return []
+        return self._record(self._detector.update(self._get_time(), *self._where(self._alt_ft), False, False,
+                                                  self._get_vd() * FT_M, nz))
+
+    def _couple(self, terr) -> list:
+        """Apply the terrain under the aircraft (and its contacts when near); see the module docstring."""
+        t = self._get_time()
+        alt_ft = self._alt_ft
+        lat, lon = float(self._q_lat[0]), float(self._q_lon[0])
+        alt_m = alt_ft * FT_M
+        events = []
+        self._terrain_cg_ft = terr[0] / FT_M
+        if self._near:
+            if terr.size > 1:
+                c_min, elevation_m, struct_hit = ground_clearance(self._q_alt, terr, self._structure)
             else:
-                c_min, elevation_m, struct_hit = alt_m - terr[0], terr[0], False
+                c_min, elevation_m, struct_hit = alt_m - terr[0], float(terr[0]), False
             self._terrain_ft = elevation_m / FT_M
             self._set_terrain_ft(self._terrain_ft)
             if c_min < -self.max_penetration_m:
                 events += self._detector.terrain_crash(t, lat, lon, alt_m, -c_min)
             events += self._detector.update(t, lat, lon, alt_m, self._get_wow() > 0.5, struct_hit,
                                             self._get_vd() * FT_M, self._get_nz())
-        else:  # far from the ground: only the load factor can end the flight (checked in step)
-            terr = self._terrain_msl_m([lat], [lon])
-            self._terrain_ft = self._terrain_cg_ft = terr[0] / FT_M
+        else:
+            self._terrain_ft = self._terrain_cg_ft
             self._set_terrain_ft(self._terrain_ft)
-            if self._detector.on_ground:  # left the near band without the take-off debounce
-                events += self._detector.update(t, lat, lon, alt_m, False, False, self._get_vd() * FT_M,
-                                                self._get_nz())
+            # Far from the ground: only the load factor can end the flight; and the
+            # detector hears of leaving the near band without the take-off debounce.
+            events += self._detector.update(t, lat, lon, alt_m, False, False, self._get_vd() * FT_M,
+                                            self._get_nz())
         if self._steps >= self._next_refresh:
             events += self._detector.fuel(t, lat, lon, alt_m, self._get_fuel_lbs() * LB_KG)
             # Near-ground band: the set distance plus twice what can be flown before the next refresh.
@@ -501,13 +616,14 @@ class Aircraft:
             step_ft = max(vt_ft, 1.0) * self.dt
             self._near_ground_ft = self._near_ground_base_ft + 2.0 * step_ft * self._refresh_steps
             interval = self._refresh_steps
-            if not near:
+            if not self._near:
                 # Above the band the refresh may wait until the aircraft could have used half the
                 # spare height: flown (horizontally or down) at most vt per second, over slopes of
                 # at most 45 degrees (higher cliffs than near_ground_m are the band's job).
                 spare_ft = alt_ft - self._terrain_ft - self._near_ground_ft
                 interval = min(max(int(spare_ft / (4.0 * step_ft)), self._refresh_steps), self._max_refresh_steps)
-            self._next_refresh = self._steps + interval
+            cs = self._check_steps
+            self._next_refresh = -(-(self._steps + interval) // cs) * cs  # on a check step
         return self._record(events)
 
     # -- state out ------------------------------------------------------------------------------
@@ -521,8 +637,8 @@ class Aircraft:
     def raw_values(self) -> list:
         """The raw snapshot as a list of floats: the cheapest state out for a host that
         stacks many (``fdm.state.state_arrays(np.array(rows))`` converts them at once)."""
-        values = [g() for g in self._raw_getters]
-        values[self._raw_terrain_col] = self._terrain_cg_ft
+        values = list(map(operator.call, self._raw_getters))
+        values.append(self._terrain_cg_ft)
         return values
 
     def state(self) -> AircraftState:

@@ -427,6 +427,11 @@ class GroundState:
     time_s: np.ndarray
 
 
+# The per-vehicle arrays, kept in step by add() and remove() (type_id apart).
+PER_VEHICLE = ("lat", "lon", "heading_deg", "speed_mps", "yaw_rate_dps", "height_msl_m", "pitch_grad", "roll_grad",
+               "blocked", "speed_cmd_mps", "yaw_rate_cmd_dps", "last_tick", "last_time_s", "divisor", "ids")
+
+
 class GroundVehicles:
     """All ground vehicles of a scene, stepped together.
 
@@ -474,15 +479,72 @@ class GroundVehicles:
         self._divisors_stale = False
         self.near_m = 2000.0
         self.max_divisor = 8
-        # Scratch, sized once.
+        # Stable vehicle ids (indices shift when vehicles are removed; see index_of).
+        self.ids = np.arange(n, dtype=np.int64)
+        self._next_id = n
+        self._size_scratch()
+        self.vehicle_steps = 0  # integrations done (not sub-steps), for benchmarks
+        self._place()
+
+    def _size_scratch(self) -> None:
+        """Scratch arrays sized to the vehicle count (allocated again only when it changes)."""
+        n = self.n
         self._sub_dt = np.zeros(n)
         self._n_sub = np.zeros(n, np.int64)
         self._prop = [np.zeros(n) for _ in range(6)]
         self._pts_lat = np.zeros(N_CONTACTS * n)
         self._pts_lon = np.zeros(N_CONTACTS * n)
         self._all = np.arange(n, dtype=np.int64)
-        self.vehicle_steps = 0  # integrations done (not sub-steps), for benchmarks
-        self._place()
+
+    # -- adding and removing vehicles -------------------------------------------
+
+    def add(self, lat, lon, heading_deg, vehicle_type="m1a2") -> np.ndarray:
+        """Place new vehicles (validated and placed on the terrain exactly as by the
+        constructor; nothing is added if any is bad) at rest; their new ids."""
+        new = GroundVehicles(self.terrain, lat, lon, heading_deg, vehicle_type, self.water_level_msl_m)
+        new.ids = np.arange(self._next_id, self._next_id + new.n, dtype=np.int64)
+        new.last_tick[:] = self.tick
+        new.last_time_s[:] = self.time_s
+        types = list(self.types)
+        for t in new.types:
+            if not any(t is u for u in types):
+                types.append(t)
+        remap = np.array([next(k for k, u in enumerate(types) if u is t) for t in new.types], np.int64)
+        for name in PER_VEHICLE:
+            setattr(self, name, np.concatenate([getattr(self, name), getattr(new, name)]))
+        self.type_id = np.concatenate([self.type_id, remap[new.type_id]])
+        self.types, self.table = types, type_table(types)
+        self._next_id += new.n
+        self._resized()
+        return new.ids
+
+    def remove(self, ids) -> None:
+        """Remove vehicles by id; InvalidArgument (nothing removed) if any id is unknown."""
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        known = np.isin(ids, self.ids)
+        if not known.all():
+            i = first_bad(~known)
+            raise InvalidArgument("ids", "no vehicle has this id", index=i, value=int(ids[i]))
+        keep = ~np.isin(self.ids, ids)
+        for name in PER_VEHICLE + ("type_id",):
+            setattr(self, name, getattr(self, name)[keep])
+        self._resized()
+
+    def index_of(self, ids) -> np.ndarray:
+        """Current indices (for ``set_controls(index=...)`` and the state arrays) of vehicle ids."""
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        # self.ids stays sorted: add() appends larger ids, remove() keeps the order.
+        idx = np.minimum(np.searchsorted(self.ids, ids), max(self.n - 1, 0))
+        bad = np.ones(ids.size, bool) if self.n == 0 else self.ids[idx] != ids
+        if bad.any():
+            i = first_bad(bad)
+            raise InvalidArgument("ids", "no vehicle has this id", index=i, value=int(ids[i]))
+        return idx
+
+    def _resized(self) -> None:
+        self.n = self.lat.size
+        self._size_scratch()
+        self._divisors_stale = self._observers is not None
 
     # -- placement and state --------------------------------------------------
 

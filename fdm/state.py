@@ -60,8 +60,9 @@ RAW_PROPERTIES = (
     ("vc_kts", "velocities/vc-kts"),
     ("alpha_rad", "aero/alpha-rad"),
     ("beta_rad", "aero/beta-rad"),
-    ("terrain_ft", "position/terrain-elevation-asl-ft"),
     ("wow", "gear/wow"),
+    # Last: filled by the host with the terrain under the CG it fed JSBSim (not read back).
+    ("terrain_ft", "position/terrain-elevation-asl-ft"),
 )
 RAW_COLUMNS = {name: k for k, (name, _) in enumerate(RAW_PROPERTIES)}
 RAW_WIDTH = len(RAW_PROPERTIES)
@@ -178,29 +179,3 @@ class AircraftState:
         arrays = [self.ecef_m, self.vel_ned_mps, self.vel_ecef_mps, self.euler_rad, self.quat_wxyz,
                   self.body_rates_rps, self.accel_body_mps2]
         return bool(np.isfinite(scalars).all() and all(np.isfinite(a).all() for a in arrays))
-
-
-def body_to_ned(vectors_body, phi, theta, psi):
-    """Rotate (n, 3) body-axis vectors into local NED with z-y-x Euler angles (rad).
-
-    C_n2b = R1(phi) R2(theta) R3(psi) (Stevens & Lewis, 3rd ed., eq. 1.3-20);
-    the body -> NED rotation is its transpose.
-    """
-    cf, sf = np.cos(phi), np.sin(phi)
-    ct, st = np.cos(theta), np.sin(theta)
-    cp, sp = np.cos(psi), np.sin(psi)
-    c_n2b = np.array([
-        [ct * cp, ct * sp, -st],
-        [sf * st * cp - cf * sp, sf * st * sp + cf * cp, sf * ct],
-        [cf * st * cp + sf * sp, cf * st * sp - sf * cp, cf * ct],
-    ])
-    return np.asarray(vectors_body, dtype=np.float64) @ c_n2b
-
-
-def structural_to_body_ft(locations_in, cg_in):
-    """JSBSim structural frame (x aft, y right, z up; inches) -> body offsets from the CG (ft).
-
-    Same as JSBSim's FGMassBalance::StructuralToBody: (-(x - x_cg), y - y_cg, -(z - z_cg)) / 12.
-    """
-    d = np.asarray(locations_in, dtype=np.float64) - np.asarray(cg_in, dtype=np.float64)
-    return np.stack([-d[..., 0], d[..., 1], -d[..., 2]], axis=-1) / 12.0

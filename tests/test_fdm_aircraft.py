@@ -275,6 +275,52 @@ def test_on_a_slope_the_uphill_wheel_sets_the_ground():
                                                                             on_ground=True))
 
 
+class CliffTerrain:
+    """A straight cliff along a parallel: ``low`` m south of lat0, ``high`` m north of it."""
+
+    def __init__(self, lat0, low, high):
+        self.lat0, self.low, self.high = lat0, low, high
+
+    def heights(self, lat, lon):
+        lat = np.asarray(lat, np.float64)
+        return HeightResult(np.where(lat >= self.lat0, self.high, self.low), np.ones(lat.shape, np.uint8))
+
+
+M_PER_DEG_LAT = 111_200.0  # near 47 N, to place starts; the bounds below are much looser
+
+
+def test_landing_just_past_a_cliff_edge():
+    # A 100 m cliff facing south; the c172 glides in 5 m above the plateau from
+    # 150 m south of the edge. The wheels cross a 100 m terrain step and the
+    # touchdown is on the plateau, gentle, not a crash.
+    cliff = CliffTerrain(47.3, 300.0, 400.0)
+    ac = c172(terrain=cliff, lat_deg=47.3 - 150.0 / M_PER_DEG_LAT, alt_m=405.0, heading_deg=0.0, speed_mps=30.0)
+    ac.set_controls(throttle=0.2)
+    ac.run(20.0)
+    touchdowns = [e for e in ac.events if e.kind == TOUCHDOWN]
+    assert touchdowns and not ac.crashed, ac.events
+    td = touchdowns[0]
+    assert td.lat_deg > 47.3 and 400.0 < td.alt_msl_m < 403.0 and td.detail["sink_rate_mps"] < 3.05
+    s = ac.state()
+    assert s.on_ground and abs(s.terrain_msl_m - 400.0) < 1e-9 and 0.3 < s.agl_m < 2.0
+
+
+def test_flying_into_a_cliff_face_stops_at_the_face():
+    # 50 m below the plateau's top, heading for the face: a crash at the face
+    # (the nose wheel, ~1 m ahead of the CG, penetrates first), the aircraft
+    # frozen there, not lifted onto the plateau. Bound: the CG within 10 m south
+    # of the cliff line (contact offset + one step of flight at 50 m/s: 0.4 m).
+    cliff = CliffTerrain(47.3, 300.0, 400.0)
+    ac = c172(terrain=cliff, lat_deg=47.3 - 300.0 / M_PER_DEG_LAT, alt_m=350.0, heading_deg=0.0)
+    ac.run(15.0)
+    assert ac.crashed and ac.events[-1].kind == CRASH, ac.events
+    assert ac.events[-1].detail["reason"] in ("terrain penetration", "structure contact")
+    s = ac.state()
+    assert 47.3 - 10.0 / M_PER_DEG_LAT < s.lat_deg < 47.3 and s.alt_msl_m < 360.0 and s.is_finite()
+    ac.run(1.0)
+    assert ac.state().lat_deg == s.lat_deg  # frozen where it hit
+
+
 # -- hard cases -----------------------------------------------------------------------------------
 
 def test_spin_stall_and_inverted_stay_finite():

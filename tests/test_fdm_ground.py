@@ -5,6 +5,7 @@ Kattegat tiles) and hand-made rasters through the same Terrain; one check runs
 the model over the real gRPC terrain service.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -389,3 +390,49 @@ def test_same_trajectory_over_the_grpc_terrain_service(alps):
         server.stop(0).wait()
     for name in runs[0].__dataclass_fields__:
         assert np.array_equal(getattr(runs[0], name), getattr(runs[1], name)), name
+
+
+def test_adding_and_removing_vehicles_mid_run(alps, kattegat):
+    # Vehicles do not interact, so the survivors of a fleet that grows and shrinks
+    # drive exactly the trajectories they drive in a fleet that never changes, and
+    # vehicles added mid-run those of a fleet started at that moment.
+    ref = _alps_fleet(alps, n=40)
+    g = _alps_fleet(alps, n=40)
+    rng = np.random.default_rng(5)
+    lat, lon, hdg = rng.uniform(47.2, 47.8, 6), rng.uniform(9.2, 9.8, 6), rng.uniform(0, 360, 6)
+    for _ in range(10):
+        ref.step(0.1)
+        g.step(0.1)
+    # A type the fleet does not have yet: a slower HMMWV variant.
+    slow = dataclasses.replace(HMMWV, name="hmmwv-slow", max_speed_mps=8.0)
+    late = GroundVehicles(alps, lat, lon, hdg, slow)
+    new_ids = g.add(lat, lon, hdg, slow)
+    assert len(g.types) == 5 and g.speed_limits_mps[1][-1] == 8.0
+    assert list(new_ids) == list(range(40, 46)) and g.n == 46
+    g.remove([3, 17, 41])
+    assert g.n == 43 and list(g.index_of([40, 42, 45])) == [38, 39, 42]
+    late.set_controls(7.0, 2.0)
+    late_keep = np.array([0, 2, 3, 4, 5])
+    g.set_controls(7.0, 2.0, index=g.index_of(new_ids[late_keep]))
+    for _ in range(20):
+        ref.step(0.1)
+        g.step(0.1)
+        late.step(0.1)
+    survivors = g.index_of([i for i in range(40) if i not in (3, 17)])
+    keep_ref = np.array([i for i in range(40) if i not in (3, 17)])
+    for name in ("lat", "lon", "height_msl_m", "heading_deg", "speed_mps", "pitch_grad", "roll_grad"):
+        assert np.array_equal(getattr(g, name)[survivors], getattr(ref, name)[keep_ref]), name
+        assert np.array_equal(getattr(g, name)[g.index_of(new_ids[late_keep])], getattr(late, name)[late_keep]), name
+    # Bad ids and bad placements change nothing.
+    with pytest.raises(InvalidArgument) as e:
+        g.remove([0, 3])
+    assert e.value.field == "ids" and e.value.index == 1 and g.n == 43
+    with pytest.raises(InvalidArgument):
+        g.add([56.5], [11.5], [0.0])  # outside this terrain (the Kattegat is not in the Alps tile)
+    assert g.n == 43
+    sea = GroundVehicles(kattegat, [57.8], [11.95], [0.0], "hmmwv")
+    with pytest.raises(InvalidArgument, match="water"):
+        sea.add([57.2], [11.2], [0.0], "hmmwv")
+    assert sea.n == 1
+    g.remove(g.ids)
+    assert g.n == 0 and g.step(0.1) == 0
