@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import importlib
 
-SUITES = ("terrain", "fdm")
+SUITES = ("terrain", "fdm", "server")
 
 
 def add_parser(sub) -> None:

@@ -115,4 +115,10 @@ def plot_fdm(report: dict, out_dir: Path) -> list[Path]:
     return written
 
 
-PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm}
+def plot_server(report: dict, out_dir: Path) -> list[Path]:
+    from bench.dr import plot_dr
+
+    return plot_dr(report, out_dir)
+
+
+PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm, "server": plot_server}

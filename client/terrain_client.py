@@ -21,7 +21,8 @@ import numpy as np
 
 from server.grpc_common import channel_options
 from server.terrain_service import DESCRIBE_TO_FIELD, MAX_HEIGHT_POINTS, RPCS, SERVICE_NAME, serializers
-from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound, SortieError
+from sortie.errors import (DataFormatError, InvalidArgument, LimitExceeded, NotFound, PermissionDenied, SortieError,
+                           Unauthenticated)
 from sortie.v1 import terrain_pb2 as pb
 from terrain.terrain import HeightResult, LosResult, NormalResult, ProfileResult, SegmentResult
 from terrain.validate import as_1d_f64
@@ -67,6 +68,10 @@ def error_from_rpc(error: grpc.RpcError) -> SortieError:
             return LimitExceeded(m["field"], int(m["size"]), int(m["limit"]))
     if code == grpc.StatusCode.NOT_FOUND:
         return NotFound(details)
+    if code == grpc.StatusCode.UNAUTHENTICATED:
+        return Unauthenticated(details)
+    if code == grpc.StatusCode.PERMISSION_DENIED:
+        return PermissionDenied(details)
     if code == grpc.StatusCode.FAILED_PRECONDITION:
         return DataFormatError(details)
     return ServiceError(code, details)

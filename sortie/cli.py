@@ -17,6 +17,8 @@ from sortie.errors import SortieError
 # Modules that contribute sub-commands, in --help order.
 COMMAND_MODULES = (
     "server.terrain_cli",
+    "server.sim_cli",
+    "client.cli",
     "fdm.cli",
     "bench.cli",
     "sortie.demo",

@@ -166,6 +166,10 @@ def run(args) -> int:
                               f"{a['min_agl_m']:.0f}" if "min_agl_m" in a else "on ground", extra,
                               ", ".join(a.get("events", [])) or "none")
             console.print(table)
+            from sortie.demo_exercise import run_exercise
+
+            summary["exercise"] = run_exercise(address, out, console)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    console.print(f"[bold green]outputs[/] in {out}: summary.json, hillshade-*.png, track-*.csv, terrain-service.log")
+    console.print(f"[bold green]outputs[/] in {out}: summary.json, exercise.json, hillshade-*.png, track-*.csv, "
+                  "terrain-service.log, simulation-server.log, bots.log")
     return 0

@@ -44,6 +44,14 @@ class NotFound(SortieError):
     """A named thing (file, agent, recording) does not exist."""
 
 
+class Unauthenticated(SortieError):
+    """An unknown, expired or forged session token."""
+
+
+class PermissionDenied(SortieError):
+    """The caller may not do this (e.g. command an agent its session does not hold)."""
+
+
 def grpc_code(error: BaseException):
     """Map an exception to a ``grpc.StatusCode``; anything unexpected is INTERNAL."""
     import grpc
@@ -56,4 +64,8 @@ def grpc_code(error: BaseException):
         return grpc.StatusCode.NOT_FOUND
     if isinstance(error, DataFormatError):
         return grpc.StatusCode.FAILED_PRECONDITION
+    if isinstance(error, Unauthenticated):
+        return grpc.StatusCode.UNAUTHENTICATED
+    if isinstance(error, PermissionDenied):
+        return grpc.StatusCode.PERMISSION_DENIED
     return grpc.StatusCode.INTERNAL

@@ -1,0 +1,167 @@
+"""``sortie bench server``: capacity, tick time, latency, slow clients, dead reckoning.
+
+The load: the Alps DEM (in-process terrain), 2000 ground vehicles driving
+(random types and commands, on land across the tile), N f16s holding
+heading, altitude and speed over it, and 32 observer clients (20 km areas
+of interest at random points) streaming at 20 Hz from a separate process
+(bench/server_clients.py), all on this machine's 2 cores.
+
+- ``bare_jsbsim_realtime_aircraft``: f16s one core keeps in real time at
+  120 Hz with a bare ``FGFDMExec.run()`` loop, same run.
+- ``realtime_aircraft``: f16s the server keeps in real time at that load:
+  the world tick (30 Hz, 4 JSBSim steps each) plus the publish step, timed
+  by the clock thread in "fast" mode (as fast as it goes) at two fleet
+  sizes; the tick time is linear in the fleet size, and the fleet whose mean
+  tick fills the 33.3 ms budget is the capacity. ``capacity_ratio`` =
+  realtime / bare.
+- ``tick_p99_ms``: p99 tick time in real time at that fleet size (75 % of
+  the capacity, rounded down, to leave the realtime run room) with the
+  clients streaming; ``latency_p99_ms``: world tick -> client receipt, the
+  publish's wall time on the server against the update's arrival in the
+  client process (one machine clock); ``slow_client_tick_ratio``: tick p99
+  with one more client that never reads its stream, over the run without.
+- dead reckoning: bench/dr.py (``dr_*`` metrics and the bandwidth plot).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from bench.harness import Report
+
+CLIENTS = 32
+GROUND_VEHICLES = 2000
+TICK_BUDGET_MS = 1000.0 / 30.0
+
+
+def _bare_realtime(terrain, quick: bool) -> float:
+    from fdm.aircraft import Aircraft, InitialConditions
+
+    fleet = [Aircraft("f16", terrain, InitialConditions(47.2 + 0.1 * i, 9.5, 4000.0, heading_deg=0.0,
+                                                        speed_mps=200.0)) for i in range(4)]
+    runs = [a.fdm.run for a in fleet]
+    best = math.inf
+    for _ in range(5 if quick else 15):
+        t0 = time.perf_counter()
+        for _ in range(60):
+            for run in runs:
+                run()
+        best = min(best, (time.perf_counter() - t0) / (60 * len(runs)))
+    return math.floor((1.0 / 120.0) / best)
+
+
+def _world(terrain, n_aircraft: int, n_ground: int, seed: int = 3):
+    from fdm.aircraft import InitialConditions
+    from fdm.vehicle_types import VEHICLE_TYPES
+    from server.world import World
+
+    rng = np.random.default_rng(seed)
+    w = World(terrain)
+    for i in range(n_aircraft):
+        lat, lon = rng.uniform(47.1, 47.9), rng.uniform(9.1, 9.9)
+        hdg = float(rng.uniform(0, 360))
+        w.spawn_aircraft(f"f16-{i}", "f16", InitialConditions(lat, lon, 4500.0, heading_deg=hdg, speed_mps=200.0),
+                         hold={"heading_deg": hdg, "alt_msl_m": 4500.0, "speed_mps": 200.0})
+    # Ground vehicles on land (above the lake's 395 m and below 1500 m), in one batch.
+    lat, lon = rng.uniform(47.05, 47.95, 4 * n_ground), rng.uniform(9.05, 9.95, 4 * n_ground)
+    h = terrain.heights(lat, lon).height_msl_m
+    ok = np.flatnonzero((h > 400.0) & (h < 1500.0))[:n_ground]
+    types = rng.choice(sorted(VEHICLE_TYPES), ok.size).tolist()
+    w.spawn_ground([f"g-{k}" for k in range(ok.size)], types, lat[ok], lon[ok], rng.uniform(0, 360, ok.size))
+    g = w.ground
+    g.set_controls(rng.uniform(2, 10, g.n), rng.uniform(-3, 3, g.n))
+    return w
+
+
+def _clients(address: str, n: int, seconds: float, stall: int = 0):
+    proc = subprocess.Popen([sys.executable, "-m", "bench.server_clients", address, str(n), str(seconds), "7",
+                             "--stall", str(stall)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stderr.readline()
+    if "ready" not in line:
+        proc.kill()
+        raise RuntimeError(f"load clients failed: {line}{proc.stderr.read()}")
+    return proc
+
+
+def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, stall: int = 0,
+           clients: int = CLIENTS) -> dict:
+    """Run a server with the load for ``seconds`` of wall time; tick and latency figures."""
+    from server.sim_server import ServerConfig, SimulationServer
+
+    world = _world(terrain, n_aircraft, n_ground)
+    server = SimulationServer(world, ServerConfig(clock=clock, time_scale=1000.0 if clock == "fast" else 1.0,
+                                                  vanished_timeout_s=60.0))
+    published = {}
+    original = server.publisher.publish
+
+    def publish(snap, infos, sessions):
+        original(snap, infos, sessions)
+        published[round(snap.time_s, 6)] = time.time()
+
+    server.publisher.publish = publish
+    server.start()
+    try:
+        proc = _clients(server.address, clients, seconds, stall)
+        server.tick_ms.clear()
+        t_world0 = world.time_s
+        out, err = proc.communicate(timeout=seconds + 120.0)
+        wall = seconds
+        ticks = np.array(server.tick_ms)
+        world_s = world.time_s - t_world0
+    finally:
+        server.stop(0.5)
+    data = json.loads(out)
+    lat_ms = [(wall_rx - published[round(t, 6)]) * 1e3 for log in data["received"] for t, wall_rx in log
+              if round(t, 6) in published]
+    return {"tick_mean_ms": float(ticks.mean()), "tick_p99_ms": float(np.percentile(ticks, 99)),
+            "world_rate": world_s / wall, "latency_ms": np.array(lat_ms), "bytes": sum(data["bytes"]),
+            "states": sum(data["states"]), "entities": len(world.entities), "updates": server.publisher.updates_sent,
+            "samples": server.publisher.entity_samples}
+
+
+def bench_capacity(report: Report, terrain, quick: bool) -> None:
+    bare = _bare_realtime(terrain, quick)
+    report.metrics["bare_jsbsim_realtime_aircraft"] = float(bare)
+    n_ground = 500 if quick else GROUND_VEHICLES
+    clients = 8 if quick else CLIENTS
+    seconds = 4.0 if quick else 10.0
+    sizes = (8, 32) if quick else (32, 128)
+    fits = [(n, _serve(terrain, n, "fast", seconds, n_ground, clients=clients)) for n in sizes]
+    (n1, r1), (n2, r2) = fits
+    slope = (r2["tick_mean_ms"] - r1["tick_mean_ms"]) / (n2 - n1)
+    base = r1["tick_mean_ms"] - slope * n1
+    realtime = max(0.0, math.floor((TICK_BUDGET_MS - base) / slope)) if slope > 0 else float("nan")
+    report.metrics["realtime_aircraft"] = float(realtime)
+    report.metrics["capacity_ratio"] = realtime / bare
+    report.metrics["tick_ms_per_aircraft"] = slope
+    report.metrics["tick_ms_fixed"] = base
+    n_rt = max(1, int(0.75 * realtime))
+    calm = _serve(terrain, n_rt, "realtime", seconds, n_ground, clients=clients)
+    slow = _serve(terrain, n_rt, "realtime", seconds, n_ground, stall=1, clients=clients)
+    report.metrics["tick_p99_ms"] = calm["tick_p99_ms"]
+    report.metrics["latency_p50_ms"] = float(np.percentile(calm["latency_ms"], 50))
+    report.metrics["latency_p99_ms"] = float(np.percentile(calm["latency_ms"], 99))
+    report.metrics["slow_client_tick_ratio"] = slow["tick_p99_ms"] / calm["tick_p99_ms"]
+    report.metrics["realtime_world_rate"] = calm["world_rate"]
+    report.metrics["stream_bytes_per_state"] = calm["bytes"] / max(calm["states"], 1)
+    report.metrics["server_message_reduction"] = 1.0 - calm["updates"] / max(calm["samples"], 1)
+    report.params.update(capacity_fleet_sizes=list(sizes), capacity_fit=[r1["tick_mean_ms"], r2["tick_mean_ms"]],
+                         ground_vehicles=n_ground, clients=clients, client_aoi_m=20_000.0, seconds=seconds,
+                         realtime_run_aircraft=n_rt, entities=calm["entities"], tick_budget_ms=TICK_BUDGET_MS)
+
+
+def run(quick: bool) -> Report:
+    from bench.dr import run_dr
+    from bench.fdm import alps_terrain
+
+    report = Report(suite="server", quick=quick)
+    terrain = alps_terrain()
+    bench_capacity(report, terrain, quick)
+    run_dr(report, quick)
+    return report

@@ -1,0 +1,153 @@
+"""``sortie client`` (a headless observer printing the live picture) and
+``sortie bot`` (many autopilot agents in one process, as ordinary clients).
+
+    sortie client --server HOST:PORT [--observe LAT LON RADIUS_M] [--duration S] [--every S]
+    sortie bot --server HOST:PORT [--count N] [--profile patrol|racetrack] [--duration S]
+
+A bot joins as ROLE_BOT (taking a free controllable agent), watches, and flies
+or drives its profile with autopilot commands: "patrol" turns 90 degrees
+every leg (a box), "racetrack" 180 degrees (out and back); aircraft also step
+their altitude by +-300 m each leg.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+
+PROFILES = ("patrol", "racetrack")
+
+
+def add_parser(sub) -> None:
+    c = sub.add_parser("client", help="headless observer: print the live picture",
+                       description="Join a simulation server as an observer and print what it sees "
+                                   "(dead-reckoned positions) every --every seconds.")
+    c.add_argument("--server", required=True, metavar="HOST:PORT")
+    c.add_argument("--observe", nargs=3, type=float, metavar=("LAT", "LON", "RADIUS_M"),
+                   help="centre and radius of the area of interest (default: the first target area, 100 km)")
+    c.add_argument("--duration", type=float, default=10.0, metavar="S", help="wall seconds (default %(default)s)")
+    c.add_argument("--every", type=float, default=2.0, metavar="S", help="print period (default %(default)s)")
+    c.add_argument("--name", default="observer")
+    c.set_defaults(func=client_command)
+
+    b = sub.add_parser("bot", help="run N autopilot bots as clients of a simulation server",
+                       description="Each bot joins as ROLE_BOT, takes a free controllable agent and flies or "
+                                   "drives a profile with autopilot commands.")
+    b.add_argument("--server", required=True, metavar="HOST:PORT")
+    b.add_argument("--count", type=int, default=1, help="bots (default %(default)s)")
+    b.add_argument("--profile", choices=PROFILES, default="patrol")
+    b.add_argument("--leg-s", type=float, default=20.0, help="world seconds per leg (default %(default)s)")
+    b.add_argument("--duration", type=float, default=30.0, metavar="S", help="wall seconds (default %(default)s)")
+    b.set_defaults(func=bot_command)
+
+
+def _geodetic(pos):
+    from terrain.geodesy import ecef_to_geodetic
+
+    return ecef_to_geodetic(np.asarray(pos, float).reshape(-1, 3))
+
+
+def client_command(args) -> int:
+    from client.sim_client import SimClient
+
+    with SimClient(args.server) as sim:
+        sim.wait_ready()
+        observe = args.observe
+        if observe is None:
+            w = sim.world()
+            if w.target_areas:
+                a = w.target_areas[0]
+                observe = (float(np.mean(a.lat_deg)), float(np.mean(a.lon_deg)), 100_000.0)
+            else:
+                observe = (0.0, 0.0, 100_000.0)
+        sim.join(args.name, "observer", observer=tuple(observe))
+        print(f"observing {sim.world_info.exercise_name!r} around ({observe[0]:.4f}, {observe[1]:.4f}), "
+              f"{observe[2] / 1000:.0f} km", flush=True)
+        picture = sim.watch()
+        end = time.monotonic() + args.duration
+        while time.monotonic() < end:
+            time.sleep(min(args.every, max(end - time.monotonic(), 0.0)))
+            ids, pos, _ = picture.state()
+            print(f"t = {picture.now_s():7.1f} s  {len(ids)} entities  ({picture.updates} updates, "
+                  f"{picture.states_received} states, {picture.bytes} bytes)", flush=True)
+            if len(ids):
+                lat, lon, h = _geodetic(pos)
+                for k, i in enumerate(ids):
+                    info = picture.infos.get(int(i))
+                    name = info.name if info else str(i)
+                    kind = info.type if info else ""
+                    print(f"  {name:14s} {kind:10s} {lat[k]:9.5f} {lon[k]:9.5f} {h[k]:8.1f} m (ellipsoid)", flush=True)
+        sim.leave()
+    return 0
+
+
+def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list) -> None:
+    from client.sim_client import SimClient
+
+    turn = 90.0 if profile == "patrol" else 180.0
+    with SimClient(address) as sim:
+        try:
+            agent = sim.join(f"bot-{k}", "bot")
+        except Exception as exc:  # noqa: BLE001 - reported per bot
+            results.append((k, None, f"could not join: {exc}"))
+            return
+        picture = sim.watch()
+        picture.wait_for(lambda p: agent in p.infos, 10.0)
+        info = picture.infos.get(agent)
+        aircraft = info is not None and info.kind == 1
+        controls = sim.controls()
+        legs = 0
+        end = time.monotonic() + duration_s
+        heading = None
+        while time.monotonic() < end:
+            ids, pos, quat = picture.state(ids=[agent]) if agent in picture.infos else (None, None, None)
+            if pos is not None and heading is None:
+                heading = _heading_deg(pos[0], quat[0])
+            if heading is None:
+                time.sleep(0.1)
+                continue
+            heading = (heading + turn) % 360.0 if legs else heading
+            targets = {"heading_deg": heading}
+            if aircraft:
+                _, _, h = _geodetic(pos)
+                targets["alt_msl_m"] = float(h[0]) + (300.0 if legs % 2 == 0 else -300.0)
+            else:
+                targets["speed_mps"] = 8.0
+            controls.autopilot(**targets)
+            legs += 1
+            wait_end = time.monotonic() + leg_s / max(picture.time_scale, 1e-6)
+            while time.monotonic() < min(wait_end, end):
+                time.sleep(0.2)
+        accepted = controls.close()
+        sim.leave()
+        results.append((k, agent, f"{legs} legs, {accepted} commands accepted, {picture.updates} updates"))
+
+
+def _heading_deg(pos, quat) -> float:
+    """True heading of an ECEF -> body quaternion at an ECEF position."""
+    from server.dead_reckoning import ecef_to_ned_quat, quat_conjugate, quat_multiply
+    from terrain.geodesy import ecef_to_geodetic
+
+    lat, lon, _ = ecef_to_geodetic(np.asarray(pos, float).reshape(1, 3))
+    # q_ecef2body = q_ecef2ned * q_ned2body (server.dead_reckoning.ned_to_ecef_quat)
+    q_ned2body = quat_multiply(quat_conjugate(ecef_to_ned_quat(lat[0], lon[0])), quat)
+    w, x, y, z = np.asarray(q_ned2body, float).reshape(4)
+    return math.degrees(math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))) % 360.0
+
+
+def bot_command(args) -> int:
+    results: list = []
+    threads = [threading.Thread(target=_bot, args=(args.server, k, args.profile, args.leg_s, args.duration, results),
+                                daemon=True) for k in range(args.count)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(args.duration + 30.0)
+    ok = 0
+    for k, agent, what in sorted(results, key=lambda r: r[0]):
+        print(f"bot-{k}: agent {agent}: {what}", flush=True)
+        ok += agent is not None
+    return 0 if ok == args.count else 1

@@ -1,0 +1,261 @@
+"""Client library of the simulation service: join, command, watch, listen.
+
+Used alike by bots, renderers, observers and tests::
+
+    with SimClient("127.0.0.1:50051") as sim:
+        sim.join("viper", "pilot")                      # takes a free aircraft
+        picture = sim.watch()                           # background stream
+        with sim.controls() as c:
+            c.autopilot(heading_deg=270.0, alt_msl_m=2500.0)
+        picture.wait_for(lambda p: len(p) > 0)
+        pos, quat = picture.state()                     # dead-reckoned to now
+
+:class:`Picture` is the receiver's side of the server's dead reckoning: the
+last update of every entity in view, extrapolated on demand (server
+dead_reckoning.Extrapolator) to the server's world time (estimated from the
+stream: the last update's time plus the wall time since it arrived, times the
+clock's scale).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+import grpc
+import numpy as np
+
+from client.terrain_client import error_from_rpc
+from server.dead_reckoning import Extrapolator
+from server.grpc_common import channel_options
+from sortie.errors import InvalidArgument
+from sortie.v1 import simulation_pb2 as pb
+from sortie.v1 import simulation_pb2_grpc as pb_grpc
+
+ROLES = {"pilot": pb.ROLE_PILOT, "driver": pb.ROLE_DRIVER, "observer": pb.ROLE_OBSERVER, "bot": pb.ROLE_BOT}
+DEFAULT_TIMEOUT_S = 10.0
+
+
+class SimClient:
+    """One session with a simulation server."""
+
+    def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+        self.address = address
+        self.timeout_s = timeout_s
+        self.channel = grpc.insecure_channel(address, options=channel_options())
+        self.stub = pb_grpc.SimulationServiceStub(self.channel)
+        self.token = ""
+        self.agent_id = 0
+        self.world_info: pb.WorldInfo | None = None
+        self._streams: list = []
+
+    def __enter__(self) -> SimClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for s in self._streams:
+            s.cancel()
+        self.channel.close()
+
+    def wait_ready(self, timeout_s: float = 10.0) -> None:
+        grpc.channel_ready_future(self.channel).result(timeout=timeout_s)
+
+    def _call(self, fn, request):
+        try:
+            return fn(request, timeout=self.timeout_s)
+        except grpc.RpcError as exc:
+            raise error_from_rpc(exc) from None
+
+    # -- session --------------------------------------------------------------------------------
+
+    def join(self, name: str, role: str = "observer", agent_name: str = "",
+             observer: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
+        """Join as "pilot", "driver", "bot" or "observer" (observer = (lat, lon, radius_m));
+        the agent id (0 for observers)."""
+        if role not in ROLES:
+            raise InvalidArgument("role", f"must be one of {', '.join(ROLES)}", value=role)
+        r = self._call(self.stub.Join, pb.JoinRequest(client_name=name, role=ROLES[role], agent_name=agent_name,
+                                                      observer_lat_deg=observer[0], observer_lon_deg=observer[1],
+                                                      observer_radius_m=observer[2]))
+        self.token, self.agent_id, self.world_info = r.session_token, r.agent_id, r.world
+        return self.agent_id
+
+    def leave(self) -> None:
+        self._call(self.stub.Leave, pb.LeaveRequest(session_token=self.token))
+        self.token = ""
+
+    def world(self) -> pb.WorldInfo:
+        return self._call(self.stub.GetWorld, pb.GetWorldRequest())
+
+    # -- commands -------------------------------------------------------------------------------
+
+    def controls(self) -> ControlStream:
+        """A client-streaming controls call; send with .stick/.autopilot/.drive, close() when done."""
+        return ControlStream(self)
+
+    # -- watching -------------------------------------------------------------------------------
+
+    def watch(self) -> Picture:
+        """Start the Watch stream in a background thread; the live picture it maintains."""
+        call = self.stub.Watch(pb.WatchRequest(session_token=self.token))
+        self._streams.append(call)
+        picture = Picture(call, self.world_info.time_scale if self.world_info else 1.0)
+        picture.start()
+        return picture
+
+    def events(self):
+        """Iterator over world events from now on (a server stream; cancel by close())."""
+        call = self.stub.WatchEvents(pb.WatchEventsRequest(session_token=self.token))
+        self._streams.append(call)
+        try:
+            yield from call
+        except grpc.RpcError as exc:
+            if exc.code() != grpc.StatusCode.CANCELLED:
+                raise error_from_rpc(exc) from None
+
+
+class ControlStream:
+    """Latest-wins commands for the session's agent over one client stream."""
+
+    def __init__(self, client: SimClient):
+        self.client = client
+        self._q: queue.Queue = queue.Queue()
+        self._future = client.stub.SendControls.future(self._messages())
+
+    def _messages(self):
+        while True:
+            msg = self._q.get()
+            if msg is None:
+                return
+            yield msg
+
+    def _send(self, **command) -> None:
+        if self._future.done():  # the server ended the stream (e.g. a bad message): say why
+            self.close()
+        self._q.put(pb.ControlInput(session_token=self.client.token, agent_id=self.client.agent_id, **command))
+
+    def stick(self, **values) -> None:
+        self._send(stick=pb.StickControls(**values))
+
+    def autopilot(self, **targets) -> None:
+        self._send(autopilot=pb.AutopilotTargets(**targets))
+
+    def drive(self, speed_mps: float, yaw_rate_dps: float = 0.0) -> None:
+        self._send(drive=pb.DriveControls(speed_mps=speed_mps, yaw_rate_dps=yaw_rate_dps))
+
+    def close(self) -> int:
+        """End the stream; the number of messages the server accepted (raises its error)."""
+        self._q.put(None)
+        try:
+            return self._future.result(timeout=self.client.timeout_s).accepted
+        except grpc.RpcError as exc:
+            raise error_from_rpc(exc) from None
+
+    def __enter__(self) -> ControlStream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class Picture:
+    """What one session sees: entity infos and their dead-reckoned states."""
+
+    def __init__(self, call, time_scale: float):
+        self._call = call
+        self.time_scale = time_scale
+        self.infos: dict[int, pb.EntityInfo] = {}
+        self.dr = Extrapolator()
+        self.updates = 0  # WatchUpdate messages received
+        self.states_received = 0
+        self.entered = 0
+        self.left = 0
+        self.bytes = 0
+        self.time_s = 0.0  # world time of the last update
+        self._wall = time.monotonic()
+        self.wall_log: list = []  # (world time of the update, time.time() it arrived): latency measurements
+        self.error: Exception | None = None
+        self.snapshot_received = threading.Event()
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="watch", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def __len__(self) -> int:
+        return len(self.infos)
+
+    def _receive(self, states) -> None:
+        if not states:
+            return
+        ids = np.array([s.entity_id for s in states], np.int64)
+        self.dr.receive(np.array([s.time_s for s in states]), ids,
+                        np.array([[s.ecef_x_m, s.ecef_y_m, s.ecef_z_m] for s in states]),
+                        np.array([s.velocity_ecef_mps for s in states], np.float64),
+                        np.array([s.acceleration_ecef_mps2 for s in states], np.float64),
+                        np.array([s.orientation_wxyz for s in states], np.float64),
+                        np.array([s.angular_velocity_body_rps for s in states], np.float64),
+                        np.array([s.dead_reckoning for s in states], np.int64))
+
+    def _run(self) -> None:
+        try:
+            for u in self._call:
+                now = time.monotonic()
+                with self._cond:
+                    self.bytes += u.ByteSize()
+                    for i in u.left:
+                        self.infos.pop(i, None)
+                    gone = [i for i in u.left if i in set(self.dr.ids.tolist())]
+                    if gone:
+                        self.dr.remove(gone)
+                    for info in u.entered:
+                        self.infos[info.entity_id] = info
+                    self._receive([info.state for info in u.entered] + list(u.states))
+                    self.updates += 1
+                    self.states_received += len(u.states)
+                    self.entered += len(u.entered)
+                    self.left += len(u.left)
+                    self.time_s, self._wall = u.time_s, now
+                    self.wall_log.append((u.time_s, time.time()))
+                    if len(self.wall_log) > 100_000:
+                        del self.wall_log[:50_000]
+                    if u.snapshot:
+                        self.snapshot_received.set()
+                    self._cond.notify_all()
+        except grpc.RpcError as exc:
+            if exc.code() != grpc.StatusCode.CANCELLED:
+                self.error = error_from_rpc(exc)
+        finally:
+            with self._cond:
+                self._cond.notify_all()
+
+    def now_s(self) -> float:
+        """Estimated world time now (last update's time + scaled wall time since)."""
+        return self.time_s + (time.monotonic() - self._wall) * self.time_scale
+
+    def state(self, t: float | None = None, ids=None):
+        """(ids, pos (n, 3) ECEF m, quat (n, 4) ECEF -> body) dead-reckoned to world time t (default now)."""
+        with self._cond:
+            ids = self.dr.ids if ids is None else np.asarray(ids, np.int64)
+            if ids.size == 0:
+                return ids, np.zeros((0, 3)), np.zeros((0, 4))
+            pos, quat = self.dr.state(self.now_s() if t is None else t, ids)
+            return ids, pos, quat
+
+    def wait_for(self, predicate, timeout_s: float = 10.0) -> bool:
+        """Wait until predicate(self) holds (checked on every update); whether it did."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not predicate(self):
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._thread.is_alive():
+                    return bool(predicate(self))
+                self._cond.wait(min(left, 0.5))
+            return True
+
+    def cancel(self) -> None:
+        self._call.cancel()

@@ -1,0 +1,67 @@
+"""``sortie server``: run the simulation server of a scenario.
+
+    sortie server --scenario FILE [--dem FILE... | --terrain HOST:PORT] --port N [--host H]
+                  [--clock realtime|fast|paused] [--time-scale X] [--duration S]
+
+Runs until SIGTERM/SIGINT (graceful: NOT_SERVING, streams closed, in-flight
+calls get --grace-s) or until the scenario's (or --duration's) end.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+
+from server.grpc_common import DEFAULT_GRACE_S
+from server.sim_server import CLOCKS
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("server", help="run the simulation server of a scenario",
+                       description="Run sortie.v1.SimulationService (with health and reflection) for a scenario "
+                                   "until SIGTERM/SIGINT or the exercise's end; prints the bound address.")
+    p.add_argument("--scenario", required=True, metavar="FILE", help="scenario TOML (see server/scenario.py)")
+    terrain = p.add_mutually_exclusive_group()
+    terrain.add_argument("--dem", nargs="+", metavar="FILE", help="DEM files instead of the scenario's terrain")
+    terrain.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service instead of the scenario's terrain")
+    p.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
+    p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")
+    p.add_argument("--time-scale", type=float, help="world seconds per wall second (realtime clock)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S world seconds")
+    p.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
+                   help="seconds in-flight calls get on shutdown (default %(default)s)")
+    p.set_defaults(func=server_command)
+
+
+def server_command(args) -> int:
+    from server.scenario import load_scenario
+    from server.sim_server import SimulationServer, build_world, open_terrain, server_config
+
+    scenario = load_scenario(args.scenario)
+    terrain, desc = open_terrain(scenario, args.dem, args.terrain)
+    world = build_world(scenario, terrain)
+    config = server_config(scenario, desc)
+    if args.clock:
+        config.clock = args.clock
+    if args.time_scale:
+        config.time_scale = args.time_scale
+    if args.duration is not None:
+        config.duration_s = args.duration
+    server = SimulationServer(world, config, f"{args.host}:{args.port}")
+    server.start()
+    print(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
+          f"clock {config.clock})", flush=True)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        while not stop.is_set() and not server.finished.is_set():
+            stop.wait(0.2)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    server.stop(args.grace_s)
+    stats = server.tick_stats()
+    print(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
+          f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", flush=True)
+    return 0

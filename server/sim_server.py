@@ -1,0 +1,298 @@
+"""The simulation server process: a world, its clock thread, and the gRPC service.
+
+The clock thread owns the world: it ticks it at the world rate, publishes to
+the watching sessions at the network rate (dead reckoning and interest
+management, server/streaming.py) and expires vanished sessions once a
+second. Clock modes: "realtime" (world time follows the wall clock),
+"fast" (``time_scale`` times the wall clock, or as fast as the machine goes
+if it cannot keep up: bots and tests), and "paused" (no ticks until
+resumed). When ticks fall more than MAX_LAG_S behind the clock does not try
+to catch up in a burst: it slips, and the slip is counted (``overruns``);
+physics never waits on the network.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from concurrent import futures
+from dataclasses import dataclass, field
+
+import grpc
+import numpy as np
+
+from server.dead_reckoning import DeadReckoner, Thresholds, THRESHOLDS_BY_KIND, ALGORITHM_NAMES
+from server.grpc_common import ManagedServer, channel_options
+from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers
+from server.streaming import Publisher
+from server.world import KIND_NAMES, World
+from sortie.errors import InvalidArgument, SortieError
+from sortie.v1 import simulation_pb2 as pb
+
+logger = logging.getLogger(__name__)
+
+CLOCKS = ("realtime", "fast", "paused")
+DEFAULT_MAX_WORKERS = 64  # every Watch / events / controls stream holds a worker thread
+EXPIRE_EVERY_S = 1.0
+# A realtime clock more than this far behind resynchronises instead of bursting.
+MAX_LAG_S = 0.25
+
+
+@dataclass(frozen=True)
+class TypeParams:
+    """What the server needs per agent type: area of interest and dead reckoning."""
+
+    aoi_radius_m: float
+    thresholds: Thresholds
+
+
+DEFAULT_PARAMS = {
+    "aircraft": TypeParams(80_000.0, THRESHOLDS_BY_KIND["aircraft"]),
+    "ground": TypeParams(10_000.0, THRESHOLDS_BY_KIND["ground"]),
+    "static": TypeParams(10_000.0, THRESHOLDS_BY_KIND["static"]),
+    "observer": TypeParams(200_000.0, THRESHOLDS_BY_KIND["static"]),
+}
+
+
+@dataclass
+class ServerConfig:
+    exercise_name: str = "sortie"
+    start_time: str = "2026-01-01T00:00:00Z"
+    network_rate_hz: float = 20.0
+    clock: str = "realtime"
+    time_scale: float = 1.0
+    duration_s: float | None = None
+    vanished_timeout_s: float = 10.0
+    target_areas: list = field(default_factory=list)  # (name, [(lat, lon)], detail_m)
+    terrain: str = ""
+    params: dict = field(default_factory=lambda: dict(DEFAULT_PARAMS))  # kind or type name -> TypeParams
+
+
+class SimulationServer:
+    """World + clock thread + gRPC service. ``start()``, then ``stop()``."""
+
+    def __init__(self, world: World, config: ServerConfig, address: str = "127.0.0.1:0",
+                 max_workers: int = DEFAULT_MAX_WORKERS):
+        if config.clock not in CLOCKS:
+            raise InvalidArgument("clock", f"must be one of {', '.join(CLOCKS)}", value=config.clock)
+        if not (config.time_scale > 0):
+            raise InvalidArgument("time_scale", "must be > 0", value=config.time_scale)
+        if not (0 < config.network_rate_hz <= 1.0 / world.dt + 1e-9):
+            raise InvalidArgument("network_rate_hz", f"must be in (0, {1.0 / world.dt:g}] (the world rate)",
+                                  value=config.network_rate_hz)
+        self.world = world
+        self.config = config
+        self.sessions = Sessions(world, self.params_of, config.vanished_timeout_s)
+        self.publisher = Publisher(DeadReckoner(), lambda i: self.params_of(i).thresholds)
+        self.tick_ms: list[float] = []  # wall time of each tick + publish, for benchmarks
+        self.overruns = 0
+        self._clock = config.clock
+        self._stop = threading.Event()
+        self._resume = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="world-clock", daemon=True)
+        server = grpc.server(futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="sim-rpc"),
+                             options=channel_options(), maximum_concurrent_rpcs=max_workers)
+        server.add_registered_method_handlers(SERVICE_NAME, method_handlers(SimulationServicer(self.sessions,
+                                                                                               self.world_info)))
+        self.grpc = ManagedServer(server, (SERVICE_NAME,))
+        try:
+            self.port = server.add_insecure_port(address)
+        except RuntimeError as exc:
+            raise SortieError(f"cannot listen on {address}: {exc}") from exc
+        self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"
+        self.finished = threading.Event()
+
+    # -- parameters -----------------------------------------------------------------------------
+
+    def params_of(self, entity_id, kind: str | None = None) -> TypeParams:
+        """An entity's parameters: by its type name, else its kind (or ``kind`` directly)."""
+        p = self.config.params
+        if entity_id is None:
+            return p.get(kind, DEFAULT_PARAMS[kind])
+        e = self.world.entities.get(entity_id)
+        if e is None:
+            return p["static"]
+        k = KIND_NAMES[e.kind]
+        return p.get(e.type, p.get(k, DEFAULT_PARAMS[k]))
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.grpc.start()
+        self._thread.start()
+        logger.info("simulation server on %s, clock %s x%g", self.address, self._clock, self.config.time_scale)
+
+    def stop(self, grace_s: float = 2.0) -> None:
+        self._stop.set()
+        self._resume.set()
+        self._thread.join(timeout=10.0)
+        for s in self.sessions.watching():
+            s.queue.close()
+        self.grpc.stop(grace_s).wait()
+
+    def set_clock(self, clock: str, time_scale: float | None = None) -> None:
+        if clock not in CLOCKS:
+            raise InvalidArgument("clock", f"must be one of {', '.join(CLOCKS)}", value=clock)
+        if time_scale is not None:
+            self.config.time_scale = float(time_scale)
+        self._clock = clock
+        if clock != "paused":
+            self._resume.set()
+
+    def world_info(self) -> pb.WorldInfo:
+        c = self.config
+        areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
+                 for name, poly, d in c.target_areas]
+        return pb.WorldInfo(exercise_name=c.exercise_name, start_time=c.start_time, time_s=self.world.time_s,
+                            server_unix_time_s=time.time(), clock=self._clock, time_scale=c.time_scale,
+                            world_rate_hz=1.0 / self.world.dt, network_rate_hz=c.network_rate_hz,
+                            target_areas=areas, terrain=c.terrain)
+
+    # -- the clock thread -----------------------------------------------------------------------
+
+    def _run(self) -> None:
+        world, cfg = self.world, self.config
+        net_dt = 1.0 / cfg.network_rate_hz
+        next_net = 0.0
+        next_expire = time.monotonic() + EXPIRE_EVERY_S
+        wall_next = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                if self._clock == "paused":
+                    self._resume.clear()
+                    self._resume.wait(0.1)
+                    wall_next = time.monotonic()
+                    continue
+                t0 = time.perf_counter()
+                world.tick()
+                if world.time_s + 1e-9 >= next_net:
+                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching())
+                    next_net += net_dt
+                self.tick_ms.append((time.perf_counter() - t0) * 1e3)
+                if len(self.tick_ms) > 100_000:
+                    del self.tick_ms[:50_000]
+                now = time.monotonic()
+                if now >= next_expire:
+                    self.sessions.expire()
+                    next_expire = now + EXPIRE_EVERY_S
+                if cfg.duration_s is not None and world.time_s >= cfg.duration_s - 1e-9:
+                    break
+                if self._clock in ("realtime", "fast"):  # fast: time_scale x real time, or as fast as it goes
+                    wall_next += world.dt / cfg.time_scale
+                    lag = time.monotonic() - wall_next
+                    if lag > MAX_LAG_S:
+                        self.overruns += 1
+                        wall_next = time.monotonic()
+                    elif lag < 0:
+                        self._stop.wait(-lag)
+        except Exception:  # noqa: BLE001 - the clock thread must say why it died
+            logger.exception("world clock stopped by an error")
+        finally:
+            self.finished.set()
+
+    def tick_stats(self) -> dict:
+        a = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
+        return {"ticks": len(self.tick_ms), "tick_p50_ms": float(np.percentile(a, 50)),
+                "tick_p99_ms": float(np.percentile(a, 99)), "overruns": self.overruns}
+
+
+def algorithm_name(code: int) -> str:
+    return ALGORITHM_NAMES.get(int(code), str(code))
+
+
+# -- from a scenario ------------------------------------------------------------------------------
+
+def _dr_thresholds(p) -> Thresholds:
+    """scenario.AgentTypeParams -> dead_reckoning.Thresholds."""
+    import math
+
+    code = {v: k for k, v in ALGORITHM_NAMES.items()}[p.dr_algorithm]
+    return Thresholds(p.dr_position_m, math.radians(p.dr_orientation_deg), p.heartbeat_s, code)
+
+
+def open_terrain(scenario, dem=None, service: str | None = None):
+    """(terrain source, description): ``dem`` files or a ``service`` address override the scenario's."""
+    if service or (not dem and scenario.terrain.service):
+        from client.terrain_client import TerrainClient
+
+        address = service or scenario.terrain.service
+        client = TerrainClient(address)
+        client.wait_ready(10.0)
+        return client, f"service:{address}"
+    from terrain.mosaic import load_sources
+    from terrain.terrain import Terrain
+
+    paths = [str(p) for p in (dem or scenario.terrain.dem)]
+    return Terrain(load_sources(paths)), "dem:" + ",".join(paths)
+
+
+def build_world(scenario, terrain) -> World:
+    """A world holding every agent of a validated scenario (server.scenario.Scenario)."""
+    from fdm.aircraft import InitialConditions
+
+    ex = scenario.exercise
+    world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m)
+    convoy_of = {m: c for c in scenario.convoys for m in c.members}
+    done = set()
+    for a in scenario.agents:
+        if a.name in done:
+            continue
+        if a.kind == "aircraft":
+            ap = a.autopilot
+            route = list(ap.waypoints) if ap is not None and hasattr(ap, "waypoints") else None
+            hold = None
+            if ap is not None and not hasattr(ap, "waypoints"):
+                hold = {k: v for k, v in (("heading_deg", ap.heading_deg), ("alt_msl_m", ap.alt_msl_m),
+                                          ("speed_mps", ap.speed_mps)) if v is not None}
+            ic = a.initial_conditions()
+            if route is None and hold is None and not a.on_ground:
+                hold = {"heading_deg": a.heading_deg, "speed_mps": max(a.speed_mps, 1.0),
+                        "alt_msl_m": ic.alt_m if ic.alt_ref == "msl" else None}
+                hold = {k: v for k, v in hold.items() if v is not None}
+            world.spawn_aircraft(a.name, a.type, ic, coalition=a.coalition, controllable=a.controllable,
+                                 route=route, hold=hold or None,
+                                 speed_mps=getattr(ap, "speed_mps", None) if route else None, on_vanish=ex.on_vanish)
+        elif a.kind == "ground":
+            c = convoy_of.get(a.name)
+            members = [scenario.agent(m) for m in c.members] if c else [a]
+            ap = a.autopilot
+            world.spawn_ground([m.name for m in members], [m.type for m in members],
+                               [m.lat_deg for m in members], [m.lon_deg for m in members],
+                               [m.heading_deg for m in members], coalition=a.coalition,
+                               controllable=a.controllable,
+                               route=(c.points if c else (ap.points if ap is not None else None)),
+                               cruise_mps=(c.cruise_mps if c else (ap.cruise_mps if ap is not None else None)),
+                               spacing_m=c.spacing_m if c else None, on_vanish=ex.on_vanish)
+            done.update(m.name for m in members)
+        else:
+            world.spawn_static(a.name, a.type, a.lat_deg, a.lon_deg, a.alt_m, a.heading_deg, coalition=a.coalition)
+        done.add(a.name)
+    return world
+
+
+def _kind_of_type(type_name: str) -> str:
+    """The kind a type name belongs to: a JSBSim catalog aircraft, a vehicle type, else static."""
+    from fdm import catalog
+    from fdm.vehicle_types import VEHICLE_TYPES
+
+    if type_name in VEHICLE_TYPES:
+        return "ground"
+    try:
+        catalog.resolve(type_name)
+        return "aircraft"
+    except SortieError:
+        return "static"
+
+
+def server_config(scenario, terrain_desc: str = "") -> ServerConfig:
+    ex = scenario.exercise
+    params = {k: TypeParams(p.aoi_radius_m, _dr_thresholds(p)) for k, p in scenario.kind_params.items()}
+    for type_name in scenario.type_overrides:
+        p = scenario.type_params(_kind_of_type(type_name), type_name)
+        params[type_name] = TypeParams(p.aoi_radius_m, _dr_thresholds(p))
+    return ServerConfig(exercise_name=ex.name, start_time=ex.start_time.isoformat().replace("+00:00", "Z"),
+                        network_rate_hz=ex.network_rate_hz, clock=ex.clock, time_scale=ex.time_scale,
+                        duration_s=ex.duration_s, vanished_timeout_s=ex.vanished_client_timeout_s,
+                        target_areas=[(t.name, list(t.polygon), t.detail_m) for t in scenario.target_areas],
+                        terrain=terrain_desc, params=params)

@@ -1,0 +1,297 @@
+"""``sortie.v1.SimulationService``: sessions, commands in, Watch streams out.
+
+Sessions. Join returns an unguessable token (``secrets.token_urlsafe``, 128
+bits); every later call presents it. An unknown token is UNAUTHENTICATED; a
+command for an agent the session does not hold is PERMISSION_DENIED. A
+session is alive while it has a Watch or events stream open or has called
+within ``vanished_timeout_s``; after that its agent is released (to its
+autopilot or removed, per the scenario) and the token stops working.
+
+Limits (all explicit): MAX_SESSIONS sessions; client names of 1-64 printable
+characters; the controls stream validates each message before applying it and
+ends the stream with INVALID_ARGUMENT on the first bad one, naming the field
+(the session and everyone else carry on); gRPC's message size limit
+(grpc_common.MAX_MESSAGE_BYTES) refuses oversized messages before parsing.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import secrets
+import threading
+import time
+from dataclasses import dataclass, field
+
+import grpc
+import numpy as np
+
+from server.streaming import ClientQueue
+from server.world import AIRCRAFT, GROUND, STATIC, World
+from sortie.errors import InvalidArgument, LimitExceeded, PermissionDenied, SortieError, Unauthenticated, grpc_code
+from sortie.v1 import simulation_pb2 as pb
+from terrain.geodesy import geodetic_to_ecef
+
+logger = logging.getLogger(__name__)
+
+SERVICE_NAME = "sortie.v1.SimulationService"
+MAX_SESSIONS = 256
+MAX_NAME_CHARS = 64
+# How long a Watch stream waits for changes before checking that it is still wanted.
+STREAM_POLL_S = 0.25
+
+
+def status_of(error: Exception):
+    return grpc_code(error) if isinstance(error, SortieError) else grpc.StatusCode.INTERNAL
+
+
+@dataclass
+class Session:
+    token: str
+    name: str
+    role: int
+    agent_id: int = 0
+    observer_ecef: np.ndarray | None = None
+    radius_m: float = 0.0
+    last_seen: float = field(default_factory=time.monotonic)
+    open_streams: int = 0
+    queue: ClientQueue | None = None
+    visible: set = field(default_factory=set)
+
+    def centre_ecef(self, snap, index: dict):
+        """The centre of this session's area of interest (its agent, or the observer's point)."""
+        if self.agent_id:
+            k = index.get(self.agent_id)
+            return None if k is None else snap.ecef_m[k]
+        return self.observer_ecef
+
+
+class Sessions:
+    """The session table (thread-safe)."""
+
+    def __init__(self, world: World, params_of, vanished_timeout_s: float = 10.0):
+        self.world = world
+        self.params_of = params_of
+        self.vanished_timeout_s = float(vanished_timeout_s)
+        self._by_token: dict[str, Session] = {}
+        self._lock = threading.Lock()
+
+    def join(self, name: str, role: int, agent_name: str = "", observer=None) -> Session:
+        if not (1 <= len(name) <= MAX_NAME_CHARS and name.isprintable()):
+            raise InvalidArgument("client_name", f"must be 1-{MAX_NAME_CHARS} printable characters", value=name)
+        if role not in (pb.ROLE_PILOT, pb.ROLE_DRIVER, pb.ROLE_OBSERVER, pb.ROLE_BOT):
+            raise InvalidArgument("role", "must be ROLE_PILOT, ROLE_DRIVER, ROLE_OBSERVER or ROLE_BOT", value=role)
+        with self._lock:
+            if len(self._by_token) >= MAX_SESSIONS:
+                raise LimitExceeded("sessions", len(self._by_token) + 1, MAX_SESSIONS)
+            token = secrets.token_urlsafe(16)
+            s = Session(token, name, role)
+            if role == pb.ROLE_OBSERVER:
+                lat, lon, radius = observer
+                if not (math.isfinite(lat) and abs(lat) <= 90.0):
+                    raise InvalidArgument("observer_lat_deg", "must be within [-90, 90]", value=lat)
+                if not (math.isfinite(lon) and abs(lon) <= 540.0):
+                    raise InvalidArgument("observer_lon_deg", "must be within [-540, 540]", value=lon)
+                limit = self.params_of(None, "observer").aoi_radius_m
+                if not (math.isfinite(radius) and 0.0 < radius <= limit):
+                    raise InvalidArgument("observer_radius_m", f"must be in (0, {limit:g}] m", value=radius)
+                s.observer_ecef = np.asarray(geodetic_to_ecef(lat, lon, 0.0), float).reshape(3)
+                s.radius_m = float(radius)
+            else:
+                e = self._pick_agent(role, agent_name)
+                self.world.claim(e.id, token)
+                s.agent_id = e.id
+                s.radius_m = self.params_of(e.id).aoi_radius_m
+            self._by_token[token] = s
+        self.world.emit("join", s.agent_id, client=name, role=pb.Role.Name(role))
+        return s
+
+    def _pick_agent(self, role: int, agent_name: str):
+        kinds = {pb.ROLE_PILOT: (AIRCRAFT,), pb.ROLE_DRIVER: (GROUND,), pb.ROLE_BOT: (AIRCRAFT, GROUND)}[role]
+        entities = list(self.world.entities.values())
+        if agent_name:
+            for e in entities:
+                if e.name == agent_name:
+                    if e.kind not in kinds:
+                        raise InvalidArgument("agent_name", f"is not an agent a {pb.Role.Name(role)} can take",
+                                              value=agent_name)
+                    if not e.controllable or e.owner is not None:
+                        raise InvalidArgument("agent_name", "is not free to control", value=agent_name)
+                    return e
+            raise InvalidArgument("agent_name", "no agent of this name", value=agent_name)
+        fit = [e for e in entities if e.kind in kinds and e.controllable]
+        for e in fit:
+            if e.owner is None:
+                return e
+        raise LimitExceeded(f"{pb.Role.Name(role)[5:].lower()}_agents", len(fit) + 1, len(fit))
+
+    def get(self, token: str) -> Session:
+        with self._lock:
+            s = self._by_token.get(token)
+        if s is None:
+            raise Unauthenticated("unknown or expired session token")
+        s.last_seen = time.monotonic()
+        return s
+
+    def leave(self, token: str, vanished: bool = False) -> None:
+        with self._lock:
+            s = self._by_token.pop(token, None)
+        if s is None:
+            raise Unauthenticated("unknown or expired session token")
+        if s.queue is not None:
+            s.queue.close()
+        if s.agent_id:
+            self.world.release(s.agent_id, vanished=vanished)
+        self.world.emit("vanished" if vanished else "leave", s.agent_id, client=s.name)
+
+    def watching(self) -> list[Session]:
+        with self._lock:
+            return [s for s in self._by_token.values() if s.queue is not None and not s.queue.closed]
+
+    def expire(self) -> list[str]:
+        """Release the sessions silent for longer than the timeout; their names."""
+        now = time.monotonic()
+        with self._lock:
+            gone = [s for s in self._by_token.values()
+                    if s.open_streams == 0 and now - s.last_seen > self.vanished_timeout_s]
+        for s in gone:
+            try:
+                self.leave(s.token, vanished=True)
+            except Unauthenticated:
+                pass
+        return [s.name for s in gone]
+
+    def __len__(self) -> int:
+        return len(self._by_token)
+
+
+def _state_pb(row) -> pb.EntityState:
+    return pb.EntityState(entity_id=row.entity_id, time_s=row.time_s, ecef_x_m=row.ecef_m[0],
+                          ecef_y_m=row.ecef_m[1], ecef_z_m=row.ecef_m[2], velocity_ecef_mps=row.vel,
+                          acceleration_ecef_mps2=row.acc, orientation_wxyz=row.quat,
+                          angular_velocity_body_rps=row.omega, dead_reckoning=row.algorithm)
+
+
+def watch_update_pb(p) -> pb.WatchUpdate:
+    entered = [pb.EntityInfo(entity_id=info[0], name=info[1], kind=info[2], type=info[3], coalition=info[4],
+                             state=_state_pb(row)) for info, row in p.entered]
+    return pb.WatchUpdate(time_s=p.time_s, snapshot=p.snapshot, entered=entered, left=p.left,
+                          states=[_state_pb(r) for r in p.states])
+
+
+class SimulationServicer:
+    """The RPC handlers; ``clock`` gives world info (time, rates, mode)."""
+
+    def __init__(self, sessions: Sessions, world_info):
+        self.sessions = sessions
+        self.world = sessions.world
+        self.world_info = world_info
+
+    @staticmethod
+    def _fail(context, error: Exception):
+        code = status_of(error)
+        if code == grpc.StatusCode.INTERNAL:
+            logger.exception("internal error in a simulation RPC")
+        context.abort(code, str(error))
+
+    def Join(self, request, context):
+        try:
+            s = self.sessions.join(request.client_name, request.role, request.agent_name,
+                                   (request.observer_lat_deg, request.observer_lon_deg, request.observer_radius_m))
+            return pb.JoinResponse(session_token=s.token, agent_id=s.agent_id, world=self.world_info())
+        except Exception as exc:  # noqa: BLE001 - every error becomes a status
+            self._fail(context, exc)
+
+    def Leave(self, request, context):
+        try:
+            self.sessions.leave(request.session_token)
+            return pb.LeaveResponse()
+        except Exception as exc:  # noqa: BLE001
+            self._fail(context, exc)
+
+    def SendControls(self, request_iterator, context):
+        accepted = 0
+        try:
+            for msg in request_iterator:
+                s = self.sessions.get(msg.session_token)
+                if not s.agent_id or msg.agent_id != s.agent_id:
+                    raise PermissionDenied(f"session {s.name!r} does not control entity {msg.agent_id}")
+                which = msg.WhichOneof("command")
+                if which is None:
+                    raise InvalidArgument("command", "set one of stick, autopilot, drive")
+                sub = getattr(msg, which)
+                values = {f.name: v for f, v in sub.ListFields()}
+                self.world.command(s.agent_id, which, values)
+                accepted += 1
+            return pb.SendControlsResponse(accepted=accepted)
+        except Exception as exc:  # noqa: BLE001
+            self._fail(context, exc)
+
+    def Watch(self, request, context):
+        try:
+            s = self.sessions.get(request.session_token)
+        except Exception as exc:  # noqa: BLE001
+            self._fail(context, exc)
+            return
+        if s.queue is not None:
+            s.queue.close()
+        queue = ClientQueue()
+        s.visible = set()
+        s.queue = queue
+        s.open_streams += 1
+        try:
+            while context.is_active() and not queue.closed:
+                p = queue.take(STREAM_POLL_S)
+                s.last_seen = time.monotonic()
+                if p is not None:
+                    yield watch_update_pb(p)
+        finally:
+            s.open_streams -= 1
+            queue.close()
+
+    def WatchEvents(self, request, context):
+        try:
+            s = self.sessions.get(request.session_token)
+        except Exception as exc:  # noqa: BLE001
+            self._fail(context, exc)
+            return
+        s.open_streams += 1
+        _, count = self.world.events_since(1 << 62)
+        try:
+            while context.is_active():
+                with self.world.event_cond:
+                    if self.world.events_total == count:
+                        self.world.event_cond.wait(STREAM_POLL_S)
+                events, count = self.world.events_since(count)
+                s.last_seen = time.monotonic()
+                for ev in events:
+                    yield pb.WorldEvent(time_s=ev.time_s, kind=ev.kind, entity_id=ev.entity_id,
+                                        lat_deg=ev.lat_deg, lon_deg=ev.lon_deg, alt_msl_m=ev.alt_msl_m,
+                                        detail_json=json.dumps(ev.detail, sort_keys=True, default=str))
+        finally:
+            s.open_streams -= 1
+
+    def GetWorld(self, request, context):
+        return self.world_info()
+
+
+def method_handlers(servicer: SimulationServicer) -> dict:
+    def unary(fn, req):
+        return grpc.unary_unary_rpc_method_handler(fn, request_deserializer=req.FromString,
+                                                   response_serializer=lambda m: m.SerializeToString())
+
+    return {
+        "Join": unary(servicer.Join, pb.JoinRequest),
+        "Leave": unary(servicer.Leave, pb.LeaveRequest),
+        "GetWorld": unary(servicer.GetWorld, pb.GetWorldRequest),
+        "SendControls": grpc.stream_unary_rpc_method_handler(
+            servicer.SendControls, request_deserializer=pb.ControlInput.FromString,
+            response_serializer=lambda m: m.SerializeToString()),
+        "Watch": grpc.unary_stream_rpc_method_handler(
+            servicer.Watch, request_deserializer=pb.WatchRequest.FromString,
+            response_serializer=lambda m: m.SerializeToString()),
+        "WatchEvents": grpc.unary_stream_rpc_method_handler(
+            servicer.WatchEvents, request_deserializer=pb.WatchEventsRequest.FromString,
+            response_serializer=lambda m: m.SerializeToString()),
+    }

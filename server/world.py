@@ -1,0 +1,479 @@
+"""The simulated world: every agent on one terrain, advanced in fixed world ticks.
+
+One world tick (``1 / world_rate_hz`` s, 30 Hz by default) does, in order:
+
+1. apply the latest command of each agent (latest wins; commands arrive from
+   RPC threads at any time and wait in ``_pending``);
+2. update the autopilots (aircraft: heading/altitude/speed hold or waypoint
+   following; ground vehicles: route following and convoys) at the world rate;
+3. advance every aircraft by ``fdm_rate_hz / world_rate_hz`` JSBSim steps
+   through one :class:`fdm.fleet.Fleet` (one batched terrain query per round)
+   and every ground vehicle by one tick through one
+   :class:`fdm.ground.GroundVehicles` (one batched query per sub-step);
+4. publish an immutable :class:`Snapshot` of every live entity's kinematic
+   state (ECEF position, velocity and acceleration, orientation ECEF -> body,
+   body rates) for the network side to read without locks.
+
+Physics never waits on the network: readers take the latest snapshot, writers
+only drop commands into a dict. Acceleration is the ECEF velocity's change
+over the last tick (what a receiver's second-order dead reckoning needs: the
+inertial acceleration of the CG, not JSBSim's body-axis velocity rates).
+
+Entities have stable integer ids (1, 2, ...). A crashed aircraft stays where
+it hit (JSBSim stops stepping it) until removed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fdm.aircraft import Aircraft, InitialConditions, validate_controls
+from fdm.autopilot import Autopilot, WaypointFollower
+from fdm.convoy import Convoy, Route, RouteFollower
+from fdm.fleet import Fleet
+from fdm.ground import GroundVehicles
+from fdm.state import euler_to_quaternion, ned_to_ecef_vectors, state_arrays
+from server.dead_reckoning import ned_to_ecef_quat
+from sortie.errors import InvalidArgument, LimitExceeded, NotFound
+from terrain.geodesy import geodetic_to_ecef
+
+AIRCRAFT, GROUND, STATIC = 1, 2, 3  # = sortie.v1.EntityKind values
+KIND_NAMES = {AIRCRAFT: "aircraft", GROUND: "ground", STATIC: "static"}
+MAX_ENTITIES = 10_000
+# Events kept for late readers of the events stream (a ring; readers that fall
+# further behind lose the oldest).
+EVENT_BACKLOG = 10_000
+
+
+@dataclass(frozen=True)
+class WorldEvent:
+    time_s: float
+    kind: str
+    entity_id: int
+    lat_deg: float = math.nan
+    lon_deg: float = math.nan
+    alt_msl_m: float = math.nan
+    detail: dict = field(default_factory=dict)
+
+    def detail_json(self) -> str:
+        return json.dumps(self.detail, sort_keys=True, default=float)
+
+
+@dataclass
+class Entity:
+    """One agent. ``aircraft``/``pilot`` for aircraft, ``ground_id`` for a ground
+    vehicle (its id in the world's GroundVehicles), ``static_*`` for static ones."""
+
+    id: int
+    name: str
+    kind: int
+    type: str
+    coalition: str = "neutral"
+    controllable: bool = False
+    owner: str | None = None  # session token of the client in control
+    aircraft: Aircraft | None = None
+    pilot: object | None = None  # Autopilot or WaypointFollower, or None (stick)
+    ground_id: int | None = None
+    static_lat_lon_alt: tuple = ()
+    static_heading_deg: float = 0.0
+    on_vanish: str = "autopilot"
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Every live entity at one world time; arrays are aligned with ``ids``."""
+
+    time_s: float
+    tick: int
+    ids: np.ndarray  # (n,) int64
+    ecef_m: np.ndarray  # (n, 3)
+    vel_ecef_mps: np.ndarray  # (n, 3)
+    acc_ecef_mps2: np.ndarray  # (n, 3)
+    quat_ecef2body: np.ndarray  # (n, 4) w, x, y, z
+    body_rates_rps: np.ndarray  # (n, 3)
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_msl_m: np.ndarray
+
+    def index(self) -> dict:
+        return {int(i): k for k, i in enumerate(self.ids)}
+
+
+def _empty_snapshot(t: float, tick: int) -> Snapshot:
+    z3 = np.zeros((0, 3))
+    return Snapshot(t, tick, np.zeros(0, np.int64), z3, z3, z3, np.zeros((0, 4)), z3, np.zeros(0), np.zeros(0),
+                    np.zeros(0))
+
+
+class World:
+    """Agents on one terrain, a fixed-step clock, commands in, snapshots out.
+
+    ``terrain``: anything with ``heights(lat, lon)`` (in-process Terrain or a
+    TerrainClient). Thread-safety: :meth:`tick` runs on one thread (the
+    clock's); :meth:`command`, :meth:`claim`, :meth:`release` and spawning may
+    be called from any thread; :attr:`snapshot` is replaced atomically.
+    """
+
+    def __init__(self, terrain, fdm_rate_hz: float = 120.0, world_rate_hz: float = 30.0,
+                 geoid_undulation_m: float = 0.0):
+        steps = fdm_rate_hz / world_rate_hz
+        if not (world_rate_hz > 0 and abs(steps - round(steps)) < 1e-9 and round(steps) >= 1):
+            raise InvalidArgument("fdm_rate_hz", f"must be a whole multiple of world_rate_hz ({world_rate_hz})",
+                                  value=fdm_rate_hz)
+        self.terrain = terrain
+        self.fdm_dt = 1.0 / fdm_rate_hz
+        self.dt = 1.0 / world_rate_hz
+        self.steps_per_tick = int(round(steps))
+        self.geoid_undulation_m = float(geoid_undulation_m)
+        self.fleet = Fleet(terrain)
+        self.ground: GroundVehicles | None = None
+        self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
+        self._followers: list = []  # RouteFollower/Convoy per route, rebuilt when vehicles go
+        self._followed: set = set()  # entity ids on a route
+        self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
+        self.entities: dict[int, Entity] = {}
+        # id -> (id, name, kind, type, coalition); replaced, never mutated, so readers on
+        # other threads always see a whole dict.
+        self.infos: dict[int, tuple] = {}
+        self.time_s = 0.0
+        self.tick_count = 0
+        self.events: list[WorldEvent] = []  # newest last; trimmed to EVENT_BACKLOG
+        self.events_total = 0  # events ever emitted (readers keep their own count)
+        self.event_cond = threading.Condition()
+        self._lock = threading.RLock()
+        self._pending: dict[int, tuple] = {}
+        self._next_id = 1
+        self._prev_vel = (np.zeros(0, np.int64), np.zeros((0, 3)))  # (ids, ECEF velocities) of the last snapshot
+        self.snapshot = _empty_snapshot(0.0, 0)
+
+    # -- spawning -------------------------------------------------------------------------------
+
+    def _new_entity(self, name: str, kind: int, type_: str, **kw) -> Entity:
+        if len(self.entities) >= MAX_ENTITIES:
+            raise LimitExceeded("entities", len(self.entities) + 1, MAX_ENTITIES)
+        if any(e.name == name for e in self.entities.values()):
+            raise InvalidArgument("name", "an entity of this name exists", value=name)
+        e = Entity(self._next_id, name, kind, type_, **kw)
+        self._next_id += 1
+        return e
+
+    def _register(self, e: Entity) -> None:
+        self.entities[e.id] = e
+        self.infos = {**self.infos, e.id: (e.id, e.name, e.kind, e.type, e.coalition)}
+
+    def spawn_aircraft(self, name: str, type_: str, ic: InitialConditions, *, coalition: str = "neutral",
+                       controllable: bool = False, route=None, hold=None, speed_mps: float | None = None,
+                       on_vanish: str = "autopilot") -> Entity:
+        """An aircraft; ``route`` [(lat, lon, alt_msl_m), ...] flown at ``speed_mps``, or
+        ``hold`` {heading_deg, alt_msl_m, speed_mps} held, or neither (stick, trimmed)."""
+        with self._lock:
+            ac = Aircraft(type_, self.terrain, ic, dt=self.fdm_dt, geoid_undulation_m=self.geoid_undulation_m)
+            e = self._new_entity(name, AIRCRAFT, ac.name, coalition=coalition, controllable=controllable,
+                                 aircraft=ac, on_vanish=on_vanish)
+            speed = speed_mps if speed_mps is not None else max(ic.speed_mps, 1.0)
+            if route:
+                e.pilot = WaypointFollower(ac, route, speed_mps=speed)
+            elif hold:
+                e.pilot = Autopilot(ac)
+                e.pilot.set_targets(hold.get("heading_deg", ic.heading_deg), hold.get("alt_msl_m"),
+                                    hold.get("speed_mps", speed))
+            self.fleet.add(ac)
+            self._register(e)
+            self._emit(WorldEvent(self.time_s, "spawn", e.id, ic.lat_deg, ic.lon_deg, math.nan,
+                                  {"name": name, "kind": "aircraft", "type": e.type}))
+            return e
+
+    def spawn_ground(self, names, type_, lat, lon, heading_deg, *, coalition: str = "neutral",
+                     controllable: bool = False, route=None, cruise_mps: float | None = None,
+                     spacing_m: float | None = None, on_vanish: str = "autopilot") -> list[Entity]:
+        """Ground vehicles (one per name); with ``route`` [(lat, lon), ...] they follow it
+        at ``cruise_mps`` (a convoy ``spacing_m`` apart when given, first name leading)."""
+        names = list(names)
+        n = len(names)
+        types = type_ if isinstance(type_, (list, tuple)) else [type_] * n
+        with self._lock:
+            if self.ground is None:
+                self.ground = GroundVehicles(self.terrain, lat, lon, heading_deg, types)
+                gids = self.ground.ids.copy()
+            else:
+                gids = self.ground.add(lat, lon, heading_deg, types)
+            out = []
+            for k, name in enumerate(names):
+                e = self._new_entity(name, GROUND, str(types[k]), coalition=coalition, controllable=controllable,
+                                     ground_id=int(gids[k]), on_vanish=on_vanish)
+                self._register(e)
+                out.append(e)
+            if route is not None:
+                self.routes.append(({"route": [tuple(p) for p in route], "cruise_mps": cruise_mps,
+                                     "spacing_m": spacing_m}, [e.id for e in out]))
+                self._rebuild_followers()
+            for e, la, lo in zip(out, np.atleast_1d(lat), np.atleast_1d(lon)):
+                self._emit(WorldEvent(self.time_s, "spawn", e.id, float(la), float(lo), math.nan,
+                                      {"name": e.name, "kind": "ground", "type": e.type}))
+            return out
+
+    def spawn_static(self, name: str, type_: str, lat: float, lon: float, alt_msl_m: float | None = None,
+                     heading_deg: float = 0.0, *, coalition: str = "neutral") -> Entity:
+        """A static entity; on the terrain when ``alt_msl_m`` is None."""
+        with self._lock:
+            if alt_msl_m is None:
+                h = float(np.asarray(self.terrain.heights(np.array([lat], float),
+                                                          np.array([lon], float)).height_msl_m)[0])
+                alt_msl_m = 0.0 if math.isnan(h) else h
+            e = self._new_entity(name, STATIC, type_, coalition=coalition, static_lat_lon_alt=(lat, lon, alt_msl_m),
+                                 static_heading_deg=heading_deg)
+            self._register(e)
+            self._emit(WorldEvent(self.time_s, "spawn", e.id, lat, lon, alt_msl_m,
+                                  {"name": name, "kind": "static", "type": type_}))
+            return e
+
+    def remove(self, entity_id: int, reason: str = "removed") -> None:
+        with self._lock:
+            e = self.entities.pop(entity_id, None)
+            if e is None:
+                raise NotFound(f"entity {entity_id} does not exist")
+            self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
+            self._pending.pop(entity_id, None)
+            self._ground_heading_hold.pop(entity_id, None)
+            if e.kind == AIRCRAFT:
+                self.fleet.remove(e.aircraft)
+            elif e.kind == GROUND:
+                self.ground.remove([e.ground_id])
+                self.routes = [(spec, [i for i in ids if i != entity_id]) for spec, ids in self.routes]
+                self.routes = [(spec, ids) for spec, ids in self.routes if ids]
+                self._rebuild_followers()
+            self._emit(WorldEvent(self.time_s, "remove", entity_id, detail={"name": e.name, "reason": reason}))
+
+    def _rebuild_followers(self) -> None:
+        """Route followers index vehicles by position in the arrays, which removals shift."""
+        self._followers = []
+        for spec, ids in self.routes:
+            idx = self.ground.index_of([self.entities[i].ground_id for i in ids])
+            route = Route(*np.array(spec["route"], float).T)
+            cruise = spec["cruise_mps"] or float(self.ground.speed_limits_mps[1][idx].min()) * 0.5
+            if spec["spacing_m"] and len(ids) > 1:
+                self._followers.append(Convoy(self.ground, route, idx, cruise, spec["spacing_m"]))
+            else:
+                self._followers.append(RouteFollower(self.ground, route, idx, cruise))
+        self._followed = {i for _, ids in self.routes for i in ids}
+
+    # -- control --------------------------------------------------------------------------------
+
+    def claim(self, entity_id: int, owner: str) -> Entity:
+        """Give control of a controllable entity to ``owner``; NotFound/InvalidArgument otherwise."""
+        with self._lock:
+            e = self.entities.get(entity_id)
+            if e is None:
+                raise NotFound(f"entity {entity_id} does not exist")
+            if not e.controllable or e.owner is not None:
+                raise InvalidArgument("agent", "is not free to control", value=e.name)
+            e.owner = owner
+            return e
+
+    def release(self, entity_id: int, vanished: bool = False) -> None:
+        """The owner lets go: the agent keeps flying/driving on its autopilot
+        (holding its present heading, altitude and speed) or is removed, per its
+        ``on_vanish``."""
+        with self._lock:
+            e = self.entities.get(entity_id)
+            if e is None:
+                return
+            e.owner = None
+            self._pending.pop(entity_id, None)  # the leaver's last command is not applied after it left
+            if e.on_vanish == "remove":
+                self.remove(entity_id, "vanished" if vanished else "left")
+                return
+            if e.kind == AIRCRAFT and e.pilot is None and not e.aircraft.crashed:
+                s = e.aircraft.state()
+                e.pilot = Autopilot(e.aircraft)
+                e.pilot.set_targets(math.degrees(s.euler_rad[2]) % 360.0, s.alt_msl_m,
+                                    max(s.airspeed_true_mps, 1.0))
+
+    def command(self, entity_id: int, kind: str, values: dict) -> None:
+        """Validate a command now (InvalidArgument naming the field; nothing kept) and
+        keep it for the next tick, replacing any earlier one (latest wins).
+
+        kind "stick": aircraft controls (fdm.aircraft.CONTROL_RANGES names);
+        "autopilot": heading_deg / alt_msl_m / speed_mps targets; "drive":
+        speed_mps and yaw_rate_dps of a ground vehicle.
+        """
+        e = self.entities.get(entity_id)
+        if e is None:
+            raise NotFound(f"entity {entity_id} does not exist")
+        if kind == "stick":
+            if e.kind != AIRCRAFT:
+                raise InvalidArgument("stick", f"only aircraft take stick controls; {e.name} is "
+                                               f"{KIND_NAMES[e.kind]}")
+            values = validate_controls(values)
+        elif kind == "autopilot":
+            if e.kind == STATIC:
+                raise InvalidArgument("autopilot", f"{e.name} is static")
+            for k, v in values.items():
+                if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                    raise InvalidArgument(f"autopilot.{k}", "must be a finite number", value=v)
+            if values.get("speed_mps", 0.0) < 0.0:
+                raise InvalidArgument("autopilot.speed_mps", "must be >= 0", value=values["speed_mps"])
+            if e.kind == GROUND and "alt_msl_m" in values:
+                raise InvalidArgument("autopilot.alt_msl_m", "ground vehicles have no altitude to hold")
+        elif kind == "drive":
+            if e.kind != GROUND:
+                raise InvalidArgument("drive", f"only ground vehicles take drive commands; {e.name} is "
+                                               f"{KIND_NAMES[e.kind]}")
+            for k in ("speed_mps", "yaw_rate_dps"):
+                v = values.get(k, 0.0)
+                if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                    raise InvalidArgument(f"drive.{k}", "must be a finite number", value=v)
+        else:
+            raise InvalidArgument("command", 'must be "stick", "autopilot" or "drive"', value=kind)
+        with self._lock:
+            self._pending[entity_id] = (kind, values)
+
+    def _apply_commands(self) -> None:
+        pending, self._pending = self._pending, {}
+        for entity_id, (kind, values) in pending.items():
+            e = self.entities.get(entity_id)
+            if e is None:
+                continue
+            if kind == "stick":
+                e.pilot = None  # the pilot has the stick
+                e.aircraft.set_controls(**values)
+            elif kind == "autopilot" and e.kind == AIRCRAFT:
+                if not isinstance(e.pilot, Autopilot):
+                    s = e.aircraft.state()
+                    e.pilot = Autopilot(e.aircraft)
+                    e.pilot.set_targets(math.degrees(s.euler_rad[2]) % 360.0, s.alt_msl_m,
+                                        max(s.airspeed_true_mps, 1.0))
+                e.pilot.set_targets(values.get("heading_deg"), values.get("alt_msl_m"), values.get("speed_mps"))
+            elif e.kind == GROUND:
+                self._drive(e, kind, values)
+
+    def _drive(self, e: Entity, kind: str, values: dict) -> None:
+        if e.id in self._followed:  # a commanded vehicle leaves its route
+            self.routes = [(spec, [i for i in ids if i != e.id]) for spec, ids in self.routes]
+            self.routes = [(spec, ids) for spec, ids in self.routes if ids]
+            self._rebuild_followers()
+        idx = self.ground.index_of([e.ground_id])
+        if kind == "drive":
+            self.ground.set_controls(values.get("speed_mps", 0.0), values.get("yaw_rate_dps", 0.0), index=idx)
+            self._ground_heading_hold.pop(e.id, None)
+        else:  # autopilot: hold a heading (proportional heading-rate command) and a speed
+            hold = self._ground_heading_hold.setdefault(e.id, {})
+            hold.update({k: v for k, v in values.items() if v is not None})
+
+    # -- ticking --------------------------------------------------------------------------------
+
+    def tick(self) -> list[WorldEvent]:
+        """One world tick (see the module docstring); the events it produced."""
+        with self._lock:
+            self._apply_commands()
+            for e in self.entities.values():
+                if e.kind == AIRCRAFT and e.pilot is not None and not e.aircraft.crashed:
+                    e.pilot.update()
+            if self.ground is not None and self.ground.n:
+                for f in self._followers:
+                    f.update()
+                self._hold_ground_headings()
+            by_aircraft = self.fleet.advance(self.steps_per_tick)
+            if self.ground is not None and self.ground.n:
+                self.ground.step(self.dt)
+            self.tick_count += 1
+            self.time_s = self.tick_count * self.dt
+            events = []
+            owner = {id(e.aircraft): e for e in self.entities.values() if e.kind == AIRCRAFT}
+            for ac, evs in by_aircraft:
+                e = owner.get(id(ac))
+                for ev in evs:
+                    events.append(WorldEvent(self.time_s, ev.kind, e.id if e else 0, ev.lat_deg, ev.lon_deg,
+                                             ev.alt_msl_m, dict(ev.detail)))
+            for ev in events:
+                self._emit(ev)
+            self.snapshot = self._take_snapshot()
+            return events
+
+    def _hold_ground_headings(self) -> None:
+        if not self._ground_heading_hold:
+            return
+        ids = list(self._ground_heading_hold)
+        idx = self.ground.index_of([self.entities[i].ground_id for i in ids])
+        speed = np.array([self._ground_heading_hold[i].get("speed_mps", 0.0) for i in ids])
+        target = np.array([self._ground_heading_hold[i].get("heading_deg", h)
+                           for i, h in zip(ids, self.ground.heading_deg[idx])])
+        err = (target - self.ground.heading_deg[idx] + 180.0) % 360.0 - 180.0
+        rate = np.clip(0.5 * err, -self.ground.yaw_rate_limit_dps[idx], self.ground.yaw_rate_limit_dps[idx])
+        self.ground.set_controls(speed, rate, index=idx)
+
+    def _take_snapshot(self) -> Snapshot:
+        ids, parts = [], []
+        air = [e for e in self.entities.values() if e.kind == AIRCRAFT]
+        if air:
+            s = state_arrays(np.array([e.aircraft.raw_values() for e in air]), self.geoid_undulation_m)
+            ids += [e.id for e in air]
+            parts.append((s["ecef_m"], s["vel_ecef_mps"],
+                          ned_to_ecef_quat(s["quat_wxyz"], s["lat_deg"], s["lon_deg"]), s["body_rates_rps"],
+                          s["lat_deg"], s["lon_deg"], s["alt_msl_m"]))
+        gnd = [e for e in self.entities.values() if e.kind == GROUND]
+        if gnd:
+            g = self.ground
+            idx = g.index_of([e.ground_id for e in gnd])
+            lat, lon, h = g.lat[idx], g.lon[idx], g.height_msl_m[idx]
+            psi = np.radians(g.heading_deg[idx])
+            q_ned = euler_to_quaternion(np.radians(g.roll_deg[idx]), np.radians(g.pitch_deg[idx]), psi)
+            v_ned = g.velocity_ned()[idx]
+            rates = np.zeros((len(gnd), 3))
+            rates[:, 2] = np.radians(g.yaw_rate_dps[idx])
+            ids += [e.id for e in gnd]
+            parts.append((geodetic_to_ecef(lat, lon, h + self.geoid_undulation_m), ned_to_ecef_vectors(v_ned, lat, lon),
+                          ned_to_ecef_quat(q_ned, lat, lon), rates, lat, lon, h))
+        st = [e for e in self.entities.values() if e.kind == STATIC]
+        if st:
+            lat = np.array([e.static_lat_lon_alt[0] for e in st])
+            lon = np.array([e.static_lat_lon_alt[1] for e in st])
+            h = np.array([e.static_lat_lon_alt[2] for e in st])
+            q_ned = euler_to_quaternion(np.zeros(len(st)), np.zeros(len(st)),
+                                        np.radians([e.static_heading_deg for e in st]))
+            ids += [e.id for e in st]
+            z = np.zeros((len(st), 3))
+            parts.append((geodetic_to_ecef(lat, lon, h + self.geoid_undulation_m), z, ned_to_ecef_quat(q_ned, lat, lon),
+                          z, lat, lon, h))
+        if not ids:
+            return _empty_snapshot(self.time_s, self.tick_count)
+        cols = [np.concatenate([p[k] for p in parts]) for k in range(7)]
+        ids = np.array(ids, np.int64)
+        vel = cols[1]
+        acc = np.zeros_like(vel)
+        prev_ids, prev_vel = self._prev_vel
+        if np.array_equal(ids, prev_ids):  # the usual tick: the same entities in the same order
+            acc = (vel - prev_vel) / self.dt
+        elif prev_ids.size:
+            order = np.argsort(prev_ids)
+            k = np.minimum(np.searchsorted(prev_ids, ids, sorter=order), prev_ids.size - 1)
+            had = prev_ids[order[k]] == ids
+            acc[had] = (vel[had] - prev_vel[order[k[had]]]) / self.dt
+        self._prev_vel = (ids, vel)
+        return Snapshot(self.time_s, self.tick_count, ids, cols[0], vel, acc, cols[2], cols[3], cols[4], cols[5],
+                        cols[6])
+
+    # -- events ---------------------------------------------------------------------------------
+
+    def _emit(self, ev: WorldEvent) -> None:
+        with self.event_cond:
+            self.events.append(ev)
+            self.events_total += 1
+            if len(self.events) > EVENT_BACKLOG:
+                del self.events[:len(self.events) - EVENT_BACKLOG]
+            self.event_cond.notify_all()
+
+    def emit(self, kind: str, entity_id: int = 0, **detail) -> None:
+        """An event from outside the physics (joins, leaves)."""
+        self._emit(WorldEvent(self.time_s, kind, entity_id, detail=detail))
+
+    def events_since(self, count: int) -> tuple[list[WorldEvent], int]:
+        """Events after the first ``count`` ever emitted (those still kept), and the new count."""
+        with self.event_cond:
+            first = self.events_total - len(self.events)
+            return self.events[max(count - first, 0):], self.events_total

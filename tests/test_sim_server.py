@@ -1,0 +1,283 @@
+"""The simulation server over real gRPC on loopback: sessions and tokens, commands,
+interest management, dead reckoning at the receiver, slow clients, hostile input,
+shutdown. Real JSBSim, real ground vehicles, the Alps DEM."""
+
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import grpc
+import numpy as np
+import pytest
+
+from client.sim_client import SimClient
+from fdm.aircraft import InitialConditions
+from server.dead_reckoning import Extrapolator
+from server.sim_server import ServerConfig, SimulationServer
+from server.world import World
+from sortie.errors import InvalidArgument, LimitExceeded, Unauthenticated
+from sortie.v1 import simulation_pb2 as pb
+from sortie.v1 import simulation_pb2_grpc as pb_grpc
+from terrain.geodesy import geodetic_to_ecef
+
+REPO_SCENARIO = "data/scenarios/alps.toml"
+
+
+@pytest.fixture(scope="module")
+def alps(hgt_alps):
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    return Terrain([read_dem(hgt_alps)])
+
+
+class Recorder:
+    """Keeps every snapshot the server publishes (server-side truth for the checks)."""
+
+    def __init__(self, publisher):
+        self.snaps = []
+        original = publisher.publish
+
+        def publish(snap, infos, sessions):
+            self.snaps.append(snap)
+            return original(snap, infos, sessions)
+
+        publisher.publish = publish
+
+
+def small_world(alps):
+    w = World(alps)
+    w.spawn_aircraft("viper1", "f16", InitialConditions(47.30, 9.30, 3500.0, heading_deg=90.0, speed_mps=200.0),
+                     controllable=True, coalition="blue")
+    w.spawn_aircraft("viper2", "f16", InitialConditions(47.32, 9.30, 3500.0, heading_deg=90.0, speed_mps=200.0),
+                     controllable=True, coalition="blue")
+    w.spawn_aircraft("cessna", "c172x", InitialConditions(47.45, 9.45, 1500.0, heading_deg=0.0, speed_mps=50.0),
+                     route=[(47.50, 9.45, 1500.0), (47.50, 9.55, 1600.0), (47.45, 9.50, 1500.0)])
+    w.spawn_ground(["c1", "c2", "c3"], "hmmwv", [47.2412, 47.2408, 47.2404], [9.5229, 9.5226, 9.5223], 27.0,
+                   route=[(47.24, 9.522), (47.26, 9.537), (47.28, 9.552)], cruise_mps=10.0, spacing_m=50.0)
+    w.spawn_ground(["tank1"], "m1a2", [47.29], [9.59], 45.0, controllable=True)
+    w.spawn_static("sam1", "sam_site", 47.35, 9.45)
+    w.spawn_static("far-radar", "radar", 47.95, 9.95)  # ~ 60 km from the others
+    return w
+
+
+@pytest.fixture()
+def server(alps):
+    w = small_world(alps)
+    srv = SimulationServer(w, ServerConfig(clock="fast", time_scale=2.0, vanished_timeout_s=1.5))
+    srv.recorder = Recorder(srv.publisher)
+    srv.start()
+    yield srv
+    srv.stop(0.5)
+
+
+def test_observer_gets_a_snapshot_then_updates_and_sees_only_its_area(server):
+    # Centre on the sam site, 20 km: everything but the far radar (and anything that flies out).
+    centre = (47.35, 9.45, 20_000.0)
+    with SimClient(server.address) as obs:
+        assert obs.join("obs", "observer", observer=centre) == 0
+        pic = obs.watch()
+        assert pic.snapshot_received.wait(10.0)
+        assert pic.wait_for(lambda p: p.updates >= 20, 20.0)
+        names = {i.name for i in pic.infos.values()}
+        assert "far-radar" not in names and {"sam1", "cessna", "c1", "tank1"} <= names
+        # Never an entity outside the area (radius x (1 + hysteresis)) in the picture, checked
+        # on what the server knew at the time of the last update.
+        c = np.asarray(geodetic_to_ecef(centre[0], centre[1], 0.0)).reshape(3)
+        snap = server.world.snapshot
+        index = snap.index()
+        for i in list(pic.infos):
+            if i in index:
+                assert np.linalg.norm(snap.ecef_m[index[i]] - c) <= 20_000.0 * 1.05 + 300.0
+        # Always every entity well inside.
+        inside = [int(i) for k, i in enumerate(snap.ids) if np.linalg.norm(snap.ecef_m[k] - c) < 15_000.0]
+        assert set(inside) <= set(pic.infos)
+
+
+def test_tokens_permissions_and_hostile_input(server):
+    with SimClient(server.address) as obs, SimClient(server.address) as pilot, SimClient(server.address) as p2:
+        obs.join("obs", "observer", observer=(47.35, 9.45, 100_000.0))
+        pic = obs.watch()
+        assert pic.snapshot_received.wait(10.0)
+        agent = pilot.join("pilot", "pilot", agent_name="viper1")
+        pilot.watch()  # an open stream keeps the session alive through the slow cases below
+        other = p2.join("pilot2", "pilot")
+        assert agent != other and other != 0
+        stub = pb_grpc.SimulationServiceStub(pilot.channel)
+
+        def send(*msgs):
+            return stub.SendControls(iter(msgs), timeout=5.0)
+
+        with pytest.raises(grpc.RpcError) as e:  # forged token
+            send(pb.ControlInput(session_token="forged", agent_id=agent, stick=pb.StickControls(pitch=0.1)))
+        assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        with pytest.raises(grpc.RpcError) as e:  # someone else's agent
+            send(pb.ControlInput(session_token=pilot.token, agent_id=other, stick=pb.StickControls(pitch=0.1)))
+        assert e.value.code() == grpc.StatusCode.PERMISSION_DENIED
+        with pytest.raises(grpc.RpcError) as e:  # NaN stick: the field is named
+            send(pb.ControlInput(session_token=pilot.token, agent_id=agent, stick=pb.StickControls(pitch=math.nan)))
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "pitch" in e.value.details()
+        with pytest.raises(grpc.RpcError) as e:  # drive commands to an aircraft
+            send(pb.ControlInput(session_token=pilot.token, agent_id=agent, drive=pb.DriveControls(speed_mps=3)))
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        with pytest.raises(grpc.RpcError) as e:  # oversized message: refused by gRPC before parsing
+            stub.Leave(pb.LeaveRequest(session_token="x" * (65 * 1024 * 1024)), timeout=10.0)
+        assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        with pytest.raises(InvalidArgument, match="client_name"):
+            SimClient(server.address).join("", "observer", observer=(47.0, 9.0, 1000.0))
+        with pytest.raises(InvalidArgument, match="observer_radius_m"):
+            SimClient(server.address).join("o", "observer", observer=(47.0, 9.0, 1e9))
+        with pytest.raises(LimitExceeded):  # both controllable aircraft are taken
+            SimClient(server.address).join("p3", "pilot")
+        # Valid commands work after all that, and the observer was served throughout.
+        before = pic.updates
+        with pilot.controls() as c:
+            c.stick(pitch=0.2, throttle=1.0)
+        assert pic.wait_for(lambda p: p.updates > before + 5, 10.0)
+        assert server.world.entities[agent].aircraft.controls.pitch == 0.2
+
+
+def test_receivers_dead_reckoning_stays_within_the_thresholds(server):
+    # Every update the observer receives is replayed into an Extrapolator in arrival
+    # order; at each network tick the server published, the receiver's extrapolation of
+    # every entity it held must be within the entity's position threshold of the truth
+    # (float32 velocities on the wire are modelled by the server, so no slack but 1 cm).
+    with SimClient(server.address) as obs:
+        obs.join("obs", "observer", observer=(47.35, 9.45, 100_000.0))
+        log = []
+        stub = pb_grpc.SimulationServiceStub(obs.channel)
+        call = stub.Watch(pb.WatchRequest(session_token=obs.token))
+        t_end = time.monotonic() + 8.0
+        for u in call:
+            log.append(u)
+            if time.monotonic() > t_end:
+                call.cancel()
+                break
+    dr = Extrapolator()
+    checked = 0
+    worst = 0.0
+    # A slow read merges publishes into one WatchUpdate, so states apply at their own
+    # time (when the server decided them), departures at their update's.
+    timeline = sorted([(st.time_s, 0, st) for u in log for st in [i.state for i in u.entered] + list(u.states)]
+                      + [(u.time_s, 1, list(u.left)) for u in log if u.left], key=lambda x: (x[0], x[1]))
+    end_s = log[-1].time_s
+    k = 0
+    for snap in server.recorder.snaps:
+        while k < len(timeline) and timeline[k][0] <= snap.time_s + 1e-9:
+            _, what, item = timeline[k]
+            if what == 0:
+                dr.receive(item.time_s, [item.entity_id], [[item.ecef_x_m, item.ecef_y_m, item.ecef_z_m]],
+                           [list(item.velocity_ecef_mps)], [list(item.acceleration_ecef_mps2)],
+                           [list(item.orientation_wxyz)], [list(item.angular_velocity_body_rps)],
+                           item.dead_reckoning)
+            else:
+                dr.remove([i for i in item if i in set(dr.ids.tolist())])
+            k += 1
+        if snap.time_s > end_s or len(dr) == 0:
+            continue  # before the stream started, or after it ended
+        index = snap.index()
+        ids = [int(i) for i in dr.ids if int(i) in index]
+        pos, _ = dr.state(snap.time_s, ids)
+        err = np.linalg.norm(pos - snap.ecef_m[[index[i] for i in ids]], axis=1)
+        worst = max(worst, float(err.max()))
+        checked += len(ids)
+    assert checked > 200
+    assert worst <= 1.0 + 0.01, worst
+    # and dead reckoning saved most messages (manoeuvring aircraft, a convoy, statics)
+    assert server.publisher.updates_sent < 0.5 * server.publisher.entity_samples
+
+
+def test_a_stalled_client_does_not_hold_anyone_up(server):
+    with SimClient(server.address) as slow, SimClient(server.address) as fast:
+        slow.join("slow", "observer", observer=(47.35, 9.45, 100_000.0))
+        fast.join("fast", "observer", observer=(47.35, 9.45, 100_000.0))
+        stub = pb_grpc.SimulationServiceStub(slow.channel)
+        stalled = stub.Watch(pb.WatchRequest(session_token=slow.token))
+        next(stalled)  # the snapshot; then never read again
+        pic = fast.watch()
+        assert pic.snapshot_received.wait(10.0)
+        t0_world, t0 = server.world.time_s, time.monotonic()
+        s0, p0 = pic.states_received, server.publisher.updates_sent
+        time.sleep(4.0)
+        world_rate = (server.world.time_s - t0_world) / (time.monotonic() - t0)
+        assert world_rate > 0.8 * server.config.time_scale  # the clock kept pace
+        # The other client kept getting every update the server decided to send (it sees
+        # every entity), and its picture is current.
+        sent = server.publisher.updates_sent - p0
+        assert sent >= 5 and pic.states_received - s0 >= 0.8 * sent
+        assert server.world.time_s - pic.time_s < 2.0
+        session = next(s for s in server.sessions.watching() if s.name == "slow")
+        q = session.queue
+        with q.cond:  # the stalled queue holds at most one entry per entity
+            assert len(q._states) + len(q._enter) <= len(server.world.entities)
+        stalled.cancel()
+
+
+def test_leave_and_vanish_hand_the_agent_to_its_autopilot(server):
+    c = SimClient(server.address)
+    agent = c.join("pilot", "pilot", agent_name="viper2")
+    with c.controls() as ctl:
+        ctl.stick(roll=0.3)
+    c.leave()
+    e = server.world.entities[agent]
+    assert e.owner is None and e.pilot is not None  # autopilot holds heading, altitude, speed
+    ctl = c.controls()  # the token no longer works
+    ctl.stick(roll=0.0)
+    with pytest.raises(Unauthenticated):
+        ctl.close()
+    # A driver who vanishes (no stream, no calls) loses the tank after the timeout.
+    d = SimClient(server.address)
+    tank = d.join("driver", "driver")
+    assert server.world.entities[tank].owner is not None
+    deadline = time.monotonic() + 10.0
+    while server.world.entities[tank].owner is not None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert server.world.entities[tank].owner is None
+    kinds = [ev.kind for ev in server.world.events]
+    assert "leave" in kinds and "vanished" in kinds
+    c.close()
+    d.close()
+
+
+def test_events_stream_reports_joins(server):
+    with SimClient(server.address) as watcher, SimClient(server.address) as joiner:
+        watcher.join("w", "observer", observer=(47.35, 9.45, 1000.0))
+        got = []
+
+        def read():
+            for ev in watcher.events():
+                got.append(ev)
+                if ev.kind == "join":
+                    return
+
+        t = threading.Thread(target=read, daemon=True)
+        t.start()
+        time.sleep(0.5)
+        joiner.join("late", "driver")
+        t.join(10.0)
+        assert any(ev.kind == "join" for ev in got)
+
+
+def test_server_command_runs_the_scenario_and_stops_on_sigterm(tmp_path):
+    from server.process import free_port, sortie_command, wait_serving
+
+    port = free_port()
+    proc = subprocess.Popen([*sortie_command(), "server", "--scenario", REPO_SCENARIO, "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_serving(f"127.0.0.1:{port}", proc, timeout_s=60.0)
+        with SimClient(f"127.0.0.1:{port}") as obs:
+            obs.join("obs", "observer", observer=(47.4, 9.5, 100_000.0))
+            pic = obs.watch()
+            assert pic.wait_for(lambda p: len(p) >= 10, 20.0)
+            assert obs.world().exercise_name.startswith("Alpine Shield")
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    assert "stopped at world time" in out
