@@ -451,6 +451,18 @@ class Aircraft:
     def time_s(self) -> float:
         return self._get_time()
 
+    @property
+    def on_ground(self) -> bool:
+        """Weight on wheels, as of the last check (every step near the ground)."""
+        return self._detector.on_ground
+
+    def crash(self, t: float, lat: float, lon: float, alt_m: float, reason: str, **detail) -> list:
+        """A crash found by the host (e.g. its terrain collision check): recorded as an
+        event, and the aircraft stops where it is. The event (or nothing if already down)."""
+        if self.crashed:
+            return []
+        return self._record([self._detector._crash(t, lat, lon, alt_m, reason, **detail)])
+
     def step(self) -> list:
         """One JSBSim step with terrain coupling and event detection; the events of this step."""
         if self.crashed:

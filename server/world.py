@@ -390,10 +390,39 @@ class World:
                 for ev in evs:
                     events.append(WorldEvent(self.time_s, ev.kind, e.id if e else 0, ev.lat_deg, ev.lon_deg,
                                              ev.alt_msl_m, dict(ev.detail)))
+            snapshot = self._take_snapshot()
+            events += self._terrain_collisions(self.snapshot, snapshot, owner)
             for ev in events:
                 self._emit(ev)
-            self.snapshot = self._take_snapshot()
+            self.snapshot = snapshot
             return events
+
+    def _terrain_collisions(self, before: Snapshot, after: Snapshot, owner: dict) -> list[WorldEvent]:
+        """Airborne aircraft whose path over the last tick (the straight ECEF segment from
+        the previous snapshot's position to this one's) cuts the terrain: one batched
+        segment-intersection query (the terrain service's IntersectSegments when the
+        terrain is remote), so a fast mover cannot tunnel through a ridge between the
+        fdm's contact checks. The crash event carries the hit point; the aircraft stops
+        where this tick left it (at most one tick's flight beyond)."""
+        if not hasattr(self.terrain, "intersect") or before.ids.size == 0:
+            return []
+        b_index, a_index = before.index(), after.index()
+        movers = [e for e in owner.values()
+                  if e.id in b_index and e.id in a_index and not e.aircraft.crashed and not e.aircraft.on_ground]
+        if not movers:
+            return []
+        kb = np.array([b_index[e.id] for e in movers])
+        ka = np.array([a_index[e.id] for e in movers])
+        res = self.terrain.intersect(before.lat_deg[kb], before.lon_deg[kb], before.alt_msl_m[kb],
+                                     after.lat_deg[ka], after.lon_deg[ka], after.alt_msl_m[ka])
+        events = []
+        for j in np.flatnonzero(np.asarray(res.hit, bool)):
+            e = movers[j]
+            for ev in e.aircraft.crash(self.time_s, float(res.lat_deg[j]), float(res.lon_deg[j]),
+                                       float(res.height_msl_m[j]), "terrain collision (segment)"):
+                events.append(WorldEvent(self.time_s, ev.kind, e.id, ev.lat_deg, ev.lon_deg, ev.alt_msl_m,
+                                         dict(ev.detail)))
+        return events
 
     def _hold_ground_headings(self) -> None:
         if not self._ground_heading_hold:

@@ -20,6 +20,13 @@ the same pilot inputs at each step and the same trims. Not bit-exact, and why
   with the IC latitude nudged by one ulp stays within 7e-9 m: the growth comes
   through the trims, not from chaotic flight.
 
+Not every process sees the difference: in some (long benchmark processes)
+the two runs agree bit for bit, in every fresh process so far they differ by
+1.6e-5 m, with the same code and inputs. Something in JSBSim's IC or trim
+path depends on state outside its inputs (uninitialised memory is the usual
+suspect); it matters for bit-exact re-simulation across processes and is
+left to trace with a memory checker.
+
 Stated bounds: 1e-8 m until the first doublet, 1e-3 m over the whole run.
 """
 

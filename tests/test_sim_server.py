@@ -281,3 +281,33 @@ def test_server_command_runs_the_scenario_and_stops_on_sigterm(tmp_path):
             proc.kill()
     assert proc.returncode == 0, out
     assert "stopped at world time" in out
+
+
+def test_a_fast_mover_cannot_tunnel_through_a_thin_pillar():
+    # Flat ground at 0 m with one post rising to 5000 m: a pillar ~22 m wide (posts
+    # 0.0001 deg apart), far steeper than the 45-degree slopes the fdm's far-field
+    # refresh assumes. An f16 at 3000 m MSL flies east straight at it at 250 m/s
+    # (8 m per world tick). The world's segment check (tick to tick, against the
+    # exact bilinear surface) stops it at the pillar: a crash within 50 m of it,
+    # never the far side.
+    from terrain.raster import CRS_GEOGRAPHIC, Georef, Raster
+    from terrain.terrain import Terrain
+
+    d = 0.0001
+    h = np.zeros((201, 401), np.float32)
+    h[100, 300] = 5000.0
+    terrain = Terrain([Raster(h, Georef(CRS_GEOGRAPHIC, 9.0, 47.0, d, d))])
+    pillar_lat, pillar_lon = 47.0 + 100 * d, 9.0 + 300 * d
+    w = World(terrain)
+    e = w.spawn_aircraft("fast", "f16", InitialConditions(pillar_lat, 9.0 + 20 * d, 3000.0, heading_deg=90.0,
+                                                          speed_mps=250.0))
+    for _ in range(12 * 30):  # 12 s: the pillar is 2.1 km ahead
+        w.tick()
+        if e.aircraft.crashed:
+            break
+    assert e.aircraft.crashed
+    crash = [ev for ev in w.events if ev.kind == "crash"][-1]
+    assert crash.entity_id == e.id and crash.detail["reason"] == "terrain collision (segment)"
+    assert abs(crash.lat_deg - pillar_lat) * 111_200 < 50.0
+    assert abs(crash.lon_deg - pillar_lon) * 111_200 * math.cos(math.radians(47.01)) < 50.0
+    assert crash.alt_msl_m < 3100.0
