@@ -139,16 +139,21 @@ class _Field:
         elif value:
             parts += (self.tag, _varint(int(value)))
 
-    def decode_packed(self, data: bytes, pos: int, length: int):
-        """The values of one packed chunk, or None when only the generic parser can read it."""
+    def decode_packed(self, data: bytes, pos: int, length: int, copy: bool = True):
+        """The values of one packed chunk, or None when only the generic parser can read it.
+
+        copy=False: doubles and enums are read-only views of data where its
+        byte order allows (doubles may then be unaligned), not copies.
+        """
         if self.dtype == np.float64:
             if length % 8:
                 raise DecodeError(f"{self.name}: packed double length {length} is not a multiple of 8")
-            return np.frombuffer(data, "<f8", length // 8, pos).astype(np.float64)
+            values = np.frombuffer(data, "<f8", length // 8, pos)
+            return values.astype(np.float64) if copy or not values.dtype.isnative else values
         raw = np.frombuffer(data, np.uint8, length, pos)
         if length and raw.max() > 0x7F:  # multi-byte varints: not one value per byte
             return None
-        return raw.astype(self.dtype)
+        return raw if not copy and self.dtype == np.uint8 else raw.astype(self.dtype)
 
 
 class PackedCodec:
@@ -161,10 +166,17 @@ class PackedCodec:
     ``SerializeToString``. ``decode(bytes) -> dict`` returns every field:
     repeated double as (n,) float64, bool as (n,) bool, enum as (n,) uint8,
     scalars as float or int. Both are usable directly as gRPC serializers.
+
+    copy=False makes ``decode`` return read-only views of the message's bytes
+    for doubles and enums instead of copies (doubles possibly unaligned, which
+    numpy and numba read at full speed): for a server's requests, which it only
+    reads, this saves a copy of every array. A client's responses are copied,
+    so that callers get arrays of their own.
     """
 
-    def __init__(self, message_class):
+    def __init__(self, message_class, copy: bool = True):
         self.message_class = message_class
+        self.copy = copy
         fields = sorted(message_class.DESCRIPTOR.fields, key=lambda fd: fd.number)
         self.fields = [_Field(fd) for fd in fields]
         self._by_key = {f.key: f for f in self.fields}
@@ -190,7 +202,7 @@ class PackedCodec:
                 length, pos = _read_varint(data, pos)
                 if pos + length > end:
                     raise DecodeError(f"{f.name}: truncated packed field")
-                values = f.decode_packed(data, pos, length)
+                values = f.decode_packed(data, pos, length, self.copy)
                 if values is None:
                     return self._decode_generic(data)
                 chunks.setdefault(f.name, []).append(values)

@@ -277,6 +277,10 @@ class DetailedRaster:
         return detail_noise(rows, cols, std, self.seed, self.raster.shape, self.row_offset, self.col_offset,
                             self.col_period)
 
+    def warm_cache(self, n_points: int) -> bool:
+        """The underlying raster's :meth:`terrain.raster.Raster.warm_cache`."""
+        return self.raster.warm_cache(n_points)
+
     def heights_into(self, lat, lon, out_h, out_status) -> None:
         """Heights (m, the raster's datum) with detail for the points still OUTSIDE.
 

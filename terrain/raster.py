@@ -147,6 +147,22 @@ def _bilinear_point(heights, filled, has_filled, r, c, out_h, out_status, k):
 # Points per chunk of the fast path: its scratch arrays stay in L1.
 _CHUNK = 1024
 
+# Raster.warm_cache: the largest raster (posts plus filled flags, bytes) worth
+# streaming into the CPU caches; a larger one would not stay there.
+WARM_MAX_BYTES = 16 * 1024 * 1024
+CACHE_LINE_BYTES = 64
+
+
+@numba.njit(cache=True, nogil=True)
+def _touch_lines(raw, step):
+    """Read one byte every ``step`` bytes of raw (uint8 (n,)): brings every cache
+    line of the array into the caches at streaming speed. Returns a checksum,
+    only so that the reads cannot be optimised away."""
+    acc = 0
+    for i in range(0, raw.shape[0], step):
+        acc += raw[i]
+    return acc
+
 
 @numba.njit(cache=True, nogil=True)
 def bilinear_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_h, out_status):
@@ -348,6 +364,27 @@ class Raster:
         lat_c = 0.5 * (self.bounds[0] + self.bounds[2])
         ex, ny_ = metres_per_index(self.georef.crs, self.georef.dx, self.georef.dy, lat_c)
         return float(ex), float(ny_)
+
+    def warm_cache(self, n_points: int) -> bool:
+        """Stream the posts into the CPU caches ahead of a batch of n_points, when worth it.
+
+        A batch of uniformly spread points reads two rows per point at random:
+        on a cold cache (as in a service, whose caches the transfer of the
+        request and the time between calls have flushed) each of those reads
+        is a miss waiting on memory, while one sequential pass brings the whole
+        raster in at streaming speed. The pass is made when the batch touches
+        about as many cache lines as the raster has (2 * n_points >= lines)
+        and the raster fits WARM_MAX_BYTES; for a 1201² float32 tile it takes
+        about 0.2 ms, what some 15,000 points cost warm. Results never depend
+        on it. Returns whether it was made.
+        """
+        arrays = [self.heights] if self.filled is None else [self.heights, self.filled]
+        nbytes = sum(a.nbytes for a in arrays)
+        if nbytes > WARM_MAX_BYTES or 2 * n_points < self.heights.nbytes // CACHE_LINE_BYTES:
+            return False
+        for a in arrays:
+            _touch_lines(a.reshape(-1).view(np.uint8), CACHE_LINE_BYTES)
+        return True
 
     def heights_into(self, lat, lon, out_h, out_status) -> None:
         """Answer the points of lat/lon (float64 (n,)) still marked OUTSIDE."""

@@ -4,7 +4,7 @@ Sources are tried in order; each point is answered by the first source that
 covers it (real DEMs first, procedural terrain last, so a procedural world
 fills everything the DEMs leave). A source is anything with the methods of
 :class:`terrain.raster.Raster` used here: ``heights_into``, ``gradient_into``,
-``raster_for`` and ``describe``.
+``raster_for`` and ``describe`` (and optionally ``warm_cache``).
 
 All heights are metres above mean sea level (the sources' vertical datum,
 EGM96 for SRTM); argument order is always (lat, lon) in degrees.
@@ -42,6 +42,13 @@ class NormalResult:
     status: np.ndarray
 
 
+def _warm_cache(source, n_points: int) -> None:
+    """Ask a source to bring its data into the CPU caches ahead of n_points, if it can."""
+    warm = getattr(source, "warm_cache", None)
+    if warm is not None:
+        warm(n_points)
+
+
 class Terrain:
     """Holds the sources and answers vectorised queries over them."""
 
@@ -50,12 +57,20 @@ class Terrain:
         if not self.sources:
             raise ValueError("a Terrain needs at least one source")
 
-    def heights(self, lat, lon) -> HeightResult:
-        """Bilinear heights (m, MSL) at (lat, lon) degrees, float64 (n,)."""
+    def heights(self, lat, lon, *, warm: bool = False) -> HeightResult:
+        """Bilinear heights (m, MSL) at (lat, lon) degrees, float64 (n,).
+
+        warm: let each source reached stream its posts into the CPU caches
+        first when the batch is large enough to gain from it (see
+        :meth:`terrain.raster.Raster.warm_cache`); for callers whose caches are
+        cold, like the gRPC service. Results are the same either way.
+        """
         lat, lon = check_latlon(lat, lon)
         out_h = np.full(lat.shape, np.nan)
         status = np.full(lat.shape, STATUS_OUTSIDE, dtype=np.uint8)
         for idx, source in self._unanswered(status):
+            if warm:
+                _warm_cache(source, lat.size if idx is None else idx.size)
             if idx is None:
                 source.heights_into(lat, lon, out_h, status)
             else:
@@ -79,13 +94,18 @@ class Terrain:
                 return
             yield (None if idx.size == status.size else idx), source
 
-    def normals(self, lat, lon) -> NormalResult:
-        """Surface normals (ENU) and slope of the bilinear surface at (lat, lon)."""
+    def normals(self, lat, lon, *, warm: bool = False) -> NormalResult:
+        """Surface normals (ENU) and slope of the bilinear surface at (lat, lon).
+
+        warm: as for :meth:`heights`.
+        """
         lat, lon = check_latlon(lat, lon)
         de = np.full(lat.shape, np.nan)
         dn = np.full(lat.shape, np.nan)
         status = np.full(lat.shape, STATUS_OUTSIDE, dtype=np.uint8)
         for idx, source in self._unanswered(status):
+            if warm:
+                _warm_cache(source, lat.size if idx is None else idx.size)
             if idx is None:
                 source.gradient_into(lat, lon, de, dn, status)
             else:

@@ -166,3 +166,50 @@ def test_chunked_fast_path_matches_the_careful_path(crs):
         assert (status == STATUS_OK).sum() > n and (status == STATUS_OUTSIDE).sum() > 100
         if f is not None:
             assert (status == STATUS_FILLED).sum() > 100
+
+
+def test_warm_cache_only_when_the_batch_covers_the_raster_and_it_fits(monkeypatch):
+    import terrain.raster as raster_module
+
+    r = _raster()  # 33 x 45 float32: 93 cache lines
+    lines = r.heights.nbytes // raster_module.CACHE_LINE_BYTES
+    assert not r.warm_cache(lines // 2 - 1)  # too few points to touch most lines
+    assert r.warm_cache(lines // 2 + 1)
+    filled = np.zeros(r.shape, bool)
+    filled[5, 5] = True
+    assert Raster(np.array(r.heights), r.georef, filled=filled).warm_cache(lines)
+    monkeypatch.setattr(raster_module, "WARM_MAX_BYTES", r.heights.nbytes - 1)
+    assert not r.warm_cache(10 * lines)  # would not stay in the caches
+
+
+def test_warm_terrain_answers_bit_for_bit_the_same(monkeypatch):
+    """warm=True only brings posts into the caches: every source kind, holes,
+    filled voids and points outside give the same answers as without it."""
+    from terrain.detail import DetailedRaster
+    from terrain.procedural import ProceduralTerrain
+
+    warmed = []
+    real_warm = Raster.warm_cache
+    monkeypatch.setattr(Raster, "warm_cache", lambda self, n: warmed.append(real_warm(self, n)) or warmed[-1])
+
+    base = _raster(ny=300, nx=400, seed=4)
+    h = np.array(base.heights)
+    h[100:103, 50:60] = np.nan
+    filled = np.zeros(base.shape, bool)
+    filled[200:210, 300:305] = True
+    holed = Raster(h, base.georef, filled=filled)
+    other = _raster(ny=300, nx=400, seed=5, x0=9.0 + 300 / 1200)
+    t = Terrain([holed, DetailedRaster(other, seed=1), ProceduralTerrain(seed=3)])
+    rng = np.random.default_rng(6)
+    lat = rng.uniform(46.99, 47.0 + 310 / 1200, 200_000)
+    lon = rng.uniform(8.99, 9.0 + 710 / 1200, 200_000)
+    cold = t.heights(lat, lon)
+    assert warmed == []
+    warm = t.heights(lat, lon, warm=True)
+    assert warmed == [True, True]  # the holed raster, then the detailed one under it
+    assert np.array_equal(cold.height_msl_m, warm.height_msl_m, equal_nan=True)
+    assert np.array_equal(cold.status, warm.status)
+    assert {STATUS_OK, STATUS_FILLED} <= set(np.unique(cold.status).tolist())
+    n_cold, n_warm = t.normals(lat, lon), t.normals(lat, lon, warm=True)
+    assert np.array_equal(n_cold.normal_enu, n_warm.normal_enu, equal_nan=True)
+    assert np.array_equal(n_cold.status, n_warm.status)

@@ -31,7 +31,7 @@ from sortie import cli
 from sortie.errors import InvalidArgument, LimitExceeded
 from sortie.v1 import terrain_pb2 as pb
 from sortie.v1 import terrain_pb2_grpc
-from terrain.raster import CRS_GEOGRAPHIC, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
+from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
 from terrain.terrain import Terrain
 
 SORTIE = Path(sys.executable).parent / "sortie"  # the console script of this environment
@@ -168,6 +168,87 @@ def test_metadata(client, alps):
         "max_segments": terrain_service.MAX_SEGMENTS,
         "max_message_bytes": 64 * 1024 * 1024,
     }
+
+
+# --- the all-OK status convention --------------------------------------------------------------
+
+def _inside_points(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(47.05, 47.95, n), rng.uniform(9.05, 9.95, n)
+
+
+def test_all_ok_status_is_sent_empty_and_the_client_expands_it(alps, client, stub):
+    """Every batched response leaves out a status of all POINT_STATUS_OK (a byte a
+    point less on the wire); the client library gives callers the full array."""
+    lat, lon = _inside_points(5000, seed=21)
+    rays = _rays(300, seed=22)
+    checks = [
+        (stub.GetHeights(pb.GetHeightsRequest(lat_deg=lat, lon_deg=lon)),
+         client.heights(lat, lon), alps.heights(lat, lon)),
+        (stub.GetNormals(pb.GetNormalsRequest(lat_deg=lat, lon_deg=lon)),
+         client.normals(lat, lon), alps.normals(lat, lon)),
+        (stub.GetProfile(pb.GetProfileRequest(start_lat_deg=47.1, start_lon_deg=9.1, end_lat_deg=47.9,
+                                              end_lon_deg=9.8, n_samples=501)),
+         client.profile(47.1, 9.1, 47.9, 9.8, 501), alps.profile(47.1, 9.1, 47.9, 9.8, 501)),
+        (stub.LineOfSight(pb.LineOfSightRequest(**dict(zip(terrain_service._RAY_NAMES, rays)))),
+         client.line_of_sight(*rays), alps.line_of_sight(*rays)),
+        (stub.IntersectSegments(pb.IntersectSegmentsRequest(**dict(zip(terrain_service._RAY_NAMES, rays)))),
+         client.intersect(*rays), alps.intersect(*rays)),
+    ]
+    for wire, got, ref in checks:
+        name = type(wire).__name__
+        assert (ref.status == STATUS_OK).all(), name
+        assert len(wire.status) == 0, name
+        assert _same(got.status, ref.status), name
+        assert got.status.flags.writeable, name
+    heights = checks[0][1].height_msl_m
+    assert heights.flags.writeable and heights.flags.owndata  # the caller's own array, not a view of the message
+
+
+def test_other_statuses_are_sent_per_point(alps, client, stub):
+    lat, lon = _inside_points(2000, seed=23)
+    lat[[5, 1500]] = 46.5  # OUTSIDE
+    ref = alps.heights(lat, lon)
+    wire = stub.GetHeights(pb.GetHeightsRequest(lat_deg=lat, lon_deg=lon))
+    assert list(wire.status) == ref.status.tolist()
+    assert _same(client.heights(lat, lon).status, ref.status)
+    assert np.count_nonzero(ref.status == STATUS_OUTSIDE) == 2
+
+
+def test_statuses_stay_aligned_across_chunks_sent_with_and_without_them():
+    """A chunked batch whose chunks are answered all OK (status sent empty),
+    with filled voids and with points outside: statuses as in-process, in order."""
+    h = np.random.default_rng(24).normal(800.0, 100.0, (121, 121)).astype(np.float32)
+    filled = np.zeros(h.shape, bool)
+    filled[60:63, 60:63] = True
+    terrain = Terrain([Raster(h, Georef(CRS_GEOGRAPHIC, 9.0, 47.0, 1 / 1200, 1 / 1200), filled=filled)])
+    rng = np.random.default_rng(25)
+    lat = 47.0 + rng.uniform(0, 40, 3000) / 1200  # chunks 0 and 1: clear of the voids
+    lon = 9.0 + rng.uniform(0, 40, 3000) / 1200
+    lat[2000:2100], lon[2000:2100] = 47.0 + 61 / 1200, 9.0 + 61.5 / 1200  # chunk 2: FILLED
+    lat[2900], lon[2900] = 48.5, 9.01  # ... and one OUTSIDE
+    server, port = create_server(terrain)
+    server.start()
+    try:
+        with TerrainClient(f"127.0.0.1:{port}", chunk_points=1000) as c:
+            got, ref = c.heights(lat, lon), terrain.heights(lat, lon)
+            assert _same(got.status, ref.status)
+            assert _same(got.height_msl_m, ref.height_msl_m)
+            assert (ref.status[:2000] == STATUS_OK).all()
+            assert set(ref.status[2000:].tolist()) == {STATUS_OK, STATUS_FILLED, STATUS_OUTSIDE}
+            normals = c.normals(lat, lon)
+            assert _same(normals.status, terrain.normals(lat, lon).status)
+    finally:
+        server.stop(0).wait()
+
+
+def test_status_expansion_needs_points():
+    _, _, encode, decode = terrain_service.serializers("GetHeights")
+    assert terrain_service.sent_status(np.full(3, STATUS_OK, np.uint8)).size == 0
+    assert decode(encode({"height_msl_m": np.zeros(3), "status": np.zeros(0, np.uint8)}))["status"].tolist() \
+        == [STATUS_OK] * 3
+    empty = decode(b"")  # no points at all: nothing to expand
+    assert empty["height_msl_m"].size == 0 and empty["status"].size == 0
 
 
 # --- stock clients: health and reflection ----------------------------------------------------
@@ -439,6 +520,24 @@ def test_codec_reads_every_legal_encoding():
 def test_codec_rejects_malformed_bytes(data):
     with pytest.raises(DecodeError):
         PackedCodec(pb.GetHeightsResponse).decode(data)
+
+
+def test_codec_without_copy_decodes_read_only_views():
+    """The server's request decoder: arrays are views of the message, not copies;
+    decoding with copies (the client's responses) gives arrays of their own."""
+    lat, lon = _points(100, seed=31)
+    data = PackedCodec(pb.GetHeightsRequest).encode({"lat_deg": lat, "lon_deg": lon})
+    viewed = PackedCodec(pb.GetHeightsRequest, copy=False).decode(data)
+    copied = PackedCodec(pb.GetHeightsRequest).decode(data)
+    for name, want in (("lat_deg", lat), ("lon_deg", lon)):
+        assert _same(viewed[name], want) and _same(copied[name], want)
+        assert not viewed[name].flags.writeable and not viewed[name].flags.owndata
+        assert copied[name].flags.writeable and copied[name].flags.owndata
+    status = np.array([1, 2, 3], np.uint8)
+    resp = PackedCodec(pb.GetHeightsResponse).encode({"height_msl_m": np.zeros(3), "status": status})
+    assert _same(PackedCodec(pb.GetHeightsResponse, copy=False).decode(resp)["status"], status)
+    request_decoder = terrain_service.serializers("GetHeights")[1]
+    assert not request_decoder(data)["lat_deg"].flags.writeable
 
 
 # --- the command line ------------------------------------------------------------------------
