@@ -7,13 +7,17 @@ of interest at random points) streaming at 20 Hz from a separate process
 (bench/server_clients.py), all on this machine's 2 cores.
 
 - ``bare_jsbsim_realtime_aircraft``: f16s one core keeps in real time at
-  120 Hz with a bare ``FGFDMExec.run()`` loop, same run.
+  120 Hz with a bare ``FGFDMExec.run()`` loop, same run, measured at the
+  same two fleet sizes as the server and fitted the same way (see
+  :func:`bench_bare`: the cost of a step grows with the fleet, so a
+  4-aircraft loop, ``bare_small_fleet_realtime_aircraft``, overstates it).
 - ``realtime_aircraft``: f16s the server keeps in real time at that load:
-  the world tick (30 Hz, 4 JSBSim steps each) plus the publish step, timed
-  by the clock thread in "fast" mode (as fast as it goes) at two fleet
-  sizes; the tick time is linear in the fleet size, and the fleet whose mean
-  tick fills the 33.3 ms budget is the capacity. ``capacity_ratio`` =
-  realtime / bare.
+  the world tick (30 Hz, 4 JSBSim steps each, the aircraft in one worker
+  process per core as ``sortie server`` runs them) plus the publish step,
+  timed by the clock thread in "fast" mode (as fast as it goes) at two
+  fleet sizes; the tick time is linear in the fleet size, and the fleet
+  whose mean tick fills the 33.3 ms budget is the capacity.
+  ``capacity_ratio`` = realtime / bare.
 - ``tick_p99_ms``: p99 tick time in real time at that fleet size (75 % of
   the capacity, rounded down, to leave the realtime run room) with the
   clients streaming; ``latency_p99_ms``: world tick -> client receipt, the
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -38,31 +43,78 @@ from bench.harness import Report
 CLIENTS = 32
 GROUND_VEHICLES = 2000
 TICK_BUDGET_MS = 1000.0 / 30.0
+STEPS_PER_TICK = 4  # 120 Hz JSBSim in a 30 Hz world tick
 
 
-def _bare_realtime(terrain, quick: bool) -> float:
+def _f16_fleet(terrain, n: int) -> list:
     from fdm.aircraft import Aircraft, InitialConditions
 
-    fleet = [Aircraft("f16", terrain, InitialConditions(47.2 + 0.1 * i, 9.5, 4000.0, heading_deg=0.0,
-                                                        speed_mps=200.0)) for i in range(4)]
+    return [Aircraft("f16", terrain, InitialConditions(47.2 + 0.003 * i, 9.5, 4000.0, heading_deg=0.0,
+                                                       speed_mps=200.0)) for i in range(n)]
+
+
+def _bare_tick_ms(fleet: list, steps: int = STEPS_PER_TICK, repeats: int = 5) -> float:
+    """Best wall time (ms) of one world tick's worth of a bare loop: each aircraft in
+    turn runs ``steps`` FGFDMExec.run() calls (the order the world steps them in)."""
     runs = [a.fdm.run for a in fleet]
     best = math.inf
-    for _ in range(5 if quick else 15):
+    for _ in range(repeats):
         t0 = time.perf_counter()
-        for _ in range(60):
-            for run in runs:
+        for run in runs:
+            for _ in range(steps):
                 run()
-        best = min(best, (time.perf_counter() - t0) / (60 * len(runs)))
-    return math.floor((1.0 / 120.0) / best)
+        best = min(best, time.perf_counter() - t0)
+    return best * 1e3
 
 
-def _world(terrain, n_aircraft: int, n_ground: int, seed: int = 3):
+def _capacity(sizes, tick_ms) -> tuple[float, float, float]:
+    """(aircraft whose tick fills the budget, ms per aircraft, fixed ms) of a line through two sizes."""
+    (n1, n2), (t1, t2) = sizes, tick_ms
+    slope = (t2 - t1) / (n2 - n1)
+    base = t1 - slope * n1
+    return (max(0.0, math.floor((TICK_BUDGET_MS - base) / slope)) if slope > 0 else float("nan")), slope, base
+
+
+def bench_bare(report: Report, terrain, sizes, quick: bool) -> float:
+    """One core's bare JSBSim capacity at the fleet sizes the server is measured at.
+
+    A bare loop's cost per step grows with the fleet: a few aircraft keep their
+    JSBSim instances in the CPU caches, a hundred do not (measured here: about
+    20 us a step for 4 f16s, 50-100 us for 64 or more). So the baseline is
+    measured like the server, at the same two fleet sizes and in the same
+    stepping order, and the same line fit gives its capacity. The 4-aircraft
+    figure is kept as ``bare_small_fleet_realtime_aircraft``.
+    """
+    fleet = _f16_fleet(terrain, max(sizes))
+    repeats = 3 if quick else 7
+    small = _bare_tick_ms(fleet[:4], repeats=4 * repeats) / (4 * STEPS_PER_TICK)  # ms per step
+    report.metrics["bare_small_fleet_realtime_aircraft"] = float(math.floor(1000.0 / (120.0 * small)))
+    ticks = [_bare_tick_ms(fleet[:n], repeats=repeats) for n in sizes]
+    bare, slope, _ = _capacity(sizes, ticks)
+    report.metrics["bare_jsbsim_realtime_aircraft"] = float(bare)
+    report.metrics["bare_us_per_step"] = slope * 1e3 / STEPS_PER_TICK
+    report.metrics["bare_small_fleet_us_per_step"] = small * 1e3
+    report.params.update(bare_tick_ms=ticks)
+    del fleet
+    return bare
+
+
+def _host(terrain, workers: int):
+    from bench.fdm import alps_terrain
+    from server.aircraft_host import LocalAircraftHost, ProcessAircraftHost
+
+    if workers == 0:
+        return LocalAircraftHost(terrain, 1.0 / 120.0)
+    return ProcessAircraftHost(alps_terrain, 1.0 / 120.0, workers=workers)
+
+
+def _world(terrain, n_aircraft: int, n_ground: int, seed: int = 3, workers: int = 0):
     from fdm.aircraft import InitialConditions
     from fdm.vehicle_types import VEHICLE_TYPES
     from server.world import World
 
     rng = np.random.default_rng(seed)
-    w = World(terrain)
+    w = World(terrain, aircraft_host=_host(terrain, workers))
     for i in range(n_aircraft):
         lat, lon = rng.uniform(47.1, 47.9), rng.uniform(9.1, 9.9)
         hdg = float(rng.uniform(0, 360))
@@ -90,11 +142,11 @@ def _clients(address: str, n: int, seconds: float, stall: int = 0):
 
 
 def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, stall: int = 0,
-           clients: int = CLIENTS) -> dict:
+           clients: int = CLIENTS, workers: int = 0) -> dict:
     """Run a server with the load for ``seconds`` of wall time; tick and latency figures."""
     from server.sim_server import ServerConfig, SimulationServer
 
-    world = _world(terrain, n_aircraft, n_ground)
+    world = _world(terrain, n_aircraft, n_ground, workers=workers)
     server = SimulationServer(world, ServerConfig(clock=clock, time_scale=1000.0 if clock == "fast" else 1.0,
                                                   vanished_timeout_s=60.0))
     published = {}
@@ -116,6 +168,7 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
         world_s = world.time_s - t_world0
     finally:
         server.stop(0.5)
+        world.close()
     data = json.loads(out)
     lat_ms = [(wall_rx - published[round(t, 6)]) * 1e3 for log in data["received"] for t, wall_rx in log
               if round(t, 6) in published]
@@ -126,24 +179,22 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
 
 
 def bench_capacity(report: Report, terrain, quick: bool) -> None:
-    bare = _bare_realtime(terrain, quick)
-    report.metrics["bare_jsbsim_realtime_aircraft"] = float(bare)
     n_ground = 500 if quick else GROUND_VEHICLES
     clients = 8 if quick else CLIENTS
     seconds = 4.0 if quick else 10.0
-    sizes = (8, 32) if quick else (32, 128)
-    fits = [(n, _serve(terrain, n, "fast", seconds, n_ground, clients=clients)) for n in sizes]
-    (n1, r1), (n2, r2) = fits
-    slope = (r2["tick_mean_ms"] - r1["tick_mean_ms"]) / (n2 - n1)
-    base = r1["tick_mean_ms"] - slope * n1
-    realtime = max(0.0, math.floor((TICK_BUDGET_MS - base) / slope)) if slope > 0 else float("nan")
+    sizes = (32, 96) if quick else (64, 192)
+    workers = max(1, os.cpu_count() or 1)  # as `sortie server --aircraft-workers auto`
+    bare = bench_bare(report, terrain, sizes, quick)
+    fits = [_serve(terrain, n, "fast", seconds, n_ground, clients=clients, workers=workers) for n in sizes]
+    r1, r2 = fits
+    realtime, slope, base = _capacity(sizes, [r1["tick_mean_ms"], r2["tick_mean_ms"]])
     report.metrics["realtime_aircraft"] = float(realtime)
     report.metrics["capacity_ratio"] = realtime / bare
     report.metrics["tick_ms_per_aircraft"] = slope
     report.metrics["tick_ms_fixed"] = base
     n_rt = max(1, int(0.75 * realtime))
-    calm = _serve(terrain, n_rt, "realtime", seconds, n_ground, clients=clients)
-    slow = _serve(terrain, n_rt, "realtime", seconds, n_ground, stall=1, clients=clients)
+    calm = _serve(terrain, n_rt, "realtime", seconds, n_ground, clients=clients, workers=workers)
+    slow = _serve(terrain, n_rt, "realtime", seconds, n_ground, stall=1, clients=clients, workers=workers)
     report.metrics["tick_p99_ms"] = calm["tick_p99_ms"]
     report.metrics["latency_p50_ms"] = float(np.percentile(calm["latency_ms"], 50))
     report.metrics["latency_p99_ms"] = float(np.percentile(calm["latency_ms"], 99))
@@ -152,7 +203,7 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
     report.metrics["stream_bytes_per_state"] = calm["bytes"] / max(calm["states"], 1)
     report.metrics["server_message_reduction"] = 1.0 - calm["updates"] / max(calm["samples"], 1)
     report.params.update(capacity_fleet_sizes=list(sizes), capacity_fit=[r1["tick_mean_ms"], r2["tick_mean_ms"]],
-                         ground_vehicles=n_ground, clients=clients, client_aoi_m=20_000.0, seconds=seconds,
+                         ground_vehicles=n_ground, clients=clients, aircraft_workers=workers, client_aoi_m=20_000.0, seconds=seconds,
                          realtime_run_aircraft=n_rt, entities=calm["entities"], tick_budget_ms=TICK_BUDGET_MS)
 
 

@@ -313,6 +313,10 @@ class Aircraft:
             "gear_down": [n("gear/gear-cmd-norm").set_double_value],
         }
         self._sign = {"pitch": -1.0, "yaw": -1.0}
+        self._set_elevator = self._set["pitch"][0]
+        self._set_aileron = self._set["roll"][0]
+        self._set_rudder = self._set["yaw"][0]
+        self._set_throttles = tuple(self._set["throttle"])
 
         gr = self.fdm.get_ground_reactions()
         contacts = []
@@ -428,6 +432,27 @@ class Aircraft:
             for setter in self._set[name]:
                 setter(x)
         self._controls = replace(self._controls, **values)
+
+    def _set_controls_trusted(self, pitch=None, roll=None, yaw=None, throttle=None) -> None:
+        """Autopilot use only: values already in range, finite floats; None leaves one alone.
+
+        The autopilot sets these every tick; skipping validation and ``replace``
+        saves most of :meth:`set_controls`' cost. It writes the same JSBSim
+        values (negation is exact, so -x is x * -1.0 bit for bit).
+        """
+        c = self._controls
+        if pitch is not None:
+            self._set_elevator(-pitch)
+        if roll is not None:
+            self._set_aileron(roll)
+        if yaw is not None:
+            self._set_rudder(-yaw)
+        if throttle is not None:
+            for setter in self._set_throttles:
+                setter(throttle)
+        self._controls = Controls(c.pitch if pitch is None else pitch, c.roll if roll is None else roll,
+                                  c.yaw if yaw is None else yaw, c.throttle if throttle is None else throttle,
+                                  c.mixture, c.flaps, c.brakes, c.gear_down)
 
     def trim(self) -> None:
         """JSBSim's full trim; TrimFailed when it finds none.

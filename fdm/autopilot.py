@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from geographiclib.geodesic import Geodesic
 
-from fdm.state import FT_M, RAW_COLUMNS as _C, RAW_WIDTH
+from fdm.state import FT_M, RAW_COLUMNS as _C
 from sortie.errors import InvalidArgument
 
 G = 9.80665  # standard gravity, m/s^2 (CGPM 1901)
@@ -63,6 +63,11 @@ GAINS = {
 }
 GAINS["transport"] = GAINS["light"]
 
+# Raw row columns read each update, looked up once.
+_TIME, _LAT, _LON, _ALT = _C["time_s"], _C["lat_rad"], _C["lon_rad"], _C["alt_ft"]
+_VN, _VE, _VD, _VT = _C["v_north_fps"], _C["v_east_fps"], _C["v_down_fps"], _C["vt_fps"]
+_PHI, _PSI, _P, _Q, _BETA = _C["phi_rad"], _C["psi_rad"], _C["p_rps"], _C["q_rps"], _C["beta_rad"]
+
 
 def _clamp(x: float, lo: float, hi: float) -> float:
     return lo if x < lo else hi if x > hi else x
@@ -71,6 +76,15 @@ def _clamp(x: float, lo: float, hi: float) -> float:
 def wrap_pi(a: float) -> float:
     """Angle in (-pi, pi]."""
     return math.atan2(math.sin(a), math.cos(a))
+
+
+def _row_values(aircraft, row):
+    """The raw row as Python floats: ``row`` if given (a list, or an array made a list,
+    as float arithmetic is cheaper than numpy scalars' and gives the same bits), else
+    read from the aircraft."""
+    if row is None:
+        return aircraft.raw_values()
+    return row.tolist() if isinstance(row, np.ndarray) else row
 
 
 @dataclass
@@ -87,7 +101,7 @@ class Autopilot:
     """Heading / altitude / speed hold for one :class:`fdm.aircraft.Aircraft`.
 
     Call :meth:`update` once per step before ``aircraft.step()`` (or use
-    :meth:`run`). The autopilot reads the SI state and writes controls; it
+    :meth:`run`). The autopilot reads the raw state and writes controls; it
     keeps its integrators, so one autopilot flies one aircraft.
     """
 
@@ -98,7 +112,6 @@ class Autopilot:
         self._i_pitch = 0.0
         self._i_bank = 0.0
         self._i_speed = aircraft.controls.throttle
-        self._row = np.empty(RAW_WIDTH)
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
         for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
@@ -108,14 +121,19 @@ class Autopilot:
             raise InvalidArgument("speed_mps", "must be positive", value=speed_mps)
         self.targets = Targets(heading_deg, alt_msl_m, speed_mps)
 
-    def update(self) -> None:
-        """Read the state, write the controls for the next step."""
+    def update(self, row=None) -> None:
+        """Read the state, write the controls for the next step.
+
+        ``row``: the aircraft's current raw state (``raw_values()``, a list or a
+        float64 array of fdm.state.RAW_WIDTH), for a host that has already read
+        it for its snapshot; None reads it here. Same controls either way.
+        """
         ac = self.aircraft
-        r = ac.raw_state(self._row)
+        r = _row_values(ac, row)
         g = self.gains
         dt = ac.dt
-        phi, psi, p, q = r[_C["phi_rad"]], r[_C["psi_rad"]], r[_C["p_rps"]], r[_C["q_rps"]]
-        out = {}
+        phi, psi, p, q = r[_PHI], r[_PSI], r[_P], r[_Q]
+        pitch = roll = yaw = throttle = None
         tg = self.targets
         if tg.heading_deg is not None:
             err = wrap_pi(math.radians(tg.heading_deg) - psi)
@@ -124,27 +142,31 @@ class Autopilot:
             u = g.kp_bank * e + self._i_bank - g.kd_roll_rate * p
             if -1.0 < u < 1.0:
                 self._i_bank = _clamp(self._i_bank + g.ki_bank * e * dt, -0.5, 0.5)
-            out["roll"] = _clamp(u, -1.0, 1.0)
-            out["yaw"] = _clamp(-g.k_beta * r[_C["beta_rad"]], -1.0, 1.0)
+            roll = _clamp(u, -1.0, 1.0)
+            yaw = _clamp(-g.k_beta * r[_BETA], -1.0, 1.0)
         if tg.alt_msl_m is not None:
-            vn, ve, vd = r[_C["v_north_fps"]], r[_C["v_east_fps"]], r[_C["v_down_fps"]]
+            vn, ve, vd = r[_VN], r[_VE], r[_VD]
             v = max(math.sqrt(vn * vn + ve * ve + vd * vd), 1.0)
             gamma = math.asin(_clamp(-vd / v, -1.0, 1.0))
-            gamma_cmd = _clamp(g.k_alt * (tg.alt_msl_m - r[_C["alt_ft"]] * FT_M), g.max_descent_rad,
+            gamma_cmd = _clamp(g.k_alt * (tg.alt_msl_m - r[_ALT] * FT_M), g.max_descent_rad,
                                g.max_climb_rad)
             e = gamma_cmd - gamma
             u = g.kp_pitch * e + self._i_pitch - g.kd_pitch_rate * q
             if -1.0 < u < 1.0:  # anti-windup: integrate only while not saturated
                 self._i_pitch = _clamp(self._i_pitch + g.ki_pitch * e * dt, -1.0, 1.0)
-            out["pitch"] = _clamp(u, -1.0, 1.0)
+            pitch = _clamp(u, -1.0, 1.0)
         if tg.speed_mps is not None:
-            e = tg.speed_mps - r[_C["vt_fps"]] * FT_M
+            e = tg.speed_mps - r[_VT] * FT_M
             u = g.kp_speed * e + self._i_speed
             if 0.0 < u < 1.0:
                 self._i_speed = _clamp(self._i_speed + g.ki_speed * e * dt, 0.0, 1.0)
-            out["throttle"] = _clamp(u, 0.0, 1.0)
-        if out:
-            ac.set_controls(**out)
+            throttle = _clamp(u, 0.0, 1.0)
+        if pitch != pitch or roll != roll or yaw != yaw or throttle != throttle:
+            # A NaN state: set_controls rejects it, naming the control, as it always has.
+            ac.set_controls(**{k: v for k, v in (("roll", roll), ("yaw", yaw), ("pitch", pitch),
+                                                  ("throttle", throttle)) if v is not None})
+        # Clamped to their ranges above, hence trusted.
+        ac._set_controls_trusted(pitch, roll, yaw, throttle)
 
     def run(self, seconds: float) -> list:
         """Fly for ``seconds`` of simulated time; the events."""
@@ -187,28 +209,28 @@ class WaypointFollower:
         self.autopilot = Autopilot(aircraft, gains=gains)
         self.speed_mps = speed_mps
         self.passed: list = []  # (index, time_s, miss distance m)
-        self._row = np.empty(RAW_WIDTH)
 
     @property
     def done(self) -> bool:
         return self.active >= len(self.waypoints)
 
-    def update(self) -> None:
-        ac = self.autopilot.aircraft
+    def update(self, row=None) -> None:
+        """Retarget on the active waypoint, then the autopilot's update; ``row`` as in
+        :meth:`Autopilot.update` (read once here and shared with the autopilot)."""
         if not self.done:
+            r = row = _row_values(self.autopilot.aircraft, row)
             lat, lon, alt = self.waypoints[self.active]
-            r = ac.raw_state(self._row)
-            here = math.degrees(r[_C["lat_rad"]]), math.degrees(r[_C["lon_rad"]])
+            here = math.degrees(r[_LAT]), math.degrees(r[_LON])
             inv = _GEOD.Inverse(*here, lat, lon)
             if inv["s12"] < self.capture_radius_m:
-                self.passed.append((self.active, r[_C["time_s"]], inv["s12"]))
+                self.passed.append((self.active, r[_TIME], inv["s12"]))
                 self.active += 1
                 if not self.done:
                     lat, lon, alt = self.waypoints[self.active]
                     inv = _GEOD.Inverse(*here, lat, lon)
             if not self.done:
                 self.autopilot.set_targets(inv["azi1"] % 360.0, alt, self.speed_mps)
-        self.autopilot.update()
+        self.autopilot.update(row)
 
     def run(self, seconds: float) -> list:
         events = []

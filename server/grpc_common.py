@@ -58,7 +58,8 @@ def channel_options() -> list[tuple[str, int]]:
 
 # --- wire codec ------------------------------------------------------------------------------
 
-def _varint(value: int) -> bytes:
+def varint(value: int) -> bytes:
+    """Protobuf's base-128 varint of a non-negative int."""
     out = bytearray()
     while value > 0x7F:
         out.append((value & 0x7F) | 0x80)
@@ -67,7 +68,7 @@ def _varint(value: int) -> bytes:
     return bytes(out)
 
 
-def _read_varint(data: bytes, pos: int) -> tuple[int, int]:
+def _readvarint(data: bytes, pos: int) -> tuple[int, int]:
     """(value, position after it); raises DecodeError on truncation or overlong varints."""
     value = 0
     for shift in range(0, 64, 7):
@@ -108,7 +109,7 @@ class _Field:
         else:
             raise TypeError(f"{fd.full_name}: packed codec has no singular {fd.type} fields")
         self.key = (fd.number << 3) | wire
-        self.tag = _varint(self.key)
+        self.tag = varint(self.key)
 
     def default(self):
         """The value of an absent field; empty arrays are shared, so read-only."""
@@ -131,13 +132,13 @@ class _Field:
             if arr.ndim != 1:
                 raise ValueError(f"{self.name}: must be 1-D, got shape {arr.shape}")
             if arr.size:
-                parts += (self.tag, _varint(arr.nbytes), arr)
+                parts += (self.tag, varint(arr.nbytes), arr)
         elif self.key & 7 == _WIRE_I64:
             raw = struct.pack("<d", value)
             if raw != bytes(8):  # proto3 omits +0.0 only; -0.0 is sent
                 parts += (self.tag, raw)
         elif value:
-            parts += (self.tag, _varint(int(value)))
+            parts += (self.tag, varint(int(value)))
 
     def decode_packed(self, data: bytes, pos: int, length: int, copy: bool = True):
         """The values of one packed chunk, or None when only the generic parser can read it.
@@ -194,12 +195,12 @@ class PackedCodec:
         chunks: dict[str, list] = {}
         pos, end = 0, len(data)
         while pos < end:
-            key, pos = _read_varint(data, pos)
+            key, pos = _readvarint(data, pos)
             f = self._by_key.get(key)
             if f is None:  # unknown field or unpacked repeated: the generic parser handles both
                 return self._decode_generic(data)
             if f.repeated:
-                length, pos = _read_varint(data, pos)
+                length, pos = _readvarint(data, pos)
                 if pos + length > end:
                     raise DecodeError(f"{f.name}: truncated packed field")
                 values = f.decode_packed(data, pos, length, self.copy)
@@ -213,7 +214,7 @@ class PackedCodec:
                 out[f.name] = struct.unpack_from("<d", data, pos)[0]
                 pos += 8
             else:
-                value, pos = _read_varint(data, pos)
+                value, pos = _readvarint(data, pos)
                 out[f.name] = value & f.mask
         for name, parts in chunks.items():  # a packed field may legally arrive in several chunks
             out[name] = parts[0] if len(parts) == 1 else np.concatenate(parts)

@@ -18,6 +18,16 @@ import numpy as np
 HYSTERESIS = 0.05
 
 
+def _squared_distances(c: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(m, n) |c_i - p_j|^2 as |c|^2 + |p|^2 - 2 c.p (one matrix product instead of an
+    (m, n, 3) temporary), about the entities' mean so that the squares stay small:
+    for an exercise 1000 km across the rounding error is under 1e-3 m^2."""
+    o = p.mean(axis=0) if p.size else np.zeros(3)
+    c, p = c - o, p - o
+    d2 = (c * c).sum(axis=1)[:, None] + (p * p).sum(axis=1)[None, :] - 2.0 * (c @ p.T)
+    return np.maximum(d2, 0.0, out=d2)
+
+
 def relevant(centres_ecef, radii_m, positions_ecef, was_relevant=None) -> np.ndarray:
     """(m, n) bool: entity j relevant to receiver i.
 
@@ -27,7 +37,7 @@ def relevant(centres_ecef, radii_m, positions_ecef, was_relevant=None) -> np.nda
     c = np.asarray(centres_ecef, dtype=np.float64).reshape(-1, 3)
     p = np.asarray(positions_ecef, dtype=np.float64).reshape(-1, 3)
     r = np.asarray(radii_m, dtype=np.float64).reshape(-1, 1)
-    d2 = ((c[:, None, :] - p[None, :, :]) ** 2).sum(axis=-1)
+    d2 = _squared_distances(c, p)
     inside = d2 <= r * r
     if was_relevant is not None:
         keep = d2 <= (r * (1.0 + HYSTERESIS)) ** 2

@@ -112,6 +112,7 @@ Limits are the module constants below (``MAX_*``, ``*_MAX_*``, ``*_MIN_*``).
 from __future__ import annotations
 
 import difflib
+import functools
 import math
 import re
 import tomllib
@@ -195,6 +196,10 @@ class ScenarioError(InvalidArgument):
         self.column = column
         if file is not None:
             self.args = (f"{file}: {self.args[0]}",)
+
+    def __reduce__(self):
+        return (functools.partial(ScenarioError, file=self.file, line=self.line, column=self.column),
+                (self.field, self.message, self.value))
 
     def in_file(self, file) -> "ScenarioError":
         """The same error, its message prefixed with the scenario file's name."""

@@ -2,6 +2,7 @@
 
     sortie server --scenario FILE [--dem FILE... | --terrain HOST:PORT] --port N [--host H]
                   [--clock realtime|fast|paused] [--time-scale X] [--duration S]
+                  [--aircraft-workers N|auto]
 
 Runs until SIGTERM/SIGINT (graceful: NOT_SERVING, streams closed, in-flight
 calls get --grace-s) or until the scenario's (or --duration's) end.
@@ -9,11 +10,13 @@ calls get --grace-s) or until the scenario's (or --duration's) end.
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 
 from server.grpc_common import DEFAULT_GRACE_S
 from server.sim_server import CLOCKS
+from sortie.errors import InvalidArgument
 
 
 def add_parser(sub) -> None:
@@ -29,18 +32,37 @@ def add_parser(sub) -> None:
     p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")
     p.add_argument("--time-scale", type=float, help="world seconds per wall second (realtime clock)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S world seconds")
+    p.add_argument("--aircraft-workers", default="auto", metavar="N|auto",
+                   help="processes the aircraft's JSBSim runs in: 0 = in the server's process; auto = "
+                        "one per CPU core (%(default)s); see server/aircraft_host.py")
     p.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
                    help="seconds in-flight calls get on shutdown (default %(default)s)")
     p.set_defaults(func=server_command)
 
 
+def aircraft_workers(value: str) -> int:
+    """--aircraft-workers: a count in [0, MAX_WORKERS], or "auto" (one per CPU core)."""
+    from server.aircraft_host import MAX_WORKERS
+
+    if value == "auto":
+        return max(1, min(os.cpu_count() or 1, MAX_WORKERS))
+    try:
+        n = int(value)
+    except ValueError:
+        n = -1
+    if not 0 <= n <= MAX_WORKERS:
+        raise InvalidArgument("aircraft_workers", f"must be an integer in [0, {MAX_WORKERS}] or auto", value=value)
+    return n
+
+
 def server_command(args) -> int:
     from server.scenario import load_scenario
-    from server.sim_server import SimulationServer, build_world, open_terrain, server_config
+    from server.sim_server import SimulationServer, aircraft_host, build_world, open_terrain, server_config
 
+    workers = aircraft_workers(args.aircraft_workers)
     scenario = load_scenario(args.scenario)
-    terrain, desc = open_terrain(scenario, args.dem, args.terrain)
-    world = build_world(scenario, terrain)
+    terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
+    world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers))
     config = server_config(scenario, desc)
     if args.clock:
         config.clock = args.clock
@@ -61,6 +83,7 @@ def server_command(args) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     server.stop(args.grace_s)
+    world.close()
     stats = server.tick_stats()
     print(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
           f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", flush=True)

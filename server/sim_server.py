@@ -13,6 +13,7 @@ physics never waits on the network.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -211,28 +212,56 @@ def _dr_thresholds(p) -> Thresholds:
     return Thresholds(p.dr_position_m, math.radians(p.dr_orientation_deg), p.heartbeat_s, code)
 
 
-def open_terrain(scenario, dem=None, service: str | None = None):
-    """(terrain source, description): ``dem`` files or a ``service`` address override the scenario's."""
-    if service or (not dem and scenario.terrain.service):
+def open_terrain_source(dem=None, service: str | None = None):
+    """The terrain of DEM files (in process) or a client of a terrain service.
+
+    Module-level and picklable as ``functools.partial``, so an aircraft worker
+    process opens the same terrain (server.aircraft_host)."""
+    if service:
         from client.terrain_client import TerrainClient
 
-        address = service or scenario.terrain.service
-        client = TerrainClient(address)
+        client = TerrainClient(service)
         client.wait_ready(10.0)
-        return client, f"service:{address}"
+        return client
     from terrain.mosaic import load_sources
     from terrain.terrain import Terrain
 
-    paths = [str(p) for p in (dem or scenario.terrain.dem)]
-    return Terrain(load_sources(paths)), "dem:" + ",".join(paths)
+    return Terrain(load_sources([str(p) for p in dem]))
 
 
-def build_world(scenario, terrain) -> World:
-    """A world holding every agent of a validated scenario (server.scenario.Scenario)."""
+def terrain_spec(scenario, dem=None, service: str | None = None) -> dict:
+    """The arguments of :func:`open_terrain_source` for a scenario: ``dem`` files or a
+    ``service`` address override the scenario's terrain."""
+    if service or (not dem and scenario.terrain.service):
+        return {"service": service or scenario.terrain.service}
+    return {"dem": [str(p) for p in (dem or scenario.terrain.dem)]}
+
+
+def open_terrain(scenario, dem=None, service: str | None = None):
+    """(terrain source, description, picklable factory opening the same terrain)."""
+    spec = terrain_spec(scenario, dem, service)
+    desc = f"service:{spec['service']}" if "service" in spec else "dem:" + ",".join(spec["dem"])
+    return open_terrain_source(**spec), desc, functools.partial(open_terrain_source, **spec)
+
+
+def aircraft_host(scenario, terrain, terrain_factory, workers: int):
+    """Where a scenario's aircraft fly: this process (workers=0) or ``workers``
+    processes (server.aircraft_host)."""
+    from server.aircraft_host import LocalAircraftHost, ProcessAircraftHost
+
+    ex = scenario.exercise
+    if workers == 0:
+        return LocalAircraftHost(terrain, 1.0 / ex.fdm_rate_hz, scenario.terrain.geoid_undulation_m)
+    return ProcessAircraftHost(terrain_factory, 1.0 / ex.fdm_rate_hz, scenario.terrain.geoid_undulation_m, workers)
+
+
+def build_world(scenario, terrain, host=None) -> World:
+    """A world holding every agent of a validated scenario (server.scenario.Scenario);
+    its aircraft on ``host`` (see :func:`aircraft_host`; in process by default)."""
     from fdm.aircraft import InitialConditions
 
     ex = scenario.exercise
-    world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m)
+    world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m, host)
     convoy_of = {m: c for c in scenario.convoys for m in c.members}
     done = set()
     for a in scenario.agents:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
-from server.streaming import ClientQueue
+from server.streaming import ClientQueue, encode_watch_update
 from server.world import AIRCRAFT, GROUND, STATIC, World
 from sortie.errors import InvalidArgument, LimitExceeded, PermissionDenied, SortieError, Unauthenticated, grpc_code
 from sortie.v1 import simulation_pb2 as pb
@@ -57,14 +57,15 @@ class Session:
     last_seen: float = field(default_factory=time.monotonic)
     open_streams: int = 0
     queue: ClientQueue | None = None
-    visible: set = field(default_factory=set)
+    # What the session's stream has been told it sees (server.streaming.Publisher):
+    # the ids, and the same as a mask over the publisher's entity layout number visible_layout.
+    visible_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    visible_mask: np.ndarray | None = None
+    visible_layout: int | None = None
 
-    def centre_ecef(self, snap, index: dict):
-        """The centre of this session's area of interest (its agent, or the observer's point)."""
-        if self.agent_id:
-            k = index.get(self.agent_id)
-            return None if k is None else snap.ecef_m[k]
-        return self.observer_ecef
+    def reset_visible(self) -> None:
+        """A new stream starts from nothing seen (its first update is the full snapshot)."""
+        self.visible_ids, self.visible_mask, self.visible_layout = np.zeros(0, np.int64), None, None
 
 
 class Sessions:
@@ -166,20 +167,6 @@ class Sessions:
         return len(self._by_token)
 
 
-def _state_pb(row) -> pb.EntityState:
-    return pb.EntityState(entity_id=row.entity_id, time_s=row.time_s, ecef_x_m=row.ecef_m[0],
-                          ecef_y_m=row.ecef_m[1], ecef_z_m=row.ecef_m[2], velocity_ecef_mps=row.vel,
-                          acceleration_ecef_mps2=row.acc, orientation_wxyz=row.quat,
-                          angular_velocity_body_rps=row.omega, dead_reckoning=row.algorithm)
-
-
-def watch_update_pb(p) -> pb.WatchUpdate:
-    entered = [pb.EntityInfo(entity_id=info[0], name=info[1], kind=info[2], type=info[3], coalition=info[4],
-                             state=_state_pb(row)) for info, row in p.entered]
-    return pb.WatchUpdate(time_s=p.time_s, snapshot=p.snapshot, entered=entered, left=p.left,
-                          states=[_state_pb(r) for r in p.states])
-
-
 class SimulationServicer:
     """The RPC handlers; ``clock`` gives world info (time, rates, mode)."""
 
@@ -237,7 +224,7 @@ class SimulationServicer:
         if s.queue is not None:
             s.queue.close()
         queue = ClientQueue()
-        s.visible = set()
+        s.reset_visible()
         s.queue = queue
         s.open_streams += 1
         try:
@@ -245,7 +232,7 @@ class SimulationServicer:
                 p = queue.take(STREAM_POLL_S)
                 s.last_seen = time.monotonic()
                 if p is not None:
-                    yield watch_update_pb(p)
+                    yield encode_watch_update(p)
         finally:
             s.open_streams -= 1
             queue.close()
@@ -290,7 +277,7 @@ def method_handlers(servicer: SimulationServicer) -> dict:
             response_serializer=lambda m: m.SerializeToString()),
         "Watch": grpc.unary_stream_rpc_method_handler(
             servicer.Watch, request_deserializer=pb.WatchRequest.FromString,
-            response_serializer=lambda m: m.SerializeToString()),
+            response_serializer=bytes),  # updates come encoded (server.streaming.encode_watch_update)
         "WatchEvents": grpc.unary_stream_rpc_method_handler(
             servicer.WatchEvents, request_deserializer=pb.WatchEventsRequest.FromString,
             response_serializer=lambda m: m.SerializeToString()),

@@ -24,37 +24,26 @@ few dict operations under a lock no reader holds while sending.
 
 from __future__ import annotations
 
+import struct
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
+from server.grpc_common import varint
 from server.interest import relevant
-
-
-@dataclass(frozen=True)
-class StateRow:
-    """One entity's state as sent (see sortie.v1.EntityState)."""
-
-    entity_id: int
-    time_s: float
-    ecef_m: tuple
-    vel: tuple
-    acc: tuple
-    quat: tuple
-    omega: tuple
-    algorithm: int
 
 
 @dataclass
 class Pending:
-    """What a take() hands the stream: one WatchUpdate's worth."""
+    """What a take() hands the stream: one WatchUpdate's worth, already encoded
+    (see :func:`encode_watch_update`)."""
 
     time_s: float
     snapshot: bool
-    entered: list  # [(info tuple, StateRow)]
+    entered: list  # [(EntityInfo fields 1-5 bytes, EntityState bytes)]
     left: list  # [entity id]
-    states: list  # [StateRow]
+    states: list  # [EntityState bytes]
 
 
 class ClientQueue:
@@ -73,7 +62,7 @@ class ClientQueue:
         self.merged = 0  # states overwritten before they were read (slow-reader measure)
 
     def push(self, time_s: float, entered: dict, left, states: dict) -> None:
-        """entered: id -> (info, StateRow); left: ids; states: id -> StateRow."""
+        """entered: id -> (encoded info, encoded state); left: ids; states: id -> encoded state."""
         with self.cond:
             for i in left:
                 self._states.pop(i, None)
@@ -127,6 +116,56 @@ def _f32(a) -> np.ndarray:
     return np.asarray(a, np.float32).astype(np.float64)
 
 
+# -- the wire: each entity's message encoded once per network tick, then fanned out --------------
+#
+# Protobuf's encoding of a message is the concatenation of its fields, and a
+# repeated message field is the concatenation of (tag, length, bytes) of each
+# element (https://protobuf.dev/programming-guides/encoding/). So the
+# publisher encodes each EntityState and EntityInfo once with the generated
+# classes, and each stream's WatchUpdate is assembled by joining bytes: the
+# cost per receiver is a join, not a message build.
+
+def _field(tag: int, payload: bytes) -> bytes:
+    """A length-delimited field (wire type 2) of field number ``tag``."""
+    return varint(tag << 3 | 2) + varint(len(payload)) + payload
+
+
+def encode_states(ids, t, pos, vel, acc, quat, omega, algorithm) -> list[bytes]:
+    """sortie.v1.EntityState bytes of each row (positions and t float64, the rest
+    as the wire's float32)."""
+    from sortie.v1 import simulation_pb2 as pb
+
+    t = np.broadcast_to(np.asarray(t, np.float64), (len(ids),)).tolist()
+    return [pb.EntityState(entity_id=i, time_s=tk, ecef_x_m=p[0], ecef_y_m=p[1], ecef_z_m=p[2],
+                           velocity_ecef_mps=v, acceleration_ecef_mps2=a, orientation_wxyz=q,
+                           angular_velocity_body_rps=w, dead_reckoning=alg).SerializeToString()
+            for i, tk, p, v, a, q, w, alg in zip(np.asarray(ids).tolist(), t, np.asarray(pos).tolist(),
+                                                 np.asarray(vel).tolist(), np.asarray(acc).tolist(),
+                                                 np.asarray(quat).tolist(), np.asarray(omega).tolist(),
+                                                 np.asarray(algorithm).tolist())]
+
+
+def encode_info(info: tuple) -> bytes:
+    """EntityInfo fields 1-5 (id, name, kind, type, coalition) of an info tuple; the
+    state (field 6) is appended per update by :func:`encode_watch_update`."""
+    from sortie.v1 import simulation_pb2 as pb
+
+    return pb.EntityInfo(entity_id=info[0], name=info[1], kind=info[2], type=info[3],
+                         coalition=info[4]).SerializeToString()
+
+
+def encode_watch_update(p: Pending) -> bytes:
+    """The sortie.v1.WatchUpdate of a Pending, as bytes."""
+    out = [b"\x09" + struct.pack("<d", p.time_s)]  # field 1, double
+    if p.snapshot:
+        out.append(b"\x10\x01")  # field 2, bool
+    out += [_field(3, info + _field(6, state)) for info, state in p.entered]
+    if p.left:
+        out.append(_field(4, b"".join(varint(int(i)) for i in p.left)))  # packed uint64
+    out += [_field(5, state) for state in p.states]
+    return b"".join(out)
+
+
 class Publisher:
     """Runs on the clock thread at the network rate: decides and queues updates.
 
@@ -134,7 +173,12 @@ class Publisher:
     ``thresholds_of(entity_id)`` gives an entity's
     :class:`server.dead_reckoning.Thresholds` when it first appears. Sessions
     are :class:`server.sim_service.Session` objects (queue, centre, radius,
-    own agent, visible set).
+    own agent, visible ids).
+
+    Every receiver's view is decided at once, as (sessions x entities) boolean
+    matrices: relevant now, visible before, entered, left, updated. Each
+    session keeps the ids it sees, and its row of the last matrix while the
+    snapshot's entity layout stays the same (the usual tick).
     """
 
     def __init__(self, reckoner, thresholds_of):
@@ -142,19 +186,40 @@ class Publisher:
         self.thresholds_of = thresholds_of
         self.updates_sent = 0  # entity updates decided (each goes to every session that sees the entity)
         self.entity_samples = 0  # entity x network ticks seen
+        self._ids = np.zeros(0, np.int64)  # the entity layout of the last publish
+        self._layout = 0  # bumped when it changes
 
     def _track(self, ids: np.ndarray) -> None:
-        """Add new entities to the reckoner, drop the gone ones."""
+        """Add new entities to the reckoner (in one call per thresholds), drop the gone ones."""
         known = self.reckoner.ids
         gone = np.setdiff1d(known, ids)
         if gone.size:
             self.reckoner.remove(gone)
-        for i in np.setdiff1d(ids, known):
-            self.reckoner.add([int(i)], self.thresholds_of(int(i)))
+        groups: dict = {}
+        for i in np.setdiff1d(ids, known).tolist():
+            groups.setdefault(self.thresholds_of(i), []).append(i)
+        for thresholds, new in groups.items():
+            self.reckoner.add(new, thresholds)
+
+    def _previous(self, sessions: list, ids: np.ndarray) -> tuple[np.ndarray, list]:
+        """(sessions x entities) visible before this publish, and per session the
+        visible ids no longer in the world (removed: they leave)."""
+        prev = np.zeros((len(sessions), ids.size), bool)
+        gone = [()] * len(sessions)
+        for s_k, s in enumerate(sessions):
+            if s.visible_layout == self._layout and s.visible_mask is not None:
+                prev[s_k] = s.visible_mask
+            elif s.visible_ids.size:
+                prev[s_k] = np.isin(ids, s.visible_ids)
+                gone[s_k] = np.setdiff1d(s.visible_ids, ids).tolist()
+        return prev, gone
 
     def publish(self, snap, infos: dict, sessions: list) -> None:
         n = snap.ids.size
-        self._track(snap.ids)
+        if not np.array_equal(snap.ids, self._ids):
+            self._track(snap.ids)
+            self._ids = snap.ids.copy()
+            self._layout += 1
         self.entity_samples += n
         # The receivers get float32 velocities, accelerations, quaternions and rates: the
         # reckoner models exactly those (positions go as float64).
@@ -169,44 +234,52 @@ class Publisher:
         self.updates_sent += int(due.sum())
         if not sessions:
             return
-        index = {int(i): k for k, i in enumerate(snap.ids)}
+        # Where each session's own agent is in the snapshot (-1: not there).
+        order = np.argsort(snap.ids, kind="stable")
+        agents = np.array([s.agent_id for s in sessions], np.int64)
+        agent_k = np.full(len(sessions), -1)
+        if n:
+            k = order[np.minimum(np.searchsorted(snap.ids, agents, sorter=order), n - 1)]
+            agent_k = np.where(snap.ids[k] == agents, k, -1)
         centres = np.zeros((len(sessions), 3))
         radii = np.full(len(sessions), -1.0)  # no centre (agent gone): sees nothing but its own agent
         for s_k, s in enumerate(sessions):
-            c = s.centre_ecef(snap, index)
+            c = s.observer_ecef if not s.agent_id else snap.ecef_m[agent_k[s_k]] if agent_k[s_k] >= 0 else None
             if c is not None:
                 centres[s_k] = c
                 radii[s_k] = s.radius_m
-        rel = relevant(centres, radii, snap.ecef_m)
-        rows = {}
+        now = relevant(centres, radii, snap.ecef_m)
+        has_agent = np.flatnonzero(agent_k >= 0)
+        now[has_agent, agent_k[has_agent]] = True
+        prev, gone = self._previous(sessions, snap.ids)
+        entered = now & ~prev
+        left = prev & ~now
+        updated = now & due[None, :] & ~entered
 
-        def row(k: int) -> StateRow:
-            if k not in rows:
-                rows[k] = StateRow(int(snap.ids[k]), snap.time_s, tuple(snap.ecef_m[k]), tuple(vel[k]), tuple(acc[k]),
-                                   tuple(quat[k]), tuple(omega[k]), int(algorithms[k]))
-            return rows[k]
+        # Encode once: the due states, and each newcomer's last *sent* state (what every
+        # other receiver extrapolates from, so one model stays true for all of them).
+        due_k = np.flatnonzero(due)
+        state_of = dict(zip(due_k.tolist(), encode_states(snap.ids[due_k], snap.time_s, snap.ecef_m[due_k],
+                                                          vel[due_k], acc[due_k], quat[due_k], omega[due_k],
+                                                          algorithms[due_k])))
+        new_k = np.array([k for k in np.flatnonzero(entered.any(axis=0)).tolist() if int(snap.ids[k]) in infos],
+                         np.int64)
+        enter_of = {}
+        if new_k.size:
+            last = self.reckoner.last_sent(snap.ids[new_k])
+            sent = encode_states(snap.ids[new_k], last["t0"], last["pos"], last["vel"], last["acc"], last["quat"],
+                                 last["omega"], last["algorithm"])
+            enter_of = {k: (encode_info(infos[int(snap.ids[k])]), b) for k, b in zip(new_k.tolist(), sent)}
 
+        ids_list = snap.ids.tolist()
+        busy = entered.any(axis=1) | left.any(axis=1) | updated.any(axis=1)
         for s_k, s in enumerate(sessions):
-            now = rel[s_k]
-            if s.agent_id in index:
-                now[index[s.agent_id]] = True
-            now_ids = set(snap.ids[now].tolist())
-            entered_ids = now_ids - s.visible
-            left_ids = s.visible - now_ids
-            s.visible = now_ids
-            entered = {}
-            if entered_ids:
-                # A newcomer gets what every other receiver holds: the last state sent, not the
-                # current one, so one dead-reckoning model stays true for all of them.
-                new = np.array(sorted(i for i in entered_ids if i in infos), np.int64)
-                if new.size:
-                    last = self.reckoner.last_sent(new)
-                    for k, i in enumerate(new.tolist()):
-                        entered[i] = (infos[i], StateRow(i, float(last["t0"][k]), tuple(last["pos"][k]),
-                                                         tuple(last["vel"][k]), tuple(last["acc"][k]),
-                                                         tuple(last["quat"][k]), tuple(last["omega"][k]),
-                                                         int(last["algorithm"][k])))
-            states = {int(snap.ids[k]): row(int(k)) for k in np.flatnonzero(now & due)
-                      if int(snap.ids[k]) not in entered_ids}
-            if entered or left_ids or states or s.queue.needs_snapshot:
-                s.queue.push(snap.time_s, entered, left_ids, states)
+            s.visible_mask = now[s_k]
+            s.visible_ids = snap.ids[now[s_k]]
+            s.visible_layout = self._layout
+            if not (busy[s_k] or gone[s_k] or s.queue.needs_snapshot):
+                continue
+            ent = {ids_list[k]: enter_of[k] for k in np.flatnonzero(entered[s_k]).tolist() if k in enter_of}
+            states = {ids_list[k]: state_of[k] for k in np.flatnonzero(updated[s_k]).tolist()}
+            left_ids = [ids_list[k] for k in np.flatnonzero(left[s_k]).tolist()] + list(gone[s_k])
+            s.queue.push(snap.time_s, ent, left_ids, states)

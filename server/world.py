@@ -7,10 +7,14 @@ One world tick (``1 / world_rate_hz`` s, 30 Hz by default) does, in order:
 2. update the autopilots (aircraft: heading/altitude/speed hold or waypoint
    following; ground vehicles: route following and convoys) at the world rate;
 3. advance every aircraft by ``fdm_rate_hz / world_rate_hz`` JSBSim steps
-   through one :class:`fdm.fleet.Fleet` (one batched terrain query per round)
-   and every ground vehicle by one tick through one
-   :class:`fdm.ground.GroundVehicles` (one batched query per sub-step);
-4. publish an immutable :class:`Snapshot` of every live entity's kinematic
+   through its aircraft host (server.aircraft_host: one
+   :class:`fdm.fleet.Fleet` in process, or one in each worker process, which
+   then run while this process steps the ground vehicles) and every ground
+   vehicle by one tick through one :class:`fdm.ground.GroundVehicles` (one
+   batched query per sub-step);
+4. test the airborne aircraft's paths over the tick against the terrain
+   (one batched segment intersection);
+5. publish an immutable :class:`Snapshot` of every live entity's kinematic
    state (ECEF position, velocity and acceleration, orientation ECEF -> body,
    body rates) for the network side to read without locks.
 
@@ -32,12 +36,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fdm.aircraft import Aircraft, InitialConditions, validate_controls
-from fdm.autopilot import Autopilot, WaypointFollower
+from fdm.aircraft import InitialConditions, validate_controls
 from fdm.convoy import Convoy, Route, RouteFollower
-from fdm.fleet import Fleet
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, ned_to_ecef_vectors, state_arrays
+from server.aircraft_host import LocalAircraftHost
 from server.dead_reckoning import ned_to_ecef_quat
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
 from terrain.geodesy import geodetic_to_ecef
@@ -66,8 +69,10 @@ class WorldEvent:
 
 @dataclass
 class Entity:
-    """One agent. ``aircraft``/``pilot`` for aircraft, ``ground_id`` for a ground
-    vehicle (its id in the world's GroundVehicles), ``static_*`` for static ones."""
+    """One agent. Aircraft live on the world's aircraft host under the entity's id
+    (``crashed`` and ``on_ground`` mirror it as of the last tick), ``ground_id``
+    for a ground vehicle (its id in the world's GroundVehicles), ``static_*`` for
+    static ones."""
 
     id: int
     name: str
@@ -76,8 +81,8 @@ class Entity:
     coalition: str = "neutral"
     controllable: bool = False
     owner: str | None = None  # session token of the client in control
-    aircraft: Aircraft | None = None
-    pilot: object | None = None  # Autopilot or WaypointFollower, or None (stick)
+    crashed: bool = False
+    on_ground: bool = False
     ground_id: int | None = None
     static_lat_lon_alt: tuple = ()
     static_heading_deg: float = 0.0
@@ -104,6 +109,16 @@ class Snapshot:
         return {int(i): k for k, i in enumerate(self.ids)}
 
 
+def _rows_of(snapshot_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows of ids in a snapshot's ids, found mask); rows of the missing ones are 0."""
+    if not snapshot_ids.size:
+        return np.zeros(ids.size, np.int64), np.zeros(ids.size, bool)
+    order = np.argsort(snapshot_ids, kind="stable")
+    k = order[np.minimum(np.searchsorted(snapshot_ids, ids, sorter=order), snapshot_ids.size - 1)]
+    found = snapshot_ids[k] == ids
+    return np.where(found, k, 0), found
+
+
 def _empty_snapshot(t: float, tick: int) -> Snapshot:
     z3 = np.zeros((0, 3))
     return Snapshot(t, tick, np.zeros(0, np.int64), z3, z3, z3, np.zeros((0, 4)), z3, np.zeros(0), np.zeros(0),
@@ -114,13 +129,15 @@ class World:
     """Agents on one terrain, a fixed-step clock, commands in, snapshots out.
 
     ``terrain``: anything with ``heights(lat, lon)`` (in-process Terrain or a
-    TerrainClient). Thread-safety: :meth:`tick` runs on one thread (the
+    TerrainClient). ``aircraft_host``: where the aircraft fly
+    (server.aircraft_host; a LocalAircraftHost on ``terrain`` by default); the
+    world closes it in :meth:`close`. Thread-safety: :meth:`tick` runs on one thread (the
     clock's); :meth:`command`, :meth:`claim`, :meth:`release` and spawning may
     be called from any thread; :attr:`snapshot` is replaced atomically.
     """
 
     def __init__(self, terrain, fdm_rate_hz: float = 120.0, world_rate_hz: float = 30.0,
-                 geoid_undulation_m: float = 0.0):
+                 geoid_undulation_m: float = 0.0, aircraft_host=None):
         steps = fdm_rate_hz / world_rate_hz
         if not (world_rate_hz > 0 and abs(steps - round(steps)) < 1e-9 and round(steps) >= 1):
             raise InvalidArgument("fdm_rate_hz", f"must be a whole multiple of world_rate_hz ({world_rate_hz})",
@@ -130,7 +147,11 @@ class World:
         self.dt = 1.0 / world_rate_hz
         self.steps_per_tick = int(round(steps))
         self.geoid_undulation_m = float(geoid_undulation_m)
-        self.fleet = Fleet(terrain)
+        self.air = aircraft_host if aircraft_host is not None else LocalAircraftHost(terrain, self.fdm_dt,
+                                                                                    self.geoid_undulation_m)
+        self._air_tick = None  # the aircraft host's last AirTick
+        self._layout_version = 0  # bumped when an entity comes or goes
+        self._layout_cache = None
         self.ground: GroundVehicles | None = None
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
         self._followers: list = []  # RouteFollower/Convoy per route, rebuilt when vehicles go
@@ -164,6 +185,7 @@ class World:
 
     def _register(self, e: Entity) -> None:
         self.entities[e.id] = e
+        self._layout_version += 1
         self.infos = {**self.infos, e.id: (e.id, e.name, e.kind, e.type, e.coalition)}
 
     def spawn_aircraft(self, name: str, type_: str, ic: InitialConditions, *, coalition: str = "neutral",
@@ -172,17 +194,9 @@ class World:
         """An aircraft; ``route`` [(lat, lon, alt_msl_m), ...] flown at ``speed_mps``, or
         ``hold`` {heading_deg, alt_msl_m, speed_mps} held, or neither (stick, trimmed)."""
         with self._lock:
-            ac = Aircraft(type_, self.terrain, ic, dt=self.fdm_dt, geoid_undulation_m=self.geoid_undulation_m)
-            e = self._new_entity(name, AIRCRAFT, ac.name, coalition=coalition, controllable=controllable,
-                                 aircraft=ac, on_vanish=on_vanish)
-            speed = speed_mps if speed_mps is not None else max(ic.speed_mps, 1.0)
-            if route:
-                e.pilot = WaypointFollower(ac, route, speed_mps=speed)
-            elif hold:
-                e.pilot = Autopilot(ac)
-                e.pilot.set_targets(hold.get("heading_deg", ic.heading_deg), hold.get("alt_msl_m"),
-                                    hold.get("speed_mps", speed))
-            self.fleet.add(ac)
+            e = self._new_entity(name, AIRCRAFT, type_, coalition=coalition, controllable=controllable,
+                                 on_vanish=on_vanish)
+            e.type = self.air.spawn(e.id, type_, ic, route=route, hold=hold, speed_mps=speed_mps)
             self._register(e)
             self._emit(WorldEvent(self.time_s, "spawn", e.id, ic.lat_deg, ic.lon_deg, math.nan,
                                   {"name": name, "kind": "aircraft", "type": e.type}))
@@ -237,11 +251,12 @@ class World:
             e = self.entities.pop(entity_id, None)
             if e is None:
                 raise NotFound(f"entity {entity_id} does not exist")
+            self._layout_version += 1
             self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
             self._pending.pop(entity_id, None)
             self._ground_heading_hold.pop(entity_id, None)
             if e.kind == AIRCRAFT:
-                self.fleet.remove(e.aircraft)
+                self.air.remove(entity_id)
             elif e.kind == GROUND:
                 self.ground.remove([e.ground_id])
                 self.routes = [(spec, [i for i in ids if i != entity_id]) for spec, ids in self.routes]
@@ -288,11 +303,8 @@ class World:
             if e.on_vanish == "remove":
                 self.remove(entity_id, "vanished" if vanished else "left")
                 return
-            if e.kind == AIRCRAFT and e.pilot is None and not e.aircraft.crashed:
-                s = e.aircraft.state()
-                e.pilot = Autopilot(e.aircraft)
-                e.pilot.set_targets(math.degrees(s.euler_rad[2]) % 360.0, s.alt_msl_m,
-                                    max(s.airspeed_true_mps, 1.0))
+            if e.kind == AIRCRAFT:
+                self.air.hand_to_autopilot(entity_id)
 
     def command(self, entity_id: int, kind: str, values: dict) -> None:
         """Validate a command now (InvalidArgument naming the field; nothing kept) and
@@ -316,8 +328,9 @@ class World:
             for k, v in values.items():
                 if not (isinstance(v, (int, float)) and math.isfinite(v)):
                     raise InvalidArgument(f"autopilot.{k}", "must be a finite number", value=v)
-            if values.get("speed_mps", 0.0) < 0.0:
-                raise InvalidArgument("autopilot.speed_mps", "must be >= 0", value=values["speed_mps"])
+            if values.get("speed_mps", 0.0) < 0.0 or (e.kind == AIRCRAFT and values.get("speed_mps", 1.0) <= 0.0):
+                raise InvalidArgument("autopilot.speed_mps", "must be > 0 for aircraft, >= 0 for ground vehicles",
+                                      value=values["speed_mps"])
             if e.kind == GROUND and "alt_msl_m" in values:
                 raise InvalidArgument("autopilot.alt_msl_m", "ground vehicles have no altitude to hold")
         elif kind == "drive":
@@ -333,6 +346,16 @@ class World:
         with self._lock:
             self._pending[entity_id] = (kind, values)
 
+    def aircraft_controls(self, entity_id: int):
+        """An aircraft's present controls (fdm.aircraft.Controls)."""
+        with self._lock:
+            return self.air.controls(entity_id)
+
+    def pilot_kind(self, entity_id: int) -> str:
+        """Who flies an aircraft: "autopilot", "route" or "stick" (a client)."""
+        with self._lock:
+            return self.air.pilot_kind(entity_id)
+
     def _apply_commands(self) -> None:
         pending, self._pending = self._pending, {}
         for entity_id, (kind, values) in pending.items():
@@ -340,15 +363,9 @@ class World:
             if e is None:
                 continue
             if kind == "stick":
-                e.pilot = None  # the pilot has the stick
-                e.aircraft.set_controls(**values)
+                self.air.stick(entity_id, values)  # the pilot has the stick
             elif kind == "autopilot" and e.kind == AIRCRAFT:
-                if not isinstance(e.pilot, Autopilot):
-                    s = e.aircraft.state()
-                    e.pilot = Autopilot(e.aircraft)
-                    e.pilot.set_targets(math.degrees(s.euler_rad[2]) % 360.0, s.alt_msl_m,
-                                        max(s.airspeed_true_mps, 1.0))
-                e.pilot.set_targets(values.get("heading_deg"), values.get("alt_msl_m"), values.get("speed_mps"))
+                self.air.autopilot(entity_id, values)
             elif e.kind == GROUND:
                 self._drive(e, kind, values)
 
@@ -371,33 +388,45 @@ class World:
         """One world tick (see the module docstring); the events it produced."""
         with self._lock:
             self._apply_commands()
-            for e in self.entities.values():
-                if e.kind == AIRCRAFT and e.pilot is not None and not e.aircraft.crashed:
-                    e.pilot.update()
+            self.air.begin_tick(self.steps_per_tick)  # in workers, the aircraft fly while the ground drives
             if self.ground is not None and self.ground.n:
                 for f in self._followers:
                     f.update()
                 self._hold_ground_headings()
-            by_aircraft = self.fleet.advance(self.steps_per_tick)
-            if self.ground is not None and self.ground.n:
                 self.ground.step(self.dt)
+            air = self._air_tick = self.air.end_tick()
             self.tick_count += 1
             self.time_s = self.tick_count * self.dt
             events = []
-            owner = {id(e.aircraft): e for e in self.entities.values() if e.kind == AIRCRAFT}
-            for ac, evs in by_aircraft:
-                e = owner.get(id(ac))
-                for ev in evs:
-                    events.append(WorldEvent(self.time_s, ev.kind, e.id if e else 0, ev.lat_deg, ev.lon_deg,
-                                             ev.alt_msl_m, dict(ev.detail)))
+            for entity_id, ev in air.events:
+                events.append(WorldEvent(self.time_s, ev.kind, entity_id, ev.lat_deg, ev.lon_deg, ev.alt_msl_m,
+                                         dict(ev.detail)))
+            for entity_id, crashed, on_ground in zip(air.ids.tolist(), air.crashed.tolist(), air.on_ground.tolist()):
+                e = self.entities.get(entity_id)
+                if e is not None:
+                    e.crashed, e.on_ground = crashed, on_ground
+            for entity_id in air.lost:
+                events.append(self._lose(entity_id))
             snapshot = self._take_snapshot()
-            events += self._terrain_collisions(self.snapshot, snapshot, owner)
+            events += self._terrain_collisions(self.snapshot, snapshot)
             for ev in events:
                 self._emit(ev)
             self.snapshot = snapshot
             return events
 
-    def _terrain_collisions(self, before: Snapshot, after: Snapshot, owner: dict) -> list[WorldEvent]:
+    def _lose(self, entity_id: int) -> WorldEvent:
+        """An aircraft whose worker process died: gone from the world (the host has forgotten it)."""
+        e = self.entities.pop(entity_id)
+        self._layout_version += 1
+        self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
+        self._pending.pop(entity_id, None)
+        return WorldEvent(self.time_s, "remove", entity_id, detail={"name": e.name, "reason": "fdm worker exited"})
+
+    def close(self) -> None:
+        """Release the aircraft host (its worker processes, if any)."""
+        self.air.close()
+
+    def _terrain_collisions(self, before: Snapshot, after: Snapshot) -> list[WorldEvent]:
         """Airborne aircraft whose path over the last tick (the straight ECEF segment from
         the previous snapshot's position to this one's) cuts the terrain: one batched
         segment-intersection query (the terrain service's IntersectSegments when the
@@ -406,22 +435,27 @@ class World:
         where this tick left it (at most one tick's flight beyond)."""
         if not hasattr(self.terrain, "intersect") or before.ids.size == 0:
             return []
-        b_index, a_index = before.index(), after.index()
-        movers = [e for e in owner.values()
-                  if e.id in b_index and e.id in a_index and not e.aircraft.crashed and not e.aircraft.on_ground]
+        air = self._air_tick
+        ids = air.ids[~air.crashed & ~air.on_ground]
+        kb, in_before = _rows_of(before.ids, ids)
+        ka, in_after = _rows_of(after.ids, ids)
+        keep = in_before & in_after
+        entities = [self.entities.get(i) for i in ids.tolist()]
+        keep &= np.array([e is not None and not e.crashed for e in entities], bool)  # not down this tick
+        movers = [e for e, k in zip(entities, keep) if k]
+        kb, ka = kb[keep], ka[keep]
         if not movers:
             return []
-        kb = np.array([b_index[e.id] for e in movers])
-        ka = np.array([a_index[e.id] for e in movers])
         res = self.terrain.intersect(before.lat_deg[kb], before.lon_deg[kb], before.alt_msl_m[kb],
                                      after.lat_deg[ka], after.lon_deg[ka], after.alt_msl_m[ka])
         events = []
         for j in np.flatnonzero(np.asarray(res.hit, bool)):
             e = movers[j]
-            for ev in e.aircraft.crash(self.time_s, float(res.lat_deg[j]), float(res.lon_deg[j]),
-                                       float(res.height_msl_m[j]), "terrain collision (segment)"):
-                events.append(WorldEvent(self.time_s, ev.kind, e.id, ev.lat_deg, ev.lon_deg, ev.alt_msl_m,
-                                         dict(ev.detail)))
+            hit = (float(res.lat_deg[j]), float(res.lon_deg[j]), float(res.height_msl_m[j]))
+            reason = "terrain collision (segment)"
+            self.air.crash(e.id, self.time_s, *hit, reason)  # the aircraft stops before the next tick
+            e.crashed = True
+            events.append(WorldEvent(self.time_s, "crash", e.id, *hit, {"reason": reason}))
         return events
 
     def _hold_ground_headings(self) -> None:
@@ -436,39 +470,52 @@ class World:
         rate = np.clip(0.5 * err, -self.ground.yaw_rate_limit_dps[idx], self.ground.yaw_rate_limit_dps[idx])
         self.ground.set_controls(speed, rate, index=idx)
 
-    def _take_snapshot(self) -> Snapshot:
-        ids, parts = [], []
-        air = [e for e in self.entities.values() if e.kind == AIRCRAFT]
-        if air:
-            s = state_arrays(np.array([e.aircraft.raw_values() for e in air]), self.geoid_undulation_m)
-            ids += [e.id for e in air]
-            parts.append((s["ecef_m"], s["vel_ecef_mps"],
-                          ned_to_ecef_quat(s["quat_wxyz"], s["lat_deg"], s["lon_deg"]), s["body_rates_rps"],
-                          s["lat_deg"], s["lon_deg"], s["alt_msl_m"]))
+    def _layout(self):
+        """(ground entity ids, their rows in self.ground, (static ids, static snapshot
+        columns) or None), cached until an entity comes or goes."""
+        if self._layout_cache is not None and self._layout_cache[0] == self._layout_version:
+            return self._layout_cache[1]
         gnd = [e for e in self.entities.values() if e.kind == GROUND]
-        if gnd:
-            g = self.ground
-            idx = g.index_of([e.ground_id for e in gnd])
-            lat, lon, h = g.lat[idx], g.lon[idx], g.height_msl_m[idx]
-            psi = np.radians(g.heading_deg[idx])
-            q_ned = euler_to_quaternion(np.radians(g.roll_deg[idx]), np.radians(g.pitch_deg[idx]), psi)
-            v_ned = g.velocity_ned()[idx]
-            rates = np.zeros((len(gnd), 3))
-            rates[:, 2] = np.radians(g.yaw_rate_dps[idx])
-            ids += [e.id for e in gnd]
-            parts.append((geodetic_to_ecef(lat, lon, h + self.geoid_undulation_m), ned_to_ecef_vectors(v_ned, lat, lon),
-                          ned_to_ecef_quat(q_ned, lat, lon), rates, lat, lon, h))
+        gnd_ids = np.array([e.id for e in gnd], np.int64)
+        idx = self.ground.index_of([e.ground_id for e in gnd]) if gnd else np.zeros(0, np.int64)
         st = [e for e in self.entities.values() if e.kind == STATIC]
+        static_part = None
         if st:
             lat = np.array([e.static_lat_lon_alt[0] for e in st])
             lon = np.array([e.static_lat_lon_alt[1] for e in st])
             h = np.array([e.static_lat_lon_alt[2] for e in st])
             q_ned = euler_to_quaternion(np.zeros(len(st)), np.zeros(len(st)),
                                         np.radians([e.static_heading_deg for e in st]))
-            ids += [e.id for e in st]
             z = np.zeros((len(st), 3))
-            parts.append((geodetic_to_ecef(lat, lon, h + self.geoid_undulation_m), z, ned_to_ecef_quat(q_ned, lat, lon),
-                          z, lat, lon, h))
+            static_part = ([e.id for e in st], (geodetic_to_ecef(lat, lon, h + self.geoid_undulation_m), z,
+                                                ned_to_ecef_quat(q_ned, lat, lon), z, lat, lon, h))
+        self._layout_cache = (self._layout_version, (gnd_ids, idx, static_part))
+        return self._layout_cache[1]
+
+    def _take_snapshot(self) -> Snapshot:
+        ids, parts = [], []
+        air = self._air_tick
+        if air is not None and air.ids.size:
+            s = state_arrays(air.rows, self.geoid_undulation_m)
+            ids += air.ids.tolist()
+            parts.append((s["ecef_m"], s["vel_ecef_mps"],
+                          ned_to_ecef_quat(s["quat_wxyz"], s["lat_deg"], s["lon_deg"]), s["body_rates_rps"],
+                          s["lat_deg"], s["lon_deg"], s["alt_msl_m"]))
+        gnd_ids, idx, static_part = self._layout()
+        if gnd_ids.size:
+            g = self.ground
+            lat, lon, h = g.lat[idx], g.lon[idx], g.height_msl_m[idx]
+            psi = np.radians(g.heading_deg[idx])
+            q_ned = euler_to_quaternion(np.radians(g.roll_deg[idx]), np.radians(g.pitch_deg[idx]), psi)
+            v_ned = g.velocity_ned()[idx]
+            rates = np.zeros((idx.size, 3))
+            rates[:, 2] = np.radians(g.yaw_rate_dps[idx])
+            ids += gnd_ids.tolist()
+            parts.append((geodetic_to_ecef(lat, lon, h + self.geoid_undulation_m), ned_to_ecef_vectors(v_ned, lat, lon),
+                          ned_to_ecef_quat(q_ned, lat, lon), rates, lat, lon, h))
+        if static_part is not None:
+            ids += static_part[0]
+            parts.append(static_part[1])
         if not ids:
             return _empty_snapshot(self.time_s, self.tick_count)
         cols = [np.concatenate([p[k] for p in parts]) for k in range(7)]

@@ -22,8 +22,12 @@ class InvalidArgument(SortieError, ValueError):
         shown = "" if value is None else f" (got {value!r})"
         super().__init__(f"{where}: {message}{shown}")
         self.field = field
+        self.message = message
         self.index = index
         self.value = value
+
+    def __reduce__(self):  # picklable (an aircraft worker's errors reach the server's caller)
+        return type(self), (self.field, self.message, self.index, self.value)
 
 
 class LimitExceeded(SortieError):
@@ -34,6 +38,9 @@ class LimitExceeded(SortieError):
         self.field = field
         self.size = size
         self.limit = limit
+
+    def __reduce__(self):
+        return type(self), (self.field, self.size, self.limit)
 
 
 class DataFormatError(SortieError):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from fdm.aircraft import Aircraft, FlatTerrain, InitialConditions
-from fdm.autopilot import Autopilot, WaypointFollower, wrap_pi
+from fdm.autopilot import Autopilot, Targets, WaypointFollower, wrap_pi
+from fdm.state import RAW_COLUMNS
 from sortie.errors import InvalidArgument
 
 
@@ -57,3 +58,77 @@ def test_bad_targets_name_the_field():
     with pytest.raises(InvalidArgument, match="waypoints"):
         WaypointFollower(ac, [(91.0, 0.0, 100.0)], 50.0)
     assert np.isfinite(ac.state().alt_msl_m)
+
+
+def _turn_and_climb(name, speed, alt, pilot="autopilot"):
+    """An aircraft and its pilot, turning 90 degrees, climbing 100 m and speeding up 10 %."""
+    ac = Aircraft(name, FlatTerrain(0.0), InitialConditions(47.3, 9.5, alt, heading_deg=0.0, speed_mps=speed))
+    if pilot == "waypoints":  # 250 m ahead (passed within the 300 steps), then 1.5 km east
+        return ac, WaypointFollower(ac, [(47.30225, 9.5, alt + 100.0), (47.30225, 9.52, alt)], speed_mps=speed * 1.1)
+    ap = Autopilot(ac)
+    ap.set_targets(heading_deg=90.0, alt_msl_m=alt + 100.0, speed_mps=speed * 1.1)
+    return ac, ap
+
+
+def _fly(ac, update, steps=300):
+    """Raw state rows of ``steps`` steps, ``update(ac)`` before each."""
+    rows = []
+    for _ in range(steps):
+        update(ac)
+        ac.step()
+        rows.append(ac.raw_state())
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("pilot", ["autopilot", "waypoints"])
+@pytest.mark.parametrize("name, speed, alt", [("c172x", 50.0, 1000.0), ("f16", 200.0, 3000.0)])
+def test_update_with_a_precomputed_row_flies_the_same_trajectory_bit_for_bit(name, speed, alt, pilot):
+    ac, p = _turn_and_climb(name, speed, alt, pilot)
+    reference = _fly(ac, lambda ac: p.update())
+    ac, p = _turn_and_climb(name, speed, alt, pilot)
+    as_list = _fly(ac, lambda ac: p.update(ac.raw_values()))
+    ac, p = _turn_and_climb(name, speed, alt, pilot)
+    as_array = _fly(ac, lambda ac: p.update(ac.raw_state()))
+    assert (as_list == reference).all() and (as_array == reference).all()
+    assert np.ptp(reference[:, RAW_COLUMNS["psi_rad"]]) > 0.01  # it did turn
+    assert pilot == "autopilot" or p.active == 1  # and passed the first waypoint
+
+
+@pytest.mark.parametrize("name, speed, alt", [("c172x", 50.0, 1000.0), ("f16", 200.0, 3000.0)])
+def test_trusted_controls_fly_the_same_trajectory_as_set_controls(name, speed, alt):
+    ac, ap = _turn_and_climb(name, speed, alt)
+    trusted = _fly(ac, lambda ac: ap.update())
+    trusted_controls = ac.controls
+
+    ref, ref_ap = _turn_and_climb(name, speed, alt)
+
+    def through_set_controls(pitch=None, roll=None, yaw=None, throttle=None):
+        ref.set_controls(**{k: v for k, v in (("roll", roll), ("yaw", yaw), ("pitch", pitch), ("throttle", throttle))
+                            if v is not None})
+
+    ref._set_controls_trusted = through_set_controls
+    assert (_fly(ref, lambda ac: ref_ap.update()) == trusted).all()
+    assert ref.controls == trusted_controls
+
+
+def test_trusted_controls_write_what_set_controls_writes():
+    props = ["fcs/elevator-cmd-norm", "fcs/aileron-cmd-norm", "fcs/rudder-cmd-norm", "fcs/throttle-cmd-norm[0]"]
+    a = Aircraft("c172x", FlatTerrain(0.0), InitialConditions(47.3, 9.5, 1000.0, speed_mps=50.0))
+    b = Aircraft("c172x", FlatTerrain(0.0), InitialConditions(47.3, 9.5, 1000.0, speed_mps=50.0))
+    for values in ({"pitch": 0.0, "roll": -0.0, "yaw": 1.0, "throttle": 0.3},
+                   {"pitch": -0.7, "yaw": -1.0},  # the others stay as they were
+                   {"roll": 0.25, "throttle": 1.0}):
+        a.set_controls(**values)
+        b._set_controls_trusted(**values)
+        assert a.controls == b.controls
+        assert all(math.copysign(1.0, a.fdm[p]) == math.copysign(1.0, b.fdm[p]) and a.fdm[p] == b.fdm[p]
+                   for p in props)
+
+
+def test_a_nan_state_is_still_rejected_by_name():
+    ac = Aircraft("c172x", FlatTerrain(0.0), InitialConditions(47.3, 9.5, 1000.0, speed_mps=50.0))
+    ap = Autopilot(ac, Targets(heading_deg=90.0))
+    row = ac.raw_values()
+    row[RAW_COLUMNS["psi_rad"]] = float("nan")
+    with pytest.raises(InvalidArgument, match="roll"):
+        ap.update(row)

@@ -137,7 +137,7 @@ def test_tokens_permissions_and_hostile_input(server):
         with pilot.controls() as c:
             c.stick(pitch=0.2, throttle=1.0)
         assert pic.wait_for(lambda p: p.updates > before + 5, 10.0)
-        assert server.world.entities[agent].aircraft.controls.pitch == 0.2
+        assert server.world.aircraft_controls(agent).pitch == 0.2
 
 
 def test_receivers_dead_reckoning_stays_within_the_thresholds(server):
@@ -223,7 +223,7 @@ def test_leave_and_vanish_hand_the_agent_to_its_autopilot(server):
         ctl.stick(roll=0.3)
     c.leave()
     e = server.world.entities[agent]
-    assert e.owner is None and e.pilot is not None  # autopilot holds heading, altitude, speed
+    assert e.owner is None and server.world.pilot_kind(agent) == "autopilot"  # autopilot holds heading, altitude, speed
     ctl = c.controls()  # the token no longer works
     ctl.stick(roll=0.0)
     with pytest.raises(Unauthenticated):
@@ -303,11 +303,35 @@ def test_a_fast_mover_cannot_tunnel_through_a_thin_pillar():
                                                           speed_mps=250.0))
     for _ in range(12 * 30):  # 12 s: the pillar is 2.1 km ahead
         w.tick()
-        if e.aircraft.crashed:
+        if e.crashed:
             break
-    assert e.aircraft.crashed
+    assert e.crashed and w.air.fleet.aircraft[0].crashed
     crash = [ev for ev in w.events if ev.kind == "crash"][-1]
     assert crash.entity_id == e.id and crash.detail["reason"] == "terrain collision (segment)"
     assert abs(crash.lat_deg - pillar_lat) * 111_200 < 50.0
     assert abs(crash.lon_deg - pillar_lon) * 111_200 * math.cos(math.radians(47.01)) < 50.0
     assert crash.alt_msl_m < 3100.0
+
+
+def test_watch_updates_assembled_from_bytes_parse_as_the_generated_message():
+    from server.streaming import Pending, encode_info, encode_states, encode_watch_update
+
+    z3 = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    states = encode_states([5, 300], [1.5, 1.25], [[1e6, 2e6, 3e6], [4e6, 5e6, 6e6]], [[1.0, 2.0, 3.0], [4, 5, 6]],
+                           z3, [[1.0, 0, 0, 0], [0, 1.0, 0, 0]], [[0.5, 0, 0], [0, 0, -0.25]], [4, 2])
+
+    def state(i, t, p, v, q, w, alg):
+        return pb.EntityState(entity_id=i, time_s=t, ecef_x_m=p[0], ecef_y_m=p[1], ecef_z_m=p[2],
+                              velocity_ecef_mps=v, acceleration_ecef_mps2=[0, 0, 0], orientation_wxyz=q,
+                              angular_velocity_body_rps=w, dead_reckoning=alg)
+
+    s0 = state(5, 1.5, (1e6, 2e6, 3e6), [1, 2, 3], [1, 0, 0, 0], [0.5, 0, 0], 4)
+    s1 = state(300, 1.25, (4e6, 5e6, 6e6), [4, 5, 6], [0, 1, 0, 0], [0, 0, -0.25], 2)
+    info = encode_info((7, "viper", 1, "f16", "blue"))
+    got = pb.WatchUpdate.FromString(encode_watch_update(Pending(2.0, True, [(info, states[0])], [9, 70000],
+                                                                [states[1]])))
+    want = pb.WatchUpdate(time_s=2.0, snapshot=True, left=[9, 70000], states=[s1],
+                          entered=[pb.EntityInfo(entity_id=7, name="viper", kind=1, type="f16", coalition="blue",
+                                                 state=s0)])
+    assert got == want
+    assert pb.WatchUpdate.FromString(encode_watch_update(Pending(3.0, False, [], [], []))) == pb.WatchUpdate(time_s=3.0)

@@ -1,0 +1,431 @@
+"""Where the world's aircraft fly: in the server's process, or spread over worker processes.
+
+JSBSim holds the GIL while it runs (a thread per core gains nothing: measured
+slower than one thread), so the only way to put the other cores to work on the
+fdm is other processes. The :class:`server.world.World` talks to an aircraft
+host with one small interface, and never to an ``Aircraft`` directly:
+
+- :class:`LocalAircraftHost`: the aircraft, their pilots and one
+  :class:`fdm.fleet.Fleet` in this process (tests, small exercises, and the
+  code every worker runs);
+- :class:`ProcessAircraftHost`: ``n`` worker processes, each running a
+  LocalAircraftHost behind a pipe. A world tick is sent to every worker at
+  once (:meth:`begin_tick`), the world steps its ground vehicles while they
+  run, and :meth:`end_tick` gathers their results.
+
+Commands (stick, autopilot targets, hand-over to the autopilot, crash,
+removal) are queued and reach the aircraft before the next tick's pilot
+updates, in the order given, which is exactly when the local host applies
+them; spawning is a request answered at once (so a trim failure is the
+caller's error). Each aircraft's trajectory depends only on its own initial
+conditions, commands and terrain answers, so it is the same in any worker.
+
+A tick's result, :class:`AirTick`, holds every aircraft's raw state row
+(``fdm.state.RAW_PROPERTIES``), its crashed / on-ground flags and its fdm
+events. A worker that dies (JSBSim aborting, the OOM killer) loses only its
+own aircraft: the tick reports their ids in ``lost`` and the others go on.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fdm.aircraft import Aircraft, InitialConditions
+from fdm.autopilot import Autopilot, WaypointFollower
+from fdm.fleet import Fleet
+from fdm.state import RAW_WIDTH
+from sortie.errors import InvalidArgument, NotFound, SortieError
+
+logger = logging.getLogger(__name__)
+
+# Most worker processes a host starts (each holds JSBSim instances, the
+# terrain and its caches: 100-200 MB).
+MAX_WORKERS = 64
+# Seconds a worker may take to start (imports, terrain) or to answer a request
+# other than a tick before it is taken for dead.
+WORKER_START_TIMEOUT_S = 120.0
+
+
+@dataclass
+class AirTick:
+    """Every aircraft after a tick, aligned arrays (order: the host's, stable between spawns)."""
+
+    ids: np.ndarray  # (n,) int64 entity ids
+    rows: np.ndarray  # (n, RAW_WIDTH) raw state rows
+    crashed: np.ndarray  # (n,) bool
+    on_ground: np.ndarray  # (n,) bool
+    events: list = field(default_factory=list)  # (entity id, fdm.events.Event)
+    lost: list = field(default_factory=list)  # entity ids whose worker died
+
+
+def _empty_tick(lost=()) -> AirTick:
+    return AirTick(np.zeros(0, np.int64), np.zeros((0, RAW_WIDTH)), np.zeros(0, bool), np.zeros(0, bool),
+                   lost=list(lost))
+
+
+def _concat(ticks: list[AirTick]) -> AirTick:
+    ticks = [t for t in ticks if t.ids.size or t.events or t.lost]
+    if not ticks:
+        return _empty_tick()
+    if len(ticks) == 1:
+        return ticks[0]
+    return AirTick(np.concatenate([t.ids for t in ticks]), np.concatenate([t.rows for t in ticks]),
+                   np.concatenate([t.crashed for t in ticks]), np.concatenate([t.on_ground for t in ticks]),
+                   [e for t in ticks for e in t.events], [i for t in ticks for i in t.lost])
+
+
+class LocalAircraftHost:
+    """Aircraft, pilots and one Fleet in this process.
+
+    ``terrain``: anything with ``heights(lat, lon)`` (see fdm.aircraft). The
+    pilot of an aircraft is an :class:`fdm.autopilot.Autopilot`, a
+    :class:`fdm.autopilot.WaypointFollower` or None (the stick is a client's).
+    """
+
+    def __init__(self, terrain, dt: float, geoid_undulation_m: float = 0.0):
+        self.terrain = terrain
+        self.dt = float(dt)
+        self.geoid_undulation_m = float(geoid_undulation_m)
+        self.fleet = Fleet(terrain)
+        self._aircraft: dict[int, Aircraft] = {}  # entity id -> aircraft, in spawn order
+        self._pilots: dict[int, object] = {}
+        self._rows: dict[int, list] = {}  # entity id -> its raw row as of the last tick's end
+        self._result = _empty_tick()
+
+    def __len__(self) -> int:
+        return len(self._aircraft)
+
+    def _get(self, entity_id: int) -> Aircraft:
+        ac = self._aircraft.get(entity_id)
+        if ac is None:
+            raise NotFound(f"aircraft entity {entity_id} is not on this host")
+        return ac
+
+    # -- requests and commands ------------------------------------------------------------------
+
+    def spawn(self, entity_id: int, type_: str, ic: InitialConditions, *, route=None, hold=None,
+              speed_mps: float | None = None) -> str:
+        """A new aircraft (trimmed when airborne); its catalog name. ``route``
+        [(lat, lon, alt_msl_m), ...] flown at ``speed_mps``, or ``hold``
+        {heading_deg, alt_msl_m, speed_mps} held, or neither (stick)."""
+        if entity_id in self._aircraft:
+            raise InvalidArgument("entity_id", "already has an aircraft on this host", value=entity_id)
+        ac = Aircraft(type_, self.terrain, ic, dt=self.dt, geoid_undulation_m=self.geoid_undulation_m)
+        speed = speed_mps if speed_mps is not None else max(ic.speed_mps, 1.0)
+        pilot = None
+        if route:
+            pilot = WaypointFollower(ac, route, speed_mps=speed)
+        elif hold:
+            pilot = Autopilot(ac)
+            pilot.set_targets(hold.get("heading_deg", ic.heading_deg), hold.get("alt_msl_m"),
+                              hold.get("speed_mps", speed))
+        self.fleet.add(ac)
+        self._aircraft[entity_id] = ac
+        self._pilots[entity_id] = pilot
+        return ac.name
+
+    def remove(self, entity_id: int) -> None:
+        self.fleet.remove(self._get(entity_id))
+        del self._aircraft[entity_id]
+        del self._pilots[entity_id]
+        self._rows.pop(entity_id, None)
+
+    def stick(self, entity_id: int, values: dict) -> None:
+        """Validated controls (fdm.aircraft.validate_controls); the pilot lets go of the aircraft."""
+        ac = self._get(entity_id)
+        self._pilots[entity_id] = None
+        ac.set_controls(**values)
+
+    def _hold_present(self, entity_id: int) -> Autopilot:
+        ac = self._get(entity_id)
+        s = ac.state()
+        pilot = Autopilot(ac)
+        pilot.set_targets(math.degrees(s.euler_rad[2]) % 360.0, s.alt_msl_m, max(s.airspeed_true_mps, 1.0))
+        self._pilots[entity_id] = pilot
+        return pilot
+
+    def autopilot(self, entity_id: int, targets: dict) -> None:
+        """Autopilot targets (heading_deg, alt_msl_m, speed_mps; None keeps none); an
+        aircraft without an autopilot first gets one holding its present state."""
+        pilot = self._pilots.get(entity_id)
+        if not isinstance(pilot, Autopilot):
+            pilot = self._hold_present(entity_id)
+        pilot.set_targets(targets.get("heading_deg"), targets.get("alt_msl_m"), targets.get("speed_mps"))
+
+    def hand_to_autopilot(self, entity_id: int) -> None:
+        """An aircraft left by its pilot holds its present heading, altitude and speed
+        (no change when it already has an autopilot or has crashed)."""
+        if self._pilots.get(entity_id) is None and not self._get(entity_id).crashed:
+            self._hold_present(entity_id)
+
+    def crash(self, entity_id: int, t: float, lat: float, lon: float, alt_m: float, reason: str) -> None:
+        """A crash the world found (its segment test): the aircraft stops where it is.
+        The world reports the event itself."""
+        self._get(entity_id).crash(t, lat, lon, alt_m, reason)
+
+    def controls(self, entity_id: int):
+        """The aircraft's present fdm.aircraft.Controls."""
+        return self._get(entity_id).controls
+
+    def pilot_kind(self, entity_id: int) -> str:
+        """"autopilot", "route" or "stick"."""
+        pilot = self._pilots.get(entity_id)
+        self._get(entity_id)
+        return "stick" if pilot is None else "route" if isinstance(pilot, WaypointFollower) else "autopilot"
+
+    # -- ticking --------------------------------------------------------------------------------
+
+    def begin_tick(self, steps: int) -> None:
+        """Pilots update (each on its aircraft's row of the last tick when it has one),
+        then every aircraft runs ``steps`` JSBSim steps through the Fleet."""
+        rows = self._rows  # nothing between two ticks changes an aircraft's state (controls are not state)
+        for entity_id, pilot in self._pilots.items():
+            ac = self._aircraft[entity_id]
+            if pilot is not None and not ac.crashed:
+                pilot.update(rows.get(entity_id))
+        owner = {id(ac): entity_id for entity_id, ac in self._aircraft.items()}
+        events = [(owner[id(ac)], ev) for ac, evs in self.fleet.advance(steps) for ev in evs]
+        n = len(self._aircraft)
+        ids = np.fromiter(self._aircraft, np.int64, n)
+        values = [ac.raw_values() for ac in self._aircraft.values()]
+        self._rows = dict(zip(self._aircraft, values))
+        rows = np.array(values).reshape(n, RAW_WIDTH)
+        crashed = np.fromiter((ac.crashed for ac in self._aircraft.values()), bool, n)
+        on_ground = np.fromiter((ac.on_ground for ac in self._aircraft.values()), bool, n)
+        self._result = AirTick(ids, rows, crashed, on_ground, events)
+
+    def end_tick(self) -> AirTick:
+        result, self._result = self._result, _empty_tick()
+        return result
+
+    def close(self) -> None:
+        pass
+
+
+# -- worker processes ---------------------------------------------------------------------------
+
+# What a queued command may call on the worker's LocalAircraftHost.
+_COMMANDS = frozenset({"remove", "stick", "autopilot", "hand_to_autopilot", "crash"})
+_REQUESTS = frozenset({"spawn", "controls", "pilot_kind", "tick", "close"})
+
+
+def _worker_main(conn, terrain_factory, dt: float, geoid_undulation_m: float) -> None:
+    """A worker: a LocalAircraftHost answering (commands, request) messages until closed."""
+    try:
+        host = LocalAircraftHost(terrain_factory(), dt, geoid_undulation_m)
+        conn.send(("ok", os.getpid()))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        conn.send(("err", _portable(exc)))
+        return
+    while True:
+        try:
+            commands, (name, args, kwargs) = conn.recv()
+        except (EOFError, OSError):
+            return  # the parent has gone
+        for cmd, cargs in commands:
+            try:
+                getattr(host, cmd)(*cargs)
+            except SortieError as exc:  # e.g. a command for an aircraft removed meanwhile
+                logger.warning("aircraft worker: %s%r ignored: %s", cmd, cargs, exc)
+        try:
+            if name == "tick":
+                host.begin_tick(*args)
+                reply = ("ok", host.end_tick())
+            elif name == "close":
+                conn.send(("ok", None))
+                return
+            else:
+                reply = ("ok", getattr(host, name)(*args, **kwargs))
+        except BaseException as exc:  # noqa: BLE001 - the parent raises it as the caller's error
+            reply = ("err", _portable(exc))
+        conn.send(reply)
+
+
+def _portable(exc: BaseException) -> BaseException:
+    """The exception if it survives pickling, else a SortieError with its text."""
+    import pickle
+
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc
+    except Exception:  # noqa: BLE001 - any failure to round-trip
+        return SortieError(f"{type(exc).__name__}: {exc}")
+
+
+class _Worker:
+    def __init__(self, ctx, index: int, terrain_factory, dt: float, geoid_undulation_m: float):
+        self.index = index
+        self.conn, child = ctx.Pipe()
+        self.process = ctx.Process(target=_worker_main, args=(child, terrain_factory, dt, geoid_undulation_m),
+                                   name=f"sortie-aircraft-{index}", daemon=True)
+        self.process.start()
+        child.close()
+        self.commands: list = []
+        self.ids: set[int] = set()
+        self.alive = True
+        self.waiting = False  # a tick was sent and not yet received
+
+    def started(self) -> None:
+        if not self.conn.poll(WORKER_START_TIMEOUT_S):
+            raise SortieError(f"aircraft worker {self.index} did not start within {WORKER_START_TIMEOUT_S:g} s")
+        status, value = self.conn.recv()
+        if status == "err":
+            raise value
+
+    def send(self, name: str, *args, **kwargs) -> None:
+        commands, self.commands = self.commands, []
+        self.conn.send((commands, (name, args, kwargs)))
+
+    def receive(self):
+        status, value = self.conn.recv()
+        if status == "err":
+            raise value
+        return value
+
+    def request(self, name: str, *args, **kwargs):
+        self.send(name, *args, **kwargs)
+        if not self.conn.poll(WORKER_START_TIMEOUT_S):
+            raise SortieError(f"aircraft worker {self.index} did not answer {name} within "
+                              f"{WORKER_START_TIMEOUT_S:g} s")
+        return self.receive()
+
+
+class ProcessAircraftHost:
+    """The aircraft spread over ``workers`` processes (see the module docstring).
+
+    ``terrain_factory``: a picklable callable with no arguments that opens the
+    terrain in a worker (a module-level function, or functools.partial of
+    one): the same DEM files, or a client of the same terrain service, so
+    that every process gets the same terrain answers. New aircraft go to the
+    worker holding the fewest.
+    """
+
+    def __init__(self, terrain_factory, dt: float, geoid_undulation_m: float = 0.0, workers: int = 2):
+        if not (isinstance(workers, int) and 1 <= workers <= MAX_WORKERS):
+            raise InvalidArgument("aircraft_workers", f"must be an integer in [1, {MAX_WORKERS}]", value=workers)
+        if not callable(terrain_factory):
+            raise InvalidArgument("terrain_factory", "must be a picklable callable that opens the terrain",
+                                  value=terrain_factory)
+        # spawn, not fork: the server's process has gRPC threads, which fork does not survive.
+        ctx = multiprocessing.get_context("spawn")
+        self._workers = [_Worker(ctx, k, terrain_factory, dt, geoid_undulation_m) for k in range(workers)]
+        try:
+            for w in self._workers:
+                w.started()
+        except BaseException:
+            self.close()
+            raise
+        self._where: dict[int, _Worker] = {}
+        self._lost: list[int] = []  # ids of aircraft lost since the last end_tick
+
+    def __len__(self) -> int:
+        return len(self._where)
+
+    @property
+    def pids(self) -> list[int]:
+        return [w.process.pid for w in self._workers]
+
+    def _of(self, entity_id: int) -> _Worker:
+        w = self._where.get(entity_id)
+        if w is None:
+            raise NotFound(f"aircraft entity {entity_id} is not on this host")
+        return w
+
+    def spawn(self, entity_id: int, type_: str, ic: InitialConditions, *, route=None, hold=None,
+              speed_mps: float | None = None) -> str:
+        if entity_id in self._where:
+            raise InvalidArgument("entity_id", "already has an aircraft on this host", value=entity_id)
+        live = [w for w in self._workers if w.alive]
+        if not live:
+            raise SortieError("every aircraft worker has exited")
+        w = min(live, key=lambda w: (len(w.ids), w.index))
+        name = w.request("spawn", entity_id, type_, ic, route=route, hold=hold, speed_mps=speed_mps)
+        w.ids.add(entity_id)
+        self._where[entity_id] = w
+        return name
+
+    def _command(self, entity_id: int, name: str, *args) -> None:
+        self._of(entity_id).commands.append((name, (entity_id, *args)))
+
+    def remove(self, entity_id: int) -> None:
+        w = self._of(entity_id)
+        w.commands.append(("remove", (entity_id,)))
+        w.ids.discard(entity_id)
+        del self._where[entity_id]
+
+    def stick(self, entity_id: int, values: dict) -> None:
+        self._command(entity_id, "stick", values)
+
+    def autopilot(self, entity_id: int, targets: dict) -> None:
+        self._command(entity_id, "autopilot", targets)
+
+    def hand_to_autopilot(self, entity_id: int) -> None:
+        self._command(entity_id, "hand_to_autopilot")
+
+    def crash(self, entity_id: int, t: float, lat: float, lon: float, alt_m: float, reason: str) -> None:
+        self._command(entity_id, "crash", t, lat, lon, alt_m, reason)
+
+    def controls(self, entity_id: int):
+        return self._of(entity_id).request("controls", entity_id)
+
+    def pilot_kind(self, entity_id: int) -> str:
+        return self._of(entity_id).request("pilot_kind", entity_id)
+
+    def begin_tick(self, steps: int) -> None:
+        for w in self._workers:
+            if w.alive and (w.ids or w.commands):
+                try:
+                    w.send("tick", steps)
+                    w.waiting = True
+                except (BrokenPipeError, OSError):
+                    self._lost += self._lose(w)
+
+    def end_tick(self) -> AirTick:
+        results = [_empty_tick(self._lost)] if self._lost else []
+        self._lost = []
+        for w in self._workers:
+            if not w.waiting:
+                continue
+            w.waiting = False
+            try:
+                results.append(w.receive())
+            except (EOFError, OSError):
+                results.append(_empty_tick(self._lose(w)))
+        return _concat(results)
+
+    def _lose(self, w: _Worker) -> list[int]:
+        """A worker died: forget it and its aircraft; their ids."""
+        logger.error("aircraft worker %d (pid %s) exited with %s; its %d aircraft are lost", w.index,
+                     w.process.pid, w.process.exitcode, len(w.ids))
+        w.alive = False
+        lost = sorted(w.ids)
+        for entity_id in lost:
+            del self._where[entity_id]
+        w.ids.clear()
+        w.commands.clear()
+        return lost
+
+    def close(self) -> None:
+        """Stop the workers (politely, then not)."""
+        for w in self._workers:
+            if w.alive and w.process.is_alive():
+                try:
+                    w.commands.clear()
+                    if w.waiting:
+                        w.receive()
+                    w.send("close")
+                except (EOFError, OSError, SortieError):
+                    pass
+            w.alive = False
+        for w in self._workers:
+            w.process.join(5.0)
+            if w.process.is_alive():
+                w.process.kill()
+                w.process.join(1.0)
+            w.conn.close()
