@@ -17,12 +17,14 @@ unknown field, a multi-byte enum varint) falls back to the generated class.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import re
 import signal
 import struct
 import threading
 from collections.abc import Callable, Mapping
+from concurrent import futures
 
 import grpc
 import numpy as np
@@ -331,3 +333,77 @@ class ManagedServer:
                 signal.signal(sig, handler)
         logger.info("signal received: NOT_SERVING, stopping with %.1f s grace", grace_s)
         self.stop(grace_s).wait()
+
+
+class AioManagedServer:
+    """:class:`ManagedServer` for a ``grpc.aio`` server, whose event loop runs on a
+    thread of its own, so that the rest of the process (a world's clock
+    thread) stays synchronous. Same health, reflection and graceful stop.
+
+    ``handlers``: {method: handler} of one service whose behaviours are
+    coroutines; ``blocking_workers``: threads of the pool handlers offload
+    blocking calls to (:attr:`blocking`).
+    """
+
+    def __init__(self, service_name: str, handlers_of, address: str, *, max_rpcs: int,
+                 blocking_workers: int = 8, options=None):
+        self.blocking = futures.ThreadPoolExecutor(max_workers=blocking_workers, thread_name_prefix="aio-blocking")
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._run_loop, name="grpc-aio", daemon=True)
+        self._thread.start()
+        self._health_names = ("", service_name)
+        self._stopped = threading.Event()
+        try:
+            self.port = self._call(self._create(service_name, handlers_of(self.blocking), address, max_rpcs,
+                                                options if options is not None else channel_options()))
+        except BaseException:
+            self._shutdown_loop()
+            raise
+
+    def _run_loop(self) -> None:
+        asyncio.set_event_loop(self.loop)
+        self.loop.run_forever()
+
+    def _call(self, coro, timeout_s: float = 60.0):
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
+
+    async def _create(self, service_name, handlers, address, max_rpcs, options) -> int:
+        from grpc_health.v1.health import aio as health_aio
+
+        self.grpc_server = grpc.aio.server(options=options, maximum_concurrent_rpcs=max_rpcs)
+        self.grpc_server.add_registered_method_handlers(service_name, handlers)
+        self.health = health_aio.HealthServicer()
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc_server)
+        reflection.enable_server_reflection((service_name, health.SERVICE_NAME, reflection.SERVICE_NAME),
+                                            self.grpc_server)
+        return self.grpc_server.add_insecure_port(address)
+
+    async def _start(self) -> None:
+        await self.grpc_server.start()
+        for name in self._health_names:
+            await self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
+
+    def start(self) -> None:
+        self._call(self._start())
+
+    async def _stop(self, grace) -> None:
+        await self.health.enter_graceful_shutdown()
+        await self.grpc_server.stop(grace)
+
+    def stop(self, grace: float | None = DEFAULT_GRACE_S) -> threading.Event:
+        """NOT_SERVING, then stop with ``grace`` seconds for in-flight calls; the loop
+        and its thread end after. Returns an event set when all is stopped."""
+        if self.loop.is_closed() or self._stopped.is_set():
+            return self._stopped
+        future = asyncio.run_coroutine_threadsafe(self._stop(grace), self.loop)
+
+        def done(_):
+            self._shutdown_loop()
+
+        future.add_done_callback(done)
+        return self._stopped
+
+    def _shutdown_loop(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.blocking.shutdown(wait=False, cancel_futures=True)
+        self._stopped.set()

@@ -17,14 +17,12 @@ import functools
 import logging
 import threading
 import time
-from concurrent import futures
 from dataclasses import dataclass, field
 
-import grpc
 import numpy as np
 
 from server.dead_reckoning import DeadReckoner, Thresholds, THRESHOLDS_BY_KIND, ALGORITHM_NAMES
-from server.grpc_common import ManagedServer, channel_options
+from server.grpc_common import AioManagedServer
 from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers
 from server.streaming import Publisher
 from server.world import KIND_NAMES, World
@@ -34,7 +32,7 @@ from sortie.v1 import simulation_pb2 as pb
 logger = logging.getLogger(__name__)
 
 CLOCKS = ("realtime", "fast", "paused")
-DEFAULT_MAX_WORKERS = 64  # every Watch / events / controls stream holds a worker thread
+DEFAULT_MAX_WORKERS = 512  # concurrent RPCs (streams are coroutines, not threads)
 EXPIRE_EVERY_S = 1.0
 # A realtime clock more than this far behind resynchronises instead of bursting.
 MAX_LAG_S = 0.25
@@ -92,15 +90,13 @@ class SimulationServer:
         self._stop = threading.Event()
         self._resume = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world-clock", daemon=True)
-        server = grpc.server(futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="sim-rpc"),
-                             options=channel_options(), maximum_concurrent_rpcs=max_workers)
-        server.add_registered_method_handlers(SERVICE_NAME, method_handlers(SimulationServicer(self.sessions,
-                                                                                               self.world_info)))
-        self.grpc = ManagedServer(server, (SERVICE_NAME,))
+        servicer = functools.partial(SimulationServicer, self.sessions, self.world_info)
         try:
-            self.port = server.add_insecure_port(address)
+            self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
+                                         max_rpcs=max_workers)
         except RuntimeError as exc:
             raise SortieError(f"cannot listen on {address}: {exc}") from exc
+        self.port = self.grpc.port
         self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"
         self.finished = threading.Event()
 

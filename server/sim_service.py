@@ -16,6 +16,7 @@ ends the stream with INVALID_ARGUMENT on the first bad one, naming the field
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import math
@@ -168,98 +169,125 @@ class Sessions:
 
 
 class SimulationServicer:
-    """The RPC handlers; ``clock`` gives world info (time, rates, mode)."""
+    """The RPC handlers, as coroutines of one asyncio loop (grpc.aio).
 
-    def __init__(self, sessions: Sessions, world_info):
+    Every Watch stream is a coroutine, not a thread: at each network tick the
+    publisher's pushes wake the loop once and it writes each stream's update
+    in turn, with none of the per-message thread hand-offs of a thread-pool
+    server (measured: with 32 streams those spread one tick's updates over
+    about 14 ms). Calls that may wait on the world's lock (joining claims an
+    agent, leaving releases one, commands queue under it while a tick runs)
+    go to a small thread pool (``blocking``), so the loop never waits on a
+    tick. ``world_info`` gives world info (time, rates, mode).
+    """
+
+    def __init__(self, sessions: Sessions, world_info, blocking=None):
         self.sessions = sessions
         self.world = sessions.world
         self.world_info = world_info
+        self.blocking = blocking  # concurrent.futures executor for calls that may block (None: the loop's default)
+
+    async def _offload(self, fn, *args):
+        return await asyncio.get_running_loop().run_in_executor(self.blocking, fn, *args)
 
     @staticmethod
-    def _fail(context, error: Exception):
+    async def _fail(context, error: Exception):
         code = status_of(error)
         if code == grpc.StatusCode.INTERNAL:
-            logger.exception("internal error in a simulation RPC")
-        context.abort(code, str(error))
+            logger.error("internal error in a simulation RPC", exc_info=error)
+        await context.abort(code, str(error))
 
-    def Join(self, request, context):
+    async def Join(self, request, context):
         try:
-            s = self.sessions.join(request.client_name, request.role, request.agent_name,
-                                   (request.observer_lat_deg, request.observer_lon_deg, request.observer_radius_m))
+            s = await self._offload(self.sessions.join, request.client_name, request.role, request.agent_name,
+                                    (request.observer_lat_deg, request.observer_lon_deg, request.observer_radius_m))
             return pb.JoinResponse(session_token=s.token, agent_id=s.agent_id, world=self.world_info())
         except Exception as exc:  # noqa: BLE001 - every error becomes a status
-            self._fail(context, exc)
+            await self._fail(context, exc)
 
-    def Leave(self, request, context):
+    async def Leave(self, request, context):
         try:
-            self.sessions.leave(request.session_token)
+            await self._offload(self.sessions.leave, request.session_token)
             return pb.LeaveResponse()
         except Exception as exc:  # noqa: BLE001
-            self._fail(context, exc)
+            await self._fail(context, exc)
 
-    def SendControls(self, request_iterator, context):
+    def _command(self, msg) -> None:
+        s = self.sessions.get(msg.session_token)
+        if not s.agent_id or msg.agent_id != s.agent_id:
+            raise PermissionDenied(f"session {s.name!r} does not control entity {msg.agent_id}")
+        which = msg.WhichOneof("command")
+        if which is None:
+            raise InvalidArgument("command", "set one of stick, autopilot, drive")
+        sub = getattr(msg, which)
+        self.world.command(s.agent_id, which, {f.name: v for f, v in sub.ListFields()})
+
+    async def SendControls(self, request_iterator, context):
         accepted = 0
         try:
-            for msg in request_iterator:
-                s = self.sessions.get(msg.session_token)
-                if not s.agent_id or msg.agent_id != s.agent_id:
-                    raise PermissionDenied(f"session {s.name!r} does not control entity {msg.agent_id}")
-                which = msg.WhichOneof("command")
-                if which is None:
-                    raise InvalidArgument("command", "set one of stick, autopilot, drive")
-                sub = getattr(msg, which)
-                values = {f.name: v for f, v in sub.ListFields()}
-                self.world.command(s.agent_id, which, values)
+            async for msg in request_iterator:
+                await self._offload(self._command, msg)
                 accepted += 1
             return pb.SendControlsResponse(accepted=accepted)
         except Exception as exc:  # noqa: BLE001
-            self._fail(context, exc)
+            await self._fail(context, exc)
 
-    def Watch(self, request, context):
+    async def Watch(self, request, context):
         try:
             s = self.sessions.get(request.session_token)
         except Exception as exc:  # noqa: BLE001
-            self._fail(context, exc)
+            await self._fail(context, exc)
             return
         if s.queue is not None:
             s.queue.close()
-        queue = ClientQueue()
+        queue = ClientQueue(asyncio.get_running_loop())
         s.reset_visible()
         s.queue = queue
         s.open_streams += 1
         try:
-            while context.is_active() and not queue.closed:
-                p = queue.take(STREAM_POLL_S)
+            while not queue.closed and not context.done():
+                queue.ready.clear()
+                p = queue.take(0.0)
                 s.last_seen = time.monotonic()
                 if p is not None:
-                    yield encode_watch_update(p)
+                    await context.write(encode_watch_update(p))
+                    continue
+                try:
+                    await asyncio.wait_for(queue.ready.wait(), STREAM_POLL_S)
+                except asyncio.TimeoutError:
+                    pass
         finally:
             s.open_streams -= 1
             queue.close()
 
-    def WatchEvents(self, request, context):
+    def _events_after(self, count: int):
+        """(events, new count), waiting up to STREAM_POLL_S for one (runs on the thread pool)."""
+        with self.world.event_cond:
+            if self.world.events_total == count:
+                self.world.event_cond.wait(STREAM_POLL_S)
+        return self.world.events_since(count)
+
+    async def WatchEvents(self, request, context):
         try:
             s = self.sessions.get(request.session_token)
         except Exception as exc:  # noqa: BLE001
-            self._fail(context, exc)
+            await self._fail(context, exc)
             return
         s.open_streams += 1
         _, count = self.world.events_since(1 << 62)
         try:
-            while context.is_active():
-                with self.world.event_cond:
-                    if self.world.events_total == count:
-                        self.world.event_cond.wait(STREAM_POLL_S)
-                events, count = self.world.events_since(count)
+            while not context.done():
+                events, count = await self._offload(self._events_after, count)
                 s.last_seen = time.monotonic()
                 for ev in events:
-                    yield pb.WorldEvent(time_s=ev.time_s, kind=ev.kind, entity_id=ev.entity_id,
-                                        lat_deg=ev.lat_deg, lon_deg=ev.lon_deg, alt_msl_m=ev.alt_msl_m,
-                                        detail_json=json.dumps(ev.detail, sort_keys=True, default=str))
+                    await context.write(pb.WorldEvent(
+                        time_s=ev.time_s, kind=ev.kind, entity_id=ev.entity_id, lat_deg=ev.lat_deg,
+                        lon_deg=ev.lon_deg, alt_msl_m=ev.alt_msl_m,
+                        detail_json=json.dumps(ev.detail, sort_keys=True, default=str)))
         finally:
             s.open_streams -= 1
 
-    def GetWorld(self, request, context):
+    async def GetWorld(self, request, context):
         return self.world_info()
 
 

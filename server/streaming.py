@@ -24,6 +24,7 @@ few dict operations under a lock no reader holds while sending.
 
 from __future__ import annotations
 
+import asyncio
 import struct
 import threading
 from dataclasses import dataclass
@@ -47,9 +48,16 @@ class Pending:
 
 
 class ClientQueue:
-    """The pending view of one watching session (see the module docstring)."""
+    """The pending view of one watching session (see the module docstring).
 
-    def __init__(self):
+    A reader on an asyncio loop passes ``loop``: each push or close then also
+    sets :attr:`ready` (an asyncio.Event) from the pushing thread, through
+    the loop, and the reader awaits it instead of blocking on the condition.
+    """
+
+    def __init__(self, loop=None):
+        self.loop = loop
+        self.ready = asyncio.Event() if loop is not None else None
         self.cond = threading.Condition()
         self.known: set = set()  # ids the client has been told about (entered and not left)
         self._enter: dict = {}
@@ -61,8 +69,9 @@ class ClientQueue:
         self.closed = False
         self.merged = 0  # states overwritten before they were read (slow-reader measure)
 
-    def push(self, time_s: float, entered: dict, left, states: dict) -> None:
-        """entered: id -> (encoded info, encoded state); left: ids; states: id -> encoded state."""
+    def push(self, time_s: float, entered: dict, left, states: dict, wake: bool = True) -> None:
+        """entered: id -> (encoded info, encoded state); left: ids; states: id -> encoded state.
+        wake=False leaves waking an asyncio reader to the caller (:func:`wake_all`)."""
         with self.cond:
             for i in left:
                 self._states.pop(i, None)
@@ -82,6 +91,15 @@ class ClientQueue:
             self._time_s = time_s
             self._dirty = True
             self.cond.notify_all()
+        if wake:
+            self._wake()
+
+    def _wake(self) -> None:
+        if self.loop is not None:
+            try:
+                self.loop.call_soon_threadsafe(self.ready.set)
+            except RuntimeError:  # the loop has closed: nobody is reading
+                pass
 
     def take(self, timeout_s: float | None) -> Pending | None:
         """The pending changes (clearing them), waiting up to ``timeout_s`` for some;
@@ -109,6 +127,7 @@ class ClientQueue:
         with self.cond:
             self.closed = True
             self.cond.notify_all()
+        self._wake()
 
 
 def _f32(a) -> np.ndarray:
@@ -164,6 +183,21 @@ def encode_watch_update(p: Pending) -> bytes:
         out.append(_field(4, b"".join(varint(int(i)) for i in p.left)))  # packed uint64
     out += [_field(5, state) for state in p.states]
     return b"".join(out)
+
+
+def wake_all(queues) -> None:
+    """Wake the asyncio readers of ``queues`` with one call per loop: a publisher that
+    pushed to every session with wake=False hands the loop all its writes at once,
+    instead of being interrupted by the loop after each push."""
+    by_loop: dict = {}
+    for q in queues:
+        if q.loop is not None:
+            by_loop.setdefault(q.loop, []).append(q.ready)
+    for loop, events in by_loop.items():
+        try:
+            loop.call_soon_threadsafe(lambda events=events: [e.set() for e in events])
+        except RuntimeError:  # the loop has closed
+            pass
 
 
 class Publisher:
@@ -272,6 +306,7 @@ class Publisher:
             enter_of = {k: (encode_info(infos[int(snap.ids[k])]), b) for k, b in zip(new_k.tolist(), sent)}
 
         ids_list = snap.ids.tolist()
+        pushed = []
         busy = entered.any(axis=1) | left.any(axis=1) | updated.any(axis=1)
         for s_k, s in enumerate(sessions):
             s.visible_mask = now[s_k]
@@ -282,4 +317,6 @@ class Publisher:
             ent = {ids_list[k]: enter_of[k] for k in np.flatnonzero(entered[s_k]).tolist() if k in enter_of}
             states = {ids_list[k]: state_of[k] for k in np.flatnonzero(updated[s_k]).tolist()}
             left_ids = [ids_list[k] for k in np.flatnonzero(left[s_k]).tolist()] + list(gone[s_k])
-            s.queue.push(snap.time_s, ent, left_ids, states)
+            s.queue.push(snap.time_s, ent, left_ids, states, wake=False)
+            pushed.append(s.queue)
+        wake_all(pushed)
