@@ -20,6 +20,10 @@ them; spawning is a request answered at once (so a trim failure is the
 caller's error). Each aircraft's trajectory depends only on its own initial
 conditions, commands and terrain answers, so it is the same in any worker.
 
+A world begins the next tick as soon as it has ended one (server.world), so
+requests may meet a tick under way: its answer is received first and kept
+for :meth:`ProcessAircraftHost.end_tick`.
+
 A tick's result, :class:`AirTick`, holds every aircraft's raw state row
 (``fdm.state.RAW_PROPERTIES``), its crashed / on-ground flags and its fdm
 events. A worker that dies (JSBSim aborting, the OOM killer) loses only its
@@ -270,6 +274,7 @@ class _Worker:
         self.ids: set[int] = set()
         self.alive = True
         self.waiting = False  # a tick was sent and not yet received
+        self.stash = None  # a tick's result received early (to make way for a request)
 
     def started(self) -> None:
         if not self.conn.poll(WORKER_START_TIMEOUT_S):
@@ -289,6 +294,9 @@ class _Worker:
         return value
 
     def request(self, name: str, *args, **kwargs):
+        if self.waiting:  # a tick is under way: its answer comes first
+            self.stash = self.receive()
+            self.waiting = False
         self.send(name, *args, **kwargs)
         if not self.conn.poll(WORKER_START_TIMEOUT_S):
             raise SortieError(f"aircraft worker {self.index} did not answer {name} within "
@@ -345,7 +353,11 @@ class ProcessAircraftHost:
         if not live:
             raise SortieError("every aircraft worker has exited")
         w = min(live, key=lambda w: (len(w.ids), w.index))
-        name = w.request("spawn", entity_id, type_, ic, route=route, hold=hold, speed_mps=speed_mps)
+        try:
+            name = w.request("spawn", entity_id, type_, ic, route=route, hold=hold, speed_mps=speed_mps)
+        except (EOFError, OSError):
+            self._lost += self._lose(w)
+            raise SortieError(f"aircraft worker {w.index} exited; try again") from None
         w.ids.add(entity_id)
         self._where[entity_id] = w
         return name
@@ -390,6 +402,10 @@ class ProcessAircraftHost:
         results = [_empty_tick(self._lost)] if self._lost else []
         self._lost = []
         for w in self._workers:
+            if w.stash is not None:
+                results.append(w.stash)
+                w.stash = None
+                continue
             if not w.waiting:
                 continue
             w.waiting = False

@@ -18,13 +18,22 @@ One world tick (``1 / world_rate_hz`` s, 30 Hz by default) does, in order:
    state (ECEF position, velocity and acceleration, orientation ECEF -> body,
    body rates) for the network side to read without locks.
 
+The aircraft host's tick runs one tick ahead: as soon as a tick's aircraft
+are back (3.), the commands received so far are applied and the next tick's
+aircraft start, so worker processes fly them while this process builds the
+snapshot, tests collisions and publishes (measured at 71 f16s, 2000 ground
+vehicles and 32 clients: mean tick 37 -> 30 ms). Commands therefore take
+effect at the first tick begun after they arrive, as before; a crash the
+segment test finds reaches the aircraft one tick later (it has flown one
+more tick, ~8 m at 250 m/s, when it stops).
+
 Physics never waits on the network: readers take the latest snapshot, writers
 only drop commands into a dict. Acceleration is the ECEF velocity's change
 over the last tick (what a receiver's second-order dead reckoning needs: the
 inertial acceleration of the CG, not JSBSim's body-axis velocity rates).
 
 Entities have stable integer ids (1, 2, ...). A crashed aircraft stays where
-it hit (JSBSim stops stepping it) until removed.
+it stopped (JSBSim stops stepping it) until removed.
 """
 
 from __future__ import annotations
@@ -150,6 +159,7 @@ class World:
         self.air = aircraft_host if aircraft_host is not None else LocalAircraftHost(terrain, self.fdm_dt,
                                                                                     self.geoid_undulation_m)
         self._air_tick = None  # the aircraft host's last AirTick
+        self._air_in_flight = False  # a tick of the aircraft host begun and not yet ended
         self._layout_version = 0  # bumped when an entity comes or goes
         self._layout_cache = None
         self.ground: GroundVehicles | None = None
@@ -387,14 +397,20 @@ class World:
     def tick(self) -> list[WorldEvent]:
         """One world tick (see the module docstring); the events it produced."""
         with self._lock:
-            self._apply_commands()
-            self.air.begin_tick(self.steps_per_tick)  # in workers, the aircraft fly while the ground drives
+            if not self._air_in_flight:  # the first tick (later ones were started by the tick before)
+                self._apply_commands()
+                self.air.begin_tick(self.steps_per_tick)
             if self.ground is not None and self.ground.n:
                 for f in self._followers:
                     f.update()
                 self._hold_ground_headings()
                 self.ground.step(self.dt)
             air = self._air_tick = self.air.end_tick()
+            # The next tick's aircraft start now, with the commands in so far: in worker
+            # processes they fly while this one builds and publishes this tick's snapshot.
+            self._apply_commands()
+            self.air.begin_tick(self.steps_per_tick)
+            self._air_in_flight = True
             self.tick_count += 1
             self.time_s = self.tick_count * self.dt
             events = []
@@ -403,8 +419,8 @@ class World:
                                          dict(ev.detail)))
             for entity_id, crashed, on_ground in zip(air.ids.tolist(), air.crashed.tolist(), air.on_ground.tolist()):
                 e = self.entities.get(entity_id)
-                if e is not None:
-                    e.crashed, e.on_ground = crashed, on_ground
+                if e is not None:  # a crash the world found stays, though its command is still on its way
+                    e.crashed, e.on_ground = e.crashed or crashed, on_ground
             for entity_id in air.lost:
                 events.append(self._lose(entity_id))
             snapshot = self._take_snapshot()
@@ -496,8 +512,12 @@ class World:
         ids, parts = [], []
         air = self._air_tick
         if air is not None and air.ids.size:
-            s = state_arrays(air.rows, self.geoid_undulation_m)
-            ids += air.ids.tolist()
+            rows, air_ids = air.rows, air.ids
+            here = np.array([i in self.entities for i in air_ids.tolist()], bool)
+            if not here.all():  # removed while their tick was under way
+                rows, air_ids = rows[here], air_ids[here]
+            s = state_arrays(rows, self.geoid_undulation_m)
+            ids += air_ids.tolist()
             parts.append((s["ecef_m"], s["vel_ecef_mps"],
                           ned_to_ecef_quat(s["quat_wxyz"], s["lat_deg"], s["lon_deg"]), s["body_rates_rps"],
                           s["lat_deg"], s["lon_deg"], s["alt_msl_m"]))
