@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from fdm.state import euler_to_quaternion
 from server.dead_reckoning import (DEFAULT_ORIENTATION_THRESHOLD_RAD, FPW, FVW, RPW, RVW, STATIC, DeadReckoner,
                                    Extrapolator, Thresholds, body_rates_between, ecef_to_ned_quat, extrapolate,
-                                   ned_to_ecef_quat, quat_multiply, rotate_body, rotation_angle)
+                                   ROW_COLUMNS, ned_to_ecef_quat, quat_multiply, rotate_body, rotation_angle)
 from sortie.errors import InvalidArgument, NotFound
 from terrain.geodesy import enu_basis, geodetic_to_ecef
 
@@ -325,6 +325,105 @@ def test_entities_come_and_go_by_id():
     np.testing.assert_array_equal(rx.state(0.0, [30])[0], pos[:1])
     rx.receive(1.0, [30], pos[:1] + 100, vel[:1], z[:1], q[:1], z[:1], FPW)
     np.testing.assert_array_equal(rx.state(1.0, [30])[0], pos[:1] + 100)
+
+
+def _rows(t0, pos, vel, acc, quat, omega):
+    """(n, 17) rows in Extrapolator.receive_rows' column order."""
+    n = len(pos)
+    return np.column_stack([np.broadcast_to(t0, (n,)), pos, vel, acc, quat, omega])
+
+
+def _tables_equal(a, b):
+    """Two Extrapolators hold the same entities with the same rows and codes, bit for bit."""
+    assert (a.ids == b.ids).all()
+    assert (a._t.cols["rows"] == b._t.cols["rows"]).all() and (a._t.cols["algorithm"] == b._t.cols["algorithm"]).all()
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_receive_rows_keeps_the_same_table_as_receive(seed):
+    """New ids, held ids, late (older) updates and removals, ~10 states a message and some of 80
+    (the compiled pass and the numpy path): receive_rows and receive agree bit for bit, with
+    each other and with a dict that keeps each entity's newest update (ties: the later)."""
+    rng = np.random.default_rng(seed)
+    general, fast, newest = Extrapolator(), Extrapolator(), {}
+    for _ in range(40):
+        n = int(rng.integers(60, 80)) if rng.random() < 0.1 else int(rng.integers(0, 12))
+        ids = rng.choice(np.arange(1, 100), n, replace=False)
+        t0 = rng.integers(0, 20, n) * 0.5  # repeats and goes back: ties and late updates
+        pos, vel, acc, quat, omega = _state(rng, n)
+        codes = rng.integers(STATIC, FVW + 1, n)
+        general.receive(t0, ids.tolist(), pos, vel, acc, quat, omega, codes.tolist())
+        rows = _rows(t0, pos, vel, acc, quat, omega)
+        fast.receive_rows(ids, rows, codes)
+        for i, row, code in zip(ids.tolist(), rows, codes.tolist()):
+            if i not in newest or row[0] >= newest[i][0][0]:
+                newest[i] = (row, code)
+        if rng.random() < 0.2 and len(fast):
+            gone = rng.choice(fast.ids, min(3, len(fast)), replace=False)
+            general.remove(gone)
+            fast.remove(gone.tolist())
+            for i in gone.tolist():
+                del newest[i]
+        _tables_equal(general, fast)
+        assert fast.ids.tolist() == sorted(newest)
+        assert (fast._t.cols["rows"] == np.array([newest[i][0] for i in sorted(newest)]).reshape(-1, 17)).all()
+        assert fast._t.cols["algorithm"].tolist() == [newest[i][1] for i in sorted(newest)]
+        for t in (2.0, 11.5):
+            for a, b in zip(general.state(t), fast.state(t)):
+                assert (a == b).all()
+
+
+def _unit_off(q, by):
+    """q scaled off unit norm by ``by``."""
+    q = q.copy()
+    q[1] *= 1.0 + by
+    return q
+
+
+@pytest.mark.parametrize("held", [False, True], ids=["new ids", "held ids"])
+@pytest.mark.parametrize("field, spoil, accepted", [
+    ("pos", lambda a: a["pos"].__setitem__((1, 2), np.nan), False),
+    ("t", lambda a: a.__setitem__("t0", np.array([0.0, np.inf, 1.0])), False),
+    ("omega", lambda a: a["omega"].__setitem__((2, 0), -np.inf), False),
+    ("vel", lambda a: (a["vel"].__setitem__((2, 0), np.nan), a["quat"].__setitem__((1, 0), np.nan)), False),
+    ("quat", lambda a: a.__setitem__("quat", _unit_off(a["quat"], 2e-3)), False),
+    ("quat", lambda a: a.__setitem__("quat", _unit_off(a["quat"], 1.001e-3)), False),
+    ("quat", lambda a: a.__setitem__("quat", _unit_off(a["quat"], 0.999e-3)), True),
+    ("ids", lambda a: a["ids"].__setitem__(2, a["ids"][0]), False),
+    ("algorithm", lambda a: a["codes"].__setitem__(1, 6), False),
+    ("algorithm", lambda a: a["codes"].__setitem__(0, 0), False),
+])
+def test_receive_rows_refuses_what_receive_refuses_with_the_same_error(held, field, spoil, accepted):
+    """A NaN or infinite value, a quaternion off unit norm (1e-3 is the edge), a repeated id or a bad
+    algorithm: receive_rows raises receive's InvalidArgument (field, row, message) and stores nothing,
+    whether the entities are new (numpy path) or held (compiled pass)."""
+    rng = np.random.default_rng(3)
+    pos, vel, acc, quat, omega = _state(rng, 3)
+    args = {"t0": np.array([0.0, 0.5, 1.0]), "ids": np.array([4, 9, 2]), "pos": pos, "vel": vel, "acc": acc,
+            "quat": quat, "omega": omega, "codes": np.array([RVW, FPW, STATIC])}
+    general, fast = Extrapolator(), Extrapolator()
+    if held:
+        for e in (general, fast):
+            e.receive(-1.0, args["ids"], pos, vel, acc, quat, omega, FPW)
+    spoil(args)
+    before = fast._t.cols["rows"].copy()
+    receive = [lambda: general.receive(args["t0"], args["ids"], args["pos"], args["vel"], args["acc"], args["quat"],
+                                       args["omega"], args["codes"]),
+               lambda: fast.receive_rows(args["ids"], _rows(*(args[k] for k in ROW_COLUMNS)), args["codes"])]
+    if accepted:
+        for r in receive:
+            r()
+        _tables_equal(general, fast)
+        return
+    errors = []
+    for r in receive:
+        with pytest.raises(InvalidArgument) as info:
+            r()
+        errors.append((info.value.field, info.value.index, str(info.value)))
+    assert errors[0] == errors[1] and errors[0][0] == field
+    _tables_equal(general, fast)
+    assert (fast._t.cols["rows"] == before).all()
 
 
 def _stream(times, pos, vel, acc, quat, omega, thresholds, every=1):
