@@ -180,11 +180,10 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
     try:
         procs = _clients(server.address, clients, seconds, stall)
         server.tick_ms.clear()
-        t_world0 = world.time_s
+        t_world0, wall0 = world.time_s, time.monotonic()
         data = _gather(procs, seconds + 120.0)
-        wall = seconds
         ticks = np.array(server.tick_ms)
-        world_s = world.time_s - t_world0
+        world_s, wall = world.time_s - t_world0, time.monotonic() - wall0
     finally:
         server.stop(0.5)
         world.close()

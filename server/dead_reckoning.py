@@ -450,6 +450,19 @@ def _merge_held(held_ids, held_rows, held_codes, ids, rows, codes) -> bool:
     return True
 
 
+_WARM = []
+
+
+def _warm_merge() -> None:
+    """Load (or compile) the merge kernel once per process, when the first Extrapolator
+    is made: not on a stream's first update, where numba's start-up (0.5 s loading
+    from its cache, seconds compiling) would hold every stream of the process."""
+    if not _WARM:
+        z = np.zeros(0, np.int64)
+        _merge_held(z, np.zeros((0, ROW_WIDTH)), z, z, np.zeros((0, ROW_WIDTH)), z)
+        _WARM.append(True)
+
+
 class DeadReckoner:
     """The sender's model of what every receiver believes, one row per entity.
 
@@ -576,6 +589,7 @@ class Extrapolator:
 
     def __init__(self):
         self._t = _Table({"rows": ((ROW_WIDTH,), np.float64), "algorithm": ((), np.int64)})
+        _warm_merge()
 
     @property
     def ids(self) -> np.ndarray:
