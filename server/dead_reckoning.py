@@ -566,6 +566,29 @@ class DeadReckoner:
             self.mark_sent(t, ids, pos, vel, acc, quat, omega, mask=send)
         return send
 
+    def slots(self, ids) -> np.ndarray:
+        """Table rows of entity ids (validated; NotFound names an unknown one), valid
+        until entities are added or removed: for :meth:`publish_rows`."""
+        return self._t.slots(_check_ids(ids))
+
+    def publish_rows(self, t: float, k: np.ndarray, pos, vel, acc, quat, omega) -> tuple[np.ndarray, np.ndarray]:
+        """(due mask, algorithm codes) of table rows k (:meth:`slots`) at time t, with the
+        due rows marked sent: :meth:`due`, :meth:`mark_sent` of the due rows and
+        :meth:`algorithm` in one pass, for a publisher that holds the rows of its
+        snapshot's ids. pos/quat are validated as in :meth:`due`; vel/acc/omega, which
+        the publisher derives from them, are not again."""
+        n = k.size
+        c = self._t.cols
+        t_col = np.full(n, float(t))
+        pos_err, ori_err = self._errors(t_col, k, pos, quat)
+        send = (~c["sent"][k] | (t_col - c["t0"][k] >= c["heartbeat_s"][k] - TIME_SLACK_S)
+                | (pos_err > c["position_m"][k]) | (ori_err > c["orientation_rad"][k]))
+        ks = k[send]
+        for name, v in (("t0", t_col), ("pos", pos), ("vel", vel), ("acc", acc), ("quat", quat), ("omega", omega)):
+            c[name][ks] = np.asarray(v, np.float64)[send]
+        c["sent"][ks] = True
+        return send, c["algorithm"][k].copy()
+
     def algorithm(self, ids) -> np.ndarray:
         """(n,) DIS codes the entities' updates carry."""
         return self._t.cols["algorithm"][self._t.slots(_check_ids(ids))].copy()

@@ -222,6 +222,7 @@ class Publisher:
         self.entity_samples = 0  # entity x network ticks seen
         self._ids = np.zeros(0, np.int64)  # the entity layout of the last publish
         self._layout = 0  # bumped when it changes
+        self._slots = np.zeros(0, np.int64)  # the reckoner's rows of self._ids
 
     def _track(self, ids: np.ndarray) -> None:
         """Add new entities to the reckoner (in one call per thresholds), drop the gone ones."""
@@ -253,6 +254,7 @@ class Publisher:
         if not np.array_equal(snap.ids, self._ids):
             self._track(snap.ids)
             self._ids = snap.ids.copy()
+            self._slots = self.reckoner.slots(snap.ids)  # the reckoner's rows change only in _track
             self._layout += 1
         self.entity_samples += n
         # The receivers get float32 velocities, accelerations, quaternions and rates: the
@@ -260,9 +262,7 @@ class Publisher:
         vel, acc = _f32(snap.vel_ecef_mps), _f32(snap.acc_ecef_mps2)
         quat, omega = _f32(snap.quat_ecef2body), _f32(snap.body_rates_rps)
         if n:
-            due = self.reckoner.due(snap.time_s, snap.ids, snap.ecef_m, snap.quat_ecef2body)
-            self.reckoner.mark_sent(snap.time_s, snap.ids, snap.ecef_m, vel, acc, quat, omega, mask=due)
-            algorithms = self.reckoner.algorithm(snap.ids)
+            due, algorithms = self.reckoner.publish_rows(snap.time_s, self._slots, snap.ecef_m, vel, acc, quat, omega)
         else:
             due, algorithms = np.zeros(0, bool), np.zeros(0, np.int64)
         self.updates_sent += int(due.sum())

@@ -575,3 +575,27 @@ def test_bench_dr_runs_on_a_tiny_configuration(tmp_path):
     assert [r["position_threshold_m"] for r in report.series["dr_thresholds"]] == [0.25, 0.5, 1.0, 2.0, 5.0, 10.0]
     written = plot_dr(report.to_json(), tmp_path)
     assert [p.name for p in written] == ["dr_bandwidth_vs_error.png"] and written[0].stat().st_size > 0
+
+
+def test_publish_rows_is_due_then_mark_sent_then_algorithm():
+    # The publisher's one-pass path against the three public calls, over a drifting fleet
+    # with mixed thresholds, until both tables have been through sends and heartbeats.
+    rng = np.random.default_rng(11)
+    n = 40
+    ids = rng.permutation(np.arange(1, n + 1))
+    a, b = DeadReckoner(), DeadReckoner()
+    for r in (a, b):
+        r.add(ids[:20], Thresholds(1.0, math.radians(3.0), 5.0, RVW))
+        r.add(ids[20:], Thresholds(0.5, math.radians(2.0), 2.0, FPW))
+    pos, vel, acc, quat, omega = _state(rng, n)
+    k = b.slots(ids)
+    for step in range(60):
+        t = 0.05 * step
+        pos = pos + vel * 0.05 + rng.normal(0, 0.3, (n, 3))
+        quat = _random_quats(rng, n) if step % 17 == 0 else quat
+        due = a.due(t, ids, pos, quat)
+        a.mark_sent(t, ids, pos, vel, acc, quat, omega, mask=due)
+        send, codes = b.publish_rows(t, k, pos, vel, acc, quat, omega)
+        assert np.array_equal(due, send) and np.array_equal(codes, a.algorithm(ids))
+    for name in a._t.cols:
+        assert np.array_equal(a._t.cols[name], b._t.cols[name]), name
