@@ -193,8 +193,11 @@ class LocalAircraftHost:
             ac = self._aircraft[entity_id]
             if pilot is not None and not ac.crashed:
                 pilot.update(rows.get(entity_id))
-        owner = {id(ac): entity_id for entity_id, ac in self._aircraft.items()}
-        events = [(owner[id(ac)], ev) for ac, evs in self.fleet.advance(steps) for ev in evs]
+        with_events = self.fleet.advance(steps)
+        events = []
+        if with_events:  # rare: the owners are looked up only then
+            owner = {id(ac): entity_id for entity_id, ac in self._aircraft.items()}
+            events = [(owner[id(ac)], ev) for ac, evs in with_events for ev in evs]
         n = len(self._aircraft)
         ids = np.fromiter(self._aircraft, np.int64, n)
         values = [ac.raw_values() for ac in self._aircraft.values()]

@@ -33,6 +33,7 @@ import numpy as np
 
 from server.grpc_common import varint
 from server.interest import relevant
+from server.world import rows_of
 
 
 @dataclass
@@ -269,12 +270,8 @@ class Publisher:
         if not sessions:
             return
         # Where each session's own agent is in the snapshot (-1: not there).
-        order = np.argsort(snap.ids, kind="stable")
-        agents = np.array([s.agent_id for s in sessions], np.int64)
-        agent_k = np.full(len(sessions), -1)
-        if n:
-            k = order[np.minimum(np.searchsorted(snap.ids, agents, sorter=order), n - 1)]
-            agent_k = np.where(snap.ids[k] == agents, k, -1)
+        k, found = rows_of(snap.ids, [s.agent_id for s in sessions])
+        agent_k = np.where(found, k, -1)
         centres = np.zeros((len(sessions), 3))
         radii = np.full(len(sessions), -1.0)  # no centre (agent gone): sees nothing but its own agent
         for s_k, s in enumerate(sessions):

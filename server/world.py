@@ -118,13 +118,15 @@ class Snapshot:
         return {int(i): k for k, i in enumerate(self.ids)}
 
 
-def _rows_of(snapshot_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(rows of ids in a snapshot's ids, found mask); rows of the missing ones are 0."""
-    if not snapshot_ids.size:
+def rows_of(all_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows of ids in all_ids, an unsorted array of distinct ids; found mask); rows of
+    the missing ones are 0."""
+    ids = np.asarray(ids, np.int64)
+    if not all_ids.size:
         return np.zeros(ids.size, np.int64), np.zeros(ids.size, bool)
-    order = np.argsort(snapshot_ids, kind="stable")
-    k = order[np.minimum(np.searchsorted(snapshot_ids, ids, sorter=order), snapshot_ids.size - 1)]
-    found = snapshot_ids[k] == ids
+    order = np.argsort(all_ids, kind="stable")
+    k = order[np.minimum(np.searchsorted(all_ids, ids, sorter=order), all_ids.size - 1)]
+    found = all_ids[k] == ids
     return np.where(found, k, 0), found
 
 
@@ -453,8 +455,8 @@ class World:
             return []
         air = self._air_tick
         ids = air.ids[~air.crashed & ~air.on_ground]
-        kb, in_before = _rows_of(before.ids, ids)
-        ka, in_after = _rows_of(after.ids, ids)
+        kb, in_before = rows_of(before.ids, ids)
+        ka, in_after = rows_of(after.ids, ids)
         keep = in_before & in_after
         entities = [self.entities.get(i) for i in ids.tolist()]
         keep &= np.array([e is not None and not e.crashed for e in entities], bool)  # not down this tick
@@ -546,10 +548,8 @@ class World:
         if np.array_equal(ids, prev_ids):  # the usual tick: the same entities in the same order
             acc = (vel - prev_vel) / self.dt
         elif prev_ids.size:
-            order = np.argsort(prev_ids)
-            k = np.minimum(np.searchsorted(prev_ids, ids, sorter=order), prev_ids.size - 1)
-            had = prev_ids[order[k]] == ids
-            acc[had] = (vel[had] - prev_vel[order[k[had]]]) / self.dt
+            k, had = rows_of(prev_ids, ids)
+            acc[had] = (vel[had] - prev_vel[k[had]]) / self.dt
         self._prev_vel = (ids, vel)
         return Snapshot(self.time_s, self.tick_count, ids, cols[0], vel, acc, cols[2], cols[3], cols[4], cols[5],
                         cols[6])
