@@ -102,7 +102,7 @@ class Sessions:
                 s.radius_m = float(radius)
             else:
                 e = self._pick_agent(role, agent_name)
-                self.world.claim(e.id, token)
+                self.world.claim(e.id, token, name)
                 s.agent_id = e.id
                 s.radius_m = self.params_of(e.id).aoi_radius_m
             self._by_token[token] = s

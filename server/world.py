@@ -183,6 +183,24 @@ class World:
         self._next_id = 1
         self._prev_vel = (np.zeros(0, np.int64), np.zeros((0, 3)))  # (ids, ECEF velocities) of the last snapshot
         self.snapshot = _empty_snapshot(0.0, 0)
+        self.recorder = None  # server.recorder.Recorder: every tick, input and event
+
+    def attach_recorder(self, recorder) -> None:
+        """Record from now on (server/recorder.py): the snapshot of every tick, every
+        input (:meth:`command`, :meth:`claim`, :meth:`release`, :meth:`remove`, with the
+        tick count it was done at) and every event; the events so far (the scenario's
+        spawns) are handed over first."""
+        with self._lock, self.event_cond:
+            for ev in self.events:
+                recorder.on_event(self.tick_count, ev)
+            self.recorder = recorder
+
+    def _journal(self, kind: str, entity_id: int, **fields) -> None:
+        """An input to the world, for the recording (called under the lock, so inputs
+        and ticks are in one order). Re-simulation repeats the same call after the same
+        tick (server/resim.py)."""
+        if self.recorder is not None:
+            self.recorder.on_input(self.tick_count, kind, entity_id, fields)
 
     # -- spawning -------------------------------------------------------------------------------
 
@@ -260,6 +278,12 @@ class World:
 
     def remove(self, entity_id: int, reason: str = "removed") -> None:
         with self._lock:
+            if entity_id in self.entities:
+                self._journal("remove", entity_id, reason=reason)
+            self._remove(entity_id, reason)
+
+    def _remove(self, entity_id: int, reason: str) -> None:
+        with self._lock:
             e = self.entities.pop(entity_id, None)
             if e is None:
                 raise NotFound(f"entity {entity_id} does not exist")
@@ -291,8 +315,9 @@ class World:
 
     # -- control --------------------------------------------------------------------------------
 
-    def claim(self, entity_id: int, owner: str) -> Entity:
-        """Give control of a controllable entity to ``owner``; NotFound/InvalidArgument otherwise."""
+    def claim(self, entity_id: int, owner: str, client: str = "") -> Entity:
+        """Give control of a controllable entity to ``owner`` (a session token; the
+        recording keeps the ``client`` name instead); NotFound/InvalidArgument otherwise."""
         with self._lock:
             e = self.entities.get(entity_id)
             if e is None:
@@ -300,6 +325,7 @@ class World:
             if not e.controllable or e.owner is not None:
                 raise InvalidArgument("agent", "is not free to control", value=e.name)
             e.owner = owner
+            self._journal("claim", entity_id, client=client)
             return e
 
     def release(self, entity_id: int, vanished: bool = False) -> None:
@@ -310,10 +336,11 @@ class World:
             e = self.entities.get(entity_id)
             if e is None:
                 return
+            self._journal("release", entity_id, vanished=vanished)
             e.owner = None
             self._pending.pop(entity_id, None)  # the leaver's last command is not applied after it left
             if e.on_vanish == "remove":
-                self.remove(entity_id, "vanished" if vanished else "left")
+                self._remove(entity_id, "vanished" if vanished else "left")
                 return
             if e.kind == AIRCRAFT:
                 self.air.hand_to_autopilot(entity_id)
@@ -357,6 +384,7 @@ class World:
             raise InvalidArgument("command", 'must be "stick", "autopilot" or "drive"', value=kind)
         with self._lock:
             self._pending[entity_id] = (kind, values)
+            self._journal("command", entity_id, command=kind, values=values)
 
     def aircraft_controls(self, entity_id: int):
         """An aircraft's present controls (fdm.aircraft.Controls)."""
@@ -430,6 +458,8 @@ class World:
             for ev in events:
                 self._emit(ev)
             self.snapshot = snapshot
+            if self.recorder is not None:
+                self.recorder.on_tick(snapshot, self.infos)
             return events
 
     def _lose(self, entity_id: int) -> WorldEvent:
@@ -563,6 +593,8 @@ class World:
             if len(self.events) > EVENT_BACKLOG:
                 del self.events[:len(self.events) - EVENT_BACKLOG]
             self.event_cond.notify_all()
+            if self.recorder is not None:
+                self.recorder.on_event(self.tick_count, ev)
 
     def emit(self, kind: str, entity_id: int = 0, **detail) -> None:
         """An event from outside the physics (joins, leaves)."""

@@ -1,0 +1,270 @@
+"""The server's recorder: every tick's states, every input and event, to one file.
+
+The world calls three hooks (server/world.py): ``on_tick`` after each tick
+(the snapshot), ``on_input`` for each call that changes the world from
+outside (command, claim, release, remove; under the world's lock, with the
+tick count it was done at), and ``on_event`` for each event. On the clock
+thread a tick costs the canonical ordering of the snapshot and a BLAKE2b
+digest of its exact float64 states; quantising, residual coding,
+compression and writing happen on the recorder's own thread.
+
+A chunk closes when it holds ``chunk_s`` world seconds of ticks or when its
+first tick is ``chunk_s`` wall seconds old (a slow or paused clock), and is
+written and flushed at once: a killed server loses at most the open chunk,
+at most ``chunk_s`` (1 s by default) of world time. The writer queue holds
+at most MAX_QUEUED_CHUNKS closed chunks; a disk slower than that makes the
+clock wait rather than drop a chunk. A write error (disk full) stops the
+recording, logs it and leaves the exercise running; ``error`` says why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import queue
+import threading
+import time
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from server import recording_codec as codec
+from server.recording import FORMAT_VERSION, RecordingWriter, quantization_of
+from sortie.v1 import recording_pb2 as rpb
+from sortie.v1 import simulation_pb2 as pb
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_CHUNK_S = 1.0
+MAX_QUEUED_CHUNKS = 64
+REPO = Path(__file__).resolve().parents[1]
+# The code whose arithmetic a re-simulation repeats (the build id hashes it).
+SIMULATION_SOURCES = ("fdm", "server", "terrain", "client/terrain_client.py")
+
+
+def build_id() -> str:
+    """SHA-256 (first 16 hex digits) of the simulation's sources and the jsbsim version."""
+    h = hashlib.sha256(_version("jsbsim").encode())
+    for name in SIMULATION_SOURCES:
+        p = REPO / name
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(f.relative_to(REPO).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _version(package: str) -> str:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def file_identity(path) -> rpb.TerrainFile:
+    p = Path(path)
+    h = hashlib.sha256()
+    with open(p, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return rpb.TerrainFile(path=str(p.resolve()), size_bytes=p.stat().st_size, sha256=h.hexdigest())
+
+
+def terrain_identity(description: str, spec: dict, terrain) -> rpb.TerrainIdentity:
+    """What the terrain was: its files' hashes (in process) and its sources' description."""
+    files = [file_identity(p) for p in spec.get("dem", ())]
+    try:
+        sources = terrain.describe()
+    except Exception as exc:  # noqa: BLE001 - a terrain without describe() is still recordable
+        sources = [{"error": str(exc)}]
+    return rpb.TerrainIdentity(description=description, files=files,
+                               sources_json=json.dumps(sources, sort_keys=True, default=str))
+
+
+def recording_header(scenario_path, scenario, world, terrain_desc: str, terrain_spec: dict, terrain,
+                     chunk_s: float = DEFAULT_CHUNK_S, steps: codec.Steps = codec.DEFAULT_STEPS
+                     ) -> rpb.RecordingHeader:
+    text = Path(scenario_path).read_text(encoding="utf-8")
+    ex = scenario.exercise
+    return rpb.RecordingHeader(
+        format_version=FORMAT_VERSION, sortie_version=_version("sortie"), jsbsim_version=_version("jsbsim"),
+        build_id=build_id(), exercise_name=ex.name, start_time=ex.start_time.isoformat().replace("+00:00", "Z"),
+        world_rate_hz=1.0 / world.dt, fdm_rate_hz=1.0 / world.fdm_dt, scenario_toml=text,
+        scenario_path=str(Path(scenario_path).resolve()),
+        scenario_sha256=hashlib.sha256(text.encode("utf-8")).hexdigest(),
+        terrain=terrain_identity(terrain_desc, terrain_spec, terrain), created_unix_s=time.time(),
+        quantization=quantization_of(steps), chunk_s=chunk_s, geoid_undulation_m=world.geoid_undulation_m)
+
+
+def event_record(tick: int, ev) -> rpb.EventRecord:
+    return rpb.EventRecord(tick=tick, event=pb.WorldEvent(
+        time_s=ev.time_s, kind=ev.kind, entity_id=ev.entity_id, lat_deg=ev.lat_deg, lon_deg=ev.lon_deg,
+        alt_msl_m=ev.alt_msl_m, detail_json=json.dumps(ev.detail, sort_keys=True, default=str)))
+
+
+def input_record(tick: int, kind: str, entity_id: int, fields: dict) -> rpb.InputRecord:
+    r = rpb.InputRecord(tick=tick, kind=kind, entity_id=entity_id)
+    if kind == "command":
+        r.command = fields["command"]
+        r.values_json = json.dumps(fields["values"], sort_keys=True)  # floats as repr: exact
+    elif kind == "claim":
+        r.client = fields.get("client", "")
+    elif kind == "release":
+        r.vanished = bool(fields.get("vanished", False))
+    elif kind == "remove":
+        r.reason = fields.get("reason", "")
+    return r
+
+
+class _OpenChunk:
+    def __init__(self):
+        self.ticks: list[int] = []
+        self.times: list[float] = []
+        self.ids: list[np.ndarray] = []
+        self.states: list[np.ndarray] = []
+        self.digests: list[int] = []
+        self.inputs: list = []
+        self.events: list = []
+        self.new_entities: list = []
+        self.wall_start = None
+
+
+class Recorder:
+    """Records a world into ``path`` (a new file) with ``header``; see the module docstring."""
+
+    def __init__(self, path, header: rpb.RecordingHeader, chunk_s: float = DEFAULT_CHUNK_S):
+        if not chunk_s > 0:
+            from sortie.errors import InvalidArgument
+
+            raise InvalidArgument("chunk_s", "must be > 0", value=chunk_s)
+        header.chunk_s = chunk_s
+        self.path = Path(path)
+        self.header = header
+        self.steps = codec.Steps(header.quantization.position_m, header.quantization.velocity_mps,
+                                 header.quantization.acceleration_mps2, header.quantization.quaternion,
+                                 header.quantization.body_rate_rps)
+        self.rate_hz = header.world_rate_hz
+        self.chunk_s = chunk_s
+        self.chunk_ticks = max(1, int(round(chunk_s * self.rate_hz)))
+        self._writer = RecordingWriter(path, header)
+        self._lock = threading.Lock()
+        self._open = _OpenChunk()
+        self._seen: set = set()
+        self._queue: queue.Queue = queue.Queue(MAX_QUEUED_CHUNKS)
+        self.error: Exception | None = None
+        self.chunks_written = 0
+        self.closed = False
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+
+    # -- hooks (server/world.py) ----------------------------------------------------------------
+
+    def on_tick(self, snapshot, infos: dict) -> None:
+        ids, states = codec.state_matrix(snapshot)
+        d = codec.digest(ids, states)
+        with self._lock:
+            c = self._open
+            if c.wall_start is None:
+                c.wall_start = time.monotonic()
+            c.ticks.append(snapshot.tick)
+            c.times.append(snapshot.time_s)
+            c.ids.append(ids)
+            c.states.append(states)
+            c.digests.append(d)
+            if len(self._seen) != ids.size or not self._seen.issuperset(ids.tolist()):
+                for i in ids.tolist():
+                    if i not in self._seen and i in infos:
+                        self._seen.add(i)
+                        _, name, kind, type_, coalition = infos[i]
+                        c.new_entities.append(pb.EntityInfo(entity_id=i, name=name, kind=kind, type=type_,
+                                                            coalition=coalition))
+            full = len(c.ticks) >= self.chunk_ticks or time.monotonic() - c.wall_start >= self.chunk_s
+            if full:
+                self._close_open()
+
+    def on_input(self, tick: int, kind: str, entity_id: int, fields: dict) -> None:
+        r = input_record(tick, kind, entity_id, fields)
+        with self._lock:
+            self._open.inputs.append(r)
+
+    def on_event(self, tick: int, ev) -> None:
+        r = event_record(tick, ev)
+        with self._lock:
+            self._open.events.append(r)
+
+    # -- chunks ---------------------------------------------------------------------------------
+
+    def _close_open(self) -> None:
+        """Hand the open chunk to the writer thread (called under the lock)."""
+        c, self._open = self._open, _OpenChunk()
+        if self.error is None:
+            self._queue.put(c)
+
+    def _close_if_old(self) -> None:
+        with self._lock:
+            c = self._open
+            if c.ticks and time.monotonic() - c.wall_start >= self.chunk_s:
+                self._close_open()
+
+    def _run(self) -> None:
+        while True:
+            try:
+                c = self._queue.get(timeout=self.chunk_s / 4)
+            except queue.Empty:
+                self._close_if_old()
+                continue
+            if c is None:
+                return
+            if self.error is not None:
+                continue
+            try:
+                head, body = encode_chunk(c, self.steps, self.rate_hz)
+                self._writer.write_chunk(head, body)
+                self.chunks_written += 1
+            except Exception as exc:  # noqa: BLE001 - the exercise goes on without its recording
+                self.error = exc
+                logger.error("recording to %s stopped: %s", self.path, exc)
+
+    def close(self) -> None:
+        """Write what is open, then the footer (idempotent)."""
+        if self.closed:
+            return
+        self.closed = True
+        with self._lock:
+            if self._open.ticks or self._open.inputs or self._open.events:
+                self._close_open()
+        self._queue.put(None)
+        self._thread.join()
+        if self.error is None:
+            try:
+                self._writer.close()
+            except OSError as exc:
+                self.error = exc
+                logger.error("recording to %s: footer not written: %s", self.path, exc)
+
+    @property
+    def bytes_written(self) -> int:
+        return self._writer.bytes_written
+
+
+def encode_chunk(c: _OpenChunk, steps: codec.Steps, rate_hz: float) -> tuple[rpb.ChunkHead, rpb.ChunkBody]:
+    """The head and body of an open chunk's ticks, inputs and events."""
+    t_count = len(c.ticks)
+    ids = np.unique(np.concatenate(c.ids)) if t_count else np.zeros(0, np.int64)
+    present = np.zeros((t_count, ids.size), bool)
+    q = np.zeros((t_count, ids.size, codec.FIELDS), np.int64)
+    for t, (tick_ids, states) in enumerate(zip(c.ids, c.states)):
+        cols = np.searchsorted(ids, tick_ids)
+        present[t, cols] = True
+        q[t, cols] = codec.quantize(states, steps)
+    q = codec.fill_absent(q, present)
+    body = rpb.ChunkBody(entity_ids=ids.tolist(), states=codec.encode(q, steps, rate_hz), digests=c.digests,
+                         inputs=c.inputs, events=c.events)
+    if not present.all():
+        body.present = np.packbits(present.reshape(-1)).tobytes()
+    first = c.ticks[0] if t_count else (c.inputs[0].tick + 1 if c.inputs else c.events[0].tick + 1)
+    head = rpb.ChunkHead(first_tick=first, ticks=t_count, first_time_s=c.times[0] if t_count else 0.0,
+                         last_time_s=c.times[-1] if t_count else 0.0, new_entities=c.new_entities,
+                         entity_count=ids.size, event_count=len(c.events), input_count=len(c.inputs))
+    return head, body
