@@ -91,6 +91,25 @@ class SimClient:
     def world(self) -> pb.WorldInfo:
         return self._call(self.stub.GetWorld, pb.GetWorldRequest())
 
+    # -- replay controls (sortie replay: sortie.v1.ReplayService) --------------------------------
+
+    def replay(self, **action) -> "rpb.ReplayStatus":
+        """One replay control: play=True, pause=True, speed=X (0.1-64), seek_time_s=S or
+        step_ticks=N (pauses); the replay's status after it. UNIMPLEMENTED on a live server."""
+        from sortie.v1 import recording_pb2 as rpb
+        from sortie.v1 import recording_pb2_grpc as rpb_grpc
+
+        if len(action) != 1:
+            raise InvalidArgument("action", "give exactly one of play, pause, speed, seek_time_s, step_ticks",
+                                  value=sorted(action))
+        return self._call(rpb_grpc.ReplayServiceStub(self.channel).Control, rpb.ReplayControl(**action))
+
+    def replay_status(self) -> "rpb.ReplayStatus":
+        from sortie.v1 import recording_pb2 as rpb
+        from sortie.v1 import recording_pb2_grpc as rpb_grpc
+
+        return self._call(rpb_grpc.ReplayServiceStub(self.channel).GetStatus, rpb.GetReplayStatusRequest())
+
     # -- commands -------------------------------------------------------------------------------
 
     def controls(self) -> ControlStream:
@@ -219,6 +238,9 @@ class Picture:
                 now, arrived = time.monotonic(), time.time()  # on receipt, before any processing
                 with self._cond:
                     self.bytes += u.ByteSize()
+                    if u.snapshot and self.infos:  # a new snapshot (a replay's seek) replaces the picture
+                        self.dr.remove(self.dr.ids)
+                        self.infos = {}
                     for i in u.left:
                         self.infos.pop(i, None)
                     if u.left:

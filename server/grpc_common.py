@@ -324,15 +324,21 @@ class ManagedServer:
     def serve_until_signalled(self, grace_s: float = DEFAULT_GRACE_S,
                               signals=(signal.SIGTERM, signal.SIGINT)) -> None:
         """Block (main thread only) until one of ``signals``, then stop gracefully."""
-        stop = threading.Event()
-        previous = {sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in signals}
-        try:
-            stop.wait()
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+        wait_for_signal(signals=signals)
         logger.info("signal received: NOT_SERVING, stopping with %.1f s grace", grace_s)
         self.stop(grace_s).wait()
+
+
+def wait_for_signal(finished: threading.Event | None = None, signals=(signal.SIGTERM, signal.SIGINT)) -> None:
+    """Block (main thread only) until one of ``signals`` arrives or ``finished`` is set."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in signals}
+    try:
+        while not stop.is_set() and not (finished is not None and finished.is_set()):
+            stop.wait(0.2)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 class AioManagedServer:
@@ -340,22 +346,24 @@ class AioManagedServer:
     thread of its own, so that the rest of the process (a world's clock
     thread) stays synchronous. Same health, reflection and graceful stop.
 
-    ``handlers``: {method: handler} of one service whose behaviours are
-    coroutines; ``blocking_workers``: threads of the pool handlers offload
+    ``handlers_of(blocking pool)``: {method: handler} of one service whose
+    behaviours are coroutines (``extra_services``: more (name, handlers_of)
+    pairs served beside it); ``blocking_workers``: threads of the pool handlers offload
     blocking calls to (:attr:`blocking`).
     """
 
     def __init__(self, service_name: str, handlers_of, address: str, *, max_rpcs: int,
-                 blocking_workers: int = 8, options=None):
+                 blocking_workers: int = 8, options=None, extra_services=()):
         self.blocking = futures.ThreadPoolExecutor(max_workers=blocking_workers, thread_name_prefix="aio-blocking")
         self.loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._run_loop, name="grpc-aio", daemon=True)
         self._thread.start()
-        self._health_names = ("", service_name)
+        services = [(service_name, handlers_of)] + list(extra_services)  # (name, handlers_of) each
+        self._health_names = ("", *(name for name, _ in services))
         self._stopped = threading.Event()
         try:
-            self.port = self._call(self._create(service_name, handlers_of(self.blocking), address, max_rpcs,
-                                                options if options is not None else channel_options()))
+            self.port = self._call(self._create([(name, h(self.blocking)) for name, h in services], address,
+                                                max_rpcs, options if options is not None else channel_options()))
         except BaseException:
             self._shutdown_loop()
             raise
@@ -367,15 +375,16 @@ class AioManagedServer:
     def _call(self, coro, timeout_s: float = 60.0):
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
 
-    async def _create(self, service_name, handlers, address, max_rpcs, options) -> int:
+    async def _create(self, services, address, max_rpcs, options) -> int:
         from grpc_health.v1.health import aio as health_aio
 
         self.grpc_server = grpc.aio.server(options=options, maximum_concurrent_rpcs=max_rpcs)
-        self.grpc_server.add_registered_method_handlers(service_name, handlers)
+        for name, handlers in services:
+            self.grpc_server.add_registered_method_handlers(name, handlers)
         self.health = health_aio.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc_server)
-        reflection.enable_server_reflection((service_name, health.SERVICE_NAME, reflection.SERVICE_NAME),
-                                            self.grpc_server)
+        reflection.enable_server_reflection((*(name for name, _ in services), health.SERVICE_NAME,
+                                             reflection.SERVICE_NAME), self.grpc_server)
         return self.grpc_server.add_insecure_port(address)
 
     async def _start(self) -> None:

@@ -41,7 +41,8 @@ DEFAULT_CHUNK_S = 1.0
 MAX_QUEUED_CHUNKS = 64
 REPO = Path(__file__).resolve().parents[1]
 # The code whose arithmetic a re-simulation repeats (the build id hashes it).
-SIMULATION_SOURCES = ("fdm", "server", "terrain", "client/terrain_client.py")
+SIMULATION_SOURCES = ("fdm", "terrain", "server/world.py", "server/aircraft_host.py", "server/scenario.py",
+                      "server/sim_server.py", "server/dead_reckoning.py", "client/terrain_client.py")
 
 
 def build_id() -> str:

@@ -191,6 +191,13 @@ class Recording:
         if not self.path.is_file():
             raise NotFound(f"recording {str(self.path)!r} does not exist")
         self._f = open(self.path, "rb")
+        try:
+            self._open()
+        except BaseException:
+            self._f.close()
+            raise
+
+    def _open(self) -> None:
         self.size = self.path.stat().st_size
         self.header = self._read_header()
         if self.header.format_version != FORMAT_VERSION:
@@ -364,7 +371,8 @@ class Recording:
         return max(0, bisect.bisect_right(self._first_ticks, tick) - 1)
 
     def tick_at(self, time_s: float) -> int:
-        """The recorded tick at or just before world time ``time_s`` (clamped)."""
+        """The recorded tick at or just before world time ``time_s`` (clamped). World time
+        is exactly tick / world rate (server/world.py), so frames carry no time of their own."""
         tick = int(np.floor(time_s * self.rate_hz + 1e-6))
         return min(max(tick, self.first_tick), self.last_tick)
 
@@ -386,7 +394,9 @@ class Recording:
             yield self.frame(tick)
 
     def inputs(self):
-        """Every InputRecord, in the order they were done."""
+        """Every InputRecord, in the order they were done. Inputs and events done after
+        tick k (InputRecord.tick = k) are kept with the chunk of tick k + 1, so the last
+        tick of a chunk may have its inputs and events in the next chunk."""
         for k in range(self.chunk_count):
             yield from self.chunk(k).inputs
 

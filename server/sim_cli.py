@@ -2,7 +2,11 @@
 
     sortie server --scenario FILE [--dem FILE... | --terrain HOST:PORT] --port N [--host H]
                   [--clock realtime|fast|paused] [--time-scale X] [--duration S]
-                  [--aircraft-workers N|auto]
+                  [--aircraft-workers N|auto] [--record FILE | --record-dir DIR | --no-record]
+
+Every sortie is recorded by default, into ``recordings/<exercise>-<UTC time>.sortie``
+(server/recorder.py; read it with ``sortie recording``, ``sortie replay``,
+``sortie resim``, ``sortie export acmi``).
 
 Runs until SIGTERM/SIGINT (graceful: NOT_SERVING, streams closed, in-flight
 calls get --grace-s) or until the scenario's (or --duration's) end.
@@ -11,10 +15,11 @@ calls get --grace-s) or until the scenario's (or --duration's) end.
 from __future__ import annotations
 
 import os
-import signal
-import threading
+import re
+import time
+from pathlib import Path
 
-from server.grpc_common import DEFAULT_GRACE_S
+from server.grpc_common import DEFAULT_GRACE_S, wait_for_signal
 from server.sim_server import CLOCKS
 from sortie.errors import InvalidArgument
 
@@ -35,6 +40,13 @@ def add_parser(sub) -> None:
     p.add_argument("--aircraft-workers", default="auto", metavar="N|auto",
                    help="processes the aircraft's JSBSim runs in: 0 = in the server's process; auto = "
                         "one per CPU core (%(default)s); see server/aircraft_host.py")
+    rec = p.add_mutually_exclusive_group()
+    rec.add_argument("--record", metavar="FILE", help="record the sortie into FILE (a new file)")
+    rec.add_argument("--record-dir", metavar="DIR", default="recordings",
+                     help="record into DIR/<exercise>-<UTC time>.sortie (default %(default)s)")
+    rec.add_argument("--no-record", action="store_true", help="do not record the sortie")
+    p.add_argument("--record-chunk-s", type=float, default=1.0, metavar="S",
+                   help="world seconds per recording chunk: what a killed server may lose (default %(default)s)")
     p.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
                    help="seconds in-flight calls get on shutdown (default %(default)s)")
     p.set_defaults(func=server_command)
@@ -55,14 +67,37 @@ def aircraft_workers(value: str) -> int:
     return n
 
 
+def recording_path(args, exercise_name: str) -> Path | None:
+    """Where ``sortie server`` records (None: --no-record)."""
+    if args.no_record:
+        return None
+    if args.record:
+        return Path(args.record)
+    slug = re.sub(r"[^A-Za-z0-9]+", "-", exercise_name).strip("-").lower() or "sortie"
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    return Path(args.record_dir) / f"{slug}-{stamp}.sortie"
+
+
 def server_command(args) -> int:
+    from server.recorder import Recorder, recording_header
     from server.scenario import load_scenario
-    from server.sim_server import SimulationServer, aircraft_host, build_world, open_terrain, server_config
+    from server.sim_server import (SimulationServer, aircraft_host, build_world, open_terrain, server_config,
+                                   terrain_spec)
 
     workers = aircraft_workers(args.aircraft_workers)
     scenario = load_scenario(args.scenario)
     terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
     world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers))
+    recorder = None
+    path = recording_path(args, scenario.exercise.name)
+    if path is not None:
+        if not args.record_chunk_s > 0:
+            raise InvalidArgument("record_chunk_s", "must be > 0", value=args.record_chunk_s)
+        if path.exists():
+            raise InvalidArgument("record", "the file exists (recordings are never overwritten)", value=str(path))
+        header = recording_header(args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain),
+                                  terrain)
+        recorder = Recorder(path, header, args.record_chunk_s)
     config = server_config(scenario, desc)
     if args.clock:
         config.clock = args.clock
@@ -70,21 +105,19 @@ def server_command(args) -> int:
         config.time_scale = args.time_scale
     if args.duration is not None:
         config.duration_s = args.duration
-    server = SimulationServer(world, config, f"{args.host}:{args.port}")
+    server = SimulationServer(world, config, f"{args.host}:{args.port}", recorder=recorder)
     server.start()
     print(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
           f"clock {config.clock})", flush=True)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        while not stop.is_set() and not server.finished.is_set():
-            stop.wait(0.2)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    if recorder is not None:
+        print(f"recording to {path}", flush=True)
+    wait_for_signal(server.finished)
     server.stop(args.grace_s)
     world.close()
     stats = server.tick_stats()
     print(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
           f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", flush=True)
+    if recorder is not None:
+        state = f"failed: {recorder.error}" if recorder.error else f"{recorder.bytes_written:,} bytes"
+        print(f"recording {path}: {state}", flush=True)
     return 0

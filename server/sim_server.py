@@ -55,6 +55,18 @@ DEFAULT_PARAMS = {
 }
 
 
+def type_params(params: dict, entities: dict, entity_id, kind: str | None = None) -> TypeParams:
+    """The parameters of entity ``entity_id`` of ``entities`` (by its type name, else its
+    kind), or of ``kind`` when entity_id is None; ``params``: ServerConfig.params."""
+    if entity_id is None:
+        return params.get(kind, DEFAULT_PARAMS[kind])
+    e = entities.get(entity_id)
+    if e is None:
+        return params["static"]
+    k = KIND_NAMES[e.kind]
+    return params.get(e.type, params.get(k, DEFAULT_PARAMS[k]))
+
+
 @dataclass
 class ServerConfig:
     exercise_name: str = "sortie"
@@ -73,7 +85,7 @@ class SimulationServer:
     """World + clock thread + gRPC service. ``start()``, then ``stop()``."""
 
     def __init__(self, world: World, config: ServerConfig, address: str = "127.0.0.1:0",
-                 max_workers: int = DEFAULT_MAX_WORKERS):
+                 max_workers: int = DEFAULT_MAX_WORKERS, recorder=None, before_tick=None):
         if config.clock not in CLOCKS:
             raise InvalidArgument("clock", f"must be one of {', '.join(CLOCKS)}", value=config.clock)
         if not (config.time_scale > 0):
@@ -83,6 +95,12 @@ class SimulationServer:
                                   value=config.network_rate_hz)
         self.world = world
         self.config = config
+        # server.recorder.Recorder (attached to the world now, closed by stop()); before_tick(world)
+        # runs on the clock thread before each tick (re-simulated inputs of a take-over).
+        self.recorder = recorder
+        if recorder is not None:
+            world.attach_recorder(recorder)
+        self.before_tick = before_tick
         self.sessions = Sessions(world, self.params_of, config.vanished_timeout_s)
         self.publisher = Publisher(DeadReckoner(), lambda i: self.params_of(i).thresholds)
         self.tick_ms: list[float] = []  # wall time of each tick + publish, for benchmarks
@@ -105,14 +123,7 @@ class SimulationServer:
 
     def params_of(self, entity_id, kind: str | None = None) -> TypeParams:
         """An entity's parameters: by its type name, else its kind (or ``kind`` directly)."""
-        p = self.config.params
-        if entity_id is None:
-            return p.get(kind, DEFAULT_PARAMS[kind])
-        e = self.world.entities.get(entity_id)
-        if e is None:
-            return p["static"]
-        k = KIND_NAMES[e.kind]
-        return p.get(e.type, p.get(k, DEFAULT_PARAMS[k]))
+        return type_params(self.config.params, self.world.entities, entity_id, kind)
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -134,6 +145,8 @@ class SimulationServer:
         for s in self.sessions.watching():
             s.queue.close()
         self.grpc.stop(grace_s).wait()
+        if self.recorder is not None:
+            self.recorder.close()
 
     def set_clock(self, clock: str, time_scale: float | None = None) -> None:
         if clock not in CLOCKS:
@@ -169,6 +182,8 @@ class SimulationServer:
                     wall_next = time.monotonic()
                     continue
                 t0 = time.perf_counter()
+                if self.before_tick is not None:
+                    self.before_tick(world)
                 world.tick()
                 if world.time_s + 1e-9 >= next_net:
                     self.publisher.publish(world.snapshot, world.infos, self.sessions.watching())

@@ -119,6 +119,15 @@ class ClientQueue:
             self._dirty = False
             return out
 
+    def resnapshot(self) -> None:
+        """Start over (a replay's seek): drop what is pending and what the client was told;
+        the next update is a full snapshot, which the client takes in place of its picture."""
+        with self.cond:
+            self.known = set()
+            self._enter, self._leave, self._states = {}, set(), {}
+            self._snapshot = True
+            self._dirty = False
+
     @property
     def needs_snapshot(self) -> bool:
         """True until the first update (the snapshot) has been taken."""
@@ -224,6 +233,14 @@ class Publisher:
         self._ids = np.zeros(0, np.int64)  # the entity layout of the last publish
         self._layout = 0  # bumped when it changes
         self._slots = np.zeros(0, np.int64)  # the reckoner's rows of self._ids
+
+    def reset(self) -> None:
+        """Forget what was sent (a replay's seek): at the next publish every entity is
+        new to the reckoner, so every session gets a fresh state of each one it sees."""
+        self.reckoner.remove(self.reckoner.ids)
+        self._ids = np.zeros(0, np.int64)
+        self._slots = np.zeros(0, np.int64)
+        self._layout += 1
 
     def _track(self, ids: np.ndarray) -> None:
         """Add new entities to the reckoner (in one call per thresholds), drop the gone ones."""

@@ -136,7 +136,31 @@ def _empty_snapshot(t: float, tick: int) -> Snapshot:
                     np.zeros(0))
 
 
-class World:
+class EventLog:
+    """The events kept for late readers (the newest EVENT_BACKLOG), with a condition
+    that readers wait on; what the events stream reads (server/sim_service.py)."""
+
+    def __init__(self):
+        self.events: list[WorldEvent] = []  # newest last
+        self.events_total = 0  # events ever emitted (readers keep their own count)
+        self.event_cond = threading.Condition()
+
+    def _append_event(self, ev: WorldEvent) -> None:
+        with self.event_cond:
+            self.events.append(ev)
+            self.events_total += 1
+            if len(self.events) > EVENT_BACKLOG:
+                del self.events[:len(self.events) - EVENT_BACKLOG]
+            self.event_cond.notify_all()
+
+    def events_since(self, count: int) -> tuple[list[WorldEvent], int]:
+        """Events after the first ``count`` ever emitted (those still kept), and the new count."""
+        with self.event_cond:
+            first = self.events_total - len(self.events)
+            return self.events[max(count - first, 0):], self.events_total
+
+
+class World(EventLog):
     """Agents on one terrain, a fixed-step clock, commands in, snapshots out.
 
     ``terrain``: anything with ``heights(lat, lon)`` (in-process Terrain or a
@@ -175,9 +199,7 @@ class World:
         self.infos: dict[int, tuple] = {}
         self.time_s = 0.0
         self.tick_count = 0
-        self.events: list[WorldEvent] = []  # newest last; trimmed to EVENT_BACKLOG
-        self.events_total = 0  # events ever emitted (readers keep their own count)
-        self.event_cond = threading.Condition()
+        EventLog.__init__(self)
         self._lock = threading.RLock()
         self._pending: dict[int, tuple] = {}
         self._next_id = 1
@@ -588,11 +610,7 @@ class World:
 
     def _emit(self, ev: WorldEvent) -> None:
         with self.event_cond:
-            self.events.append(ev)
-            self.events_total += 1
-            if len(self.events) > EVENT_BACKLOG:
-                del self.events[:len(self.events) - EVENT_BACKLOG]
-            self.event_cond.notify_all()
+            self._append_event(ev)
             if self.recorder is not None:
                 self.recorder.on_event(self.tick_count, ev)
 
@@ -600,8 +618,4 @@ class World:
         """An event from outside the physics (joins, leaves)."""
         self._emit(WorldEvent(self.time_s, kind, entity_id, detail=detail))
 
-    def events_since(self, count: int) -> tuple[list[WorldEvent], int]:
-        """Events after the first ``count`` ever emitted (those still kept), and the new count."""
-        with self.event_cond:
-            first = self.events_total - len(self.events)
-            return self.events[max(count - first, 0):], self.events_total
+

@@ -18,9 +18,11 @@ from sortie.errors import SortieError
 COMMAND_MODULES = (
     "server.terrain_cli",
     "server.sim_cli",
+    "server.recording_cli",
     "client.cli",
     "fdm.cli",
     "bench.cli",
+    "server.export_cli",
     "sortie.demo",
 )
 

@@ -68,7 +68,7 @@ def small_world(alps):
 def server(alps):
     w = small_world(alps)
     srv = SimulationServer(w, ServerConfig(clock="fast", time_scale=2.0, vanished_timeout_s=1.5))
-    srv.recorder = Recorder(srv.publisher)
+    srv.tap = Recorder(srv.publisher)
     srv.start()
     yield srv
     srv.stop(0.5)
@@ -165,7 +165,7 @@ def test_receivers_dead_reckoning_stays_within_the_thresholds(server):
                       + [(u.time_s, 1, list(u.left)) for u in log if u.left], key=lambda x: (x[0], x[1]))
     end_s = log[-1].time_s
     k = 0
-    for snap in server.recorder.snaps:
+    for snap in server.tap.snaps:
         while k < len(timeline) and timeline[k][0] <= snap.time_s + 1e-9:
             _, what, item = timeline[k]
             if what == 0:
@@ -265,8 +265,9 @@ def test_server_command_runs_the_scenario_and_stops_on_sigterm(tmp_path):
     from server.process import free_port, sortie_command, wait_serving
 
     port = free_port()
-    proc = subprocess.Popen([*sortie_command(), "server", "--scenario", REPO_SCENARIO, "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    recording = tmp_path / "sortie.sortie"
+    proc = subprocess.Popen([*sortie_command(), "server", "--scenario", REPO_SCENARIO, "--port", str(port),
+                             "--record", str(recording)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_serving(f"127.0.0.1:{port}", proc, timeout_s=60.0)
         with SimClient(f"127.0.0.1:{port}") as obs:
@@ -281,6 +282,11 @@ def test_server_command_runs_the_scenario_and_stops_on_sigterm(tmp_path):
             proc.kill()
     assert proc.returncode == 0, out
     assert "stopped at world time" in out
+    from server.recording import Recording
+
+    with Recording(recording) as rec:  # recorded by default, closed whole on SIGTERM
+        report = rec.check()
+        assert report.ok and report.footer and report.ticks > 0 and report.entities == 12, report
 
 
 def test_a_fast_mover_cannot_tunnel_through_a_thin_pillar():

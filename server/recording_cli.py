@@ -1,0 +1,163 @@
+"""``sortie recording info|check``, ``sortie resim`` and ``sortie replay``.
+
+    sortie recording info FILE [--json]
+    sortie recording check FILE            # exit 1 when anything is wrong (what is readable is listed)
+    sortie resim FILE [--dem FILE... | --terrain HOST:PORT] [--until S] [--json OUT]
+    sortie resim FILE --take-over S --agent NAME --port N   # live from instant S, NAME free to claim
+    sortie replay FILE --port N [--speed X] [--paused]
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("recording", help="what a sortie recording holds, and whether it is whole",
+                       description="Inspect a sortie recording (server/recording.py).")
+    rsub = p.add_subparsers(dest="recording_command", metavar="COMMAND", required=True)
+    info = rsub.add_parser("info", help="duration, entities, events, inputs, size",
+                           description="Print what a recording holds: duration, entities, events, inputs, size.")
+    info.add_argument("file", help="a .sortie recording")
+    info.add_argument("--json", action="store_true", help="print JSON instead of text")
+    info.set_defaults(func=info_command)
+    check = rsub.add_parser("check", help="decode every chunk; exit 1 when anything is wrong",
+                            description="Walk and decode the whole recording: the chunks that replay, and what "
+                                        "is damaged or missing (a killed server leaves no footer; everything up "
+                                        "to its last flushed chunk replays). Exit 0 when whole, 1 otherwise.")
+    check.add_argument("file", help="a .sortie recording")
+    check.set_defaults(func=check_command)
+
+    r = sub.add_parser("resim", help="re-simulate a recording and compare every state, or take over from it",
+                       description="Re-run the recorded scenario from its initial state with the recorded inputs "
+                                   "and compare every state with the recording (bit-exact for the same build and "
+                                   "terrain; the first divergence otherwise). With --take-over, run the world live "
+                                   "from that instant instead, the --agent free for a client to claim.")
+    r.add_argument("file", help="a .sortie recording")
+    terrain = r.add_mutually_exclusive_group()
+    terrain.add_argument("--dem", nargs="+", metavar="FILE", help="the DEM files (default: the recorded ones)")
+    terrain.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service serving the recorded DEMs")
+    r.add_argument("--until", type=float, metavar="S", help="stop at world time S")
+    r.add_argument("--aircraft-workers", default="0", metavar="N|auto",
+                   help="processes for the aircraft (default %(default)s: in process; results are identical)")
+    r.add_argument("--json", metavar="OUT", help="write the report as JSON")
+    r.add_argument("--take-over", type=float, metavar="S", help="go live from world time S")
+    r.add_argument("--agent", metavar="NAME", help="with --take-over: the agent a client takes")
+    r.add_argument("--port", type=int, default=0, help="with --take-over: TCP port (0: a free one)")
+    r.add_argument("--host", default="127.0.0.1", help="with --take-over: interface (default %(default)s)")
+    r.set_defaults(func=resim_command)
+
+    from server.replay import add_parser as add_replay
+
+    add_replay(sub)
+
+
+def _open(path):
+    from server.recording import Recording
+
+    return Recording(path)
+
+
+def summary(rec) -> dict:
+    kinds = Counter({1: "aircraft", 2: "ground", 3: "static"}.get(e.kind, "?") for e in rec.entities.values())
+    events = Counter(r.event.kind for r in rec.events())
+    entity_s = 0.0
+    for k in range(rec.chunk_count):
+        c = rec.chunk(k)
+        entity_s += float(c.present.sum()) * rec.dt
+    h = rec.header
+    return {"file": str(rec.path), "size_bytes": rec.size, "exercise": h.exercise_name, "start_time": h.start_time,
+            "first_time_s": rec.first_time_s, "last_time_s": rec.last_time_s, "duration_s": rec.duration_s,
+            "ticks": rec.index.ticks, "world_rate_hz": rec.rate_hz, "chunks": rec.chunk_count,
+            "entities": len(rec.entities), "entities_by_kind": dict(kinds), "events": rec.index.event_count,
+            "events_by_kind": dict(events), "inputs": rec.index.input_count,
+            "bytes_per_entity_second": rec.size / entity_s if entity_s else None,
+            "footer": not rec.recovered, "problems": list(rec.problems), "build_id": h.build_id,
+            "sortie_version": h.sortie_version, "jsbsim_version": h.jsbsim_version,
+            "terrain": h.terrain.description}
+
+
+def info_command(args) -> int:
+    with _open(args.file) as rec:
+        s = summary(rec)
+    if args.json:
+        print(json.dumps(s, indent=2))
+        return 0
+    per = s["bytes_per_entity_second"]
+    print(f"{s['file']}: {s['exercise']} (start {s['start_time']})\n"
+          f"  duration {s['duration_s']:.1f} s ({s['first_time_s']:.2f} .. {s['last_time_s']:.2f} s), "
+          f"{s['ticks']} ticks at {s['world_rate_hz']:g} Hz in {s['chunks']} chunks\n"
+          f"  entities {s['entities']} {s['entities_by_kind']}\n"
+          f"  events {s['events']} {s['events_by_kind']}, inputs {s['inputs']}\n"
+          f"  size {s['size_bytes']:,} bytes" + (f" ({per:.1f} bytes per entity second)" if per else "") + "\n"
+          f"  terrain {s['terrain']}; build {s['build_id']} (sortie {s['sortie_version']}, "
+          f"jsbsim {s['jsbsim_version']})\n"
+          f"  footer {'yes' if s['footer'] else 'no (recovered by walking the chunks)'}")
+    return 0
+
+
+def check_command(args) -> int:
+    with _open(args.file) as rec:
+        report = rec.check(decode=True)
+    print(f"{report.path}: {report.size_bytes:,} bytes, footer {'yes' if report.footer else 'no'}\n"
+          f"  {report.chunks} chunks replay: {report.ticks} ticks, world time {report.first_time_s:.2f} .. "
+          f"{report.last_time_s:.2f} s; {report.entities} entities, {report.events} events, "
+          f"{report.inputs} inputs\n  readable up to byte {report.readable_bytes:,}")
+    for p in report.problems:
+        print(f"  problem: {p}")
+    print("  OK" if report.ok else f"  {len(report.problems)} problem(s)")
+    return 0 if report.ok else 1
+
+
+def resim_command(args) -> int:
+    from server.resim import resimulate
+    from server.sim_cli import aircraft_workers
+
+    workers = aircraft_workers(args.aircraft_workers)
+    if args.take_over is not None:
+        return take_over_command(args, workers)
+    if args.agent:
+        from sortie.errors import InvalidArgument
+
+        raise InvalidArgument("agent", "only with --take-over", value=args.agent)
+    from rich.progress import Progress
+
+    with Progress(transient=True) as bar:
+        task = bar.add_task("re-simulating", total=None)
+        report = resimulate(args.file, args.dem, args.terrain, workers, args.until,
+                            progress=lambda t, last: bar.update(task, completed=t, total=last))
+    d = report.as_dict()
+    print(f"{report.recording}: {report.ticks} ticks compared in {report.wall_s:.1f} s: "
+          f"{'bit-exact' if report.bit_exact else 'DIVERGED'} ({report.bit_exact_ticks} bit-exact ticks), "
+          f"max position difference {report.max_abs_diff_m:.4f} m")
+    if report.first_divergence:
+        print(f"  first divergence: {report.first_divergence}")
+    for n in report.notes:
+        print(f"  note: {n}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(d, f, indent=2)
+    return 0 if report.bit_exact else 1
+
+
+def take_over_command(args, workers: int) -> int:
+    from server.grpc_common import wait_for_signal
+    from server.resim import take_over
+    from server.sim_server import SimulationServer, server_config
+    from sortie.errors import InvalidArgument
+
+    if not args.agent:
+        raise InvalidArgument("agent", "--take-over needs --agent NAME")
+    world, inputs, scenario = take_over(args.file, args.take_over, args.agent, args.dem, args.terrain, workers)
+    config = server_config(scenario, "take-over:" + str(args.file))
+    config.clock = "realtime"
+    server = SimulationServer(world, config, f"{args.host}:{args.port}", before_tick=inputs.apply)
+    server.start()
+    print(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}", flush=True)
+    wait_for_signal(server.finished)
+    server.stop()
+    world.close()
+    print(f"take-over stopped at world time {world.time_s:.1f} s", file=sys.stderr, flush=True)
+    return 0

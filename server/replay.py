@@ -1,0 +1,321 @@
+"""``sortie replay``: a recording served through the live streaming API.
+
+Clients, renderers and bots join and watch a replay exactly as a live
+exercise (sortie.v1.SimulationService: Join as an observer, Watch with the
+full snapshot first, interest management, dead reckoning, WatchEvents,
+GetWorld), because the same code serves them: :class:`ReplayWorld` stands
+in for server.world.World (its snapshot comes from the recording's frames
+instead of the physics) and the same Sessions, Publisher and servicer run
+over it. Replay controls are a second service on the same port,
+sortie.v1.ReplayService: play, pause, speed 0.1x-64x, seek to any time,
+step by ticks.
+
+The replay clock thread runs at the exercise's network rate in *wall*
+time: each period it moves the replay position by speed x the wall time
+elapsed, shows the recorded tick at that position (one chunk decoded per
+second of world time; seeking is the index's bisection and one chunk) and
+publishes, so at 64x each update jumps 3.2 world seconds and dead reckoning
+decides what changed enough to send. Events recorded between the ticks shown
+go out on WatchEvents as they are passed while playing forward (not when
+seeking). After a seek every Watch stream starts over: its next update is a
+full snapshot (``snapshot = true``, which a client takes in place of what it
+holds), with every visible entity's state at the new time. Only observers may join: a
+replay has no agents to command (take-over is ``sortie resim --take-over``).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import threading
+import time
+
+import grpc
+import numpy as np
+
+from server.grpc_common import AioManagedServer, wait_for_signal
+from server.recording import Recording
+from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers, status_of
+from server.streaming import Publisher
+from server.world import Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
+from sortie.errors import InvalidArgument, PermissionDenied
+from sortie.v1 import recording_pb2 as rpb
+from sortie.v1 import simulation_pb2 as pb
+from terrain.geodesy import ecef_to_geodetic
+
+logger = logging.getLogger(__name__)
+
+REPLAY_SERVICE = "sortie.v1.ReplayService"
+MIN_SPEED, MAX_SPEED = 0.1, 64.0
+MAX_STEP_TICKS = 1_000_000
+
+
+class ReplayWorld(EventLog):
+    """What the session service and the publisher read from a World, fed by a recording.
+
+    :meth:`show` puts one recorded tick on display (and emits the events
+    recorded since the last tick shown, when asked)."""
+
+    def __init__(self, rec: Recording):
+        super().__init__()
+        self.rec = rec
+        self.dt = rec.dt
+        self.geoid_undulation_m = rec.header.geoid_undulation_m
+        self.entities = {i: Entity(i, e.name, e.kind, e.type, e.coalition) for i, e in rec.entities.items()}
+        self.infos = {i: (i, e.name, e.kind, e.type, e.coalition) for i, e in rec.entities.items()}
+        self.tick_count = rec.first_tick - 1
+        self.time_s = self.tick_count * self.dt
+        self.snapshot = _empty_snapshot(self.time_s, self.tick_count)
+
+    def show(self, tick: int, events: bool) -> None:
+        """Display recorded ``tick``; with ``events``, emit those recorded after the tick
+        shown before it, up to it."""
+        rec = self.rec
+        f = rec.frame(tick)
+        if events and f.tick > self.tick_count:
+            # Events after tick k are kept with tick k + 1's chunk (server/recording.py).
+            last_chunk = min(rec.chunk_of_tick(f.tick + 1) + 1, rec.chunk_count)
+            for k in range(rec.chunk_of_tick(self.tick_count + 1), last_chunk):
+                for r in rec.chunk(k).events:
+                    if self.tick_count < r.tick <= f.tick:
+                        e = r.event
+                        self._append_event(WorldEvent(e.time_s, e.kind, e.entity_id, e.lat_deg, e.lon_deg, e.alt_msl_m,
+                                              _detail(e.detail_json)))
+        s = f.states
+        lat, lon, h = ecef_to_geodetic(s[:, 0:3]) if f.ids.size else (np.zeros(0),) * 3
+        self.snapshot = Snapshot(f.time_s, f.tick, f.ids, s[:, 0:3], s[:, 3:6], s[:, 6:9], s[:, 9:13], s[:, 13:16],
+                                 np.asarray(lat), np.asarray(lon), np.asarray(h) - self.geoid_undulation_m)
+        self.tick_count, self.time_s = f.tick, f.time_s
+
+    # -- the World interface of server.sim_service ------------------------------------------------
+
+    def claim(self, entity_id: int, owner: str, client: str = ""):
+        raise InvalidArgument("role", "a replay has no agents to control: join as an observer")
+
+    def release(self, entity_id: int, vanished: bool = False) -> None:
+        pass
+
+    def command(self, entity_id: int, kind: str, values: dict) -> None:
+        raise PermissionDenied("a replay takes no commands")
+
+    def emit(self, kind: str, entity_id: int = 0, **detail) -> None:
+        self._append_event(WorldEvent(self.time_s, kind, entity_id, detail=detail))
+
+
+def _detail(text: str) -> dict:
+    import json
+
+    try:
+        d = json.loads(text) if text else {}
+        return d if isinstance(d, dict) else {"detail": d}
+    except ValueError:
+        return {"detail": text}
+
+
+class ReplaySessions(Sessions):
+    def join(self, name: str, role: int, agent_name: str = "", observer=None):
+        if role != pb.ROLE_OBSERVER:
+            raise InvalidArgument("role", "a replay serves observers only (take over an agent with sortie resim "
+                                          "--take-over)", value=pb.Role.Name(role) if role in pb.Role.values()
+                                  else role)
+        return super().join(name, role, agent_name, observer)
+
+
+class ReplayServer:
+    """A recording + its replay clock + SimulationService and ReplayService. ``start()``, ``stop()``."""
+
+    def __init__(self, path, address: str = "127.0.0.1:0", speed: float = 1.0, playing: bool = True,
+                 start_s: float | None = None):
+        from server.dead_reckoning import DeadReckoner
+        from server.resim import recorded_scenario
+        from server.sim_server import ServerConfig, server_config
+
+        self.rec = Recording(path)
+        try:
+            self.config = server_config(recorded_scenario(self.rec), self.rec.header.terrain.description)
+        except Exception as exc:  # noqa: BLE001 - a scenario this build cannot read: default parameters
+            logger.warning("replay of %s with default parameters: %s", path, exc)
+            self.config = ServerConfig(exercise_name=self.rec.header.exercise_name,
+                                       start_time=self.rec.header.start_time)
+        self.world = ReplayWorld(self.rec)
+        self._check_speed(speed)
+        self.speed = float(speed)
+        self.playing = bool(playing)
+        self._lock = threading.Lock()
+        self._position_s = self.rec.first_time_s if start_s is None else self._clamp(start_s)
+        self._seeked = True
+        self.sessions = ReplaySessions(self.world, self.params_of, self.config.vanished_timeout_s)
+        self.publisher = Publisher(DeadReckoner(), lambda i: self.params_of(i).thresholds)
+        self._stop = threading.Event()
+        self._kick = threading.Event()  # wakes the clock thread after a control
+        self.finished = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="replay-clock", daemon=True)
+        servicer = functools.partial(SimulationServicer, self.sessions, self.world_info)
+        self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
+                                     max_rpcs=512, extra_services=[(REPLAY_SERVICE, lambda pool: self._handlers())])
+        self.port = self.grpc.port
+        self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"
+
+    def params_of(self, entity_id, kind: str | None = None):
+        from server.sim_server import type_params
+
+        return type_params(self.config.params, self.world.entities, entity_id, kind)
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._show()
+        self.grpc.start()
+        self._thread.start()
+
+    def stop(self, grace_s: float = 2.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10.0)
+        for s in self.sessions.watching():
+            s.queue.close()
+        self.grpc.stop(grace_s).wait()
+        self.rec.close()
+
+    # -- controls -------------------------------------------------------------------------------
+
+    @staticmethod
+    def _check_speed(speed) -> None:
+        if not (isinstance(speed, (int, float)) and math.isfinite(speed) and MIN_SPEED <= speed <= MAX_SPEED):
+            raise InvalidArgument("speed", f"must be in [{MIN_SPEED:g}, {MAX_SPEED:g}]", value=speed)
+
+    def _clamp(self, t: float) -> float:
+        return min(max(float(t), self.rec.first_time_s), self.rec.last_time_s)
+
+    def control(self, msg: rpb.ReplayControl) -> rpb.ReplayStatus:
+        which = msg.WhichOneof("action")
+        with self._lock:
+            if which is None:
+                raise InvalidArgument("action", "set one of play, pause, speed, seek_time_s, step_ticks")
+            if which == "play":
+                if self._position_s >= self.rec.last_time_s:  # at the end: play from the start
+                    self._position_s, self._seeked = self.rec.first_time_s, True
+                self.playing = True
+            elif which == "pause":
+                self.playing = False
+            elif which == "speed":
+                self._check_speed(msg.speed)
+                self.speed = msg.speed
+            elif which == "seek_time_s":
+                if not math.isfinite(msg.seek_time_s):
+                    raise InvalidArgument("seek_time_s", "must be a finite number", value=msg.seek_time_s)
+                self._position_s, self._seeked = self._clamp(msg.seek_time_s), True
+            else:
+                n = msg.step_ticks
+                if not 0 < abs(n) <= MAX_STEP_TICKS:
+                    raise InvalidArgument("step_ticks", f"must be non-zero, at most {MAX_STEP_TICKS} either way",
+                                          value=n)
+                self.playing = False
+                tick = min(max(self.rec.tick_at(self._position_s) + n, self.rec.first_tick), self.rec.last_tick)
+                self._position_s = tick * self.rec.dt
+                self._seeked = n < 0
+            self._wake_clock()
+        return self.status()
+
+    def _wake_clock(self) -> None:
+        self._last_wall = time.monotonic()
+        self._kick.set()
+
+    def status(self) -> rpb.ReplayStatus:
+        """Where the replay is (the position a control just set, shown at the next update)."""
+        tick = self.rec.tick_at(self._position_s)
+        return rpb.ReplayStatus(time_s=tick * self.rec.dt, tick=tick,
+                                first_time_s=self.rec.first_time_s, last_time_s=self.rec.last_time_s,
+                                playing=self.playing, speed=self.speed, recording=self.rec.path.name)
+
+    def world_info(self) -> pb.WorldInfo:
+        c = self.config
+        areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
+                 for name, poly, d in c.target_areas]
+        clock = "paused" if not self.playing else "realtime" if self.speed == 1.0 else "fast"
+        return pb.WorldInfo(exercise_name=c.exercise_name, start_time=c.start_time, time_s=self.world.time_s,
+                            server_unix_time_s=time.time(), clock=clock,
+                            time_scale=self.speed if self.playing else 0.0, world_rate_hz=self.rec.rate_hz,
+                            network_rate_hz=c.network_rate_hz, target_areas=areas, terrain=c.terrain)
+
+    def _handlers(self) -> dict:
+        async def control(request, context):
+            try:
+                return self.control(request)
+            except Exception as exc:  # noqa: BLE001 - every error becomes a status
+                await context.abort(status_of(exc), str(exc))
+
+        async def get_status(request, context):
+            return self.status()
+
+        def unary(fn, req):
+            return grpc.unary_unary_rpc_method_handler(fn, request_deserializer=req.FromString,
+                                                       response_serializer=lambda m: m.SerializeToString())
+
+        return {"Control": unary(control, rpb.ReplayControl),
+                "GetStatus": unary(get_status, rpb.GetReplayStatusRequest)}
+
+    # -- the replay clock -----------------------------------------------------------------------
+
+    def _show(self) -> None:
+        """Advance the position, show its tick, publish (on the clock thread)."""
+        with self._lock:
+            now = time.monotonic()
+            if self.playing:
+                self._position_s += (now - getattr(self, "_last_wall", now)) * self.speed
+                if self._position_s >= self.rec.last_time_s:
+                    self._position_s, self.playing = self.rec.last_time_s, False
+            self._last_wall = now
+            tick, seeked = self.rec.tick_at(self._position_s), self._seeked
+            self._seeked = False
+        if seeked:  # every watcher starts over from a full snapshot at the new time
+            self.publisher.reset()
+            for session in self.sessions.watching():
+                session.reset_visible()
+                session.queue.resnapshot()
+        if tick != self.world.tick_count or seeked:
+            self.world.show(tick, events=not seeked)
+        self.publisher.publish(self.world.snapshot, self.world.infos, self.sessions.watching())
+
+    def _run(self) -> None:
+        period = 1.0 / self.config.network_rate_hz
+        next_expire = time.monotonic() + 1.0
+        try:
+            while not self._stop.is_set():
+                self._show()
+                if time.monotonic() >= next_expire:
+                    self.sessions.expire()
+                    next_expire = time.monotonic() + 1.0
+                self._kick.wait(period)
+                self._kick.clear()
+        except Exception:  # noqa: BLE001 - the clock thread must say why it died
+            logger.exception("replay clock stopped by an error")
+        finally:
+            self.finished.set()
+
+
+# -- CLI ------------------------------------------------------------------------------------------
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("replay", help="serve a recording through the live streaming API, with replay controls",
+                       description="Serve a sortie recording through sortie.v1.SimulationService (observers join "
+                                   "and watch as live: interest management, dead reckoning, events) and "
+                                   "sortie.v1.ReplayService (play, pause, speed 0.1x-64x, seek, step).")
+    p.add_argument("file", help="a .sortie recording")
+    p.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
+    p.add_argument("--speed", type=float, default=1.0, help="times real time, 0.1-64 (default %(default)s)")
+    p.add_argument("--paused", action="store_true", help="start paused")
+    p.add_argument("--start", type=float, metavar="S", help="start at world time S")
+    p.set_defaults(func=replay_command)
+
+
+def replay_command(args) -> int:
+    server = ReplayServer(args.file, f"{args.host}:{args.port}", args.speed, not args.paused, args.start)
+    server.start()
+    r = server.rec
+    print(f"sortie replay of {r.path.name} ({r.first_time_s:.1f} .. {r.last_time_s:.1f} s, {len(r.entities)} "
+          f"entities) listening on {server.address}", flush=True)
+    wait_for_signal()
+    server.stop()
+    return 0

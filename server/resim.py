@@ -1,0 +1,286 @@
+"""Re-simulation: run a recorded sortie again from its scenario with its recorded
+inputs, and compare every state; and "take over" from any instant.
+
+The world is deterministic: the same scenario on the same terrain, with the
+same calls (command, claim, release, remove) made after the same ticks, gives
+bit-identical states, in process or with the aircraft in worker processes
+(tests/test_aircraft_host.py). The recording keeps each of those calls with
+the tick count it was made at (server/world.py journals them under the
+world's lock), so re-simulation repeats them after the same tick and then
+ticks. Each tick's snapshot is compared with the recorded one by the digest
+of its exact float64 states (bit-exact or not) and, where they differ, by
+the quantised states, which locate the first divergence (tick, entity,
+field, size). A different build (the header's build id) or terrain (the DEM
+files' SHA-256) is reported: bit-exactness is promised for the same build on
+the same terrain only.
+
+Take-over ("My Controls!" in FlightGear): re-simulate to tick k, then run the
+world live (server.sim_server.SimulationServer) with the chosen agent free
+for a client to claim (on its autopilot until one does) while every other
+agent keeps receiving its recorded inputs after the same ticks
+(:class:`RecordedInputs` as the server's ``before_tick``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import tomllib
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from server import recording_codec as codec
+from server.recorder import build_id, file_identity
+from server.recording import Recording
+from sortie.errors import DataFormatError, InvalidArgument, NotFound
+
+FIELD_NAMES = (["ecef_x_m", "ecef_y_m", "ecef_z_m", "vel_x_mps", "vel_y_mps", "vel_z_mps", "acc_x_mps2",
+                "acc_y_mps2", "acc_z_mps2", "quat_w", "quat_x", "quat_y", "quat_z", "rate_p_rps", "rate_q_rps",
+                "rate_r_rps"])
+
+
+@dataclass
+class Divergence:
+    tick: int
+    time_s: float
+    entity_id: int
+    name: str
+    field: str
+    recorded: float
+    resimulated: float
+
+    def __str__(self) -> str:
+        if self.field == "entities":
+            return f"tick {self.tick} (t = {self.time_s:.3f} s): {self.name}"
+        return (f"tick {self.tick} (t = {self.time_s:.3f} s): {self.name} (id {self.entity_id}) {self.field} "
+                f"recorded {self.recorded:.6f}, re-simulated {self.resimulated:.6f} "
+                f"(diff {self.resimulated - self.recorded:+.6g})")
+
+
+@dataclass
+class ResimReport:
+    recording: str
+    ticks: int = 0
+    bit_exact_ticks: int = 0
+    max_abs_diff_m: float = 0.0  # largest position difference, on the recording's grid
+    first_divergence: Divergence | None = None
+    same_build: bool = True
+    same_terrain: bool = True
+    notes: list = field(default_factory=list)
+    wall_s: float = 0.0
+
+    @property
+    def bit_exact(self) -> bool:
+        return self.ticks > 0 and self.bit_exact_ticks == self.ticks
+
+    def as_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in ("recording", "ticks", "bit_exact_ticks", "max_abs_diff_m", "same_build",
+                                           "same_terrain", "notes", "wall_s")}
+        d["bit_exact"] = self.bit_exact
+        d["first_divergence"] = str(self.first_divergence) if self.first_divergence else None
+        return d
+
+
+# -- the recorded scenario, terrain and inputs -----------------------------------------------------
+
+def recorded_scenario(rec: Recording):
+    """The scenario as recorded (its text from the header; relative DEM paths against the
+    scenario file's folder at record time)."""
+    from server.scenario import ScenarioError, parse_scenario
+
+    h = rec.header
+    try:
+        data = tomllib.loads(h.scenario_toml)
+    except tomllib.TOMLDecodeError as exc:
+        raise DataFormatError(f"{rec.path.name}: the recorded scenario does not parse: {exc}") from None
+    try:
+        return parse_scenario(data, Path(h.scenario_path).parent)
+    except ScenarioError as exc:
+        if not exc.field.startswith("terrain.dem"):
+            raise DataFormatError(f"{rec.path.name}: the recorded scenario is not valid here: {exc}") from None
+    # Its DEMs are not where they were: the scenario still gives the agents and parameters
+    # (the terrain comes from the header's files or an override, recorded_terrain_spec).
+    terrain = data.get("terrain", {})
+    data["terrain"] = {"service": "127.0.0.1:1", "geoid_undulation_m": terrain.get("geoid_undulation_m", 0.0)}
+    return parse_scenario(data, Path(h.scenario_path).parent)
+
+
+def recorded_terrain_spec(rec: Recording, dem=None, service: str | None = None) -> tuple[dict, list]:
+    """(arguments of server.sim_server.open_terrain_source, notes): ``dem`` files or a
+    ``service`` override the recording's terrain. DEM files are checked against the
+    recorded SHA-256 (a mismatch is a note and clears same_terrain)."""
+    t = rec.header.terrain
+    if service:
+        return {"service": service}, [f"terrain: service {service} (recorded: {t.description})"]
+    if dem:
+        paths = [str(p) for p in dem]
+    elif t.files:
+        paths = [f.path for f in t.files]
+    elif t.description.startswith("service:"):
+        raise NotFound(f"the recording's terrain was the service {t.description[8:]}; give --terrain ADDRESS of "
+                       f"one serving the same DEMs or --dem FILE... (recorded sources: {t.sources_json})")
+    else:
+        raise DataFormatError(f"{rec.path.name}: the header names no terrain")
+    for p in paths:
+        if not Path(p).is_file():
+            raise NotFound(f"terrain file {p!r} does not exist (give --dem FILE... with the recorded DEMs)")
+    return {"dem": paths}, []
+
+
+def terrain_matches(rec: Recording, spec: dict) -> tuple[bool, list]:
+    """Whether the DEM files of ``spec`` are the recorded ones (by SHA-256)."""
+    recorded = {f.sha256 for f in rec.header.terrain.files}
+    if "dem" not in spec:
+        return True, ["terrain service: files not checked"]
+    if not recorded:
+        return True, ["recorded on a terrain service: files not checked against it"]
+    got = {file_identity(p).sha256 for p in spec["dem"]}
+    if got == recorded:
+        return True, []
+    return False, ["terrain differs from the recording's (DEM SHA-256 mismatch)"]
+
+
+class RecordedInputs:
+    """The recording's inputs by tick; :meth:`apply` makes those done after a tick.
+
+    ``skip`` ids get none from tick ``skip_from_tick`` on (a taken-over agent)."""
+
+    def __init__(self, rec: Recording, skip=(), skip_from_tick: int = 0):
+        self.by_tick: dict[int, list] = defaultdict(list)
+        self.skip = set(skip)
+        for r in rec.inputs():
+            if r.entity_id not in self.skip or r.tick < skip_from_tick:
+                self.by_tick[r.tick].append(r)
+
+    def apply(self, world, tick: int | None = None) -> int:
+        """Make the inputs recorded after tick ``tick`` (default: the world's tick count); how many."""
+        records = self.by_tick.get(world.tick_count if tick is None else tick, ())
+        for r in records:
+            apply_input(world, r)
+        return len(records)
+
+
+def apply_input(world, r) -> None:
+    if r.kind == "command":
+        world.command(r.entity_id, r.command, json.loads(r.values_json))
+    elif r.kind == "claim":
+        world.claim(r.entity_id, f"resim:{r.client}", r.client)
+    elif r.kind == "release":
+        world.release(r.entity_id, vanished=r.vanished)
+    elif r.kind == "remove":
+        world.remove(r.entity_id, r.reason)
+    else:
+        raise DataFormatError(f"input of unknown kind {r.kind!r} at tick {r.tick}")
+
+
+# -- re-simulation ---------------------------------------------------------------------------------
+
+def build_recorded_world(rec: Recording, dem=None, service: str | None = None, workers: int = 0):
+    """(world as the recording started, its scenario, terrain spec, notes)."""
+    from server.sim_server import aircraft_host, build_world, open_terrain_source
+
+    scenario = recorded_scenario(rec)
+    spec, notes = recorded_terrain_spec(rec, dem, service)
+    import functools
+
+    terrain = open_terrain_source(**spec)
+    world = build_world(scenario, terrain, aircraft_host(scenario, terrain,
+                                                         functools.partial(open_terrain_source, **spec), workers))
+    if abs(1.0 / world.dt - rec.rate_hz) > 1e-9:
+        raise DataFormatError(f"{rec.path.name}: recorded at {rec.rate_hz} Hz, the scenario ticks at "
+                              f"{1.0 / world.dt} Hz")
+    return world, scenario, spec, notes
+
+
+def _compare(rec: Recording, report: ResimReport, tick: int, ids: np.ndarray, states: np.ndarray) -> None:
+    frame = rec.frame(tick)
+    report.ticks += 1
+    if frame.ids.size == ids.size and np.array_equal(frame.ids, ids) and codec.digest(ids, states) == frame.digest:
+        report.bit_exact_ticks += 1
+        return
+    if not np.array_equal(frame.ids, ids):
+        if report.first_divergence is None:
+            extra = sorted(set(ids.tolist()) - set(frame.ids.tolist()))
+            missing = sorted(set(frame.ids.tolist()) - set(ids.tolist()))
+            report.first_divergence = Divergence(tick, tick * rec.dt, 0, f"entities differ (re-simulation has "
+                                                 f"extra {extra[:5]}, lacks {missing[:5]})", "entities", 0, 0)
+        common, ka, kb = np.intersect1d(ids, frame.ids, return_indices=True)
+        ids, states, rq = common, states[ka], frame.q[kb]
+    else:
+        rq = frame.q
+    q = codec.quantize(states, rec.steps)
+    diff = q - rq
+    pos = np.abs(diff[:, codec.POS]).max(initial=0) * rec.steps.position_m
+    report.max_abs_diff_m = max(report.max_abs_diff_m, float(pos))
+    if report.first_divergence is None:
+        rows, cols = np.nonzero(diff)
+        if rows.size:
+            k, f = int(rows[0]), int(cols[0])
+            step = rec.steps.vector()[f]
+            e = rec.entities.get(int(ids[k]))
+            report.first_divergence = Divergence(tick, tick * rec.dt, int(ids[k]), e.name if e else "?",
+                                                 FIELD_NAMES[f], float(rq[k, f] * step), float(states[k, f]))
+        else:
+            report.first_divergence = Divergence(tick, tick * rec.dt, 0, "states differ below the recording's "
+                                                 "quantisation step (digest mismatch)", "entities", 0, 0)
+
+
+def resimulate(path, dem=None, service: str | None = None, workers: int = 0, until_s: float | None = None,
+               progress=None) -> ResimReport:
+    """Re-run the recording at ``path`` and compare every tick (see the module docstring)."""
+    t0 = time.perf_counter()
+    with Recording(path) as rec:
+        report = ResimReport(str(path))
+        report.notes += list(rec.problems)
+        if rec.header.build_id != build_id():
+            report.same_build = False
+            report.notes.append(f"recorded by build {rec.header.build_id}, this is {build_id()}: states may "
+                                "differ in the last bits")
+        world, _, spec, notes = build_recorded_world(rec, dem, service, workers)
+        report.notes += notes
+        report.same_terrain, notes = terrain_matches(rec, spec)
+        report.notes += notes
+        last = rec.last_tick if until_s is None else rec.tick_at(until_s)
+        inputs = RecordedInputs(rec)
+        try:
+            while world.tick_count < last:
+                inputs.apply(world)
+                world.tick()
+                if world.tick_count >= rec.first_tick:
+                    _compare(rec, report, world.tick_count, *codec.state_matrix(world.snapshot))
+                if progress is not None:
+                    progress(world.tick_count, last)
+        finally:
+            world.close()
+    report.wall_s = time.perf_counter() - t0
+    return report
+
+
+def take_over(path, at_s: float, agent: str, dem=None, service: str | None = None, workers: int = 0):
+    """(world re-simulated to ``at_s`` with ``agent`` free to claim, RecordedInputs for the
+    others, scenario): what ``sortie resim --take-over`` serves live."""
+    rec = Recording(path)
+    try:
+        world, scenario, _, _ = build_recorded_world(rec, dem, service, workers)
+        target = next((e for e in world.entities.values() if e.name == agent), None)
+        if target is None:
+            names = sorted(e.name for e in world.entities.values())
+            raise InvalidArgument("agent", f"no agent of this name in the recording (agents: {', '.join(names)})",
+                                  value=agent)
+        last = rec.tick_at(at_s)
+        inputs = RecordedInputs(rec, skip=[target.id], skip_from_tick=last)
+        while world.tick_count < last:
+            inputs.apply(world)
+            world.tick()
+        if target.id not in world.entities:
+            raise InvalidArgument("agent", f"is gone by t = {at_s} s", value=agent)
+        target.controllable = True
+        target.on_vanish = "autopilot"
+        if target.owner is not None:  # the recorded client lets go; the agent flies on its autopilot
+            world.release(target.id)
+        return world, inputs, scenario
+    finally:
+        rec.close()
