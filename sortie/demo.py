@@ -169,7 +169,14 @@ def run(args) -> int:
             from sortie.demo_exercise import run_exercise
 
             summary["exercise"] = run_exercise(address, out, console)
+            from sortie.demo_debrief import run_debrief
+
+            summary["debrief"] = run_debrief(Path(summary["exercise"]["recording"]), out, console)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    console.print(f"[bold green]outputs[/] in {out}: summary.json, exercise.json, hillshade-*.png, track-*.csv, "
-                  "terrain-service.log, simulation-server.log, bots.log")
+    console.print(f"[bold green]outputs[/] in {out}: summary.json, exercise.json, debrief.json, hillshade-*.png, "
+                  "track-*.csv, terrain-service.log, simulation-server.log, bots.log, replay.log")
+    if "debrief" in summary:
+        d = summary["debrief"]
+        console.print(f"[bold green]recording[/] {d['recording']['file']}\n[bold green]Tacview export[/] "
+                      + ", ".join(d["exports"].values()))
     return 0

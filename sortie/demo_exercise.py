@@ -4,7 +4,9 @@
 the demo's terrain *service* (server and clients use the same terrain
 answers), ``sortie bot`` takes two controllable agents in its own process and
 flies/drives patrol boxes, and this process watches as an observer, printing
-the dead-reckoned picture and writing it to ``exercise.json``.
+the dead-reckoned picture and writing it to ``exercise.json``. The server
+records the sortie into ``sortie.sortie`` (sortie/demo_debrief.py replays,
+re-simulates and exports it).
 """
 
 from __future__ import annotations
@@ -28,8 +30,10 @@ def run_exercise(terrain_address: str, out: Path, console) -> dict:
     from server.process import ServiceProcess, sortie_command
     from terrain.geodesy import ecef_to_geodetic
 
-    server = ServiceProcess(["server", "--scenario", str(SCENARIO), "--terrain", terrain_address],
-                            log=out / "simulation-server.log")
+    recording = out / "sortie.sortie"
+    recording.unlink(missing_ok=True)  # a recording is never overwritten: this demo's run replaces the last one's
+    server = ServiceProcess(["server", "--scenario", str(SCENARIO), "--terrain", terrain_address,
+                             "--record", str(recording)], log=out / "simulation-server.log")
     console.print(f"[bold]simulation server[/]: {' '.join(server.command)}")
     with server:
         bots_log = open(out / "bots.log", "w")
@@ -64,6 +68,7 @@ def run_exercise(terrain_address: str, out: Path, console) -> dict:
         bots.wait(timeout=60.0)
         bots_log.close()
         summary["bots"] = (out / "bots.log").read_text().strip().splitlines()
+    summary["recording"] = str(recording)  # closed (footer written) when the server stopped
     table = Table(title=f"live exercise: {world.exercise_name} (observer, dead-reckoned picture at "
                         f"t = {summary['world_time_s']:.0f} s)")
     for col in ("entity", "type", "side", "lat", "lon", "height m", "moved m"):
