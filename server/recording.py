@@ -322,11 +322,9 @@ class Recording:
     def duration_s(self) -> float:
         return self.last_time_s - self.first_time_s if self._first_ticks else 0.0
 
-    def chunk(self, k: int) -> Chunk:
-        """The k-th chunk decoded (cached); DataFormatError naming its offset if damaged."""
-        if k in self._cache:
-            self._cache.move_to_end(k)
-            return self._cache[k]
+    def _chunk_bytes(self, k: int, head_only: bool = False) -> tuple[bytes, int, str]:
+        """(the k-th chunk's head + body bytes, head length, where) with its frame and CRC
+        checked (not the CRC when ``head_only``: then only the head is read)."""
         if not 0 <= k < self.chunk_count:
             raise NotFound(f"chunk {k} (the recording has {self.chunk_count})")
         offset = self.index.chunk_offset[k]
@@ -337,12 +335,36 @@ class Recording:
         magic, nh, nb, crc = FRAME.unpack(frame)
         if magic != CHUNK_MAGIC or nh > MAX_HEAD_BYTES or nb > MAX_BODY_BYTES:
             raise DataFormatError(f"{where}: no chunk frame there")
-        data = self._read_at(offset + FRAME.size, nh + nb)
-        if len(data) < nh + nb or zlib.crc32(data) != crc:
+        data = self._read_at(offset + FRAME.size, nh if head_only else nh + nb)
+        if len(data) < (nh if head_only else nh + nb) or (not head_only and zlib.crc32(data) != crc):
             raise DataFormatError(f"{where}: damaged (CRC mismatch or cut short)")
+        return data, nh, where
+
+    def chunk_head(self, k: int) -> rpb.ChunkHead:
+        """The k-th chunk's head, read alone (nothing decompressed)."""
+        data, nh, where = self._chunk_bytes(k, head_only=True)
         try:
-            head = rpb.ChunkHead.FromString(data[:nh])
-            body = rpb.ChunkBody.FromString(self._zstd.decompress(data[nh:]))
+            return rpb.ChunkHead.FromString(data[:nh])
+        except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError
+            raise DataFormatError(f"{where}: damaged head: {exc}") from None
+
+    def chunk_body(self, k: int) -> tuple[rpb.ChunkHead, rpb.ChunkBody]:
+        """The k-th chunk's head and body, decompressed and parsed but its states not
+        decoded (inputs and events are read this way)."""
+        data, nh, where = self._chunk_bytes(k)
+        try:
+            return rpb.ChunkHead.FromString(data[:nh]), rpb.ChunkBody.FromString(self._zstd.decompress(data[nh:]))
+        except Exception as exc:  # noqa: BLE001 - zstd and protobuf errors
+            raise DataFormatError(f"{where}: cannot be decoded: {exc}") from None
+
+    def chunk(self, k: int) -> Chunk:
+        """The k-th chunk decoded (cached); DataFormatError naming its offset if damaged."""
+        if k in self._cache:
+            self._cache.move_to_end(k)
+            return self._cache[k]
+        head, body = self.chunk_body(k)
+        where = f"{self.path.name}: chunk {k} at offset {self.index.chunk_offset[k]}"
+        try:
             ids = np.array(body.entity_ids, np.int64)
             t_count, e_count = head.ticks, ids.size
             if body.present:
@@ -356,7 +378,7 @@ class Recording:
                 raise DataFormatError(f"{digests.size} digests for {t_count} ticks")
         except DataFormatError as exc:
             raise DataFormatError(f"{where}: {exc}") from None
-        except Exception as exc:  # noqa: BLE001 - zstd and protobuf errors
+        except Exception as exc:  # noqa: BLE001 - numpy errors on malformed fields
             raise DataFormatError(f"{where}: cannot be decoded: {exc}") from None
         c = Chunk(head.first_tick, t_count, ids, present, q, digests, list(body.inputs), list(body.events))
         self._cache[k] = c
@@ -398,12 +420,12 @@ class Recording:
         tick k (InputRecord.tick = k) are kept with the chunk of tick k + 1, so the last
         tick of a chunk may have its inputs and events in the next chunk."""
         for k in range(self.chunk_count):
-            yield from self.chunk(k).inputs
+            yield from self.chunk_body(k)[1].inputs
 
     def events(self):
         """Every EventRecord, in the order they were emitted."""
         for k in range(self.chunk_count):
-            yield from self.chunk(k).events
+            yield from self.chunk_body(k)[1].events
 
     # -- checking -------------------------------------------------------------------------------
 

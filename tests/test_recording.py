@@ -426,3 +426,25 @@ def test_kill_9_loses_at_most_one_chunk_and_the_rest_replays(tmp_path):
     out = subprocess.run([*sortie_command(), "recording", "check", str(path)], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 1 and "footer no" in out.stdout and "chunks replay" in out.stdout
+
+
+def test_take_over_cli_serves_live_with_the_agent_free_to_drive(recorded, tmp_path):
+    from client.sim_client import SimClient
+    from server.process import ServiceProcess
+
+    path, states, _ = recorded
+    with ServiceProcess(["resim", str(path), "--take-over", "3", "--agent", "tank1"], log=tmp_path / "t.log") as p, \
+            SimClient(p.address) as driver:
+        agent = driver.join("new-driver", "driver", agent_name="tank1")
+        assert driver.world().time_s >= 3.0
+        with driver.controls() as stream:
+            stream.drive(speed_mps=10.0, yaw_rate_dps=0.0)
+            pic = driver.watch()
+            assert pic.wait_for(lambda q: agent in q.infos, 10.0)
+            _, start, _ = pic.state(ids=[agent])
+            time.sleep(2.0)
+            _, later, _ = pic.state(ids=[agent])
+        moved = float(np.linalg.norm(later - start))
+        assert 5.0 < moved < 40.0, moved  # ~2 s at up to 10 m/s (the tank accelerates)
+        with pytest.raises(InvalidArgument, match="not free"):
+            SimClient(p.address).join("second", "driver", agent_name="tank1")
