@@ -256,6 +256,8 @@ class Picture:
                     self.entered += len(u.entered)
                     self.left += len(u.left)
                     self.time_s, self._wall = u.time_s, now
+                    if u.HasField("time_scale"):  # the server's clock rate now (0: paused)
+                        self.time_scale = u.time_scale
                     self.wall_log.append((u.time_s, arrived))
                     if len(self.wall_log) > 100_000:
                         del self.wall_log[:50_000]

@@ -275,7 +275,8 @@ class ReplayServer:
                 session.queue.resnapshot()
         if tick != self.world.tick_count or seeked:
             self.world.show(tick, events=not seeked)
-        self.publisher.publish(self.world.snapshot, self.world.infos, self.sessions.watching())
+        self.publisher.publish(self.world.snapshot, self.world.infos, self.sessions.watching(),
+                               self.speed if self.playing else 0.0)
 
     def _run(self) -> None:
         period = 1.0 / self.config.network_rate_hz

@@ -176,7 +176,8 @@ class SimulationServer:
         wall_next = time.monotonic()
         try:
             while not self._stop.is_set():
-                if self._clock == "paused":
+                if self._clock == "paused":  # watchers learn the clock stopped; newcomers get their snapshot
+                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), 0.0)
                     self._resume.clear()
                     self._resume.wait(0.1)
                     wall_next = time.monotonic()
@@ -186,7 +187,7 @@ class SimulationServer:
                     self.before_tick(world)
                 world.tick()
                 if world.time_s + 1e-9 >= next_net:
-                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching())
+                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), cfg.time_scale)
                     next_net += net_dt
                 self.tick_ms.append((time.perf_counter() - t0) * 1e3)
                 if len(self.tick_ms) > 100_000:

@@ -46,6 +46,7 @@ class Pending:
     entered: list  # [(EntityInfo fields 1-5 bytes, EntityState bytes)]
     left: list  # [entity id]
     states: list  # [EntityState bytes]
+    time_scale: float = 1.0  # world seconds per wall second (0: paused)
 
 
 class ClientQueue:
@@ -65,14 +66,17 @@ class ClientQueue:
         self._leave: set = set()
         self._states: dict = {}
         self._time_s = 0.0
+        self._time_scale = 1.0
         self._snapshot = True
         self._dirty = False
         self.closed = False
         self.merged = 0  # states overwritten before they were read (slow-reader measure)
 
-    def push(self, time_s: float, entered: dict, left, states: dict, wake: bool = True) -> None:
-        """entered: id -> (encoded info, encoded state); left: ids; states: id -> encoded state.
-        wake=False leaves waking an asyncio reader to the caller (:func:`wake_all`)."""
+    def push(self, time_s: float, entered: dict, left, states: dict, wake: bool = True,
+             time_scale: float = 1.0) -> None:
+        """entered: id -> (encoded info, encoded state); left: ids; states: id -> encoded state;
+        time_scale: world seconds per wall second now (0: paused). wake=False leaves waking an
+        asyncio reader to the caller (:func:`wake_all`)."""
         with self.cond:
             for i in left:
                 self._states.pop(i, None)
@@ -90,6 +94,7 @@ class ClientQueue:
                         self.merged += 1
                     self._states[i] = row
             self._time_s = time_s
+            self._time_scale = time_scale
             self._dirty = True
             self.cond.notify_all()
         if wake:
@@ -111,7 +116,8 @@ class ClientQueue:
             if self.closed or not self._dirty:
                 return None
             out = Pending(self._time_s, self._snapshot, list(self._enter.values()),
-                          [i for i in self._leave if i in self.known], list(self._states.values()))
+                          [i for i in self._leave if i in self.known], list(self._states.values()),
+                          self._time_scale)
             self.known |= self._enter.keys()
             self.known -= self._leave
             self._enter, self._leave, self._states = {}, set(), {}
@@ -192,6 +198,7 @@ def encode_watch_update(p: Pending) -> bytes:
     if p.left:
         out.append(_field(4, b"".join(varint(int(i)) for i in p.left)))  # packed uint64
     out += [_field(5, state) for state in p.states]
+    out.append(b"\x31" + struct.pack("<d", p.time_scale))  # field 6, double (optional: always sent)
     return b"".join(out)
 
 
@@ -233,6 +240,7 @@ class Publisher:
         self._ids = np.zeros(0, np.int64)  # the entity layout of the last publish
         self._layout = 0  # bumped when it changes
         self._slots = np.zeros(0, np.int64)  # the reckoner's rows of self._ids
+        self._time_scale = 1.0  # of the last publish: a change goes to every session
 
     def reset(self) -> None:
         """Forget what was sent (a replay's seek): at the next publish every entity is
@@ -267,8 +275,13 @@ class Publisher:
                 gone[s_k] = np.setdiff1d(s.visible_ids, ids).tolist()
         return prev, gone
 
-    def publish(self, snap, infos: dict, sessions: list) -> None:
+    def publish(self, snap, infos: dict, sessions: list, time_scale: float = 1.0) -> None:
+        """Decide and queue the updates of ``snap`` for ``sessions``; ``time_scale``: world
+        seconds per wall second now (0: paused), sent with every update and to every
+        session when it changes."""
         n = snap.ids.size
+        rescaled = time_scale != self._time_scale
+        self._time_scale = time_scale
         if not np.array_equal(snap.ids, self._ids):
             self._track(snap.ids)
             self._ids = snap.ids.copy()
@@ -326,11 +339,11 @@ class Publisher:
             s.visible_mask = now[s_k]
             s.visible_ids = snap.ids[now[s_k]]
             s.visible_layout = self._layout
-            if not (busy[s_k] or gone[s_k] or s.queue.needs_snapshot):
+            if not (busy[s_k] or gone[s_k] or s.queue.needs_snapshot or rescaled):
                 continue
             ent = {ids_list[k]: enter_of[k] for k in np.flatnonzero(entered[s_k]).tolist() if k in enter_of}
             states = {ids_list[k]: state_of[k] for k in np.flatnonzero(updated[s_k]).tolist()}
             left_ids = [ids_list[k] for k in np.flatnonzero(left[s_k]).tolist()] + list(gone[s_k])
-            s.queue.push(snap.time_s, ent, left_ids, states, wake=False)
+            s.queue.push(snap.time_s, ent, left_ids, states, wake=False, time_scale=time_scale)
             pushed.append(s.queue)
         wake_all(pushed)

@@ -354,6 +354,7 @@ def test_replay_serves_the_recording_through_the_live_api_with_controls(recorded
             c.join("debrief", "observer", observer=(47.4, 9.5, 150_000.0))
             pic = c.watch()
             assert pic.snapshot_received.wait(10.0)
+            assert pic.time_scale == 0.0  # paused: the picture's clock stands still
             for t in (4.0, 1.5, 5.9):  # forward and backward seeks, paused
                 st = c.replay(seek_time_s=t)
                 tick = int(np.floor(t * 30.0 + 1e-6))
@@ -376,6 +377,7 @@ def test_replay_serves_the_recording_through_the_live_api_with_controls(recorded
             c.replay(speed=8.0)
             st = c.replay(play=True)
             assert st.playing and c.world().time_scale == 8.0
+            assert pic.wait_for(lambda p: p.time_scale == 8.0, 5.0)  # every stream told the new rate
             assert pic.wait_for(lambda p: p.time_s >= 5.0, 10.0)  # 6 s of world time in ~0.75 s
             time.sleep(0.2)
             with Recording(path) as rec:  # dead-reckoned picture within the thresholds of the recording

@@ -34,16 +34,16 @@ def alps(hgt_alps):
     return Terrain([read_dem(hgt_alps)])
 
 
-class Recorder:
+class PublishTap:
     """Keeps every snapshot the server publishes (server-side truth for the checks)."""
 
     def __init__(self, publisher):
         self.snaps = []
         original = publisher.publish
 
-        def publish(snap, infos, sessions):
+        def publish(snap, infos, sessions, *args):
             self.snaps.append(snap)
-            return original(snap, infos, sessions)
+            return original(snap, infos, sessions, *args)
 
         publisher.publish = publish
 
@@ -68,7 +68,7 @@ def small_world(alps):
 def server(alps):
     w = small_world(alps)
     srv = SimulationServer(w, ServerConfig(clock="fast", time_scale=2.0, vanished_timeout_s=1.5))
-    srv.tap = Recorder(srv.publisher)
+    srv.tap = PublishTap(srv.publisher)
     srv.start()
     yield srv
     srv.stop(0.5)
@@ -335,9 +335,10 @@ def test_watch_updates_assembled_from_bytes_parse_as_the_generated_message():
     s1 = state(300, 1.25, (4e6, 5e6, 6e6), [4, 5, 6], [0, 1, 0, 0], [0, 0, -0.25], 2)
     info = encode_info((7, "viper", 1, "f16", "blue"))
     got = pb.WatchUpdate.FromString(encode_watch_update(Pending(2.0, True, [(info, states[0])], [9, 70000],
-                                                                [states[1]])))
-    want = pb.WatchUpdate(time_s=2.0, snapshot=True, left=[9, 70000], states=[s1],
+                                                                [states[1]], 8.0)))
+    want = pb.WatchUpdate(time_s=2.0, snapshot=True, left=[9, 70000], states=[s1], time_scale=8.0,
                           entered=[pb.EntityInfo(entity_id=7, name="viper", kind=1, type="f16", coalition="blue",
                                                  state=s0)])
     assert got == want
-    assert pb.WatchUpdate.FromString(encode_watch_update(Pending(3.0, False, [], [], []))) == pb.WatchUpdate(time_s=3.0)
+    assert pb.WatchUpdate.FromString(encode_watch_update(Pending(3.0, False, [], [], [], 0.0))) == \
+        pb.WatchUpdate(time_s=3.0, time_scale=0.0)

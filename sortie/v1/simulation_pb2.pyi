@@ -187,18 +187,20 @@ class EntityInfo(_message.Message):
     def __init__(self, entity_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ...) -> None: ...
 
 class WatchUpdate(_message.Message):
-    __slots__ = ("time_s", "snapshot", "entered", "left", "states")
+    __slots__ = ("time_s", "snapshot", "entered", "left", "states", "time_scale")
     TIME_S_FIELD_NUMBER: _ClassVar[int]
     SNAPSHOT_FIELD_NUMBER: _ClassVar[int]
     ENTERED_FIELD_NUMBER: _ClassVar[int]
     LEFT_FIELD_NUMBER: _ClassVar[int]
     STATES_FIELD_NUMBER: _ClassVar[int]
+    TIME_SCALE_FIELD_NUMBER: _ClassVar[int]
     time_s: float
     snapshot: bool
     entered: _containers.RepeatedCompositeFieldContainer[EntityInfo]
     left: _containers.RepeatedScalarFieldContainer[int]
     states: _containers.RepeatedCompositeFieldContainer[EntityState]
-    def __init__(self, time_s: _Optional[float] = ..., snapshot: _Optional[bool] = ..., entered: _Optional[_Iterable[_Union[EntityInfo, _Mapping]]] = ..., left: _Optional[_Iterable[int]] = ..., states: _Optional[_Iterable[_Union[EntityState, _Mapping]]] = ...) -> None: ...
+    time_scale: float
+    def __init__(self, time_s: _Optional[float] = ..., snapshot: _Optional[bool] = ..., entered: _Optional[_Iterable[_Union[EntityInfo, _Mapping]]] = ..., left: _Optional[_Iterable[int]] = ..., states: _Optional[_Iterable[_Union[EntityState, _Mapping]]] = ..., time_scale: _Optional[float] = ...) -> None: ...
 
 class WatchEventsRequest(_message.Message):
     __slots__ = ("session_token",)
