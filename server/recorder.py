@@ -4,9 +4,13 @@ The world calls three hooks (server/world.py): ``on_tick`` after each tick
 (the snapshot), ``on_input`` for each call that changes the world from
 outside (command, claim, release, remove; under the world's lock, with the
 tick count it was done at), and ``on_event`` for each event. On the clock
-thread a tick costs the canonical ordering of the snapshot and a BLAKE2b
-digest of its exact float64 states; quantising, residual coding,
-compression and writing happen on the recorder's own thread.
+thread a tick costs keeping a reference to its snapshot (the world builds new
+arrays every tick and never changes a published snapshot) and, when the
+entities changed, noting the new ones. Everything else happens on the
+recorder's own thread: the canonical ordering, the BLAKE2b digest of the
+exact float64 states, quantising, residual coding, compression, writing.
+Measured at 500 entities: 0.24 ms a tick for ordering and digest, which the
+clock thread paid before this split.
 
 A chunk closes when it holds ``chunk_s`` world seconds of ticks or when its
 first tick is ``chunk_s`` wall seconds old (a slow or paused clock), and is
@@ -120,11 +124,7 @@ def input_record(tick: int, kind: str, entity_id: int, fields: dict) -> rpb.Inpu
 
 class _OpenChunk:
     def __init__(self):
-        self.ticks: list[int] = []
-        self.times: list[float] = []
-        self.ids: list[np.ndarray] = []
-        self.states: list[np.ndarray] = []
-        self.digests: list[int] = []
+        self.snapshots: list = []  # server.world.Snapshot (immutable: the world makes new arrays each tick)
         self.inputs: list = []
         self.events: list = []
         self.new_entities: list = []
@@ -152,6 +152,7 @@ class Recorder:
         self._lock = threading.Lock()
         self._open = _OpenChunk()
         self._seen: set = set()
+        self._last_ids = np.zeros(0, np.int64)
         self._queue: queue.Queue = queue.Queue(MAX_QUEUED_CHUNKS)
         self.error: Exception | None = None
         self.chunks_written = 0
@@ -162,26 +163,25 @@ class Recorder:
     # -- hooks (server/world.py) ----------------------------------------------------------------
 
     def on_tick(self, snapshot, infos: dict) -> None:
-        ids, states = codec.state_matrix(snapshot)
-        d = codec.digest(ids, states)
+        """Keep the tick's snapshot (ordering, digest and coding happen on the writer thread;
+        the clock thread only looks for entities it has not seen when the ids change)."""
+        ids = snapshot.ids
+        if not (ids.size == self._last_ids.size and np.array_equal(ids, self._last_ids)):
+            self._last_ids = ids
+            new = [i for i in ids.tolist() if i not in self._seen and i in infos]
+        else:
+            new = ()
         with self._lock:
             c = self._open
             if c.wall_start is None:
                 c.wall_start = time.monotonic()
-            c.ticks.append(snapshot.tick)
-            c.times.append(snapshot.time_s)
-            c.ids.append(ids)
-            c.states.append(states)
-            c.digests.append(d)
-            if len(self._seen) != ids.size or not self._seen.issuperset(ids.tolist()):
-                for i in ids.tolist():
-                    if i not in self._seen and i in infos:
-                        self._seen.add(i)
-                        _, name, kind, type_, coalition = infos[i]
-                        c.new_entities.append(pb.EntityInfo(entity_id=i, name=name, kind=kind, type=type_,
-                                                            coalition=coalition))
-            full = len(c.ticks) >= self.chunk_ticks or time.monotonic() - c.wall_start >= self.chunk_s
-            if full:
+            c.snapshots.append(snapshot)
+            for i in new:
+                self._seen.add(i)
+                _, name, kind, type_, coalition = infos[i]
+                c.new_entities.append(pb.EntityInfo(entity_id=i, name=name, kind=kind, type=type_,
+                                                    coalition=coalition))
+            if len(c.snapshots) >= self.chunk_ticks or time.monotonic() - c.wall_start >= self.chunk_s:
                 self._close_open()
 
     def on_input(self, tick: int, kind: str, entity_id: int, fields: dict) -> None:
@@ -205,7 +205,7 @@ class Recorder:
     def _close_if_old(self) -> None:
         with self._lock:
             c = self._open
-            if c.ticks and time.monotonic() - c.wall_start >= self.chunk_s:
+            if c.snapshots and time.monotonic() - c.wall_start >= self.chunk_s:
                 self._close_open()
 
     def _run(self) -> None:
@@ -233,7 +233,7 @@ class Recorder:
             return
         self.closed = True
         with self._lock:
-            if self._open.ticks or self._open.inputs or self._open.events:
+            if self._open.snapshots or self._open.inputs or self._open.events:
                 self._close_open()
         self._queue.put(None)
         self._thread.join()
@@ -250,22 +250,31 @@ class Recorder:
 
 
 def encode_chunk(c: _OpenChunk, steps: codec.Steps, rate_hz: float) -> tuple[rpb.ChunkHead, rpb.ChunkBody]:
-    """The head and body of an open chunk's ticks, inputs and events."""
-    t_count = len(c.ticks)
-    ids = np.unique(np.concatenate(c.ids)) if t_count else np.zeros(0, np.int64)
-    present = np.zeros((t_count, ids.size), bool)
-    q = np.zeros((t_count, ids.size, codec.FIELDS), np.int64)
-    for t, (tick_ids, states) in enumerate(zip(c.ids, c.states)):
-        cols = np.searchsorted(ids, tick_ids)
-        present[t, cols] = True
-        q[t, cols] = codec.quantize(states, steps)
-    q = codec.fill_absent(q, present)
-    body = rpb.ChunkBody(entity_ids=ids.tolist(), states=codec.encode(q, steps, rate_hz), digests=c.digests,
+    """The head and body of an open chunk's ticks, inputs and events: each tick's states in
+    id order (recording_codec.state_matrix), digested exactly, quantised, coded."""
+    t_count = len(c.snapshots)
+    frames = [codec.state_matrix(s) for s in c.snapshots]
+    digests = [codec.digest(i, m) for i, m in frames]
+    if t_count and all(f[0] is frames[0][0] or np.array_equal(f[0], frames[0][0]) for f in frames):
+        ids = frames[0][0]  # the usual chunk: the same entities throughout
+        present = np.ones((t_count, ids.size), bool)
+        q = codec.quantize(np.stack([m for _, m in frames]), steps)
+    else:
+        ids = np.unique(np.concatenate([i for i, _ in frames])) if t_count else np.zeros(0, np.int64)
+        present = np.zeros((t_count, ids.size), bool)
+        q = np.zeros((t_count, ids.size, codec.FIELDS), np.int64)
+        for t, (tick_ids, states) in enumerate(frames):
+            cols = np.searchsorted(ids, tick_ids)
+            present[t, cols] = True
+            q[t, cols] = codec.quantize(states, steps)
+        q = codec.fill_absent(q, present)
+    body = rpb.ChunkBody(entity_ids=ids.tolist(), states=codec.encode(q, steps, rate_hz), digests=digests,
                          inputs=c.inputs, events=c.events)
     if not present.all():
         body.present = np.packbits(present.reshape(-1)).tobytes()
-    first = c.ticks[0] if t_count else (c.inputs[0].tick + 1 if c.inputs else c.events[0].tick + 1)
-    head = rpb.ChunkHead(first_tick=first, ticks=t_count, first_time_s=c.times[0] if t_count else 0.0,
-                         last_time_s=c.times[-1] if t_count else 0.0, new_entities=c.new_entities,
+    s0, s1 = (c.snapshots[0], c.snapshots[-1]) if t_count else (None, None)
+    first = s0.tick if t_count else (c.inputs[0].tick + 1 if c.inputs else c.events[0].tick + 1)
+    head = rpb.ChunkHead(first_tick=first, ticks=t_count, first_time_s=s0.time_s if t_count else 0.0,
+                         last_time_s=s1.time_s if t_count else 0.0, new_entities=c.new_entities,
                          entity_count=ids.size, event_count=len(c.events), input_count=len(c.inputs))
     return head, body

@@ -70,10 +70,13 @@ DEFAULT_STEPS = Steps()
 
 def state_matrix(snapshot) -> tuple[np.ndarray, np.ndarray]:
     """(ids ascending, (n, 16) float64 states) of a server.world.Snapshot."""
-    order = np.argsort(snapshot.ids, kind="stable")
-    m = np.concatenate([snapshot.ecef_m[order], snapshot.vel_ecef_mps[order], snapshot.acc_ecef_mps2[order],
-                        snapshot.quat_ecef2body[order], snapshot.body_rates_rps[order]], axis=1)
-    return snapshot.ids[order], np.ascontiguousarray(m, np.float64)
+    ids = snapshot.ids
+    parts = [snapshot.ecef_m, snapshot.vel_ecef_mps, snapshot.acc_ecef_mps2, snapshot.quat_ecef2body,
+             snapshot.body_rates_rps]
+    if ids.size > 1 and not np.all(ids[1:] > ids[:-1]):  # usually in order already: no gathers then
+        order = np.argsort(ids, kind="stable")
+        ids, parts = ids[order], [a[order] for a in parts]
+    return ids, np.concatenate(parts, axis=1).astype(np.float64, copy=False)
 
 
 def digest(ids: np.ndarray, states: np.ndarray) -> int:
@@ -100,21 +103,21 @@ def _factors(steps: Steps, rate_hz: float) -> tuple[float, float]:
 
 
 def _predictions(v: np.ndarray, steps: Steps, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """(position step, acceleration) predicted from velocities v (T, E, 3) ints, for ticks 1.."""
+    """(position step, acceleration) predicted from velocities v (3, E, T) ints, for ticks 1.."""
     kp, ka = _factors(steps, rate_hz)
-    return (np.round((v[:-1] + v[1:]) * kp).astype(np.int64), np.round((v[1:] - v[:-1]) * ka).astype(np.int64))
+    return (np.round((v[..., :-1] + v[..., 1:]) * kp).astype(np.int64),
+            np.round((v[..., 1:] - v[..., :-1]) * ka).astype(np.int64))
 
 
 def residuals(q: np.ndarray, steps: Steps, rate_hz: float) -> np.ndarray:
-    """(T, E, 16) quantised states -> residuals (see the module docstring)."""
+    """(16, E, T) quantised states, field-major -> residuals (see the module docstring)."""
     r = q.copy()
-    r[1:, :, VEL] -= q[:-1, :, VEL]
-    r[1:, :, QUAT] -= q[:-1, :, QUAT]
-    r[1:, :, RATE] -= q[:-1, :, RATE]
-    if q.shape[0] > 1:
-        step, acc = _predictions(q[:, :, VEL], steps, rate_hz)
-        r[1:, :, POS] -= q[:-1, :, POS] + step
-        r[1:, :, ACC] -= acc
+    for s in (VEL, QUAT, RATE):
+        r[s, :, 1:] -= q[s, :, :-1]
+    if q.shape[2] > 1:
+        step, acc = _predictions(q[VEL], steps, rate_hz)
+        r[POS, :, 1:] -= q[POS, :, :-1] + step
+        r[ACC, :, 1:] -= acc
     return r
 
 
@@ -122,11 +125,12 @@ def restore(r: np.ndarray, steps: Steps, rate_hz: float) -> np.ndarray:
     """Inverse of :func:`residuals`."""
     q = r.copy()
     for s in (VEL, QUAT, RATE):
-        np.cumsum(q[:, :, s], axis=0, out=q[:, :, s])
-    if q.shape[0] > 1:
-        step, acc = _predictions(q[:, :, VEL], steps, rate_hz)
-        q[1:, :, ACC] += acc
-        q[:, :, POS] = np.cumsum(np.concatenate([q[:1, :, POS], q[1:, :, POS] + step]), axis=0)
+        np.cumsum(q[s], axis=2, out=q[s])
+    if q.shape[2] > 1:
+        step, acc = _predictions(q[VEL], steps, rate_hz)
+        q[ACC, :, 1:] += acc
+        q[POS, :, 1:] += step
+        np.cumsum(q[POS], axis=2, out=q[POS])
     return q
 
 
@@ -155,13 +159,13 @@ def _unzigzag(u: np.ndarray) -> np.ndarray:
 
 def _planes(values: np.ndarray) -> bytes:
     """One byte (planes kept, k), then k byte planes (least significant first) of the
-    zigzagged values, high planes that are all zero dropped."""
-    u = np.ascontiguousarray(_zigzag(np.ascontiguousarray(values).reshape(-1)))
-    planes = u.view(np.uint8).reshape(-1, 8).T
-    k = 8
-    while k and not planes[k - 1].any():
-        k -= 1
-    return bytes([k]) + np.ascontiguousarray(planes[:k]).tobytes()
+    zigzagged values: k is the fewest bytes that hold the largest."""
+    u = _zigzag(np.ascontiguousarray(values, np.int64).reshape(-1))
+    k = (int(u.max()).bit_length() + 7) // 8 if u.size else 0
+    out = np.empty((k, u.size), np.uint8)
+    for j in range(k):
+        out[j] = (u >> np.uint64(8 * j)).astype(np.uint8)  # the low byte
+    return bytes([k]) + out.tobytes()
 
 
 def _unplanes(buf: np.ndarray, pos: int, n: int, what: str) -> tuple[np.ndarray, int]:
@@ -181,26 +185,25 @@ def _unplanes(buf: np.ndarray, pos: int, n: int, what: str) -> tuple[np.ndarray,
 def encode(q: np.ndarray, steps: Steps, rate_hz: float) -> bytes:
     """(T, E, 16) int64 -> bytes: per field, the first tick's values (absolute) then the
     later ticks' residuals, each as :func:`_planes` (entity-major: each series contiguous)."""
-    r = residuals(q, steps, rate_hz)
+    r = residuals(np.ascontiguousarray(q.transpose(2, 1, 0)), steps, rate_hz)  # (16, E, T)
     out = []
     for f in range(FIELDS):
-        x = r[:, :, f].T  # (E, T)
-        out.append(_planes(x[:, 0]))
-        out.append(_planes(x[:, 1:]))
+        out.append(_planes(r[f, :, 0]))
+        out.append(_planes(r[f, :, 1:]))
     return b"".join(out)
 
 
 def decode(data: bytes, ticks: int, entities: int, steps: Steps, rate_hz: float) -> np.ndarray:
     """Inverse of :func:`encode`; DataFormatError when the bytes do not fit the shape."""
-    r = np.empty((ticks, entities, FIELDS), np.int64)
+    r = np.empty((FIELDS, entities, ticks), np.int64)
     buf = np.frombuffer(data, np.uint8)
     pos = 0
     for f in range(FIELDS):
         first, pos = _unplanes(buf, pos, entities if ticks else 0, f"field {f}'s first tick")
         rest, pos = _unplanes(buf, pos, entities * max(ticks - 1, 0), f"field {f}'s residuals")
         if ticks:
-            r[0, :, f] = first
-            r[1:, :, f] = rest.reshape(entities, ticks - 1).T
+            r[f, :, 0] = first
+            r[f, :, 1:] = rest.reshape(entities, ticks - 1)
     if pos != buf.size:
         raise DataFormatError(f"chunk states: {buf.size - pos} bytes left over")
-    return restore(r, steps, rate_hz)
+    return restore(r, steps, rate_hz).transpose(2, 1, 0)

@@ -42,6 +42,7 @@ from server import acmi
 from server import recording_codec as codec
 from server.dead_reckoning import ned_to_ecef_quat
 from server.recorder import Recorder, encode_chunk, recording_header
+from server.world import Snapshot
 from server.recording import Recording, RecordingWriter, quantization_of
 from sortie.errors import InvalidArgument, NotFound
 from sortie.v1 import recording_pb2 as rpb
@@ -201,7 +202,7 @@ def write_synthetic(path, tracks: dict, ticks: int, rate_hz: float = 30.0, event
     writer = RecordingWriter(path, header)
     per_chunk = int(rate_hz)
     for first in range(1, ticks + 1, per_chunk):
-        c = types.SimpleNamespace(ticks=[], times=[], ids=[], states=[], digests=[], inputs=[],
+        c = types.SimpleNamespace(snapshots=[], inputs=[],
                                   events=[e for e in events if first <= max(e.tick, 1) < first + per_chunk],
                                   new_entities=[i for i, _ in tracks.values() if i] if first == 1 else [])
         for tick in range(first, min(first + per_chunk, ticks + 1)):
@@ -213,11 +214,9 @@ def write_synthetic(path, tracks: dict, ticks: int, rate_hz: float = 30.0, event
                 states[row, codec.POS] = geodetic_to_ecef(lat, lon, h + header.geoid_undulation_m)
                 q_nb = euler_to_quaternion(*np.radians([roll, pitch, yaw]))
                 states[row, codec.QUAT] = ned_to_ecef_quat(q_nb, lat, lon)
-            c.ticks.append(tick)
-            c.times.append(tick / rate_hz)
-            c.ids.append(ids)
-            c.states.append(states)
-            c.digests.append(codec.digest(ids, states))
+            z = np.zeros(ids.size)
+            c.snapshots.append(Snapshot(tick / rate_hz, tick, ids, states[:, codec.POS], states[:, codec.VEL],
+                                        states[:, codec.ACC], states[:, codec.QUAT], states[:, codec.RATE], z, z, z))
         writer.write_chunk(*encode_chunk(c, codec.DEFAULT_STEPS, rate_hz))
     writer.close()
 
