@@ -258,18 +258,18 @@ def encode_chunk(c: _OpenChunk, steps: codec.Steps, rate_hz: float) -> tuple[rpb
     if t_count and all(f[0] is frames[0][0] or np.array_equal(f[0], frames[0][0]) for f in frames):
         ids = frames[0][0]  # the usual chunk: the same entities throughout
         present = np.ones((t_count, ids.size), bool)
-        q = codec.quantize(np.stack([m for _, m in frames]), steps)
+        states = np.stack([m for _, m in frames])
     else:
         ids = np.unique(np.concatenate([i for i, _ in frames])) if t_count else np.zeros(0, np.int64)
         present = np.zeros((t_count, ids.size), bool)
-        q = np.zeros((t_count, ids.size, codec.FIELDS), np.int64)
-        for t, (tick_ids, states) in enumerate(frames):
+        states = np.zeros((t_count, ids.size, codec.FIELDS))
+        for t, (tick_ids, m) in enumerate(frames):
             cols = np.searchsorted(ids, tick_ids)
             present[t, cols] = True
-            q[t, cols] = codec.quantize(states, steps)
-        q = codec.fill_absent(q, present)
-    body = rpb.ChunkBody(entity_ids=ids.tolist(), states=codec.encode(q, steps, rate_hz), digests=digests,
-                         inputs=c.inputs, events=c.events)
+            states[t, cols] = m
+        states = codec.fill_absent(states, present)
+    body = rpb.ChunkBody(entity_ids=ids.tolist(), states=codec.encode_states(states, steps, rate_hz),
+                         digests=digests, inputs=c.inputs, events=c.events)
     if not present.all():
         body.present = np.packbits(present.reshape(-1)).tobytes()
     s0, s1 = (c.snapshots[0], c.snapshots[-1]) if t_count else (None, None)

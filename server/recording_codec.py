@@ -42,6 +42,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from sortie.errors import DataFormatError
@@ -87,8 +88,9 @@ def digest(ids: np.ndarray, states: np.ndarray) -> int:
 
 
 def quantize(states: np.ndarray, steps: Steps = DEFAULT_STEPS) -> np.ndarray:
-    """float64 (..., 16) -> int64 multiples of the steps (round half to even)."""
-    return np.round(states / steps.vector()).astype(np.int64)
+    """float64 (..., 16) -> int64 multiples of the steps (round half to even; the coding
+    kernel of :func:`encode_states` computes the same IEEE expression)."""
+    return np.rint(states / steps.vector()).astype(np.int64)
 
 
 def dequantize(q: np.ndarray, steps: Steps = DEFAULT_STEPS) -> np.ndarray:
@@ -105,8 +107,8 @@ def _factors(steps: Steps, rate_hz: float) -> tuple[float, float]:
 def _predictions(v: np.ndarray, steps: Steps, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """(position step, acceleration) predicted from velocities v (3, E, T) ints, for ticks 1.."""
     kp, ka = _factors(steps, rate_hz)
-    return (np.round((v[..., :-1] + v[..., 1:]) * kp).astype(np.int64),
-            np.round((v[..., 1:] - v[..., :-1]) * ka).astype(np.int64))
+    return (np.rint((v[..., :-1] + v[..., 1:]) * kp).astype(np.int64),
+            np.rint((v[..., 1:] - v[..., :-1]) * ka).astype(np.int64))
 
 
 def residuals(q: np.ndarray, steps: Steps, rate_hz: float) -> np.ndarray:
@@ -184,13 +186,78 @@ def _unplanes(buf: np.ndarray, pos: int, n: int, what: str) -> tuple[np.ndarray,
 
 def encode(q: np.ndarray, steps: Steps, rate_hz: float) -> bytes:
     """(T, E, 16) int64 -> bytes: per field, the first tick's values (absolute) then the
-    later ticks' residuals, each as :func:`_planes` (entity-major: each series contiguous)."""
+    later ticks' residuals, each as :func:`_planes` (entity-major: each series contiguous).
+    The reference for :func:`encode_states` (same bytes, tested)."""
     r = residuals(np.ascontiguousarray(q.transpose(2, 1, 0)), steps, rate_hz)  # (16, E, T)
     out = []
     for f in range(FIELDS):
-        out.append(_planes(r[f, :, 0]))
+        out.append(_planes(r[f, :, :1]))
         out.append(_planes(r[f, :, 1:]))
     return b"".join(out)
+
+
+def encode_states(states: np.ndarray, steps: Steps, rate_hz: float) -> bytes:
+    """(T, E, 16) float64 states -> the bytes of ``encode(quantize(states))``, by one
+    compiled pass that releases the GIL: the recorder's thread codes a chunk while the
+    clock thread runs (measured at 500 entities: the numpy path held the GIL for ~10 ms
+    a chunk and made the clock's ticks ~10-25 % slower on two cores)."""
+    t_count, e_count = states.shape[0], states.shape[1]
+    kp, ka = _factors(steps, rate_hz)
+    q = np.empty((FIELDS, e_count, t_count), np.int64)
+    out = np.empty(2 * FIELDS + 8 * FIELDS * e_count * t_count, np.uint8)
+    n = _encode_kernel(np.ascontiguousarray(states, np.float64), steps.vector(), kp, ka, q, out)
+    return out[:n].tobytes()
+
+
+@numba.njit(cache=True, nogil=True)
+def _encode_kernel(states, steps, kp, ka, q, out):
+    """Quantise states (T, E, 16) into q (16, E, T), turn q into its residuals in place
+    (as :func:`residuals`: later ticks first, so each prediction reads quantised values),
+    then write :func:`encode`'s bytes to out; the number written."""
+    t_count, e_count = states.shape[0], states.shape[1]
+    for t in range(t_count):
+        for e in range(e_count):
+            for f in range(FIELDS):
+                q[f, e, t] = np.int64(np.rint(states[t, e, f] / steps[f]))
+    for e in range(e_count):
+        for t in range(t_count - 1, 0, -1):
+            for f in range(3):  # position: from the trapezoid of the velocities
+                step = np.int64(np.rint(np.float64(q[f + 3, e, t - 1] + q[f + 3, e, t]) * kp))
+                q[f, e, t] -= q[f, e, t - 1] + step
+            for f in range(6, 9):  # acceleration: from the velocity change
+                q[f, e, t] -= np.int64(np.rint(np.float64(q[f - 3, e, t] - q[f - 3, e, t - 1]) * ka))
+            for f in range(3, 6):
+                q[f, e, t] -= q[f, e, t - 1]
+            for f in range(9, FIELDS):
+                q[f, e, t] -= q[f, e, t - 1]
+    pos = 0
+    for f in range(FIELDS):
+        for group in range(2):  # the first tick's values, then the later ticks' residuals
+            t0, t1 = (0, min(1, t_count)) if group == 0 else (1, t_count)
+            n = e_count * max(t1 - t0, 0)
+            top = np.uint64(0)
+            for e in range(e_count):
+                for t in range(t0, t1):
+                    r = q[f, e, t]
+                    z = np.uint64((r << 1) ^ (r >> 63))
+                    q[f, e, t] = np.int64(z)  # zigzagged, kept for the planes
+                    if z > top:
+                        top = z
+            k = 0
+            while top > 0:
+                top >>= np.uint64(8)
+                k += 1
+            out[pos] = k
+            pos += 1
+            for j in range(k):
+                shift = np.uint64(8 * j)
+                i = pos + j * n
+                for e in range(e_count):
+                    for t in range(t0, t1):
+                        out[i] = np.uint8((np.uint64(q[f, e, t]) >> shift) & np.uint64(255))
+                        i += 1
+            pos += k * n
+    return pos
 
 
 def decode(data: bytes, ticks: int, entities: int, steps: Steps, rate_hz: float) -> np.ndarray:

@@ -100,6 +100,18 @@ def test_codec_round_trips_any_integers_exactly(ticks, entities, data):
     assert np.array_equal(out, q)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 5), st.integers(0, 4), st.data())
+def test_the_compiled_coder_writes_the_reference_bytes(ticks, entities, data):
+    scale = np.array([1e7] * 3 + [400.0] * 3 + [100.0] * 3 + [1.0] * 4 + [10.0] * 3)
+    states = data.draw(hnp.arrays(np.float64, (ticks, entities, codec.FIELDS),
+                                  elements=st.floats(-1.0, 1.0))) * scale
+    want = codec.encode(codec.quantize(states), STEPS, 30.0)
+    assert codec.encode_states(states, STEPS, 30.0) == want
+    out = codec.decode(want, ticks, entities, STEPS, 30.0)
+    assert np.array_equal(out, codec.quantize(states))
+
+
 def test_codec_rejects_bytes_of_the_wrong_shape():
     q = np.arange(2 * 3 * codec.FIELDS, dtype=np.int64).reshape(2, 3, codec.FIELDS)
     data = codec.encode(q, STEPS, 30.0)
@@ -450,3 +462,23 @@ def test_take_over_cli_serves_live_with_the_agent_free_to_drive(recorded, tmp_pa
         assert 5.0 < moved < 40.0, moved  # ~2 s at up to 10 m/s (the tank accelerates)
         with pytest.raises(InvalidArgument, match="not free"):
             SimClient(p.address).join("second", "driver", agent_name="tank1")
+
+
+def test_events_after_the_last_whole_chunk_are_kept_in_a_chunk_without_ticks(tmp_path):
+    from server.sim_server import terrain_spec
+
+    world, scenario, terrain, desc = _world()
+    path = tmp_path / "tail.sortie"
+    rec = Recorder(path, recording_header(SCENARIO, scenario, world, desc, terrain_spec(scenario), terrain), 1.0)
+    world.attach_recorder(rec)
+    try:
+        for _ in range(30):  # exactly one chunk, closed by its last tick
+            world.tick()
+        world.emit("leave", 0, client="last-one")  # after it: a chunk of no ticks
+    finally:
+        rec.close()
+        world.close()
+    with Recording(path) as r:
+        assert r.check().ok and r.chunk_count == 2 and (r.first_tick, r.last_tick) == (1, 30)
+        assert r.frame(r.tick_at(99.0)).tick == 30
+        assert [e.event.kind for e in r.events()][-1] == "leave"
