@@ -121,4 +121,66 @@ def plot_server(report: dict, out_dir: Path) -> list[Path]:
     return plot_dr(report, out_dir)
 
 
-PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm, "server": plot_server}
+def plot_recording(report: dict, out_dir: Path) -> list[Path]:
+    """Write the recording suite's plots (seek latency CDFs against the goal, bytes per
+    entity second against Tacview's exports); returns the files written."""
+    plt = _pyplot()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    series = report.get("series", {})
+    curves = [(key, label) for key, label in (("seek_ms", "Recording.frame, decoded-chunk cache cold"),
+                                              ("seek_disk_cold_ms", "... and the file's pages out of the OS cache"),
+                                              ("replay_seek_ms", "sortie replay: seek call until GetWorld shows it"))
+              if series.get(key)]
+    sizes = series.get("bytes_per_entity_second", {})
+    panels = int(bool(curves)) + int(bool(sizes))
+    if not panels:
+        return written
+    fig, axes = plt.subplots(1, panels, figsize=(6.0 * panels, 5.2), squeeze=False)
+    axes = list(axes[0])
+    long = report.get("params", {}).get("long", {})
+    what = (f"{long.get('world_s', 0) / 60:.0f} min x {long.get('entities', '?')} entities"
+            if long else "the long recording")
+    if curves:
+        ax = axes.pop(0)
+        ax.set_xscale("log")
+        for key, label in curves:
+            xs = sorted(series[key])
+            ys = [(k + 1) / len(xs) for k in range(len(xs))]
+            ax.step(xs, ys, where="post", label=f"{label} (n={len(xs)})")
+        from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator, ScalarFormatter
+
+        lo = min(min(series[key]) for key, _ in curves)
+        hi = max(max(series[key]) for key, _ in curves)
+        marks = (0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000)
+        first = max([v for v in marks if v <= lo] or [marks[0]])
+        ax.set_xlim(first, max(100.0, hi * 1.3))
+        ax.xaxis.set_major_locator(FixedLocator([v for v in marks if first <= v <= max(100.0, hi * 1.3)]))
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_locator(NullLocator())
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.axvline(50.0, color="grey", lw=0.8, ls="--", label="goal: p99 <= 50 ms")
+        ax.axhline(0.99, color="grey", lw=0.5, ls=":")
+        ax.set_xlabel("seek latency (ms), random times")
+        ax.set_ylabel("fraction of seeks at most this long")
+        ax.set_title(f"Seeking in a recording of {what}", fontsize=9)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14))
+    if sizes:
+        ax = axes.pop(0)
+        names = {"sortie": "Sortie recording (.sortie)", "acmi_zip": "Tacview .zip.acmi, every tick",
+                 "acmi_zip_10hz": "Tacview .zip.acmi, 10 Hz", "acmi_text": "Tacview .acmi text, every tick"}
+        keys = [k for k in ("sortie", "acmi_zip", "acmi_zip_10hz", "acmi_text") if k in sizes]
+        ax.barh([names[k] for k in keys], [sizes[k] for k in keys],
+                color=["tab:blue" if k == "sortie" else "tab:orange" for k in keys])
+        for y, k in enumerate(keys):
+            ax.annotate(f"{sizes[k]:.0f}", (sizes[k], y), fontsize=7, xytext=(3, 0), textcoords="offset points",
+                        va="center")
+        ax.invert_yaxis()
+        ax.set_xlim(0, max(sizes.values()) * 1.15)
+        ax.set_xlabel("bytes per entity second")
+        ax.set_title(f"Size: {what}, 30 Hz", fontsize=9)
+    _save(fig, out_dir / "recording_seek_and_size.png", written)
+    return written
+
+
+PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm, "server": plot_server, "recording": plot_recording}

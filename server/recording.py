@@ -46,7 +46,9 @@ INDEX_MAGIC = b"INDX"
 FRAME = struct.Struct("<4sIII")  # magic, head length, body length, crc32
 MAX_HEAD_BYTES = 64 << 20
 MAX_BODY_BYTES = 1 << 30
-ZSTD_LEVEL = 3
+# zstd level 2: measured on 500 entities' chunks, 1.15 ms and 109 kB against level 3's 1.8 ms and
+# 102 kB (level 1: 1.0 ms, 116 kB); the recorder's thread competes with the clock for two cores.
+ZSTD_LEVEL = 2
 DECODED_CHUNK_CACHE = 8
 
 

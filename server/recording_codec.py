@@ -39,11 +39,11 @@ entity second before the chunk framing, a quarter of it the chunk's first
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 
 import numba
 import numpy as np
+import xxhash
 
 from sortie.errors import DataFormatError
 
@@ -80,11 +80,39 @@ def state_matrix(snapshot) -> tuple[np.ndarray, np.ndarray]:
     return ids, np.concatenate(parts, axis=1).astype(np.float64, copy=False)
 
 
+def gather_states(snapshots) -> tuple[np.ndarray, np.ndarray]:
+    """(ids ascending, (T, E, 16) float64 states) of snapshots that all hold the same ids:
+    :func:`state_matrix` of each, stacked, by a compiled copy (no temporaries)."""
+    ids = snapshots[0].ids if snapshots else np.zeros(0, np.int64)
+    order = np.arange(ids.size) if ids.size < 2 or np.all(ids[1:] > ids[:-1]) else np.argsort(ids, kind="stable")
+    out = np.empty((len(snapshots), ids.size, FIELDS))
+    for t, s in enumerate(snapshots):
+        _gather_kernel(order, s.ecef_m, s.vel_ecef_mps, s.acc_ecef_mps2, s.quat_ecef2body, s.body_rates_rps, out[t])
+    return ids[order], out
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_kernel(order, pos, vel, acc, quat, rates, out):
+    for i in range(order.size):
+        k = order[i]
+        for j in range(3):
+            out[i, j] = pos[k, j]
+            out[i, 3 + j] = vel[k, j]
+            out[i, 6 + j] = acc[k, j]
+            out[i, 13 + j] = rates[k, j]
+        for j in range(4):
+            out[i, 9 + j] = quat[k, j]
+
+
 def digest(ids: np.ndarray, states: np.ndarray) -> int:
-    """First 8 bytes (little-endian) of BLAKE2b over the ids (int64) and exact float64 states."""
-    h = hashlib.blake2b(np.ascontiguousarray(ids, np.int64).tobytes(), digest_size=8)
-    h.update(np.ascontiguousarray(states, np.float64).tobytes())
-    return int.from_bytes(h.digest(), "little")
+    """XXH3-64 (seed 0) of the ids (int64) then the exact float64 states, as bytes.
+
+    A check that re-simulation repeats the states bit for bit, not a defence
+    against forgery: XXH3 is ~80x faster than BLAKE2b (1.6 us against 125 us
+    for 500 entities' 64 KB) and any divergence shows at every later tick."""
+    h = xxhash.xxh3_64(np.ascontiguousarray(ids, np.int64))
+    h.update(np.ascontiguousarray(states, np.float64))
+    return h.intdigest()
 
 
 def quantize(states: np.ndarray, steps: Steps = DEFAULT_STEPS) -> np.ndarray:
@@ -215,8 +243,8 @@ def _encode_kernel(states, steps, kp, ka, q, out):
     (as :func:`residuals`: later ticks first, so each prediction reads quantised values),
     then write :func:`encode`'s bytes to out; the number written."""
     t_count, e_count = states.shape[0], states.shape[1]
-    for t in range(t_count):
-        for e in range(e_count):
+    for e in range(e_count):  # each series' ticks are adjacent in q: write them in order
+        for t in range(t_count):
             for f in range(FIELDS):
                 q[f, e, t] = np.int64(np.rint(states[t, e, f] / steps[f]))
     for e in range(e_count):

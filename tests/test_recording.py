@@ -112,6 +112,24 @@ def test_the_compiled_coder_writes_the_reference_bytes(ticks, entities, data):
     assert np.array_equal(out, codec.quantize(states))
 
 
+def test_gathered_states_are_the_state_matrices_bit_for_bit():
+    from server.world import Snapshot
+
+    rng = np.random.default_rng(3)
+    for order in (np.arange(1, 8), np.array([5, 2, 9, 1, 7])):  # in order, and not
+        snaps = []
+        for t in range(3):
+            n = order.size
+            snaps.append(Snapshot(t / 30, t, order, rng.normal(size=(n, 3)) * 6e6, rng.normal(size=(n, 3)),
+                                  rng.normal(size=(n, 3)), rng.normal(size=(n, 4)), rng.normal(size=(n, 3)),
+                                  np.zeros(n), np.zeros(n), np.zeros(n)))
+        ids, states = codec.gather_states(snaps)
+        for t, s in enumerate(snaps):
+            want_ids, want = codec.state_matrix(s)
+            assert np.array_equal(ids, want_ids) and states[t].tobytes() == want.tobytes()
+            assert codec.digest(ids, states[t]) == codec.digest(want_ids, want)
+
+
 def test_codec_rejects_bytes_of_the_wrong_shape():
     q = np.arange(2 * 3 * codec.FIELDS, dtype=np.int64).reshape(2, 3, codec.FIELDS)
     data = codec.encode(q, STEPS, 30.0)
