@@ -116,9 +116,11 @@ def digest(ids: np.ndarray, states: np.ndarray) -> int:
 
 
 def quantize(states: np.ndarray, steps: Steps = DEFAULT_STEPS) -> np.ndarray:
-    """float64 (..., 16) -> int64 multiples of the steps (round half to even; the coding
-    kernel of :func:`encode_states` computes the same IEEE expression)."""
-    return np.rint(states / steps.vector()).astype(np.int64)
+    """float64 (..., 16) -> int64 multiples of the steps: x times 1/step (exact for the
+    default steps, whose inverses are integers; a multiply is half a divide's cost),
+    rounded half to even; the coding kernel of :func:`encode_states` computes the same
+    IEEE expression."""
+    return np.rint(states * (1.0 / steps.vector())).astype(np.int64)
 
 
 def dequantize(q: np.ndarray, steps: Steps = DEFAULT_STEPS) -> np.ndarray:
@@ -233,12 +235,12 @@ def encode_states(states: np.ndarray, steps: Steps, rate_hz: float) -> bytes:
     kp, ka = _factors(steps, rate_hz)
     q = np.empty((FIELDS, e_count, t_count), np.int64)
     out = np.empty(2 * FIELDS + 8 * FIELDS * e_count * t_count, np.uint8)
-    n = _encode_kernel(np.ascontiguousarray(states, np.float64), steps.vector(), kp, ka, q, out)
+    n = _encode_kernel(np.ascontiguousarray(states, np.float64), 1.0 / steps.vector(), kp, ka, q, out)
     return out[:n].tobytes()
 
 
 @numba.njit(cache=True, nogil=True)
-def _encode_kernel(states, steps, kp, ka, q, out):
+def _encode_kernel(states, inverse_steps, kp, ka, q, out):
     """Quantise states (T, E, 16) into q (16, E, T), turn q into its residuals in place
     (as :func:`residuals`: later ticks first, so each prediction reads quantised values),
     then write :func:`encode`'s bytes to out; the number written."""
@@ -246,7 +248,7 @@ def _encode_kernel(states, steps, kp, ka, q, out):
     for e in range(e_count):  # each series' ticks are adjacent in q: write them in order
         for t in range(t_count):
             for f in range(FIELDS):
-                q[f, e, t] = np.int64(np.rint(states[t, e, f] / steps[f]))
+                q[f, e, t] = np.int64(np.rint(states[t, e, f] * inverse_steps[f]))
     for e in range(e_count):
         for t in range(t_count - 1, 0, -1):
             for f in range(3):  # position: from the trapezoid of the velocities
