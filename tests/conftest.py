@@ -11,12 +11,12 @@ EMBEDDED_DEM = REPO / "data" / "dem"
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
-def shared_or_embedded(name: str) -> Path:
-    """A DEM from ../shared/data/dem, or the project's embedded copy of it."""
-    for base in (SHARED_DATA / "dem", EMBEDDED_DEM):
+def shared_or_embedded(name: str, folder: str = "dem") -> Path:
+    """A data file from ../shared/data/<folder>, or the project's embedded copy in data/<folder>."""
+    for base in (SHARED_DATA / folder, REPO / "data" / folder):
         if (base / name).exists():
             return base / name
-    pytest.fail(f"DEM {name} is in neither {SHARED_DATA / 'dem'} nor {EMBEDDED_DEM}")
+    pytest.fail(f"{folder} file {name} is in neither {SHARED_DATA / folder} nor {REPO / 'data' / folder}")
 
 
 @pytest.fixture(scope="session")

@@ -43,16 +43,17 @@ from server import recording_codec as codec
 from server.dead_reckoning import ned_to_ecef_quat
 from server.recorder import Recorder, encode_chunk, recording_header
 from server.world import Snapshot
+from server.process import sortie_command
 from server.recording import Recording, RecordingWriter, quantization_of
 from sortie.errors import InvalidArgument, NotFound
 from sortie.v1 import recording_pb2 as rpb
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import geodetic_to_ecef, wrap_lon_deg
 
-from conftest import REPO, SHARED_DATA
+from conftest import REPO, shared_or_embedded
 
 SCENARIO = REPO / "data" / "scenarios" / "alps.toml"
-SAMPLE = SHARED_DATA / "acmi" / "kavinsky_simple-acmi.txt.acmi"
+SAMPLE = shared_or_embedded("kavinsky_simple-acmi.txt.acmi", "acmi")  # a real DCS World recording
 TICKS = 150
 LONLAT_TOL_DEG = 0.5e-7 + 1e-10
 ALT_TOL_M = 0.005 + 1e-9
@@ -386,8 +387,6 @@ def test_round_trip_through_pyacmi_and_the_spec_reader(alps):
 
 
 def test_the_spec_reader_and_pyacmi_read_a_real_tacview_file():
-    if not SAMPLE.exists():
-        pytest.skip(f"{SAMPLE} is absent (../shared is not checked out)")
     py, spec = load_pyacmi(SAMPLE), parse_acmi(SAMPLE)
     assert spec.globals["ReferenceTime"] == "1990-05-01T06:00:00Z" and py.reference_longitude == 33.0
     assert "Tacan 74 X, ICLS" in spec.globals["Briefing"] and "\n" in spec.globals["Briefing"]
@@ -486,22 +485,15 @@ def test_output_name_chooses_the_form(alps, tmp_path):
         acmi.export_acmi(r, tmp_path / "nowhere" / "x.acmi")
 
 
-def _sortie() -> str:
-    exe = REPO / ".venv" / "bin" / "sortie"
-    if not exe.exists():
-        pytest.skip(f"{exe} is not installed (make bootstrap)")
-    return str(exe)
-
-
 def test_command_line_export_and_a_missing_file(alps, tmp_path):
     rec, plain, _ = alps
     out = tmp_path / "cli.acmi"
-    done = subprocess.run([_sortie(), "export", "acmi", str(rec), "-o", str(out)], capture_output=True,
+    done = subprocess.run([*sortie_command(), "export", "acmi", str(rec), "-o", str(out)], capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert out.read_bytes() == plain.read_bytes()
     missing = tmp_path / "nowhere.sortie"
-    done = subprocess.run([_sortie(), "export", "acmi", str(missing), "-o", str(out)], capture_output=True,
+    done = subprocess.run([*sortie_command(), "export", "acmi", str(missing), "-o", str(out)], capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 2 and str(missing) in done.stderr and "does not exist" in done.stderr
 
