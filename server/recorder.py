@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from server import recording_codec as codec
-from server.recording import FORMAT_VERSION, RecordingWriter, quantization_of
+from server.recording import FORMAT_VERSION, RecordingWriter, quantization_of, steps_of
 from sortie.v1 import recording_pb2 as rpb
 from sortie.v1 import simulation_pb2 as pb
 
@@ -147,9 +147,7 @@ class Recorder:
         header.chunk_s = chunk_s
         self.path = Path(path)
         self.header = header
-        self.steps = codec.Steps(header.quantization.position_m, header.quantization.velocity_mps,
-                                 header.quantization.acceleration_mps2, header.quantization.quaternion,
-                                 header.quantization.body_rate_rps)
+        self.steps = steps_of(header)
         self.rate_hz = header.world_rate_hz
         self.chunk_s = chunk_s
         self.chunk_ticks = max(1, int(round(chunk_s * self.rate_hz)))

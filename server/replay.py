@@ -144,6 +144,7 @@ class ReplayServer:
         self.playing = bool(playing)
         self._lock = threading.Lock()
         self._position_s = self.rec.first_time_s if start_s is None else self._clamp(start_s)
+        self._last_wall = time.monotonic()  # when the position was last advanced
         self._seeked = True
         self.sessions = ReplaySessions(self.world, self.params_of, self.config.vanished_timeout_s)
         self.publisher = Publisher(DeadReckoner(), lambda i: self.params_of(i).thresholds)
@@ -229,14 +230,11 @@ class ReplayServer:
                                 playing=self.playing, speed=self.speed, recording=self.rec.path.name)
 
     def world_info(self) -> pb.WorldInfo:
-        c = self.config
-        areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
-                 for name, poly, d in c.target_areas]
+        from server.sim_server import world_info
+
         clock = "paused" if not self.playing else "realtime" if self.speed == 1.0 else "fast"
-        return pb.WorldInfo(exercise_name=c.exercise_name, start_time=c.start_time, time_s=self.world.time_s,
-                            server_unix_time_s=time.time(), clock=clock,
-                            time_scale=self.speed if self.playing else 0.0, world_rate_hz=self.rec.rate_hz,
-                            network_rate_hz=c.network_rate_hz, target_areas=areas, terrain=c.terrain)
+        return world_info(self.config, self.world.time_s, clock, self.speed if self.playing else 0.0,
+                          self.rec.rate_hz)
 
     def _handlers(self) -> dict:
         async def control(request, context):
@@ -262,7 +260,7 @@ class ReplayServer:
         with self._lock:
             now = time.monotonic()
             if self.playing:
-                self._position_s += (now - getattr(self, "_last_wall", now)) * self.speed
+                self._position_s += (now - self._last_wall) * self.speed
                 if self._position_s >= self.rec.last_time_s:
                     self._position_s, self.playing = self.rec.last_time_s, False
             self._last_wall = now

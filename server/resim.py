@@ -23,6 +23,7 @@ agent keeps receiving its recorded inputs after the same ticks
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 import tomllib
@@ -184,8 +185,6 @@ def build_recorded_world(rec: Recording, dem=None, service: str | None = None, w
 
     scenario = recorded_scenario(rec)
     spec, notes = recorded_terrain_spec(rec, dem, service)
-    import functools
-
     terrain = open_terrain_source(**spec)
     world = build_world(scenario, terrain, aircraft_host(scenario, terrain,
                                                          functools.partial(open_terrain_source, **spec), workers))

@@ -67,6 +67,17 @@ def type_params(params: dict, entities: dict, entity_id, kind: str | None = None
     return params.get(e.type, params.get(k, DEFAULT_PARAMS[k]))
 
 
+def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_hz: float) -> pb.WorldInfo:
+    """GetWorld's answer: the exercise of ``config`` (a ServerConfig) at world time ``time_s``
+    (live server and replay alike)."""
+    areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
+             for name, poly, d in config.target_areas]
+    return pb.WorldInfo(exercise_name=config.exercise_name, start_time=config.start_time, time_s=time_s,
+                        server_unix_time_s=time.time(), clock=clock, time_scale=time_scale,
+                        world_rate_hz=world_rate_hz, network_rate_hz=config.network_rate_hz, target_areas=areas,
+                        terrain=config.terrain)
+
+
 @dataclass
 class ServerConfig:
     exercise_name: str = "sortie"
@@ -158,13 +169,7 @@ class SimulationServer:
             self._resume.set()
 
     def world_info(self) -> pb.WorldInfo:
-        c = self.config
-        areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
-                 for name, poly, d in c.target_areas]
-        return pb.WorldInfo(exercise_name=c.exercise_name, start_time=c.start_time, time_s=self.world.time_s,
-                            server_unix_time_s=time.time(), clock=self._clock, time_scale=c.time_scale,
-                            world_rate_hz=1.0 / self.world.dt, network_rate_hz=c.network_rate_hz,
-                            target_areas=areas, terrain=c.terrain)
+        return world_info(self.config, self.world.time_s, self._clock, self.config.time_scale, 1.0 / self.world.dt)
 
     # -- the clock thread -----------------------------------------------------------------------
 
