@@ -6,8 +6,10 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 SYS_STAMP := $(VENV)/.sysdeps
-# Debian packages: Mesa's EGL/GL for headless OpenGL (llvmpipe where no GPU).
-SYS_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libglx-mesa0
+# Debian packages: Mesa's EGL/GL for headless OpenGL (llvmpipe where no GPU);
+# tshark (Wireshark's DIS dissector checks our PDUs); docker-compose (CI validates
+# docker-compose.yml with `docker-compose config`; there is no Docker engine here).
+SYS_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libglx-mesa0 tshark docker-compose
 
 .PHONY: all bootstrap sysdeps demo test proto bench clean
 
@@ -23,7 +25,7 @@ $(STAMP): pyproject.toml | $(VENV)/bin/python
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $@
 
-$(SYS_STAMP): | $(VENV)/bin/python
+$(SYS_STAMP): Makefile | $(VENV)/bin/python
 	@missing=""; for p in $(SYS_PACKAGES); do \
 	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'install ok installed' || missing="$$missing $$p"; \
 	done; \

@@ -33,7 +33,8 @@ from sortie.errors import InvalidArgument
 from sortie.v1 import simulation_pb2 as pb
 from sortie.v1 import simulation_pb2_grpc as pb_grpc
 
-ROLES = {"pilot": pb.ROLE_PILOT, "driver": pb.ROLE_DRIVER, "observer": pb.ROLE_OBSERVER, "bot": pb.ROLE_BOT}
+ROLES = {"pilot": pb.ROLE_PILOT, "driver": pb.ROLE_DRIVER, "observer": pb.ROLE_OBSERVER, "bot": pb.ROLE_BOT,
+         "gateway": pb.ROLE_GATEWAY}
 DEFAULT_TIMEOUT_S = 10.0
 
 
@@ -74,8 +75,9 @@ class SimClient:
 
     def join(self, name: str, role: str = "observer", agent_name: str = "",
              observer: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
-        """Join as "pilot", "driver", "bot" or "observer" (observer = (lat, lon, radius_m));
-        the agent id (0 for observers)."""
+        """Join as "pilot", "driver", "bot", "observer" (observer = (lat, lon, radius_m)) or
+        "gateway" (sees every entity, publishes external ones: :meth:`external`); the agent
+        id (0 for observers and gateways)."""
         if role not in ROLES:
             raise InvalidArgument("role", f"must be one of {', '.join(ROLES)}", value=role)
         r = self._call(self.stub.Join, pb.JoinRequest(client_name=name, role=ROLES[role], agent_name=agent_name,
@@ -116,13 +118,21 @@ class SimClient:
         """A client-streaming controls call; send with .stick/.autopilot/.drive, close() when done."""
         return ControlStream(self)
 
+    def external(self) -> ExternalStream:
+        """A gateway's client stream of external entities; close() when done."""
+        return ExternalStream(self)
+
     # -- watching -------------------------------------------------------------------------------
 
-    def watch(self) -> Picture:
-        """Start the Watch stream in a background thread; the live picture it maintains."""
+    def watch(self, listener=None) -> Picture:
+        """Start the Watch stream in a background thread; the live picture it maintains.
+        ``listener(picture, update)`` is called for every update, the snapshot first
+        (see Picture.listeners)."""
         call = self.stub.Watch(pb.WatchRequest(session_token=self.token))
         self._streams.append(call)
         picture = Picture(call, self.world_info.time_scale if self.world_info else 1.0)
+        if listener is not None:
+            picture.listeners.append(listener)
         picture.start()
         return picture
 
@@ -137,13 +147,14 @@ class SimClient:
                 raise error_from_rpc(exc) from None
 
 
-class ControlStream:
-    """Latest-wins commands for the session's agent over one client stream."""
+class _RequestStream:
+    """One client-streaming call fed from a queue: messages go out in order on gRPC's
+    thread; :meth:`close` ends the stream and returns the server's answer."""
 
-    def __init__(self, client: SimClient):
+    def __init__(self, client: SimClient, rpc):
         self.client = client
         self._q: queue.Queue = queue.Queue()
-        self._future = client.stub.SendControls.future(self._messages())
+        self._future = rpc.future(self._messages())
 
     def _messages(self):
         while True:
@@ -152,10 +163,37 @@ class ControlStream:
                 return
             yield msg
 
-    def _send(self, **command) -> None:
+    def _put(self, msg) -> None:
         if self._future.done():  # the server ended the stream (e.g. a bad message): say why
             self.close()
-        self._q.put(pb.ControlInput(session_token=self.client.token, agent_id=self.client.agent_id, **command))
+        self._q.put(msg)
+
+    def _finish(self):
+        self._q.put(None)
+        try:
+            return self._future.result(timeout=self.client.timeout_s)
+        except grpc.RpcError as exc:
+            raise error_from_rpc(exc) from None
+
+    def close(self) -> int:
+        """End the stream; the number of messages the server accepted (raises its error)."""
+        return self._finish().accepted
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ControlStream(_RequestStream):
+    """Latest-wins commands for the session's agent over one client stream."""
+
+    def __init__(self, client: SimClient):
+        super().__init__(client, client.stub.SendControls)
+
+    def _send(self, **command) -> None:
+        self._put(pb.ControlInput(session_token=self.client.token, agent_id=self.client.agent_id, **command))
 
     def stick(self, **values) -> None:
         self._send(stick=pb.StickControls(**values))
@@ -166,19 +204,36 @@ class ControlStream:
     def drive(self, speed_mps: float, yaw_rate_dps: float = 0.0) -> None:
         self._send(drive=pb.DriveControls(speed_mps=speed_mps, yaw_rate_dps=yaw_rate_dps))
 
-    def close(self) -> int:
-        """End the stream; the number of messages the server accepted (raises its error)."""
-        self._q.put(None)
-        try:
-            return self._future.result(timeout=self.client.timeout_s).accepted
-        except grpc.RpcError as exc:
-            raise error_from_rpc(exc) from None
 
-    def __enter__(self) -> ControlStream:
-        return self
+KINDS = {"aircraft": pb.ENTITY_KIND_AIRCRAFT, "ground": pb.ENTITY_KIND_GROUND, "static": pb.ENTITY_KIND_STATIC}
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+
+class ExternalStream(_RequestStream):
+    """A gateway's external entities (PublishExternal): :meth:`update` adds or moves one,
+    :meth:`remove` takes it out."""
+
+    def __init__(self, client: SimClient):
+        super().__init__(client, client.stub.PublishExternal)
+
+    def update(self, external_id: str, *, ecef_m, vel_ecef_mps, quat_wxyz, acc_ecef_mps2=(0.0, 0.0, 0.0),
+               body_rates_rps=(0.0, 0.0, 0.0), algorithm: int = pb.DEAD_RECKONING_ALGORITHM_FPW, name: str = "",
+               kind: str = "aircraft", type: str = "", coalition: str = "neutral") -> None:  # noqa: A002
+        """The entity's state now: ecef_m (3,) m, vel_ecef_mps (3,), acc_ecef_mps2 (3,) ECEF;
+        quat_wxyz (4,) ECEF -> body; body_rates_rps (3,) body axes; a DIS world algorithm
+        (1-5). name, kind ("aircraft", "ground", "static"), type and coalition are read on
+        the entity's first update."""
+        if kind not in KINDS:
+            raise InvalidArgument("kind", f"must be one of {', '.join(KINDS)}", value=kind)
+        x, y, z = (float(v) for v in ecef_m)
+        state = pb.EntityState(ecef_x_m=x, ecef_y_m=y, ecef_z_m=z, velocity_ecef_mps=list(map(float, vel_ecef_mps)),
+                               acceleration_ecef_mps2=list(map(float, acc_ecef_mps2)),
+                               orientation_wxyz=list(map(float, quat_wxyz)),
+                               angular_velocity_body_rps=list(map(float, body_rates_rps)), dead_reckoning=algorithm)
+        self._put(pb.ExternalEntityUpdate(session_token=self.client.token, external_id=external_id, name=name,
+                                          kind=KINDS[kind], type=type, coalition=coalition, state=state))
+
+    def remove(self, external_id: str) -> None:
+        self._put(pb.ExternalEntityUpdate(session_token=self.client.token, external_id=external_id, remove=True))
 
 
 class Picture:
@@ -199,6 +254,9 @@ class Picture:
         self.wall_log: list = []  # (world time of the update, time.time() it arrived): latency measurements
         self.error: Exception | None = None
         self.snapshot_received = threading.Event()
+        # Called as fn(picture, update) on the stream's thread after each WatchUpdate is
+        # applied, under the picture's lock (gateways re-publish each update as it comes).
+        self.listeners: list = []
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="watch", daemon=True)
 
@@ -263,6 +321,8 @@ class Picture:
                         del self.wall_log[:50_000]
                     if u.snapshot:
                         self.snapshot_received.set()
+                    for fn in self.listeners:
+                        fn(self, u)
                     self._cond.notify_all()
         except grpc.RpcError as exc:
             if exc.code() != grpc.StatusCode.CANCELLED:

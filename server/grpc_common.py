@@ -23,6 +23,7 @@ import re
 import signal
 import struct
 import threading
+import time
 from collections.abc import Callable, Mapping
 from concurrent import futures
 
@@ -56,6 +57,13 @@ def channel_options() -> list[tuple[str, int]]:
         ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
         ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
     ]
+
+
+def server_options() -> list[tuple[str, int]]:
+    """Options for servers: channel_options, and no SO_REUSEPORT (gRPC sets it by
+    default on Linux, so a second server on a port in use would bind silently and
+    share the traffic instead of failing at start)."""
+    return channel_options() + [("grpc.so_reuseport", 0)]
 
 
 # --- wire codec ------------------------------------------------------------------------------
@@ -249,21 +257,54 @@ def wire_message(error: SortieError, field_names: Mapping[str, str]) -> str:
     return text
 
 
-def unary_handler(name: str, method: Callable, field_names: Mapping[str, str]) -> Callable:
+class CallStats:
+    """Per-method call counters of a service (for its metrics): calls, seconds, errors by
+    status code. Thread-safe; one lock hold per call."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._by_method: dict[str, list] = {}  # method -> [calls, seconds, {code name: count}]
+
+    def record(self, method: str, seconds: float, code: str | None = None) -> None:
+        with self._lock:
+            entry = self._by_method.setdefault(method, [0, 0.0, {}])
+            entry[0] += 1
+            entry[1] += seconds
+            if code is not None:
+                entry[2][code] = entry[2].get(code, 0) + 1
+
+    def snapshot(self) -> dict:
+        """method -> (calls, seconds, {code: errors}), copied."""
+        with self._lock:
+            return {m: (n, s, dict(codes)) for m, (n, s, codes) in self._by_method.items()}
+
+
+def unary_handler(name: str, method: Callable, field_names: Mapping[str, str],
+                  stats: CallStats | None = None) -> Callable:
     """Wrap ``method(request) -> response`` into a gRPC behaviour with the one error mapping.
 
     SortieError -> its status code (grpc_code) and message; anything else ->
     INTERNAL, logged with its traceback. Either way only this call fails.
+    ``stats`` counts the calls under ``name``'s last part.
     """
+    short = name.rsplit("/", 1)[-1]
+
     def behaviour(request, context):
+        t0 = time.perf_counter()
+        code = None
         try:
             return method(request)
         except SortieError as exc:
             logger.debug("%s rejected: %s", name, exc)
+            code = grpc_code(exc).name
             context.abort(grpc_code(exc), wire_message(exc, field_names))
         except Exception as exc:
             logger.exception("%s failed", name)
+            code = "INTERNAL"
             context.abort(grpc.StatusCode.INTERNAL, f"{name}: internal error ({type(exc).__name__}: {exc})")
+        finally:
+            if stats is not None:
+                stats.record(short, time.perf_counter() - t0, code)
 
     return behaviour
 
@@ -363,7 +404,7 @@ class AioManagedServer:
         self._stopped = threading.Event()
         try:
             self.port = self._call(self._create([(name, h(self.blocking)) for name, h in services], address,
-                                                max_rpcs, options if options is not None else channel_options()))
+                                                max_rpcs, options if options is not None else server_options()))
         except BaseException:
             self._shutdown_loop()
             raise

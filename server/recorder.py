@@ -124,6 +124,8 @@ def input_record(tick: int, kind: str, entity_id: int, fields: dict) -> rpb.Inpu
         r.vanished = bool(fields.get("vanished", False))
     elif kind == "remove":
         r.reason = fields.get("reason", "")
+    elif kind == "external":
+        r.values_json = json.dumps(fields, sort_keys=True)  # floats as repr: exact
     return r
 
 
@@ -182,9 +184,9 @@ class Recorder:
             c.snapshots.append(snapshot)
             for i in new:
                 self._seen.add(i)
-                _, name, kind, type_, coalition = infos[i]
+                _, name, kind, type_, coalition, *external = infos[i]
                 c.new_entities.append(pb.EntityInfo(entity_id=i, name=name, kind=kind, type=type_,
-                                                    coalition=coalition))
+                                                    coalition=coalition, external_id="".join(external)))
             if len(c.snapshots) >= self.chunk_ticks or time.monotonic() - c.wall_start >= self.chunk_s:
                 self._close_open()
 

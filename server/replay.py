@@ -63,7 +63,8 @@ class ReplayWorld(EventLog):
         self.dt = rec.dt
         self.geoid_undulation_m = rec.header.geoid_undulation_m
         self.entities = {i: Entity(i, e.name, e.kind, e.type, e.coalition) for i, e in rec.entities.items()}
-        self.infos = {i: (i, e.name, e.kind, e.type, e.coalition) for i, e in rec.entities.items()}
+        self.infos = {i: (i, e.name, e.kind, e.type, e.coalition) + ((e.external_id,) if e.external_id else ())
+                      for i, e in rec.entities.items()}
         self.tick_count = rec.first_tick - 1
         self.time_s = self.tick_count * self.dt
         self.snapshot = _empty_snapshot(self.time_s, self.tick_count)
@@ -99,6 +100,15 @@ class ReplayWorld(EventLog):
     def command(self, entity_id: int, kind: str, values: dict) -> None:
         raise PermissionDenied("a replay takes no commands")
 
+    def external_owner(self, external_id: str) -> None:
+        return None
+
+    def publish_external(self, external_id: str, owner: str, state=None, *args, **kwargs) -> int:
+        raise PermissionDenied("a replay takes no external entities")
+
+    def remove_owned_external(self, owner: str) -> None:
+        pass
+
     def emit(self, kind: str, entity_id: int = 0, **detail) -> None:
         self._append_event(WorldEvent(self.time_s, kind, entity_id, detail=detail))
 
@@ -115,10 +125,10 @@ def _detail(text: str) -> dict:
 
 class ReplaySessions(Sessions):
     def join(self, name: str, role: int, agent_name: str = "", observer=None):
-        if role != pb.ROLE_OBSERVER:
-            raise InvalidArgument("role", "a replay serves observers only (take over an agent with sortie resim "
-                                          "--take-over)", value=pb.Role.Name(role) if role in pb.Role.values()
-                                  else role)
+        if role not in (pb.ROLE_OBSERVER, pb.ROLE_GATEWAY):
+            raise InvalidArgument("role", "a replay serves observers and gateways only (take over an agent with "
+                                          "sortie resim --take-over)",
+                                  value=pb.Role.Name(role) if role in pb.Role.values() else role)
         return super().join(name, role, agent_name, observer)
 
 

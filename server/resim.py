@@ -36,6 +36,7 @@ import numpy as np
 from server import recording_codec as codec
 from server.recorder import build_id, file_identity
 from server.recording import Recording
+from server.world import external_state
 from sortie.errors import DataFormatError, InvalidArgument, NotFound
 
 FIELD_NAMES = (["ecef_x_m", "ecef_y_m", "ecef_z_m", "vel_x_mps", "vel_y_mps", "vel_z_mps", "acc_x_mps2",
@@ -173,6 +174,14 @@ def apply_input(world, r) -> None:
         world.release(r.entity_id, vanished=r.vanished)
     elif r.kind == "remove":
         world.remove(r.entity_id, r.reason)
+    elif r.kind == "external":
+        v = json.loads(r.values_json)
+        state = external_state(0.0, *v["state"])
+        if "name" in v:  # the first update of an external entity: it enters the world
+            world.publish_external(v["external_id"], "resim:external", state, v["name"], v["kind"], v["type"],
+                                   v["coalition"])
+        else:
+            world.publish_external(v["external_id"], "resim:external", state)
     else:
         raise DataFormatError(f"input of unknown kind {r.kind!r} at tick {r.tick}")
 

@@ -49,6 +49,9 @@ def add_parser(sub) -> None:
                    help="world seconds per recording chunk: what a killed server may lose (default %(default)s)")
     p.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
                    help="seconds in-flight calls get on shutdown (default %(default)s)")
+    p.add_argument("--metrics-port", type=int, metavar="N",
+                   help="serve Prometheus metrics on http://HOST:N/metrics (tick time, sessions, entities, "
+                        "bytes sent; see docs/DEPLOYMENT.md); 0 picks a free port")
     p.set_defaults(func=server_command)
 
 
@@ -105,15 +108,30 @@ def server_command(args) -> int:
         config.time_scale = args.time_scale
     if args.duration is not None:
         config.duration_s = args.duration
-    server = SimulationServer(world, config, f"{args.host}:{args.port}", recorder=recorder)
+    try:
+        server = SimulationServer(world, config, f"{args.host}:{args.port}", recorder=recorder)
+    except BaseException:
+        world.close()
+        if recorder is not None:
+            recorder.close()
+        raise
+    metrics = None
+    if args.metrics_port is not None:
+        from server.metrics import MetricsServer, simulation_metrics
+
+        metrics = MetricsServer(lambda: simulation_metrics(server), args.host, args.metrics_port).start()
     server.start()
     print(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
           f"clock {config.clock})", flush=True)
+    if metrics is not None:
+        print(f"metrics on http://{metrics.address}/metrics", flush=True)
     if recorder is not None:
         print(f"recording to {path}", flush=True)
     wait_for_signal(server.finished)
     server.stop(args.grace_s)
     world.close()
+    if metrics is not None:
+        metrics.stop()
     stats = server.tick_stats()
     print(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
           f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", flush=True)

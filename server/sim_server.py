@@ -24,7 +24,7 @@ import numpy as np
 
 from server.dead_reckoning import DeadReckoner, Thresholds, THRESHOLDS_BY_KIND, ALGORITHM_NAMES
 from server.grpc_common import AioManagedServer
-from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers
+from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, StreamStats, method_handlers
 from server.streaming import Publisher
 from server.world import KIND_NAMES, World
 from sortie.errors import InvalidArgument, SortieError
@@ -120,7 +120,10 @@ class SimulationServer:
         self._stop = threading.Event()
         self._resume = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world-clock", daemon=True)
-        servicer = functools.partial(SimulationServicer, self.sessions, self.world_info)
+        self.stream_stats = StreamStats()
+        self.started_monotonic = time.monotonic()
+        servicer = functools.partial(SimulationServicer, self.sessions, self.world_info,
+                                     stream_stats=self.stream_stats)
         try:
             self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
                                          max_rpcs=max_workers)

@@ -29,7 +29,7 @@ import grpc
 import numpy as np
 
 from server.streaming import ClientQueue, encode_watch_update
-from server.world import AIRCRAFT, GROUND, STATIC, World
+from server.world import AIRCRAFT, GROUND, STATIC, World, external_state
 from sortie.errors import InvalidArgument, LimitExceeded, PermissionDenied, SortieError, Unauthenticated, grpc_code
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import geodetic_to_ecef
@@ -82,8 +82,9 @@ class Sessions:
     def join(self, name: str, role: int, agent_name: str = "", observer=None) -> Session:
         if not (1 <= len(name) <= MAX_NAME_CHARS and name.isprintable()):
             raise InvalidArgument("client_name", f"must be 1-{MAX_NAME_CHARS} printable characters", value=name)
-        if role not in (pb.ROLE_PILOT, pb.ROLE_DRIVER, pb.ROLE_OBSERVER, pb.ROLE_BOT):
-            raise InvalidArgument("role", "must be ROLE_PILOT, ROLE_DRIVER, ROLE_OBSERVER or ROLE_BOT", value=role)
+        if role not in (pb.ROLE_PILOT, pb.ROLE_DRIVER, pb.ROLE_OBSERVER, pb.ROLE_BOT, pb.ROLE_GATEWAY):
+            raise InvalidArgument("role", "must be ROLE_PILOT, ROLE_DRIVER, ROLE_OBSERVER, ROLE_BOT or ROLE_GATEWAY",
+                                  value=role)
         with self._lock:
             if len(self._by_token) >= MAX_SESSIONS:
                 raise LimitExceeded("sessions", len(self._by_token) + 1, MAX_SESSIONS)
@@ -100,6 +101,9 @@ class Sessions:
                     raise InvalidArgument("observer_radius_m", f"must be in (0, {limit:g}] m", value=radius)
                 s.observer_ecef = np.asarray(geodetic_to_ecef(lat, lon, 0.0), float).reshape(3)
                 s.radius_m = float(radius)
+            elif role == pb.ROLE_GATEWAY:  # sees everything: an infinite area of interest
+                s.observer_ecef = np.zeros(3)
+                s.radius_m = math.inf
             else:
                 e = self._pick_agent(role, agent_name)
                 self.world.claim(e.id, token, name)
@@ -145,6 +149,8 @@ class Sessions:
             s.queue.close()
         if s.agent_id:
             self.world.release(s.agent_id, vanished=vanished)
+        if s.role == pb.ROLE_GATEWAY:
+            self.world.remove_owned_external(s.token)
         self.world.emit("vanished" if vanished else "leave", s.agent_id, client=s.name)
 
     def watching(self) -> list[Session]:
@@ -168,6 +174,14 @@ class Sessions:
         return len(self._by_token)
 
 
+@dataclass
+class StreamStats:
+    """What the Watch streams wrote (updated on the servicer's event loop only)."""
+
+    messages: int = 0
+    bytes: int = 0
+
+
 class SimulationServicer:
     """The RPC handlers, as coroutines of one asyncio loop (grpc.aio).
 
@@ -181,8 +195,9 @@ class SimulationServicer:
     tick. ``world_info`` gives world info (time, rates, mode).
     """
 
-    def __init__(self, sessions: Sessions, world_info, blocking=None):
+    def __init__(self, sessions: Sessions, world_info, blocking=None, stream_stats: StreamStats | None = None):
         self.sessions = sessions
+        self.stream_stats = stream_stats if stream_stats is not None else StreamStats()
         self.world = sessions.world
         self.world_info = world_info
         self.blocking = blocking  # concurrent.futures executor for calls that may block (None: the loop's default)
@@ -232,6 +247,37 @@ class SimulationServicer:
         except Exception as exc:  # noqa: BLE001
             await self._fail(context, exc)
 
+    def _publish_external(self, msg) -> None:
+        s = self.sessions.get(msg.session_token)
+        if s.role != pb.ROLE_GATEWAY:
+            raise PermissionDenied(f"session {s.name!r} is not a gateway: only ROLE_GATEWAY sessions publish "
+                                   "external entities")
+        owner = self.world.external_owner(msg.external_id)
+        if owner is not None and owner != s.token:
+            raise PermissionDenied(f"external entity {msg.external_id!r} belongs to another gateway")
+        if msg.remove:
+            self.world.publish_external(msg.external_id, s.token, remove=True)
+            return
+        if not msg.HasField("state"):
+            raise InvalidArgument("state", "is required unless remove is set")
+        st = msg.state
+        state = external_state(0.0, (st.ecef_x_m, st.ecef_y_m, st.ecef_z_m), st.velocity_ecef_mps,
+                               st.acceleration_ecef_mps2 or (0.0, 0.0, 0.0), st.orientation_wxyz,
+                               st.angular_velocity_body_rps or (0.0, 0.0, 0.0),
+                               st.dead_reckoning or pb.DEAD_RECKONING_ALGORITHM_FPW)
+        self.world.publish_external(msg.external_id, s.token, state, msg.name, msg.kind, msg.type,
+                                    msg.coalition or "neutral")
+
+    async def PublishExternal(self, request_iterator, context):
+        accepted = 0
+        try:
+            async for msg in request_iterator:
+                await self._offload(self._publish_external, msg)
+                accepted += 1
+            return pb.PublishExternalResponse(accepted=accepted)
+        except Exception as exc:  # noqa: BLE001
+            await self._fail(context, exc)
+
     async def Watch(self, request, context):
         try:
             s = self.sessions.get(request.session_token)
@@ -250,7 +296,10 @@ class SimulationServicer:
                 p = queue.take(0.0)
                 s.last_seen = time.monotonic()
                 if p is not None:
-                    await context.write(encode_watch_update(p))
+                    data = encode_watch_update(p)
+                    await context.write(data)
+                    self.stream_stats.messages += 1
+                    self.stream_stats.bytes += len(data)
                     continue
                 try:
                     await asyncio.wait_for(queue.ready.wait(), STREAM_POLL_S)
@@ -302,6 +351,9 @@ def method_handlers(servicer: SimulationServicer) -> dict:
         "GetWorld": unary(servicer.GetWorld, pb.GetWorldRequest),
         "SendControls": grpc.stream_unary_rpc_method_handler(
             servicer.SendControls, request_deserializer=pb.ControlInput.FromString,
+            response_serializer=lambda m: m.SerializeToString()),
+        "PublishExternal": grpc.stream_unary_rpc_method_handler(
+            servicer.PublishExternal, request_deserializer=pb.ExternalEntityUpdate.FromString,
             response_serializer=lambda m: m.SerializeToString()),
         "Watch": grpc.unary_stream_rpc_method_handler(
             servicer.Watch, request_deserializer=pb.WatchRequest.FromString,

@@ -181,12 +181,13 @@ def encode_states(ids, t, pos, vel, acc, quat, omega, algorithm) -> list[bytes]:
 
 
 def encode_info(info: tuple) -> bytes:
-    """EntityInfo fields 1-5 (id, name, kind, type, coalition) of an info tuple; the
-    state (field 6) is appended per update by :func:`encode_watch_update`."""
+    """EntityInfo fields 1-5 and 7 (id, name, kind, type, coalition[, external_id]) of an
+    info tuple (server.world.World.infos); the state (field 6) is appended per update by
+    :func:`encode_watch_update` (field order does not matter on the wire)."""
     from sortie.v1 import simulation_pb2 as pb
 
-    return pb.EntityInfo(entity_id=info[0], name=info[1], kind=info[2], type=info[3],
-                         coalition=info[4]).SerializeToString()
+    return pb.EntityInfo(entity_id=info[0], name=info[1], kind=info[2], type=info[3], coalition=info[4],
+                         external_id=info[5] if len(info) > 5 else "").SerializeToString()
 
 
 def encode_watch_update(p: Pending) -> bytes:

@@ -48,6 +48,9 @@ def add_parser(sub) -> None:
                        help="threads answering calls (default %(default)s)")
     serve.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
                        help="seconds in-flight calls get to finish on shutdown (default %(default)s)")
+    serve.add_argument("--metrics-port", type=int, metavar="N",
+                       help="serve Prometheus metrics (calls, errors, seconds per method) on http://HOST:N/metrics; "
+                            "0 picks a free port")
     serve.set_defaults(func=serve_command)
 
     info = commands.add_parser("info", help="print the metadata of a terrain or of a running service",
@@ -86,9 +89,18 @@ def serve_command(args) -> int:
 
     terrain = build_terrain(args.dem, args.procedural)
     server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers)
+    metrics = None
+    if args.metrics_port is not None:
+        from server.metrics import MetricsServer, terrain_metrics
+
+        metrics = MetricsServer(lambda: terrain_metrics(server.stats), args.host, args.metrics_port).start()
     server.start()
     print(f"sortie terrain service listening on {args.host}:{port}", flush=True)
+    if metrics is not None:
+        print(f"metrics on http://{metrics.address}/metrics", flush=True)
     server.serve_until_signalled(grace_s=args.grace_s)
+    if metrics is not None:
+        metrics.stop()
     print("sortie terrain service stopped", flush=True)
     return 0
 

@@ -24,10 +24,11 @@ import numpy as np
 
 from server.grpc_common import (
     MAX_MESSAGE_BYTES,
+    CallStats,
     ManagedServer,
     PackedCodec,
-    channel_options,
     check_batch,
+    server_options,
     unary_handler,
 )
 from sortie import __version__
@@ -214,13 +215,14 @@ def serializers(rpc: str):
     return req.encode, req.decode, resp.encode, decode_response
 
 
-def method_handlers(servicer: TerrainServicer) -> dict:
-    """gRPC method handlers for every RPC of the service, fast-path codecs included."""
+def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None) -> dict:
+    """gRPC method handlers for every RPC of the service, fast-path codecs included;
+    ``stats`` counts the calls (the service's metrics)."""
     handlers = {}
     for rpc, (_, _, field_names) in RPCS.items():
         _, request_deserializer, response_serializer, _ = serializers(rpc)
         handlers[rpc] = grpc.unary_unary_rpc_method_handler(
-            unary_handler(f"{SERVICE_NAME}/{rpc}", getattr(servicer, rpc), field_names),
+            unary_handler(f"{SERVICE_NAME}/{rpc}", getattr(servicer, rpc), field_names, stats),
             request_deserializer=request_deserializer,
             response_serializer=response_serializer,
         )
@@ -231,17 +233,20 @@ def create_server(terrain, address: str = "127.0.0.1:0",
                   max_workers: int = DEFAULT_MAX_WORKERS) -> tuple[ManagedServer, int]:
     """A terrain server bound to ``address`` ("host:port", port 0 for any free one).
 
-    Returns the server, not yet started (call ``start()``), and the bound port.
+    Returns the server, not yet started (call ``start()``), and the bound port;
+    ``server.stats`` (grpc_common.CallStats) counts its calls.
     Health (SERVING for "" and sortie.v1.TerrainService once started) and
     reflection are registered.
     """
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="terrain-rpc"),
-        options=channel_options(),
+        options=server_options(),
         maximum_concurrent_rpcs=ADMITTED_CALLS_PER_WORKER * max_workers,
     )
-    server.add_registered_method_handlers(SERVICE_NAME, method_handlers(TerrainServicer(terrain)))
+    stats = CallStats()
+    server.add_registered_method_handlers(SERVICE_NAME, method_handlers(TerrainServicer(terrain), stats))
     managed = ManagedServer(server, (SERVICE_NAME,))
+    managed.stats = stats
     try:
         port = server.add_insecure_port(address)
     except RuntimeError as exc:

@@ -34,10 +34,19 @@ inertial acceleration of the CG, not JSBSim's body-axis velocity rates).
 
 Entities have stable integer ids (1, 2, ...). A crashed aircraft stays where
 it stopped (JSBSim stops stepping it) until removed.
+
+External entities are owned by another simulation and published through a
+gateway (DIS, server/dis_gateway.py): the world keeps each one's last state,
+stamped with the world time it arrived at, and every snapshot dead-reckons it
+to the tick's time with its own DIS algorithm (server.dead_reckoning), so the
+rest of the server (interest, streaming, recording) treats it like any entity.
+Its arrivals are inputs like commands: journaled with the tick they came
+after, so re-simulation repeats them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -50,12 +59,15 @@ from fdm.convoy import Convoy, Route, RouteFollower
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, ned_to_ecef_vectors, state_arrays
 from server.aircraft_host import LocalAircraftHost
-from server.dead_reckoning import ned_to_ecef_quat
+from server.dead_reckoning import check_algorithms, extrapolate, ned_to_ecef_quat
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
-from terrain.geodesy import geodetic_to_ecef
+from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
 
 AIRCRAFT, GROUND, STATIC = 1, 2, 3  # = sortie.v1.EntityKind values
 KIND_NAMES = {AIRCRAFT: "aircraft", GROUND: "ground", STATIC: "static"}
+KIND_OF_NAME = {v: k for k, v in KIND_NAMES.items()}
+COALITIONS = ("blue", "red", "neutral")
+MAX_TEXT_CHARS = 64  # external ids, names and types
 MAX_ENTITIES = 10_000
 # Events kept for late readers of the events stream (a ring; readers that fall
 # further behind lose the oldest).
@@ -96,6 +108,52 @@ class Entity:
     static_lat_lon_alt: tuple = ()
     static_heading_deg: float = 0.0
     on_vanish: str = "autopilot"
+    external_id: str = ""  # set for an entity another simulation owns (its gateway's id for it)
+
+
+@dataclass(frozen=True)
+class ExternalState:
+    """An external entity's last published state (ECEF, SI; orientation ECEF -> body),
+    valid at world time ``t0_s``; extrapolated by DIS ``algorithm``."""
+
+    t0_s: float
+    ecef_m: tuple
+    vel_ecef_mps: tuple
+    acc_ecef_mps2: tuple
+    quat_ecef2body: tuple
+    body_rates_rps: tuple
+    algorithm: int
+
+
+def _finite_vector(name: str, values, n: int) -> tuple:
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if v.size != n:
+        raise InvalidArgument(name, f"must have {n} values, got {v.size}")
+    bad = np.flatnonzero(~np.isfinite(v))
+    if bad.size:
+        raise InvalidArgument(name, "must be finite", index=int(bad[0]), value=float(v[bad[0]]))
+    return tuple(v.tolist())
+
+
+def external_state(t0_s: float, ecef_m, vel_ecef_mps, acc_ecef_mps2, quat_ecef2body, body_rates_rps,
+                   algorithm: int) -> ExternalState:
+    """A validated :class:`ExternalState` (InvalidArgument naming the field): finite values,
+    a position within 100 km of the WGS84 surface band (|r| in [6.25e6, 6.5e6] m), a
+    quaternion of norm 0.5-2 (normalised here), a DIS world-coordinate algorithm (1-5)."""
+    pos = _finite_vector("state.ecef_m", ecef_m, 3)
+    r = math.sqrt(sum(x * x for x in pos))
+    if not 6.25e6 <= r <= 6.5e6:
+        raise InvalidArgument("state.ecef_m", "must be within 100 km of the Earth's surface (|r| in "
+                                              "[6250, 6500] km)", value=[round(x, 3) for x in pos])
+    q = np.array(_finite_vector("state.orientation_wxyz", quat_ecef2body, 4))
+    norm = float(np.linalg.norm(q))
+    if not 0.5 <= norm <= 2.0:
+        raise InvalidArgument("state.orientation_wxyz", "must be a unit quaternion", value=q.tolist())
+    code = int(check_algorithms(int(algorithm), 1)[0])
+    return ExternalState(float(t0_s), pos, _finite_vector("state.velocity_ecef_mps", vel_ecef_mps, 3),
+                         _finite_vector("state.acceleration_ecef_mps2", acc_ecef_mps2, 3),
+                         tuple((q / norm).tolist()), _finite_vector("state.angular_velocity_body_rps",
+                                                                    body_rates_rps, 3), code)
 
 
 @dataclass(frozen=True)
@@ -193,6 +251,8 @@ class World(EventLog):
         self._followers: list = []  # RouteFollower/Convoy per route, rebuilt when vehicles go
         self._followed: set = set()  # entity ids on a route
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
+        self._external: dict[int, ExternalState] = {}  # external entities' last states
+        self._external_ids: dict[str, int] = {}  # external id -> entity id
         self.entities: dict[int, Entity] = {}
         # id -> (id, name, kind, type, coalition); replaced, never mutated, so readers on
         # other threads always see a whole dict.
@@ -217,12 +277,12 @@ class World(EventLog):
                 recorder.on_event(self.tick_count, ev)
             self.recorder = recorder
 
-    def _journal(self, kind: str, entity_id: int, **fields) -> None:
+    def _journal(self, input_kind: str, entity_id: int, **fields) -> None:
         """An input to the world, for the recording (called under the lock, so inputs
         and ticks are in one order). Re-simulation repeats the same call after the same
         tick (server/resim.py)."""
         if self.recorder is not None:
-            self.recorder.on_input(self.tick_count, kind, entity_id, fields)
+            self.recorder.on_input(self.tick_count, input_kind, entity_id, fields)
 
     # -- spawning -------------------------------------------------------------------------------
 
@@ -238,7 +298,8 @@ class World(EventLog):
     def _register(self, e: Entity) -> None:
         self.entities[e.id] = e
         self._layout_version += 1
-        self.infos = {**self.infos, e.id: (e.id, e.name, e.kind, e.type, e.coalition)}
+        info = (e.id, e.name, e.kind, e.type, e.coalition) + ((e.external_id,) if e.external_id else ())
+        self.infos = {**self.infos, e.id: info}
 
     def spawn_aircraft(self, name: str, type_: str, ic: InitialConditions, *, coalition: str = "neutral",
                        controllable: bool = False, route=None, hold=None, speed_mps: float | None = None,
@@ -298,6 +359,63 @@ class World(EventLog):
                                   {"name": name, "kind": "static", "type": type_}))
             return e
 
+    def publish_external(self, external_id: str, owner: str, state: ExternalState | None = None,
+                         name: str = "", kind: int = AIRCRAFT, type_: str = "", coalition: str = "neutral",
+                         remove: bool = False) -> int:
+        """An external entity's update from the gateway session ``owner``: the first one of
+        ``external_id`` adds the entity (``name``, ``kind``, ``type_``, ``coalition``), later
+        ones replace its state (``state.t0_s`` is set to the world time now), ``remove``
+        takes it out. Its entity id. Another owner's external id is PERMISSION_DENIED's
+        business (the caller checks :meth:`external_owner`)."""
+        with self._lock:
+            entity_id = self._external_ids.get(external_id)
+            if remove:
+                if entity_id is None:
+                    raise NotFound(f"external entity {external_id!r} does not exist")
+                self.remove(entity_id, "external entity removed by its gateway")
+                return entity_id
+            if state is None:
+                raise InvalidArgument("state", "is required unless remove is set")
+            state = dataclasses.replace(state, t0_s=self.time_s)
+            fields = {"external_id": external_id, "state": [state.ecef_m, state.vel_ecef_mps, state.acc_ecef_mps2,
+                                                           state.quat_ecef2body, state.body_rates_rps,
+                                                           state.algorithm]}
+            if entity_id is None:
+                if kind not in KIND_NAMES:
+                    raise InvalidArgument("kind", "must be aircraft, ground or static", value=kind)
+                if coalition not in COALITIONS:
+                    raise InvalidArgument("coalition", f"must be one of {', '.join(COALITIONS)}", value=coalition)
+                for field_name, text, least in (("external_id", external_id, 1), ("name", name, 1),
+                                                ("type", type_, 0)):
+                    if not (least <= len(text) <= MAX_TEXT_CHARS and text.isprintable()):
+                        raise InvalidArgument(field_name, f"must be {least}-{MAX_TEXT_CHARS} printable characters",
+                                              value=text)
+                e = self._new_entity(name, kind, type_, coalition=coalition, owner=owner, external_id=external_id,
+                                     on_vanish="remove")
+                self._register(e)
+                self._external_ids[external_id] = e.id
+                fields.update(name=name, kind=kind, type=type_, coalition=coalition)
+                entity_id = e.id
+                lat, lon, h = (float(x) for x in ecef_to_geodetic(np.array(state.ecef_m)))
+                self._emit(WorldEvent(self.time_s, "spawn", e.id, lat, lon, h - self.geoid_undulation_m,
+                                      {"name": name, "kind": KIND_NAMES[kind], "type": type_,
+                                       "external_id": external_id}))
+            self._external[entity_id] = state
+            self._journal("external", entity_id, **fields)
+            return entity_id
+
+    def external_owner(self, external_id: str) -> str | None:
+        """The session that publishes ``external_id`` (None: not in the world)."""
+        entity_id = self._external_ids.get(external_id)
+        e = self.entities.get(entity_id) if entity_id is not None else None
+        return None if e is None else e.owner
+
+    def remove_owned_external(self, owner: str) -> None:
+        """Remove every external entity published by the session ``owner`` (its gateway left)."""
+        with self._lock:
+            for e in [e for e in self.entities.values() if e.external_id and e.owner == owner]:
+                self.remove(e.id, "its gateway left")
+
     def remove(self, entity_id: int, reason: str = "removed") -> None:
         with self._lock:
             if entity_id in self.entities:
@@ -313,7 +431,10 @@ class World(EventLog):
             self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
             self._pending.pop(entity_id, None)
             self._ground_heading_hold.pop(entity_id, None)
-            if e.kind == AIRCRAFT:
+            if e.external_id:
+                self._external.pop(entity_id, None)
+                self._external_ids.pop(e.external_id, None)
+            elif e.kind == AIRCRAFT:
                 self.air.remove(entity_id)
             elif e.kind == GROUND:
                 self.ground.remove([e.ground_id])
@@ -545,10 +666,10 @@ class World(EventLog):
         columns) or None), cached until an entity comes or goes."""
         if self._layout_cache is not None and self._layout_cache[0] == self._layout_version:
             return self._layout_cache[1]
-        gnd = [e for e in self.entities.values() if e.kind == GROUND]
+        gnd = [e for e in self.entities.values() if e.kind == GROUND and not e.external_id]
         gnd_ids = np.array([e.id for e in gnd], np.int64)
         idx = self.ground.index_of([e.ground_id for e in gnd]) if gnd else np.zeros(0, np.int64)
-        st = [e for e in self.entities.values() if e.kind == STATIC]
+        st = [e for e in self.entities.values() if e.kind == STATIC and not e.external_id]
         static_part = None
         if st:
             lat = np.array([e.static_lat_lon_alt[0] for e in st])
@@ -590,6 +711,10 @@ class World(EventLog):
         if static_part is not None:
             ids += static_part[0]
             parts.append(static_part[1])
+        if self._external:
+            ext_ids = list(self._external)
+            ids += ext_ids
+            parts.append(self._external_part([self._external[i] for i in ext_ids]))
         if not ids:
             return _empty_snapshot(self.time_s, self.tick_count)
         cols = [np.concatenate([p[k] for p in parts]) for k in range(7)]
@@ -605,6 +730,18 @@ class World(EventLog):
         self._prev_vel = (ids, vel)
         return Snapshot(self.time_s, self.tick_count, ids, cols[0], vel, acc, cols[2], cols[3], cols[4], cols[5],
                         cols[6])
+
+    def _external_part(self, states: list) -> tuple:
+        """Snapshot columns of external entities: each state dead-reckoned to the world time now."""
+        cols = [np.array([getattr(s, f) for s in states], np.float64) for f in
+                ("t0_s", "ecef_m", "vel_ecef_mps", "acc_ecef_mps2", "quat_ecef2body", "body_rates_rps")]
+        t0, pos, vel, acc, quat, rates = cols
+        algorithm = np.array([s.algorithm for s in states], np.int64)
+        pos_t, quat_t = extrapolate(algorithm, t0, pos, vel, acc, quat, rates, self.time_s)
+        accelerates = np.isin(algorithm, (4, 5))[:, None]  # RVW, FVW (IEEE 1278.1 Annex E)
+        vel_t = vel + np.where(accelerates, acc * (self.time_s - t0)[:, None], 0.0)
+        lat, lon, h = ecef_to_geodetic(pos_t)
+        return pos_t, vel_t, quat_t, rates, lat, lon, h - self.geoid_undulation_m
 
     # -- events ---------------------------------------------------------------------------------
 

@@ -1,8 +1,9 @@
 """The ``sortie`` command line: one entry point, a sub-command per service or tool.
 
 Each sub-command lives beside the code it drives and registers itself through
-an ``add_parser(subparsers)`` function; this module only assembles them and
-configures logging (libraries never do).
+an ``add_parser(subparsers)`` function; this module only assembles them,
+applies the configuration file and environment (sortie/config.py) and
+configures logging (sortie/logs.py; libraries never do).
 """
 
 from __future__ import annotations
@@ -11,8 +12,9 @@ import argparse
 import logging
 import sys
 
-from sortie import __version__
+from sortie import __version__, config
 from sortie.errors import SortieError
+from sortie.logs import FORMATS, configure
 
 # Modules that contribute sub-commands, in --help order.
 COMMAND_MODULES = (
@@ -36,6 +38,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"sortie {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    parser.add_argument("--log-format", choices=FORMATS, default="text",
+                        help="text for people, json lines for log shippers (default %(default)s)")
+    parser.add_argument("--config", metavar="FILE",
+                        help="TOML file of option defaults, a table per command (see sortie/config.py); "
+                             "every option can also be set as SORTIE_<COMMAND>_<OPTION> in the environment")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(name).add_parser(sub)
@@ -43,9 +50,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    parser = build_parser()
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--config")
+    try:
+        config.apply(parser, pre.parse_known_args(argv)[0].config)
+    except SortieError as exc:
+        print(f"sortie: configuration error: {exc}", file=sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
+    configure(logging.WARNING - 10 * min(args.verbose, 2), args.log_format)
     try:
         return int(args.func(args) or 0)
     except SortieError as exc:

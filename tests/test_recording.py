@@ -400,7 +400,7 @@ def test_replay_serves_the_recording_through_the_live_api_with_controls(recorded
             assert st.tick == 167 and not st.playing
             with pytest.raises(InvalidArgument, match="speed"):
                 c.replay(speed=65.0)
-            with pytest.raises(InvalidArgument, match="observers only"):
+            with pytest.raises(InvalidArgument, match="observers and gateways only"):
                 SimClient(server.address).join("pilot", "pilot")
             assert c.world().clock == "paused"
             c.replay(seek_time_s=0.0)

@@ -14,6 +14,7 @@ class Role(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     ROLE_DRIVER: _ClassVar[Role]
     ROLE_OBSERVER: _ClassVar[Role]
     ROLE_BOT: _ClassVar[Role]
+    ROLE_GATEWAY: _ClassVar[Role]
 
 class EntityKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -35,6 +36,7 @@ ROLE_PILOT: Role
 ROLE_DRIVER: Role
 ROLE_OBSERVER: Role
 ROLE_BOT: Role
+ROLE_GATEWAY: Role
 ENTITY_KIND_UNSPECIFIED: EntityKind
 ENTITY_KIND_AIRCRAFT: EntityKind
 ENTITY_KIND_GROUND: EntityKind
@@ -171,20 +173,22 @@ class EntityState(_message.Message):
     def __init__(self, entity_id: _Optional[int] = ..., time_s: _Optional[float] = ..., ecef_x_m: _Optional[float] = ..., ecef_y_m: _Optional[float] = ..., ecef_z_m: _Optional[float] = ..., velocity_ecef_mps: _Optional[_Iterable[float]] = ..., acceleration_ecef_mps2: _Optional[_Iterable[float]] = ..., orientation_wxyz: _Optional[_Iterable[float]] = ..., angular_velocity_body_rps: _Optional[_Iterable[float]] = ..., dead_reckoning: _Optional[_Union[DeadReckoningAlgorithm, str]] = ...) -> None: ...
 
 class EntityInfo(_message.Message):
-    __slots__ = ("entity_id", "name", "kind", "type", "coalition", "state")
+    __slots__ = ("entity_id", "name", "kind", "type", "coalition", "state", "external_id")
     ENTITY_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
     COALITION_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
+    EXTERNAL_ID_FIELD_NUMBER: _ClassVar[int]
     entity_id: int
     name: str
     kind: EntityKind
     type: str
     coalition: str
     state: EntityState
-    def __init__(self, entity_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ...) -> None: ...
+    external_id: str
+    def __init__(self, entity_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ..., external_id: _Optional[str] = ...) -> None: ...
 
 class WatchUpdate(_message.Message):
     __slots__ = ("time_s", "snapshot", "entered", "left", "states", "time_scale")
@@ -265,3 +269,29 @@ class WorldInfo(_message.Message):
     target_areas: _containers.RepeatedCompositeFieldContainer[TargetArea]
     terrain: str
     def __init__(self, exercise_name: _Optional[str] = ..., start_time: _Optional[str] = ..., time_s: _Optional[float] = ..., server_unix_time_s: _Optional[float] = ..., clock: _Optional[str] = ..., time_scale: _Optional[float] = ..., world_rate_hz: _Optional[float] = ..., network_rate_hz: _Optional[float] = ..., target_areas: _Optional[_Iterable[_Union[TargetArea, _Mapping]]] = ..., terrain: _Optional[str] = ...) -> None: ...
+
+class ExternalEntityUpdate(_message.Message):
+    __slots__ = ("session_token", "external_id", "name", "kind", "type", "coalition", "state", "remove")
+    SESSION_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    EXTERNAL_ID_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    TYPE_FIELD_NUMBER: _ClassVar[int]
+    COALITION_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    REMOVE_FIELD_NUMBER: _ClassVar[int]
+    session_token: str
+    external_id: str
+    name: str
+    kind: EntityKind
+    type: str
+    coalition: str
+    state: EntityState
+    remove: bool
+    def __init__(self, session_token: _Optional[str] = ..., external_id: _Optional[str] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ..., remove: _Optional[bool] = ...) -> None: ...
+
+class PublishExternalResponse(_message.Message):
+    __slots__ = ("accepted",)
+    ACCEPTED_FIELD_NUMBER: _ClassVar[int]
+    accepted: int
+    def __init__(self, accepted: _Optional[int] = ...) -> None: ...

@@ -64,6 +64,11 @@ class SimulationServiceStub:
                 request_serializer=sortie_dot_v1_dot_simulation__pb2.GetWorldRequest.SerializeToString,
                 response_deserializer=sortie_dot_v1_dot_simulation__pb2.WorldInfo.FromString,
                 _registered_method=True)
+        self.PublishExternal = channel.stream_unary(
+                '/sortie.v1.SimulationService/PublishExternal',
+                request_serializer=sortie_dot_v1_dot_simulation__pb2.ExternalEntityUpdate.SerializeToString,
+                response_deserializer=sortie_dot_v1_dot_simulation__pb2.PublishExternalResponse.FromString,
+                _registered_method=True)
 
 
 class SimulationServiceServicer:
@@ -121,6 +126,19 @@ class SimulationServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def PublishExternal(self, request_iterator, context):
+        """Client streaming, gateway sessions only. Entities another simulation owns
+        (DIS, HLA): the first update of an external_id adds the entity to the
+        exercise, later ones replace its state (dead-reckoned by the server
+        between them), `remove` takes it out. A gateway's entities are removed
+        when it leaves or vanishes. Every message is validated before anything is
+        applied; the first bad one ends the stream with INVALID_ARGUMENT naming
+        the field.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_SimulationServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -153,6 +171,11 @@ def add_SimulationServiceServicer_to_server(servicer, server):
                     servicer.GetWorld,
                     request_deserializer=sortie_dot_v1_dot_simulation__pb2.GetWorldRequest.FromString,
                     response_serializer=sortie_dot_v1_dot_simulation__pb2.WorldInfo.SerializeToString,
+            ),
+            'PublishExternal': grpc.stream_unary_rpc_method_handler(
+                    servicer.PublishExternal,
+                    request_deserializer=sortie_dot_v1_dot_simulation__pb2.ExternalEntityUpdate.FromString,
+                    response_serializer=sortie_dot_v1_dot_simulation__pb2.PublishExternalResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -317,6 +340,33 @@ class SimulationService:
             '/sortie.v1.SimulationService/GetWorld',
             sortie_dot_v1_dot_simulation__pb2.GetWorldRequest.SerializeToString,
             sortie_dot_v1_dot_simulation__pb2.WorldInfo.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def PublishExternal(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_unary(
+            request_iterator,
+            target,
+            '/sortie.v1.SimulationService/PublishExternal',
+            sortie_dot_v1_dot_simulation__pb2.ExternalEntityUpdate.SerializeToString,
+            sortie_dot_v1_dot_simulation__pb2.PublishExternalResponse.FromString,
             options,
             channel_credentials,
             insecure,

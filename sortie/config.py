@@ -1,0 +1,156 @@
+"""Configuration of every ``sortie`` command from a file and the environment.
+
+Each long option of each command may also come from
+
+- an environment variable ``SORTIE_<COMMAND>_<OPTION>``: the command path and
+  the option in upper case, dashes as underscores (``sortie terrain serve
+  --max-workers 8`` = ``SORTIE_TERRAIN_SERVE_MAX_WORKERS=8``; ``sortie server
+  --port`` = ``SORTIE_SERVER_PORT``); a list option (``--dem A B``) takes a
+  shell-quoted list, a flag (``--no-record``) 1/true/yes/on or 0/false/no/off;
+- a TOML file given by ``sortie --config FILE`` or ``SORTIE_CONFIG``: one table
+  per command path (``[server]``, ``[terrain.serve]``, ``[dis]``) whose keys are
+  the long options (``max-workers`` or ``max_workers``), with TOML types; the
+  global options (``log-format``, ``verbose``) at the top level.
+
+Precedence, as in most Unix daemons: the command line, then the environment,
+then the file, then the built-in default. Values are checked like command-line
+ones (the option's type and choices); a bad one, an unknown table or an unknown
+key is an error naming where it came from, so a typo in a deployment fails at
+start rather than being ignored. This is what docker-compose.yml's
+``environment:`` sections use (docs/DEPLOYMENT.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import tomllib
+from pathlib import Path
+
+from sortie.errors import InvalidArgument
+
+ENV_PREFIX = "SORTIE_"
+TRUE_WORDS = ("1", "true", "yes", "on")
+FALSE_WORDS = ("0", "false", "no", "off")
+
+
+def env_name(command_path: tuple[str, ...], dest: str) -> str:
+    """The environment variable of option ``dest`` (argparse's destination) of a command
+    (``()``: the global options, e.g. SORTIE_LOG_FORMAT)."""
+    return ENV_PREFIX + "_".join(p.replace("-", "_").upper() for p in (*command_path, dest))
+
+
+def command_parsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
+    """(command path, parser) of every (sub-)command below ``parser``, depth first."""
+    for action in parser._actions:  # noqa: SLF001 - argparse has no public walk of its sub-parsers
+        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+            for name, sub in action.choices.items():
+                yield (*path, name), sub
+                yield from command_parsers(sub, (*path, name))
+
+
+def _options(parser: argparse.ArgumentParser) -> dict:
+    """dest -> action of the long options a file or the environment may set."""
+    return {a.dest: a for a in parser._actions  # noqa: SLF001
+            if a.option_strings and any(o.startswith("--") for o in a.option_strings)
+            and not isinstance(a, (argparse._HelpAction, argparse._VersionAction))}  # noqa: SLF001
+
+
+def _converted(action: argparse.Action, value, source: str):
+    """``value`` (a string from the environment, or a TOML value) as the option would parse it."""
+    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):  # noqa: SLF001
+        if isinstance(value, bool):
+            flag = value
+        elif str(value).lower() in TRUE_WORDS + FALSE_WORDS:
+            flag = str(value).lower() in TRUE_WORDS
+        else:
+            raise InvalidArgument(source, f"must be one of {'/'.join(TRUE_WORDS)} or {'/'.join(FALSE_WORDS)}",
+                                  value=value)
+        return flag if isinstance(action, argparse._StoreTrueAction) else not flag  # noqa: SLF001
+    many = action.nargs in ("+", "*") or isinstance(action.nargs, int) and action.nargs > 1
+    if many:
+        items = shlex.split(value) if isinstance(value, str) else list(value) if isinstance(value, list) else [value]
+    else:
+        items = [value]
+    out = []
+    for item in items:
+        if action.type in (int, float) and not isinstance(item, str):  # a TOML number
+            if isinstance(item, bool) or not isinstance(item, (int, float)) or (
+                    action.type is int and not isinstance(item, int)):
+                raise InvalidArgument(source, f"must be {'an integer' if action.type is int else 'a number'}",
+                                      value=item)
+            item = action.type(item)
+        else:
+            item = item if isinstance(item, str) else str(item)
+            if action.type is not None:
+                try:
+                    item = action.type(item)
+                except (TypeError, ValueError, argparse.ArgumentTypeError) as exc:
+                    why = {int: "must be an integer", float: "must be a number"}.get(action.type, str(exc))
+                    raise InvalidArgument(source, why or "has the wrong type", value=item) from None
+        if action.choices is not None and item not in action.choices:
+            raise InvalidArgument(source, f"must be one of {', '.join(map(str, action.choices))}", value=item)
+        out.append(item)
+    return out if many else out[0]
+
+
+def read_config_file(path: str | os.PathLike) -> dict:
+    """The TOML file's tables (InvalidArgument naming the file when it cannot be read)."""
+    p = Path(path)
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InvalidArgument("--config", "no such file", value=str(p)) from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InvalidArgument("--config", f"cannot be read: {exc}", value=str(p)) from None
+
+
+def _table(config: dict, path: tuple[str, ...]) -> dict | None:
+    table = config
+    for part in path:
+        table = table.get(part) if isinstance(table, dict) else None
+        if table is None:
+            return None
+    return table
+
+
+def _check_tables(table: dict, commands: dict, where: str, path: tuple = ()) -> None:
+    """Every key of the table of command ``path`` is an option of it or a sub-command's table."""
+    options = {d.replace("_", "-") for d in _options(commands[path])}
+    for key, value in table.items():
+        sub_path = (*path, key)
+        if sub_path in commands:
+            if not isinstance(value, dict):
+                raise InvalidArgument(f"{where}: {'.'.join(sub_path)}", "must be a table of options")
+            _check_tables(value, commands, where, sub_path)
+        elif key.replace("_", "-") not in options:
+            raise InvalidArgument(f"{where}: {'.'.join(sub_path)}",
+                                  f"is not an option of sortie{''.join(' ' + p for p in path)}")
+
+
+def apply(parser: argparse.ArgumentParser, config_path: str | None = None, environ=None) -> None:
+    """Set the defaults of every command's options from the environment and the config
+    file (see the module docstring); an option given so is no longer required on the
+    command line."""
+    environ = os.environ if environ is None else environ
+    config_path = config_path or environ.get(ENV_PREFIX + "CONFIG")
+    config = read_config_file(config_path) if config_path else {}
+    commands = {(): parser, **dict(command_parsers(parser))}  # () = the global options
+    _check_tables(config, commands, str(config_path))
+    for path, sub in commands.items():
+        table = _table(config, path) or {}
+        for dest, action in _options(sub).items():
+            if not path and dest == "config":
+                continue
+            name = env_name(path, dest)
+            if name in environ:
+                value = _converted(action, environ[name], name)
+            else:
+                key = next((k for k in (dest, dest.replace("_", "-")) if k in table and not isinstance(table[k], dict)),
+                           None)
+                if key is None:
+                    continue
+                value = _converted(action, table[key], f"{config_path}: {'.'.join(path)}.{key}")
+            action.default = value
+            action.required = False

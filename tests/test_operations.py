@@ -1,0 +1,175 @@
+"""Operations: configuration from a file and the environment, JSON logs, metrics,
+clear start-up errors and clean SIGTERM — on real processes and real sockets."""
+
+import json
+import re
+import subprocess
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+from client.terrain_client import TerrainClient
+from server.process import ServiceProcess, free_port, sortie_command
+from sortie import config
+from sortie.cli import build_parser
+from sortie.errors import InvalidArgument
+
+SCENARIO = "data/scenarios/alps.toml"
+
+
+def parse(argv, environ=None, config_text=None, tmp_path=None):
+    parser = build_parser()
+    path = None
+    if config_text is not None:
+        path = tmp_path / "sortie.toml"
+        path.write_text(config_text)
+    config.apply(parser, str(path) if path else None, environ or {})
+    return parser.parse_args(argv)
+
+
+def test_options_come_from_the_command_line_then_the_environment_then_the_file(tmp_path):
+    text = '[server]\nport = 7000\nclock = "fast"\nno-record = true\n[terrain.serve]\nmax_workers = 3\n'
+    args = parse(["server", "--scenario", "s.toml"], {}, text, tmp_path)
+    assert (args.port, args.clock, args.no_record) == (7000, "fast", True)
+    args = parse(["server", "--scenario", "s.toml"], {"SORTIE_SERVER_PORT": "7001", "SORTIE_SERVER_NO_RECORD": "no"},
+                 text, tmp_path)
+    assert (args.port, args.no_record) == (7001, False)
+    args = parse(["server", "--scenario", "s.toml", "--port", "7002"], {"SORTIE_SERVER_PORT": "7001"}, text, tmp_path)
+    assert args.port == 7002
+    args = parse(["terrain", "serve"], {"SORTIE_TERRAIN_SERVE_PORT": "5", "SORTIE_TERRAIN_SERVE_DEM": "'a b.hgt' c.hgt"},
+                 text, tmp_path)
+    assert (args.port, args.max_workers, args.dem) == (5, 3, ["a b.hgt", "c.hgt"])
+    assert parse(["terrain", "info"], {"SORTIE_LOG_FORMAT": "json"}).log_format == "json"
+
+
+@pytest.mark.parametrize("environ, text, message", [
+    ({"SORTIE_SERVER_PORT": "x"}, None, "SORTIE_SERVER_PORT: must be an integer"),
+    ({"SORTIE_SERVER_CLOCK": "slow"}, None, "SORTIE_SERVER_CLOCK: must be one of"),
+    ({"SORTIE_SERVER_NO_RECORD": "maybe"}, None, "SORTIE_SERVER_NO_RECORD: must be one of"),
+    ({}, "[server]\nprot = 1\n", "server.prot: is not an option of sortie server"),
+    ({}, "[sever]\nport = 1\n", "sever: is not an option of sortie"),
+    ({}, '[server]\nport = "1"\n', None),  # a string is parsed like the command line's
+    ({}, "[server]\nport = 1.5\n", "server.port: must be an integer"),
+    ({}, "[server\n", "cannot be read"),
+])
+def test_bad_configuration_names_where_it_came_from(tmp_path, environ, text, message):
+    if message is None:
+        assert parse(["server", "--scenario", "s"], environ, text, tmp_path).port == 1
+        return
+    with pytest.raises(InvalidArgument, match=re.escape(message)):
+        parse(["server", "--scenario", "s"], environ, text, tmp_path)
+
+
+def run_sortie(*argv, timeout=60):
+    return subprocess.run([*sortie_command(), *argv], capture_output=True, text=True, timeout=timeout)
+
+
+def test_start_up_errors_are_clear_and_exit_non_zero(hgt_alps, tmp_path):
+    r = run_sortie("server", "--scenario", SCENARIO, "--port", "0", "--dem", str(tmp_path / "missing.hgt"))
+    assert r.returncode == 2 and "missing.hgt does not exist" in r.stderr
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[exercise]\nname = 3\n")
+    r = run_sortie("server", "--scenario", str(bad), "--port", "0")
+    assert r.returncode == 2 and "exercise.name: must be a string" in r.stderr
+    r = run_sortie("--config", str(tmp_path / "none.toml"), "server", "--scenario", SCENARIO, "--port", "0")
+    assert r.returncode == 2 and "none.toml" in r.stderr
+    with ServiceProcess(["terrain", "serve", "--dem", str(hgt_alps)]) as svc:
+        # The port is taken: both services refuse to start (no silent SO_REUSEPORT sharing).
+        r = run_sortie("terrain", "serve", "--dem", str(hgt_alps), "--port", str(svc.port))
+        assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{svc.port}" in r.stderr
+        r = run_sortie("server", "--scenario", SCENARIO, "--dem", str(hgt_alps), "--port", str(svc.port),
+                       "--no-record", "--aircraft-workers", "0")
+        assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{svc.port}" in r.stderr
+
+
+def scrape(url: str) -> dict:
+    """{metric line name with labels: value} of a Prometheus text page."""
+    with urllib.request.urlopen(url, timeout=10) as r:
+        assert r.headers["Content-Type"].startswith("text/plain; version=0.0.4")
+        text = r.read().decode()
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            out[name] = float(value)
+    return out
+
+
+def wait_for_line(proc, pattern: str, timeout_s: float = 60.0) -> re.Match:
+    deadline = time.monotonic() + timeout_s
+    seen = []
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        seen.append(line)
+        m = re.search(pattern, line)
+        if m:
+            return m
+    raise AssertionError(f"no line matching {pattern!r} in {seen}")
+
+
+def test_terrain_service_metrics_json_logs_and_sigterm(hgt_alps):
+    port = free_port()
+    proc = subprocess.Popen([*sortie_command(), "--log-format", "json", "-v", "terrain", "serve", "--dem",
+                             str(hgt_alps), "--port", str(port), "--metrics-port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = "http://" + wait_for_line(proc, r"metrics on http://(\S+)/metrics")[1] + "/metrics"
+        with TerrainClient(f"127.0.0.1:{port}") as tc:
+            tc.wait_ready()
+            tc.heights(np.array([47.2, 47.3]), np.array([9.3, 9.4]))
+            with pytest.raises(InvalidArgument):
+                tc.heights(np.array([95.0]), np.array([9.3]))
+        m = scrape(url)
+        assert m['sortie_terrain_calls_total{method="GetHeights"}'] == 2
+        assert m['sortie_terrain_errors_total{method="GetHeights",code="INVALID_ARGUMENT"}'] == 1
+        assert m['sortie_terrain_call_seconds_total{method="GetHeights"}'] > 0
+        with pytest.raises(urllib.error.HTTPError, match="404"):
+            urllib.request.urlopen(url.replace("/metrics", "/other"), timeout=10)
+        proc.terminate()
+        assert proc.wait(timeout=30) == 0
+        records = [json.loads(line) for line in proc.stderr.read().splitlines() if line.startswith("{")]
+        assert records and all({"time", "level", "logger", "message"} <= set(r) for r in records)
+        assert any(r["logger"] == "server.terrain_service" and "bound" in r["message"] for r in records)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+
+
+def test_simulation_server_metrics_and_sigterm_flushes_the_recording(hgt_alps, tmp_path):
+    rec = tmp_path / "ops.sortie"
+    port = free_port()
+    proc = subprocess.Popen([*sortie_command(), "server", "--scenario", SCENARIO, "--dem", str(hgt_alps),
+                             "--port", str(port), "--metrics-port", "0", "--record", str(rec),
+                             "--aircraft-workers", "0", "--clock", "fast", "--time-scale", "4"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        url = "http://" + wait_for_line(proc, r"metrics on http://(\S+)/metrics")[1] + "/metrics"
+        from client.sim_client import SimClient
+
+        with SimClient(f"127.0.0.1:{port}") as obs:
+            obs.wait_ready()
+            obs.join("ops", "gateway")
+            picture = obs.watch()
+            assert picture.wait_for(lambda p: len(p) > 0 and p.updates > 3, 30.0)
+            m = scrape(url)
+        assert m["sortie_world_ticks_total"] > 0 and m["sortie_world_time_seconds"] > 0
+        assert m["sortie_sessions"] == 1
+        assert sum(v for k, v in m.items() if k.startswith("sortie_entities{")) == len(picture.infos)
+        assert m["sortie_watch_bytes_total"] > 0 and m["sortie_watch_messages_total"] >= 3
+        assert m['sortie_tick_duration_milliseconds{quantile="0.99"}'] > 0
+        assert m["sortie_recording_bytes_total"] > 0 and m["sortie_recording_failed"] == 0
+        proc.terminate()
+        assert proc.wait(timeout=30) == 0
+        out = proc.stdout.read()
+        assert "stopped at world time" in out and "bytes" in out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+    r = run_sortie("recording", "check", str(rec))
+    assert r.returncode == 0, r.stdout + r.stderr
