@@ -13,6 +13,7 @@ their altitude by +-300 m each leg.
 from __future__ import annotations
 
 import math
+import signal
 import threading
 import time
 
@@ -28,7 +29,8 @@ def add_parser(sub) -> None:
     c.add_argument("--server", required=True, metavar="HOST:PORT")
     c.add_argument("--observe", nargs=3, type=float, metavar=("LAT", "LON", "RADIUS_M"),
                    help="centre and radius of the area of interest (default: the first target area, 100 km)")
-    c.add_argument("--duration", type=float, default=10.0, metavar="S", help="wall seconds (default %(default)s)")
+    c.add_argument("--duration", type=float, default=10.0, metavar="S",
+                   help="wall seconds; 0 runs until SIGTERM/SIGINT (default %(default)s)")
     c.add_argument("--every", type=float, default=2.0, metavar="S", help="print period (default %(default)s)")
     c.add_argument("--name", default="observer")
     c.set_defaults(func=client_command)
@@ -40,7 +42,8 @@ def add_parser(sub) -> None:
     b.add_argument("--count", type=int, default=1, help="bots (default %(default)s)")
     b.add_argument("--profile", choices=PROFILES, default="patrol")
     b.add_argument("--leg-s", type=float, default=20.0, help="world seconds per leg (default %(default)s)")
-    b.add_argument("--duration", type=float, default=30.0, metavar="S", help="wall seconds (default %(default)s)")
+    b.add_argument("--duration", type=float, default=30.0, metavar="S",
+                   help="wall seconds; 0 runs until SIGTERM/SIGINT (default %(default)s)")
     b.set_defaults(func=bot_command)
 
 
@@ -50,9 +53,23 @@ def _geodetic(pos):
     return ecef_to_geodetic(np.asarray(pos, float).reshape(-1, 3))
 
 
+def _until(duration_s: float) -> float:
+    """The monotonic time a run of ``duration_s`` wall seconds ends (0: never)."""
+    return time.monotonic() + duration_s if duration_s > 0 else math.inf
+
+
+def _stop_on_signals() -> threading.Event:
+    """An event SIGTERM and SIGINT set (main thread): the clients leave cleanly and exit 0."""
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda signum, frame: stop.set())
+    return stop
+
+
 def client_command(args) -> int:
     from client.sim_client import SimClient
 
+    stop = _stop_on_signals()
     with SimClient(args.server) as sim:
         sim.wait_ready()
         observe = args.observe
@@ -67,9 +84,9 @@ def client_command(args) -> int:
         print(f"observing {sim.world_info.exercise_name!r} around ({observe[0]:.4f}, {observe[1]:.4f}), "
               f"{observe[2] / 1000:.0f} km", flush=True)
         picture = sim.watch()
-        end = time.monotonic() + args.duration
-        while time.monotonic() < end:
-            time.sleep(min(args.every, max(end - time.monotonic(), 0.0)))
+        end = _until(args.duration)
+        while time.monotonic() < end and not stop.is_set():
+            stop.wait(min(args.every, max(end - time.monotonic(), 0.0)))
             ids, pos, _ = picture.state()
             print(f"t = {picture.now_s():7.1f} s  {len(ids)} entities  ({picture.updates} updates, "
                   f"{picture.states_received} states, {picture.bytes} bytes)", flush=True)
@@ -84,7 +101,8 @@ def client_command(args) -> int:
     return 0
 
 
-def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list) -> None:
+def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list,
+         stop: threading.Event) -> None:
     from client.sim_client import SimClient
 
     turn = 90.0 if profile == "patrol" else 180.0
@@ -100,14 +118,14 @@ def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, re
         aircraft = info is not None and info.kind == 1
         controls = sim.controls()
         legs = 0
-        end = time.monotonic() + duration_s
+        end = _until(duration_s)
         heading = None
-        while time.monotonic() < end:
+        while time.monotonic() < end and not stop.is_set():
             ids, pos, quat = picture.state(ids=[agent]) if agent in picture.infos else (None, None, None)
             if pos is not None and heading is None:
                 heading = _heading_deg(pos[0], quat[0])
             if heading is None:
-                time.sleep(0.1)
+                stop.wait(0.1)
                 continue
             heading = (heading + turn) % 360.0 if legs else heading
             targets = {"heading_deg": heading}
@@ -119,8 +137,8 @@ def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, re
             controls.autopilot(**targets)
             legs += 1
             wait_end = time.monotonic() + leg_s / max(picture.time_scale, 1e-6)
-            while time.monotonic() < min(wait_end, end):
-                time.sleep(0.2)
+            while time.monotonic() < min(wait_end, end) and not stop.is_set():
+                stop.wait(0.2)
         accepted = controls.close()
         sim.leave()
         results.append((k, agent, f"{legs} legs, {accepted} commands accepted, {picture.updates} updates"))
@@ -140,12 +158,17 @@ def _heading_deg(pos, quat) -> float:
 
 def bot_command(args) -> int:
     results: list = []
-    threads = [threading.Thread(target=_bot, args=(args.server, k, args.profile, args.leg_s, args.duration, results),
-                                daemon=True) for k in range(args.count)]
+    stop = _stop_on_signals()
+    threads = [threading.Thread(target=_bot, args=(args.server, k, args.profile, args.leg_s, args.duration, results,
+                                                   stop), daemon=True) for k in range(args.count)]
     for t in threads:
         t.start()
-    for t in threads:
-        t.join(args.duration + 30.0)
+    end = _until(args.duration)
+    while any(t.is_alive() for t in threads) and time.monotonic() < end + 30.0:
+        stop.wait(0.2)  # the main thread stays free for the signal handlers
+        if stop.is_set():
+            for t in threads:
+                t.join(30.0)
     ok = 0
     for k, agent, what in sorted(results, key=lambda r: r[0]):
         print(f"bot-{k}: agent {agent}: {what}", flush=True)

@@ -173,3 +173,37 @@ def test_simulation_server_metrics_and_sigterm_flushes_the_recording(hgt_alps, t
         proc.wait()
     r = run_sortie("recording", "check", str(rec))
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_bots_run_until_sigterm_then_leave_cleanly(hgt_alps):
+    with ServiceProcess(["server", "--scenario", SCENARIO, "--dem", str(hgt_alps), "--no-record",
+                         "--aircraft-workers", "0"]) as srv:
+        from client.sim_client import SimClient
+
+        with SimClient(srv.address) as obs:
+            obs.join("ops", "gateway")
+            events = obs.events()
+            bots = subprocess.Popen([*sortie_command(), "bot", "--server", srv.address, "--count", "2",
+                                     "--duration", "0", "--leg-s", "5"],
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            try:
+                kinds = []
+                for ev in events:
+                    kinds.append(ev.kind)
+                    if kinds.count("join") == 2:
+                        break
+                time.sleep(1.0)
+                assert bots.poll() is None, "--duration 0 runs until signalled"
+                bots.terminate()
+                assert bots.wait(timeout=40) == 0
+                out = bots.stdout.read()
+                assert out.count("commands accepted") == 2, out
+                for ev in events:  # both bots said goodbye (no "vanished" after a timeout)
+                    kinds.append(ev.kind)
+                    if kinds.count("leave") == 2:
+                        break
+                assert "vanished" not in kinds
+            finally:
+                if bots.poll() is None:
+                    bots.kill()
+                bots.wait()
