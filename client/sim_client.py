@@ -331,6 +331,12 @@ class Picture:
             with self._cond:
                 self._cond.notify_all()
 
+    @property
+    def alive(self) -> bool:
+        """Whether the stream is still running (False once the server ended it or it failed:
+        see :attr:`error`)."""
+        return self._thread.is_alive()
+
     def now_s(self) -> float:
         """Estimated world time now (last update's time + scaled wall time since)."""
         return self.time_s + (time.monotonic() - self._wall) * self.time_scale

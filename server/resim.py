@@ -36,7 +36,7 @@ import numpy as np
 from server import recording_codec as codec
 from server.recorder import build_id, file_identity
 from server.recording import Recording
-from server.world import external_state
+from server.external import external_state
 from sortie.errors import DataFormatError, InvalidArgument, NotFound
 
 FIELD_NAMES = (["ecef_x_m", "ecef_y_m", "ecef_z_m", "vel_x_mps", "vel_y_mps", "vel_z_mps", "acc_x_mps2",

@@ -29,7 +29,8 @@ import grpc
 import numpy as np
 
 from server.streaming import ClientQueue, encode_watch_update
-from server.world import AIRCRAFT, GROUND, STATIC, World, external_state
+from server.external import external_state
+from server.world import AIRCRAFT, GROUND, World
 from sortie.errors import InvalidArgument, LimitExceeded, PermissionDenied, SortieError, Unauthenticated, grpc_code
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import geodetic_to_ecef

@@ -59,15 +59,14 @@ from fdm.convoy import Convoy, Route, RouteFollower
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, ned_to_ecef_vectors, state_arrays
 from server.aircraft_host import LocalAircraftHost
-from server.dead_reckoning import check_algorithms, extrapolate, ned_to_ecef_quat
+from server.dead_reckoning import extrapolate, ned_to_ecef_quat
+from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
 from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
 
 AIRCRAFT, GROUND, STATIC = 1, 2, 3  # = sortie.v1.EntityKind values
 KIND_NAMES = {AIRCRAFT: "aircraft", GROUND: "ground", STATIC: "static"}
 KIND_OF_NAME = {v: k for k, v in KIND_NAMES.items()}
-COALITIONS = ("blue", "red", "neutral")
-MAX_TEXT_CHARS = 64  # external ids, names and types
 MAX_ENTITIES = 10_000
 # Events kept for late readers of the events stream (a ring; readers that fall
 # further behind lose the oldest).
@@ -109,51 +108,6 @@ class Entity:
     static_heading_deg: float = 0.0
     on_vanish: str = "autopilot"
     external_id: str = ""  # set for an entity another simulation owns (its gateway's id for it)
-
-
-@dataclass(frozen=True)
-class ExternalState:
-    """An external entity's last published state (ECEF, SI; orientation ECEF -> body),
-    valid at world time ``t0_s``; extrapolated by DIS ``algorithm``."""
-
-    t0_s: float
-    ecef_m: tuple
-    vel_ecef_mps: tuple
-    acc_ecef_mps2: tuple
-    quat_ecef2body: tuple
-    body_rates_rps: tuple
-    algorithm: int
-
-
-def _finite_vector(name: str, values, n: int) -> tuple:
-    v = np.asarray(values, dtype=np.float64).reshape(-1)
-    if v.size != n:
-        raise InvalidArgument(name, f"must have {n} values, got {v.size}")
-    bad = np.flatnonzero(~np.isfinite(v))
-    if bad.size:
-        raise InvalidArgument(name, "must be finite", index=int(bad[0]), value=float(v[bad[0]]))
-    return tuple(v.tolist())
-
-
-def external_state(t0_s: float, ecef_m, vel_ecef_mps, acc_ecef_mps2, quat_ecef2body, body_rates_rps,
-                   algorithm: int) -> ExternalState:
-    """A validated :class:`ExternalState` (InvalidArgument naming the field): finite values,
-    a position within 100 km of the WGS84 surface band (|r| in [6.25e6, 6.5e6] m), a
-    quaternion of norm 0.5-2 (normalised here), a DIS world-coordinate algorithm (1-5)."""
-    pos = _finite_vector("state.ecef_m", ecef_m, 3)
-    r = math.sqrt(sum(x * x for x in pos))
-    if not 6.25e6 <= r <= 6.5e6:
-        raise InvalidArgument("state.ecef_m", "must be within 100 km of the Earth's surface (|r| in "
-                                              "[6250, 6500] km)", value=[round(x, 3) for x in pos])
-    q = np.array(_finite_vector("state.orientation_wxyz", quat_ecef2body, 4))
-    norm = float(np.linalg.norm(q))
-    if not 0.5 <= norm <= 2.0:
-        raise InvalidArgument("state.orientation_wxyz", "must be a unit quaternion", value=q.tolist())
-    code = int(check_algorithms(int(algorithm), 1)[0])
-    return ExternalState(float(t0_s), pos, _finite_vector("state.velocity_ecef_mps", vel_ecef_mps, 3),
-                         _finite_vector("state.acceleration_ecef_mps2", acc_ecef_mps2, 3),
-                         tuple((q / norm).tolist()), _finite_vector("state.angular_velocity_body_rps",
-                                                                    body_rates_rps, 3), code)
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "fdm.cli",
     "bench.cli",
     "server.export_cli",
+    "server.dis_gateway",
     "sortie.demo",
 )
 

@@ -11,7 +11,8 @@ import pytest
 from client.sim_client import SimClient
 from fdm.aircraft import InitialConditions
 from server.sim_server import ServerConfig, SimulationServer
-from server.world import AIRCRAFT, World, external_state
+from server.external import external_state
+from server.world import AIRCRAFT, World
 from sortie.errors import InvalidArgument, PermissionDenied
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef

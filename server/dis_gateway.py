@@ -1,0 +1,448 @@
+"""``sortie dis``: a DIS (IEEE 1278.1) gateway between a simulation server and a DIS exercise.
+
+    sortie dis --server ADDRESS [--port 3000] [--exercise N] [--host 127.255.255.255]
+               [--site S --application A] [--remote-timeout-s 15] [--heartbeat-s 5]
+
+Out. The gateway joins the server as a gateway session (every entity of the
+exercise, no area of interest) and turns each state the Watch stream brings
+into one Entity State PDU (server/dis.py): the server already sends a state
+only when DIS-style dead reckoning drifts past 1 m / 3 degrees or its 5 s
+heartbeat is due, which are the DIS rules for issuing Entity State PDUs (IEEE
+1278.1-2012: DRA_POS_THRESH, DRA_ORIENT_THRESH, HBT_PDU_ENTITY_STATE; Annex E), so
+nothing is re-decided here. The entity id is
+(--site, --application, Sortie's entity id); an entity whose id does not fit a
+DIS entity number (above 65534) is refused with one log line. An entity that
+leaves the exercise gets one last PDU with the appearance's "deactivated"
+bit; so does every entity when the gateway stops. If the server sends
+nothing about an entity for --heartbeat-s wall seconds (a paused or slowed
+clock), its last PDU is sent again, so DIS receivers do not time it out.
+Entities that came from outside (``EntityInfo.external_id`` set, e.g. from
+this very gateway) are never sent back out.
+
+In. PDUs of our exercise from other (site, application) pairs are decoded
+and each Entity State PDU is published into the exercise through the
+session's PublishExternal stream as the external entity "dis:<site>.<app>.<entity>"
+(name = marking, kind and type from the entity type, coalition from the force,
+world dead reckoning). A remote entity is removed when its PDU says
+deactivated or after --remote-timeout-s (default 15 s: three missed 5 s
+heartbeats) without a PDU. Other PDU types, other exercises and our own PDUs
+are counted as ignored; malformed ones are counted and logged (at most one
+line per LOG_EVERY_S) and never stop the gateway.
+
+Network. One UDP socket bound to (--host, --port) with SO_REUSEADDR and
+SO_REUSEPORT receives; PDUs go out to the same address and port. The default
+host 127.255.255.255 is the loopback broadcast address: datagrams sent there
+are delivered to every socket bound to it on this machine (several gateways,
+a DIS viewer, tests) and to nothing outside it. A unicast host such as
+127.0.0.1 works for a single receiver only: the kernel hands a unicast
+datagram to one of the sockets sharing a port. A LAN broadcast address
+(e.g. 192.168.1.255) joins a DIS exercise on that network.
+
+Counters (:class:`DisGateway`): pdus_sent; pdus_received (every PDU that
+arrived, our own looped-back broadcasts included); pdus_ignored (other
+exercise, our own, not an Entity State PDU); pdus_malformed; and the number of
+remote and local entities.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import logging
+import socket
+import threading
+import time
+
+from server import dis
+from server.external import external_state
+from sortie.errors import DataFormatError, InvalidArgument, SortieError
+from sortie.v1 import simulation_pb2 as pb
+
+log = logging.getLogger(__name__)
+
+DEFAULT_HOST = "127.255.255.255"  # loopback broadcast: every socket on the port, this machine only
+DEFAULT_EXERCISE = 1
+DEFAULT_SITE = 1
+DEFAULT_APPLICATION = 1
+DEFAULT_REMOTE_TIMEOUT_S = 15.0  # three missed HBT_PDU_ENTITY_STATE (5 s) heartbeats
+DEFAULT_HEARTBEAT_S = 5.0  # IEEE 1278.1-2012 HBT_PDU_ENTITY_STATE
+MAX_ENTITY_NUMBER = 65534  # 0 is NO_ENTITY and 65535 ALL_ENTITIES (IEEE 1278.1-2012 Entity Identifier)
+RECEIVE_BYTES = 65536  # a UDP datagram's largest payload
+POLL_S = 0.2  # how often the threads look at the stop flag, heartbeats and timeouts
+LOG_EVERY_S = 5.0  # at most one line per kind of receive problem per this many seconds
+KINDS = {pb.ENTITY_KIND_AIRCRAFT: "aircraft", pb.ENTITY_KIND_GROUND: "ground", pb.ENTITY_KIND_STATIC: "static"}
+
+
+class _Throttled:
+    """A warning that says itself at most once per ``every_s`` and counts what it held back."""
+
+    def __init__(self, every_s: float = LOG_EVERY_S):
+        self.every_s = every_s
+        self._next = 0.0
+        self._held = 0
+
+    def warn(self, message: str, *args) -> None:
+        now = time.monotonic()
+        if now < self._next:
+            self._held += 1
+            return
+        if self._held:
+            message += f" ({self._held} more since the last report)"
+        log.warning(message, *args)
+        self._next, self._held = now + self.every_s, 0
+
+
+@dataclasses.dataclass
+class _Local:
+    """A Sortie entity the gateway speaks for: what does not change, the last PDU sent."""
+
+    kind: str
+    type_name: str
+    coalition: str
+    name: str
+    pdu: dis.EntityStatePdu | None = None
+    wire: bytes = b""
+    sent_wall_s: float = 0.0
+
+
+def _check(name: str, value, lo: float, hi: float, integer: bool = False):
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and lo <= value <= hi
+    if not ok or (integer and int(value) != value):
+        raise InvalidArgument(name, f"must be {'an integer' if integer else 'a number'} in [{lo:g}, {hi:g}]",
+                              value=value)
+    return value
+
+
+class DisGateway:
+    """The gateway between a simulation server at ``server`` and the DIS exercise
+    ``exercise`` on UDP (host, port); start(), stop() (also a context manager)."""
+
+    def __init__(self, server: str, *, port: int = dis.DEFAULT_PORT, exercise: int = DEFAULT_EXERCISE,
+                 host: str = DEFAULT_HOST, site: int = DEFAULT_SITE, application: int = DEFAULT_APPLICATION,
+                 remote_timeout_s: float = DEFAULT_REMOTE_TIMEOUT_S, heartbeat_s: float = DEFAULT_HEARTBEAT_S,
+                 client_name: str = "dis-gateway"):
+        self.server = server
+        self.port = _check("port", port, 0, 65535, integer=True)
+        self.exercise = _check("exercise", exercise, 0, 255, integer=True)
+        self.host = host
+        self.site = _check("site", site, 1, MAX_ENTITY_NUMBER, integer=True)
+        self.application = _check("application", application, 1, MAX_ENTITY_NUMBER, integer=True)
+        self.remote_timeout_s = _check("remote_timeout_s", remote_timeout_s, 0.01, 3600.0)
+        self.heartbeat_s = _check("heartbeat_s", heartbeat_s, 0.01, 3600.0)
+        self.client_name = client_name
+        self.pdus_sent = 0
+        self.pdus_received = 0
+        self.pdus_ignored = 0
+        self.pdus_malformed = 0
+        self.finished = threading.Event()  # set when the server's stream ends
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # locals, remotes, counters of the sending side, the stream
+        self._locals: dict[int, _Local] = {}
+        self._refused: set[int] = set()
+        self._remotes: dict[str, float] = {}  # external id -> wall time of its last PDU
+        self._malformed_log = _Throttled()
+        self._publish_log = _Throttled()
+        self._client = None
+        self._picture = None
+        self._stream = None
+        self._sock: socket.socket | None = None
+        self._threads: list[threading.Thread] = []
+        self._hour_offset_s = 0.0
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> DisGateway:
+        """Open the DIS socket, join the server, start streaming both ways (stop() undoes
+        whatever was done when this raises)."""
+        try:
+            return self._start()
+        except BaseException:
+            self.stop()
+            raise
+
+    def _start(self) -> DisGateway:
+        from client.sim_client import SimClient
+
+        self._sock = self._open_socket()
+        self.port = self._sock.getsockname()[1]
+        self._client = SimClient(self.server)
+        self._client.join(self.client_name, "gateway")
+        self._hour_offset_s = seconds_past_hour(self._client.world_info.start_time)
+        self._stream = self._client.external()
+        self._threads = [threading.Thread(target=self._receive_loop, name="dis-receive", daemon=True),
+                         threading.Thread(target=self._housekeeping_loop, name="dis-heartbeat", daemon=True)]
+        for t in self._threads:
+            t.start()
+        self._picture = self._client.watch(listener=self._on_update)
+        return self
+
+    def stop(self) -> None:
+        """Deactivate our entities on DIS, remove the remote ones from the exercise, leave."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        if self._picture is not None:
+            self._picture.cancel()
+        with self._lock:
+            for entity_id in list(self._locals):
+                self._deactivate(entity_id)
+            self._close_stream()
+        if self._client is not None:
+            try:
+                if self._client.token:
+                    self._client.leave()
+            except SortieError as exc:
+                log.info("leaving the server: %s", exc)
+            self._client.close()
+        if self._sock is not None:
+            self._sock.close()
+
+    def __enter__(self) -> DisGateway:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def remote_entities(self) -> int:
+        with self._lock:
+            return len(self._remotes)
+
+    @property
+    def local_entities(self) -> int:
+        with self._lock:
+            return len(self._locals)
+
+    def stats(self) -> dict:
+        return {"pdus_sent": self.pdus_sent, "pdus_received": self.pdus_received, "pdus_ignored": self.pdus_ignored,
+                "pdus_malformed": self.pdus_malformed, "remote_entities": self.remote_entities,
+                "local_entities": self.local_entities}
+
+    def _open_socket(self) -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if hasattr(socket, "SO_REUSEPORT"):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        sock.settimeout(POLL_S)
+        sock.bind((self.host, self.port))
+        return sock
+
+    # -- out: Sortie -> DIS ---------------------------------------------------------------------
+
+    def _on_update(self, picture, update: pb.WatchUpdate) -> None:
+        """Watch listener (the stream's thread): one PDU per entered or updated state."""
+        with self._lock:
+            if self._stop.is_set():
+                return
+            if update.snapshot:  # a new full picture (a replay's seek): whatever is not in it is gone
+                for entity_id in set(self._locals) - {info.entity_id for info in update.entered}:
+                    self._deactivate(entity_id)
+            for entity_id in update.left:
+                self._deactivate(entity_id)
+            for info in update.entered:
+                if self._admit(info):
+                    self._send_state(info.entity_id, info.state)
+            for state in update.states:
+                if state.entity_id in self._locals:
+                    self._send_state(state.entity_id, state)
+
+    def _admit(self, info: pb.EntityInfo) -> bool:
+        """Whether the gateway speaks for this entity (not external, a DIS entity number)."""
+        if info.external_id:
+            return False
+        if info.entity_id > MAX_ENTITY_NUMBER:
+            if info.entity_id not in self._refused:
+                self._refused.add(info.entity_id)
+                log.warning("entity %d (%s) not sent on DIS: its id is above the largest DIS entity number %d",
+                            info.entity_id, info.name, MAX_ENTITY_NUMBER)
+            return False
+        self._locals[info.entity_id] = _Local(KINDS.get(info.kind, "static"), info.type, info.coalition, info.name)
+        return True
+
+    def _send_state(self, entity_id: int, state: pb.EntityState) -> None:
+        local = self._locals[entity_id]
+        seconds = self._hour_offset_s + state.time_s
+        try:
+            pdu = dis.entity_state_pdu(
+                exercise_id=self.exercise, entity_id=(self.site, self.application, entity_id), kind=local.kind,
+                type_name=local.type_name, coalition=local.coalition, name=local.name,
+                ecef_m=(state.ecef_x_m, state.ecef_y_m, state.ecef_z_m), vel_ecef_mps=state.velocity_ecef_mps,
+                acc_ecef_mps2=state.acceleration_ecef_mps2, quat_wxyz=state.orientation_wxyz,
+                body_rates_rps=state.angular_velocity_body_rps, algorithm=state.dead_reckoning,
+                timestamp=dis.dis_timestamp(seconds, absolute=False))
+            wire = dis.encode_pdu(pdu)
+        except (InvalidArgument, ValueError) as exc:
+            self._publish_log.warn("entity %d (%s) not sent: %s", entity_id, local.name, exc)
+            return
+        local.pdu, local.wire = pdu, wire
+        self._send(local)
+
+    def _send(self, local: _Local) -> None:
+        try:
+            self._sock.sendto(local.wire, (self.host, self.port))
+        except OSError as exc:
+            self._publish_log.warn("sending to %s:%d: %s", self.host, self.port, exc)
+            return
+        local.sent_wall_s = time.monotonic()
+        self.pdus_sent += 1
+
+    def _deactivate(self, entity_id: int) -> None:
+        """Forget a local entity after its last PDU, with the deactivated appearance bit."""
+        local = self._locals.pop(entity_id, None)
+        if local is None or local.pdu is None:
+            return
+        local.pdu = dataclasses.replace(local.pdu, appearance=local.pdu.appearance | dis.APPEARANCE_DEACTIVATED)
+        local.wire = dis.encode_pdu(local.pdu)
+        self._send(local)
+
+    # -- in: DIS -> Sortie ----------------------------------------------------------------------
+
+    def _receive_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._sock.recv(RECEIVE_BYTES)
+            except socket.timeout:
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    return
+                raise
+            try:
+                pdus = dis.split_datagram(data)
+            except DataFormatError as exc:
+                self.pdus_received += 1
+                self._malformed(exc)
+                continue
+            for pdu in pdus:
+                self.pdus_received += 1
+                self._take(pdu)
+
+    def _malformed(self, exc: Exception) -> None:
+        self.pdus_malformed += 1
+        self._malformed_log.warn("malformed DIS PDU ignored: %s", exc)
+
+    def _take(self, data: bytes) -> None:
+        try:
+            header = dis.decode_header(data)
+            if header.exercise_id != self.exercise or header.pdu_type != dis.PDU_TYPE_ENTITY_STATE:
+                self.pdus_ignored += 1
+                return
+            pdu = dis.decode_pdu(data)
+            if pdu.entity_id[:2] == (self.site, self.application):
+                self.pdus_ignored += 1
+                return
+            xid = dis.external_id(pdu.entity_id)
+            state = None if pdu.deactivated else dis.sortie_state(pdu)
+            if state is not None:
+                _validate(state)
+        except (DataFormatError, InvalidArgument) as exc:
+            self._malformed(exc)
+            return
+        with self._lock:
+            self._publish(xid, state)
+
+    def _publish(self, xid: str, state: dict | None) -> None:
+        """Add, move (state) or remove (None) a remote entity on the PublishExternal stream."""
+        if self._stream is None:
+            return
+        try:
+            if state is None:
+                if self._remotes.pop(xid, None) is not None:
+                    self._stream.remove(xid)
+                return
+            self._stream.update(xid, **state)
+            self._remotes[xid] = time.monotonic()
+        except SortieError as exc:  # the server ended the stream: open another one
+            self._publish_log.warn("publishing %s: %s; reopening the stream", xid, exc)
+            self._remotes.clear()
+            self._stream = self._client.external()
+
+    # -- heartbeats and timeouts ----------------------------------------------------------------
+
+    def _housekeeping_loop(self) -> None:
+        while not self._stop.wait(POLL_S):
+            now = time.monotonic()
+            with self._lock:
+                for local in self._locals.values():
+                    if local.wire and now - local.sent_wall_s >= self.heartbeat_s:
+                        self._send(local)
+                for xid in [x for x, t in self._remotes.items() if now - t > self.remote_timeout_s]:
+                    self._publish(xid, None)
+            picture = self._picture
+            if picture is not None and not picture.alive:  # the Watch stream ended
+                if picture.error is not None:
+                    log.warning("the server's stream ended: %s", picture.error)
+                self.finished.set()
+                return
+
+    def _close_stream(self) -> None:
+        if self._stream is None:
+            return
+        try:
+            for xid in list(self._remotes):
+                self._stream.remove(xid)
+            self._stream.close()
+        except SortieError as exc:
+            log.info("closing the external stream: %s", exc)
+        self._remotes.clear()
+        self._stream = None
+
+
+def _validate(state: dict) -> None:
+    """The server's checks of an external state (server.world.external_state), here, so a bad
+    PDU counts as malformed instead of ending the PublishExternal stream."""
+    external_state(0.0, state["ecef_m"], state["vel_ecef_mps"], state["acc_ecef_mps2"], state["quat_wxyz"],
+                   state["body_rates_rps"], state["algorithm"])
+
+
+def seconds_past_hour(iso_utc: str) -> float:
+    """Seconds past the hour of an ISO 8601 UTC time (the exercise's start, WorldInfo.start_time)."""
+    try:
+        t = dt.datetime.fromisoformat(iso_utc)
+    except ValueError:
+        log.warning("start time %r is not ISO 8601: timestamps count from the hour", iso_utc)
+        return 0.0
+    return t.minute * 60.0 + t.second + t.microsecond * 1e-6
+
+
+# -- command line ---------------------------------------------------------------------------------
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("dis", help="bridge a simulation server and a DIS exercise (IEEE 1278.1)",
+                       description="Send every entity of the server's exercise as DIS Entity State PDUs and "
+                                   "publish the entities of other DIS simulations into it, until SIGTERM/SIGINT.")
+    p.add_argument("--server", required=True, metavar="ADDRESS", help="the simulation server, HOST:PORT")
+    p.add_argument("--port", type=int, default=dis.DEFAULT_PORT, help="DIS UDP port (default %(default)s)")
+    p.add_argument("--exercise", type=int, default=DEFAULT_EXERCISE, help="DIS exercise id (default %(default)s)")
+    p.add_argument("--host", default=DEFAULT_HOST,
+                   help="address to send to and bind: the default loopback broadcast reaches every DIS program "
+                        "on this machine and nothing beyond it; a LAN broadcast address joins that network "
+                        "(default %(default)s)")
+    p.add_argument("--site", type=int, default=DEFAULT_SITE, help="our DIS site number (default %(default)s)")
+    p.add_argument("--application", type=int, default=DEFAULT_APPLICATION,
+                   help="our DIS application number, unique per site (default %(default)s)")
+    p.add_argument("--remote-timeout-s", type=float, default=DEFAULT_REMOTE_TIMEOUT_S,
+                   help="remove a DIS entity silent this long (default %(default)s)")
+    p.add_argument("--heartbeat-s", type=float, default=DEFAULT_HEARTBEAT_S,
+                   help="re-send an entity's last PDU after this long without an update (default %(default)s)")
+    p.set_defaults(func=dis_command)
+
+
+def dis_command(args) -> int:
+    from server.grpc_common import wait_for_signal
+
+    gateway = DisGateway(args.server, port=args.port, exercise=args.exercise, host=args.host, site=args.site,
+                         application=args.application, remote_timeout_s=args.remote_timeout_s,
+                         heartbeat_s=args.heartbeat_s)
+    gateway.start()
+    print(f"sortie dis: exercise {gateway.exercise} on {gateway.host}:{gateway.port} as site {gateway.site} "
+          f"application {gateway.application}, server {args.server}", flush=True)
+    try:
+        wait_for_signal(gateway.finished)
+    finally:
+        gateway.stop()
+    s = gateway.stats()
+    print(f"sortie dis: stopped; {s['pdus_sent']} PDUs sent, {s['pdus_received']} received "
+          f"({s['pdus_ignored']} ignored, {s['pdus_malformed']} malformed)", flush=True)
+    return 0
