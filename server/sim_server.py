@@ -67,7 +67,8 @@ def type_params(params: dict, entities: dict, entity_id, kind: str | None = None
     return params.get(e.type, params.get(k, DEFAULT_PARAMS[k]))
 
 
-def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_hz: float) -> pb.WorldInfo:
+def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_hz: float,
+               geoid_undulation_m: float = 0.0) -> pb.WorldInfo:
     """GetWorld's answer: the exercise of ``config`` (a ServerConfig) at world time ``time_s``
     (live server and replay alike)."""
     areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
@@ -75,7 +76,7 @@ def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_
     return pb.WorldInfo(exercise_name=config.exercise_name, start_time=config.start_time, time_s=time_s,
                         server_unix_time_s=time.time(), clock=clock, time_scale=time_scale,
                         world_rate_hz=world_rate_hz, network_rate_hz=config.network_rate_hz, target_areas=areas,
-                        terrain=config.terrain)
+                        terrain=config.terrain, geoid_undulation_m=geoid_undulation_m)
 
 
 @dataclass
@@ -172,7 +173,8 @@ class SimulationServer:
             self._resume.set()
 
     def world_info(self) -> pb.WorldInfo:
-        return world_info(self.config, self.world.time_s, self._clock, self.config.time_scale, 1.0 / self.world.dt)
+        return world_info(self.config, self.world.time_s, self._clock, self.config.time_scale, 1.0 / self.world.dt,
+                          self.world.geoid_undulation_m)
 
     # -- the clock thread -----------------------------------------------------------------------
 

@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "bench.cli",
     "server.export_cli",
     "server.dis_gateway",
+    "server.tacview_live",
     "sortie.demo",
 )
 
