@@ -36,7 +36,7 @@ import numpy as np
 from server import recording_codec as codec
 from server.recorder import build_id, file_identity
 from server.recording import Recording
-from server.external import external_state
+from server.external import ExternalState
 from sortie.errors import DataFormatError, InvalidArgument, NotFound
 
 FIELD_NAMES = (["ecef_x_m", "ecef_y_m", "ecef_z_m", "vel_x_mps", "vel_y_mps", "vel_z_mps", "acc_x_mps2",
@@ -176,7 +176,10 @@ def apply_input(world, r) -> None:
         world.remove(r.entity_id, r.reason)
     elif r.kind == "external":
         v = json.loads(r.values_json)
-        state = external_state(0.0, *v["state"])
+        # The journal holds the state as validated (quaternion normalised): taken as is, since
+        # normalising again could change its last bits.
+        pos, vel, acc, quat, rates, algorithm = v["state"]
+        state = ExternalState(0.0, tuple(pos), tuple(vel), tuple(acc), tuple(quat), tuple(rates), int(algorithm))
         if "name" in v:  # the first update of an external entity: it enters the world
             world.publish_external(v["external_id"], "resim:external", state, v["name"], v["kind"], v["type"],
                                    v["coalition"])

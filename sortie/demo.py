@@ -174,7 +174,9 @@ def run(args) -> int:
             summary["debrief"] = run_debrief(Path(summary["exercise"]["recording"]), out, console)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     console.print(f"[bold green]outputs[/] in {out}: summary.json, exercise.json, debrief.json, hillshade-*.png, "
-                  "track-*.csv, terrain-service.log, simulation-server.log, bots.log, replay.log")
+                  "track-*.csv, dis-capture.pcap (Wireshark), tacview-live.acmi (live telemetry as received), "
+                  "and the logs of every process: terrain-service.log, simulation-server.log, bots.log, "
+                  "dis-gateway.log, tacview.log, replay.log")
     if "debrief" in summary:
         d = summary["debrief"]
         console.print(f"[bold green]recording[/] {d['recording']['file']}\n[bold green]Tacview export[/] "

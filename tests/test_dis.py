@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server import dis
+from server import dis, pcap
 from server.dead_reckoning import ecef_to_ned_quat, extrapolate, quat_conjugate, quat_multiply, rotation_angle
 from server.dis_gateway import DisGateway, seconds_past_hour
 from server.process import sortie_command
@@ -359,34 +359,9 @@ def test_sortie_state_of_a_received_pdu():
 
 # -- Wireshark ------------------------------------------------------------------------------------
 
-def _checksum(data: bytes) -> int:
-    if len(data) % 2:
-        data += b"\0"
-    total = sum(struct.unpack(f">{len(data) // 2}H", data))
-    while total >> 16:
-        total = (total & 0xFFFF) + (total >> 16)
-    return ~total & 0xFFFF
-
-
-def udp_frame(payload: bytes, src="10.0.0.1", dst="10.0.0.255", port=dis.DEFAULT_PORT) -> bytes:
-    """Ethernet II + IPv4 + UDP (RFC 791, RFC 768) around a payload, lengths and checksums right."""
-    s, d = socket.inet_aton(src), socket.inet_aton(dst)
-    length = 8 + len(payload)
-    udp_sum = _checksum(s + d + struct.pack(">BBH", 0, 17, length) + struct.pack(">HHHH", port, port, length, 0)
-                        + payload) or 0xFFFF
-    udp = struct.pack(">HHHH", port, port, length, udp_sum)
-    ip = struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + length, 0, 0x4000, 64, 17, 0, s, d)
-    ip = ip[:10] + struct.pack(">H", _checksum(ip)) + ip[12:]
-    return b"\xff" * 6 + b"\x02\x00\x00\x00\x00\x01" + b"\x08\x00" + ip + udp + payload
-
-
 def write_pcap(path, payloads) -> None:
-    """A classic pcap file (microsecond timestamps, LINKTYPE_ETHERNET) of one frame per payload."""
-    out = [struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1)]
-    for k, p in enumerate(payloads):
-        frame = udp_frame(p)
-        out.append(struct.pack("<IIII", 1_700_000_000 + k, 0, len(frame), len(frame)) + frame)
-    path.write_bytes(b"".join(out))
+    """A pcap of one UDP frame to the DIS port per payload (server/pcap.py)."""
+    pcap.write_pcap(path, payloads, dis.DEFAULT_PORT)
 
 
 TSHARK_FIELDS = ("dis.proto_ver", "dis.pdu_type", "dis.exer_id", "dis.pdu_length", "dis.entity_id_site",

@@ -146,6 +146,11 @@ def test_external_inputs_are_journaled_and_resimulate_bit_exact(alps, tmp_path):
     from server.recorder import input_record
 
     pos, vel, q = east_flyer(speed=250.0)
+    # As a gateway sends it: float32 components, not quite unit. The world normalises it once,
+    # and normalising this one twice changes its last bits, so the journal must keep it as is.
+    q = np.asarray(q, np.float32).astype(float)
+    once = external_state(0, pos, vel, (0, 0, 0), q, (0, 0, 0), 2).quat_ecef2body
+    assert external_state(0, pos, vel, (0, 0, 0), once, (0, 0, 0), 2).quat_ecef2body != once
 
     class Journal:
         def __init__(self):
