@@ -183,4 +183,25 @@ def plot_recording(report: dict, out_dir: Path) -> list[Path]:
     return written
 
 
-PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm, "server": plot_server, "recording": plot_recording}
+def plot_render(report: dict, out_dir: Path) -> list[Path]:
+    """Frame time against triangles per window configuration and pose (the reference
+    renderer: full resolution, so its screen error is 0 by definition; issue #5's clipmap
+    is plotted against it)."""
+    plt = _pyplot()
+    m = report["metrics"]
+    keys = sorted(k[: -len("_triangles")] for k in m if k.endswith("_triangles"))
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key in keys:
+        ax.scatter(m[f"{key}_triangles"] / 1e3, m[f"{key}_frame_ms_median"])
+        ax.annotate(key, (m[f"{key}_triangles"] / 1e3, m[f"{key}_frame_ms_median"]), fontsize=7)
+    ax.set_xlabel("triangles per frame (thousands)")
+    ax.set_ylabel("median frame time (ms)")
+    ax.set_title(f"reference renderer, {report['params'].get('gl_renderer', '')}", fontsize=9)
+    written: list[Path] = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _save(fig, out_dir / "render_frame_ms_vs_triangles.png", written)
+    return written
+
+
+PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm, "server": plot_server, "recording": plot_recording,
+            "render": plot_render}

@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "server.export_cli",
     "server.dis_gateway",
     "server.tacview_live",
+    "client.render_cli",
     "sortie.demo",
 )
 

@@ -1,0 +1,141 @@
+"""What every layer of the render client shades with: the sun, colours, fog, sky.
+
+One :class:`Frame` is built per rendered frame and handed to every layer's
+``draw``; :data:`GLSL_COMMON` is the shader code they share.
+
+Lighting (thesis §3.1.7 shades its clipmap with "simple phong lighting"): a
+directional sun plus a constant ambient term, Lambert diffuse
+(colour = albedo x (AMBIENT + SUN x max(n . l, 0)), the split of
+sortie/demo.py's hillshade: 0.35 + 0.65 x shade), and a Blinn-Phong specular
+highlight on water only (Blinn, "Models of light reflection for computer
+synthesized pictures", SIGGRAPH 1977). The sun is given by azimuth and
+elevation in the sky of the local origin and stays fixed in the local sky as
+the origin moves (no ephemeris).
+
+Colour by height and slope (virtual-terrain-generation: "points located
+above a limit and parts of steep mountains are colored like rocks, the rest
+like grass"): sortie/demo.py's hypsometric tint (green, brown, snow) on
+absolute heights MSL, blended to rock on slopes between ROCK_SLOPE_DEG. A
+fragment whose interpolated height is <= 0 m MSL is water (the seeds' rule:
+water at sea level; a DEM has no water mask).
+
+Fog: squared exponential, f = exp(-(density x distance)^2) (OpenGL 2.1
+specification, §3.10 "Fog", GL_EXP2), colour = mix(fog colour, lit colour,
+f), distance the Euclidean eye distance. The density makes the mesh's
+nearest far edge invisible to 8 bits (f = 1/255 there: density =
+sqrt(ln 255) / distance). GL_EXP2 rather than GL_EXP: hiding an edge at
+distance D with exp(-k d) already costs 25 % of the contrast at D / 4 and
+63 % at D / 2.3; exp(-(k d)^2) keeps 92 % at D / 4 and fades over the last
+half. The fog colour is the sky's horizon colour, so fogged terrain meets
+the sky seamlessly.
+
+Sky: an empirical gradient, not a physical model: horizon colour at and below
+the local horizontal, blending to the zenith colour as sin(elevation)^SKY_EXPONENT,
+plus a sun disc and glow (a cosine power). In test mode (``flat_sky_rgb``) the
+sky is one exact colour and fog is off, so a sky pixel is recognisable bit
+for bit (the holes check).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from client.render.camera import Camera, LocalOrigin
+
+DEFAULT_SUN_AZIMUTH_DEG = 315.0  # sortie/demo.py's hillshade: light from the north-west
+DEFAULT_SUN_ELEVATION_DEG = 45.0
+AMBIENT = 0.35
+SUN = 0.65
+FOG_EDGE_TRANSMITTANCE = 1.0 / 255.0  # what is left of the far edge's colour: below 8 bits
+SKY_ZENITH_RGB = (70, 120, 200)
+SKY_HORIZON_RGB = (190, 205, 220)  # also the fog colour
+SKY_EXPONENT = 0.5
+SUN_RGB = (255, 245, 225)
+# Hypsometric tint (sortie/demo.py's palette) at these heights MSL, linear between.
+TINT_LOW_RGB, TINT_MID_RGB, TINT_HIGH_RGB = (70, 120, 60), (170, 150, 100), (245, 245, 245)
+TINT_MID_M, TINT_HIGH_M = 1500.0, 3000.0
+ROCK_RGB = (125, 118, 110)
+ROCK_SLOPE_DEG = (30.0, 45.0)  # slope where rock starts, and where it is all rock
+WATER_RGB = (35, 75, 125)
+WATER_SHININESS = 64.0
+WATER_SPECULAR = 0.6
+
+
+def rgb(c) -> tuple[float, float, float]:
+    """0-255 integer colour -> 0-1 floats."""
+    return tuple(v / 255.0 for v in c)
+
+
+def sun_direction_local(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """(3,) unit vector towards the sun in local ENU (azimuth clockwise from north)."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
+
+
+def fog_density_per_m(edge_distance_m: float) -> float:
+    """GL_EXP2 fog density (1/m) whose transmittance is FOG_EDGE_TRANSMITTANCE at edge_distance_m."""
+    return math.sqrt(-math.log(FOG_EDGE_TRANSMITTANCE)) / edge_distance_m
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Everything a layer needs to draw one frame.
+
+    view: (4, 4) float64, local ENU -> view; projection: (4, 4) float64 reversed-Z;
+    camera_local: (3,) float64, the camera's local offset; up_local: (3,) the camera's
+    local vertical in the local frame; sun_local: (3,) unit vector to the sun; fog_density
+    1/m (0: no fog); fog_rgb and the sky colours 0-1 floats; flat_sky: test mode.
+    """
+
+    camera: Camera
+    origin: LocalOrigin
+    width: int
+    height: int
+    view: np.ndarray
+    projection: np.ndarray
+    camera_local: np.ndarray
+    up_local: np.ndarray
+    sun_local: np.ndarray
+    fog_density: float
+    fog_rgb: tuple
+    flat_sky_rgb: tuple | None
+
+    def write_common(self, program) -> None:
+        """Set the uniforms of GLSL_COMMON (those the program uses) and its matrices."""
+        values = {
+            "u_view": self.view.T.astype("f4").tobytes(),
+            "u_projection": self.projection.T.astype("f4").tobytes(),
+            "u_camera": self.camera_local.astype("f4").tobytes(),
+            "u_sun": self.sun_local.astype("f4").tobytes(),
+            "u_fog_density": np.float32(self.fog_density).tobytes(),
+            "u_fog_rgb": np.array(self.fog_rgb, "f4").tobytes(),
+        }
+        for name, data in values.items():
+            if name in program:
+                program[name].write(data)
+
+
+GLSL_COMMON = f"""
+uniform mat4 u_view;
+uniform mat4 u_projection;
+uniform vec3 u_camera;       // camera offset, local ENU metres
+uniform vec3 u_sun;          // unit vector to the sun, local ENU
+uniform float u_fog_density; // 1/m; 0 turns fog off
+uniform vec3 u_fog_rgb;
+
+const float AMBIENT = {AMBIENT};
+const float SUN = {SUN};
+
+vec3 lambert(vec3 albedo, vec3 n) {{
+    return albedo * (AMBIENT + SUN * max(dot(n, u_sun), 0.0));
+}}
+
+vec3 fogged(vec3 colour, vec3 world) {{
+    float kd = u_fog_density * length(world - u_camera);
+    float f = exp(-kd * kd);
+    return mix(u_fog_rgb, colour, f);
+}}
+"""

@@ -1,0 +1,332 @@
+"""``sortie render`` (one frame from a pose) and ``sortie view`` (a headless client that
+follows an agent of a running exercise and writes frames).
+
+    sortie render (--dem FILE... | --terrain HOST:PORT) --camera LAT,LON,ALT,HEADING,PITCH[,ROLL]
+                  --out frame.png [--size 960x540] [--fov-deg 60] [--window-km 20] [--horizon-km 80]
+    sortie view --server HOST:PORT (--follow AGENT_NAME | --agent-type aircraft|ground) [--chase]
+                [--dem FILE... | --terrain HOST:PORT] --frames N --fps F --out DIR [--size WxH]
+
+``sortie view`` joins as a **gateway** session by default: a gateway sees
+every entity of the exercise, so the followed agent never leaves the picture
+however far it flies, and no observer radius has to be guessed (the
+scenario's observer limit is not published in WorldInfo). ``--role observer``
+joins as an observer instead, centred on the first target area (or 0, 0)
+with ``--observe-radius-km`` (at most the scenario's observer radius). Without
+``--dem``/``--terrain`` the terrain is the server's own (WorldInfo.terrain:
+the same DEM files, or a client of the same terrain service). Each frame the
+followed agent's pose is dead-reckoned to the picture's estimate of world
+time now (client.sim_client.Picture); the camera sits at its eye (cockpit)
+or, with ``--chase``, behind and above it. A HUD line per frame goes to
+stdout; ``summary.json`` in --out holds the run's figures.
+
+Altitudes are metres MSL; N, the geoid undulation (ellipsoid = MSL + N),
+must be the server's for entities to sit on the terrain: ``sortie view``
+reads it from WorldInfo.geoid_undulation_m (0 from a server that does not
+send it) unless ``--geoid-undulation-m`` is given.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sortie.errors import InvalidArgument, NotFound
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SIZE = "960x540"
+# Cockpit eye in body axes (x forward, y right, z down), metres; chase offsets (back, up), metres.
+COCKPIT_EYE_BODY_M = {1: (0.0, 0.0, -1.0), 2: (0.0, 0.0, -3.0), 3: (0.0, 0.0, -12.0)}
+CHASE_BACK_UP_M = {1: (60.0, 15.0), 2: (30.0, 10.0), 3: (60.0, 30.0)}
+FOLLOW_WAIT_S = 15.0
+
+
+def add_parser(sub) -> None:
+    r = sub.add_parser("render", help="render one frame of the terrain from a camera pose (headless)",
+                       description="Render one frame (terrain mesh, sea, sky) from a pose to a PNG, headless "
+                                   "(EGL; Mesa llvmpipe without a GPU).")
+    _terrain_args(r, required=True)
+    r.add_argument("--camera", required=True, metavar="LAT,LON,ALT,HEADING,PITCH[,ROLL]",
+                   help="degrees, metres MSL, degrees (heading true, pitch nose up, roll right wing down)")
+    r.add_argument("--out", required=True, type=Path, help="PNG to write")
+    _view_args(r)
+    r.set_defaults(func=render_command)
+
+    v = sub.add_parser("view", help="headless render client: follow an agent of a running exercise",
+                       description="Join a simulation server, follow an agent's dead-reckoned pose (cockpit or "
+                                   "chase camera), draw the terrain and the other entities, write PNG frames, a "
+                                   "HUD line per frame and summary.json.")
+    v.add_argument("--server", required=True, metavar="HOST:PORT")
+    who = v.add_mutually_exclusive_group(required=True)
+    who.add_argument("--follow", metavar="AGENT_NAME", help="the agent's scenario name")
+    who.add_argument("--agent-type", choices=("aircraft", "ground"), help="follow the first agent of this kind")
+    v.add_argument("--chase", action="store_true", help="camera behind and above the agent (default: cockpit)")
+    _terrain_args(v, required=False)
+    v.add_argument("--frames", type=int, required=True, metavar="N")
+    v.add_argument("--fps", type=float, required=True, metavar="F", help="frames per wall second (at most)")
+    v.add_argument("--out", type=Path, required=True, metavar="DIR")
+    v.add_argument("--role", choices=("gateway", "observer"), default="gateway",
+                   help="session role (default %(default)s: sees every entity)")
+    v.add_argument("--observe-radius-km", type=float, default=100.0,
+                   help="observer role: radius of the area of interest (default %(default)s)")
+    v.add_argument("--name", default="render-client")
+    _view_args(v)
+    v.set_defaults(func=view_command)
+
+
+def _terrain_args(p, required: bool) -> None:
+    g = p.add_mutually_exclusive_group(required=required)
+    g.add_argument("--dem", nargs="+", metavar="FILE", help="DEM files, in priority order")
+    g.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service")
+
+
+def _view_args(p) -> None:
+    p.add_argument("--size", default=DEFAULT_SIZE, metavar="WxH", help="pixels (default %(default)s)")
+    p.add_argument("--fov-deg", type=float, default=60.0, help="horizontal field of view (default %(default)s)")
+    p.add_argument("--window-km", type=float, default=20.0,
+                   help="half-width of the full-resolution terrain window (default %(default)s)")
+    p.add_argument("--horizon-km", type=float, default=80.0,
+                   help="half-width of the coarser horizon ring, 0 for none (default %(default)s)")
+    p.add_argument("--geoid-undulation-m", type=float, default=None, metavar="N",
+                   help="ellipsoid height = MSL + N, metres (render: default 0; view: default the server's)")
+    p.add_argument("--no-fog", action="store_true")
+
+
+# -- argument parsing ----------------------------------------------------------------------------
+
+def parse_size(text: str) -> tuple[int, int]:
+    """"960x540" -> (960, 540)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InvalidArgument("--size", "expected WIDTHxHEIGHT in pixels, e.g. 960x540", value=text) from None
+    if not (w > 0 and h > 0):
+        raise InvalidArgument("--size", "width and height must be > 0", value=text)
+    return w, h
+
+
+def parse_pose(text: str) -> tuple[float, ...]:
+    """"LAT,LON,ALT,HEADING,PITCH[,ROLL]" -> six floats (roll 0 when absent)."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (5, 6) or not all(math.isfinite(v) for v in values):
+        raise InvalidArgument("--camera", "expected LAT,LON,ALT_MSL_M,HEADING_DEG,PITCH_DEG[,ROLL_DEG]", value=text)
+    return tuple(values + [0.0] * (6 - len(values)))
+
+
+def open_terrain(dem=None, service: str | None = None, world_terrain: str = ""):
+    """(terrain, description): DEM files in process, a terrain service client, or the server's
+    terrain as WorldInfo.terrain names it ("dem:<a>,<b>" or "service:<address>")."""
+    from server.sim_server import open_terrain_source
+
+    if not dem and not service and world_terrain:
+        kind, _, rest = world_terrain.partition(":")
+        if kind == "service":
+            service = rest
+        elif kind == "dem":
+            dem = [p for p in rest.split(",") if p]
+            missing = [p for p in dem if not Path(p).exists()]
+            if missing:
+                raise NotFound(f"the server's DEM files are not here: {', '.join(missing)}; give --dem or --terrain")
+    if service:
+        return open_terrain_source(service=service), f"service:{service}"
+    if dem:
+        return open_terrain_source(dem=dem), "dem:" + ",".join(map(str, dem))
+    raise InvalidArgument("--dem", "give --dem FILE... or --terrain HOST:PORT (the server names no terrain)")
+
+
+def _renderer(args, terrain, geoid_undulation_m: float):
+    from client.render.renderer import Renderer
+
+    w, h = parse_size(args.size)
+    return Renderer(terrain, w, h, window_m=args.window_km * 1000.0, horizon_m=args.horizon_km * 1000.0,
+                    geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog)
+
+
+def _close(terrain) -> None:
+    close = getattr(terrain, "close", None)
+    if close is not None:
+        close()
+
+
+# -- sortie render -------------------------------------------------------------------------------
+
+def render_command(args) -> int:
+    from PIL import Image
+
+    from client.render.camera import Camera
+
+    lat, lon, alt, heading, pitch, roll = parse_pose(args.camera)
+    undulation = args.geoid_undulation_m or 0.0
+    camera = Camera.from_geodetic(lat, lon, alt, heading, pitch, roll, geoid_undulation_m=undulation,
+                                  fov_x_deg=args.fov_deg)
+    terrain, desc = open_terrain(args.dem, args.terrain)
+    try:
+        with _renderer(args, terrain, undulation) as r:
+            image = r.render(camera)
+            s = r.stats
+    finally:
+        _close(terrain)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(image).save(args.out)
+    print(f"wrote {args.out} ({image.shape[1]}x{image.shape[0]}) from {desc}: {s.frame_ms:.0f} ms "
+          f"(terrain mesh {s.update_ms:.0f} ms), {s.triangles:,} triangles, {s.vertices:,} vertices", flush=True)
+    return 0
+
+
+# -- sortie view ---------------------------------------------------------------------------------
+
+def _pick(picture, name: str | None, kind: int | None):
+    """The id of the agent to follow in the picture (by name, or the lowest id of a kind), or None."""
+    for i in sorted(picture.infos):
+        info = picture.infos[i]
+        if (name is not None and info.name == name) or (name is None and info.kind == kind):
+            return i
+    return None
+
+
+def follow_camera(pos, quat, kind: int, chase: bool, fov_x_deg: float):
+    """The camera for a followed entity at pos (3,) ECEF with ECEF -> body quat (4,)."""
+    from client.render.camera import Camera, chase_camera, quat_to_matrix
+
+    r = quat_to_matrix(quat)
+    if chase:
+        back, up = CHASE_BACK_UP_M.get(kind, CHASE_BACK_UP_M[1])
+        return chase_camera(pos, r, back, up, fov_x_deg=fov_x_deg)
+    eye = np.asarray(pos, np.float64) + r @ np.asarray(COCKPIT_EYE_BODY_M.get(kind, (0.0, 0.0, 0.0)))
+    return Camera(eye, r, fov_x_deg=fov_x_deg)
+
+
+def _percentiles(values) -> dict:
+    v = np.asarray(values, np.float64)
+    if v.size == 0:
+        return {}
+    return {"mean": float(v.mean()), "median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
+            "max": float(v.max())}
+
+
+def view_command(args) -> int:
+    from client.render.entities import kind_from_name
+
+    if args.frames < 1:
+        raise InvalidArgument("--frames", "must be >= 1", value=args.frames)
+    if not (args.fps > 0):
+        raise InvalidArgument("--fps", "must be > 0", value=args.fps)
+    parse_size(args.size)
+    kind = None if args.agent_type is None else kind_from_name(args.agent_type)
+    stop = threading.Event()
+    previous = {}
+    if threading.current_thread() is threading.main_thread():  # SIGTERM/SIGINT end the run cleanly
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            previous[sig] = signal.signal(sig, lambda signum, frame: stop.set())
+    try:
+        return _view(args, kind, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _join(sim, args) -> None:
+    sim.wait_ready()
+    if args.role == "gateway":
+        sim.join(args.name, "gateway")
+        return
+    w = sim.world()
+    centre = ((float(np.mean(w.target_areas[0].lat_deg)), float(np.mean(w.target_areas[0].lon_deg)))
+              if w.target_areas else (0.0, 0.0))
+    sim.join(args.name, "observer", observer=(*centre, args.observe_radius_km * 1000.0))
+
+
+def _view(args, kind: int | None, stop: threading.Event) -> int:
+    from client.render.entities import KIND_NAMES
+    from client.sim_client import SimClient
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with SimClient(args.server) as sim:
+        _join(sim, args)
+        picture = sim.watch()
+        if not picture.wait_for(lambda p: _pick(p, args.follow, kind) is not None, FOLLOW_WAIT_S):
+            sim.leave()
+            what = f"agent {args.follow!r}" if args.follow else f"an agent of kind {args.agent_type}"
+            raise NotFound(f"{what} is not in the exercise (waited {FOLLOW_WAIT_S:g} s)")
+        target = _pick(picture, args.follow, kind)
+        info = picture.infos[target]
+        terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain)
+        undulation = (args.geoid_undulation_m if args.geoid_undulation_m is not None
+                      else float(getattr(sim.world_info, "geoid_undulation_m", 0.0)))
+        print(f"following {info.name!r} ({KIND_NAMES.get(int(info.kind), '?')} {info.type}, id {target}), "
+              f"{'chase' if args.chase else 'cockpit'} camera, terrain {desc}", flush=True)
+        try:
+            with _renderer(args, terrain, undulation) as r:
+                frames, stats, wall = _frames(args, picture, target, r, out, stop, undulation)
+        finally:
+            _close(terrain)
+        sim.leave()
+    summary = {
+        "server": args.server, "follow": info.name, "entity_id": int(target),
+        "kind": KIND_NAMES.get(int(info.kind), str(info.kind)), "camera": "chase" if args.chase else "cockpit",
+        "role": args.role, "terrain": desc, "geoid_undulation_m": undulation,
+        "size": list(parse_size(args.size)), "fov_x_deg": args.fov_deg,
+        "window_km": args.window_km, "horizon_km": args.horizon_km, "frames": len(frames),
+        "requested_frames": args.frames, "requested_fps": args.fps,
+        "achieved_fps": len(frames) / wall if frames and wall > 0 else 0.0,
+        **{key: _percentiles([s[key] for s in stats]) for key in ("frame_ms", "triangles", "vertices",
+                                                                  "entities_drawn")},
+        "mesh_rebuilds": stats[-1]["mesh_rebuilds"] if stats else 0,
+        "rebases": sum(bool(s["rebased"]) for s in stats),
+        "out": str(out), "pngs": frames, "per_frame": stats,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"{len(frames)} frames in {out}, summary {out / 'summary.json'}", flush=True)
+    return 0 if frames else 1
+
+
+def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Event, undulation: float):
+    """Render up to args.frames frames at most args.fps a wall second; (png paths, per-frame
+    stats dicts, wall seconds)."""
+    from PIL import Image
+
+    from client.render.camera import heading_pitch_roll_deg, quat_to_matrix
+    from client.render.entities import EntitySet
+    from terrain.geodesy import ecef_to_geodetic
+
+    info = picture.infos[target]
+    frames, stats = [], []
+    t_start = next_due = time.monotonic()
+    for k in range(args.frames):
+        if stop.is_set():
+            break
+        t = picture.now_s()
+        try:
+            _, pos, quat = picture.state(t, ids=[target])
+        except NotFound:
+            print(f"frame {k:04d}: {info.name!r} left the exercise", flush=True)
+            break
+        camera = follow_camera(pos[0], quat[0], int(info.kind), args.chase, args.fov_deg)
+        image = renderer.render(camera, EntitySet.from_picture(picture, t, exclude=() if args.chase else (target,)))
+        path = out / f"frame_{k:04d}.png"
+        Image.fromarray(image).save(path)
+        frames.append(str(path))
+        s = renderer.stats
+        lat, lon, h = (float(v) for v in ecef_to_geodetic(pos[0]))
+        hdg, pitch, roll = heading_pitch_roll_deg(pos[0], quat_to_matrix(quat[0]))
+        elapsed = time.monotonic() - t_start
+        stats.append({**s.as_dict(), "world_time_s": t, "wall_s": elapsed, "lat_deg": lat, "lon_deg": lon,
+                      "alt_msl_m": h - undulation, "heading_deg": hdg})
+        print(f"frame {k:04d} t={t:8.2f} s  fps {(k + 1) / max(elapsed, 1e-9):5.2f}  {s.frame_ms:6.1f} ms  "
+              f"tri {s.triangles:,}  entities {s.entities_drawn}  {info.name} {lat:.5f} {lon:.5f} "
+              f"{h - undulation:.0f} m hdg {hdg:.0f} pitch {pitch:.0f} roll {roll:.0f}", flush=True)
+        next_due = max(next_due + 1.0 / args.fps, time.monotonic())
+        if k + 1 < args.frames:
+            stop.wait(max(0.0, next_due - time.monotonic()))
+    return frames, stats, time.monotonic() - t_start
