@@ -24,6 +24,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 SCENARIO = REPO / "data" / "scenarios" / "alps.toml"
 WATCH_S = 12.0
+FOLLOW = "viper1"  # the render client's chase camera follows this aircraft
+VIEW_FRAMES, VIEW_FPS, VIEW_SIZE = 24, 3.0, "640x360"
 
 
 def _process(args: list[str], log: Path) -> tuple[subprocess.Popen, object]:
@@ -59,6 +61,23 @@ def _connect_tacview(port: int, path: Path, proc: subprocess.Popen):
             time.sleep(0.2)
 
 
+def _render_summary(frames_dir: Path, exit_code: int) -> dict:
+    """The render client's figures, and its frames as an animated GIF (Pillow) for a quick look."""
+    from PIL import Image
+
+    frames = sorted(frames_dir.glob("frame_*.png"))
+    summary = {"exit_code": exit_code, "frames": len(frames), "dir": str(frames_dir)}
+    info = frames_dir / "summary.json"
+    if info.exists():
+        summary["client"] = json.loads(info.read_text())
+    if frames:
+        images = [Image.open(f).convert("RGB") for f in frames]
+        gif = frames_dir / "flight.gif"
+        images[0].save(gif, save_all=True, append_images=images[1:], duration=int(1000 / VIEW_FPS), loop=0)
+        summary["gif"] = str(gif)
+    return summary
+
+
 def run_exercise(terrain_address: str, out: Path, console) -> dict:
     from rich.table import Table
 
@@ -85,6 +104,12 @@ def run_exercise(terrain_address: str, out: Path, console) -> dict:
             ground = float(tc.heights(np.array([PEER_START[0]]), np.array([PEER_START[1]])).height_msl_m[0])
         peer = DisPeer(dis_port, terrain_height_m=ground).start()
         capture = _connect_tacview(tacview_port, out / "tacview-live.acmi", tacview_proc)
+        frames_dir = out / "frames"
+        view_args = ["view", "--server", server.address, "--follow", FOLLOW, "--chase", "--terrain", terrain_address,
+                     "--frames", str(VIEW_FRAMES), "--fps", str(VIEW_FPS), "--size", VIEW_SIZE, "--out",
+                     str(frames_dir)]
+        console.print(f"[bold]render client[/]: sortie {' '.join(view_args)}")
+        view_proc, view_log = _process(view_args, out / "render-client.log")
         bots_log = open(out / "bots.log", "w")
         bots = subprocess.Popen([*sortie_command(), "bot", "--server", server.address, "--count", "2",
                                  "--duration", str(WATCH_S), "--leg-s", "4"], stdout=bots_log,
@@ -118,6 +143,11 @@ def run_exercise(terrain_address: str, out: Path, console) -> dict:
         bots.wait(timeout=60.0)
         bots_log.close()
         summary["bots"] = (out / "bots.log").read_text().strip().splitlines()
+        try:
+            view_proc.wait(timeout=120.0)
+        except subprocess.TimeoutExpired:
+            pass
+        summary["render"] = _render_summary(frames_dir, _stop(view_proc, view_log))
         summary["tacview"] = capture.close()
         summary["tacview"]["telemetry_exit_code"] = _stop(tacview_proc, tacview_log)
         gateway_exit = _stop(dis_proc, dis_log)  # its last PDUs deactivate every entity it sent
@@ -143,6 +173,9 @@ def run_exercise(terrain_address: str, out: Path, console) -> dict:
     console.print(f"DIS: the peer received {d['pdus_from_exercise']} PDUs about {d['entities_from_exercise']} "
                   f"entities ({d['deactivated_on_stop']} deactivated at stop), sent {d['peer_pdus_sent']} about its "
                   f"tank; {checked}; capture {d['pcap']}")
+    rs = summary["render"]
+    console.print(f"render client: {rs['frames']} frames following {FOLLOW} (chase camera) in {rs['dir']}"
+                  + (f", animation {rs['gif']}" if "gif" in rs else ""))
     console.print(f"Tacview: {tv['frames']} live frames, {tv['objects']} objects, {tv['bytes']:,} bytes of ACMI "
                   f"-> {tv['acmi']}")
     (out / "exercise.json").write_text(json.dumps(summary, indent=2) + "\n")
