@@ -9,17 +9,35 @@ carrying the server's message ("lat_deg[7]: must be within [-90, 90] degrees").
 
 Argument order is always (lat, lon), degrees WGS84; heights are metres above
 mean sea level.
+
+Replicas. ``TerrainClient("host1:port,host2:port")`` spreads its calls over
+several replicas of one terrain service through a single gRPC channel: the
+addresses become one static target (``ipv4:a:p,b:p``; host names are resolved
+once, here, and a name with several addresses contributes them all), with
+gRPC's ``round_robin`` policy, client-side health checking (a replica leaves
+the rotation as soon as its health says NOT_SERVING, i.e. when it starts to
+drain on SIGTERM) and a retry policy for UNAVAILABLE (a replica that died
+with calls in flight: they are sent again to another one); a call gRPC does
+not retry because the dead replica had begun to answer is sent once more by
+the client. Terrain queries are read-only, so a repeated call is harmless.
+See :func:`replica_service_config` for the numbers and docs/DEPLOYMENT.md for
+what was measured. One address behaves as it always has: a plain channel, no
+retries.
 """
 
 from __future__ import annotations
 
+import ipaddress
+import json
 import re
+import socket
+import threading
 from collections import deque
 
 import grpc
 import numpy as np
 
-from server.grpc_common import channel_options
+from server.grpc_common import MAX_MESSAGE_BYTES, channel_options
 from server.terrain_service import DESCRIBE_TO_FIELD, MAX_HEIGHT_POINTS, RPCS, SERVICE_NAME, serializers
 from sortie.errors import (DataFormatError, InvalidArgument, LimitExceeded, NotFound, PermissionDenied, SortieError,
                            Unauthenticated)
@@ -38,6 +56,20 @@ DEFAULT_TIMEOUT_S = 30.0
 CHUNK_POINTS = MAX_HEIGHT_POINTS
 CHUNK_RAYS = 8_192
 MAX_IN_FLIGHT = 4
+
+# Retries of a call to replicas (gRFC A6 retryPolicy): up to RETRY_MAX_ATTEMPTS
+# attempts in all, the n-th retry after a random wait in [0, min(initial x
+# multiplier^(n-1), max)] seconds: at most 0.75 s of waiting when every replica
+# is down, 25 ms on average before the first retry (to a live replica). The
+# deadline (timeout_s) covers every attempt.
+RETRY_MAX_ATTEMPTS = 5
+RETRY_INITIAL_BACKOFF_S = 0.05
+RETRY_MAX_BACKOFF_S = 1.0
+RETRY_BACKOFF_MULTIPLIER = 2.0
+# A request is kept for a retry only while it fits this buffer: gRPC's default, 256 KiB
+# a call, is less than a 16,384-point height batch (such calls failed when a replica was
+# killed); requests are at most MAX_MESSAGE_BYTES.
+RETRY_BUFFER_PER_CALL_BYTES = MAX_MESSAGE_BYTES
 
 
 class ServiceError(SortieError):
@@ -105,13 +137,83 @@ def metadata_dict(msg: pb.GetMetadataResponse) -> dict:
     }
 
 
+def replica_service_config() -> dict:
+    """The gRPC service config of a channel to several replicas: round robin over the
+    healthy ones, UNAVAILABLE retried (see the RETRY_* constants)."""
+    return {
+        "loadBalancingConfig": [{"round_robin": {}}],
+        "healthCheckConfig": {"serviceName": SERVICE_NAME},
+        "methodConfig": [{
+            "name": [{"service": SERVICE_NAME}],
+            "retryPolicy": {
+                "maxAttempts": RETRY_MAX_ATTEMPTS,
+                "initialBackoff": f"{RETRY_INITIAL_BACKOFF_S}s",
+                "maxBackoff": f"{RETRY_MAX_BACKOFF_S}s",
+                "backoffMultiplier": RETRY_BACKOFF_MULTIPLIER,
+                "retryableStatusCodes": ["UNAVAILABLE"],
+            },
+        }],
+    }
+
+
+def _split_address(entry: str) -> tuple[str, int]:
+    """("host", port) of "host:port" or "[v6]:port"; InvalidArgument naming the entry."""
+    host, sep, port = entry.rpartition(":")
+    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not bare or (":" in bare and bare == host) or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise InvalidArgument("address", 'each replica must be "host:port" with a port in [1, 65535] '
+                                         '("[::1]:50051" for IPv6)', value=entry)
+    return bare, int(port)
+
+
+def _ips(host: str, port: int) -> dict[int, list[str]]:
+    """{address family: [IP, ...]} of a literal IP or a host name (resolved now)."""
+    try:
+        ip = ipaddress.ip_address(host)
+        return {socket.AF_INET if ip.version == 4 else socket.AF_INET6: [str(ip)]}
+    except ValueError:
+        pass
+    try:
+        infos = socket.getaddrinfo(host, port, proto=socket.IPPROTO_TCP)
+    except socket.gaierror as exc:
+        raise ServiceError(grpc.StatusCode.UNAVAILABLE, f"cannot resolve terrain replica {host!r}: {exc}") from None
+    out: dict[int, list[str]] = {}
+    for family, _, _, _, sockaddr in infos:
+        if family in (socket.AF_INET, socket.AF_INET6) and sockaddr[0] not in out.get(family, []):
+            out.setdefault(family, []).append(sockaddr[0])
+    return out
+
+
+def replica_target(addresses: str) -> str:
+    """The gRPC target of a comma-separated list of "host:port" replicas:
+    ``ipv4:ip:port,...`` (or ``ipv6:[ip]:port,...`` when some replica has no IPv4
+    address). Host names are resolved now; a name with several addresses gives
+    them all. InvalidArgument for a malformed entry or a list mixing replicas
+    reachable only over IPv4 with some reachable only over IPv6."""
+    entries = [e.strip() for e in addresses.split(",")]
+    if any(not e for e in entries):
+        raise InvalidArgument("address", "empty entry in the list of replicas", value=addresses)
+    resolved = [(port, _ips(host, port)) for host, port in map(_split_address, entries)]
+    for family, scheme in ((socket.AF_INET, "ipv4"), (socket.AF_INET6, "ipv6")):
+        if all(family in ips for _, ips in resolved):
+            targets = [f"{ip}:{port}" if family == socket.AF_INET else f"[{ip}]:{port}"
+                       for port, ips in resolved for ip in ips[family]]
+            return f"{scheme}:" + ",".join(dict.fromkeys(targets))
+    raise InvalidArgument("address", "the replicas must share an address family (all IPv4 or all IPv6)",
+                          value=addresses)
+
+
 class TerrainClient:
     """A connection to a terrain service; use as a context manager or call close().
 
-    address: "host:port". timeout_s: deadline of each call, seconds. Methods
-    take (n,) array-likes (scalars are one point) and return the Terrain's
-    result dataclasses with numpy arrays. Thread-safe: many threads (bots) may
-    share one client.
+    address: "host:port", or "host:port,host:port,..." for replicas of one
+    terrain (round robin, retries; see the module docstring). timeout_s:
+    deadline of each call, seconds (gRPC's retries included; a call sent again
+    after UNAVAILABLE gets a deadline of its own). Methods take (n,)
+    array-likes (scalars are one point) and return the Terrain's result
+    dataclasses with numpy arrays. Thread-safe: many threads (bots) may share
+    one client. ``target`` is the channel's gRPC target; ``resent_calls`` counts
+    the calls a client of replicas sent again after UNAVAILABLE.
     """
 
     def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S, chunk_points: int = CHUNK_POINTS,
@@ -125,7 +227,19 @@ class TerrainClient:
         self.chunk_points = chunk_points
         self.chunk_rays = chunk_rays
         self.max_in_flight = max_in_flight
-        self._channel = grpc.insecure_channel(address, options=channel_options())
+        self.replicated = "," in address
+        self.resent_calls = 0
+        self._resent_lock = threading.Lock()
+        if self.replicated:
+            self.target = replica_target(address)
+            options = channel_options() + [
+                ("grpc.service_config", json.dumps(replica_service_config())),
+                ("grpc.enable_retries", 1),
+                ("grpc.per_rpc_retry_buffer_size", RETRY_BUFFER_PER_CALL_BYTES),
+            ]
+        else:
+            self.target, options = address, channel_options()
+        self._channel = grpc.insecure_channel(self.target, options=options)
         self._calls = {}
         for rpc in RPCS:
             request_serializer, _, _, response_deserializer = serializers(rpc)
@@ -156,7 +270,26 @@ class TerrainClient:
         try:
             return self._calls[rpc](request, timeout=self.timeout_s)
         except grpc.RpcError as exc:
-            raise error_from_rpc(exc) from None
+            return self._resend_or_raise(rpc, request, exc)
+
+    def _resend_or_raise(self, rpc: str, request, exc: grpc.RpcError):
+        """After a failed call: when it failed UNAVAILABLE on a client of replicas, the
+        answer to ``request`` sent once more; otherwise, or if that fails too, the failure
+        as a sortie.errors exception.
+
+        gRPC's retry policy never retries a call once its response has begun to arrive
+        (it cannot know the call is safe to repeat), so a replica killed while sending an
+        answer fails that call (an unretried UNAVAILABLE was seen once in about twenty
+        SIGKILLs in tests/test_terrain_replicas.py). Terrain queries are read-only:
+        sending it again is safe, and round robin sends it to another replica."""
+        if self.replicated and exc.code() == grpc.StatusCode.UNAVAILABLE:
+            with self._resent_lock:
+                self.resent_calls += 1
+            try:
+                return self._calls[rpc](request, timeout=self.timeout_s)
+            except grpc.RpcError as again:
+                exc = again
+        raise error_from_rpc(exc) from None
 
     def _call_chunked(self, rpc: str, request: dict, chunk: int) -> dict:
         """One logical call over parallel arrays, sent as pipelined chunks of at most ``chunk``.
@@ -174,13 +307,17 @@ class TerrainClient:
         pending: deque = deque()
 
         def collect() -> None:
-            k, future = pending.popleft()
+            k, future, part = pending.popleft()
             try:
                 parts[k] = future.result()
             except grpc.RpcError as exc:
-                for _, other in pending:
+                try:
+                    parts[k] = self._resend_or_raise(rpc, part, exc)
+                    return
+                except SortieError as failure:
+                    error = failure
+                for _, other, _ in pending:
                     other.cancel()
-                error = error_from_rpc(exc)
                 if isinstance(error, InvalidArgument) and error.index is not None:
                     text = str(error).split(": ", 1)[1]
                     error = InvalidArgument(error.field, text, index=error.index + starts[k])
@@ -190,8 +327,8 @@ class TerrainClient:
         for k, s in enumerate(starts):
             if len(pending) >= self.max_in_flight:
                 collect()
-            pending.append((k, call.future({name: v[s:s + chunk] for name, v in request.items()},
-                                           timeout=self.timeout_s)))
+            part = {name: v[s:s + chunk] for name, v in request.items()}
+            pending.append((k, call.future(part, timeout=self.timeout_s), part))
         while pending:
             collect()
         first = parts[0]

@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "server.export_cli",
     "server.dis_gateway",
     "server.tacview_live",
+    "server.health_cli",
     "client.render_cli",
     "sortie.demo",
 )
