@@ -84,7 +84,7 @@ def add_parser(sub) -> None:
 def _terrain_args(p, required: bool) -> None:
     g = p.add_mutually_exclusive_group(required=required)
     g.add_argument("--dem", nargs="+", metavar="FILE", help="DEM files, in priority order")
-    g.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service")
+    g.add_argument("--terrain", metavar="HOST:PORT[,HOST:PORT...]", help="a terrain service (or replicas of one)")
 
 
 def _view_args(p) -> None:

@@ -38,7 +38,8 @@ def add_parser(sub) -> None:
     r.add_argument("file", help="a .sortie recording")
     terrain = r.add_mutually_exclusive_group()
     terrain.add_argument("--dem", nargs="+", metavar="FILE", help="the DEM files (default: the recorded ones)")
-    terrain.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service serving the recorded DEMs")
+    terrain.add_argument("--terrain", metavar="HOST:PORT[,HOST:PORT...]",
+                         help="a terrain service (or replicas of one) serving the recorded DEMs")
     r.add_argument("--until", type=float, metavar="S", help="stop at world time S")
     r.add_argument("--aircraft-workers", default="0", metavar="N|auto",
                    help="processes for the aircraft (default %(default)s: in process; results are identical)")

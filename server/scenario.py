@@ -657,12 +657,15 @@ def _dem_path(value, path: str, base_dir: Path) -> Path:
 
 
 def _address(value: str, path: str) -> str:
-    host, sep, port = value.rpartition(":")
-    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    unbracketed_ipv6 = ":" in host and bare == host
-    if not sep or not bare or unbracketed_ipv6 or not port.isdigit() or not 1 <= int(port) <= 65535:
-        raise ScenarioError(path, 'must be "host:port" with a port in [1, 65535] ("[::1]:50051" for IPv6)',
-                            value=value)
+    """ "host:port", or a comma list of them (replicas of one terrain service:
+    client/terrain_client.py)."""
+    for entry in value.split(","):
+        host, sep, port = entry.strip().rpartition(":")
+        bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+        unbracketed_ipv6 = ":" in host and bare == host
+        if not sep or not bare or unbracketed_ipv6 or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise ScenarioError(path, 'must be "host:port" with a port in [1, 65535] ("[::1]:50051" for IPv6), '
+                                      'or a comma list of them (replicas)', value=value)
     return value
 
 

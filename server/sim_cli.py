@@ -31,7 +31,8 @@ def add_parser(sub) -> None:
     p.add_argument("--scenario", required=True, metavar="FILE", help="scenario TOML (see server/scenario.py)")
     terrain = p.add_mutually_exclusive_group()
     terrain.add_argument("--dem", nargs="+", metavar="FILE", help="DEM files instead of the scenario's terrain")
-    terrain.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service instead of the scenario's terrain")
+    terrain.add_argument("--terrain", metavar="HOST:PORT[,HOST:PORT...]",
+                         help="a terrain service (or replicas of one, round robin) instead of the scenario's terrain")
     p.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
     p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")

@@ -33,7 +33,13 @@ COMMAND_MODULES = (
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
+# Commands whose parser is built alone when they are the one run: health checks run
+# every few seconds in every container, and loading every command's module (numba,
+# the flight model) costs ~1 s of CPU; `sortie health` alone imports gRPC.
+LIGHT_COMMANDS = {"health": "server.health_cli"}
+
+
+def build_parser(modules=COMMAND_MODULES) -> argparse.ArgumentParser:
     import importlib
 
     parser = argparse.ArgumentParser(
@@ -48,17 +54,27 @@ def build_parser() -> argparse.ArgumentParser:
                         help="TOML file of option defaults, a table per command (see sortie/config.py); "
                              "every option can also be set as SORTIE_<COMMAND>_<OPTION> in the environment")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMAND_MODULES:
+    for name in modules:
         importlib.import_module(name).add_parser(sub)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def _pre_parse(argv) -> argparse.Namespace:
+    """The global options and the command's name, before any command module is loaded."""
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--config")
+    pre.add_argument("-v", "--verbose", action="count")
+    pre.add_argument("--log-format")
+    pre.add_argument("command", nargs="?")
+    return pre.parse_known_args(argv)[0]
+
+
+def main(argv: list[str] | None = None) -> int:
+    pre = _pre_parse(argv)
+    light = LIGHT_COMMANDS.get(pre.command)
+    parser = build_parser((light,) if light else COMMAND_MODULES)
     try:
-        config.apply(parser, pre.parse_known_args(argv)[0].config)
+        config.apply(parser, pre.config, strict=light is None)
     except SortieError as exc:
         print(f"sortie: configuration error: {exc}", file=sys.stderr)
         return 2

@@ -129,15 +129,24 @@ def _check_tables(table: dict, commands: dict, where: str, path: tuple = ()) -> 
                                   f"is not an option of sortie{''.join(' ' + p for p in path)}")
 
 
-def apply(parser: argparse.ArgumentParser, config_path: str | None = None, environ=None) -> None:
+def apply(parser: argparse.ArgumentParser, config_path: str | None = None, environ=None,
+          strict: bool = True) -> None:
     """Set the defaults of every command's options from the environment and the config
     file (see the module docstring); an option given so is no longer required on the
-    command line."""
+    command line. ``strict``: refuse tables and keys that name no command or option
+    (False when ``parser`` holds only the command being run: the others' tables are
+    not its business)."""
     environ = os.environ if environ is None else environ
     config_path = config_path or environ.get(ENV_PREFIX + "CONFIG")
     config = read_config_file(config_path) if config_path else {}
     commands = {(): parser, **dict(command_parsers(parser))}  # () = the global options
-    _check_tables(config, commands, str(config_path))
+    if strict:
+        _check_tables(config, commands, str(config_path))
+    else:  # only the tables of the commands at hand, and the global options
+        for path in commands:
+            table = _table(config, path) if path else {k: v for k, v in config.items() if not isinstance(v, dict)}
+            if isinstance(table, dict):
+                _check_tables(table, commands, str(config_path), path)
     for path, sub in commands.items():
         table = _table(config, path) or {}
         for dest, action in _options(sub).items():

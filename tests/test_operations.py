@@ -207,3 +207,19 @@ def test_bots_run_until_sigterm_then_leave_cleanly(hgt_alps):
                 if bots.poll() is None:
                     bots.kill()
                 bots.wait()
+
+
+def test_health_loads_alone_and_reads_its_own_configuration(tmp_path, capsys):
+    import sys
+
+    from sortie.cli import main
+
+    path = tmp_path / "sortie.toml"
+    path.write_text("[server]\nport = 1\n[health]\ntimeout-s = 0.5\n")
+    port = free_port()  # nothing listens there
+    before = set(sys.modules)
+    assert main(["--config", str(path), "health", f"127.0.0.1:{port}"]) == 1
+    assert "UNAVAILABLE" in capsys.readouterr().out
+    assert not {"server.sim_cli", "server.terrain_cli"} & (set(sys.modules) - before)
+    path.write_text("[health]\ntimeout_z = 0.5\n")  # its own table is still checked
+    assert main(["--config", str(path), "health", f"127.0.0.1:{port}"]) == 2

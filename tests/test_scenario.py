@@ -251,10 +251,10 @@ def test_dem_paths_are_relative_to_the_scenario_file(tmp_path):
 
 
 def test_terrain_service_address():
-    for address in ("localhost:50051", "10.0.0.7:1", "[::1]:50051"):
+    for address in ("localhost:50051", "10.0.0.7:1", "[::1]:50051", "terrain:50061,terrain2:50061"):
         doc = mutated("terrain", {"service": address, "geoid_undulation_m": 48.0})
         assert parse_scenario(doc, EXAMPLE.parent).terrain.service == address
-    for address in ("localhost", ":50051", "host:0", "host:port", "::1:50051"):
+    for address in ("localhost", ":50051", "host:0", "host:port", "::1:50051", "a:1,", "a:1,b"):
         with pytest.raises(ScenarioError, match=r"^terrain\.service: must be \"host:port\""):
             parse_scenario(mutated("terrain", {"service": address}), EXAMPLE.parent)
 
