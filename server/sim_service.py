@@ -238,15 +238,20 @@ class SimulationServicer:
         sub = getattr(msg, which)
         self.world.command(s.agent_id, which, {f.name: v for f, v in sub.ListFields()})
 
-    async def SendControls(self, request_iterator, context):
+    async def _consume(self, request_iterator, context, handle, response_class):
+        """A client stream: each message handled in turn (on the thread pool); the first
+        failure ends the stream with its status; else ``response_class(accepted=n)``."""
         accepted = 0
         try:
             async for msg in request_iterator:
-                await self._offload(self._command, msg)
+                await self._offload(handle, msg)
                 accepted += 1
-            return pb.SendControlsResponse(accepted=accepted)
-        except Exception as exc:  # noqa: BLE001
+            return response_class(accepted=accepted)
+        except Exception as exc:  # noqa: BLE001 - every error becomes a status
             await self._fail(context, exc)
+
+    async def SendControls(self, request_iterator, context):
+        return await self._consume(request_iterator, context, self._command, pb.SendControlsResponse)
 
     def _publish_external(self, msg) -> None:
         s = self.sessions.get(msg.session_token)
@@ -270,14 +275,7 @@ class SimulationServicer:
                                     msg.coalition or "neutral")
 
     async def PublishExternal(self, request_iterator, context):
-        accepted = 0
-        try:
-            async for msg in request_iterator:
-                await self._offload(self._publish_external, msg)
-                accepted += 1
-            return pb.PublishExternalResponse(accepted=accepted)
-        except Exception as exc:  # noqa: BLE001
-            await self._fail(context, exc)
+        return await self._consume(request_iterator, context, self._publish_external, pb.PublishExternalResponse)
 
     async def Watch(self, request, context):
         try:

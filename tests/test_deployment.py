@@ -36,9 +36,9 @@ from server.process import ServiceProcess, free_port, sortie_command
 
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = REPO / "docker-compose.yml"
-SERVICES = {"terrain", "terrain2", "server", "bots", "dis", "tacview", "replay"}
-CLIENTS = {"bots", "dis", "tacview"}  # no health check: they serve no gRPC
-GATEWAYS = ("dis", "tacview")  # another issue's commands: run only when this checkout has them
+SERVICES = {"terrain", "terrain2", "server", "bots", "dis", "tacview", "render", "replay"}
+CLIENTS = {"bots", "dis", "tacview", "render"}  # no health check: they serve no gRPC
+RENDER_FRAMES = 3
 EXERCISE_S = 4.0  # wall seconds the exercise runs with every service up
 BOTS = 2
 HEALTH_POLL_S = 1.0
@@ -207,10 +207,6 @@ def _start_order(services: dict) -> list[str]:
     return order
 
 
-def _has_command(name: str) -> bool:
-    return subprocess.run([*sortie_command(), name, "--help"], capture_output=True, timeout=60).returncode == 0
-
-
 def _metric(port: int, pattern: str) -> float:
     """Sum of the samples of a Prometheus page whose line matches ``pattern``."""
     text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
@@ -262,7 +258,7 @@ def test_compose_topology_runs_as_local_processes(tmp_path, dem_dir):
         "SERVER_AIRCRAFT_WORKERS": "1",  # the worker process opens the replicas too
         "SORTIE_SERVER": server, "DIS_SERVER": server, "DIS_PORT": str(ports["dis"]),
         "TACVIEW_PORT": str(ports["tacview"]), "REPLAY_PORT": str(ports["replay"]),
-        "BOT_COUNT": str(BOTS),
+        "BOT_COUNT": str(BOTS), "RENDER_FRAMES": str(RENDER_FRAMES), "RENDER_SIZE": "320x180",
     }
     r = _config(variables)
     assert r.returncode == 0, r.stderr
@@ -270,8 +266,7 @@ def test_compose_topology_runs_as_local_processes(tmp_path, dem_dir):
     base_env = {**_clean_environ(), "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     entrypoint = _dockerfile_entrypoint()
     assert entrypoint == ["sortie"]
-    skipped = {g for g in GATEWAYS if not _has_command(g)}
-    exercise = [n for n in _start_order(specs) if "profiles" not in specs[n] and n not in skipped]
+    exercise = [n for n in _start_order(specs) if "profiles" not in specs[n]]
     services = {n: LocalService(n, specs[n], entrypoint, base_env, tmp_path) for n in (*exercise, "replay")}
     recordings = tmp_path / "volumes" / "recordings"
     started: list[LocalService] = []
@@ -302,13 +297,13 @@ def test_compose_topology_runs_as_local_processes(tmp_path, dem_dir):
             stops[svc.name] = svc.stop()
         timings.update({f"{n} stopped": round(s, 2) for n, (_, s) in stops.items()})
         for svc in started:
-            if svc.name in GATEWAYS:
-                continue  # another issue's services: their own tests hold them to account
             code, seconds = stops[svc.name]
             assert code == 0, f"{svc.name}: exit {code} after SIGTERM ({seconds:.1f} s, grace {svc.grace_s} s):\n" \
                               f"{svc.output()}"
         out = services["bots"].output()
         assert out.count("commands accepted") == BOTS, out
+        frames = sorted((tmp_path / "volumes" / "frames").glob("frame_*.png"))
+        assert len(frames) == RENDER_FRAMES, services["render"].output()
         check = subprocess.run([*sortie_command(), "recording", "check", str(files[0])],
                                capture_output=True, text=True, timeout=120)
         assert check.returncode == 0 and "footer yes" in check.stdout, check.stdout + check.stderr
@@ -334,5 +329,4 @@ def test_compose_topology_runs_as_local_processes(tmp_path, dem_dir):
             if svc.proc.poll() is None:
                 svc.proc.kill()
                 svc.proc.wait()
-    print(f"\ncompose topology as processes in {time.monotonic() - t_test:.1f} s "
-          f"(gateways not in this checkout: {sorted(skipped) or 'none'}): {timings}")
+    print(f"\ncompose topology as processes in {time.monotonic() - t_test:.1f} s: {timings}")
