@@ -327,12 +327,9 @@ void main() {
 }
 """
 
-TERRAIN_FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + f"""
-in vec3 v_world;
-in vec3 v_normal;
-in float v_height;
-in float v_cos_slope;
-out vec4 out_colour;
+# The terrain's colour and lighting at a point (local ENU world position, unit normal, height
+# MSL, cosine of the slope), shared by every terrain layer (this mesh, the clipmap).
+TERRAIN_COLOUR_GLSL = f"""
 const vec3 TINT_LOW = vec3{rgb(TINT_LOW_RGB)};
 const vec3 TINT_MID = vec3{rgb(TINT_MID_RGB)};
 const vec3 TINT_HIGH = vec3{rgb(TINT_HIGH_RGB)};
@@ -342,21 +339,31 @@ const float MID_M = {TINT_MID_M};
 const float HIGH_M = {TINT_HIGH_M};
 const float ROCK_COS_START = {math.cos(math.radians(ROCK_SLOPE_DEG[0]))};
 const float ROCK_COS_FULL = {math.cos(math.radians(ROCK_SLOPE_DEG[1]))};
-void main() {{
-    vec3 n = normalize(v_normal);
+vec3 terrain_colour(vec3 world, vec3 n, float height, float cos_slope) {{
     vec3 colour;
-    if (v_height <= 0.0) {{  // water at sea level
-        vec3 to_eye = normalize(u_camera - v_world);
+    if (height <= 0.0) {{  // water at sea level
+        vec3 to_eye = normalize(u_camera - world);
         float spec = pow(max(dot(n, normalize(u_sun + to_eye)), 0.0), {WATER_SHININESS});
         colour = lambert(WATER, n) + {WATER_SPECULAR} * spec;
     }} else {{
-        vec3 tint = v_height < MID_M ? mix(TINT_LOW, TINT_MID, v_height / MID_M)
-                                     : mix(TINT_MID, TINT_HIGH, clamp((v_height - MID_M) / (HIGH_M - MID_M), 0.0, 1.0));
-        float rock = smoothstep(ROCK_COS_START, ROCK_COS_FULL, v_cos_slope);
+        vec3 tint = height < MID_M ? mix(TINT_LOW, TINT_MID, height / MID_M)
+                                   : mix(TINT_MID, TINT_HIGH, clamp((height - MID_M) / (HIGH_M - MID_M), 0.0, 1.0));
+        float rock = smoothstep(ROCK_COS_START, ROCK_COS_FULL, cos_slope);
         colour = lambert(mix(tint, ROCK, rock), n);
     }}
-    out_colour = vec4(fogged(colour, v_world), 1.0);
+    return fogged(colour, world);
 }}
+"""
+
+TERRAIN_FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + TERRAIN_COLOUR_GLSL + """
+in vec3 v_world;
+in vec3 v_normal;
+in float v_height;
+in float v_cos_slope;
+out vec4 out_colour;
+void main() {
+    out_colour = vec4(terrain_colour(v_world, normalize(v_normal), v_height, v_cos_slope), 1.0);
+}
 """
 
 

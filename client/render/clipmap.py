@@ -1,0 +1,374 @@
+"""Geometry clipmap data: nested levels of posts around a focus, stored toroidally.
+
+The CPU side of the clipmap terrain layer (client/render/clipmap_layer.py draws
+it); pure numpy, no GL, so the tests can compare it with a rebuild bit for bit.
+Thesis: ../shared/seeds/clipmaps-jsbsim-thesis.txt §3.1 (after Losasso and
+Hoppe, "Geometry clipmaps", SIGGRAPH 2004).
+
+**Lattice.** Level k (0 the finest, L - 1 the coarsest) has posts at
+``lat = lat0 + i dlat 2^k``, ``lon = lon0 + j dlon 2^k`` for integers i, j:
+the terrain's own post lattice (its first source's; client/render/terrain_mesh
+``lattice_for``) scaled by a power of two, so level k + 1's post (i, j) is level
+k's post (2i, 2j) and the levels nest exactly (thesis §3.1.2, "power-of-two
+spacing"). A profile may start finer than the DEM (the terrain's fractal
+detail, or bilinear, answers there).
+
+**Regions** (thesis §3.1.2). A level's *clip region* is the n x n posts
+(n = 2^m - 1) it holds: rows i0 .. i0 + n - 1, columns j0 .. j0 + n - 1, with
+i0 and j0 even so that its corners are posts of the coarser level. Its
+*active region* is the n x n square centred on the focus (snapped to even
+indices); an update moves the clip region onto it. What is drawn (its *render
+region*) is the clip region, cropped to lie inside the coarser level's drawn
+region (a level that fell behind), minus the finer level's drawn region (the
+hole): :func:`drawn_regions`, :func:`ring_rects`.
+
+**Toroidal storage** (thesis §3.1.3). Post (i, j) of a level lives at texel
+(i mod n, j mod n) of that level's arrays, so moving the clip region writes
+only the L-shaped strips it uncovered (:func:`uncovered_rects`), split at the
+wrap (:func:`toroidal_pieces`); storage is allocated once.
+
+**What a post stores.** Its ECEF position in float64 (``pos_ecef``) and, for
+the GPU, its offset from the level's own float64 origin as float32 plus its
+height MSL (``texel``, RGBA32F). A level's origin is set when the level is
+filled and moved (offsets recomputed from the float64 copy, no terrain query)
+once the clip region has drifted ORIGIN_DRIFT_EXTENTS of its extent from it,
+so a float32 offset never exceeds a few level extents: the precision of the
+geometry scales with the level's spacing (global-terrain-flight-sim §6). The
+normal map holds 2 x 2 normals per post (thesis §3.1.7: "at least twice the
+resolution of the geometry"), ECEF unit vectors at the half-lattice points,
+stored toroidally the same way with period 2n.
+
+**Sample budget** (thesis §3.1.4). :meth:`Clipmap.update` processes levels
+coarse to fine, each moved whole onto its active region, until the frame's
+budget of terrain samples (heights + normals) is spent; the finer levels then
+keep their old regions (they fall behind and are cropped by the coarser at
+draw time). A level that must move does so even over budget when it is the
+first of the frame, so the coarsest always keeps up.
+
+Posts the terrain does not cover (height NaN) are stored at MSL 0 with an up
+normal: they draw as water at sea level, as the sea shell does around them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sortie.errors import InvalidArgument
+from terrain.geodesy import enu_basis, geodetic_to_ecef
+
+MAX_LEVELS = 16
+MIN_N, MAX_N = 15, 1023
+ORIGIN_DRIFT_EXTENTS = 1.0  # move a level's origin once its region centre is this many extents from it
+NORMALS_PER_POST = 4  # the normal map is 2 x 2 per post
+
+
+@dataclass(frozen=True)
+class Rect:
+    """Lattice rows i0 .. i1 and columns j0 .. j1, inclusive (empty when i1 < i0 or j1 < j0)."""
+
+    i0: int
+    j0: int
+    i1: int
+    j1: int
+
+    @property
+    def empty(self) -> bool:
+        return self.i1 < self.i0 or self.j1 < self.j0
+
+    @property
+    def size(self) -> int:
+        return 0 if self.empty else (self.i1 - self.i0 + 1) * (self.j1 - self.j0 + 1)
+
+    def intersect(self, other: Rect) -> Rect:
+        return Rect(max(self.i0, other.i0), max(self.j0, other.j0), min(self.i1, other.i1), min(self.j1, other.j1))
+
+    def contains(self, other: Rect) -> bool:
+        return (not other.empty and self.i0 <= other.i0 and self.j0 <= other.j0 and other.i1 <= self.i1
+                and other.j1 <= self.j1)
+
+
+def clip_region(i0: int, j0: int, n: int) -> Rect:
+    return Rect(i0, j0, i0 + n - 1, j0 + n - 1)
+
+
+def active_origin(focus_i: float, focus_j: float, n: int) -> tuple[int, int]:
+    """(i0, j0), both even, of the n x n region centred on the focus (level lattice units)."""
+    half = (n - 1) / 2.0
+    return 2 * math.floor((focus_i - half) / 2.0 + 0.5), 2 * math.floor((focus_j - half) / 2.0 + 0.5)
+
+
+def uncovered_rects(old: Rect | None, new: Rect) -> list[Rect]:
+    """The parts of ``new`` not in ``old`` (all of it when old is None or disjoint): at most two
+    rectangles, the L-shaped strips a move uncovers."""
+    if old is None or old.intersect(new).empty:
+        return [new]
+    out = []
+    if new.i0 < old.i0:  # rows south of the old region
+        out.append(Rect(new.i0, new.j0, old.i0 - 1, new.j1))
+    if new.i1 > old.i1:
+        out.append(Rect(old.i1 + 1, new.j0, new.i1, new.j1))
+    i0, i1 = max(new.i0, old.i0), min(new.i1, old.i1)  # the rows both share
+    if new.j0 < old.j0:
+        out.append(Rect(i0, new.j0, i1, old.j0 - 1))
+    if new.j1 > old.j1:
+        out.append(Rect(i0, old.j1 + 1, i1, new.j1))
+    return [r for r in out if not r.empty]
+
+
+def toroidal_pieces(r: Rect, period: int) -> list[tuple[Rect, int, int]]:
+    """``r`` (at most ``period`` posts a side) split where the toroidal storage wraps: a list of
+    (piece in lattice indices, its first texel row, its first texel column)."""
+    if r.i1 - r.i0 + 1 > period or r.j1 - r.j0 + 1 > period:
+        raise InvalidArgument("rect", f"must fit the storage ({period} a side)", value=r)
+    out = []
+    for a0, a1 in _split(r.i0, r.i1, period):
+        for b0, b1 in _split(r.j0, r.j1, period):
+            out.append((Rect(a0, b0, a1, b1), a0 % period, b0 % period))
+    return out
+
+
+def _split(lo: int, hi: int, period: int) -> list[tuple[int, int]]:
+    wrap = lo + (period - lo % period)  # the first index stored at texel 0 after lo
+    return [(lo, hi)] if hi < wrap else [(lo, wrap - 1), (wrap, hi)]
+
+
+def ring_rects(region: Rect, hole: Rect | None) -> list[Rect]:
+    """Cells of ``region`` outside ``hole`` as at most four rectangles of *cells* (a cell (i, j)
+    spans posts i..i+1, j..j+1; cell rectangles hold the cells' lower-left posts), the thesis'
+    index regions: south and north strips across, west and east strips between them."""
+    cells = Rect(region.i0, region.j0, region.i1 - 1, region.j1 - 1)
+    if hole is None or hole.empty:
+        return [] if cells.empty else [cells]
+    h = Rect(hole.i0, hole.j0, hole.i1 - 1, hole.j1 - 1)  # the hole's cells
+    out = [Rect(cells.i0, cells.j0, h.i0 - 1, cells.j1), Rect(h.i1 + 1, cells.j0, cells.i1, cells.j1),
+           Rect(h.i0, cells.j0, h.i1, h.j0 - 1), Rect(h.i0, h.j1 + 1, h.i1, cells.j1)]
+    return [r for r in out if not r.empty]
+
+
+def blocks(cell_rects: list[Rect], size: int) -> np.ndarray:
+    """(m, 4) int32 (i0, j0, i1, j1) post rectangles of blocks of at most size x size cells
+    tiling ``cell_rects`` (block b covers cells i0..i1-1, j0..j1-1)."""
+    out = []
+    for r in cell_rects:
+        ii = np.arange(r.i0, r.i1 + 1, size)
+        jj = np.arange(r.j0, r.j1 + 1, size)
+        gi, gj = np.meshgrid(ii, jj, indexing="ij")
+        b = np.stack([gi, gj, np.minimum(gi + size, r.i1 + 1), np.minimum(gj + size, r.j1 + 1)], -1)
+        out.append(b.reshape(-1, 4))
+    return np.concatenate(out).astype(np.int32) if out else np.zeros((0, 4), np.int32)
+
+
+@dataclass
+class LevelStore:
+    """One level's toroidal storage (CPU mirror of its textures)."""
+
+    k: int
+    n: int
+    region: Rect | None = None
+    origin_ecef: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    origin_generation: int = 0
+    pos_ecef: np.ndarray = None  # (n, n, 3) float64 at texel (i mod n, j mod n)
+    texel: np.ndarray = None  # (n, n, 4) float32: offset from origin_ecef (ECEF axes), height MSL
+    normal: np.ndarray = None  # (2n, 2n, 4) float16: unit normal (ECEF axes), 0
+    h_min: float = math.inf
+    h_max: float = -math.inf
+
+    def __post_init__(self):
+        self.pos_ecef = np.zeros((self.n, self.n, 3))
+        self.texel = np.zeros((self.n, self.n, 4), np.float32)
+        self.normal = np.zeros((2 * self.n, 2 * self.n, 4), np.float16)
+
+    @property
+    def valid(self) -> bool:
+        return self.region is not None
+
+    def unrolled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(texel (n, n, 4), pos_ecef (n, n, 3), normal (2n, 2n, 4)) in lattice order, row 0 = region.i0."""
+        r = self.region
+        ti = np.arange(r.i0, r.i0 + self.n) % self.n
+        tj = np.arange(r.j0, r.j0 + self.n) % self.n
+        ni = np.arange(2 * r.i0, 2 * r.i0 + 2 * self.n) % (2 * self.n)
+        nj = np.arange(2 * r.j0, 2 * r.j0 + 2 * self.n) % (2 * self.n)
+        return (self.texel[np.ix_(ti, tj)], self.pos_ecef[np.ix_(ti, tj)], self.normal[np.ix_(ni, nj)])
+
+
+@dataclass(frozen=True)
+class Upload:
+    """A piece of a level's storage to send to its textures: ``what`` "texel" or "normal",
+    texel rows/columns [r0, r0 + rows) x [c0, c0 + cols); ``all``: the whole level."""
+
+    k: int
+    what: str
+    r0: int
+    c0: int
+    rows: int
+    cols: int
+
+
+@dataclass
+class UpdateStats:
+    samples: int = 0  # terrain samples taken this frame (heights + normals)
+    levels_moved: int = 0
+    levels_behind: int = 0  # levels that wanted to move but the budget was spent
+    origins_moved: int = 0
+
+
+class Clipmap:
+    """L levels of n x n posts on ``lattice`` (terrain_mesh.Lattice of the finest level's spacing
+    over 2^finest_exponent... see the module docstring), filled from ``terrain`` (heights(lat, lon)
+    and normals(lat, lon): Terrain or TerrainClient). geoid_undulation_m: ellipsoid height =
+    MSL + N. budget: terrain samples per update (heights + 4 normals per post)."""
+
+    def __init__(self, terrain, lattice, levels: int, n: int, budget: int, geoid_undulation_m: float = 0.0):
+        if not (isinstance(levels, int) and 1 <= levels <= MAX_LEVELS):
+            raise InvalidArgument("levels", f"must be an integer in [1, {MAX_LEVELS}]", value=levels)
+        if not (isinstance(n, int) and MIN_N <= n <= MAX_N and (n + 1) & n == 0):
+            raise InvalidArgument("n", f"must be 2^m - 1 in [{MIN_N}, {MAX_N}]", value=n)
+        if not (isinstance(budget, int) and budget > 0):
+            raise InvalidArgument("budget", "must be a positive number of samples", value=budget)
+        self.terrain = terrain
+        self.lattice = lattice
+        self.n = n
+        self.budget = budget
+        self.geoid_undulation_m = float(geoid_undulation_m)
+        self.levels = [LevelStore(k, n) for k in range(levels)]
+        self.stats = UpdateStats()
+        self.cutout = None  # optional (lat, lon) -> metres to lower the surface (geomipmap insets)
+
+    # -- geometry of the lattice
+
+    def spacing_deg(self, k: int) -> tuple[float, float]:
+        return self.lattice.dlat * 2 ** k, self.lattice.dlon * 2 ** k
+
+    def spacing_m(self, k: int) -> float:
+        """Level k's north-south post spacing, metres (the mean Earth radius: for sizes, not geometry)."""
+        return math.radians(self.lattice.dlat * 2 ** k) * 6_371_000.0
+
+    def extent_m(self, k: int) -> float:
+        return (self.n - 1) * self.spacing_m(k)
+
+    def focus_index(self, k: int, lat: float, lon: float) -> tuple[float, float]:
+        dlat, dlon = self.spacing_deg(k)
+        dl = (lon - self.lattice.lon0 + 180.0) % 360.0 - 180.0
+        return (lat - self.lattice.lat0) / dlat, dl / dlon
+
+    def latlon(self, k: int, i, j) -> tuple[np.ndarray, np.ndarray]:
+        dlat, dlon = self.spacing_deg(k)
+        return (self.lattice.lat0 + np.asarray(i, np.float64) * dlat,
+                self.lattice.lon0 + np.asarray(j, np.float64) * dlon)
+
+    # -- sampling
+
+    def sample_posts(self, k: int, r: Rect) -> tuple[np.ndarray, np.ndarray]:
+        """(ECEF positions (rows, cols, 3) float64, heights MSL (rows, cols)) of a rectangle of posts."""
+        ii, jj = np.meshgrid(np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1), indexing="ij")
+        lat, lon = self.latlon(k, ii, jj)
+        lat = np.clip(lat, -90.0, 90.0)
+        h = np.asarray(self.terrain.heights(lat.ravel(), lon.ravel()).height_msl_m, np.float64).reshape(lat.shape)
+        h = np.where(np.isfinite(h), h, 0.0)  # no data: water at sea level
+        surface = h.copy()
+        if self.cutout is not None:
+            surface -= self.cutout(lat, lon)
+        return geodetic_to_ecef(lat, lon, surface + self.geoid_undulation_m), h
+
+    def sample_normals(self, k: int, r: Rect) -> np.ndarray:
+        """(2 rows, 2 cols, 3) ECEF unit normals at the half-lattice points of a rectangle of posts
+        (half-lattice point (p, q) is at post coordinates (p / 2, q / 2))."""
+        pp, qq = np.meshgrid(np.arange(2 * r.i0, 2 * r.i1 + 2), np.arange(2 * r.j0, 2 * r.j1 + 2), indexing="ij")
+        lat, lon = self.latlon(k, pp / 2.0, qq / 2.0)
+        lat = np.clip(lat, -90.0, 90.0)
+        n_enu = np.asarray(self.terrain.normals(lat.ravel(), lon.ravel()).normal_enu, np.float64)
+        n_enu = np.where(np.isfinite(n_enu).all(axis=1, keepdims=True), n_enu, (0.0, 0.0, 1.0))
+        e, nn, u = enu_basis(lat.ravel(), lon.ravel())
+        ecef = n_enu[:, :1] * e + n_enu[:, 1:2] * nn + n_enu[:, 2:3] * u
+        return ecef.reshape(*lat.shape, 3)
+
+    @staticmethod
+    def cost(r: Rect) -> int:
+        return r.size * (1 + NORMALS_PER_POST)
+
+    # -- updates
+
+    def update(self, focus_lat: float, focus_lon: float) -> list[Upload]:
+        """Move levels onto their active regions around the focus, coarse to fine, within the
+        budget; the storage pieces to upload."""
+        self.stats = UpdateStats()
+        uploads: list[Upload] = []
+        spent = 0
+        behind = False
+        for level in reversed(self.levels):
+            fi, fj = self.focus_index(level.k, focus_lat, focus_lon)
+            new = clip_region(*active_origin(fi, fj, self.n), self.n)
+            if level.region == new:
+                continue
+            todo = uncovered_rects(level.region, new)
+            cost = sum(self.cost(r) for r in todo)
+            if behind or (spent > 0 and spent + cost > self.budget):
+                behind = True
+                self.stats.levels_behind += 1
+                continue
+            uploads += self._move(level, new, todo)
+            spent += cost
+        self.stats.samples = spent
+        return uploads
+
+    def _move(self, level: LevelStore, new: Rect, todo: list[Rect]) -> list[Upload]:
+        n = self.n
+        refill = level.region is None or todo == [new]
+        c_lat, c_lon = self.latlon(level.k, (new.i0 + new.i1) / 2.0, (new.j0 + new.j1) / 2.0)
+        centre = np.asarray(geodetic_to_ecef(float(np.clip(c_lat, -90.0, 90.0)), float(c_lon), 0.0), float).reshape(3)
+        move_origin = refill or np.linalg.norm(centre - level.origin_ecef) > ORIGIN_DRIFT_EXTENTS * self.extent_m(
+            level.k)
+        if move_origin:
+            level.origin_ecef = centre
+            level.origin_generation += 1
+            self.stats.origins_moved += 1
+        uploads = []
+        for r in todo:
+            pos, h = self.sample_posts(level.k, r)
+            normals = self.sample_normals(level.k, r)
+            for piece, t0, c0 in toroidal_pieces(r, n):
+                a, b = piece.i0 - r.i0, piece.j0 - r.j0
+                rows, cols = piece.i1 - piece.i0 + 1, piece.j1 - piece.j0 + 1
+                level.pos_ecef[t0:t0 + rows, c0:c0 + cols] = pos[a:a + rows, b:b + cols]
+                level.texel[t0:t0 + rows, c0:c0 + cols, 3] = h[a:a + rows, b:b + cols]
+                if not move_origin:
+                    level.texel[t0:t0 + rows, c0:c0 + cols, :3] = pos[a:a + rows, b:b + cols] - level.origin_ecef
+                    uploads.append(Upload(level.k, "texel", t0, c0, rows, cols))
+            for piece, t0, c0 in toroidal_pieces(Rect(2 * r.i0, 2 * r.j0, 2 * r.i1 + 1, 2 * r.j1 + 1), 2 * n):
+                a, b = piece.i0 - 2 * r.i0, piece.j0 - 2 * r.j0
+                rows, cols = piece.i1 - piece.i0 + 1, piece.j1 - piece.j0 + 1
+                level.normal[t0:t0 + rows, c0:c0 + cols, :3] = normals[a:a + rows, b:b + cols]
+                uploads.append(Upload(level.k, "normal", t0, c0, rows, cols))
+        level.region = new
+        if move_origin:  # every offset against the new origin (from the float64 copy)
+            level.texel[..., :3] = level.pos_ecef - level.origin_ecef
+            uploads.append(Upload(level.k, "texel", 0, 0, n, n))
+        hs = level.texel[..., 3]
+        level.h_min, level.h_max = float(hs.min()), float(hs.max())
+        self.stats.levels_moved += 1
+        return uploads
+
+
+def drawn_regions(clipmap: Clipmap, drawn_levels: list[int]) -> dict[int, Rect]:
+    """Each drawn level's render extent (posts): the coarsest its clip region; a finer one its
+    clip region cropped to lie at least one coarse cell inside the coarser level's drawn region,
+    on even rows and columns (so its border runs through coarse posts). A level cropped to
+    fewer than 4 cells a side is left out, and the finer ones with it."""
+    out: dict[int, Rect] = {}
+    coarser = None
+    for k in sorted(drawn_levels, reverse=True):
+        r = clipmap.levels[k].region
+        if coarser is not None:
+            c = out[coarser]
+            inner = Rect(2 * (c.i0 + 1), 2 * (c.j0 + 1), 2 * (c.i1 - 1), 2 * (c.j1 - 1))
+            r = r.intersect(inner)
+            r = Rect(r.i0 + (r.i0 & 1), r.j0 + (r.j0 & 1), r.i1 - (r.i1 & 1), r.j1 - (r.j1 & 1))
+            if r.empty or r.i1 - r.i0 < 4 or r.j1 - r.j0 < 4 or coarser != k + 1:
+                break
+        out[k] = r
+        coarser = k
+    return out

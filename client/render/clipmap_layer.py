@@ -1,0 +1,393 @@
+"""The geometry clipmap as a terrain layer of the renderer (client/render/renderer.py).
+
+Data: client/render/clipmap.py (levels, regions, toroidal storage, budget).
+Here: each level's storage as GPU textures (positions + heights RGBA32F,
+n x n; normals RGBA16F, 2n x 2n, wrapping), updated with only the uploaded
+pieces, and one vertex shader that displaces a small grid block per instance
+(thesis §3.2.1: pure vertex-shader displacement):
+
+- **Blocks.** A level's render region (its drawn rectangle minus the finer
+  level's, client/render/clipmap.ring_rects: the thesis' index regions) is
+  tiled by BLOCK x BLOCK-cell blocks; one static (BLOCK + 1)^2 vertex grid is
+  drawn once per visible block (instancing), each vertex clamped to its
+  block's rectangle (cells beyond it collapse to nothing).
+- **Culling** (§3.1.6). A block is drawn unless its bounding box — its corner
+  posts, padded by the level's height range and the Earth's bulge over the
+  block — lies wholly outside one side of the view frustum or behind the
+  camera (the box's 8 corners against the clip-space planes, every block at
+  once in numpy).
+- **Geomorphing** (§3.1.5, §3.2.1, §3.2.2). Each vertex also fetches the
+  coarser level's posts around it — the post itself (even, even), the two
+  ends of its coarse edge (one index odd) or the four corners of its coarse
+  cell (both odd): the thesis' vertex cases — and morphs to their average by
+  alpha = clamp(alpha_b + alpha_h, 0, 1). alpha_b ramps from 0 to 1 over the
+  last w = n / 10 cells before the edge of the level's *drawn* region (the
+  thesis measures from the active region around the viewer; measuring from the
+  drawn region keeps alpha = 1 exactly on the border also when a level lags
+  behind and is cropped, so the border vertices lie on the coarser level's
+  edges: no cracks). alpha_h fades a level whose extent is small against the
+  viewer's height above the ground (:func:`height_alpha`) before it stops
+  being drawn: no popping. Normals are blended by the same alpha.
+- **Precision** (global-terrain-flight-sim §6). Positions are float32 offsets
+  from each level's float64 origin; the shader adds the float32 of (level
+  origin - renderer origin) in local ENU and rotates the offset by the
+  renderer's ENU basis: a vertex's error relative to the camera scales with
+  its level's extent, not with the distance to any global origin.
+
+Shading: the reference terrain's colour and lighting
+(terrain_mesh.TERRAIN_COLOUR_GLSL), with the normal from the normal maps.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from client.render.camera import Camera, LocalOrigin
+from client.render.clipmap import Clipmap, Rect, blocks, drawn_regions, ring_rects
+from client.render.gl import check_gl_error
+from client.render.shading import GLSL_COMMON, Frame
+from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
+from sortie.errors import InvalidArgument
+from terrain.geodesy import WGS84_A_M, ecef_to_geodetic
+
+BLOCK = 16  # cells a side of an instanced block
+MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
+# Level clipping by height (§3.2.2): a level fades out as the viewer's height above the ground
+# grows from HEIGHT_FADE[0] to HEIGHT_FADE[1] times the level's extent, then is not drawn.
+HEIGHT_FADE = (0.2, 0.4)
+E2_COMPLEMENT_INV = 1.0 / (1.0 - 6.69437999014e-3)  # 1 / (1 - e^2), WGS84: geodetic normal from ECEF
+
+VERTEX_SHADER = """#version 330 core
+uniform sampler2D u_fine;        // level k: offset from its origin (ECEF axes) + height MSL
+uniform sampler2D u_coarse;      // level k + 1
+uniform int u_n;
+uniform ivec2 u_base;            // lattice index (i, j) of block coordinates (0, 0)
+uniform mat3 u_rot;              // ECEF axes -> local ENU
+uniform vec3 u_off_fine;         // level k origin - renderer origin, local ENU
+uniform vec3 u_off_coarse;
+uniform vec3 u_origin_ecef;      // renderer origin (ECEF, float32: for directions only)
+uniform vec4 u_region;           // drawn region (i0, j0, i1, j1), relative to u_base
+uniform float u_w;               // morph width, cells
+uniform float u_alpha_h;
+uniform int u_has_coarse;
+uniform mat4 u_view;
+uniform mat4 u_projection;
+in ivec2 in_cell;                // (row, column) in the block grid, 0..BLOCK
+in ivec4 in_block;               // (i0, j0, i1, j1) posts, relative to u_base
+out vec3 v_world;
+out float v_height;
+out vec2 v_nuv_fine;
+out vec2 v_nuv_coarse;
+out float v_alpha;
+out vec3 v_up;
+
+int pmod(int a, int m) { return a - m * int(floor(float(a) / float(m))); }
+vec4 post(sampler2D t, ivec2 ij) { return texelFetch(t, ivec2(pmod(ij.y, u_n), pmod(ij.x, u_n)), 0); }
+
+void main() {
+    ivec2 g = clamp(in_block.xy + in_cell, in_block.xy, in_block.zw);
+    ivec2 G = u_base + g;
+    vec4 f = post(u_fine, G);
+    vec3 p = u_rot * f.xyz + u_off_fine;
+    float h = f.w;
+    float alpha = 0.0;
+    vec3 pc = p;
+    float hc = h;
+    if (u_has_coarse != 0) {
+        vec2 d2 = min(vec2(g) - u_region.xy, u_region.zw - vec2(g));
+        float d = min(d2.x, d2.y);
+        alpha = clamp(clamp((u_w + 1.0 - d) / u_w, 0.0, 1.0) + u_alpha_h, 0.0, 1.0);
+        ivec2 odd = G & 1;
+        ivec2 c = (G - odd) / 2;  // the coarse post at or south-west of this one
+        vec4 s = post(u_coarse, c);
+        if (odd.x == 1) s += post(u_coarse, c + ivec2(1, 0));
+        if (odd.y == 1) s += post(u_coarse, c + ivec2(0, 1));
+        if (odd.x == 1 && odd.y == 1) s += post(u_coarse, c + ivec2(1, 1));
+        s /= float((1 + odd.x) * (1 + odd.y));
+        pc = u_rot * s.xyz + u_off_coarse;
+        hc = s.w;
+    }
+    v_world = mix(p, pc, alpha);
+    v_height = mix(h, hc, alpha);
+    v_alpha = alpha;
+    // Normal-map coordinates: the fine map has 2 texels a post, the coarse map 1 (its half-posts).
+    int n2 = 2 * u_n;
+    vec2 hf = vec2(float(2 * g.y + pmod(2 * u_base.y, n2)), float(2 * g.x + pmod(2 * u_base.x, n2)));
+    v_nuv_fine = (hf + 0.5) / float(n2);
+    vec2 hc2 = vec2(float(g.y + pmod(u_base.y, n2)), float(g.x + pmod(u_base.x, n2)));
+    v_nuv_coarse = (hc2 + 0.5) / float(n2);
+    vec3 e = u_origin_ecef + transpose(u_rot) * v_world;
+    v_up = u_rot * normalize(vec3(e.x, e.y, e.z * %(E2)r));
+    gl_Position = u_projection * (u_view * vec4(v_world, 1.0));
+}
+""" % {"E2": E2_COMPLEMENT_INV}
+
+FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + TERRAIN_COLOUR_GLSL + """
+uniform sampler2D u_nfine;
+uniform sampler2D u_ncoarse;
+uniform mat3 u_rot;
+uniform int u_has_coarse;
+in vec3 v_world;
+in float v_height;
+in vec2 v_nuv_fine;
+in vec2 v_nuv_coarse;
+in float v_alpha;
+in vec3 v_up;
+out vec4 out_colour;
+void main() {
+    vec3 nf = texture(u_nfine, v_nuv_fine).xyz;
+    vec3 n = u_has_coarse != 0 ? mix(nf, texture(u_ncoarse, v_nuv_coarse).xyz, v_alpha) : nf;
+    n = normalize(u_rot * n);
+    out_colour = vec4(terrain_colour(v_world, n, v_height, dot(n, normalize(v_up))), 1.0);
+}
+"""
+
+
+def height_alpha(height_above_ground_m: float, extent_m: float) -> float:
+    """alpha_h of a level of this extent (thesis §3.2.2, linear between HEIGHT_FADE x extent)."""
+    a, b = HEIGHT_FADE
+    return min(max((height_above_ground_m / extent_m - a) / (b - a), 0.0), 1.0)
+
+
+def block_grid(size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
+    """((size + 1)^2, 2) int32 (row, column) grid vertices and (2 size^2, 3) uint32 triangles,
+    counter-clockwise seen from above (row = north, column = east)."""
+    r, c = np.meshgrid(np.arange(size + 1), np.arange(size + 1), indexing="ij")
+    verts = np.stack([r.ravel(), c.ravel()], -1).astype(np.int32)
+    a = (r[:-1, :-1] * (size + 1) + c[:-1, :-1]).ravel()
+    b, d, e = a + 1, a + size + 2, a + size + 1  # east, north-east, north
+    tris = np.concatenate([np.stack([a, b, d], -1), np.stack([a, d, e], -1)]).astype(np.uint32)
+    return verts, tris
+
+
+def visible_blocks(blk: np.ndarray, level, clipmap: Clipmap, origin: LocalOrigin, view_proj: np.ndarray) -> np.ndarray:
+    """Mask of blocks (m, 4) whose padded bounding box may be in the view frustum (module docstring)."""
+    if len(blk) == 0:
+        return np.zeros(0, bool)
+    n = clipmap.n
+    corners = np.stack([blk[:, [0, 1]], blk[:, [0, 3]], blk[:, [2, 1]], blk[:, [2, 3]]], 1)  # (m, 4, 2) posts
+    p = level.pos_ecef[corners[..., 0] % n, corners[..., 1] % n]  # (m, 4, 3)
+    local = origin.to_local(p)
+    lo, hi = local.min(axis=1), local.max(axis=1)
+    span = np.linalg.norm(local[:, 3] - local[:, 0], axis=1)
+    pad = (level.h_max - level.h_min) + span * span / (8.0 * WGS84_A_M) + 1.0
+    lo, hi = lo - pad[:, None], hi + pad[:, None]
+    box = np.stack([np.stack([np.where(k & 1, hi[:, 0], lo[:, 0]), np.where(k & 2, hi[:, 1], lo[:, 1]),
+                              np.where(k & 4, hi[:, 2], lo[:, 2])], -1) for k in range(8)], 1)  # (m, 8, 3)
+    clip = np.concatenate([box, np.ones((*box.shape[:2], 1))], -1) @ view_proj.T  # (m, 8, 4)
+    x, y, w = clip[..., 0], clip[..., 1], clip[..., 3]
+    outside = ((x > w).all(1) | (x < -w).all(1) | (y > w).all(1) | (y < -w).all(1) | (w <= 0).all(1))
+    return ~outside
+
+
+@dataclass
+class LevelDraw:
+    k: int
+    region: Rect
+    alpha_h: float
+    blocks: np.ndarray  # (m, 4) visible blocks, lattice posts
+    cells: int
+
+
+class ClipmapLayer:
+    """A geometry clipmap around a focus (the camera, or ``focus`` set by the caller).
+
+    terrain: Terrain or TerrainClient. levels, n, budget: the clipmap (client/render/clipmap.py;
+    budget = terrain samples per frame). finest_spacing_factor: the finest level's spacing over the
+    terrain's post spacing (a power of two: 1 = the DEM's own posts, 1/2 = twice as fine).
+    """
+
+    def __init__(self, ctx, terrain, origin: LocalOrigin, *, levels: int = 7, n: int = 127,
+                 budget: int = 100_000, finest_spacing_factor: float = 1.0, geoid_undulation_m: float = 0.0,
+                 lattice=None, focus_lat_lon=None):
+        e = math.log2(finest_spacing_factor) if finest_spacing_factor > 0 else math.nan
+        if not (math.isfinite(e) and e == round(e) and -8 <= e <= 8):
+            raise InvalidArgument("finest_spacing_factor", "must be a power of two in [1/256, 256]",
+                                  value=finest_spacing_factor)
+        self.ctx = ctx
+        self.terrain = terrain
+        self.origin = origin
+        self._finest_factor = finest_spacing_factor
+        self._lattice = lattice
+        self._args = (levels, n, budget, geoid_undulation_m)
+        self.clipmap: Clipmap | None = None
+        self.focus_lat_lon = focus_lat_lon  # None: the camera's position
+        self.program = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER)
+        verts, tris = block_grid()
+        self._grid_vbo = ctx.buffer(verts.tobytes())
+        self._grid_ibo = ctx.buffer(tris.tobytes())
+        self._grid_triangles = len(tris)
+        self._inst = ctx.buffer(reserve=16 * 1024)
+        self._vao = ctx.vertex_array(self.program, [(self._grid_vbo, "2i", "in_cell"),
+                                                    (self._inst, "4i/i", "in_block")],
+                                     index_buffer=self._grid_ibo, index_element_size=4)
+        self._tex: list = []  # per level: (texel texture, normal texture)
+        self.draws: list[LevelDraw] = []
+        self.triangles = self.vertices = 0
+        self.update_ms = 0.0
+        self.rebuilds = 0
+        self._height_above_ground = 0.0
+
+    # -- set-up on the first update (the lattice depends on where the camera is)
+
+    def _setup(self, lat: float, lon: float) -> None:
+        import moderngl
+
+        levels, n, budget, undulation = self._args
+        lattice = self._lattice
+        if lattice is None:
+            base = lattice_for(self.terrain.describe(), lat, lon)
+            f = self._finest_factor
+            lattice = type(base)(base.lat0, base.lon0, base.dlat * f, base.dlon * f, base.exact and f >= 1)
+        self.clipmap = Clipmap(self.terrain, lattice, levels, n, budget, undulation)
+        for _ in range(levels):
+            t = self.ctx.texture((n, n), 4, dtype="f4")
+            t.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            nm = self.ctx.texture((2 * n, 2 * n), 4, dtype="f2")
+            nm.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            nm.repeat_x = nm.repeat_y = True
+            self._tex.append((t, nm))
+
+    # -- the TerrainLayer interface
+
+    @property
+    def fog_range_m(self) -> float:
+        if self.clipmap is None:
+            return 1e5
+        k = len(self.clipmap.levels) - 1
+        return (0.5 * (self.clipmap.n - 1) - 2.0) * self.clipmap.spacing_m(k)
+
+    @property
+    def solid_bounds(self) -> tuple | None:
+        """The coarsest level's region, in (lat_min, lat_max, lon_min, lon_max): the clipmap covers
+        it (no-data posts draw as water at sea level)."""
+        if self.clipmap is None or not self.clipmap.levels[-1].valid:
+            return None
+        c = self.clipmap
+        r = c.levels[-1].region
+        lat0, lon0 = c.latlon(len(c.levels) - 1, r.i0 + 1, r.j0 + 1)
+        lat1, lon1 = c.latlon(len(c.levels) - 1, r.i1 - 1, r.j1 - 1)
+        return (float(max(lat0, -90.0)), float(min(lat1, 90.0)), float(lon0), float(lon1))
+
+    def update(self, camera: Camera) -> None:
+        t0 = time.perf_counter()
+        lat, lon, h = camera.geodetic()
+        if self.clipmap is None:
+            self._setup(lat, lon)
+        flat, flon = self.focus_lat_lon if self.focus_lat_lon is not None else (lat, lon)
+        for u in self.clipmap.update(flat, flon):
+            self._upload(u)
+        self._height_above_ground = max(h - self.clipmap.geoid_undulation_m - self._ground_height(lat, lon), 0.0)
+        self.update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _ground_height(self, lat: float, lon: float) -> float:
+        """MSL height under (lat, lon) from the finest level holding it (no terrain query)."""
+        c = self.clipmap
+        for level in c.levels:
+            if not level.valid:
+                continue
+            fi, fj = c.focus_index(level.k, lat, lon)
+            i, j = round(fi), round(fj)
+            r = level.region
+            if r.i0 <= i <= r.i1 and r.j0 <= j <= r.j1:
+                return float(level.texel[i % c.n, j % c.n, 3])
+        return 0.0
+
+    def _upload(self, u) -> None:
+        level = self.clipmap.levels[u.k]
+        tex, nmap = self._tex[u.k]
+        if u.what == "texel":
+            data = level.texel[u.r0:u.r0 + u.rows, u.c0:u.c0 + u.cols]
+            tex.write(np.ascontiguousarray(data).tobytes(), viewport=(u.c0, u.r0, u.cols, u.rows))
+        else:
+            data = level.normal[u.r0:u.r0 + u.rows, u.c0:u.c0 + u.cols]
+            nmap.write(np.ascontiguousarray(data).tobytes(), viewport=(u.c0, u.r0, u.cols, u.rows))
+
+    def plan(self, frame: Frame) -> list[LevelDraw]:
+        """What to draw this frame: levels (coarse to fine), their regions, alpha_h, visible blocks."""
+        c = self.clipmap
+        top = len(c.levels) - 1
+        drawn = [lv.k for lv in c.levels if lv.valid and
+                 (lv.k == top or height_alpha(self._height_above_ground, c.extent_m(lv.k)) < 1.0)]
+        regions = drawn_regions(c, drawn)
+        view_proj = frame.projection @ frame.view
+        out = []
+        for k in sorted(regions, reverse=True):
+            hole = regions.get(k - 1)
+            hole_k = None if hole is None else Rect(hole.i0 // 2, hole.j0 // 2, hole.i1 // 2, hole.j1 // 2)
+            blk = blocks(ring_rects(regions[k], hole_k), BLOCK)
+            blk = blk[visible_blocks(blk, c.levels[k], c, self.origin, view_proj)]
+            cells = int(((blk[:, 2] - blk[:, 0]) * (blk[:, 3] - blk[:, 1])).sum())
+            alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
+            out.append(LevelDraw(k, regions[k], alpha_h, blk, cells))
+        return out
+
+    def draw(self, frame: Frame) -> None:
+        import moderngl
+
+        if self.clipmap is None:
+            return
+        self.draws = self.plan(frame)
+        c, p = self.clipmap, self.program
+        frame.write_common(p)
+        rot = self.origin.basis  # rows E, N, U in ECEF: local = basis @ ecef
+        p["u_rot"].write(rot.T.astype("f4").tobytes())  # column-major
+        p["u_n"].value = c.n
+        p["u_w"].value = max(MORPH_WIDTH_FRACTION * c.n, 1.0)
+        p["u_origin_ecef"].write(self.origin.ecef.astype("f4").tobytes())
+        for name, unit in (("u_fine", 0), ("u_coarse", 1), ("u_nfine", 2), ("u_ncoarse", 3)):
+            if name in p:
+                p[name].value = unit
+        self.ctx.enable(moderngl.CULL_FACE)
+        self.triangles = self.vertices = 0
+        for d in self.draws:
+            if len(d.blocks) == 0:
+                continue
+            base = (d.region.i0, d.region.j0)
+            level = c.levels[d.k]
+            coarse = d.k + 1 < len(c.levels) and d.k + 1 in {x.k for x in self.draws}
+            p["u_base"].value = base
+            p["u_off_fine"].write(self.origin.to_local(level.origin_ecef).astype("f4").tobytes())
+            if coarse:
+                p["u_off_coarse"].write(self.origin.to_local(c.levels[d.k + 1].origin_ecef).astype("f4").tobytes())
+            p["u_has_coarse"].value = int(coarse)
+            r = d.region
+            p["u_region"].value = (0.0, 0.0, float(r.i1 - r.i0), float(r.j1 - r.j0))
+            p["u_alpha_h"].value = d.alpha_h
+            self._tex[d.k][0].use(0)
+            self._tex[d.k][1].use(2)
+            if coarse:
+                self._tex[d.k + 1][0].use(1)
+                self._tex[d.k + 1][1].use(3)
+            inst = (d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)).astype(np.int32)
+            data = inst.tobytes()
+            if len(data) > self._inst.size:
+                self._inst.orphan(len(data) * 2)
+            self._inst.write(data)
+            self._vao.render(moderngl.TRIANGLES, instances=len(inst))
+            self.triangles += 2 * d.cells
+            self.vertices += len(inst) * (BLOCK + 1) ** 2
+        self.ctx.disable(moderngl.CULL_FACE)
+        check_gl_error(self.ctx, "clipmap draw")
+
+    def release(self) -> None:
+        for t, nm in self._tex:
+            t.release()
+            nm.release()
+        for obj in (self._vao, self._inst, self._grid_vbo, self._grid_ibo, self.program):
+            obj.release()
+        self._tex = []
+
+
+def clipmap_factory(terrain, **kw):
+    """``Renderer(terrain_layer_factory=clipmap_factory(terrain, levels=..., n=...))``."""
+    return lambda ctx, origin: ClipmapLayer(ctx, terrain, origin, **kw)
+
+
+def focus_of(position_ecef) -> tuple[float, float]:
+    lat, lon, _ = ecef_to_geodetic(np.asarray(position_ecef, float).reshape(3))
+    return float(lat), float(lon)
