@@ -259,6 +259,7 @@ def test_compose_topology_runs_as_local_processes(tmp_path, dem_dir):
         "SORTIE_SERVER": server, "DIS_SERVER": server, "DIS_PORT": str(ports["dis"]),
         "TACVIEW_PORT": str(ports["tacview"]), "REPLAY_PORT": str(ports["replay"]),
         "BOT_COUNT": str(BOTS), "RENDER_FRAMES": str(RENDER_FRAMES), "RENDER_SIZE": "320x180",
+        "RENDER_FPS": "4",
     }
     r = _config(variables)
     assert r.returncode == 0, r.stderr
@@ -292,6 +293,7 @@ def test_compose_topology_runs_as_local_processes(tmp_path, dem_dir):
         events.close()
         events = None
 
+        services["render"].proc.wait(timeout=120)  # it exits by itself after its frames
         stops = {}
         for svc in reversed(started):
             stops[svc.name] = svc.stop()

@@ -1,0 +1,208 @@
+"""The geometry clipmap (client/render/clipmap.py, clipmap_layer.py): regions and toroidal
+storage against rebuilds, the sample budget, the GPU's copy against the CPU's, heights at
+level posts against the terrain query, and no holes at a grazing view. Real DEM, real EGL."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from client.render.camera import Camera
+from client.render.clipmap import (Clipmap, Rect, active_origin, blocks, clip_region, drawn_regions, ring_rects,
+                                   toroidal_pieces, uncovered_rects)
+from client.render.clipmap_layer import clipmap_factory, height_alpha
+from client.render.renderer import Renderer
+from client.render.terrain_mesh import lattice_for
+from sortie.errors import InvalidArgument
+from terrain.geodesy import WGS84_A_M, WGS84_B_M, ecef_to_geodetic, enu_basis
+
+W, H = 320, 180
+MAGENTA = (255, 0, 255)
+N = 31
+
+
+@pytest.fixture(scope="module")
+def alps(hgt_alps):
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    return Terrain([read_dem(hgt_alps)])
+
+
+def make_clipmap(alps, levels=4, n=N, budget=10 ** 9):
+    return Clipmap(alps, lattice_for(alps.describe(), 47.5, 9.5), levels, n, budget)
+
+
+def cells(rects) -> set:
+    return {(i, j) for r in rects for i in range(r.i0, r.i1 + 1) for j in range(r.j0, r.j1 + 1)}
+
+
+# -- pure region arithmetic ------------------------------------------------------------------------
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(-100, 100), st.integers(-100, 100), st.integers(-40, 40), st.integers(-40, 40))
+def test_uncovered_strips_are_exactly_the_new_posts(i0, j0, di, dj):
+    old, new = clip_region(2 * i0, 2 * j0, N), clip_region(2 * i0 + 2 * di, 2 * j0 + 2 * dj, N)
+    strips = uncovered_rects(old, new)
+    assert len(strips) <= 4 and sum(r.size for r in strips) == len(cells(strips))  # disjoint
+    assert cells(strips) == cells([new]) - cells([old])
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(-10_000, 10_000), st.integers(-10_000, 10_000), st.integers(1, N), st.integers(1, N))
+def test_toroidal_pieces_cover_the_rect_at_their_texels(i0, j0, rows, cols):
+    r = Rect(i0, j0, i0 + rows - 1, j0 + cols - 1)
+    pieces = toroidal_pieces(r, N)
+    assert cells([p for p, _, _ in pieces]) == cells([r]) and len(pieces) <= 4
+    for p, t0, c0 in pieces:  # a piece is contiguous in storage, where i mod n puts it
+        assert t0 == p.i0 % N and c0 == p.j0 % N and t0 + p.i1 - p.i0 < N and c0 + p.j1 - p.j0 < N
+
+
+def test_active_region_is_even_and_centred():
+    for fi, fj in [(0.0, 0.0), (100.3, -57.8), (-3.5, 2.49)]:
+        i0, j0 = active_origin(fi, fj, N)
+        assert i0 % 2 == 0 and j0 % 2 == 0
+        assert abs(i0 + (N - 1) / 2 - fi) <= 1.0 and abs(j0 + (N - 1) / 2 - fj) <= 1.0
+
+
+def test_ring_rects_and_blocks_tile_the_region_minus_the_hole():
+    region, hole = clip_region(0, 0, N), Rect(8, 6, 20, 22)
+    rects = ring_rects(region, hole)
+    all_cells = cells([Rect(0, 0, N - 2, N - 2)])
+    hole_cells = cells([Rect(8, 6, 19, 21)])
+    assert cells(rects) == all_cells - hole_cells and sum(r.size for r in rects) == len(all_cells - hole_cells)
+    b = blocks(rects, 8)
+    covered = {(i, j) for i0, j0, i1, j1 in b for i in range(i0, i1) for j in range(j0, j1)}
+    assert covered == all_cells - hole_cells
+
+
+def test_bad_parameters_name_the_field(alps):
+    lattice = lattice_for(alps.describe(), 47.5, 9.5)
+    for kw, field in [({"n": 32}, "n"), ({"levels": 0}, "levels"), ({"budget": 0}, "budget")]:
+        args = {"levels": 3, "n": N, "budget": 100, **kw}
+        with pytest.raises(InvalidArgument, match=field):
+            Clipmap(alps, lattice, args["levels"], args["n"], args["budget"])
+
+
+# -- toroidal updates against a rebuild ------------------------------------------------------------
+
+def test_toroidal_updates_equal_a_rebuild_bit_for_bit_after_any_motion(alps):
+    moving = make_clipmap(alps)
+    rng = np.random.default_rng(5)
+    lat, lon = 47.4, 9.4
+    steps = [0.0003, 0.002, 0.01, 0.05, 0.3]  # from under a post to a jump across every level
+    for k in range(12):
+        d = steps[k % len(steps)]
+        lat, lon = lat + rng.uniform(-d, d), lon + rng.uniform(-d, d)
+        moving.update(lat, lon)
+        fresh = make_clipmap(alps)
+        fresh.update(lat, lon)
+        for a, b in zip(moving.levels, fresh.levels):
+            assert a.region == b.region
+            ta, pa, na = a.unrolled()
+            tb, pb, nb = b.unrolled()
+            assert np.array_equal(pa, pb) and np.array_equal(ta[..., 3], tb[..., 3]) and np.array_equal(na, nb)
+            # The float32 offsets are the float64 positions less the level's own origin.
+            assert np.array_equal(ta[..., :3], (pa - a.origin_ecef).astype(np.float32))
+            assert np.abs(ta[..., :3]).max() <= 3 * moving.extent_m(a.k)
+
+
+def test_the_budget_moves_coarse_levels_first_and_finer_ones_catch_up(alps):
+    c = make_clipmap(alps, levels=5, budget=2 * N * (1 + 4) * 2)  # about two strips
+    c.update(47.4, 9.4)  # the first update fills every level (each is the first of its frame... or over budget)
+    while c.stats.levels_behind:
+        c.update(47.4, 9.4)
+    before = [lv.region for lv in c.levels]
+    c.update(47.4 + 0.04, 9.4 + 0.04)  # every level must move; the budget allows only the coarsest
+    assert c.stats.levels_moved >= 1 and c.stats.levels_behind >= 1
+    assert c.levels[-1].region != before[-1] and c.levels[0].region == before[0]  # coarse moved, fine lags
+    regions = drawn_regions(c, [lv.k for lv in c.levels])
+    for k, r in regions.items():  # drawn regions nest, cropped on even posts
+        if k + 1 in regions:
+            outer = regions[k + 1]
+            assert r.i0 % 2 == 0 and r.j1 % 2 == 0 and r.i0 // 2 > outer.i0 and r.j1 // 2 < outer.j1
+    for _ in range(40):
+        c.update(47.44, 9.44)
+        if not c.stats.levels_behind and not c.stats.levels_moved:
+            break
+    fi, fj = c.focus_index(0, 47.44, 9.44)
+    assert c.levels[0].region == clip_region(*active_origin(fi, fj, N), N)  # caught up
+
+
+# -- the GPU's copy -------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def flat_sky_clipmap(alps):
+    with Renderer(alps, W, H, flat_sky_rgb=MAGENTA, sea=False,
+                  terrain_layer_factory=clipmap_factory(alps, levels=5, n=63, budget=10 ** 9)) as r:
+        yield r
+
+
+def test_gpu_textures_hold_the_cpu_storage_and_the_terrain_heights(alps, flat_sky_clipmap):
+    r = flat_sky_clipmap
+    r.render(Camera.from_geodetic(47.45, 9.45, 2500.0, 30.0, -10.0))
+    r.render(Camera.from_geodetic(47.46, 9.47, 2500.0, 30.0, -10.0))  # a move: strip uploads
+    layer = r.terrain_layer
+    c = layer.clipmap
+    with r.ctx:
+        for level, (tex, nmap) in zip(c.levels, layer._tex):
+            gpu = np.frombuffer(tex.read(), np.float32).reshape(c.n, c.n, 4)
+            assert np.array_equal(gpu, level.texel)
+            gpu_n = np.frombuffer(nmap.read(), np.float16).reshape(2 * c.n, 2 * c.n, 4)
+            assert np.array_equal(gpu_n, level.normal)
+            # Heights at the level's posts are the terrain query's (float32 at the GPU boundary).
+            reg = level.region
+            ii, jj = np.meshgrid(np.arange(reg.i0, reg.i1 + 1), np.arange(reg.j0, reg.j1 + 1), indexing="ij")
+            lat, lon = c.latlon(level.k, ii, jj)
+            truth = alps.heights(lat.ravel(), lon.ravel()).height_msl_m.reshape(lat.shape)
+            texel, _, _ = level.unrolled()
+            assert np.array_equal(texel[..., 3], truth.astype(np.float32))
+
+
+def _hits_height(camera: Camera, rays: np.ndarray, h_m: float) -> np.ndarray:
+    scale = np.array([1.0 / (WGS84_A_M + h_m), 1.0 / (WGS84_A_M + h_m), 1.0 / (WGS84_B_M + h_m)])
+    o, d = camera.position_ecef * scale, rays * scale
+    a, b, cc = np.sum(d * d, -1), 2.0 * np.sum(o * d, -1), np.dot(o, o) - 1.0
+    disc = b * b - 4.0 * a * cc
+    with np.errstate(invalid="ignore"):
+        t = (-b - np.sqrt(disc)) / (2.0 * a)
+    t = np.where((disc >= 0) & (t > 0), t, np.nan)
+    return camera.position_ecef + t[..., None] * rays
+
+
+def test_no_holes_at_a_grazing_view_across_level_borders(flat_sky_clipmap):
+    r = flat_sky_clipmap
+    lat, lon = 47.5, 9.5
+    r.render(Camera.from_geodetic(lat, lon, 3000.0, 200.0, -3.0))
+    c = r.terrain_layer.clipmap
+    h_max = max(float(lv.texel[..., 3].max()) for lv in c.levels)
+    h_min = min(float(lv.texel[..., 3].min()) for lv in c.levels)
+    cam = Camera.from_geodetic(lat, lon, h_max + 150.0, 200.0, -3.0)
+    image = r.render(cam)
+    assert len(r.terrain_layer.draws) >= 3  # several levels meet on screen
+    sky = np.all(image == np.array(MAGENTA, np.uint8), axis=-1)
+    rays = cam.pixel_rays(W, H)
+    up = enu_basis(lat, lon)[2]
+    above = rays @ up > 1e-3
+    hit = _hits_height(cam, rays, h_min)
+    hlat, hlon, _ = ecef_to_geodetic(hit)
+    lat_min, lat_max, lon_min, lon_max = r.terrain_layer.solid_bounds
+    m = 0.05
+    must_hit = (hlat > lat_min + m) & (hlat < lat_max - m) & (hlon > lon_min + m) & (hlon < lon_max - m)
+    assert above.mean() > 0.2 and must_hit.mean() > 0.4
+    assert np.all(sky[above]), "terrain or junk above the horizon"
+    holes = int(np.count_nonzero(sky & must_hit))
+    assert holes == 0, f"{holes} sky pixels where the clipmap must cover the ground"
+
+
+def test_levels_fade_out_with_height_before_they_are_dropped(flat_sky_clipmap):
+    assert height_alpha(0.0, 1000.0) == 0.0 and height_alpha(400.0, 1000.0) == 1.0
+    assert 0.0 < height_alpha(300.0, 1000.0) < 1.0
+    r = flat_sky_clipmap
+    low = Camera.from_geodetic(47.45, 9.45, 1500.0, 0.0, -30.0)
+    r.render(low)
+    low_levels = {d.k for d in r.terrain_layer.draws}
+    high = Camera.from_geodetic(47.45, 9.45, 40_000.0, 0.0, -60.0)
+    r.render(high)
+    high_levels = {d.k for d in r.terrain_layer.draws}
+    assert 0 in low_levels and 0 not in high_levels and max(high_levels) == max(low_levels)
