@@ -68,6 +68,9 @@ def add_parser(sub) -> None:
     who.add_argument("--follow", metavar="AGENT_NAME", help="the agent's scenario name")
     who.add_argument("--agent-type", choices=("aircraft", "ground"), help="follow the first agent of this kind")
     v.add_argument("--chase", action="store_true", help="camera behind and above the agent (default: cockpit)")
+    v.add_argument("--views", metavar="VIEW[,VIEW]",
+                   help="several views of the agent per frame from one renderer sharing its terrain textures, "
+                        "e.g. cockpit,chase (frames frame_NNNN_<view>.png); overrides --chase")
     _terrain_args(v, required=False)
     v.add_argument("--frames", type=int, required=True, metavar="N")
     v.add_argument("--fps", type=float, required=True, metavar="F", help="frames per wall second (at most)")
@@ -88,12 +91,19 @@ def _terrain_args(p, required: bool) -> None:
 
 
 def _view_args(p) -> None:
+    from client.render.profiles import PROFILES
+
     p.add_argument("--size", default=DEFAULT_SIZE, metavar="WxH", help="pixels (default %(default)s)")
+    p.add_argument("--terrain-renderer", choices=("clipmap", "mesh"), default="clipmap",
+                   help="geometry clipmap (default) or the full-resolution reference mesh")
+    p.add_argument("--profile", choices=sorted(PROFILES),
+                   help="the clipmap's level-of-detail profile (client/render/profiles.py; default: the "
+                        "followed agent's, observer for sortie render)")
     p.add_argument("--fov-deg", type=float, default=60.0, help="horizontal field of view (default %(default)s)")
     p.add_argument("--window-km", type=float, default=20.0,
-                   help="half-width of the full-resolution terrain window (default %(default)s)")
+                   help="mesh: half-width of the full-resolution terrain window (default %(default)s)")
     p.add_argument("--horizon-km", type=float, default=80.0,
-                   help="half-width of the coarser horizon ring, 0 for none (default %(default)s)")
+                   help="mesh: half-width of the coarser horizon ring, 0 for none (default %(default)s)")
     p.add_argument("--geoid-undulation-m", type=float, default=None, metavar="N",
                    help="ellipsoid height = MSL + N, metres (render: default 0; view: default the server's)")
     p.add_argument("--no-fog", action="store_true")
@@ -144,12 +154,18 @@ def open_terrain(dem=None, service: str | None = None, world_terrain: str = ""):
     raise InvalidArgument("--dem", "give --dem FILE... or --terrain HOST:PORT (the server names no terrain)")
 
 
-def _renderer(args, terrain, geoid_undulation_m: float):
+def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "observer"):
+    from client.render.clipmap_layer import clipmap_factory
+    from client.render.profiles import profile
     from client.render.renderer import Renderer
 
     w, h = parse_size(args.size)
+    factory = None
+    if args.terrain_renderer == "clipmap" and terrain is not None:
+        factory = clipmap_factory(terrain, geoid_undulation_m=geoid_undulation_m,
+                                  **profile(args.profile or profile_name).layer_args())
     return Renderer(terrain, w, h, window_m=args.window_km * 1000.0, horizon_m=args.horizon_km * 1000.0,
-                    geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog)
+                    geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog, terrain_layer_factory=factory)
 
 
 def _close(terrain) -> None:
@@ -179,7 +195,8 @@ def render_command(args) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(image).save(args.out)
     print(f"wrote {args.out} ({image.shape[1]}x{image.shape[0]}) from {desc}: {s.frame_ms:.0f} ms "
-          f"(terrain mesh {s.update_ms:.0f} ms), {s.triangles:,} triangles, {s.vertices:,} vertices", flush=True)
+          f"(terrain {args.terrain_renderer} update {s.update_ms:.0f} ms), {s.triangles:,} triangles, "
+          f"{s.vertices:,} vertices", flush=True)
     return 0
 
 
@@ -264,24 +281,30 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain)
         undulation = (args.geoid_undulation_m if args.geoid_undulation_m is not None
                       else float(getattr(sim.world_info, "geoid_undulation_m", 0.0)))
+        from client.render.profiles import profile_for
+
+        lod = args.profile or profile_for(KIND_NAMES.get(int(info.kind), ""), info.type).name
         print(f"following {info.name!r} ({KIND_NAMES.get(int(info.kind), '?')} {info.type}, id {target}), "
-              f"{'chase' if args.chase else 'cockpit'} camera, terrain {desc}", flush=True)
+              f"{', '.join(_views(args))} camera, terrain {desc} ({args.terrain_renderer}, profile {lod})",
+              flush=True)
         try:
-            with _renderer(args, terrain, undulation) as r:
+            with _renderer(args, terrain, undulation, lod) as r:
                 frames, stats, wall = _frames(args, picture, target, r, out, stop, undulation)
         finally:
             _close(terrain)
         sim.leave()
     summary = {
         "server": args.server, "follow": info.name, "entity_id": int(target),
-        "kind": KIND_NAMES.get(int(info.kind), str(info.kind)), "camera": "chase" if args.chase else "cockpit",
+        "kind": KIND_NAMES.get(int(info.kind), str(info.kind)), "camera": ",".join(_views(args)),
+        "terrain_renderer": args.terrain_renderer, "profile": lod,
         "role": args.role, "terrain": desc, "geoid_undulation_m": undulation,
         "size": list(parse_size(args.size)), "fov_x_deg": args.fov_deg,
         "window_km": args.window_km, "horizon_km": args.horizon_km, "frames": len(frames),
         "requested_frames": args.frames, "requested_fps": args.fps,
         "achieved_fps": len(frames) / wall if frames and wall > 0 else 0.0,
-        **{key: _percentiles([s[key] for s in stats]) for key in ("frame_ms", "triangles", "vertices",
-                                                                  "entities_drawn")},
+        **{key: _percentiles([s[key] for s in stats]) for key in ("frame_ms", "update_ms", "triangles", "vertices",
+                                                                  "entities_drawn", "terrain_samples",
+                                                                  "levels_active")},
         "mesh_rebuilds": stats[-1]["mesh_rebuilds"] if stats else 0,
         "rebases": sum(bool(s["rebased"]) for s in stats),
         "out": str(out), "pngs": frames, "per_frame": stats,
@@ -291,9 +314,23 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
     return 0 if frames else 1
 
 
+VIEWS = ("cockpit", "chase")
+
+
+def _views(args) -> list[str]:
+    if not getattr(args, "views", None):
+        return ["chase" if args.chase else "cockpit"]
+    views = [v.strip() for v in args.views.split(",") if v.strip()]
+    bad = [v for v in views if v not in VIEWS]
+    if bad or not views or len(set(views)) != len(views):
+        raise InvalidArgument("--views", f"must be distinct names among {', '.join(VIEWS)}", value=args.views)
+    return views
+
+
 def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Event, undulation: float):
-    """Render up to args.frames frames at most args.fps a wall second; (png paths, per-frame
-    stats dicts, wall seconds)."""
+    """Render up to args.frames frames at most args.fps a wall second, each in every view (one
+    renderer: the views share its terrain layer, centred on the followed agent); (png paths,
+    per-frame stats dicts, wall seconds)."""
     from PIL import Image
 
     from client.render.camera import heading_pitch_roll_deg, quat_to_matrix
@@ -312,20 +349,29 @@ def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Eve
         except NotFound:
             print(f"frame {k:04d}: {info.name!r} left the exercise", flush=True)
             break
-        camera = follow_camera(pos[0], quat[0], int(info.kind), args.chase, args.fov_deg)
-        image = renderer.render(camera, EntitySet.from_picture(picture, t, exclude=() if args.chase else (target,)))
-        path = out / f"frame_{k:04d}.png"
-        Image.fromarray(image).save(path)
-        frames.append(str(path))
+        views = _views(args)
+        layer = renderer.terrain_layer
+        if hasattr(layer, "focus_lat_lon"):  # every view's terrain is centred on the agent
+            layer.focus_lat_lon = tuple(float(v) for v in ecef_to_geodetic(pos[0])[:2])
+        samples = 0
+        for view in views:
+            chase = view == "chase"
+            camera = follow_camera(pos[0], quat[0], int(info.kind), chase, args.fov_deg)
+            image = renderer.render(camera, EntitySet.from_picture(picture, t, exclude=() if chase else (target,)))
+            samples += renderer.stats.terrain_samples
+            path = out / (f"frame_{k:04d}.png" if len(views) == 1 else f"frame_{k:04d}_{view}.png")
+            Image.fromarray(image).save(path)
+            frames.append(str(path))
         s = renderer.stats
         lat, lon, h = (float(v) for v in ecef_to_geodetic(pos[0]))
         hdg, pitch, roll = heading_pitch_roll_deg(pos[0], quat_to_matrix(quat[0]))
         elapsed = time.monotonic() - t_start
-        stats.append({**s.as_dict(), "world_time_s": t, "wall_s": elapsed, "lat_deg": lat, "lon_deg": lon,
-                      "alt_msl_m": h - undulation, "heading_deg": hdg})
+        stats.append({**s.as_dict(), "terrain_samples": samples, "world_time_s": t, "wall_s": elapsed,
+                      "lat_deg": lat, "lon_deg": lon, "alt_msl_m": h - undulation, "heading_deg": hdg})
         print(f"frame {k:04d} t={t:8.2f} s  fps {(k + 1) / max(elapsed, 1e-9):5.2f}  {s.frame_ms:6.1f} ms  "
-              f"tri {s.triangles:,}  entities {s.entities_drawn}  {info.name} {lat:.5f} {lon:.5f} "
-              f"{h - undulation:.0f} m hdg {hdg:.0f} pitch {pitch:.0f} roll {roll:.0f}", flush=True)
+              f"tri {s.triangles:,}  samples {samples:,}  levels {s.levels_active}  entities {s.entities_drawn}  "
+              f"{info.name} {lat:.5f} {lon:.5f} {h - undulation:.0f} m hdg {hdg:.0f} pitch {pitch:.0f} "
+              f"roll {roll:.0f}", flush=True)
         next_due = max(next_due + 1.0 / args.fps, time.monotonic())
         if k + 1 < args.frames:
             stop.wait(max(0.0, next_due - time.monotonic()))

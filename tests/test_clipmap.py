@@ -206,3 +206,46 @@ def test_levels_fade_out_with_height_before_they_are_dropped(flat_sky_clipmap):
     r.render(high)
     high_levels = {d.k for d in r.terrain_layer.draws}
     assert 0 in low_levels and 0 not in high_levels and max(high_levels) == max(low_levels)
+
+
+# -- profiles and views ---------------------------------------------------------------------------
+
+def test_profiles_per_agent_type():
+    from client.render.profiles import PROFILES, profile, profile_for
+
+    assert profile_for("aircraft", "f16").name == "fast_jet"
+    assert profile_for("aircraft", "UH60-heli").name == "helicopter"
+    assert profile_for("ground", "m1a2").name == "ground_vehicle"
+    assert profile_for("static").name == "observer"
+    for p in PROFILES.values():  # every profile is a valid clipmap reaching past 80 km at 90 m posts
+        assert (p.n + 1) & p.n == 0 and p.view_distance_m(90.0) > 80_000.0
+    assert profile("fast_jet").view_distance_m(90.0) > 350_000.0  # the horizon from 10 km
+    with pytest.raises(InvalidArgument, match="profile"):
+        profile("submarine")
+
+
+def test_two_views_share_one_clipmap_centred_on_the_agent(alps, hgt_alps, tmp_path):
+    import json
+
+    from server.sim_server import ServerConfig, SimulationServer
+    from server.world import World
+    from sortie.cli import main
+
+    w = World(alps, geoid_undulation_m=48.0)
+    w.spawn_ground(["tank1"], "m1a2", [47.29], [9.59], 45.0, coalition="red")
+    srv = SimulationServer(w, ServerConfig(exercise_name="views", terrain=f"dem:{hgt_alps}"))
+    srv.start()
+    try:
+        rc = main(["view", "--server", srv.address, "--follow", "tank1", "--views", "cockpit,chase", "--frames",
+                   "2", "--fps", "10", "--out", str(tmp_path), "--size", "160x90", "--profile", "helicopter"])
+    finally:
+        srv.stop(0.5)
+        w.close()
+    assert rc == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["terrain_renderer"] == "clipmap" and s["profile"] == "helicopter" and s["camera"] == "cockpit,chase"
+    assert sorted(p.rsplit("/", 1)[-1] for p in s["pngs"]) == [
+        "frame_0000_chase.png", "frame_0000_cockpit.png", "frame_0001_chase.png", "frame_0001_cockpit.png"]
+    assert s["levels_active"]["max"] >= 3
+    # The second view of a frame found the clipmap already updated by the first: one load for both.
+    assert all(f["terrain_samples"] == 0 for f in s["per_frame"][1:])

@@ -43,7 +43,8 @@ coarse to fine, each moved whole onto its active region, until the frame's
 budget of terrain samples (heights + normals) is spent; the finer levels then
 keep their old regions (they fall behind and are cropped by the coarser at
 draw time). A level that must move does so even over budget when it is the
-first of the frame, so the coarsest always keeps up.
+first of the frame, so the coarsest always keeps up. The first load (and a
+caller that asks, ``unlimited``) fills every level at once.
 
 Posts the terrain does not cover (height NaN) are stored at MSL 0 with an up
 normal: they draw as water at sea level, as the sea shell does around them.
@@ -292,9 +293,9 @@ class Clipmap:
 
     # -- updates
 
-    def update(self, focus_lat: float, focus_lon: float) -> list[Upload]:
+    def update(self, focus_lat: float, focus_lon: float, unlimited: bool = False) -> list[Upload]:
         """Move levels onto their active regions around the focus, coarse to fine, within the
-        budget; the storage pieces to upload."""
+        budget (``unlimited``: every level, as a first load does); the storage pieces to upload."""
         self.stats = UpdateStats()
         uploads: list[Upload] = []
         spent = 0
@@ -306,7 +307,7 @@ class Clipmap:
                 continue
             todo = uncovered_rects(level.region, new)
             cost = sum(self.cost(r) for r in todo)
-            if behind or (spent > 0 and spent + cost > self.budget):
+            if not unlimited and (behind or (spent > 0 and spent + cost > self.budget)):
                 behind = True
                 self.stats.levels_behind += 1
                 continue

@@ -279,10 +279,20 @@ class ClipmapLayer:
         if self.clipmap is None:
             self._setup(lat, lon)
         flat, flon = self.focus_lat_lon if self.focus_lat_lon is not None else (lat, lon)
-        for u in self.clipmap.update(flat, flon):
+        first = not any(lv.valid for lv in self.clipmap.levels)
+        for u in self.clipmap.update(flat, flon, unlimited=first):
             self._upload(u)
         self._height_above_ground = max(h - self.clipmap.geoid_undulation_m - self._ground_height(lat, lon), 0.0)
         self.update_ms = (time.perf_counter() - t0) * 1e3
+
+    @property
+    def samples(self) -> int:
+        """Terrain samples taken by the last update."""
+        return 0 if self.clipmap is None else self.clipmap.stats.samples
+
+    @property
+    def levels_active(self) -> int:
+        return len(self.draws)
 
     def _ground_height(self, lat: float, lon: float) -> float:
         """MSL height under (lat, lon) from the finest level holding it (no terrain query)."""

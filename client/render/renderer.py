@@ -78,7 +78,9 @@ class TerrainLayer(Protocol):
 class FrameStats:
     """frame_ms: wall time of render() (update, draw, read back); update_ms: the layers'
     updates (mesh rebuilds, uploads) within it; triangles and vertices submitted; entities_drawn; rebased:
-    the local origin moved this frame; mesh_rebuilds: the terrain layer's rebuilds so far."""
+    the local origin moved this frame; mesh_rebuilds: the terrain layer's rebuilds so far;
+    terrain_samples: terrain samples the layer took this frame (a clipmap's updates); levels_active:
+    the clipmap levels drawn (0 for the mesh)."""
 
     frame_ms: float = 0.0
     update_ms: float = 0.0
@@ -87,6 +89,8 @@ class FrameStats:
     entities_drawn: int = 0
     rebased: bool = False
     mesh_rebuilds: int = 0
+    terrain_samples: int = 0
+    levels_active: int = 0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -167,6 +171,10 @@ class SeaShellLayer:
     def _upload(self) -> None:
         pos, up, tris = self._mesh
         self._release_buffers()
+        self._generation = self.origin.generation
+        self.triangles = self.vertices = 0
+        if len(tris) == 0:  # the terrain covers all the shell would: nothing to draw
+            return
         data = interleave(self.origin, pos, up, np.full(len(pos), -SEA_SHELL_BELOW_M), np.ones(len(pos)))
         vbo, ibo = self.ctx.buffer(data.tobytes()), self.ctx.buffer(tris.tobytes())
         vao = self.ctx.vertex_array(self.program, [(vbo, "3f 3f 1f 1f", "in_position", "in_normal", "in_height",
@@ -178,6 +186,8 @@ class SeaShellLayer:
     def draw(self, frame: Frame) -> None:
         import moderngl
 
+        if not self._objects:
+            return
         frame.write_common(self.program)
         self.ctx.enable(moderngl.CULL_FACE)
         self._objects[0].render(moderngl.TRIANGLES)
@@ -361,7 +371,9 @@ class Renderer:
                                 triangles=triangles + self.entity_layer.triangles + 1,
                                 vertices=vertices + self.entity_layer.vertices + 3,
                                 entities_drawn=self.entity_layer.drawn, rebased=rebased,
-                                mesh_rebuilds=getattr(self.terrain_layer, "rebuilds", 0))
+                                mesh_rebuilds=getattr(self.terrain_layer, "rebuilds", 0),
+                                terrain_samples=getattr(self.terrain_layer, "samples", 0),
+                                levels_active=getattr(self.terrain_layer, "levels_active", 0))
         return image
 
     def depth_m(self) -> np.ndarray:

@@ -1,0 +1,75 @@
+"""Level-of-detail budgets per agent type: what a client's clipmap holds for what it follows.
+
+A profile sets the clipmap (client/render/clipmap.py) a render client uses:
+``levels`` L and ``n`` posts a side per level, the ``budget`` of terrain samples
+it may take per frame (heights + 4 normals a post; thesis §3.1.4: "this sample
+budget may have to be adjusted on each client"), and the finest level's
+spacing as a power-of-two factor of the terrain's post spacing (below 1: finer
+than the DEM, where the terrain's fractal detail synthesis, terrain/detail.py,
+answers if the terrain has it, else the bilinear surface). The view distance
+follows: about half the coarsest level's extent, (n - 1) / 2 x spacing x
+2^(L - 1); fog hides the edge there.
+
+Figures below for a 3-arc-second (about 90 m) DEM; they scale with its spacing.
+
+| profile | L | n | budget | finest | coarsest | view distance | why |
+|---|---|---|---|---|---|---|---|
+| fast_jet | 7 | 127 | 60,000 | 90 m | 5.8 km | ~365 km | at 10 km the horizon is ~360 km away; 300 m/s uncovers a finest row every 0.3 s |
+| helicopter | 6 | 127 | 40,000 | 90 m | 2.9 km | ~180 km | low and slow: the near field matters, the horizon is nearer |
+| ground_vehicle | 7 | 127 | 40,000 | 23 m | 1.4 km | ~90 km | on the ground: detail under the wheels (fractal below the DEM), a hill's horizon |
+| observer | 6 | 255 | 100,000 | 90 m | 2.9 km | ~365 km | a fixed or slow viewpoint: more posts a level, updated rarely |
+
+The client picks the profile of the agent it follows (:func:`profile_for`): an
+aircraft whose type names a helicopter gets ``helicopter``, other aircraft
+``fast_jet``, ground vehicles ``ground_vehicle``, anything else ``observer``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from sortie.errors import InvalidArgument
+
+HELICOPTER_WORDS = ("heli", "ah64", "uh60", "uh1", "ch47", "mi24", "mi8", "bo105", "ec135")
+
+
+@dataclass(frozen=True)
+class LodProfile:
+    name: str
+    levels: int
+    n: int
+    budget: int
+    finest_spacing_factor: float
+
+    def layer_args(self) -> dict:
+        """Keyword arguments of client.render.clipmap_layer.ClipmapLayer / clipmap_factory."""
+        d = asdict(self)
+        d.pop("name")
+        return d
+
+    def view_distance_m(self, post_spacing_m: float) -> float:
+        return (self.n - 1) / 2 * post_spacing_m * self.finest_spacing_factor * 2 ** (self.levels - 1)
+
+
+PROFILES = {p.name: p for p in (
+    LodProfile("fast_jet", 7, 127, 60_000, 1.0),
+    LodProfile("helicopter", 6, 127, 40_000, 1.0),
+    LodProfile("ground_vehicle", 7, 127, 40_000, 0.25),
+    LodProfile("observer", 6, 255, 100_000, 1.0),
+)}
+
+
+def profile(name: str) -> LodProfile:
+    if name not in PROFILES:
+        raise InvalidArgument("profile", f"must be one of {', '.join(PROFILES)}", value=name)
+    return PROFILES[name]
+
+
+def profile_for(kind: str, type_name: str = "") -> LodProfile:
+    """The profile of an agent of ``kind`` ("aircraft", "ground", "static", "observer") and type."""
+    if kind == "aircraft":
+        t = type_name.lower()
+        return PROFILES["helicopter" if any(w in t for w in HELICOPTER_WORDS) else "fast_jet"]
+    if kind == "ground":
+        return PROFILES["ground_vehicle"]
+    return PROFILES["observer"]
