@@ -35,7 +35,21 @@ pieces, and one vertex shader that displaces a small grid block per instance
   its level's extent, not with the distance to any global origin.
 
 Shading: the reference terrain's colour and lighting
-(terrain_mesh.TERRAIN_COLOUR_GLSL), with the normal from the normal maps.
+(terrain_mesh.TERRAIN_COLOUR_GLSL), with the normal from the normal maps,
+then detail textures under masks (thesis §3.2.3): DETAIL_PERIODS_M tilings of
+a tileable noise texture (four independent patterns in its channels, made
+once by :func:`detail_texture`, mipmapped so distant tiles average out),
+planar-projected along the three ECEF axes and blended by the normal's
+components (so steep faces take the projection across them, not a smear
+along them), masked by height and slope (grass below the tint's mid height,
+rock on slopes past ROCK_SLOPE_DEG, snow high up) and combined as
+C_n = C_(n-1) (1 - M_n + 2 M_n Cd_n): the "modulate 2x" blend the thesis'
+formula describes (a detail texture of mean 1/2 leaves the mean colour as it
+is; the thesis' printed form, 2 C M Cd + (1 - M) / 2, would grey out unmasked
+ground, which is not what its text or figure describe). Texture coordinates
+are the ECEF position modulo DETAIL_TILE_M (the renderer origin's float64
+ECEF reduced on the CPU, plus the fragment's float32 offset), so they do not
+move when the origin is rebased.
 """
 
 from __future__ import annotations
@@ -60,6 +74,10 @@ MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
 # grows from HEIGHT_FADE[0] to HEIGHT_FADE[1] times the level's extent, then is not drawn.
 HEIGHT_FADE = (0.2, 0.4)
 E2_COMPLEMENT_INV = 1.0 / (1.0 - 6.69437999014e-3)  # 1 / (1 - e^2), WGS84: geodetic normal from ECEF
+DETAIL_TILE_M = 1024.0  # texture coordinates are ECEF modulo this; every period below divides it
+DETAIL_PERIODS_M = (128.0, 32.0, 8.0)  # the detail tilings, coarse to fine
+DETAIL_TEXTURE_SIZE = 256
+DETAIL_STRENGTH = 0.3  # 0: no detail; the masks' weight scale
 
 VERTEX_SHADER = """#version 330 core
 uniform sampler2D u_fine;        // level k: offset from its origin (ECEF axes) + height MSL
@@ -84,6 +102,8 @@ out vec2 v_nuv_fine;
 out vec2 v_nuv_coarse;
 out float v_alpha;
 out vec3 v_up;
+out vec3 v_ecef_mod;
+uniform vec3 u_origin_mod;       // renderer origin ECEF modulo the detail tile, metres
 
 int pmod(int a, int m) { return a - m * int(floor(float(a) / float(m))); }
 vec4 post(sampler2D t, ivec2 ij) { return texelFetch(t, ivec2(pmod(ij.y, u_n), pmod(ij.x, u_n)), 0); }
@@ -121,6 +141,7 @@ void main() {
     vec2 hc2 = vec2(float(g.y + pmod(u_base.y, n2)), float(g.x + pmod(u_base.x, n2)));
     v_nuv_coarse = (hc2 + 0.5) / float(n2);
     vec3 e = u_origin_ecef + transpose(u_rot) * v_world;
+    v_ecef_mod = u_origin_mod + transpose(u_rot) * v_world;
     v_up = u_rot * normalize(vec3(e.x, e.y, e.z * %(E2)r));
     gl_Position = u_projection * (u_view * vec4(v_world, 1.0));
 }
@@ -129,22 +150,67 @@ void main() {
 FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + TERRAIN_COLOUR_GLSL + """
 uniform sampler2D u_nfine;
 uniform sampler2D u_ncoarse;
+uniform sampler2D u_detail;      // four tileable noise patterns, mean 1/2
 uniform mat3 u_rot;
 uniform int u_has_coarse;
+uniform float u_detail_strength;
 in vec3 v_world;
 in float v_height;
 in vec2 v_nuv_fine;
 in vec2 v_nuv_coarse;
 in float v_alpha;
 in vec3 v_up;
+in vec3 v_ecef_mod;
 out vec4 out_colour;
-void main() {
-    vec3 nf = texture(u_nfine, v_nuv_fine).xyz;
-    vec3 n = u_has_coarse != 0 ? mix(nf, texture(u_ncoarse, v_nuv_coarse).xyz, v_alpha) : nf;
-    n = normalize(u_rot * n);
-    out_colour = vec4(terrain_colour(v_world, n, v_height, dot(n, normalize(v_up))), 1.0);
+const vec3 PERIODS = vec3%(PERIODS)s;
+
+vec4 planar(vec3 p, vec3 w, float period) {  // three planar projections along the ECEF axes
+    return w.x * texture(u_detail, p.yz / period) + w.y * texture(u_detail, p.zx / period)
+         + w.z * texture(u_detail, p.xy / period);
 }
-"""
+
+void main() {
+    vec3 ne = texture(u_nfine, v_nuv_fine).xyz;
+    if (u_has_coarse != 0) ne = mix(ne, texture(u_ncoarse, v_nuv_coarse).xyz, v_alpha);
+    ne = normalize(ne);
+    vec3 n = u_rot * ne;
+    float cos_slope = dot(n, normalize(v_up));
+    vec3 c = terrain_colour(v_world, n, v_height, cos_slope);
+    if (u_detail_strength > 0.0 && v_height > 0.0) {
+        vec3 w = pow(abs(ne), vec3(4.0));
+        w /= (w.x + w.y + w.z);
+        float rock = smoothstep(ROCK_COS_START, ROCK_COS_FULL, cos_slope);
+        float snow = smoothstep(0.8 * HIGH_M, HIGH_M, v_height) * (1.0 - rock);
+        float grass = (1.0 - smoothstep(0.5 * MID_M, MID_M, v_height)) * (1.0 - rock);
+        vec4 masks = u_detail_strength * vec4(grass, rock, snow, 0.5);  // the last: every surface, lightly
+        for (int k = 0; k < 3; k++) {
+            vec4 f = 1.0 - masks + 2.0 * masks * planar(v_ecef_mod, w, PERIODS[k]);
+            c *= f.x * f.y * f.z * f.w;  // C_n = C_(n-1) (1 - M + 2 M Cd) per mask (thesis §3.2.3)
+        }
+    }
+    out_colour = vec4(c, 1.0);
+}
+""" % {"PERIODS": str(DETAIL_PERIODS_M)}
+
+
+def detail_texture(size: int = DETAIL_TEXTURE_SIZE, seed: int = 7) -> np.ndarray:
+    """(size, size, 4) uint8 tileable fractal noise, one pattern per channel, mean ~128: sums of
+    random-phase sinusoids on the torus's integer frequencies (tileable by construction) with a
+    1/f amplitude falloff, normalised to [16, 240]."""
+    rng = np.random.default_rng(seed)
+    y, x = np.meshgrid(np.arange(size), np.arange(size), indexing="ij")
+    out = np.zeros((size, size, 4))
+    for ch in range(4):
+        acc = np.zeros((size, size))
+        for f in (2, 4, 8, 16, 32, 64):
+            for _ in range(3):
+                fx, fy = rng.integers(-f, f + 1, 2)
+                if fx == 0 and fy == 0:
+                    continue
+                acc += np.cos(2 * np.pi * (fx * x + fy * y) / size + rng.uniform(0, 2 * np.pi)) / f
+        acc = (acc - acc.min()) / (np.ptp(acc) or 1.0)
+        out[..., ch] = 16 + 224 * acc
+    return out.astype(np.uint8)
 
 
 def height_alpha(height_above_ground_m: float, extent_m: float) -> float:
@@ -226,6 +292,10 @@ class ClipmapLayer:
                                                     (self._inst, "4i/i", "in_block")],
                                      index_buffer=self._grid_ibo, index_element_size=4)
         self._tex: list = []  # per level: (texel texture, normal texture)
+        self.detail_strength = DETAIL_STRENGTH
+        self._detail = ctx.texture((DETAIL_TEXTURE_SIZE, DETAIL_TEXTURE_SIZE), 4, detail_texture().tobytes())
+        self._detail.repeat_x = self._detail.repeat_y = True
+        self._detail.build_mipmaps()
         self.draws: list[LevelDraw] = []
         self.triangles = self.vertices = 0
         self.update_ms = 0.0
@@ -349,9 +419,12 @@ class ClipmapLayer:
         p["u_n"].value = c.n
         p["u_w"].value = max(MORPH_WIDTH_FRACTION * c.n, 1.0)
         p["u_origin_ecef"].write(self.origin.ecef.astype("f4").tobytes())
-        for name, unit in (("u_fine", 0), ("u_coarse", 1), ("u_nfine", 2), ("u_ncoarse", 3)):
+        for name, unit in (("u_fine", 0), ("u_coarse", 1), ("u_nfine", 2), ("u_ncoarse", 3), ("u_detail", 4)):
             if name in p:
                 p[name].value = unit
+        p["u_origin_mod"].write(np.mod(self.origin.ecef, DETAIL_TILE_M).astype("f4").tobytes())
+        p["u_detail_strength"].value = float(self.detail_strength)
+        self._detail.use(4)
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
         for d in self.draws:
@@ -385,6 +458,7 @@ class ClipmapLayer:
         check_gl_error(self.ctx, "clipmap draw")
 
     def release(self) -> None:
+        self._detail.release()
         for t, nm in self._tex:
             t.release()
             nm.release()
