@@ -154,7 +154,7 @@ def open_terrain(dem=None, service: str | None = None, world_terrain: str = ""):
     raise InvalidArgument("--dem", "give --dem FILE... or --terrain HOST:PORT (the server names no terrain)")
 
 
-def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "observer"):
+def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "observer", insets=()):
     from client.render.clipmap_layer import clipmap_factory
     from client.render.profiles import profile
     from client.render.renderer import Renderer
@@ -162,10 +162,27 @@ def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "obs
     w, h = parse_size(args.size)
     factory = None
     if args.terrain_renderer == "clipmap" and terrain is not None:
-        factory = clipmap_factory(terrain, geoid_undulation_m=geoid_undulation_m,
+        factory = clipmap_factory(terrain, geoid_undulation_m=geoid_undulation_m, insets=insets,
                                   **profile(args.profile or profile_name).layer_args())
     return Renderer(terrain, w, h, window_m=args.window_km * 1000.0, horizon_m=args.horizon_km * 1000.0,
-                    geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog, terrain_layer_factory=factory)
+                    geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog, terrain_layer_factory=factory,
+                    insets=insets)
+
+
+def world_insets(terrain, world_info):
+    """(terrain, insets): the target areas' insets when the server's terrain has them
+    (WorldInfo.terrain_insets): rebuilt from a terrain service that serves them, or built over
+    DEM files (terrain/inset.py; the same bits as the server's)."""
+    if not getattr(world_info, "terrain_insets", False) or not world_info.target_areas:
+        return terrain, []
+    from terrain.inset import INSET_SEED, InsetSource, insets_of, with_insets
+
+    areas = [(a.name, tuple(zip(a.lat_deg, a.lon_deg)), a.detail_m) for a in world_info.target_areas]
+    if hasattr(terrain, "sources"):  # in process: the DEMs
+        terrain = with_insets(terrain, areas, INSET_SEED)
+        return terrain, insets_of(terrain)
+    return terrain, [InsetSource.from_inset_terrain(terrain, polygon, detail_m, INSET_SEED, name=name)
+                     for name, polygon, detail_m in areas]
 
 
 def _close(terrain) -> None:
@@ -279,6 +296,7 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         target = _pick(picture, args.follow, kind)
         info = picture.infos[target]
         terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain)
+        terrain, insets = world_insets(terrain, sim.world_info)
         undulation = (args.geoid_undulation_m if args.geoid_undulation_m is not None
                       else float(getattr(sim.world_info, "geoid_undulation_m", 0.0)))
         from client.render.profiles import profile_for
@@ -288,7 +306,7 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
               f"{', '.join(_views(args))} camera, terrain {desc} ({args.terrain_renderer}, profile {lod})",
               flush=True)
         try:
-            with _renderer(args, terrain, undulation, lod) as r:
+            with _renderer(args, terrain, undulation, lod, insets) as r:
                 frames, stats, wall = _frames(args, picture, target, r, out, stop, undulation)
         finally:
             _close(terrain)
@@ -297,7 +315,7 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         "server": args.server, "follow": info.name, "entity_id": int(target),
         "kind": KIND_NAMES.get(int(info.kind), str(info.kind)), "camera": ",".join(_views(args)),
         "terrain_renderer": args.terrain_renderer, "profile": lod,
-        "role": args.role, "terrain": desc, "geoid_undulation_m": undulation,
+        "role": args.role, "terrain": desc, "geoid_undulation_m": undulation, "insets": [s.name for s in insets],
         "size": list(parse_size(args.size)), "fov_x_deg": args.fov_deg,
         "window_km": args.window_km, "horizon_km": args.horizon_km, "frames": len(frames),
         "requested_frames": args.frames, "requested_fps": args.fps,

@@ -193,10 +193,12 @@ def apply_input(world, r) -> None:
 
 def build_recorded_world(rec: Recording, dem=None, service: str | None = None, workers: int = 0):
     """(world as the recording started, its scenario, terrain spec, notes)."""
-    from server.sim_server import aircraft_host, build_world, open_terrain_source
+    from server.sim_server import aircraft_host, build_world, inset_areas, open_terrain_source
 
     scenario = recorded_scenario(rec)
     spec, notes = recorded_terrain_spec(rec, dem, service)
+    if "dem" in spec and scenario.terrain.insets and scenario.target_areas:  # the same insets as recorded
+        spec["target_areas"] = inset_areas(scenario)
     terrain = open_terrain_source(**spec)
     world = build_world(scenario, terrain, aircraft_host(scenario, terrain,
                                                          functools.partial(open_terrain_source, **spec), workers))

@@ -37,6 +37,10 @@ Schema (``*`` required; everything else has the default shown)::
                                (raw 16-bit files need a georeference a scenario cannot give)
     service = "host:port"      a running terrain service ("[::1]:50051" for IPv6)
     geoid_undulation_m = 0.0   N (ellipsoid minus geoid height) for ECEF, |N| <= 120
+    insets = false             answer inside the target areas from their high-detail inset
+                               data (terrain/inset.py), which clients draw as geomipmaps;
+                               with a service, the service must serve them (sortie terrain
+                               serve --insets SCENARIO)
 
     [agent_types.<name>]       <name> is a kind (aircraft, ground, static, observer) or a
                                type (a JSBSim catalog name, a vehicle type, or the type of a
@@ -237,6 +241,7 @@ class TerrainSpec:
     dem: tuple[Path, ...] = ()
     service: str | None = None
     geoid_undulation_m: float = 0.0
+    insets: bool = False
 
 
 @dataclass(frozen=True)
@@ -629,20 +634,22 @@ def _start_time(value, path: str) -> datetime:
 
 
 def _terrain(value, base_dir: Path) -> TerrainSpec:
-    t = _Table(value, "terrain", ("dem", "service", "geoid_undulation_m"))
+    t = _Table(value, "terrain", ("dem", "service", "geoid_undulation_m", "insets"))
     if ("dem" in value) == ("service" in value):
         raise ScenarioError("terrain", "give exactly one of dem = [files] or service = \"host:port\"",
                             value=sorted(value))
     undulation = t.number("geoid_undulation_m", 0.0, lo=-GEOID_UNDULATION_ABS_MAX_M, hi=GEOID_UNDULATION_ABS_MAX_M)
+    insets = t.boolean("insets", False)
     if "service" in value:
-        return TerrainSpec(service=_address(t.string("service"), t.key("service")), geoid_undulation_m=undulation)
+        return TerrainSpec(service=_address(t.string("service"), t.key("service")), geoid_undulation_m=undulation,
+                           insets=insets)
     files = t.raw("dem")
     if not isinstance(files, list) or not files:
         raise ScenarioError(t.key("dem"), "must be a non-empty array of file paths", value=_shown(files))
     if len(files) > MAX_DEM_FILES:
         raise ScenarioError(t.key("dem"), f"at most {MAX_DEM_FILES} files", value=len(files))
     return TerrainSpec(dem=tuple(_dem_path(f, f"terrain.dem[{i}]", base_dir) for i, f in enumerate(files)),
-                       geoid_undulation_m=undulation)
+                       geoid_undulation_m=undulation, insets=insets)
 
 
 def _dem_path(value, path: str, base_dir: Path) -> Path:

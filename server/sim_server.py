@@ -76,7 +76,8 @@ def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_
     return pb.WorldInfo(exercise_name=config.exercise_name, start_time=config.start_time, time_s=time_s,
                         server_unix_time_s=time.time(), clock=clock, time_scale=time_scale,
                         world_rate_hz=world_rate_hz, network_rate_hz=config.network_rate_hz, target_areas=areas,
-                        terrain=config.terrain, geoid_undulation_m=geoid_undulation_m)
+                        terrain=config.terrain, geoid_undulation_m=geoid_undulation_m,
+                        terrain_insets=config.insets)
 
 
 @dataclass
@@ -89,6 +90,7 @@ class ServerConfig:
     duration_s: float | None = None
     vanished_timeout_s: float = 10.0
     target_areas: list = field(default_factory=list)  # (name, [(lat, lon)], detail_m)
+    insets: bool = False  # the terrain answers inside the target areas from their insets
     terrain: str = ""
     params: dict = field(default_factory=lambda: dict(DEFAULT_PARAMS))  # kind or type name -> TypeParams
 
@@ -241,8 +243,10 @@ def _dr_thresholds(p) -> Thresholds:
     return Thresholds(p.dr_position_m, math.radians(p.dr_orientation_deg), p.heartbeat_s, code)
 
 
-def open_terrain_source(dem=None, service: str | None = None):
-    """The terrain of DEM files (in process) or a client of a terrain service.
+def open_terrain_source(dem=None, service: str | None = None, target_areas=()):
+    """The terrain of DEM files (in process) or a client of a terrain service; with
+    ``target_areas`` ((name, polygon, detail_m) tuples) the DEM terrain answers inside them
+    from their insets (terrain/inset.py; a service serves its own).
 
     Module-level and picklable as ``functools.partial``, so an aircraft worker
     process opens the same terrain (server.aircraft_host)."""
@@ -255,7 +259,12 @@ def open_terrain_source(dem=None, service: str | None = None):
     from terrain.mosaic import load_sources
     from terrain.terrain import Terrain
 
-    return Terrain(load_sources([str(p) for p in dem]))
+    terrain = Terrain(load_sources([str(p) for p in dem]))
+    if target_areas:
+        from terrain.inset import INSET_SEED, with_insets
+
+        terrain = with_insets(terrain, target_areas, INSET_SEED)
+    return terrain
 
 
 def terrain_spec(scenario, dem=None, service: str | None = None) -> dict:
@@ -263,7 +272,16 @@ def terrain_spec(scenario, dem=None, service: str | None = None) -> dict:
     ``service`` address override the scenario's terrain."""
     if service or (not dem and scenario.terrain.service):
         return {"service": service or scenario.terrain.service}
-    return {"dem": [str(p) for p in (dem or scenario.terrain.dem)]}
+    spec = {"dem": [str(p) for p in (dem or scenario.terrain.dem)]}
+    if scenario.terrain.insets and scenario.target_areas:
+        spec["target_areas"] = inset_areas(scenario)
+    return spec
+
+
+def inset_areas(scenario) -> tuple:
+    """The scenario's target areas as (name, polygon, detail_m) tuples (picklable: worker processes
+    build the same insets)."""
+    return tuple((a.name, tuple(map(tuple, a.polygon)), a.detail_m) for a in scenario.target_areas)
 
 
 def open_terrain(scenario, dem=None, service: str | None = None):
@@ -287,7 +305,6 @@ def aircraft_host(scenario, terrain, terrain_factory, workers: int):
 def build_world(scenario, terrain, host=None) -> World:
     """A world holding every agent of a validated scenario (server.scenario.Scenario);
     its aircraft on ``host`` (see :func:`aircraft_host`; in process by default)."""
-    from fdm.aircraft import InitialConditions
 
     ex = scenario.exercise
     world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m, host)
@@ -353,4 +370,5 @@ def server_config(scenario, terrain_desc: str = "") -> ServerConfig:
                         network_rate_hz=ex.network_rate_hz, clock=ex.clock, time_scale=ex.time_scale,
                         duration_s=ex.duration_s, vanished_timeout_s=ex.vanished_client_timeout_s,
                         target_areas=[(t.name, list(t.polygon), t.detail_m) for t in scenario.target_areas],
-                        terrain=terrain_desc, params=params)
+                        terrain=terrain_desc, params=params,
+                        insets=bool(scenario.terrain.insets and scenario.target_areas))

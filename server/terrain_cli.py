@@ -48,6 +48,9 @@ def add_parser(sub) -> None:
                        help="threads answering calls (default %(default)s)")
     serve.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
                        help="seconds in-flight calls get to finish on shutdown (default %(default)s)")
+    serve.add_argument("--insets", nargs="+", metavar="SCENARIO",
+                       help="answer inside these scenarios' target areas from their high-detail insets "
+                            "(terrain/inset.py), as a server with [terrain] insets = true does")
     serve.add_argument("--metrics-port", type=int, metavar="N",
                        help="serve Prometheus metrics (calls, errors, seconds per method) on http://HOST:N/metrics; "
                             "0 picks a free port")
@@ -88,6 +91,13 @@ def serve_command(args) -> int:
     from server.terrain_service import create_server
 
     terrain = build_terrain(args.dem, args.procedural)
+    if args.insets:
+        from server.scenario import load_scenario
+        from terrain.inset import INSET_SEED, with_insets
+
+        areas = [a for path in args.insets for a in load_scenario(path).target_areas]
+        terrain = with_insets(terrain, areas, INSET_SEED)
+        print(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", flush=True)
     server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers)
     metrics = None
     if args.metrics_port is not None:

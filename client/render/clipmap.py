@@ -237,7 +237,9 @@ class Clipmap:
         self.geoid_undulation_m = float(geoid_undulation_m)
         self.levels = [LevelStore(k, n) for k in range(levels)]
         self.stats = UpdateStats()
-        self.cutout = None  # optional (lat, lon) -> metres to lower the surface (geomipmap insets)
+        # Optional cutout(lat, lon, spacing_m) -> metres to lower the surface (under geomipmap insets:
+        # terrain/inset.cutout_depth_m, given the level's post spacing).
+        self.cutout = None
 
     # -- geometry of the lattice
 
@@ -272,7 +274,7 @@ class Clipmap:
         h = np.where(np.isfinite(h), h, 0.0)  # no data: water at sea level
         surface = h.copy()
         if self.cutout is not None:
-            surface -= self.cutout(lat, lon)
+            surface -= self.cutout(lat.ravel(), lon.ravel(), self.spacing_m(k)).reshape(lat.shape)
         return geodetic_to_ecef(lat, lon, surface + self.geoid_undulation_m), h
 
     def sample_normals(self, k: int, r: Rect) -> np.ndarray:

@@ -269,7 +269,7 @@ class ClipmapLayer:
 
     def __init__(self, ctx, terrain, origin: LocalOrigin, *, levels: int = 7, n: int = 127,
                  budget: int = 100_000, finest_spacing_factor: float = 1.0, geoid_undulation_m: float = 0.0,
-                 lattice=None, focus_lat_lon=None):
+                 lattice=None, focus_lat_lon=None, insets=()):
         e = math.log2(finest_spacing_factor) if finest_spacing_factor > 0 else math.nan
         if not (math.isfinite(e) and e == round(e) and -8 <= e <= 8):
             raise InvalidArgument("finest_spacing_factor", "must be a power of two in [1/256, 256]",
@@ -282,6 +282,7 @@ class ClipmapLayer:
         self._args = (levels, n, budget, geoid_undulation_m)
         self.clipmap: Clipmap | None = None
         self.focus_lat_lon = focus_lat_lon  # None: the camera's position
+        self.insets = list(insets)  # terrain.inset.InsetSource: the clipmap is lowered beneath them
         self.program = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER)
         verts, tris = block_grid()
         self._grid_vbo = ctx.buffer(verts.tobytes())
@@ -314,6 +315,10 @@ class ClipmapLayer:
             f = self._finest_factor
             lattice = type(base)(base.lat0, base.lon0, base.dlat * f, base.dlon * f, base.exact and f >= 1)
         self.clipmap = Clipmap(self.terrain, lattice, levels, n, budget, undulation)
+        if self.insets:
+            from terrain.inset import cutout_depth_m
+
+            self.clipmap.cutout = lambda lat, lon, spacing_m: cutout_depth_m(self.insets, lat, lon, spacing_m)
         for _ in range(levels):
             t = self.ctx.texture((n, n), 4, dtype="f4")
             t.filter = (moderngl.NEAREST, moderngl.NEAREST)

@@ -244,7 +244,9 @@ class Renderer:
     simulation server's scenario says. sun_*: the sun in the local sky, degrees. fog: on/off;
     its density hides the terrain's far edge. sea: the sea shell. flat_sky_rgb: test mode, a
     flat sky of this 0-255 colour (and no fog). terrain_layer_factory(ctx, origin) -> a
-    TerrainLayer, in place of the mesh.
+    TerrainLayer, in place of the mesh. insets: terrain.inset.InsetSource objects (the target
+    areas' high-detail data), each drawn as a geomipmap (client/render/geomipmap.py) over the
+    terrain layer, which a clipmap lowers beneath them.
     """
 
     def __init__(self, terrain, width: int, height: int, *, window_m: float = DEFAULT_WINDOW_M,
@@ -252,7 +254,7 @@ class Renderer:
                  spacing_m: float | None = None, geoid_undulation_m: float = 0.0,
                  sun_azimuth_deg: float = DEFAULT_SUN_AZIMUTH_DEG, sun_elevation_deg: float = DEFAULT_SUN_ELEVATION_DEG,
                  fog: bool = True, sea: bool = True, flat_sky_rgb=None, rebase_distance_m: float = REBASE_DISTANCE_M,
-                 terrain_layer_factory=None, ctx=None):
+                 terrain_layer_factory=None, ctx=None, insets=()):
         for name, v in (("width", width), ("height", height)):
             if not (isinstance(v, int) and 1 <= v <= MAX_IMAGE_SIDE):
                 raise InvalidArgument(name, f"must be an integer in [1, {MAX_IMAGE_SIDE}] pixels", value=v)
@@ -287,6 +289,10 @@ class Renderer:
                                                           spacing_m=spacing_m, geoid_undulation_m=geoid_undulation_m)
                 else:
                     self.terrain_layer = None
+                from client.render.geomipmap import GeomipmapInset
+
+                self.inset_layers = [GeomipmapInset(self.ctx, s, self.origin, geoid_undulation_m=geoid_undulation_m)
+                                     for s in insets]
                 self.sea_layer = SeaShellLayer(self.ctx, self.origin, geoid_undulation_m) if self.sea else None
                 self.entity_layer = EntityLayer(self.ctx)
                 self._sky_program = self.ctx.program(vertex_shader=SKY_VERTEX_SHADER,
@@ -314,6 +320,8 @@ class Renderer:
         with self.ctx:
             if self.terrain_layer is not None:
                 self.terrain_layer.release()
+            for layer in self.inset_layers:
+                layer.release()
             if self.sea_layer is not None:
                 self.sea_layer.release()
             self.entity_layer.release()
@@ -349,6 +357,8 @@ class Renderer:
             self._last_near = camera.near_m
             if self.terrain_layer is not None:
                 self.terrain_layer.update(camera)
+            for layer in self.inset_layers:
+                layer.update(camera)
             if self.sea_layer is not None:
                 self.sea_layer.update(camera, getattr(self.terrain_layer, "solid_bounds", None))
             t1 = time.perf_counter()
@@ -359,6 +369,9 @@ class Renderer:
             if self.terrain_layer is not None:
                 self.terrain_layer.draw(frame)
                 triangles, vertices = self.terrain_layer.triangles, self.terrain_layer.vertices
+            for layer in self.inset_layers:
+                layer.draw(frame)
+                triangles, vertices = triangles + layer.triangles, vertices + layer.vertices
             if self.sea_layer is not None:
                 self.sea_layer.draw(frame)
                 triangles, vertices = triangles + self.sea_layer.triangles, vertices + self.sea_layer.vertices

@@ -94,6 +94,7 @@ def lattice_for(sources: list[dict], lat: float, lon: float) -> Lattice:
     EPSG:4326 sources give their exact lattice; others (Web Mercator GeoTIFFs) a lattice of
     their post spacing in metres at ``lat``, anchored at their south-west corner.
     """
+    sources = [s for s in sources if s.get("kind") != "inset"] or sources  # insets are drawn by their own layer
     if not sources:
         raise InvalidArgument("sources", "the terrain describes no source; give spacing_m")
     s = next((s for s in sources if _covers(s, lat, lon)), sources[0])
