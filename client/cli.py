@@ -1,4 +1,5 @@
-"""``sortie client`` (a headless observer printing the live picture) and
+"""``sortie client`` (a headless observer printing the live picture; with ``--follow`` or
+``--agent-type``, the render client of client/render_cli.py, as ``sortie view``) and
 ``sortie bot`` (many autopilot agents in one process, as ordinary clients).
 
     sortie client --server HOST:PORT [--observe LAT LON RADIUS_M] [--duration S] [--every S]
@@ -33,6 +34,16 @@ def add_parser(sub) -> None:
                    help="wall seconds; 0 runs until SIGTERM/SIGINT (default %(default)s)")
     c.add_argument("--every", type=float, default=2.0, metavar="S", help="print period (default %(default)s)")
     c.add_argument("--name", default="observer")
+    render = c.add_argument_group("rendering (issue #5's thin client: the same as sortie view)")
+    who = render.add_mutually_exclusive_group()
+    who.add_argument("--follow", metavar="AGENT", help="render, following this agent (see sortie view --help)")
+    who.add_argument("--agent-type", choices=("aircraft", "ground"), help="render, following the first of this kind")
+    render.add_argument("--headless", action="store_true",
+                        help="render offscreen (EGL); the only mode on machines without a display")
+    render.add_argument("--frames", type=int, default=100, metavar="N", help="frames to render (default %(default)s)")
+    render.add_argument("--fps", type=float, default=10.0, help="frames per wall second, at most (default %(default)s)")
+    render.add_argument("--out", default="frames", metavar="DIR", help="where the frames go (default %(default)s)")
+    render.add_argument("--chase", action="store_true", help="chase camera (default: cockpit)")
     c.set_defaults(func=client_command)
 
     b = sub.add_parser("bot", help="run N autopilot bots as clients of a simulation server",
@@ -67,6 +78,12 @@ def _stop_on_signals() -> threading.Event:
 
 
 def client_command(args) -> int:
+    if args.follow or args.agent_type:  # the render client (client/render_cli.py)
+        from sortie.cli import main
+
+        who = ["--follow", args.follow] if args.follow else ["--agent-type", args.agent_type]
+        return main(["view", "--server", args.server, *who, "--frames", str(args.frames), "--fps", str(args.fps),
+                     "--out", args.out, "--name", args.name, *(["--chase"] if args.chase else [])])
     from client.sim_client import SimClient
 
     stop = _stop_on_signals()

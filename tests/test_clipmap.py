@@ -249,3 +249,24 @@ def test_two_views_share_one_clipmap_centred_on_the_agent(alps, hgt_alps, tmp_pa
     assert s["levels_active"]["max"] >= 3
     # The second view of a frame found the clipmap already updated by the first: one load for both.
     assert all(f["terrain_samples"] == 0 for f in s["per_frame"][1:])
+
+
+def test_sortie_client_follow_headless_renders_like_sortie_view(alps, hgt_alps, tmp_path):
+    import json
+
+    from server.sim_server import ServerConfig, SimulationServer
+    from server.world import World
+    from sortie.cli import main
+
+    w = World(alps, geoid_undulation_m=48.0)
+    w.spawn_ground(["tank1"], "m1a2", [47.29], [9.59], 45.0, coalition="red")
+    srv = SimulationServer(w, ServerConfig(exercise_name="client", terrain=f"dem:{hgt_alps}"))
+    srv.start()
+    try:
+        rc = main(["client", "--server", srv.address, "--agent-type", "ground", "--headless", "--frames", "1",
+                   "--out", str(tmp_path)])
+    finally:
+        srv.stop(0.5)
+        w.close()
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert rc == 0 and s["frames"] == 1 and s["follow"] == "tank1" and s["profile"] == "ground_vehicle"
