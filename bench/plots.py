@@ -184,22 +184,78 @@ def plot_recording(report: dict, out_dir: Path) -> list[Path]:
 
 
 def plot_render(report: dict, out_dir: Path) -> list[Path]:
-    """Frame time against triangles per window configuration and pose (the reference
-    renderer: full resolution, so its screen error is 0 by definition; issue #5's clipmap
-    is plotted against it)."""
+    """The clipmap's speed against error (issue #5): screen error (median and p99, px) of each
+    (L, n, budget) setting of the sweep against its triangles and its frame time, beside the
+    full-resolution reference renderer, and each setting's update time (p99) against the 2 ms goal."""
     plt = _pyplot()
-    m = report["metrics"]
-    keys = sorted(k[: -len("_triangles")] for k in m if k.endswith("_triangles"))
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for key in keys:
-        ax.scatter(m[f"{key}_triangles"] / 1e3, m[f"{key}_frame_ms_median"])
-        ax.annotate(key, (m[f"{key}_triangles"] / 1e3, m[f"{key}_frame_ms_median"]), fontsize=7)
-    ax.set_xlabel("triangles per frame (thousands)")
-    ax.set_ylabel("median frame time (ms)")
-    ax.set_title(f"reference renderer, {report['params'].get('gl_renderer', '')}", fontsize=9)
+    rows = report.get("series", {}).get("sweep", [])
+    ref = report.get("series", {}).get("sweep_reference")
     written: list[Path] = []
+    if not rows or not ref:
+        return written
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
+
+    markers = {63: "v", 127: "o", 255: "s"}
+    colours = {5: "tab:green", 6: "tab:blue", 7: "tab:purple"}
+    floor = 0.01  # medians below this (level 0 draws the reference surface itself) are plotted on it
+    fig, axes = plt.subplots(1, 3, figsize=(16.5, 5.0), gridspec_kw={"width_ratios": [1.0, 1.0, 0.8]})
+    for ax, x_key, ref_x, xlabel in ((axes[0], "triangles", ref["triangles"], "triangles drawn (median frame)"),
+                                     (axes[1], "frame_ms_test", ref["frame_ms_test"],
+                                      "frame time, ms (median of measured frames, test mode)")):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        for row in rows:
+            x, colour = row[x_key], colours.get(row["levels"], "grey")
+            small_budget = row["budget"] < 10_000
+            face = "none" if small_budget else colour
+            ax.scatter(x, row["screen_error_px_p99"], marker=markers.get(row["n"], "D"), s=60 if row["default"] else 36,
+                       facecolors=face, edgecolors="black" if row["default"] else colour)
+            ax.scatter(x, max(row["screen_error_px_median"], floor), marker=markers.get(row["n"], "D"), s=14,
+                       color=colour, alpha=0.45)
+            label, offset = ((f"L{row['levels']} n{row['n']} b{row['budget'] // 1000}k", (4, -12)) if small_budget
+                             else (f"L{row['levels']} n{row['n']}", (-8, 5 + 8 * (row["levels"] - 5))))
+            ax.annotate(label, (x, row["screen_error_px_p99"]), fontsize=6, xytext=offset, textcoords="offset points")
+        ax.scatter(ref_x, ref["screen_error_px_p99"], marker="*", s=140, color="tab:red")
+        ax.annotate("reference renderer (p99:\nits ring of every 8th post)", (ref_x, ref["screen_error_px_p99"]),
+                    fontsize=7, xytext=(0, -22), textcoords="offset points", ha="center", color="tab:red")
+        for axis in (ax.xaxis,):
+            axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0) if x_key == "triangles" else
+                                              (1.0, 1.5, 2.0, 3.0, 5.0, 7.0)))
+            axis.set_major_formatter(ScalarFormatter())
+            axis.set_minor_formatter(NullFormatter())
+        ax.set_ylim(floor * 0.7, 30.0)
+        ax.axhline(2.0, color="grey", lw=0.8, ls="--")
+        ax.axhline(1.0, color="grey", lw=0.8, ls=":")
+        ax.annotate("goal p99 ≤ 2 px", (0.01, 2.1), xycoords=("axes fraction", "data"), fontsize=7, color="grey")
+        ax.annotate("goal median ≤ 1 px", (0.01, 1.05), xycoords=("axes fraction", "data"), fontsize=7, color="grey")
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel(f"screen error vs the full-resolution mesh, px\n(large: p99; small: median, floor {floor:g})",
+                      fontsize=8)
+    axes[0].axvline(ref["triangles"] / 10.0, color="tab:red", lw=0.8, ls="--")
+    axes[0].annotate("goal: ≤ 1/10 of the\nreference's triangles", (ref["triangles"] / 10.0, 0.03), fontsize=7,
+                     color="tab:red", xytext=(4, 0), textcoords="offset points")
+    for L, colour in colours.items():
+        axes[0].scatter([], [], color=colour, label=f"L = {L}")
+    for n, marker in markers.items():
+        axes[0].scatter([], [], color="grey", marker=marker, label=f"n = {n}")
+    axes[0].scatter([], [], facecolors="none", edgecolors="grey", label="small budget")
+    axes[0].legend(fontsize=7, loc="lower left")
+    ax = axes[2]
+    labels = [f"L{r['levels']} n{r['n']}" + (f" b{r['budget'] // 1000}k" if r["budget"] < 10_000 else "")
+              + (" *" if r["default"] else "") for r in rows]
+    ax.barh(labels, [r["update_ms_p99"] for r in rows], color=[colours.get(r["levels"], "grey") for r in rows])
+    ax.axvline(2.0, color="grey", lw=0.8, ls="--")
+    ax.annotate("goal ≤ 2 ms", (2.0, 1.0), xycoords=("data", "axes fraction"), xytext=(3, -10),
+                textcoords="offset points", fontsize=7, color="grey")
+    ax.invert_yaxis()
+    ax.tick_params(axis="y", labelsize=7)
+    ax.set_xlabel("update time per 1/60 s frame at 300 m/s, p99 (ms)", fontsize=8)
+    params = report.get("params", {})
+    fig.suptitle(f"Geometry clipmap against the full-resolution reference: {', '.join(params.get('sweep_paths', []))}"
+                 f" paths, {params.get('size', ['?', '?'])[0]}x{params.get('size', ['?', '?'])[1]}, "
+                 f"{params.get('gl_renderer', '')} (* the default profile)", fontsize=9)
     out_dir.mkdir(parents=True, exist_ok=True)
-    _save(fig, out_dir / "render_frame_ms_vs_triangles.png", written)
+    _save(fig, out_dir / "render_clipmap_speed_vs_error.png", written)
     return written
 
 

@@ -356,18 +356,21 @@ class Clipmap:
         return uploads
 
 
-def drawn_regions(clipmap: Clipmap, drawn_levels: list[int]) -> dict[int, Rect]:
+def drawn_regions(clipmap: Clipmap, drawn_levels: list[int], margin_cells: int = 1) -> dict[int, Rect]:
     """Each drawn level's render extent (posts): the coarsest its clip region; a finer one its
-    clip region cropped to lie at least one coarse cell inside the coarser level's drawn region,
-    on even rows and columns (so its border runs through coarse posts). A level cropped to
-    fewer than 4 cells a side is left out, and the finer ones with it."""
+    clip region cropped to lie at least ``margin_cells`` coarse cells inside the coarser level's
+    drawn region (the layer asks for the morph width + 1, so a lagging level's border stays out
+    of the coarser level's morph band), on even rows and columns (so its border runs through
+    coarse posts). A level cropped to fewer than 4 cells a side is left out, and the finer
+    ones with it."""
     out: dict[int, Rect] = {}
     coarser = None
     for k in sorted(drawn_levels, reverse=True):
         r = clipmap.levels[k].region
         if coarser is not None:
             c = out[coarser]
-            inner = Rect(2 * (c.i0 + 1), 2 * (c.j0 + 1), 2 * (c.i1 - 1), 2 * (c.j1 - 1))
+            m = margin_cells
+            inner = Rect(2 * (c.i0 + m), 2 * (c.j0 + m), 2 * (c.i1 - m), 2 * (c.j1 - m))
             r = r.intersect(inner)
             r = Rect(r.i0 + (r.i0 & 1), r.j0 + (r.j0 & 1), r.i1 - (r.i1 & 1), r.j1 - (r.j1 & 1))
             if r.empty or r.i1 - r.i0 < 4 or r.j1 - r.j0 < 4 or coarser != k + 1:

@@ -20,12 +20,18 @@ pieces, and one vertex shader that displaces a small grid block per instance
   coarser level's posts around it — the post itself (even, even), the two
   ends of its coarse edge (one index odd) or the four corners of its coarse
   cell (both odd): the thesis' vertex cases — and morphs to their average by
-  alpha = clamp(alpha_b + alpha_h, 0, 1). alpha_b ramps from 0 to 1 over the
-  last w = n / 10 cells before the edge of the level's *drawn* region (the
-  thesis measures from the active region around the viewer; measuring from the
-  drawn region keeps alpha = 1 exactly on the border also when a level lags
-  behind and is cropped, so the border vertices lie on the coarser level's
-  edges: no cracks). alpha_h fades a level whose extent is small against the
+  alpha = clamp(alpha_b + alpha_h, 0, 1). alpha_b ramps from 0 to 1 over w =
+  n / 10 cells as the vertex's distance from the viewer (in the level's
+  cells, the larger axis) grows to (n - 1) / 2 - 1, as the thesis measures it,
+  so it moves continuously with the viewer (measuring it from the region's
+  edge, which jumps 2 posts when the region moves, popped vertices by up to
+  2/w of |z - z_c|: 19-34 m per frame at 300 m/s, found by the bench). On the
+  drawn border alpha is 1 (the border vertices are the coarser level's, bit
+  for bit). A level that lags behind (its region is not centred on the
+  viewer, so distances from the viewer mean nothing to it) ramps from its
+  drawn border instead, and is cropped at least w + 2 cells inside the
+  coarser level (outside the coarser level's own morph band, whose start
+  varies by the 2-cell snapping of regions): no cracks. alpha_h fades a level whose extent is small against the
   viewer's height above the ground (:func:`height_alpha`) before it stops
   being drawn: no popping. Normals are blended by the same alpha.
 - **Precision** (global-terrain-flight-sim §6). Positions are float32 offsets
@@ -61,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from client.render.camera import Camera, LocalOrigin
-from client.render.clipmap import Clipmap, Rect, blocks, drawn_regions, ring_rects
+from client.render.clipmap import Clipmap, Rect, active_origin, blocks, clip_region, drawn_regions, ring_rects
 from client.render.gl import check_gl_error
 from client.render.shading import GLSL_COMMON, Frame
 from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
@@ -90,6 +96,9 @@ uniform vec3 u_off_coarse;
 uniform vec3 u_origin_ecef;      // renderer origin (ECEF, float32: for directions only)
 uniform vec4 u_region;           // drawn region (i0, j0, i1, j1), relative to u_base
 uniform float u_w;               // morph width, cells
+uniform vec2 u_viewer;           // the focus in this level's lattice, relative to u_base
+uniform float u_half;            // (n - 1) / 2 - 1: viewer distance (cells) where alpha_b reaches 1
+uniform int u_lagging;           // the level is not on its active region (it fell behind)
 uniform float u_alpha_h;
 uniform int u_has_coarse;
 uniform mat4 u_view;
@@ -120,7 +129,13 @@ void main() {
     if (u_has_coarse != 0) {
         vec2 d2 = min(vec2(g) - u_region.xy, u_region.zw - vec2(g));
         float d = min(d2.x, d2.y);
-        alpha = clamp(clamp((u_w + 1.0 - d) / u_w, 0.0, 1.0) + u_alpha_h, 0.0, 1.0);
+        // alpha_b follows the viewer continuously (thesis 3.1.5), so a region move does not
+        // step it; it is 1 on the drawn border, and a cropped level also ramps from that border.
+        vec2 dv = abs(vec2(g) - u_viewer);
+        float a_b = clamp((max(dv.x, dv.y) - (u_half - u_w)) / u_w, 0.0, 1.0);
+        float a_edge = clamp((u_w + 1.0 - d) / u_w, 0.0, 1.0);
+        a_b = u_lagging != 0 ? a_edge : (d <= 0.0 ? 1.0 : a_b);
+        alpha = clamp(a_b + u_alpha_h, 0.0, 1.0);
         ivec2 odd = G & 1;
         ivec2 c = (G - odd) / 2;  // the coarse post at or south-west of this one
         vec4 s = post(u_coarse, c);
@@ -131,8 +146,8 @@ void main() {
         pc = u_rot * s.xyz + u_off_coarse;
         hc = s.w;
     }
-    v_world = mix(p, pc, alpha);
-    v_height = mix(h, hc, alpha);
+    v_world = alpha >= 1.0 ? pc : mix(p, pc, alpha);  // exactly the coarse vertex on the border
+    v_height = alpha >= 1.0 ? hc : mix(h, hc, alpha);
     v_alpha = alpha;
     // Normal-map coordinates: the fine map has 2 texels a post, the coarse map 1 (its half-posts).
     int n2 = 2 * u_n;
@@ -302,6 +317,7 @@ class ClipmapLayer:
         self.update_ms = 0.0
         self.rebuilds = 0
         self._height_above_ground = 0.0
+        self._focus = (0.0, 0.0)
 
     # -- set-up on the first update (the lattice depends on where the camera is)
 
@@ -354,6 +370,7 @@ class ClipmapLayer:
         if self.clipmap is None:
             self._setup(lat, lon)
         flat, flon = self.focus_lat_lon if self.focus_lat_lon is not None else (lat, lon)
+        self._focus = (flat, flon)
         first = not any(lv.valid for lv in self.clipmap.levels)
         for u in self.clipmap.update(flat, flon, unlimited=first):
             self._upload(u)
@@ -398,7 +415,7 @@ class ClipmapLayer:
         top = len(c.levels) - 1
         drawn = [lv.k for lv in c.levels if lv.valid and
                  (lv.k == top or height_alpha(self._height_above_ground, c.extent_m(lv.k)) < 1.0)]
-        regions = drawn_regions(c, drawn)
+        regions = drawn_regions(c, drawn, margin_cells=math.ceil(max(MORPH_WIDTH_FRACTION * c.n, 1.0)) + 2)
         view_proj = frame.projection @ frame.view
         out = []
         for k in sorted(regions, reverse=True):
@@ -411,54 +428,69 @@ class ClipmapLayer:
             out.append(LevelDraw(k, regions[k], alpha_h, blk, cells))
         return out
 
+    def level_uniforms(self, d: LevelDraw, coarse: bool) -> dict:
+        """The vertex shader's per-level uniforms for drawing ``d`` (with the coarser level or
+        not): {name: value}, bytes for vectors and matrices. What :meth:`draw` sets; tests
+        capture the shader's output with the same values."""
+        c, o = self.clipmap, self.origin
+        r = d.region
+        fi, fj = c.focus_index(d.k, *self._focus)
+        out = {
+            "u_rot": o.basis.T.astype("f4").tobytes(),  # rows E, N, U in ECEF, column-major in GLSL
+            "u_origin_ecef": o.ecef.astype("f4").tobytes(),
+            "u_origin_mod": np.mod(o.ecef, DETAIL_TILE_M).astype("f4").tobytes(),
+            "u_n": c.n, "u_w": max(MORPH_WIDTH_FRACTION * c.n, 1.0), "u_base": (r.i0, r.j0),
+            "u_off_fine": o.to_local(c.levels[d.k].origin_ecef).astype("f4").tobytes(),
+            "u_has_coarse": int(coarse), "u_region": (0.0, 0.0, float(r.i1 - r.i0), float(r.j1 - r.j0)),
+            "u_viewer": (float(fi - r.i0), float(fj - r.j0)), "u_half": (c.n - 1) / 2.0 - 1.0,
+            "u_lagging": int(c.levels[d.k].region != clip_region(*active_origin(fi, fj, c.n), c.n)),
+            "u_alpha_h": d.alpha_h,
+            "u_fine": 0, "u_coarse": 1, "u_nfine": 2, "u_ncoarse": 3, "u_detail": 4,
+        }
+        if coarse:
+            out["u_off_coarse"] = o.to_local(c.levels[d.k + 1].origin_ecef).astype("f4").tobytes()
+        return out
+
+    @staticmethod
+    def set_uniforms(program, values: dict) -> None:
+        for name, value in values.items():
+            if name in program:
+                if isinstance(value, bytes):
+                    program[name].write(value)
+                else:
+                    program[name].value = value
+
     def draw(self, frame: Frame) -> None:
         import moderngl
 
         if self.clipmap is None:
             return
         self.draws = self.plan(frame)
-        c, p = self.clipmap, self.program
+        p = self.program
         frame.write_common(p)
-        rot = self.origin.basis  # rows E, N, U in ECEF: local = basis @ ecef
-        p["u_rot"].write(rot.T.astype("f4").tobytes())  # column-major
-        p["u_n"].value = c.n
-        p["u_w"].value = max(MORPH_WIDTH_FRACTION * c.n, 1.0)
-        p["u_origin_ecef"].write(self.origin.ecef.astype("f4").tobytes())
-        for name, unit in (("u_fine", 0), ("u_coarse", 1), ("u_nfine", 2), ("u_ncoarse", 3), ("u_detail", 4)):
-            if name in p:
-                p[name].value = unit
-        p["u_origin_mod"].write(np.mod(self.origin.ecef, DETAIL_TILE_M).astype("f4").tobytes())
         p["u_detail_strength"].value = float(self.detail_strength)
         self._detail.use(4)
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
+        drawn = {x.k for x in self.draws}
         for d in self.draws:
             if len(d.blocks) == 0:
                 continue
-            base = (d.region.i0, d.region.j0)
-            level = c.levels[d.k]
-            coarse = d.k + 1 < len(c.levels) and d.k + 1 in {x.k for x in self.draws}
-            p["u_base"].value = base
-            p["u_off_fine"].write(self.origin.to_local(level.origin_ecef).astype("f4").tobytes())
-            if coarse:
-                p["u_off_coarse"].write(self.origin.to_local(c.levels[d.k + 1].origin_ecef).astype("f4").tobytes())
-            p["u_has_coarse"].value = int(coarse)
-            r = d.region
-            p["u_region"].value = (0.0, 0.0, float(r.i1 - r.i0), float(r.j1 - r.j0))
-            p["u_alpha_h"].value = d.alpha_h
+            coarse = d.k + 1 in drawn
+            self.set_uniforms(p, self.level_uniforms(d, coarse))
             self._tex[d.k][0].use(0)
             self._tex[d.k][1].use(2)
             if coarse:
                 self._tex[d.k + 1][0].use(1)
                 self._tex[d.k + 1][1].use(3)
-            inst = (d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)).astype(np.int32)
-            data = inst.tobytes()
+            r = d.region
+            data = (d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)).astype(np.int32).tobytes()
             if len(data) > self._inst.size:
                 self._inst.orphan(len(data) * 2)
             self._inst.write(data)
-            self._vao.render(moderngl.TRIANGLES, instances=len(inst))
+            self._vao.render(moderngl.TRIANGLES, instances=len(d.blocks))
             self.triangles += 2 * d.cells
-            self.vertices += len(inst) * (BLOCK + 1) ** 2
+            self.vertices += len(d.blocks) * (BLOCK + 1) ** 2
         self.ctx.disable(moderngl.CULL_FACE)
         check_gl_error(self.ctx, "clipmap draw")
 

@@ -318,6 +318,8 @@ class Renderer:
         if self.ctx is None:
             return
         with self.ctx:
+            if not self._owns_ctx:  # leave the shared context on its default framebuffer, not a deleted one
+                self.ctx.detect_framebuffer(0).use()
             if self.terrain_layer is not None:
                 self.terrain_layer.release()
             for layer in self.inset_layers:
