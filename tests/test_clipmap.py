@@ -14,7 +14,8 @@ from client.render.clipmap_layer import clipmap_factory, height_alpha
 from client.render.renderer import Renderer
 from client.render.terrain_mesh import lattice_for
 from sortie.errors import InvalidArgument
-from terrain.geodesy import WGS84_A_M, WGS84_B_M, ecef_to_geodetic, enu_basis
+from render_helpers import hits_height
+from terrain.geodesy import ecef_to_geodetic, enu_basis
 
 W, H = 320, 180
 MAGENTA = (255, 0, 255)
@@ -159,17 +160,6 @@ def test_gpu_textures_hold_the_cpu_storage_and_the_terrain_heights(alps, flat_sk
             assert np.array_equal(texel[..., 3], truth.astype(np.float32))
 
 
-def _hits_height(camera: Camera, rays: np.ndarray, h_m: float) -> np.ndarray:
-    scale = np.array([1.0 / (WGS84_A_M + h_m), 1.0 / (WGS84_A_M + h_m), 1.0 / (WGS84_B_M + h_m)])
-    o, d = camera.position_ecef * scale, rays * scale
-    a, b, cc = np.sum(d * d, -1), 2.0 * np.sum(o * d, -1), np.dot(o, o) - 1.0
-    disc = b * b - 4.0 * a * cc
-    with np.errstate(invalid="ignore"):
-        t = (-b - np.sqrt(disc)) / (2.0 * a)
-    t = np.where((disc >= 0) & (t > 0), t, np.nan)
-    return camera.position_ecef + t[..., None] * rays
-
-
 def test_no_holes_at_a_grazing_view_across_level_borders(flat_sky_clipmap):
     r = flat_sky_clipmap
     lat, lon = 47.5, 9.5
@@ -184,7 +174,7 @@ def test_no_holes_at_a_grazing_view_across_level_borders(flat_sky_clipmap):
     rays = cam.pixel_rays(W, H)
     up = enu_basis(lat, lon)[2]
     above = rays @ up > 1e-3
-    hit = _hits_height(cam, rays, h_min)
+    hit = hits_height(cam, rays, h_min)
     hlat, hlon, _ = ecef_to_geodetic(hit)
     lat_min, lat_max, lon_min, lon_max = r.terrain_layer.solid_bounds
     m = 0.05
@@ -224,23 +214,28 @@ def test_profiles_per_agent_type():
         profile("submarine")
 
 
-def test_two_views_share_one_clipmap_centred_on_the_agent(alps, hgt_alps, tmp_path):
-    import json
-
+@pytest.fixture()
+def tank_server(alps, hgt_alps):
+    """A live exercise with one tank on the Alps tile, its terrain named by the server."""
     from server.sim_server import ServerConfig, SimulationServer
     from server.world import World
-    from sortie.cli import main
 
     w = World(alps, geoid_undulation_m=48.0)
     w.spawn_ground(["tank1"], "m1a2", [47.29], [9.59], 45.0, coalition="red")
-    srv = SimulationServer(w, ServerConfig(exercise_name="views", terrain=f"dem:{hgt_alps}"))
+    srv = SimulationServer(w, ServerConfig(exercise_name="render client", terrain=f"dem:{hgt_alps}"))
     srv.start()
-    try:
-        rc = main(["view", "--server", srv.address, "--follow", "tank1", "--views", "cockpit,chase", "--frames",
-                   "2", "--fps", "10", "--out", str(tmp_path), "--size", "160x90", "--profile", "helicopter"])
-    finally:
-        srv.stop(0.5)
-        w.close()
+    yield srv
+    srv.stop(0.5)
+    w.close()
+
+
+def test_two_views_share_one_clipmap_centred_on_the_agent(tank_server, tmp_path):
+    import json
+
+    from sortie.cli import main
+
+    rc = main(["view", "--server", tank_server.address, "--follow", "tank1", "--views", "cockpit,chase", "--frames",
+               "2", "--fps", "10", "--out", str(tmp_path), "--size", "160x90", "--profile", "helicopter"])
     assert rc == 0
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["terrain_renderer"] == "clipmap" and s["profile"] == "helicopter" and s["camera"] == "cockpit,chase"
@@ -251,22 +246,12 @@ def test_two_views_share_one_clipmap_centred_on_the_agent(alps, hgt_alps, tmp_pa
     assert all(f["terrain_samples"] == 0 for f in s["per_frame"][1:])
 
 
-def test_sortie_client_follow_headless_renders_like_sortie_view(alps, hgt_alps, tmp_path):
+def test_sortie_client_follow_headless_renders_like_sortie_view(tank_server, tmp_path):
     import json
 
-    from server.sim_server import ServerConfig, SimulationServer
-    from server.world import World
     from sortie.cli import main
 
-    w = World(alps, geoid_undulation_m=48.0)
-    w.spawn_ground(["tank1"], "m1a2", [47.29], [9.59], 45.0, coalition="red")
-    srv = SimulationServer(w, ServerConfig(exercise_name="client", terrain=f"dem:{hgt_alps}"))
-    srv.start()
-    try:
-        rc = main(["client", "--server", srv.address, "--agent-type", "ground", "--headless", "--frames", "1",
-                   "--out", str(tmp_path)])
-    finally:
-        srv.stop(0.5)
-        w.close()
+    rc = main(["client", "--server", tank_server.address, "--agent-type", "ground", "--headless", "--frames", "1",
+               "--out", str(tmp_path)])
     s = json.loads((tmp_path / "summary.json").read_text())
     assert rc == 0 and s["frames"] == 1 and s["follow"] == "tank1" and s["profile"] == "ground_vehicle"

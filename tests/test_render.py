@@ -38,7 +38,8 @@ from client.render.gl import check_gl_error
 from client.render.renderer import Renderer
 from client.render.terrain_mesh import build_mesh, grid_triangles, interleave, lattice_for, stitch_edges
 from sortie.errors import InvalidArgument
-from terrain.geodesy import WGS84_A_M, WGS84_B_M, ecef_to_geodetic, geodetic_to_ecef
+from render_helpers import hits_height
+from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
 
 W, H = 320, 180
 MAGENTA = (255, 0, 255)
@@ -69,20 +70,6 @@ def shaded(alps):
 
 def _is_sky(image) -> np.ndarray:
     return np.all(image == np.array(MAGENTA, np.uint8), axis=-1)
-
-
-def _hits_height(camera: Camera, rays: np.ndarray, h_m: float) -> np.ndarray:
-    """(..., 3) ECEF points where unit rays from the camera first meet the surface of
-    ellipsoid height h_m (modelled as the ellipsoid of semi-axes a + h, b + h: within
-    h e^2 / 2 < 2 m of it here); NaN where they miss it."""
-    scale = np.array([1.0 / (WGS84_A_M + h_m), 1.0 / (WGS84_A_M + h_m), 1.0 / (WGS84_B_M + h_m)])
-    o, d = camera.position_ecef * scale, rays * scale
-    a, b, c = np.sum(d * d, -1), 2.0 * np.sum(o * d, -1), np.dot(o, o) - 1.0
-    disc = b * b - 4.0 * a * c
-    with np.errstate(invalid="ignore"):
-        t = (-b - np.sqrt(disc)) / (2.0 * a)
-    t = np.where((disc >= 0) & (t > 0), t, np.nan)
-    return camera.position_ecef + t[..., None] * rays
 
 
 def _elevation(camera: Camera, rays: np.ndarray) -> np.ndarray:
@@ -235,7 +222,7 @@ def test_sky_above_the_horizon_and_no_holes_below_at_a_grazing_view(flat_sky):
     sky = _is_sky(image)
     rays = cam.pixel_rays(W, H)
     above = _elevation(cam, rays) > 1e-3
-    hit = _hits_height(cam, rays, float(np.nanmin(mesh.height_msl_m)))
+    hit = hits_height(cam, rays, float(np.nanmin(mesh.height_msl_m)))
     lat, lon, _ = ecef_to_geodetic(hit)
     lat_min, lat_max, lon_min, lon_max = mesh.bounds
     margin = 0.01  # one ring cell (8 posts of 1/1200 degree) and a little
@@ -253,7 +240,7 @@ def test_the_sea_fills_where_the_terrain_has_no_data(alps):
         cam = Camera.from_geodetic(47.01, 9.5, 1500.0, 180.0, -4.0)
         image = r.render(cam)
         rays = cam.pixel_rays(W, H)
-        hit = _hits_height(cam, rays, 0.0)
+        hit = hits_height(cam, rays, 0.0)
         lat, _, _ = ecef_to_geodetic(hit)
         beyond = np.isfinite(lat) & (lat < 46.99) & (np.linalg.norm(hit - cam.position_ecef, axis=-1) < 100_000.0)
         assert beyond.mean() > 0.2
