@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sortie.errors import InvalidArgument
-from terrain.geodesy import enu_basis, geodetic_to_ecef
+from terrain.geodesy import geodetic_to_ecef
 
 MAX_LEVELS = 16
 MIN_N, MAX_N = 15, 1023
@@ -267,9 +267,8 @@ class Clipmap:
 
     def sample_posts(self, k: int, r: Rect) -> tuple[np.ndarray, np.ndarray]:
         """(ECEF positions (rows, cols, 3) float64, heights MSL (rows, cols)) of a rectangle of posts."""
-        ii, jj = np.meshgrid(np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1), indexing="ij")
-        lat, lon = self.latlon(k, ii, jj)
-        lat = np.clip(lat, -90.0, 90.0)
+        lat_rows, lon_cols = self.latlon(k, np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1))
+        lat, lon = np.broadcast_arrays(np.clip(lat_rows, -90.0, 90.0)[:, None], lon_cols[None, :])
         h = np.asarray(self.terrain.heights(lat.ravel(), lon.ravel()).height_msl_m, np.float64).reshape(lat.shape)
         h = np.where(np.isfinite(h), h, 0.0)  # no data: water at sea level
         surface = h.copy()
@@ -279,15 +278,23 @@ class Clipmap:
 
     def sample_normals(self, k: int, r: Rect) -> np.ndarray:
         """(2 rows, 2 cols, 3) ECEF unit normals at the half-lattice points of a rectangle of posts
-        (half-lattice point (p, q) is at post coordinates (p / 2, q / 2))."""
-        pp, qq = np.meshgrid(np.arange(2 * r.i0, 2 * r.i1 + 2), np.arange(2 * r.j0, 2 * r.j1 + 2), indexing="ij")
-        lat, lon = self.latlon(k, pp / 2.0, qq / 2.0)
-        lat = np.clip(lat, -90.0, 90.0)
-        n_enu = np.asarray(self.terrain.normals(lat.ravel(), lon.ravel()).normal_enu, np.float64)
+        (half-lattice point (p, q) is at post coordinates (p / 2, q / 2)). The ENU -> ECEF rotation
+        is separable on the lattice (east depends on the column, north and up on both through
+        per-row and per-column sines and cosines), so it costs a few broadcasts, not a basis a point."""
+        lat_rows, lon_cols = self.latlon(k, np.arange(2 * r.i0, 2 * r.i1 + 2) / 2.0,
+                                         np.arange(2 * r.j0, 2 * r.j1 + 2) / 2.0)
+        lat_rows = np.clip(lat_rows, -90.0, 90.0)
+        lat = np.repeat(lat_rows, lon_cols.size)
+        lon = np.tile(lon_cols, lat_rows.size)
+        n_enu = np.asarray(self.terrain.normals(lat, lon).normal_enu, np.float64)
         n_enu = np.where(np.isfinite(n_enu).all(axis=1, keepdims=True), n_enu, (0.0, 0.0, 1.0))
-        e, nn, u = enu_basis(lat.ravel(), lon.ravel())
-        ecef = n_enu[:, :1] * e + n_enu[:, 1:2] * nn + n_enu[:, 2:3] * u
-        return ecef.reshape(*lat.shape, 3)
+        n_enu = n_enu.reshape(lat_rows.size, lon_cols.size, 3)
+        sl, cl = np.sin(np.radians(lat_rows))[:, None], np.cos(np.radians(lat_rows))[:, None]
+        so, co = np.sin(np.radians(lon_cols))[None, :], np.cos(np.radians(lon_cols))[None, :]
+        ne, nn, nu = n_enu[..., 0], n_enu[..., 1], n_enu[..., 2]
+        # east = (-so, co, 0), north = (-sl co, -sl so, cl), up = (cl co, cl so, sl)  (terrain.geodesy.enu_basis)
+        return np.stack([-ne * so - nn * sl * co + nu * cl * co, ne * co - nn * sl * so + nu * cl * so,
+                         nn * cl + nu * sl], axis=-1)
 
     @staticmethod
     def cost(r: Rect) -> int:

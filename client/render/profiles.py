@@ -14,10 +14,17 @@ Figures below for a 3-arc-second (about 90 m) DEM; they scale with its spacing.
 
 | profile | L | n | budget | finest | coarsest | view distance | why |
 |---|---|---|---|---|---|---|---|
-| fast_jet | 7 | 127 | 60,000 | 90 m | 5.8 km | ~365 km | at 10 km the horizon is ~360 km away; 300 m/s uncovers a finest row every 0.3 s |
-| helicopter | 6 | 127 | 40,000 | 90 m | 2.9 km | ~180 km | low and slow: the near field matters, the horizon is nearer |
-| ground_vehicle | 7 | 127 | 40,000 | 23 m | 1.4 km | ~90 km | on the ground: detail under the wheels (fractal below the DEM), a hill's horizon |
-| observer | 6 | 255 | 100,000 | 90 m | 2.9 km | ~365 km | a fixed or slow viewpoint: more posts a level, updated rarely |
+| fast_jet | 7 | 127 | 1,500 | 90 m | 5.8 km | ~365 km | at 10 km the horizon is ~360 km away; 300 m/s uncovers a finest row every 0.3 s |
+| helicopter | 6 | 127 | 1,500 | 90 m | 2.9 km | ~180 km | low and slow: the near field matters, the horizon is nearer |
+| ground_vehicle | 7 | 127 | 1,500 | 23 m | 1.4 km | ~90 km | on the ground: detail under the wheels (fractal below the DEM), a hill's horizon |
+| observer | 6 | 255 | 3,000 | 90 m | 2.9 km | ~365 km | a fixed or slow viewpoint: more posts a level, updated rarely |
+
+The budgets hold about one level's move a frame (a move uncovers two rows or columns of
+n posts, x 5 samples a post; the first move of a frame is always made): a move costs about
+1.3 ms of CPU here whatever its size (the calls around the samples), and at 300 m/s the
+levels need a move in about one frame in twenty between them, so taking them one a frame
+keeps each frame's update near one move's cost and lets a level fall behind by a frame or
+two at most (`sortie bench render`: the same screen error as an unlimited budget).
 
 The client picks the profile of the agent it follows (:func:`profile_for`): an
 aircraft whose type names a helicopter gets ``helicopter``, other aircraft
@@ -52,10 +59,10 @@ class LodProfile:
 
 
 PROFILES = {p.name: p for p in (
-    LodProfile("fast_jet", 7, 127, 60_000, 1.0),
-    LodProfile("helicopter", 6, 127, 40_000, 1.0),
-    LodProfile("ground_vehicle", 7, 127, 40_000, 0.25),
-    LodProfile("observer", 6, 255, 100_000, 1.0),
+    LodProfile("fast_jet", 7, 127, 1_500, 1.0),
+    LodProfile("helicopter", 6, 127, 1_500, 1.0),
+    LodProfile("ground_vehicle", 7, 127, 1_500, 0.25),
+    LodProfile("observer", 6, 255, 3_000, 1.0),
 )}
 
 
