@@ -24,6 +24,7 @@ from sortie.errors import DataFormatError, InvalidArgument
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 from tests.conftest import shared_or_embedded
+from server_helpers import PublishTap
 
 PDU_26 = "EntityStatePdu-26.raw"
 PDU_VBS = "EntityStatePdu-vbs-articulated-parameters.raw"
@@ -469,20 +470,6 @@ def alps(hgt_alps):
     from terrain.terrain import Terrain
 
     return Terrain([read_dem(hgt_alps)])
-
-
-class PublishTap:
-    """Keeps every snapshot the server publishes (the server-side truth)."""
-
-    def __init__(self, publisher):
-        self.snaps = []
-        original = publisher.publish
-
-        def publish(snap, *args):
-            self.snaps.append(snap)
-            return original(snap, *args)
-
-        publisher.publish = publish
 
 
 @pytest.fixture()

@@ -97,6 +97,13 @@ def scrape(url: str) -> dict:
     return out
 
 
+def _reap(proc) -> None:
+    """Kill the process if it still runs, and wait for it."""
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait()
+
+
 def wait_for_line(proc, pattern: str, timeout_s: float = 60.0) -> re.Match:
     deadline = time.monotonic() + timeout_s
     seen = []
@@ -135,9 +142,7 @@ def test_terrain_service_metrics_json_logs_and_sigterm(hgt_alps):
         assert records and all({"time", "level", "logger", "message"} <= set(r) for r in records)
         assert any(r["logger"] == "server.terrain_service" and "bound" in r["message"] for r in records)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait()
+        _reap(proc)
 
 
 def test_simulation_server_metrics_and_sigterm_flushes_the_recording(hgt_alps, tmp_path):
@@ -168,9 +173,7 @@ def test_simulation_server_metrics_and_sigterm_flushes_the_recording(hgt_alps, t
         out = proc.stdout.read()
         assert "stopped at world time" in out and "bytes" in out
     finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait()
+        _reap(proc)
     r = run_sortie("recording", "check", str(rec))
     assert r.returncode == 0, r.stdout + r.stderr
 
@@ -204,9 +207,7 @@ def test_bots_run_until_sigterm_then_leave_cleanly(hgt_alps):
                         break
                 assert "vanished" not in kinds
             finally:
-                if bots.poll() is None:
-                    bots.kill()
-                bots.wait()
+                _reap(bots)
 
 
 def test_health_loads_alone_and_reads_its_own_configuration(tmp_path, capsys):

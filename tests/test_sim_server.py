@@ -22,6 +22,7 @@ from sortie.errors import InvalidArgument, LimitExceeded, Unauthenticated
 from sortie.v1 import simulation_pb2 as pb
 from sortie.v1 import simulation_pb2_grpc as pb_grpc
 from terrain.geodesy import geodetic_to_ecef
+from server_helpers import PublishTap
 
 REPO_SCENARIO = "data/scenarios/alps.toml"
 
@@ -32,20 +33,6 @@ def alps(hgt_alps):
     from terrain.terrain import Terrain
 
     return Terrain([read_dem(hgt_alps)])
-
-
-class PublishTap:
-    """Keeps every snapshot the server publishes (server-side truth for the checks)."""
-
-    def __init__(self, publisher):
-        self.snaps = []
-        original = publisher.publish
-
-        def publish(snap, infos, sessions, *args):
-            self.snaps.append(snap)
-            return original(snap, infos, sessions, *args)
-
-        publisher.publish = publish
 
 
 def small_world(alps):
