@@ -33,6 +33,7 @@ import re
 import socket
 import threading
 from collections import deque
+from dataclasses import dataclass
 
 import grpc
 import numpy as np
@@ -375,6 +376,45 @@ class TerrainClient:
         normal = np.stack([r["normal_east"], r["normal_north"], r["normal_up"]], axis=-1)
         return SegmentResult(r["hit"], r["distance_m"], r["lat_deg"], r["lon_deg"], r["height_msl_m"],
                              normal, r["status"])
+
+
+    def get_tile(self, cell_id: int) -> HeightGrid:
+        """One tile of the service's terrain store by quad-tree cell id (terrain.quadtree)."""
+        return HeightGrid.from_message(self._call("GetTile", pb.GetTileRequest(cell_id=int(cell_id))))
+
+    def get_region(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> HeightGrid:
+        """The store's posts of one level covering a box (degrees)."""
+        return HeightGrid.from_message(self._call("GetRegion", pb.GetRegionRequest(
+            level=int(level), lat_min_deg=lat_min, lon_min_deg=lon_min, lat_max_deg=lat_max, lon_max_deg=lon_max)))
+
+
+@dataclass(frozen=True)
+class HeightGrid:
+    """Store posts as streamed: heights (rows, cols) float32 metres MSL, row 0 north,
+    NaN outside the data; classes (rows, cols) uint8 (0 outside, 1 measured, 2 filled);
+    post (i, j) at (lat_north_deg - i dlat_deg, lon_west_deg + j dlon_deg)."""
+
+    heights: np.ndarray
+    classes: np.ndarray
+    lat_north_deg: float
+    lon_west_deg: float
+    dlat_deg: float
+    dlon_deg: float
+    level: int
+    depth: int
+    cell_id: int
+    max_error_m: float
+
+    @classmethod
+    def from_message(cls, m) -> HeightGrid:
+        shape = (m.rows, m.cols)
+        heights = np.frombuffer(m.heights_f32, "<f4")
+        classes = np.frombuffer(m.post_class, np.uint8)
+        if heights.size != m.rows * m.cols or classes.size != heights.size:
+            raise DataFormatError(f"HeightGrid: {heights.size} heights and {classes.size} classes for "
+                                  f"{m.rows} x {m.cols} posts")
+        return cls(heights.reshape(shape), classes.reshape(shape), m.lat_north_deg, m.lon_west_deg,
+                   m.dlat_deg, m.dlon_deg, m.level, m.depth, m.cell_id, m.max_error_m)
 
 
 def _rays(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> dict:

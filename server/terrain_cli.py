@@ -1,8 +1,10 @@
 """``sortie terrain``: serve the terrain query service, describe a terrain, query a server.
 
-    sortie terrain serve --dem FILE... [--procedural SEED] --port N [--host H] [--max-workers K]
-    sortie terrain info  (--dem FILE... [--procedural SEED] | --address HOST:PORT) [--json]
+    sortie terrain serve (--dem FILE... | --store PATH...) [--procedural SEED] --port N [--host H] [--max-workers K]
+    sortie terrain info  (--dem FILE... | --store PATH... [--procedural SEED] | --address HOST:PORT) [--json]
     sortie terrain query --address HOST:PORT LAT LON [LAT LON ...]
+    sortie terrain import FILES... -o STORE [--resolution ARCSEC] [--step M | --lossless] [--add-detail KIND]
+    sortie terrain texture (--dem FILE... | --store PATH...) --bbox ... --time ISO8601 -o DIR
 """
 
 from __future__ import annotations
@@ -13,10 +15,13 @@ import json
 from server.grpc_common import DEFAULT_GRACE_S
 from server.terrain_service import DEFAULT_MAX_WORKERS
 from sortie.errors import InvalidArgument
+from terrain.store_cli import add_import_parser
+from terrain.texture_cli import add_texture_parser
 
 
-def build_terrain(dem_paths, procedural_seed: int | None = None):
-    """A Terrain over the DEM files (in priority order), then a procedural world if a seed is given."""
+def build_terrain(dem_paths, procedural_seed: int | None = None, store_paths=()):
+    """A Terrain over the DEM files (in priority order), then the terrain stores,
+    then a procedural world if a seed is given."""
     from terrain.terrain import Terrain
 
     sources = []
@@ -24,24 +29,28 @@ def build_terrain(dem_paths, procedural_seed: int | None = None):
         from terrain.mosaic import load_sources
 
         sources.extend(load_sources(dem_paths))
+    if store_paths:
+        from terrain.store import StoreSource, open_store
+
+        sources.extend(StoreSource(open_store(p)) for p in store_paths)
     if procedural_seed is not None:
         from terrain.procedural import ProceduralTerrain
 
         sources.append(ProceduralTerrain(seed=procedural_seed))
     if not sources:
-        raise InvalidArgument("--dem", "give at least one DEM file or --procedural SEED")
+        raise InvalidArgument("--dem", "give at least one DEM file, --store PATH or --procedural SEED")
     return Terrain(sources)
 
 
 def add_parser(sub) -> None:
-    terrain = sub.add_parser("terrain", help="terrain query service: serve, info, query",
+    terrain = sub.add_parser("terrain", help="terrain query service and store: serve, info, query, import, texture",
                              description="Serve, describe or query the terrain query service.")
     commands = terrain.add_subparsers(dest="terrain_command", metavar="SUBCOMMAND", required=True)
 
     serve = commands.add_parser("serve", help="run the gRPC terrain service until SIGTERM/SIGINT",
                                 description="Run sortie.v1.TerrainService (with health and reflection) "
                                             "until SIGTERM or SIGINT; prints the bound address.")
-    _add_terrain_args(serve)
+    add_terrain_args(serve)
     serve.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
     serve.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
     serve.add_argument("--max-workers", type=_positive_int, default=DEFAULT_MAX_WORKERS,
@@ -59,7 +68,7 @@ def add_parser(sub) -> None:
     info = commands.add_parser("info", help="print the metadata of a terrain or of a running service",
                                description="Print sources, bounds, resolution, vertical datum and limits, "
                                            "of a terrain built from files or of a service at --address.")
-    _add_terrain_args(info)
+    add_terrain_args(info)
     info.add_argument("--address", metavar="HOST:PORT", help="ask a running service instead of loading files")
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
     info.set_defaults(func=info_command)
@@ -72,6 +81,9 @@ def add_parser(sub) -> None:
                        help="pairs of latitude and longitude, degrees")
     query.set_defaults(func=query_command)
 
+    add_import_parser(commands)
+    add_texture_parser(commands)
+
 
 def _positive_int(text: str) -> int:
     value = int(text)
@@ -80,17 +92,19 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _add_terrain_args(parser: argparse.ArgumentParser) -> None:
+def add_terrain_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dem", nargs="+", default=[], metavar="FILE",
                         help="DEM files (.hgt, .asc, .tif), highest priority first")
+    parser.add_argument("--store", nargs="+", default=[], metavar="PATH",
+                        help="terrain stores (sortie terrain import), under the DEMs")
     parser.add_argument("--procedural", type=int, metavar="SEED",
-                        help="add a procedural world with this seed under the DEMs")
+                        help="add a procedural world with this seed under the DEMs and stores")
 
 
 def serve_command(args) -> int:
     from server.terrain_service import create_server
 
-    terrain = build_terrain(args.dem, args.procedural)
+    terrain = build_terrain(args.dem, args.procedural, args.store)
     if args.insets:
         from server.scenario import load_scenario
         from terrain.inset import INSET_SEED, with_insets
@@ -125,7 +139,7 @@ def info_command(args) -> int:
         from client.terrain_client import metadata_dict
         from server.terrain_service import metadata_message
 
-        meta = metadata_dict(metadata_message(build_terrain(args.dem, args.procedural)))
+        meta = metadata_dict(metadata_message(build_terrain(args.dem, args.procedural, args.store)))
     print(json.dumps(meta, indent=2) if args.json else format_metadata(meta))
     return 0
 

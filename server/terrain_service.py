@@ -32,7 +32,7 @@ from server.grpc_common import (
     unary_handler,
 )
 from sortie import __version__
-from sortie.errors import SortieError
+from sortie.errors import InvalidArgument, LimitExceeded, NotFound, SortieError
 from sortie.v1 import terrain_pb2 as pb
 from terrain.profile import PROFILE_MAX_SAMPLES
 from terrain.raster import STATUS_OK
@@ -46,6 +46,7 @@ MAX_NORMAL_POINTS = 1_000_000  # per GetNormals: 33 MB response
 MAX_PROFILE_SAMPLES = PROFILE_MAX_SAMPLES  # per GetProfile; enforced by terrain.profile
 MAX_LOS_RAYS = 100_000  # per LineOfSight: each ray marches the terrain between its ends
 MAX_SEGMENTS = 100_000  # per IntersectSegments
+MAX_REGION_POSTS = 4 * 1024 * 1024  # per GetRegion: 20 MB response (float32 + class byte)
 
 # Threads answering calls; the numba kernels release the GIL, so batches from
 # different clients run in parallel.
@@ -80,6 +81,7 @@ def limits_message() -> pb.Limits:
         max_line_of_sight_rays=MAX_LOS_RAYS,
         max_segments=MAX_SEGMENTS,
         max_message_bytes=MAX_MESSAGE_BYTES,
+        max_region_posts=MAX_REGION_POSTS,
     )
 
 
@@ -176,8 +178,74 @@ class TerrainServicer:
                 "status": sent_status(result.status)}
 
 
+    # ------------------------------------------------------------ store streaming
+
+    def _store(self):
+        from terrain.store import StoreSource
+
+        for source in self.terrain.sources:
+            if isinstance(source, StoreSource):
+                return source.store
+        raise NotFound("this terrain service has no terrain store (serve it with --store)")
+
+    def GetTile(self, request: pb.GetTileRequest) -> pb.HeightGrid:
+        from terrain import quadtree
+
+        store = self._store()
+        depth, row, col = quadtree.unpack(int(request.cell_id))
+        level = store.depth - depth
+        if not 0 <= level < store.levels:
+            raise NotFound(f"cell_id: depth {depth} is not a level of the store (depths "
+                           f"{store.depth - store.levels + 1}..{store.depth})")
+        T = store.tile
+        region = store.region_of(level, row * T, col * T)
+        if region is None:
+            raise NotFound(f"cell_id: no region of the store holds cell ({depth}, {row}, {col})")
+        from terrain.store import _unwrap_col
+
+        col_in_region = int(_unwrap_col(col * T, region.rects[level], store._cols_per_turn(level))) // T
+        raster = store.tile_raster(region, level, row, col_in_region)
+        return height_grid(store, raster, level, int(request.cell_id))
+
+    def GetRegion(self, request: pb.GetRegionRequest) -> pb.HeightGrid:
+        from terrain.validate import check_latlon
+
+        store = self._store()
+        if request.level >= store.levels:
+            raise InvalidArgument("level", f"must be below the store's {store.levels} levels", value=request.level)
+        lat, lon = check_latlon(np.array([request.lat_min_deg, request.lat_max_deg]),
+                                np.array([request.lon_min_deg, request.lon_max_deg]))
+        if not (lat[0] <= lat[1] and lon[0] <= lon[1]):
+            raise InvalidArgument("lat_min_deg", "the box is inverted (min above max)",
+                                  value=(float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1])))
+        dlat, dlon = store.spacing_deg(request.level)
+        posts = ((lat[1] - lat[0]) / dlat + 2) * ((lon[1] - lon[0]) / dlon + 2)
+        if posts > MAX_REGION_POSTS:
+            raise LimitExceeded("region_posts", int(posts), MAX_REGION_POSTS)
+        raster = store.raster(request.level, float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1]))
+        if raster is None:
+            raise NotFound("no region of the store holds the box's centre")
+        return height_grid(store, raster, request.level, 0)
+
+
+def height_grid(store, raster, level: int, cell_id: int) -> pb.HeightGrid:
+    """A store raster (row 0 south) as the wire's HeightGrid (row 0 north)."""
+    g = raster.georef
+    rows, cols = raster.shape
+    heights = np.ascontiguousarray(raster.heights[::-1], dtype="<f4")
+    classes = np.ones(raster.shape, np.uint8)
+    classes[np.isnan(raster.heights)] = 0
+    if raster.filled is not None:
+        classes[raster.filled.astype(bool)] = 2
+    return pb.HeightGrid(level=level, depth=store.cell_depth(level), rows=rows, cols=cols,
+                         lat_north_deg=g.y0 + (rows - 1) * g.dy, lon_west_deg=(g.x0 + 180.0) % 360.0 - 180.0,
+                         dlat_deg=g.dy, dlon_deg=g.dx, heights_f32=heights.tobytes(),
+                         post_class=np.ascontiguousarray(classes[::-1]).tobytes(),
+                         max_error_m=store.max_error_m, cell_id=cell_id)
+
+
 # RPC name -> (request class, response class, parameter -> field names). Every
-# RPC but GetMetadata goes through PackedCodec in both directions.
+# RPC but GetMetadata, GetTile and GetRegion goes through PackedCodec in both directions.
 RPCS = {
     "GetMetadata": (pb.GetMetadataRequest, pb.GetMetadataResponse, {}),
     "GetHeights": (pb.GetHeightsRequest, pb.GetHeightsResponse, _POINT_FIELDS),
@@ -185,8 +253,10 @@ RPCS = {
     "GetProfile": (pb.GetProfileRequest, pb.GetProfileResponse, _PROFILE_FIELDS),
     "LineOfSight": (pb.LineOfSightRequest, pb.LineOfSightResponse, _RAY_FIELDS),
     "IntersectSegments": (pb.IntersectSegmentsRequest, pb.IntersectSegmentsResponse, _RAY_FIELDS),
+    "GetTile": (pb.GetTileRequest, pb.HeightGrid, {}),
+    "GetRegion": (pb.GetRegionRequest, pb.HeightGrid, {}),
 }
-PACKED_RPCS = frozenset(RPCS) - {"GetMetadata"}
+PACKED_RPCS = frozenset(RPCS) - {"GetMetadata", "GetTile", "GetRegion"}
 
 
 def serializers(rpc: str):

@@ -167,6 +167,7 @@ def test_metadata(client, alps):
         "max_line_of_sight_rays": terrain_service.MAX_LOS_RAYS,
         "max_segments": terrain_service.MAX_SEGMENTS,
         "max_message_bytes": 64 * 1024 * 1024,
+        "max_region_posts": terrain_service.MAX_REGION_POSTS,
     }
 
 
@@ -272,7 +273,8 @@ def test_reflection_lists_and_describes_the_service(address):
              for raw in described.file_descriptor_response.file_descriptor_proto]
     (service,) = [s for f in files for s in f.service if s.name == "TerrainService"]
     assert {m.name for m in service.method} == {
-        "GetMetadata", "GetHeights", "GetNormals", "GetProfile", "LineOfSight", "IntersectSegments"}
+        "GetMetadata", "GetHeights", "GetNormals", "GetProfile", "LineOfSight", "IntersectSegments",
+        "GetTile", "GetRegion"}
 
 
 # --- hostile input ---------------------------------------------------------------------------
@@ -565,7 +567,7 @@ def test_cli_query_and_info(address, alps, hgt_alps, capsys):
 
 def test_cli_serve_needs_a_terrain(capsys):
     assert cli.main(["terrain", "serve", "--port", "0"]) == 2
-    assert "give at least one DEM file or --procedural SEED" in capsys.readouterr().err
+    assert "give at least one DEM file, --store PATH or --procedural SEED" in capsys.readouterr().err
 
 
 def test_cli_serve_subprocess_stops_cleanly_on_sigterm(alps, hgt_alps):

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17sortie/v1/terrain.proto\x12\tsortie.v1\"\x14\n\x12GetMetadataRequest\"\x95\x01\n\x13GetMetadataResponse\x12)\n\x07sources\x18\x01 \x03(\x0b\x32\x18.sortie.v1.TerrainSource\x12\x18\n\x10height_reference\x18\x02 \x01(\t\x12!\n\x06limits\x18\x03 \x01(\x0b\x32\x11.sortie.v1.Limits\x12\x16\n\x0eserver_version\x18\x04 \x01(\t\"\xff\x02\n\rTerrainSource\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04kind\x18\x02 \x01(\t\x12\x0e\n\x06source\x18\x03 \x01(\t\x12\x0b\n\x03\x63rs\x18\x04 \x01(\t\x12\x13\n\x0blat_min_deg\x18\x05 \x01(\x01\x12\x13\n\x0blon_min_deg\x18\x06 \x01(\x01\x12\x13\n\x0blat_max_deg\x18\x07 \x01(\x01\x12\x13\n\x0blon_max_deg\x18\x08 \x01(\x01\x12\x0c\n\x04rows\x18\t \x01(\r\x12\x0c\n\x04\x63ols\x18\n \x01(\r\x12\x16\n\x0espacing_east_m\x18\x0b \x01(\x01\x12\x17\n\x0fspacing_north_m\x18\x0c \x01(\x01\x12\x16\n\x0evertical_datum\x18\r \x01(\t\x12\x14\n\x0c\x66illed_posts\x18\x0e \x01(\x04\x12\x36\n\x07\x64\x65tails\x18\x0f \x03(\x0b\x32%.sortie.v1.TerrainSource.DetailsEntry\x1a.\n\x0c\x44\x65tailsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"\xac\x01\n\x06Limits\x12\x19\n\x11max_height_points\x18\x01 \x01(\r\x12\x19\n\x11max_normal_points\x18\x02 \x01(\r\x12\x1b\n\x13max_profile_samples\x18\x03 \x01(\r\x12\x1e\n\x16max_line_of_sight_rays\x18\x04 \x01(\r\x12\x14\n\x0cmax_segments\x18\x05 \x01(\r\x12\x19\n\x11max_message_bytes\x18\x06 \x01(\x04\"=\n\x11GetHeightsRequest\x12\x13\n\x07lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\"Z\n\x12GetHeightsResponse\x12\x18\n\x0cheight_msl_m\x18\x01 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\x02 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"=\n\x11GetNormalsRequest\x12\x13\n\x07lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\"\xa1\x01\n\x12GetNormalsResponse\x12\x17\n\x0bnormal_east\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cnormal_north\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tnormal_up\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tslope_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\x05 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"~\n\x11GetProfileRequest\x12\x15\n\rstart_lat_deg\x18\x01 \x01(\x01\x12\x15\n\rstart_lon_deg\x18\x02 \x01(\x01\x12\x13\n\x0b\x65nd_lat_deg\x18\x03 \x01(\x01\x12\x13\n\x0b\x65nd_lon_deg\x18\x04 \x01(\x01\x12\x11\n\tn_samples\x18\x05 \x01(\r\"\x9c\x01\n\x12GetProfileResponse\x12\x13\n\x07lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x16\n\ndistance_m\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cheight_msl_m\x18\x04 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\x05 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"\xa8\x01\n\x12LineOfSightRequest\x12\x15\n\ta_lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x15\n\ta_lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x61_height_msl_m\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lat_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lon_deg\x18\x05 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x62_height_msl_m\x18\x06 \x03(\x01\x42\x02\x10\x01\"V\n\x13LineOfSightResponse\x12\x13\n\x07visible\x18\x01 \x03(\x08\x42\x02\x10\x01\x12*\n\x06status\x18\x02 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"\xae\x01\n\x18IntersectSegmentsRequest\x12\x15\n\ta_lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x15\n\ta_lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x61_height_msl_m\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lat_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lon_deg\x18\x05 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x62_height_msl_m\x18\x06 \x03(\x01\x42\x02\x10\x01\"\xfe\x01\n\x19IntersectSegmentsResponse\x12\x0f\n\x03hit\x18\x01 \x03(\x08\x42\x02\x10\x01\x12\x16\n\ndistance_m\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lat_deg\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cheight_msl_m\x18\x05 \x03(\x01\x42\x02\x10\x01\x12\x17\n\x0bnormal_east\x18\x06 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cnormal_north\x18\x07 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tnormal_up\x18\x08 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\t \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01*s\n\x0bPointStatus\x12\x1c\n\x18POINT_STATUS_UNSPECIFIED\x10\x00\x12\x13\n\x0fPOINT_STATUS_OK\x10\x01\x12\x17\n\x13POINT_STATUS_FILLED\x10\x02\x12\x18\n\x14POINT_STATUS_OUTSIDE\x10\x03\x32\xed\x03\n\x0eTerrainService\x12L\n\x0bGetMetadata\x12\x1d.sortie.v1.GetMetadataRequest\x1a\x1e.sortie.v1.GetMetadataResponse\x12I\n\nGetHeights\x12\x1c.sortie.v1.GetHeightsRequest\x1a\x1d.sortie.v1.GetHeightsResponse\x12I\n\nGetNormals\x12\x1c.sortie.v1.GetNormalsRequest\x1a\x1d.sortie.v1.GetNormalsResponse\x12I\n\nGetProfile\x12\x1c.sortie.v1.GetProfileRequest\x1a\x1d.sortie.v1.GetProfileResponse\x12L\n\x0bLineOfSight\x12\x1d.sortie.v1.LineOfSightRequest\x1a\x1e.sortie.v1.LineOfSightResponse\x12^\n\x11IntersectSegments\x12#.sortie.v1.IntersectSegmentsRequest\x1a$.sortie.v1.IntersectSegmentsResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17sortie/v1/terrain.proto\x12\tsortie.v1\"!\n\x0eGetTileRequest\x12\x0f\n\x07\x63\x65ll_id\x18\x01 \x01(\x04\"u\n\x10GetRegionRequest\x12\r\n\x05level\x18\x01 \x01(\r\x12\x13\n\x0blat_min_deg\x18\x02 \x01(\x01\x12\x13\n\x0blon_min_deg\x18\x03 \x01(\x01\x12\x13\n\x0blat_max_deg\x18\x04 \x01(\x01\x12\x13\n\x0blon_max_deg\x18\x05 \x01(\x01\"\xe6\x01\n\nHeightGrid\x12\r\n\x05level\x18\x01 \x01(\r\x12\r\n\x05\x64\x65pth\x18\x02 \x01(\r\x12\x0c\n\x04rows\x18\x03 \x01(\r\x12\x0c\n\x04\x63ols\x18\x04 \x01(\r\x12\x15\n\rlat_north_deg\x18\x05 \x01(\x01\x12\x14\n\x0clon_west_deg\x18\x06 \x01(\x01\x12\x10\n\x08\x64lat_deg\x18\x07 \x01(\x01\x12\x10\n\x08\x64lon_deg\x18\x08 \x01(\x01\x12\x13\n\x0bheights_f32\x18\t \x01(\x0c\x12\x12\n\npost_class\x18\n \x01(\x0c\x12\x13\n\x0bmax_error_m\x18\x0b \x01(\x01\x12\x0f\n\x07\x63\x65ll_id\x18\x0c \x01(\x04\"\x14\n\x12GetMetadataRequest\"\x95\x01\n\x13GetMetadataResponse\x12)\n\x07sources\x18\x01 \x03(\x0b\x32\x18.sortie.v1.TerrainSource\x12\x18\n\x10height_reference\x18\x02 \x01(\t\x12!\n\x06limits\x18\x03 \x01(\x0b\x32\x11.sortie.v1.Limits\x12\x16\n\x0eserver_version\x18\x04 \x01(\t\"\xff\x02\n\rTerrainSource\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04kind\x18\x02 \x01(\t\x12\x0e\n\x06source\x18\x03 \x01(\t\x12\x0b\n\x03\x63rs\x18\x04 \x01(\t\x12\x13\n\x0blat_min_deg\x18\x05 \x01(\x01\x12\x13\n\x0blon_min_deg\x18\x06 \x01(\x01\x12\x13\n\x0blat_max_deg\x18\x07 \x01(\x01\x12\x13\n\x0blon_max_deg\x18\x08 \x01(\x01\x12\x0c\n\x04rows\x18\t \x01(\r\x12\x0c\n\x04\x63ols\x18\n \x01(\r\x12\x16\n\x0espacing_east_m\x18\x0b \x01(\x01\x12\x17\n\x0fspacing_north_m\x18\x0c \x01(\x01\x12\x16\n\x0evertical_datum\x18\r \x01(\t\x12\x14\n\x0c\x66illed_posts\x18\x0e \x01(\x04\x12\x36\n\x07\x64\x65tails\x18\x0f \x03(\x0b\x32%.sortie.v1.TerrainSource.DetailsEntry\x1a.\n\x0c\x44\x65tailsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"\xc6\x01\n\x06Limits\x12\x19\n\x11max_height_points\x18\x01 \x01(\r\x12\x19\n\x11max_normal_points\x18\x02 \x01(\r\x12\x1b\n\x13max_profile_samples\x18\x03 \x01(\r\x12\x1e\n\x16max_line_of_sight_rays\x18\x04 \x01(\r\x12\x14\n\x0cmax_segments\x18\x05 \x01(\r\x12\x19\n\x11max_message_bytes\x18\x06 \x01(\x04\x12\x18\n\x10max_region_posts\x18\x07 \x01(\r\"=\n\x11GetHeightsRequest\x12\x13\n\x07lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\"Z\n\x12GetHeightsResponse\x12\x18\n\x0cheight_msl_m\x18\x01 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\x02 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"=\n\x11GetNormalsRequest\x12\x13\n\x07lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\"\xa1\x01\n\x12GetNormalsResponse\x12\x17\n\x0bnormal_east\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cnormal_north\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tnormal_up\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tslope_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\x05 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"~\n\x11GetProfileRequest\x12\x15\n\rstart_lat_deg\x18\x01 \x01(\x01\x12\x15\n\rstart_lon_deg\x18\x02 \x01(\x01\x12\x13\n\x0b\x65nd_lat_deg\x18\x03 \x01(\x01\x12\x13\n\x0b\x65nd_lon_deg\x18\x04 \x01(\x01\x12\x11\n\tn_samples\x18\x05 \x01(\r\"\x9c\x01\n\x12GetProfileResponse\x12\x13\n\x07lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x16\n\ndistance_m\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cheight_msl_m\x18\x04 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\x05 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"\xa8\x01\n\x12LineOfSightRequest\x12\x15\n\ta_lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x15\n\ta_lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x61_height_msl_m\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lat_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lon_deg\x18\x05 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x62_height_msl_m\x18\x06 \x03(\x01\x42\x02\x10\x01\"V\n\x13LineOfSightResponse\x12\x13\n\x07visible\x18\x01 \x03(\x08\x42\x02\x10\x01\x12*\n\x06status\x18\x02 \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01\"\xae\x01\n\x18IntersectSegmentsRequest\x12\x15\n\ta_lat_deg\x18\x01 \x03(\x01\x42\x02\x10\x01\x12\x15\n\ta_lon_deg\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x61_height_msl_m\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lat_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tb_lon_deg\x18\x05 \x03(\x01\x42\x02\x10\x01\x12\x1a\n\x0e\x62_height_msl_m\x18\x06 \x03(\x01\x42\x02\x10\x01\"\xfe\x01\n\x19IntersectSegmentsResponse\x12\x0f\n\x03hit\x18\x01 \x03(\x08\x42\x02\x10\x01\x12\x16\n\ndistance_m\x18\x02 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lat_deg\x18\x03 \x03(\x01\x42\x02\x10\x01\x12\x13\n\x07lon_deg\x18\x04 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cheight_msl_m\x18\x05 \x03(\x01\x42\x02\x10\x01\x12\x17\n\x0bnormal_east\x18\x06 \x03(\x01\x42\x02\x10\x01\x12\x18\n\x0cnormal_north\x18\x07 \x03(\x01\x42\x02\x10\x01\x12\x15\n\tnormal_up\x18\x08 \x03(\x01\x42\x02\x10\x01\x12*\n\x06status\x18\t \x03(\x0e\x32\x16.sortie.v1.PointStatusB\x02\x10\x01*s\n\x0bPointStatus\x12\x1c\n\x18POINT_STATUS_UNSPECIFIED\x10\x00\x12\x13\n\x0fPOINT_STATUS_OK\x10\x01\x12\x17\n\x13POINT_STATUS_FILLED\x10\x02\x12\x18\n\x14POINT_STATUS_OUTSIDE\x10\x03\x32\xeb\x04\n\x0eTerrainService\x12L\n\x0bGetMetadata\x12\x1d.sortie.v1.GetMetadataRequest\x1a\x1e.sortie.v1.GetMetadataResponse\x12I\n\nGetHeights\x12\x1c.sortie.v1.GetHeightsRequest\x1a\x1d.sortie.v1.GetHeightsResponse\x12I\n\nGetNormals\x12\x1c.sortie.v1.GetNormalsRequest\x1a\x1d.sortie.v1.GetNormalsResponse\x12I\n\nGetProfile\x12\x1c.sortie.v1.GetProfileRequest\x1a\x1d.sortie.v1.GetProfileResponse\x12L\n\x0bLineOfSight\x12\x1d.sortie.v1.LineOfSightRequest\x1a\x1e.sortie.v1.LineOfSightResponse\x12^\n\x11IntersectSegments\x12#.sortie.v1.IntersectSegmentsRequest\x1a$.sortie.v1.IntersectSegmentsResponse\x12;\n\x07GetTile\x12\x19.sortie.v1.GetTileRequest\x1a\x15.sortie.v1.HeightGrid\x12?\n\tGetRegion\x12\x1b.sortie.v1.GetRegionRequest\x1a\x15.sortie.v1.HeightGridb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -111,38 +111,44 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_INTERSECTSEGMENTSRESPONSE'].fields_by_name['normal_up']._serialized_options = b'\020\001'
   _globals['_INTERSECTSEGMENTSRESPONSE'].fields_by_name['status']._loaded_options = None
   _globals['_INTERSECTSEGMENTSRESPONSE'].fields_by_name['status']._serialized_options = b'\020\001'
-  _globals['_POINTSTATUS']._serialized_start=2135
-  _globals['_POINTSTATUS']._serialized_end=2250
-  _globals['_GETMETADATAREQUEST']._serialized_start=38
-  _globals['_GETMETADATAREQUEST']._serialized_end=58
-  _globals['_GETMETADATARESPONSE']._serialized_start=61
-  _globals['_GETMETADATARESPONSE']._serialized_end=210
-  _globals['_TERRAINSOURCE']._serialized_start=213
-  _globals['_TERRAINSOURCE']._serialized_end=596
-  _globals['_TERRAINSOURCE_DETAILSENTRY']._serialized_start=550
-  _globals['_TERRAINSOURCE_DETAILSENTRY']._serialized_end=596
-  _globals['_LIMITS']._serialized_start=599
-  _globals['_LIMITS']._serialized_end=771
-  _globals['_GETHEIGHTSREQUEST']._serialized_start=773
-  _globals['_GETHEIGHTSREQUEST']._serialized_end=834
-  _globals['_GETHEIGHTSRESPONSE']._serialized_start=836
-  _globals['_GETHEIGHTSRESPONSE']._serialized_end=926
-  _globals['_GETNORMALSREQUEST']._serialized_start=928
-  _globals['_GETNORMALSREQUEST']._serialized_end=989
-  _globals['_GETNORMALSRESPONSE']._serialized_start=992
-  _globals['_GETNORMALSRESPONSE']._serialized_end=1153
-  _globals['_GETPROFILEREQUEST']._serialized_start=1155
-  _globals['_GETPROFILEREQUEST']._serialized_end=1281
-  _globals['_GETPROFILERESPONSE']._serialized_start=1284
-  _globals['_GETPROFILERESPONSE']._serialized_end=1440
-  _globals['_LINEOFSIGHTREQUEST']._serialized_start=1443
-  _globals['_LINEOFSIGHTREQUEST']._serialized_end=1611
-  _globals['_LINEOFSIGHTRESPONSE']._serialized_start=1613
-  _globals['_LINEOFSIGHTRESPONSE']._serialized_end=1699
-  _globals['_INTERSECTSEGMENTSREQUEST']._serialized_start=1702
-  _globals['_INTERSECTSEGMENTSREQUEST']._serialized_end=1876
-  _globals['_INTERSECTSEGMENTSRESPONSE']._serialized_start=1879
-  _globals['_INTERSECTSEGMENTSRESPONSE']._serialized_end=2133
-  _globals['_TERRAINSERVICE']._serialized_start=2253
-  _globals['_TERRAINSERVICE']._serialized_end=2746
+  _globals['_POINTSTATUS']._serialized_start=2548
+  _globals['_POINTSTATUS']._serialized_end=2663
+  _globals['_GETTILEREQUEST']._serialized_start=38
+  _globals['_GETTILEREQUEST']._serialized_end=71
+  _globals['_GETREGIONREQUEST']._serialized_start=73
+  _globals['_GETREGIONREQUEST']._serialized_end=190
+  _globals['_HEIGHTGRID']._serialized_start=193
+  _globals['_HEIGHTGRID']._serialized_end=423
+  _globals['_GETMETADATAREQUEST']._serialized_start=425
+  _globals['_GETMETADATAREQUEST']._serialized_end=445
+  _globals['_GETMETADATARESPONSE']._serialized_start=448
+  _globals['_GETMETADATARESPONSE']._serialized_end=597
+  _globals['_TERRAINSOURCE']._serialized_start=600
+  _globals['_TERRAINSOURCE']._serialized_end=983
+  _globals['_TERRAINSOURCE_DETAILSENTRY']._serialized_start=937
+  _globals['_TERRAINSOURCE_DETAILSENTRY']._serialized_end=983
+  _globals['_LIMITS']._serialized_start=986
+  _globals['_LIMITS']._serialized_end=1184
+  _globals['_GETHEIGHTSREQUEST']._serialized_start=1186
+  _globals['_GETHEIGHTSREQUEST']._serialized_end=1247
+  _globals['_GETHEIGHTSRESPONSE']._serialized_start=1249
+  _globals['_GETHEIGHTSRESPONSE']._serialized_end=1339
+  _globals['_GETNORMALSREQUEST']._serialized_start=1341
+  _globals['_GETNORMALSREQUEST']._serialized_end=1402
+  _globals['_GETNORMALSRESPONSE']._serialized_start=1405
+  _globals['_GETNORMALSRESPONSE']._serialized_end=1566
+  _globals['_GETPROFILEREQUEST']._serialized_start=1568
+  _globals['_GETPROFILEREQUEST']._serialized_end=1694
+  _globals['_GETPROFILERESPONSE']._serialized_start=1697
+  _globals['_GETPROFILERESPONSE']._serialized_end=1853
+  _globals['_LINEOFSIGHTREQUEST']._serialized_start=1856
+  _globals['_LINEOFSIGHTREQUEST']._serialized_end=2024
+  _globals['_LINEOFSIGHTRESPONSE']._serialized_start=2026
+  _globals['_LINEOFSIGHTRESPONSE']._serialized_end=2112
+  _globals['_INTERSECTSEGMENTSREQUEST']._serialized_start=2115
+  _globals['_INTERSECTSEGMENTSREQUEST']._serialized_end=2289
+  _globals['_INTERSECTSEGMENTSRESPONSE']._serialized_start=2292
+  _globals['_INTERSECTSEGMENTSRESPONSE']._serialized_end=2546
+  _globals['_TERRAINSERVICE']._serialized_start=2666
+  _globals['_TERRAINSERVICE']._serialized_end=3285
 # @@protoc_insertion_point(module_scope)

@@ -18,6 +18,54 @@ POINT_STATUS_OK: PointStatus
 POINT_STATUS_FILLED: PointStatus
 POINT_STATUS_OUTSIDE: PointStatus
 
+class GetTileRequest(_message.Message):
+    __slots__ = ("cell_id",)
+    CELL_ID_FIELD_NUMBER: _ClassVar[int]
+    cell_id: int
+    def __init__(self, cell_id: _Optional[int] = ...) -> None: ...
+
+class GetRegionRequest(_message.Message):
+    __slots__ = ("level", "lat_min_deg", "lon_min_deg", "lat_max_deg", "lon_max_deg")
+    LEVEL_FIELD_NUMBER: _ClassVar[int]
+    LAT_MIN_DEG_FIELD_NUMBER: _ClassVar[int]
+    LON_MIN_DEG_FIELD_NUMBER: _ClassVar[int]
+    LAT_MAX_DEG_FIELD_NUMBER: _ClassVar[int]
+    LON_MAX_DEG_FIELD_NUMBER: _ClassVar[int]
+    level: int
+    lat_min_deg: float
+    lon_min_deg: float
+    lat_max_deg: float
+    lon_max_deg: float
+    def __init__(self, level: _Optional[int] = ..., lat_min_deg: _Optional[float] = ..., lon_min_deg: _Optional[float] = ..., lat_max_deg: _Optional[float] = ..., lon_max_deg: _Optional[float] = ...) -> None: ...
+
+class HeightGrid(_message.Message):
+    __slots__ = ("level", "depth", "rows", "cols", "lat_north_deg", "lon_west_deg", "dlat_deg", "dlon_deg", "heights_f32", "post_class", "max_error_m", "cell_id")
+    LEVEL_FIELD_NUMBER: _ClassVar[int]
+    DEPTH_FIELD_NUMBER: _ClassVar[int]
+    ROWS_FIELD_NUMBER: _ClassVar[int]
+    COLS_FIELD_NUMBER: _ClassVar[int]
+    LAT_NORTH_DEG_FIELD_NUMBER: _ClassVar[int]
+    LON_WEST_DEG_FIELD_NUMBER: _ClassVar[int]
+    DLAT_DEG_FIELD_NUMBER: _ClassVar[int]
+    DLON_DEG_FIELD_NUMBER: _ClassVar[int]
+    HEIGHTS_F32_FIELD_NUMBER: _ClassVar[int]
+    POST_CLASS_FIELD_NUMBER: _ClassVar[int]
+    MAX_ERROR_M_FIELD_NUMBER: _ClassVar[int]
+    CELL_ID_FIELD_NUMBER: _ClassVar[int]
+    level: int
+    depth: int
+    rows: int
+    cols: int
+    lat_north_deg: float
+    lon_west_deg: float
+    dlat_deg: float
+    dlon_deg: float
+    heights_f32: bytes
+    post_class: bytes
+    max_error_m: float
+    cell_id: int
+    def __init__(self, level: _Optional[int] = ..., depth: _Optional[int] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., lat_north_deg: _Optional[float] = ..., lon_west_deg: _Optional[float] = ..., dlat_deg: _Optional[float] = ..., dlon_deg: _Optional[float] = ..., heights_f32: _Optional[bytes] = ..., post_class: _Optional[bytes] = ..., max_error_m: _Optional[float] = ..., cell_id: _Optional[int] = ...) -> None: ...
+
 class GetMetadataRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
@@ -76,20 +124,22 @@ class TerrainSource(_message.Message):
     def __init__(self, name: _Optional[str] = ..., kind: _Optional[str] = ..., source: _Optional[str] = ..., crs: _Optional[str] = ..., lat_min_deg: _Optional[float] = ..., lon_min_deg: _Optional[float] = ..., lat_max_deg: _Optional[float] = ..., lon_max_deg: _Optional[float] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., spacing_east_m: _Optional[float] = ..., spacing_north_m: _Optional[float] = ..., vertical_datum: _Optional[str] = ..., filled_posts: _Optional[int] = ..., details: _Optional[_Mapping[str, str]] = ...) -> None: ...
 
 class Limits(_message.Message):
-    __slots__ = ("max_height_points", "max_normal_points", "max_profile_samples", "max_line_of_sight_rays", "max_segments", "max_message_bytes")
+    __slots__ = ("max_height_points", "max_normal_points", "max_profile_samples", "max_line_of_sight_rays", "max_segments", "max_message_bytes", "max_region_posts")
     MAX_HEIGHT_POINTS_FIELD_NUMBER: _ClassVar[int]
     MAX_NORMAL_POINTS_FIELD_NUMBER: _ClassVar[int]
     MAX_PROFILE_SAMPLES_FIELD_NUMBER: _ClassVar[int]
     MAX_LINE_OF_SIGHT_RAYS_FIELD_NUMBER: _ClassVar[int]
     MAX_SEGMENTS_FIELD_NUMBER: _ClassVar[int]
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MAX_REGION_POSTS_FIELD_NUMBER: _ClassVar[int]
     max_height_points: int
     max_normal_points: int
     max_profile_samples: int
     max_line_of_sight_rays: int
     max_segments: int
     max_message_bytes: int
-    def __init__(self, max_height_points: _Optional[int] = ..., max_normal_points: _Optional[int] = ..., max_profile_samples: _Optional[int] = ..., max_line_of_sight_rays: _Optional[int] = ..., max_segments: _Optional[int] = ..., max_message_bytes: _Optional[int] = ...) -> None: ...
+    max_region_posts: int
+    def __init__(self, max_height_points: _Optional[int] = ..., max_normal_points: _Optional[int] = ..., max_profile_samples: _Optional[int] = ..., max_line_of_sight_rays: _Optional[int] = ..., max_segments: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., max_region_posts: _Optional[int] = ...) -> None: ...
 
 class GetHeightsRequest(_message.Message):
     __slots__ = ("lat_deg", "lon_deg")

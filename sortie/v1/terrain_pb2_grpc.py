@@ -66,6 +66,16 @@ class TerrainServiceStub:
                 request_serializer=sortie_dot_v1_dot_terrain__pb2.IntersectSegmentsRequest.SerializeToString,
                 response_deserializer=sortie_dot_v1_dot_terrain__pb2.IntersectSegmentsResponse.FromString,
                 _registered_method=True)
+        self.GetTile = channel.unary_unary(
+                '/sortie.v1.TerrainService/GetTile',
+                request_serializer=sortie_dot_v1_dot_terrain__pb2.GetTileRequest.SerializeToString,
+                response_deserializer=sortie_dot_v1_dot_terrain__pb2.HeightGrid.FromString,
+                _registered_method=True)
+        self.GetRegion = channel.unary_unary(
+                '/sortie.v1.TerrainService/GetRegion',
+                request_serializer=sortie_dot_v1_dot_terrain__pb2.GetRegionRequest.SerializeToString,
+                response_deserializer=sortie_dot_v1_dot_terrain__pb2.HeightGrid.FromString,
+                _registered_method=True)
 
 
 class TerrainServiceServicer:
@@ -124,6 +134,24 @@ class TerrainServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def GetTile(self, request, context):
+        """Unary. One tile of the terrain store by quad-tree cell id (what a thin
+        client streams instead of holding the DEM): the cell at depth d is the
+        tile of store level (store depth - d). NOT_FOUND when the service has no
+        store, the depth is outside the store's levels, or no region holds the cell.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def GetRegion(self, request, context):
+        """Unary. The store's posts of one level covering a box (a clipmap level's
+        region query). At most Limits.max_region_posts posts (4,194,304 by default).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_TerrainServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -156,6 +184,16 @@ def add_TerrainServiceServicer_to_server(servicer, server):
                     servicer.IntersectSegments,
                     request_deserializer=sortie_dot_v1_dot_terrain__pb2.IntersectSegmentsRequest.FromString,
                     response_serializer=sortie_dot_v1_dot_terrain__pb2.IntersectSegmentsResponse.SerializeToString,
+            ),
+            'GetTile': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetTile,
+                    request_deserializer=sortie_dot_v1_dot_terrain__pb2.GetTileRequest.FromString,
+                    response_serializer=sortie_dot_v1_dot_terrain__pb2.HeightGrid.SerializeToString,
+            ),
+            'GetRegion': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetRegion,
+                    request_deserializer=sortie_dot_v1_dot_terrain__pb2.GetRegionRequest.FromString,
+                    response_serializer=sortie_dot_v1_dot_terrain__pb2.HeightGrid.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -322,6 +360,60 @@ class TerrainService:
             '/sortie.v1.TerrainService/IntersectSegments',
             sortie_dot_v1_dot_terrain__pb2.IntersectSegmentsRequest.SerializeToString,
             sortie_dot_v1_dot_terrain__pb2.IntersectSegmentsResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetTile(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/sortie.v1.TerrainService/GetTile',
+            sortie_dot_v1_dot_terrain__pb2.GetTileRequest.SerializeToString,
+            sortie_dot_v1_dot_terrain__pb2.HeightGrid.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetRegion(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/sortie.v1.TerrainService/GetRegion',
+            sortie_dot_v1_dot_terrain__pb2.GetRegionRequest.SerializeToString,
+            sortie_dot_v1_dot_terrain__pb2.HeightGrid.FromString,
             options,
             channel_credentials,
             insecure,

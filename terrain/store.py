@@ -1,0 +1,478 @@
+"""The terrain store: a compressed multi-resolution height pyramid on disk,
+tiled by the geographic quad tree.
+
+Layout (version 1, documented in docs/STORE.md)::
+
+    STORE/store.json              the manifest (written last: a store without it is unfinished)
+    STORE/region-NNN/level-KK.tiles   one file per region and level
+
+The store holds one global lattice (``global-terrain-flight-sim.txt`` §4):
+level 0 has posts every ``90 / (2^D T)`` degrees of latitude and
+``120 / (2^D T)`` of longitude, row 0 on the North Pole counting south and
+column 0 on the 180th meridian counting east, so the T x T posts of tile
+(row, col) of level k are exactly the quad-tree cell (D - k, row, col): the
+cell owns its northern and western edge posts. Posts are square in metres near
+latitude 41° (cos 41° = 3/4) and within 6 % of square at 45°.
+
+Heights are integers of ``unit_m`` (1 cm), coded by :mod:`terrain.heightcodec`
+with a quantisation step of ``step_units`` (1 = lossless): every decoded post
+of every level is within ``step / 2`` of the imported value. A per-post class
+(0 outside the data, 1 measured, 2 a filled void) rides along each tile.
+
+Each level file::
+
+    magic b"SRTL" | u16 version | u16 level | u32 tile count
+    count x (i64 tile_row, i64 tile_col, u64 offset, u32 height_len, u32 class_len)
+    blobs: height blob (heightcodec), then class blob (empty: every post measured;
+           1 byte: every post that class; else zstd of the uint8 classes)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zstandard
+
+from sortie.errors import DataFormatError, InvalidArgument, NotFound
+from terrain import heightcodec
+from terrain.heightcodec import LevelRect, PyramidReader
+from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
+
+FORMAT_NAME = "sortie-terrain-store"
+FORMAT_VERSION = 1
+MANIFEST = "store.json"
+LEVEL_MAGIC = b"SRTL"
+_LEVEL_HEAD = struct.Struct("<4sHHI")
+_INDEX_ENTRY = np.dtype([("row", "<i8"), ("col", "<i8"), ("offset", "<u8"), ("hlen", "<u4"), ("clen", "<u4")])
+
+DEFAULT_TILE = 256
+DEFAULT_UNIT_M = 0.01
+MAX_DEPTH = 20  # level-0 posts of 90 / (2^20 * 256) deg ~ 4 cm: beyond any DEM
+CLASS_OUTSIDE, CLASS_MEASURED, CLASS_FILLED = 0, 1, 2
+
+# Decoded tiles cached per open store (every level together): 512 tiles of
+# 256^2 int64 is 256 MiB at most.
+DEFAULT_CACHE_TILES = 512
+
+
+def lattice_spacing_deg(depth: int, tile: int = DEFAULT_TILE) -> tuple[float, float]:
+    """(dlat, dlon) degrees between the posts of a lattice whose cells at ``depth`` hold tile^2 posts."""
+    n = (1 << depth) * tile
+    return 90.0 / n, 120.0 / n
+
+
+def depth_for_spacing(dlat_deg: float, tile: int = DEFAULT_TILE) -> int:
+    """The least depth whose latitude spacing is no coarser than dlat_deg."""
+    if not (math.isfinite(dlat_deg) and dlat_deg > 0):
+        raise InvalidArgument("resolution", "must be a positive number of arc-seconds", value=dlat_deg * 3600)
+    d = max(0, math.ceil(math.log2(90.0 / (tile * dlat_deg)) - 1e-9))
+    if d > MAX_DEPTH:
+        raise InvalidArgument("resolution", f"is finer than the store's finest lattice (depth {MAX_DEPTH})",
+                              value=dlat_deg * 3600)
+    return d
+
+
+@dataclass(frozen=True)
+class Region:
+    """One connected coded area: its pyramid's level rectangles (finest first)."""
+
+    index: int
+    rects: tuple[LevelRect, ...]
+    bounds: tuple[float, float, float, float]  # lat_min, lon_min, lat_max, lon_max of level 0's data
+
+    @property
+    def directory(self) -> str:
+        return f"region-{self.index:03d}"
+
+
+class TerrainStore:
+    """An open store: manifest, level indexes, and the shared decoded-tile cache.
+
+    Use :func:`open_store` so every view and client of one process shares one
+    instance (and its cache) per store.
+    """
+
+    def __init__(self, path, cache_tiles: int = DEFAULT_CACHE_TILES):
+        self.path = Path(path)
+        manifest_path = self.path / MANIFEST
+        if not manifest_path.is_file():
+            raise NotFound(f"terrain store {self.path}: no {MANIFEST} (not a store, or its import did not finish)")
+        try:
+            m = json.loads(manifest_path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise DataFormatError(f"{manifest_path}: {e}") from None
+        if m.get("format") != FORMAT_NAME:
+            raise DataFormatError(f"{manifest_path}: format {m.get('format')!r} is not {FORMAT_NAME!r}")
+        if m.get("version") != FORMAT_VERSION:
+            raise DataFormatError(f"{manifest_path}: version {m.get('version')!r}, this build reads {FORMAT_VERSION}")
+        self.manifest = m
+        self.tile = int(m["tile"])
+        self.depth = int(m["depth"])
+        self.unit_m = float(m["unit_m"])
+        self.step_units = int(m["step_units"])
+        self.dlat, self.dlon = lattice_spacing_deg(self.depth, self.tile)
+        self.regions = [Region(r["index"], tuple(LevelRect(*x) for x in r["rects"]), tuple(r["bounds"]))
+                        for r in m["regions"]]
+        self.name = m.get("name", self.path.name)
+        self._lock = threading.RLock()
+        self._index: dict[tuple[int, int], tuple[np.ndarray, dict]] = {}
+        self._files: dict[tuple[int, int], object] = {}
+        self._readers = [PyramidReader(list(r.rects), self.tile, self.step_units,
+                                       self._blob_getter(r.index), cache_tiles=cache_tiles)
+                         for r in self.regions]
+        self._class_cache: OrderedDict = OrderedDict()
+        self._cache_tiles = cache_tiles
+        self._dctx = zstandard.ZstdDecompressor()
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def levels(self) -> int:
+        return max(len(r.rects) for r in self.regions)
+
+    @property
+    def max_error_m(self) -> float:
+        """Bound on |decoded - resampled source| at every post of every level: half a
+        step of quantisation plus half a unit of rounding to the unit."""
+        return (self.step_units // 2 + 0.5) * self.unit_m
+
+    def spacing_deg(self, level: int) -> tuple[float, float]:
+        return self.dlat * (1 << level), self.dlon * (1 << level)
+
+    def cell_depth(self, level: int) -> int:
+        """Quad-tree depth of the cells whose tiles make up a level."""
+        return self.depth - level
+
+    def post_latlon(self, level: int, rows, cols):
+        """(lat, lon) degrees of lattice posts of a level; longitudes wrapped to [-180, 180)."""
+        dlat, dlon = self.spacing_deg(level)
+        lat = 90.0 - np.asarray(rows, np.float64) * dlat
+        lon = (np.asarray(cols, np.float64) * dlon) % 360.0 - 180.0
+        return lat, lon
+
+    def fractional_post(self, level: int, lat, lon):
+        """(row, col) as floats in a level's lattice for (lat, lon) degrees."""
+        dlat, dlon = self.spacing_deg(level)
+        return (90.0 - np.asarray(lat, np.float64)) / dlat, ((np.asarray(lon, np.float64) + 180.0) % 360.0) / dlon
+
+    def region_of(self, level: int, row: float, col: float) -> Region | None:
+        """The region whose level rectangle holds a post (None outside every region)."""
+        for region in self.regions:
+            if level >= len(region.rects):
+                continue
+            r = region.rects[level]
+            c = _unwrap_col(col, r, self._cols_per_turn(level))
+            if r.row0 <= row <= r.row1 - 1 and r.col0 <= c <= r.col1 - 1:
+                return region
+        return None
+
+    def _cols_per_turn(self, level: int) -> int:
+        return (3 << self.depth) * self.tile >> level
+
+    # ------------------------------------------------------------------ decoding
+
+    def decode(self, region: Region, level: int, row_a: int, row_b: int, col_a: int, col_b: int):
+        """(heights_m float64, classes uint8) of a block of a level's lattice, inside the
+        region's rectangle for that level (rows north to south)."""
+        with self._lock:
+            units = self._readers[region.index].decode_region(level, row_a, row_b, col_a, col_b)
+            classes = self._classes(region, level, row_a, row_b, col_a, col_b)
+        return units * self.unit_m, classes
+
+    def raster(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float,
+               region: Region | None = None) -> Raster | None:
+        """The posts of a level covering a box as a :class:`Raster` (row 0 south),
+        clipped to the region holding the box's centre; None when no region does."""
+        r_top, c_left = self.fractional_post(level, lat_max, lon_min)
+        r_bot, _ = self.fractional_post(level, lat_min, lon_min)
+        span = (lon_max - lon_min) / self.spacing_deg(level)[1]
+        if region is None:
+            region = self.region_of(level, (r_top + r_bot) / 2, c_left + span / 2)
+            if region is None:
+                return None
+        rect = region.rects[level]
+        c_left = _unwrap_col(c_left, rect, self._cols_per_turn(level))
+        row_a = max(int(math.floor(r_top)), rect.row0)
+        row_b = min(int(math.floor(r_bot)) + 2, rect.row1)
+        col_a = max(int(math.floor(c_left)), rect.col0)
+        col_b = min(int(math.floor(c_left + span)) + 2, rect.col1)
+        if row_b - row_a < 2 or col_b - col_a < 2:
+            return None
+        return self._block_raster(region, level, row_a, row_b, col_a, col_b)
+
+    def _block_raster(self, region: Region, level: int, row_a, row_b, col_a, col_b) -> Raster:
+        heights, classes = self.decode(region, level, row_a, row_b, col_a, col_b)
+        heights = heights[::-1].copy()
+        classes = classes[::-1]
+        heights[classes == CLASS_OUTSIDE] = np.nan
+        filled = classes == CLASS_FILLED
+        dlat, dlon = self.spacing_deg(level)
+        lat_south, lon_west = self.post_latlon(level, row_b - 1, col_a)
+        lon_west = float(col_a * dlon - 180.0)  # unwrapped: a raster may run past +180
+        georef = Georef(CRS_GEOGRAPHIC, lon_west, float(lat_south), dlon, dlat)
+        return Raster(heights.astype(np.float32), georef, name=f"{self.name}:L{level}",
+                      vertical_datum=self.manifest.get("vertical_datum", "EGM96"),
+                      filled=filled if filled.any() else None, source=str(self.path),
+                      meta={"store_level": level, "region": region.index})
+
+    def tile_raster(self, region: Region, level: int, tile_row: int, tile_col: int) -> Raster:
+        """One tile with its east and south edge posts (T + 1)^2, as a Raster: every
+        point of the cell interpolates inside it. Cached with the tiles."""
+        T = self.tile
+        rect = region.rects[level]
+        key = ("raster", region.index, level, tile_row, tile_col)
+        with self._lock:
+            hit = self._class_cache.get(key)
+            if hit is not None:
+                self._class_cache.move_to_end(key)
+                return hit
+            r0, c0 = tile_row * T, tile_col * T
+            raster = self._block_raster(region, level, max(r0, rect.row0), min(r0 + T + 1, rect.row1),
+                                        max(c0, rect.col0), min(c0 + T + 1, rect.col1))
+            self._remember(key, raster)
+            return raster
+
+    def _remember(self, key, value) -> None:
+        self._class_cache[key] = value
+        while len(self._class_cache) > self._cache_tiles:
+            self._class_cache.popitem(last=False)
+
+    def _classes(self, region: Region, level: int, row_a, row_b, col_a, col_b) -> np.ndarray:
+        T = self.tile
+        out = np.empty((row_b - row_a, col_b - col_a), np.uint8)
+        for ti in range(row_a // T, -(-row_b // T)):
+            for tj in range(col_a // T, -(-col_b // T)):
+                key = ("class", region.index, level, ti, tj)
+                cls = self._class_cache.get(key)
+                if cls is None:
+                    cls = self._decode_classes(region.index, level, ti, tj)
+                    self._remember(key, cls)
+                r_a, r_b = max(row_a, ti * T), min(row_b, (ti + 1) * T)
+                c_a, c_b = max(col_a, tj * T), min(col_b, (tj + 1) * T)
+                out[r_a - row_a:r_b - row_a, c_a - col_a:c_b - col_a] = \
+                    cls[r_a - ti * T:r_b - ti * T, c_a - tj * T:c_b - tj * T]
+        return out
+
+    def _decode_classes(self, region: int, level: int, ti: int, tj: int) -> np.ndarray:
+        _, blob = self._read_tile(region, level, ti, tj)
+        T = self.tile
+        if len(blob) == 0:
+            return np.full((T, T), CLASS_MEASURED, np.uint8)
+        if len(blob) == 1:
+            return np.full((T, T), blob[0], np.uint8)
+        return np.frombuffer(self._dctx.decompress(blob), np.uint8).reshape(T, T)
+
+    # ------------------------------------------------------------------ files
+
+    def _blob_getter(self, region: int):
+        def get(level, ti, tj):
+            return self._read_tile(region, level, ti, tj)[0]
+        return get
+
+    def _level_index(self, region: int, level: int):
+        key = (region, level)
+        hit = self._index.get(key)
+        if hit is None:
+            path = self.path / f"region-{region:03d}" / f"level-{level:02d}.tiles"
+            try:
+                f = open(path, "rb")
+            except OSError as e:
+                raise DataFormatError(f"terrain store {self.path}: {e}") from None
+            head = f.read(_LEVEL_HEAD.size)
+            if len(head) < _LEVEL_HEAD.size:
+                raise DataFormatError(f"{path}: truncated header")
+            magic, version, lvl, count = _LEVEL_HEAD.unpack(head)
+            if magic != LEVEL_MAGIC or version != FORMAT_VERSION or lvl != level:
+                raise DataFormatError(f"{path}: not a level-{level} tile file of version {FORMAT_VERSION}")
+            raw = f.read(count * _INDEX_ENTRY.itemsize)
+            if len(raw) != count * _INDEX_ENTRY.itemsize:
+                raise DataFormatError(f"{path}: truncated index ({len(raw)} of {count * _INDEX_ENTRY.itemsize} bytes)")
+            entries = np.frombuffer(raw, _INDEX_ENTRY)
+            lookup = {(int(e["row"]), int(e["col"])): i for i, e in enumerate(entries)}
+            hit = self._index[key] = (entries, lookup)
+            self._files[key] = f
+        return hit
+
+    def _read_tile(self, region: int, level: int, ti: int, tj: int) -> tuple[bytes, bytes]:
+        with self._lock:
+            entries, lookup = self._level_index(region, level)
+            i = lookup.get((ti, tj))
+            if i is None:
+                raise DataFormatError(f"terrain store {self.path}: region {region} level {level} has no tile "
+                                      f"({ti}, {tj})")
+            e = entries[i]
+            f = self._files[(region, level)]
+            f.seek(int(e["offset"]))
+            data = f.read(int(e["hlen"]) + int(e["clen"]))
+            if len(data) != int(e["hlen"]) + int(e["clen"]):
+                raise DataFormatError(f"terrain store {self.path}: tile ({ti}, {tj}) of level {level} is truncated")
+            return data[:int(e["hlen"])], data[int(e["hlen"]):]
+
+    def tile_blobs(self, region: Region, level: int) -> int:
+        """How many tiles a region's level holds."""
+        return len(self._level_index(region.index, level)[1])
+
+    def stored_bytes(self) -> int:
+        return sum(p.stat().st_size for p in self.path.rglob("*.tiles"))
+
+    def cache_tiles_held(self) -> int:
+        return sum(len(r._cache) for r in self._readers)
+
+    def retain_near(self, viewers, radius_cells: float) -> int:
+        """Keep only the decoded tiles of cells within ``radius_cells`` of any viewer
+        (lat, lon) at their own level (the per-level scene-graph radius of
+        ``global-terrain-flight-sim.txt`` §5); returns how many were evicted."""
+        from terrain import quadtree
+
+        keep = set()
+        for lat, lon in viewers:
+            for level in range(self.levels):
+                for cid in quadtree.cells_within(lat, lon, self.cell_depth(level), radius_cells):
+                    _, row, col = quadtree.unpack(int(cid))
+                    keep.add((level, row, col))
+        evicted = 0
+        with self._lock:
+            for reader in self._readers:
+                for key in list(reader._cache):
+                    level, ti, tj = key
+                    if (level, ti, tj % (self._cols_per_turn(level) // self.tile)) not in keep:
+                        del reader._cache[key]
+                        evicted += 1
+        return evicted
+
+    def close(self) -> None:
+        with self._lock:
+            for f in self._files.values():
+                f.close()
+            self._files.clear()
+            self._index.clear()
+
+
+def _unwrap_col(col: float, rect: LevelRect, per_turn: int) -> float:
+    """A column index moved by whole turns to lie at or after the rectangle's first column."""
+    if col < rect.col0:
+        col += per_turn * math.ceil((rect.col0 - col) / per_turn)
+    elif col >= rect.col0 + per_turn:
+        col -= per_turn * math.floor((col - rect.col0) / per_turn)
+    return col
+
+
+_open_stores: dict[str, TerrainStore] = {}
+_open_lock = threading.Lock()
+
+
+def open_store(path) -> TerrainStore:
+    """The process-wide instance of a store (shared cache for every view and client)."""
+    key = os.path.realpath(path)
+    with _open_lock:
+        store = _open_stores.get(key)
+        if store is None:
+            store = _open_stores[key] = TerrainStore(path)
+        return store
+
+
+class StoreSource:
+    """A :class:`terrain.terrain.Terrain` source answering from a store's finest level."""
+
+    def __init__(self, store: TerrainStore, level: int = 0):
+        self.store = store
+        self.level = level
+
+    def _groups(self, lat, lon):
+        """(region, tile_row, tile_col, point indices) for the points inside some region."""
+        rows, cols = self.store.fractional_post(self.level, lat, lon)
+        T = self.store.tile
+        for region in self.store.regions:
+            rect = region.rects[self.level]
+            per_turn = self.store._cols_per_turn(self.level)
+            c = cols + np.where(cols < rect.col0, per_turn, 0)
+            inside = (rows >= rect.row0) & (rows <= rect.row1 - 1) & (c >= rect.col0) & (c <= rect.col1 - 1)
+            idx = np.flatnonzero(inside)
+            if idx.size == 0:
+                continue
+            ti = np.minimum(np.floor(rows[idx]).astype(np.int64), rect.row1 - 2) // T
+            tj = np.minimum(np.floor(c[idx]).astype(np.int64), rect.col1 - 2) // T
+            key = ti * (1 << 32) + tj
+            order = np.argsort(key, kind="stable")
+            uniq, starts = np.unique(key[order], return_index=True)
+            bounds = list(starts) + [order.size]
+            for k in range(uniq.size):
+                sel = idx[order[bounds[k]:bounds[k + 1]]]
+                yield region, int(ti[order[bounds[k]]]), int(tj[order[bounds[k]]]), sel
+
+    def heights_into(self, lat, lon, out_h, out_status) -> None:
+        for region, ti, tj, sel in self._groups(lat, lon):
+            raster = self.store.tile_raster(region, self.level, ti, tj)
+            h = np.full(sel.size, np.nan)
+            st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
+            raster.heights_into(np.ascontiguousarray(lat[sel]), np.ascontiguousarray(lon[sel]), h, st)
+            out_h[sel] = h
+            out_status[sel] = st
+
+    def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
+        for region, ti, tj, sel in self._groups(lat, lon):
+            raster = self.store.tile_raster(region, self.level, ti, tj)
+            de, dn = np.full(sel.size, np.nan), np.full(sel.size, np.nan)
+            st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
+            raster.gradient_into(np.ascontiguousarray(lat[sel]), np.ascontiguousarray(lon[sel]), de, dn, st)
+            out_de[sel], out_dn[sel], out_status[sel] = de, dn, st
+
+    def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> Raster | None:
+        return self.store.raster(self.level, lat_min, lon_min, lat_max, lon_max)
+
+    def describe(self) -> dict:
+        s = self.store
+        lat_min = min(r.bounds[0] for r in s.regions)
+        lon_min = min(r.bounds[1] for r in s.regions)
+        lat_max = max(r.bounds[2] for r in s.regions)
+        lon_max = max(r.bounds[3] for r in s.regions)
+        dlat, dlon = s.spacing_deg(self.level)
+        return {"name": s.name, "kind": "store", "crs": "EPSG:4326",
+                "lat_min": lat_min, "lon_min": lon_min, "lat_max": lat_max, "lon_max": lon_max,
+                "resolution_lat_deg": dlat, "resolution_lon_deg": dlon,
+                "vertical_datum": s.manifest.get("vertical_datum", "EGM96"),
+                "source": str(s.path), "store_levels": s.levels, "store_depth": s.depth,
+                "max_error_m": s.max_error_m}
+
+
+# Point statuses of the classes (tests and the service map through this).
+CLASS_STATUS = {CLASS_OUTSIDE: STATUS_OUTSIDE, CLASS_MEASURED: STATUS_OK, CLASS_FILLED: STATUS_FILLED}
+
+
+def write_level_file(path: Path, level: int, tiles: dict[tuple[int, int], tuple[bytes, bytes]]) -> None:
+    """Write one level's tiles atomically (temporary file, then rename)."""
+    keys = sorted(tiles)
+    index = np.zeros(len(keys), _INDEX_ENTRY)
+    offset = _LEVEL_HEAD.size + index.nbytes
+    for i, key in enumerate(keys):
+        h, c = tiles[key]
+        index[i] = (key[0], key[1], offset, len(h), len(c))
+        offset += len(h) + len(c)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        f.write(_LEVEL_HEAD.pack(LEVEL_MAGIC, FORMAT_VERSION, level, len(keys)))
+        f.write(index.tobytes())
+        for key in keys:
+            f.write(tiles[key][0])
+            f.write(tiles[key][1])
+    os.replace(tmp, path)
+
+
+def code_classes(classes: np.ndarray) -> bytes:
+    """A tile's class blob: empty when all measured, one byte when uniform, else zstd."""
+    first = int(classes.flat[0])
+    if np.all(classes == first):
+        return b"" if first == CLASS_MEASURED else bytes([first])
+    return zstandard.ZstdCompressor(level=9).compress(np.ascontiguousarray(classes, np.uint8).tobytes())
+
+
+__all__ = ["TerrainStore", "StoreSource", "open_store", "lattice_spacing_deg", "depth_for_spacing",
+           "heightcodec"]

@@ -1,0 +1,416 @@
+"""``sortie terrain import``: DEM files to a terrain store (thesis §3.3.3's
+converter grown up).
+
+Pipeline: read and mosaic the DEMs (:mod:`terrain.mosaic`); group them into
+regions (sources whose boxes come within a tile of each other code together);
+for each region sample the store's level-0 lattice over the region's box —
+bilinear on the sources, anti-aliased by averaging a k x k block of bilinear
+samples when the store is coarser than a source (k = the ratio, rounded up),
+optionally with synthetic detail below the sources' spacing; classify posts
+(measured, filled void, outside); fill the outside by nearest value (it only
+shapes the residuals: outside posts answer "outside"); code the pyramid
+(:mod:`terrain.heightcodec`); write level files; write the manifest last.
+
+Resumable: sampling is the slow step for large imports, and is done in bands
+of tile rows saved under ``STORE/.import/``; an interrupted import re-run with
+the same arguments reuses the bands it finished (the band files carry a key of
+the arguments) and skips regions whose level files are complete.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sortie.errors import InvalidArgument
+from terrain import heightcodec, store as st
+from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster
+from terrain.terrain import Terrain
+
+BAND_TILES = 4  # tile rows sampled per resumable band
+MAX_REGION_POSTS = 400_000_000  # level-0 posts one region may hold (3.2 GB of int64 while coding)
+SAMPLE_CHUNK = 1 << 20  # points per Terrain.heights call
+
+
+@dataclass
+class ImportSummary:
+    store: str
+    regions: int
+    depth: int
+    levels: int
+    spacing_arcsec: tuple[float, float]
+    posts: int
+    measured_posts: int
+    filled_posts: int
+    stored_bytes: int
+    ratio_vs_int16: float
+    step_m: float
+    max_quantisation_error_m: float
+    rms_quantisation_error_m: float
+    max_error_vs_source_m: float
+    rms_error_vs_source_m: float
+    seconds: float
+    samples_per_s: float
+    bounds: list
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: float = 1.0,
+                lossless: bool = False, tile: int = st.DEFAULT_TILE, unit_m: float = st.DEFAULT_UNIT_M,
+                add_detail: str | None = None, detail_seed: int = 0, name: str | None = None,
+                progress: bool = False) -> ImportSummary:
+    """Build a store at ``out`` from DEM files; returns the summary (also in the manifest)."""
+    from terrain.mosaic import load_sources
+
+    t_start = time.perf_counter()
+    if not paths:
+        raise InvalidArgument("files", "give at least one DEM file")
+    if not lossless and not (math.isfinite(step_m) and step_m >= unit_m):
+        raise InvalidArgument("step", f"must be a number of metres >= the unit {unit_m} m", value=step_m)
+    if add_detail not in (None, "fractal", "cellular"):
+        raise InvalidArgument("add_detail", "must be 'fractal' or 'cellular'", value=add_detail)
+    step_units = 1 if lossless else max(1, int(round(step_m / unit_m)))
+    rasters = load_sources(paths)
+    # Default lattice: no coarser than any source along either axis (store posts are
+    # 4/3 as wide in degrees of longitude as they are tall in latitude).
+    finest = min(min(_lat_spacing_deg(r), 0.75 * _lon_spacing_deg(r)) for r in rasters)
+    depth = st.depth_for_spacing(finest if resolution_arcsec is None else resolution_arcsec / 3600.0, tile)
+    dlat, dlon = st.lattice_spacing_deg(depth, tile)
+    sources = _with_detail(rasters, add_detail, detail_seed, dlat) if add_detail else rasters
+    terrain = Terrain(sources)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    key = hashlib.sha256(json.dumps([[str(Path(p).resolve()) for p in paths], depth, tile, unit_m,
+                                     add_detail, detail_seed]).encode()).hexdigest()[:16]
+    groups = _regions(rasters, dlat, dlon, tile)
+    regions, totals = [], {"posts": 0, "measured": 0, "filled": 0, "qmax": 0.0, "qsq": 0.0, "smax": 0.0,
+                           "ssq": 0.0, "sn": 0}
+    progress_bar = _Progress(progress, sum(_region_posts(g) for g in groups))
+    for index, (row0, col0, rows, cols, members) in enumerate(groups):
+        heights, classes = _sample_region(terrain, out, key, index, row0, col0, rows, cols, dlat, dlon, tile,
+                                          [rasters[m] for m in members], progress_bar)
+        units = np.round(heights / unit_m).astype(np.int64)
+        rects, blobs = heightcodec.encode_pyramid(units, row0, col0, tile, step_units, depth + 1)
+        class_levels = _class_pyramid(classes, row0, col0, rects)
+        region_dir = out / f"region-{index:03d}"
+        region_dir.mkdir(exist_ok=True)
+        for level, rect in enumerate(rects):
+            tiles = {}
+            for (k, ti, tj), blob in blobs.items():
+                if k != level:
+                    continue
+                c = class_levels[level][ti * tile - rect.row0:(ti + 1) * tile - rect.row0,
+                                        tj * tile - rect.col0:(tj + 1) * tile - rect.col0]
+                tiles[(ti, tj)] = (blob, st.code_classes(c))
+            st.write_level_file(region_dir / f"level-{level:02d}.tiles", level, tiles)
+        lat_top, lon_west = 90.0 - row0 * dlat, col0 * dlon - 180.0
+        regions.append({"index": index, "rects": [[r.row0, r.col0, r.rows, r.cols] for r in rects],
+                        "bounds": [lat_top - (rows - 1) * dlat, lon_west, lat_top, lon_west + (cols - 1) * dlon],
+                        "sources": [str(rasters[m].source) for m in members]})
+        _write_manifest(out, name, tile, depth, unit_m, step_units, rasters, regions, None)
+        # Errors: the decoded store against the sampled lattice and against the source posts.
+        store = st.TerrainStore(out)
+        decoded, _ = store.decode(store.regions[index], 0, row0, row0 + rows, col0, col0 + cols)
+        inside = classes != st.CLASS_OUTSIDE
+        qerr = np.abs(decoded - units * unit_m)[inside]
+        totals["qmax"] = max(totals["qmax"], float(qerr.max(initial=0.0)))
+        totals["qsq"] += float(np.sum(qerr ** 2))
+        totals["posts"] += int(inside.sum())
+        totals["measured"] += int((classes == st.CLASS_MEASURED).sum())
+        totals["filled"] += int((classes == st.CLASS_FILLED).sum())
+        src = _error_vs_sources(st.StoreSource(store), [rasters[m] for m in members])
+        totals["smax"] = max(totals["smax"], src[0])
+        totals["ssq"] += src[1]
+        totals["sn"] += src[2]
+        store.close()
+    stored = sum(p.stat().st_size for p in out.rglob("*.tiles"))
+    seconds = time.perf_counter() - t_start
+    summary = ImportSummary(
+        store=str(out), regions=len(regions), depth=depth, levels=max(len(r["rects"]) for r in regions),
+        spacing_arcsec=(dlat * 3600, dlon * 3600), posts=totals["posts"], measured_posts=totals["measured"],
+        filled_posts=totals["filled"], stored_bytes=stored,
+        ratio_vs_int16=2.0 * totals["posts"] / max(stored, 1), step_m=step_units * unit_m,
+        max_quantisation_error_m=totals["qmax"],
+        rms_quantisation_error_m=math.sqrt(totals["qsq"] / max(totals["posts"], 1)),
+        max_error_vs_source_m=totals["smax"], rms_error_vs_source_m=math.sqrt(totals["ssq"] / max(totals["sn"], 1)),
+        seconds=seconds, samples_per_s=sum(_region_posts(g) for g in groups) / seconds,
+        bounds=[r["bounds"] for r in regions])
+    _write_manifest(out, name, tile, depth, unit_m, step_units, rasters, regions, summary.to_json())
+    progress_bar.close()
+    return summary
+
+
+def _lat_spacing_deg(r: Raster) -> float:
+    g = r.georef
+    if g.crs == CRS_GEOGRAPHIC:
+        return g.dy
+    # Web Mercator: metres of northing -> degrees of latitude at the raster's centre.
+    lat_c = math.radians((r.bounds[0] + r.bounds[2]) / 2)
+    return math.degrees(g.dy * math.cos(lat_c) / 6378137.0)
+
+
+def _lon_spacing_deg(r: Raster) -> float:
+    g = r.georef
+    if g.crs == CRS_GEOGRAPHIC:
+        return g.dx
+    return math.degrees(g.dx / 6378137.0)
+
+
+def _with_detail(rasters, kind: str, seed: int, dlat_deg: float):
+    finest_m = dlat_deg * math.pi / 180.0 * 6371008.8
+    if kind == "fractal":
+        from terrain.detail import DetailedRaster
+
+        return [DetailedRaster(r, seed, finest_spacing_m=finest_m) for r in rasters]
+    return [CellularDetail(r, seed, finest_m) for r in rasters]
+
+
+class CellularDetail:
+    """Cellular (Worley F1) bumps added below a raster's post spacing (thesis §3.3.3's
+    "cellular noise"): feature points hashed on a lattice of ``cell_m`` (4 store
+    posts), amplitude the raster's finest pyramid residual std / 2, zero at the
+    raster's own posts' scale on average (the mean of F1 is removed)."""
+
+    def __init__(self, raster: Raster, seed: int, finest_m: float):
+        from terrain.detail import pyramid_residual_variance
+
+        self.raster = raster
+        self.seed = int(seed)
+        self.cell_m = 4.0 * finest_m
+        var = pyramid_residual_variance(raster.heights)
+        self.amplitude_m = 0.5 * math.sqrt(float(var[0])) if var.size else 0.0
+        self.name = f"{raster.name}+cellular"
+
+    def heights_into(self, lat, lon, out_h, out_status) -> None:
+        self.raster.heights_into(lat, lon, out_h, out_status)
+        ok = out_status != STATUS_OUTSIDE
+        out_h[ok] += self.amplitude_m * self._f1(lat[ok], lon[ok])
+
+    def _f1(self, lat, lon):
+        from terrain.procedural import lattice_hash
+
+        y = np.radians(lat) * 6371008.8 / self.cell_m
+        x = np.radians(lon) * 6371008.8 * np.cos(np.radians(lat)) / self.cell_m
+        iy, ix = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+        best = np.full(y.shape, np.inf)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                h = lattice_hash(self.seed, iy + dy, ix + dx)
+                fy = (h & 0xFFFF).astype(np.float64) / 65536.0
+                fx = ((h >> np.uint64(16)) & np.uint64(0xFFFF)).astype(np.float64) / 65536.0
+                best = np.minimum(best, np.hypot(iy + dy + fy - y, ix + dx + fx - x))
+        return best - 0.5  # F1 of unit cells averages ~0.5
+
+    def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
+        self.raster.gradient_into(lat, lon, out_de, out_dn, out_status)
+
+    def raster_for(self, *box):
+        return self.raster.raster_for(*box)
+
+    def describe(self) -> dict:
+        return {**self.raster.describe(), "name": self.name, "detail": "cellular"}
+
+
+def _regions(rasters, dlat, dlon, tile):
+    """Group sources whose level-0 post boxes come within one tile of each other:
+    (row0, col0, rows, cols, member indices) per group."""
+    boxes = []
+    for r in rasters:
+        lat_min, lon_min, lat_max, lon_max = r.bounds
+        lon_max = lon_min + (lon_max - lon_min) % 360.0 if lon_max < lon_min else lon_max
+        row0 = int(math.floor((90.0 - lat_max) / dlat))
+        row1 = int(math.ceil((90.0 - lat_min) / dlat)) + 1
+        col0 = int(math.floor((lon_min + 180.0) / dlon))
+        col1 = int(math.ceil((lon_max + 180.0) / dlon)) + 1
+        boxes.append([row0, col0, row1, col1])
+    groups = [[i] for i in range(len(boxes))]
+    merged = True
+    while merged:
+        merged = False
+        for a in range(len(groups)):
+            for b in range(a + 1, len(groups)):
+                ba, bb = _group_box(boxes, groups[a]), _group_box(boxes, groups[b])
+                if (ba[0] - tile <= bb[2] and bb[0] - tile <= ba[2] and ba[1] - tile <= bb[3]
+                        and bb[1] - tile <= ba[3]):
+                    groups[a] += groups.pop(b)
+                    merged = True
+                    break
+            if merged:
+                break
+    out = []
+    for g in groups:
+        row0, col0, row1, col1 = _group_box(boxes, g)
+        if (row1 - row0) * (col1 - col0) > MAX_REGION_POSTS:
+            raise InvalidArgument("resolution", f"a region of {row1 - row0} x {col1 - col0} posts exceeds the "
+                                  f"limit of {MAX_REGION_POSTS} posts; import a coarser resolution or fewer files")
+        out.append((row0, col0, row1 - row0, col1 - col0, sorted(g)))
+    return out
+
+
+def _group_box(boxes, members):
+    b = np.array([boxes[m] for m in members])
+    return [int(b[:, 0].min()), int(b[:, 1].min()), int(b[:, 2].max()), int(b[:, 3].max())]
+
+
+def _region_posts(group) -> int:
+    return group[2] * group[3]
+
+
+def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, cols, dlat, dlon, tile,
+                   members, progress_bar):
+    """Heights (m) and classes of a region's level-0 posts, band by band (resumable)."""
+    work = out / ".import"
+    work.mkdir(exist_ok=True)
+    heights = np.empty((rows, cols), np.float64)
+    classes = np.empty((rows, cols), np.uint8)
+    # Anti-aliasing: average factor^2 samples a post when the store is coarser than a source.
+    factor = max(1, math.ceil(max(dlat / _lat_spacing_deg(r) for r in members) - 1e-9))
+    band_rows = BAND_TILES * tile
+    for b0 in range(0, rows, band_rows):
+        b1 = min(rows, b0 + band_rows)
+        path = work / f"{key}-r{index:03d}-b{b0:08d}.npz"
+        if path.is_file():
+            with np.load(path) as z:
+                heights[b0:b1], classes[b0:b1] = z["h"], z["c"]
+        else:
+            h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, factor)
+            heights[b0:b1], classes[b0:b1] = h, c
+            tmp = path.with_name(path.name + ".tmp.npz")
+            np.savez(tmp, h=h, c=c)
+            tmp.replace(path)
+        progress_bar.advance((b1 - b0) * cols)
+    outside = classes == st.CLASS_OUTSIDE
+    if outside.all():
+        raise InvalidArgument("files", "no DEM post falls on the store's lattice")
+    if outside.any():
+        import scipy.ndimage
+
+        _, (ri, ci) = scipy.ndimage.distance_transform_edt(outside, return_indices=True)
+        heights = heights[ri, ci]
+    return heights, classes
+
+
+def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factor):
+    """Posts of rows [r_a, r_b): the mean of factor^2 bilinear samples spread over
+    each post's cell (factor 1: the bilinear value at the post)."""
+    rows = np.arange(r_a, r_b, dtype=np.float64)
+    cs = np.arange(col0, col0 + cols, dtype=np.float64)
+    offsets = (np.arange(factor) - (factor - 1) / 2.0) / factor
+    acc = np.zeros((rows.size, cs.size))
+    n_ok = np.zeros((rows.size, cs.size), np.int64)
+    filled = np.zeros((rows.size, cs.size), bool)
+    for oy in offsets:
+        for ox in offsets:
+            lat = np.clip(90.0 - (rows + oy) * dlat, -90.0, 90.0)
+            lon = ((cs + ox) * dlon) % 360.0 - 180.0
+            la, lo = np.meshgrid(lat, lon, indexing="ij")
+            h = np.empty(la.size)
+            s = np.empty(la.size, np.uint8)
+            for k in range(0, la.size, SAMPLE_CHUNK):
+                res = terrain.heights(la.ravel()[k:k + SAMPLE_CHUNK], lo.ravel()[k:k + SAMPLE_CHUNK])
+                h[k:k + SAMPLE_CHUNK], s[k:k + SAMPLE_CHUNK] = res.height_msl_m, res.status
+            h, s = h.reshape(la.shape), s.reshape(la.shape)
+            ok = s != STATUS_OUTSIDE
+            acc[ok] += h[ok]
+            n_ok += ok
+            filled |= s == STATUS_FILLED
+    classes = np.where(n_ok == 0, st.CLASS_OUTSIDE, np.where(filled, st.CLASS_FILLED, st.CLASS_MEASURED))
+    heights = np.where(n_ok > 0, acc / np.maximum(n_ok, 1), 0.0)
+    return heights, classes.astype(np.uint8)
+
+
+def _class_pyramid(classes, row0, col0, rects):
+    """Post classes of every level: level 0 padded to its rectangle (outside), then the
+    even posts of each level (as the heights)."""
+    r = rects[0]
+    top, left = row0 - r.row0, col0 - r.col0
+    levels = [np.pad(classes, ((top, r.rows - top - classes.shape[0]), (left, r.cols - left - classes.shape[1])),
+                     constant_values=st.CLASS_OUTSIDE)]
+    for f, c in zip(rects, rects[1:]):
+        sub = levels[-1][::2, ::2]
+        t, l = f.row0 // 2 - c.row0, f.col0 // 2 - c.col0
+        levels.append(np.pad(sub, ((t, c.rows - t - sub.shape[0]), (l, c.cols - l - sub.shape[1])),
+                             constant_values=st.CLASS_OUTSIDE))
+    return levels
+
+
+def _error_vs_sources(source: st.StoreSource, rasters, max_points: int = 200_000):
+    """(max, sum of squares, n) of store height - source height at the sources'
+    measured posts (a deterministic subsample of at most max_points per source)."""
+    worst, sq, n = 0.0, 0.0, 0
+    for r in rasters:
+        ny, nx = r.heights.shape
+        stride = max(1, int(math.ceil(math.sqrt(ny * nx / max_points))))
+        rows, cols = np.meshgrid(np.arange(0, ny, stride), np.arange(0, nx, stride), indexing="ij")
+        rows, cols = rows.ravel(), cols.ravel()
+        lat, lon = _post_latlon(r, rows, cols)
+        want = np.asarray(r.heights, np.float64)[rows, cols]
+        h = np.full(lat.size, np.nan)
+        s = np.full(lat.size, STATUS_OUTSIDE, np.uint8)
+        source.heights_into(lat, lon, h, s)
+        ok = (s == STATUS_OK) & np.isfinite(want)
+        if r.filled is not None:
+            ok &= ~r.filled[rows, cols]
+        d = np.abs(h[ok] - want[ok])
+        worst = max(worst, float(d.max(initial=0.0)))
+        sq += float(np.sum(d ** 2))
+        n += int(d.size)
+    return worst, sq, n
+
+
+def _post_latlon(r: Raster, rows, cols):
+    from terrain.geodesy import web_mercator_inverse
+
+    x, y = r.georef.post_xy(rows, cols)
+    if r.georef.crs == CRS_GEOGRAPHIC:
+        return y, (x + 180.0) % 360.0 - 180.0
+    return web_mercator_inverse(x, y)
+
+
+def _write_manifest(out: Path, name, tile, depth, unit_m, step_units, rasters, regions, summary) -> None:
+    manifest = {
+        "format": st.FORMAT_NAME, "version": st.FORMAT_VERSION, "name": name or out.name,
+        "tile": tile, "depth": depth, "unit_m": unit_m, "step_units": step_units,
+        "lossless": step_units == 1, "vertical_datum": rasters[0].vertical_datum,
+        "quadtree": "global-terrain-flight-sim §4: 6 roots of 90 x 120 deg; tile (row, col) of level k = "
+                    "cell (depth - k, row, col)",
+        "regions": regions,
+        "sources": [{"path": str(r.source), "name": r.name} for r in rasters],
+        "summary": summary,
+    }
+    tmp = out / (st.MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=1) + "\n")
+    tmp.replace(out / st.MANIFEST)
+
+
+class _Progress:
+    """A rich progress bar over posts sampled (silent when not asked for)."""
+
+    def __init__(self, enabled: bool, total: int):
+        self._p = None
+        if enabled:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self._p = Progress(TextColumn("importing"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} posts"),
+                               TimeRemainingColumn())
+            self._task = self._p.add_task("import", total=total)
+            self._p.start()
+
+    def advance(self, n: int) -> None:
+        if self._p is not None:
+            self._p.advance(self._task, n)
+
+    def close(self) -> None:
+        if self._p is not None:
+            self._p.stop()
+
+
+__all__ = ["import_dems", "ImportSummary", "STATUS_OK"]

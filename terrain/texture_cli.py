@@ -1,0 +1,277 @@
+"""``sortie terrain texture``: synthesize an aerial texture of a lat/lon box (terrain/texture.py).
+
+    sortie terrain texture (--dem FILE... | --store PATH... | --procedural SEED) --bbox LAT_MIN LON_MIN LAT_MAX LON_MAX
+                           [--size COLSxROWS | --spacing-m M] --time 2026-06-21T12:00:00Z -o DIR
+                           [--seed N] [--soft-px N] [--no-refraction]
+
+Samples the terrain at the pixel centres of a regular lat/lon grid (row 0
+north), then writes into DIR: classes.png (palette image of the land
+classes), slope.png (8-bit, 255 = 90 degrees), diffuse.png, lightmap.png
+(8-bit, 255 = full light), shadow.png (255 = in shadow), composite.png and
+texture.json (box, size, spacings, sun, class histogram, files).
+
+The sun is placed once, for the box's centre (across a 1-degree box its
+direction changes by about 1 degree), with refraction (the apparent sun)
+unless --no-refraction.
+
+Registered under ``sortie terrain`` by :func:`add_texture_parser`; only
+argparse and json are imported until the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from dataclasses import dataclass
+from datetime import datetime, timezone
+
+from sortie.errors import InvalidArgument
+
+# The largest texture one command makes: 16 Mpixel (4096 x 4096). Peak memory is
+# about 115 bytes a pixel (measured: 480 MB above the interpreter's for 2048 x 2048),
+# some 2 GB there, and a minute or so of CPU.
+MAX_PIXELS = 4096 * 4096
+MIN_SIDE_PX = 2  # slopes need two posts along each axis
+DEFAULT_LONG_SIDE_PX = 1024  # neither --size nor --spacing-m: the longer side gets this many pixels
+# Longitudes as terrain.validate accepts them (one extra turn either way).
+LON_ABS_MAX_DEG = 540.0
+
+SIZE_PATTERN = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
+
+
+@dataclass(frozen=True)
+class TextureRequest:
+    """A validated request: the box (degrees), the grid and the UTC instant."""
+
+    lat_min: float
+    lon_min: float
+    lat_max: float
+    lon_max: float
+    cols: int
+    rows: int
+    when: datetime
+
+
+def add_texture_parser(commands) -> argparse.ArgumentParser:
+    """Add ``texture`` to the sub-commands of ``sortie terrain`` (server/terrain_cli.py's ``commands``)."""
+    p = commands.add_parser(
+        "texture", help="synthesize an aerial texture (classes, light map, shadows) of a lat/lon box",
+        description="Synthesize aerial imagery of a lat/lon box from the terrain alone, after Flight "
+                    "Simulator X: a land-class map from elevation, water and slope, procedural class "
+                    "textures, and a light map (sky exposure, sun, cast shadows) for the given UTC time. "
+                    "Writes classes.png, slope.png, diffuse.png, lightmap.png, shadow.png, "
+                    "composite.png and texture.json into DIR.")
+    from server.terrain_cli import add_terrain_args  # loaded by now: it registers this command
+
+    add_terrain_args(p)
+    p.add_argument("--bbox", nargs=4, type=float, required=True,
+                   metavar=("LAT_MIN", "LON_MIN", "LAT_MAX", "LON_MAX"), help="the box, degrees WGS84")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--size", metavar="COLSxROWS",
+                      help=f"pixels across and down (at most {MAX_PIXELS:,} in all); default: "
+                           f"{DEFAULT_LONG_SIDE_PX} along the longer side, square pixels")
+    size.add_argument("--spacing-m", type=float, metavar="M", help="pixel size in metres at the box's centre")
+    p.add_argument("--time", required=True, metavar="ISO8601",
+                   help="UTC instant with its zone, e.g. 2026-06-21T12:00:00Z")
+    p.add_argument("--no-refraction", action="store_true", help="geometric sun elevation (no refraction)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed of the textures and bands (default %(default)s)")
+    p.add_argument("--soft-px", type=int, default=0, metavar="N",
+                   help="blend class edges over about N pixels (default %(default)s: hard stencil)")
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the images (created)")
+    p.set_defaults(func=texture_command)
+    return p
+
+
+def parse_time(text: str) -> datetime:
+    """An ISO 8601 instant with a zone ('Z' or +hh:mm), as an aware UTC datetime."""
+    try:
+        when = datetime.fromisoformat(text.strip())
+    except ValueError:
+        raise InvalidArgument("--time", "must be an ISO 8601 instant such as 2026-06-21T12:00:00Z",
+                              value=text) from None
+    if when.tzinfo is None or when.utcoffset() is None:
+        raise InvalidArgument("--time", "needs a zone: end it with Z (UTC) or an offset like +02:00", value=text)
+    return when.astimezone(timezone.utc)
+
+
+def check_bbox(bbox) -> tuple[float, float, float, float]:
+    """(lat_min, lon_min, lat_max, lon_max), finite, in range and not inverted."""
+    if len(bbox) != 4:
+        raise InvalidArgument("--bbox", "needs LAT_MIN LON_MIN LAT_MAX LON_MAX", value=list(bbox))
+    lat_min, lon_min, lat_max, lon_max = (float(v) for v in bbox)
+    shown = [lat_min, lon_min, lat_max, lon_max]
+    if not all(math.isfinite(v) for v in shown):
+        raise InvalidArgument("--bbox", "must be finite numbers", value=shown)
+    if not (-90.0 <= lat_min <= 90.0 and -90.0 <= lat_max <= 90.0):
+        raise InvalidArgument("--bbox", "latitudes must be within [-90, 90] degrees", value=shown)
+    if not (abs(lon_min) <= LON_ABS_MAX_DEG and abs(lon_max) <= LON_ABS_MAX_DEG):
+        raise InvalidArgument("--bbox", f"longitudes must be within [-{LON_ABS_MAX_DEG:g}, {LON_ABS_MAX_DEG:g}] "
+                                        "degrees", value=shown)
+    if lat_min >= lat_max:
+        raise InvalidArgument("--bbox", f"is inverted: LAT_MIN {lat_min:g} must be below LAT_MAX {lat_max:g}",
+                              value=shown)
+    if lon_min >= lon_max:
+        raise InvalidArgument("--bbox", f"is inverted: LON_MIN {lon_min:g} must be below LON_MAX {lon_max:g} "
+                                        "(a box across the antimeridian takes LON_MAX above 180)", value=shown)
+    if lon_max - lon_min > 360.0:
+        raise InvalidArgument("--bbox", "spans more than 360 degrees of longitude", value=shown)
+    return lat_min, lon_min, lat_max, lon_max
+
+
+def grid_size(bbox, size: str | None, spacing_m: float | None) -> tuple[int, int]:
+    """(cols, rows) from --size, or --spacing-m, or the default; within MIN_SIDE_PX and MAX_PIXELS."""
+    from terrain.texture import metre_spacing
+
+    lat_min, lon_min, lat_max, lon_max = bbox
+    width_m, height_m = metre_spacing(lat_min, lat_max, lat_max - lat_min, lon_max - lon_min)
+    if size is not None:
+        m = SIZE_PATTERN.match(size)
+        if m is None:
+            raise InvalidArgument("--size", "must be COLSxROWS, e.g. 1024x768", value=size)
+        cols, rows = int(m.group(1)), int(m.group(2))
+        field = "--size"
+    elif spacing_m is not None:
+        if not (math.isfinite(spacing_m) and spacing_m > 0.0):
+            raise InvalidArgument("--spacing-m", "must be a positive number of metres", value=spacing_m)
+        cols = max(MIN_SIDE_PX, round(width_m / spacing_m))
+        rows = max(MIN_SIDE_PX, round(height_m / spacing_m))
+        field = "--spacing-m"
+    else:
+        scale = DEFAULT_LONG_SIDE_PX / max(width_m, height_m)
+        cols = max(MIN_SIDE_PX, round(width_m * scale))
+        rows = max(MIN_SIDE_PX, round(height_m * scale))
+        field = "--size"
+    if min(cols, rows) < MIN_SIDE_PX:
+        raise InvalidArgument(field, f"needs at least {MIN_SIDE_PX} pixels each way, got {cols}x{rows}",
+                              value=size)
+    if cols * rows > MAX_PIXELS:
+        raise InvalidArgument(field, f"{cols}x{rows} = {cols * rows:,} pixels is over the limit of "
+                                     f"{MAX_PIXELS:,} (16 Mpixel)", value=size if size is not None else spacing_m)
+    return cols, rows
+
+
+def texture_request(bbox, size: str | None, spacing_m: float | None, time_text: str) -> TextureRequest:
+    """Validate the command's inputs; every failure is InvalidArgument naming the option and value."""
+    box = check_bbox(bbox)
+    when = parse_time(time_text)
+    cols, rows = grid_size(box, size, spacing_m)
+    return TextureRequest(*box, cols=cols, rows=rows, when=when)
+
+
+def sample_heights(terrain, req: TextureRequest):
+    """(heights, lat, lon): heights (rows, cols) float64 m MSL at the pixel centres, NaN where
+    no source covers (status OUTSIDE); lat (rows,) north to south, lon (cols,) west to east."""
+    import numpy as np
+
+    from terrain.raster import STATUS_OUTSIDE
+    from terrain.texture import grid_latlon
+
+    lat, lon = grid_latlon(req.lat_min, req.lon_min, req.lat_max, req.lon_max, req.rows, req.cols)
+    heights = np.empty((req.rows, req.cols))
+    # A band of rows at a time keeps the (lat, lon) query arrays small on big textures.
+    band = max(1, (1 << 20) // req.cols)
+    for r0 in range(0, req.rows, band):
+        r1 = min(req.rows, r0 + band)
+        la = np.repeat(lat[r0:r1], req.cols)
+        lo = np.tile(lon, r1 - r0)
+        res = terrain.heights(la, lo)
+        h = np.where(res.status == STATUS_OUTSIDE, np.nan, res.height_msl_m)
+        heights[r0:r1] = h.reshape(r1 - r0, req.cols)
+    return heights, lat, lon
+
+
+def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 0, refraction: bool = True):
+    """(Texture, summary dict) for a request over a Terrain (see terrain.texture.synthesize)."""
+    import numpy as np
+
+    from terrain.geodesy import radii_of_curvature
+    from terrain.sun import sun_position
+    from terrain.texture import (CLASS_COLOURS_RGB, CLASS_NAMES, class_histogram, metre_spacing,
+                                 synthesize)
+
+    heights, lat, lon = sample_heights(terrain, req)
+    dx, dy = metre_spacing(req.lat_min, req.lat_max, (req.lat_max - req.lat_min) / req.rows,
+                           (req.lon_max - req.lon_min) / req.cols)
+    lat_c, lon_c = 0.5 * (req.lat_min + req.lat_max), 0.5 * (req.lon_min + req.lon_max)
+    sun = sun_position(req.when, lat_c, lon_c, refraction=refraction)
+    az, el = float(sun.azimuth_deg), float(sun.elevation_deg)
+    # Noise placed by world position (metres east and north at the centre's scale), so two
+    # boxes draw the same bands and woodlots where they overlap.
+    m, n = radii_of_curvature(lat_c)
+    east = (np.radians(lon) * n * np.cos(np.radians(lat_c)))[None, :]
+    north = (np.radians(lat) * m)[:, None]
+    tex = synthesize(heights, dx, dy, az, el, lat[:, None], seed=seed, soft_px=soft_px, noise_en_m=(east, north))
+    finite = heights[np.isfinite(heights)]
+    hist = class_histogram(tex.classes)
+    summary = {
+        "bbox": {"lat_min": req.lat_min, "lon_min": req.lon_min, "lat_max": req.lat_max, "lon_max": req.lon_max},
+        "size": {"cols": req.cols, "rows": req.rows},
+        "spacing_m": {"east": dx, "north": dy},
+        "time_utc": req.when.isoformat().replace("+00:00", "Z"),
+        "sun": {"azimuth_deg": az, "elevation_deg": el, "refraction": refraction,
+                "at": {"lat": lat_c, "lon": lon_c}},
+        "height_msl_m": {"min": float(finite.min()) if finite.size else None,
+                         "max": float(finite.max()) if finite.size else None,
+                         "nodata_pixels": int(heights.size - finite.size)},
+        "class_histogram": hist,
+        "classes": [{"code": k, "name": name, "rgb": CLASS_COLOURS_RGB[k].tolist()}
+                    for k, name in enumerate(CLASS_NAMES)],
+        "shadow_fraction": float(tex.light.shadow.mean()),
+        "seed": seed,
+        "soft_px": soft_px,
+        "slope_png_deg_per_level": 90.0 / 255.0,
+        "files": list(IMAGE_FILES),
+    }
+    return tex, summary
+
+
+IMAGE_FILES = ("classes.png", "slope.png", "diffuse.png", "lightmap.png", "shadow.png", "composite.png")
+
+
+def write_texture(tex, summary: dict, out_dir) -> list:
+    """Write the six PNGs and texture.json into out_dir (created); returns the paths written."""
+    from pathlib import Path
+
+    import numpy as np
+    from PIL import Image
+
+    from terrain.texture import CLASS_COLOURS_RGB
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    classes = Image.fromarray(np.ascontiguousarray(tex.classes, dtype=np.uint8))
+    classes.putpalette(CLASS_COLOURS_RGB.ravel().tolist())  # makes it a palette ("P") image
+    slope = np.rint(np.nan_to_num(tex.slope_deg) * (255.0 / 90.0)).clip(0, 255).astype(np.uint8)
+    images = {
+        "classes.png": classes,
+        "slope.png": Image.fromarray(slope),
+        "diffuse.png": Image.fromarray(np.rint(tex.diffuse * 255.0).clip(0, 255).astype(np.uint8)),
+        "lightmap.png": Image.fromarray(np.rint(tex.light.light * 255.0).clip(0, 255).astype(np.uint8)),
+        "shadow.png": Image.fromarray(np.where(tex.light.shadow, 255, 0).astype(np.uint8)),
+        "composite.png": Image.fromarray(tex.image),
+    }
+    paths = []
+    for name in IMAGE_FILES:
+        images[name].save(out / name)
+        paths.append(out / name)
+    (out / "texture.json").write_text(json.dumps(summary, indent=2) + "\n")
+    paths.append(out / "texture.json")
+    return paths
+
+
+def texture_command(args) -> int:
+    from server.terrain_cli import build_terrain
+
+    req = texture_request(args.bbox, args.size, args.spacing_m, args.time)
+    if args.soft_px < 0:
+        raise InvalidArgument("--soft-px", "must be 0 or more", value=args.soft_px)
+    terrain = build_terrain(args.dem, args.procedural, args.store)
+    tex, summary = make_texture(terrain, req, seed=args.seed, soft_px=args.soft_px,
+                                refraction=not args.no_refraction)
+    write_texture(tex, summary, args.output)
+    sun = summary["sun"]
+    print(f"{req.cols}x{req.rows} texture in {args.output}: sun azimuth {sun['azimuth_deg']:.1f} deg, "
+          f"elevation {sun['elevation_deg']:.1f} deg, {summary['shadow_fraction']:.1%} in shadow")
+    return 0

