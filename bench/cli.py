@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import importlib
 
-SUITES = ("terrain", "fdm", "server", "recording", "render")
+SUITES = ("terrain", "fdm", "server", "recording", "render", "store")
 
 
 def add_parser(sub) -> None:

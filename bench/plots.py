@@ -259,5 +259,37 @@ def plot_render(report: dict, out_dir: Path) -> list[Path]:
     return written
 
 
-PLOTTERS = {"terrain": plot_terrain, "fdm": plot_fdm, "server": plot_server, "recording": plot_recording,
+def plot_store(report: dict, out_dir: Path) -> list[Path]:
+    """Rate-distortion curves of the store's codec per DEM: bits per post against the
+    maximum and RMS error, with the PNG-like baseline at the same steps."""
+    plt = _pyplot()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    rd = report.get("series", {}).get("rate_distortion", {})
+    if not rd:
+        return written
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    for (name, steps), colour in zip(sorted(rd.items()), ("tab:blue", "tab:orange", "tab:green", "tab:red")):
+        keys = sorted(steps, key=float)
+        bits = [steps[k]["bits_per_post"] for k in keys]
+        base = [8.0 * steps[k]["delta_zstd_bytes"] / (steps[k]["bytes"] * 8.0 / steps[k]["bits_per_post"])
+                for k in keys]
+        axes[0].plot([steps[k]["max_error_m"] for k in keys], bits, "o-", color=colour, label=f"{name} (pyramid)")
+        axes[0].plot([steps[k]["max_error_m"] for k in keys], base, "x--", color=colour,
+                     label=f"{name} (row delta + zstd)")
+        axes[1].plot([steps[k]["rms_error_m"] for k in keys], bits, "o-", color=colour, label=name)
+    axes[0].set_xlabel("maximum error (m), every post of level 0")
+    axes[1].set_xlabel("RMS error (m)")
+    for ax in axes:
+        ax.set_ylabel("bits per post")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=6)
+    axes[1].legend(fontsize=7)
+    fig.suptitle("sortie bench store: size against error (steps 1..16 m; 1 m is lossless on integer-metre DEMs)",
+                 fontsize=9)
+    _save(fig, out_dir / "store_rate_distortion.png", written)
+    return written
+
+
+PLOTTERS = {"store": plot_store, "terrain": plot_terrain, "fdm": plot_fdm, "server": plot_server, "recording": plot_recording,
             "render": plot_render}

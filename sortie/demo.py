@@ -182,12 +182,17 @@ def run(args) -> int:
             from sortie.demo_render import run_render
 
             summary["render"] = run_render(address, out, console)
+        from sortie.demo_store import run_store
+
+        summary["store"] = run_store(dems, address, out, console)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     console.print(f"[bold green]outputs[/] in {out}: summary.json, exercise.json, debrief.json, hillshade-*.png, "
                   "track-*.csv, dis-capture.pcap (Wireshark), tacview-live.acmi (live telemetry as received), "
                   "and the logs of every process: terrain-service.log, simulation-server.log, bots.log, "
                   "dis-gateway.log, tacview.log, replay.log; canyon/ (the render client over the Grand "
-                  "Canyon: flight frames, flight.gif, the tank's view)")
+                  "Canyon: flight frames, flight.gif, the tank's view); store.json and texture/ (the terrain "
+                  "store in ../store, served and streamed to a thin client; synthesised land classes, light "
+                  "map and composite)")
     if "debrief" in summary:
         d = summary["debrief"]
         console.print(f"[bold green]recording[/] {d['recording']['file']}\n[bold green]Tacview export[/] "

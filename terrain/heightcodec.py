@@ -44,6 +44,7 @@ overlap it at each level, plus a two-post ring of the coarser level.
 from __future__ import annotations
 
 import struct
+import threading
 from dataclasses import dataclass
 
 import numba
@@ -219,109 +220,151 @@ def decode_tile(blob: bytes, coarse: np.ndarray, tile: int, tile_r0: int, tile_c
     The arithmetic is the encoder's, sample by sample, in one numba kernel
     (the vectorised form spent 90 % of its time in temporaries).
     """
-    st = _TileStencils(tile, tile_r0, tile_c0, rect, cr0, cc0)
-    s1, s2 = _unpack_streams(blob, 2)
-    small1, esc1, start1 = _bucket_streams(s1)
-    small2, esc2, start2 = _bucket_streams(s2)
+    half = tile // 2
+    raw, offs = _decompress_parts(_unpack_streams(blob, 2), 2)
+    q1 = np.empty(2 * half * half, np.int32)
+    q2 = np.empty(2 * half * tile, np.int32)
     out = np.empty((tile, tile), np.int64)
-    _decode_tile_kernel(np.ascontiguousarray(coarse, dtype=np.int64), st.even_rows, st.p1[0], st.p1[1],
-                        st.p1[2], st.p1[3], st.even_cols, step, small1, esc1, start1, small2, esc2, start2, out)
+    _decode_tile_kernel(coarse, tile_r0 // 2, tile_c0 // 2, rect.row0 // 2 - cr0, rect.row1 // 2 - 1 - cr0,
+                        rect.col0 // 2 - cc0, rect.col1 // 2 - 1 - cc0, cr0, cc0, step, raw, offs, q1, q2, out)
     return out
 
 
-def _bucket_streams(blob: bytes):
-    """A pass's buckets decompressed into one byte array and one escape array, with
-    each bucket's start offsets: (small uint8, escapes int64, starts (N_BUCKETS, 2) int64)."""
-    parts = _unpack_streams(blob, N_BUCKETS)
-    smalls, escs = [], []
-    starts = np.zeros((N_BUCKETS + 1, 2), np.int64)
-    n_small = n_esc = 0
-    for k, part in enumerate(parts):
-        starts[k] = (n_small, n_esc)
-        if not part:
-            continue
-        raw = _dctx.decompress(part)
-        (n_e,) = struct.unpack_from("<I", raw)
-        esc = np.frombuffer(raw, "<u4", count=n_e, offset=4)
-        small = np.frombuffer(raw, np.uint8, offset=4 + 4 * n_e)
-        n_s = small.size
-        smalls.append(small)
-        escs.append(esc.astype(np.int64))
-        n_small += n_s
-        n_esc += n_e
-    starts[N_BUCKETS] = (n_small, n_esc)  # the ends, so the decoder can refuse a short stream
-    small = np.concatenate(smalls) if smalls else np.zeros(0, np.uint8)
-    esc = np.concatenate(escs) if escs else np.zeros(0, np.int64)
-    return small, esc, starts
+def _decompress_parts(streams, n_streams):
+    """Every bucket of n_streams bucket streams decompressed into one byte array, with
+    the offsets of the buckets in it (n_streams * N_BUCKETS + 1 of them)."""
+    chunks = []
+    for s in streams:
+        for part in _unpack_streams(s, N_BUCKETS):
+            chunks.append(_decompressor().decompress(part) if part else b"")
+    offs = np.zeros(len(chunks) + 1, np.int64)
+    np.cumsum([len(c) for c in chunks], out=offs[1:])
+    return np.frombuffer(b"".join(chunks), np.uint8), offs
 
 
-# Bucket of a roughness r (in steps): its bit length, capped at N_BUCKETS - 1.
-_BUCKET_OF = np.minimum([int(r).bit_length() for r in range(1 << (N_BUCKETS - 1))], N_BUCKETS - 1).astype(np.int64)
+_tls = threading.local()
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _bitlen_bucket(a, b, c, d, step, table):
-    rough = (abs(b - c) + 2 * abs(a - b - c + d)) // step
-    if rough >= table.size:
-        return N_BUCKETS - 1
-    return table[rough]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _next_symbol(k, small, esc, p_small, p_esc, starts):
-    if p_small[k] >= starts[k + 1, 0]:
-        raise ValueError("tile blob: a residual stream is shorter than its bucket")
-    z = np.int64(small[p_small[k]])
-    p_small[k] += 1
-    if z == ESCAPE:
-        if p_esc[k] >= starts[k + 1, 1]:
-            raise ValueError("tile blob: an escape stream is shorter than its bucket")
-        z = esc[p_esc[k]] + ESCAPE
-        p_esc[k] += 1
-    return (z >> 1) ^ -(z & 1)  # zig-zag inverse
+def _decompressor() -> zstandard.ZstdDecompressor:
+    """This thread's zstd decompressor (python-zstandard's are not thread-safe)."""
+    d = getattr(_tls, "dctx", None)
+    if d is None:
+        d = _tls.dctx = zstandard.ZstdDecompressor()
+    return d
 
 
 @numba.njit(cache=True, nogil=True)
-def _decode_tile_kernel(coarse, even_rows, cm1, c0, cp1, cp2, even_cols, step,
-                        small1, esc1, start1, small2, esc2, start2, out):
-    table = _BUCKET_OF
-    half = cm1.size
-    n_rows = even_rows.size
+def _expand_buckets(raw, offs, first, n_expected, q, starts):
+    """Residuals (steps) of one pass from its decompressed buckets offs[first .. first + N_BUCKETS]
+    of raw, bucket after bucket into q; starts[k] is where bucket k begins, starts[N_BUCKETS]
+    the end. Raises unless the pass holds exactly n_expected residuals."""
+    n = 0
+    for k in range(N_BUCKETS):
+        starts[k] = n
+        a = offs[first + k]
+        b = offs[first + k + 1]
+        if a == b:
+            continue
+        if b - a < 4:
+            raise ValueError("tile blob: a bucket is shorter than its header")
+        n_esc = np.int64(raw[a]) | (np.int64(raw[a + 1]) << 8) | (np.int64(raw[a + 2]) << 16) \
+            | (np.int64(raw[a + 3]) << 24)
+        e = a + 4
+        s0 = e + 4 * n_esc
+        if s0 > b or n + (b - s0) > n_expected:
+            raise ValueError("tile blob: a bucket does not fit its pass")
+        for p in range(s0, b):
+            z = np.int64(raw[p])
+            if z == ESCAPE:
+                if e >= s0:
+                    raise ValueError("tile blob: an escape stream is shorter than its bucket")
+                z = (np.int64(raw[e]) | (np.int64(raw[e + 1]) << 8) | (np.int64(raw[e + 2]) << 16)
+                     | (np.int64(raw[e + 3]) << 24)) + ESCAPE
+                e += 4
+            q[n] = (z >> 1) ^ -(z & 1)  # zig-zag inverse
+            n += 1
+        if e != s0:
+            raise ValueError("tile blob: an escape stream is longer than its bucket")
+    starts[N_BUCKETS] = n
+    if n != n_expected:
+        raise ValueError("tile blob: a pass holds fewer residuals than its samples")
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bucket(a, b, c, d, t0, t1, t2, t3, t4, t5, t6):
+    """Bucket of a stencil: bit length of floor(roughness / step), capped at N_BUCKETS - 1,
+    as the number of thresholds step * 2^k (k < N_BUCKETS - 1) it reaches (no division)."""
+    r = abs(b - c) + 2 * abs(a - b - c + d)
+    return (np.int64(r >= t0) + np.int64(r >= t1) + np.int64(r >= t2) + np.int64(r >= t3)
+            + np.int64(r >= t4) + np.int64(r >= t5) + np.int64(r >= t6))
+
+
+@numba.njit(cache=True, nogil=True)
+def _decode_tile_kernel(coarse, tr, tc, lo_r, hi_r, lo_c, hi_c, cr0, cc0, step, raw, offs, q1, q2, out):
+    """One tile, both passes. tr, tc: the tile's first coarse row/col (lattice); lo_r .. hi_r,
+    lo_c .. hi_c: the fine level's even rows/cols as indices into coarse (clamping bounds)."""
+    half = out.shape[0] // 2
     width = 2 * half
-    full = np.empty((n_rows, width), np.int64)
-    p_small = start1[:, 0].copy()
-    p_esc = start1[:, 1].copy()
-    for i in range(n_rows):
-        row = coarse[even_rows[i]]
+    n1 = half * half
+    n2 = half * width
+    starts = np.empty(N_BUCKETS + 1, np.int64)
+    _expand_buckets(raw, offs, 0, n1, q1, starts)
+    ptr1 = starts[:N_BUCKETS].copy()
+    end1 = starts[1:].copy()
+    _expand_buckets(raw, offs, N_BUCKETS, n2, q2, starts)
+    ptr2 = starts[:N_BUCKETS].copy()
+    end2 = starts[1:].copy()
+    t0, t1, t2, t3, t4, t5, t6 = step, step << 1, step << 2, step << 3, step << 4, step << 5, step << 6
+    # Pass 1 over the tile's even rows plus one above and two below (clamped).
+    full = np.empty((half + 3, width), np.int64)
+    ext = np.empty(half + 3, np.int64)
+    pred = np.empty(width, np.int64)
+    kb = np.empty(width, np.int64)
+    for i in range(half + 3):
+        row = coarse[min(max(tr - 1 + i - cr0, lo_r), hi_r)]
+        for m in range(half + 3):
+            ext[m] = row[min(max(tc - 1 + m - cc0, lo_c), hi_c)]
         dst = full[i]
-        own = 1 <= i <= half
         for j in range(half):
-            a = row[cm1[j]]
-            b = row[c0[j]]
-            c = row[cp1[j]]
-            d = row[cp2[j]]
-            p = (-a + 9 * b + 9 * c - d + 8) >> 4
-            if own:
-                p += _next_symbol(_bitlen_bucket(a, b, c, d, step, table), small1, esc1, p_small, p_esc, start1) * step
-            dst[2 * j] = row[even_cols[j]]
-            dst[2 * j + 1] = p
-    p_small = start2[:, 0].copy()
-    p_esc = start2[:, 1].copy()
+            a = ext[j]
+            b = ext[j + 1]
+            c = ext[j + 2]
+            d = ext[j + 3]
+            pred[j] = (-a + 9 * b + 9 * c - d + 8) >> 4
+            kb[j] = _bucket(a, b, c, d, t0, t1, t2, t3, t4, t5, t6)
+        if 1 <= i <= half:
+            for j in range(half):
+                k = kb[j]
+                p = ptr1[k]
+                pred[j] += q1[p] * step
+                ptr1[k] = p + 1
+        for j in range(half):
+            dst[2 * j] = ext[j + 1]
+            dst[2 * j + 1] = pred[j]
+    # Pass 2: every odd row from the even rows above and below.
     for i in range(half):
         r0 = full[i]
         r1 = full[i + 1]
         r2 = full[i + 2]
         r3 = full[i + 3]
-        even = out[2 * i]
-        odd = out[2 * i + 1]
         for j in range(width):
             a = r0[j]
             b = r1[j]
             c = r2[j]
             d = r3[j]
-            even[j] = b
-            p = (-a + 9 * b + 9 * c - d + 8) >> 4
-            odd[j] = p + _next_symbol(_bitlen_bucket(a, b, c, d, step, table), small2, esc2, p_small, p_esc, start2) * step
+            pred[j] = (-a + 9 * b + 9 * c - d + 8) >> 4
+            kb[j] = _bucket(a, b, c, d, t0, t1, t2, t3, t4, t5, t6)
+        even = out[2 * i]
+        odd = out[2 * i + 1]
+        for j in range(width):
+            k = kb[j]
+            p = ptr2[k]
+            odd[j] = pred[j] + q2[p] * step
+            ptr2[k] = p + 1
+            even[j] = r1[j]
+    for k in range(N_BUCKETS):
+        if ptr1[k] != end1[k] or ptr2[k] != end2[k]:
+            raise ValueError("tile blob: a bucket holds more residuals than its samples")
 
 
 def encode_top(values: np.ndarray, step: int) -> tuple[bytes, np.ndarray]:
@@ -332,9 +375,14 @@ def encode_top(values: np.ndarray, step: int) -> tuple[bytes, np.ndarray]:
 
 
 def decode_top(blob: bytes, shape: tuple[int, int], step: int) -> np.ndarray:
-    (stream,) = _unpack_streams(blob, 1)
-    d = _decode_buckets(stream, np.zeros(shape, np.int64))
-    return _undpcm(d) * step
+    raw, offs = _decompress_parts(_unpack_streams(blob, 1), 1)
+    n = shape[0] * shape[1]
+    d = np.empty(n, np.int32)
+    starts = np.empty(N_BUCKETS + 1, np.int64)
+    _expand_buckets(raw, offs, 0, n, d, starts)
+    if starts[1] != n:
+        raise ValueError("tile blob: the top level's residuals are not all in its one bucket")
+    return _undpcm(d.astype(np.int64).reshape(shape)) * step
 
 
 def _dpcm(q):
@@ -382,22 +430,6 @@ def _code_buckets(q: np.ndarray, bucket: np.ndarray) -> bytes:
         parts.append(_compressor(ZSTD_LEVEL).compress(struct.pack("<I", esc.size) + esc.astype("<u4").tobytes()
                                                       + small.tobytes()))
     return _pack_streams(parts)
-
-
-def _decode_buckets(blob: bytes, bucket: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_code_buckets` for known buckets (vectorised; the top level's path)."""
-    small, esc, starts = _bucket_streams(blob)
-    flat = bucket.ravel()
-    z = np.empty(flat.size, np.int64)
-    for k in range(N_BUCKETS):
-        where = np.flatnonzero(flat == k)
-        if where.size == 0:
-            continue
-        zk = small[starts[k, 0]:starts[k, 0] + where.size].astype(np.int64)
-        at = np.flatnonzero(zk == ESCAPE)
-        zk[at] = esc[starts[k, 1]:starts[k, 1] + at.size] + ESCAPE
-        z[where] = zk
-    return ((z >> 1) ^ -(z & 1)).reshape(bucket.shape)
 
 
 def _pack_streams(parts: list[bytes]) -> bytes:

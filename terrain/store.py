@@ -61,6 +61,10 @@ CLASS_OUTSIDE, CLASS_MEASURED, CLASS_FILLED = 0, 1, 2
 # Decoded tiles cached per open store (every level together): 512 tiles of
 # 256^2 int64 is 256 MiB at most.
 DEFAULT_CACHE_TILES = 512
+# Point queries read blocks of BLOCK_TILES^2 tiles as one raster (fewer, larger
+# groups per batch); at most CACHE_BLOCKS of them are kept (4 MiB each at T = 256).
+BLOCK_TILES = 4
+CACHE_BLOCKS = 64
 
 
 def lattice_spacing_deg(depth: int, tile: int = DEFAULT_TILE) -> tuple[float, float]:
@@ -129,6 +133,7 @@ class TerrainStore:
                                        self._blob_getter(r.index), cache_tiles=cache_tiles)
                          for r in self.regions]
         self._class_cache: OrderedDict = OrderedDict()
+        self._block_cache: OrderedDict = OrderedDict()
         self._cache_tiles = cache_tiles
         self._dctx = zstandard.ZstdDecompressor()
 
@@ -240,6 +245,25 @@ class TerrainStore:
             self._remember(key, raster)
             return raster
 
+    def block_raster(self, region: Region, level: int, block_row: int, block_col: int) -> Raster:
+        """BLOCK_TILES^2 tiles with their east and south edge posts as one Raster
+        (what point queries read); the last CACHE_BLOCKS are kept."""
+        key = (region.index, level, block_row, block_col)
+        with self._lock:
+            hit = self._block_cache.get(key)
+            if hit is not None:
+                self._block_cache.move_to_end(key)
+                return hit
+            n = BLOCK_TILES * self.tile
+            rect = region.rects[level]
+            r0, c0 = block_row * n, block_col * n
+            raster = self._block_raster(region, level, max(r0, rect.row0), min(r0 + n + 1, rect.row1),
+                                        max(c0, rect.col0), min(c0 + n + 1, rect.col1))
+            self._block_cache[key] = raster
+            while len(self._block_cache) > CACHE_BLOCKS:
+                self._block_cache.popitem(last=False)
+            return raster
+
     def _remember(self, key, value) -> None:
         self._class_cache[key] = value
         while len(self._class_cache) > self._cache_tiles:
@@ -348,6 +372,14 @@ class TerrainStore:
                         evicted += 1
         return evicted
 
+    def clear_cache(self) -> None:
+        """Forget every decoded tile, class tile and block (benchmarks; memory pressure)."""
+        with self._lock:
+            for reader in self._readers:
+                reader._cache.clear()
+            self._class_cache.clear()
+            self._block_cache.clear()
+
     def close(self) -> None:
         with self._lock:
             for f in self._files.values():
@@ -387,9 +419,10 @@ class StoreSource:
         self.level = level
 
     def _groups(self, lat, lon):
-        """(region, tile_row, tile_col, point indices) for the points inside some region."""
+        """(block raster, point indices) for the points inside some region, one group
+        per block of BLOCK_TILES^2 tiles."""
         rows, cols = self.store.fractional_post(self.level, lat, lon)
-        T = self.store.tile
+        n = BLOCK_TILES * self.store.tile
         for region in self.store.regions:
             rect = region.rects[self.level]
             per_turn = self.store._cols_per_turn(self.level)
@@ -398,31 +431,31 @@ class StoreSource:
             idx = np.flatnonzero(inside)
             if idx.size == 0:
                 continue
-            ti = np.minimum(np.floor(rows[idx]).astype(np.int64), rect.row1 - 2) // T
-            tj = np.minimum(np.floor(c[idx]).astype(np.int64), rect.col1 - 2) // T
-            key = ti * (1 << 32) + tj
-            order = np.argsort(key, kind="stable")
-            uniq, starts = np.unique(key[order], return_index=True)
-            bounds = list(starts) + [order.size]
-            for k in range(uniq.size):
-                sel = idx[order[bounds[k]:bounds[k + 1]]]
-                yield region, int(ti[order[bounds[k]]]), int(tj[order[bounds[k]]]), sel
+            bi = np.minimum(np.floor(rows[idx]).astype(np.int64), rect.row1 - 2) // n
+            bj = np.minimum(np.floor(c[idx]).astype(np.int64), rect.col1 - 2) // n
+            nbj = (rect.col1 - 1) // n - rect.col0 // n + 1
+            key = (bi - rect.row0 // n) * nbj + (bj - rect.col0 // n)
+            # Few distinct keys: a counting sort (numpy's stable sort of small ints is a radix sort).
+            order = np.argsort(key.astype(np.uint16) if key.max() < 65536 else key, kind="stable")
+            sorted_key = key[order]
+            cuts = np.flatnonzero(np.diff(sorted_key)) + 1
+            for part in np.split(order, cuts):
+                k = part[0]
+                yield self.store.block_raster(region, self.level, int(bi[k]), int(bj[k])), idx[part]
 
     def heights_into(self, lat, lon, out_h, out_status) -> None:
-        for region, ti, tj, sel in self._groups(lat, lon):
-            raster = self.store.tile_raster(region, self.level, ti, tj)
+        for raster, sel in self._groups(lat, lon):
             h = np.full(sel.size, np.nan)
             st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
-            raster.heights_into(np.ascontiguousarray(lat[sel]), np.ascontiguousarray(lon[sel]), h, st)
+            raster.heights_into(lat[sel], lon[sel], h, st)
             out_h[sel] = h
             out_status[sel] = st
 
     def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
-        for region, ti, tj, sel in self._groups(lat, lon):
-            raster = self.store.tile_raster(region, self.level, ti, tj)
+        for raster, sel in self._groups(lat, lon):
             de, dn = np.full(sel.size, np.nan), np.full(sel.size, np.nan)
             st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
-            raster.gradient_into(np.ascontiguousarray(lat[sel]), np.ascontiguousarray(lon[sel]), de, dn, st)
+            raster.gradient_into(lat[sel], lon[sel], de, dn, st)
             out_de[sel], out_dn[sel], out_status[sel] = de, dn, st
 
     def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> Raster | None:
