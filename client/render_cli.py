@@ -88,6 +88,8 @@ def _terrain_args(p, required: bool) -> None:
     g = p.add_mutually_exclusive_group(required=required)
     g.add_argument("--dem", nargs="+", metavar="FILE", help="DEM files, in priority order")
     g.add_argument("--terrain", metavar="HOST:PORT[,HOST:PORT...]", help="a terrain service (or replicas of one)")
+    g.add_argument("--store", metavar="PATH", help="a terrain store (sortie terrain import): clipmap levels are "
+                                                   "decoded from the store's own levels")
 
 
 def _view_args(p) -> None:
@@ -133,10 +135,16 @@ def parse_pose(text: str) -> tuple[float, ...]:
     return tuple(values + [0.0] * (6 - len(values)))
 
 
-def open_terrain(dem=None, service: str | None = None, world_terrain: str = ""):
-    """(terrain, description): DEM files in process, a terrain service client, or the server's
-    terrain as WorldInfo.terrain names it ("dem:<a>,<b>" or "service:<address>")."""
+def open_terrain(dem=None, service: str | None = None, world_terrain: str = "", store: str | None = None):
+    """(terrain, description): DEM files in process, a terrain store, a terrain service client,
+    or the server's terrain as WorldInfo.terrain names it ("dem:<a>,<b>" or "service:<address>")."""
     from server.sim_server import open_terrain_source
+
+    if store:
+        from terrain.store import StoreSource, open_store
+        from terrain.terrain import Terrain
+
+        return Terrain([StoreSource(open_store(store))]), f"store:{store}"
 
     if not dem and not service and world_terrain:
         kind, _, rest = world_terrain.partition(":")
@@ -202,7 +210,7 @@ def render_command(args) -> int:
     undulation = args.geoid_undulation_m or 0.0
     camera = Camera.from_geodetic(lat, lon, alt, heading, pitch, roll, geoid_undulation_m=undulation,
                                   fov_x_deg=args.fov_deg)
-    terrain, desc = open_terrain(args.dem, args.terrain)
+    terrain, desc = open_terrain(args.dem, args.terrain, store=args.store)
     try:
         with _renderer(args, terrain, undulation) as r:
             image = r.render(camera)
@@ -295,7 +303,7 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
             raise NotFound(f"{what} is not in the exercise (waited {FOLLOW_WAIT_S:g} s)")
         target = _pick(picture, args.follow, kind)
         info = picture.infos[target]
-        terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain)
+        terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain, store=args.store)
         terrain, insets = world_insets(terrain, sim.world_info)
         undulation = (args.geoid_undulation_m if args.geoid_undulation_m is not None
                       else float(getattr(sim.world_info, "geoid_undulation_m", 0.0)))

@@ -385,3 +385,33 @@ def test_cli_import_and_serve_store_over_grpc(tmp_path):
         client.close()
     finally:
         server.stop(0)
+
+
+def test_clipmap_levels_decode_from_the_store_levels(canyon_store):
+    """A clipmap on the store's lattice reads each level's posts from the store's own level:
+    the same heights as bilinear queries at those posts, without decoding level 0 for them."""
+    from client.render.clipmap import Clipmap, Rect
+    from client.render.terrain_mesh import lattice_for
+
+    out, _ = canyon_store
+    store = TerrainStore(out)
+    terrain = Terrain([StoreSource(store)])
+    b = store.regions[0].bounds
+    lat, lon = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
+    lattice = lattice_for(terrain.describe(), lat, lon)
+    assert (lattice.lat0, lattice.lon0) == (90.0, -180.0)
+    clip = Clipmap(terrain, lattice, levels=3, n=63, budget=10 ** 9)
+    assert clip.store is store and clip.store_level0 == 0
+    for k in range(3):
+        fi, fj = clip.focus_index(k, lat, lon)
+        r = Rect(int(fi) - 10, int(fj) - 10, int(fi) + 10, int(fj) + 10)
+        before = clip.store_blocks
+        _, h = clip.sample_posts(k, r)
+        assert clip.store_blocks == before + 1
+        la, lo = clip.latlon(k, np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1))
+        la, lo = np.broadcast_arrays(la[:, None], lo[None, :])
+        want = terrain.heights(la.ravel(), lo.ravel()).height_msl_m.reshape(la.shape)
+        assert np.allclose(h, want, atol=1e-3, equal_nan=True)
+    # Off the store's lattice: the bilinear path, same answers.
+    shifted = type(lattice)(lattice.lat0 - lattice.dlat / 3, lattice.lon0, lattice.dlat, lattice.dlon, False)
+    assert Clipmap(terrain, shifted, levels=2, n=63, budget=10 ** 9).store is None

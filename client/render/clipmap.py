@@ -48,6 +48,16 @@ caller that asks, ``unlimited``) fills every level at once.
 
 Posts the terrain does not cover (height NaN) are stored at MSL 0 with an up
 normal: they draw as water at sea level, as the sea shell does around them.
+
+**From a terrain store.** When the terrain reads first from a terrain store
+(terrain/store.py) and the clipmap's lattice is the store's (``lattice_for``
+gives it: posts from the North Pole and the 180th meridian), level k's posts
+are the store's level k + f posts, so they are decoded straight from that
+level of the pyramid (:meth:`Clipmap.sample_posts`): a coarse level over
+hundreds of kilometres never decodes the fine data under it (thesis §3.1.8:
+"region-of-interest queries at any power-of-two resolution"). The store's
+per-level cache keeps the cells within STORE_CACHE_RADIUS_CELLS of the viewer
+(global-terrain-flight-sim §5), trimmed at most once a second.
 """
 
 from __future__ import annotations
@@ -64,6 +74,8 @@ MAX_LEVELS = 16
 MIN_N, MAX_N = 15, 1023
 ORIGIN_DRIFT_EXTENTS = 1.0  # move a level's origin once its region centre is this many extents from it
 NORMALS_PER_POST = 4  # the normal map is 2 x 2 per post
+STORE_CACHE_RADIUS_CELLS = 3.5  # cells kept around the viewer at every store level (FSX: 2.5 - 4.5)
+STORE_CACHE_TRIM_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -240,6 +252,9 @@ class Clipmap:
         # Optional cutout(lat, lon, spacing_m) -> metres to lower the surface (under geomipmap insets:
         # terrain/inset.cutout_depth_m, given the level's post spacing).
         self.cutout = None
+        self.store, self.store_level0 = _store_on_lattice(terrain, lattice)
+        self._trimmed_at = -math.inf
+        self.store_blocks = 0  # level blocks read straight from the store
 
     # -- geometry of the lattice
 
@@ -269,12 +284,38 @@ class Clipmap:
         """(ECEF positions (rows, cols, 3) float64, heights MSL (rows, cols)) of a rectangle of posts."""
         lat_rows, lon_cols = self.latlon(k, np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1))
         lat, lon = np.broadcast_arrays(np.clip(lat_rows, -90.0, 90.0)[:, None], lon_cols[None, :])
-        h = np.asarray(self.terrain.heights(lat.ravel(), lon.ravel()).height_msl_m, np.float64).reshape(lat.shape)
+        h = self._store_posts(k, r)
+        if h is None:
+            h = np.asarray(self.terrain.heights(lat.ravel(), lon.ravel()).height_msl_m, np.float64).reshape(lat.shape)
         h = np.where(np.isfinite(h), h, 0.0)  # no data: water at sea level
         surface = h.copy()
         if self.cutout is not None:
             surface -= self.cutout(lat.ravel(), lon.ravel(), self.spacing_m(k)).reshape(lat.shape)
         return geodetic_to_ecef(lat, lon, surface + self.geoid_undulation_m), h
+
+    def _store_posts(self, k: int, r: Rect) -> np.ndarray | None:
+        """Heights of a rectangle of level k's posts decoded from the store's own level (NaN
+        outside its data), or None when the store does not hold the whole rectangle there."""
+        if self.store is None or k + self.store_level0 >= self.store.levels:
+            return None
+        from terrain.store import CLASS_OUTSIDE
+
+        m = k + self.store_level0
+        # Clipmap row i is at latitude 90 + i dlat: store row -i (rows count south from the pole).
+        row_a, row_b = -r.i1, -r.i0 + 1
+        region = self.store.region_of(m, (row_a + row_b) / 2.0, (r.j0 + r.j1) / 2.0)
+        if region is None:
+            return None
+        rect = region.rects[m]
+        per_turn = self.store._cols_per_turn(m)
+        shift = per_turn * math.floor((r.j0 - rect.col0) / per_turn)
+        col_a, col_b = r.j0 - shift, r.j1 + 1 - shift
+        if not (rect.row0 <= row_a and row_b <= rect.row1 and rect.col0 <= col_a and col_b <= rect.col1):
+            return None
+        h, classes = self.store.decode(region, m, row_a, row_b, col_a, col_b)
+        h = np.where(classes == CLASS_OUTSIDE, np.nan, h)[::-1]
+        self.store_blocks += 1
+        return h
 
     def sample_normals(self, k: int, r: Rect) -> np.ndarray:
         """(2 rows, 2 cols, 3) ECEF unit normals at the half-lattice points of a rectangle of posts
@@ -323,6 +364,13 @@ class Clipmap:
             uploads += self._move(level, new, todo)
             spent += cost
         self.stats.samples = spent
+        if self.store is not None and uploads:
+            import time
+
+            now = time.monotonic()
+            if now - self._trimmed_at >= STORE_CACHE_TRIM_S:
+                self._trimmed_at = now
+                self.store.retain_near([(focus_lat, focus_lon)], STORE_CACHE_RADIUS_CELLS)
         return uploads
 
     def _move(self, level: LevelStore, new: Rect, todo: list[Rect]) -> list[Upload]:
@@ -361,6 +409,24 @@ class Clipmap:
         level.h_min, level.h_max = float(hs.min()), float(hs.max())
         self.stats.levels_moved += 1
         return uploads
+
+
+def _store_on_lattice(terrain, lattice):
+    """(store, level offset f) when the terrain's first source is a terrain store whose level f
+    posts are the lattice's, else (None, 0)."""
+    from terrain.store import StoreSource
+
+    sources = getattr(terrain, "sources", None)
+    if not sources or not isinstance(sources[0], StoreSource) or sources[0].level != 0:
+        return None, 0
+    store = sources[0].store
+    if lattice.lat0 != 90.0 or lattice.lon0 != -180.0:
+        return None, 0
+    ratio = lattice.dlat / store.dlat
+    f = round(math.log2(ratio)) if ratio > 0 else -1
+    if f < 0 or abs(ratio - 2.0 ** f) > 1e-9 * ratio or abs(lattice.dlon - store.dlon * 2.0 ** f) > 1e-9 * lattice.dlon:
+        return None, 0
+    return store, f
 
 
 def drawn_regions(clipmap: Clipmap, drawn_levels: list[int], margin_cells: int = 1) -> dict[int, Rect]:

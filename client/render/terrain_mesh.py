@@ -98,6 +98,8 @@ def lattice_for(sources: list[dict], lat: float, lon: float) -> Lattice:
     if not sources:
         raise InvalidArgument("sources", "the terrain describes no source; give spacing_m")
     s = next((s for s in sources if _covers(s, lat, lon)), sources[0])
+    if s.get("kind") == "store":  # the store's global lattice: posts from the North Pole and the 180th meridian
+        return Lattice(90.0, -180.0, float(s["resolution_lat_deg"]), float(s["resolution_lon_deg"]), True)
     lat0, lon0 = float(s["lat_min"]), float(s["lon_min"])
     if s.get("crs") == "EPSG:4326":
         if s.get("spacing_deg"):
