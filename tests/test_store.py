@@ -415,3 +415,35 @@ def test_clipmap_levels_decode_from_the_store_levels(canyon_store):
     # Off the store's lattice: the bilinear path, same answers.
     shifted = type(lattice)(lattice.lat0 - lattice.dlat / 3, lattice.lon0, lattice.dlat, lattice.dlon, False)
     assert Clipmap(terrain, shifted, levels=2, n=63, budget=10 ** 9).store is None
+
+
+def test_thin_clipmap_fetches_store_levels_over_grpc(canyon_store):
+    """A render client holding no DEM: its clipmap levels come from GetRegion of the store's
+    levels through the terrain service, equal to the local store's."""
+    from client.render.clipmap import Clipmap, Rect
+    from client.render.terrain_mesh import lattice_for
+    from client.terrain_client import TerrainClient
+    from server.terrain_service import create_server
+
+    out, _ = canyon_store
+    store = TerrainStore(out)
+    local = Terrain([StoreSource(store)])
+    server, port = create_server(local, "127.0.0.1:0")
+    server.start()
+    try:
+        with TerrainClient(f"127.0.0.1:{port}") as client:
+            b = store.regions[0].bounds
+            lat, lon = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
+            lattice = lattice_for(client.describe(), lat, lon)
+            thin = Clipmap(client, lattice, levels=3, n=63, budget=10 ** 9)
+            near = Clipmap(local, lattice, levels=3, n=63, budget=10 ** 9)
+            assert thin.remote_store_levels == store.levels
+            for k in range(3):
+                fi, fj = thin.focus_index(k, lat, lon)
+                r = Rect(int(fi) - 12, int(fj) - 12, int(fi) + 12, int(fj) + 12)
+                _, h_thin = thin.sample_posts(k, r)
+                _, h_near = near.sample_posts(k, r)
+                assert np.allclose(h_thin, h_near, atol=1e-3)  # float32 on the wire
+            assert thin.store_blocks == 3
+    finally:
+        server.stop(0)

@@ -253,6 +253,7 @@ class Clipmap:
         # terrain/inset.cutout_depth_m, given the level's post spacing).
         self.cutout = None
         self.store, self.store_level0 = _store_on_lattice(terrain, lattice)
+        self.remote_store_levels, self.remote_level0 = _remote_store_on_lattice(terrain, lattice)
         self._trimmed_at = -math.inf
         self.store_blocks = 0  # level blocks read straight from the store
 
@@ -296,6 +297,8 @@ class Clipmap:
     def _store_posts(self, k: int, r: Rect) -> np.ndarray | None:
         """Heights of a rectangle of level k's posts decoded from the store's own level (NaN
         outside its data), or None when the store does not hold the whole rectangle there."""
+        if self.remote_store_levels and k + self.remote_level0 < self.remote_store_levels:
+            return self._remote_store_posts(k, r)
         if self.store is None or k + self.store_level0 >= self.store.levels:
             return None
         from terrain.store import CLASS_OUTSIDE
@@ -316,6 +319,32 @@ class Clipmap:
         h = np.where(classes == CLASS_OUTSIDE, np.nan, h)[::-1]
         self.store_blocks += 1
         return h
+
+    def _remote_store_posts(self, k: int, r: Rect) -> np.ndarray | None:
+        """As :meth:`_store_posts` through a terrain service over a store (GetRegion of the
+        store's level k + f): a thin client fetches each level's posts, not bilinear samples
+        of level 0."""
+        from sortie.errors import SortieError
+
+        m = k + self.remote_level0
+        dlat, dlon = self.spacing_deg(k)
+        lat_s, lat_n = 90.0 + r.i0 * dlat, 90.0 + r.i1 * dlat
+        lon_w, lon_e = -180.0 + r.j0 * dlon, -180.0 + r.j1 * dlon
+        if lat_s < -90.0 or lat_n > 90.0:
+            return None
+        try:
+            grid = self.terrain.get_region(m, lat_s, (lon_w + 180.0) % 360.0 - 180.0, lat_n,
+                                           (lon_w + 180.0) % 360.0 - 180.0 + (lon_e - lon_w))
+        except SortieError:
+            return None
+        a = round((grid.lat_north_deg - lat_n) / dlat)
+        b = round(((lon_w - grid.lon_west_deg + 180.0) % 360.0 - 180.0) / dlon)
+        rows, cols = r.i1 - r.i0 + 1, r.j1 - r.j0 + 1
+        if a < 0 or b < 0 or a + rows > grid.heights.shape[0] or b + cols > grid.heights.shape[1]:
+            return None
+        h = np.asarray(grid.heights[a:a + rows, b:b + cols], np.float64)
+        self.store_blocks += 1
+        return h[::-1]
 
     def sample_normals(self, k: int, r: Rect) -> np.ndarray:
         """(2 rows, 2 cols, 3) ECEF unit normals at the half-lattice points of a rectangle of posts
@@ -420,13 +449,33 @@ def _store_on_lattice(terrain, lattice):
     if not sources or not isinstance(sources[0], StoreSource) or sources[0].level != 0:
         return None, 0
     store = sources[0].store
+    f = _level_offset(lattice, store.dlat, store.dlon)
+    return (None, 0) if f is None else (store, f)
+
+
+def _level_offset(lattice, dlat: float, dlon: float) -> int | None:
+    """f when the lattice's posts are the level-f posts of a store lattice of level-0 spacing
+    (dlat, dlon) (posts from the North Pole and the 180th meridian), else None."""
     if lattice.lat0 != 90.0 or lattice.lon0 != -180.0:
-        return None, 0
-    ratio = lattice.dlat / store.dlat
+        return None
+    ratio = lattice.dlat / dlat
     f = round(math.log2(ratio)) if ratio > 0 else -1
-    if f < 0 or abs(ratio - 2.0 ** f) > 1e-9 * ratio or abs(lattice.dlon - store.dlon * 2.0 ** f) > 1e-9 * lattice.dlon:
-        return None, 0
-    return store, f
+    if f < 0 or abs(ratio - 2.0 ** f) > 1e-9 * ratio or abs(lattice.dlon - dlon * 2.0 ** f) > 1e-9 * lattice.dlon:
+        return None
+    return f
+
+
+def _remote_store_on_lattice(terrain, lattice):
+    """(store levels, level offset f) when the terrain is a terrain service client whose first
+    source is a store on this lattice, else (0, 0)."""
+    if not hasattr(terrain, "get_region"):
+        return 0, 0
+    sources = terrain.describe()
+    if not sources or sources[0].get("kind") != "store":
+        return 0, 0
+    s = sources[0]
+    f = _level_offset(lattice, float(s["resolution_lat_deg"]), float(s["resolution_lon_deg"]))
+    return (0, 0) if f is None else (int(s["store_levels"]), f)
 
 
 def drawn_regions(clipmap: Clipmap, drawn_levels: list[int], margin_cells: int = 1) -> dict[int, Rect]:
