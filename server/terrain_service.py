@@ -32,7 +32,7 @@ from server.grpc_common import (
     unary_handler,
 )
 from sortie import __version__
-from sortie.errors import InvalidArgument, LimitExceeded, NotFound, SortieError
+from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound, SortieError
 from sortie.v1 import terrain_pb2 as pb
 from terrain.profile import PROFILE_MAX_SAMPLES
 from terrain.raster import STATUS_OK
@@ -205,7 +205,7 @@ class TerrainServicer:
 
         col_in_region = int(_unwrap_col(col * T, region.rects[level], store._cols_per_turn(level))) // T
         raster = store.tile_raster(region, level, row, col_in_region)
-        return height_grid(store, raster, level, int(request.cell_id))
+        return height_grid(store, raster, level, int(request.cell_id), request.encoding)
 
     def GetRegion(self, request: pb.GetRegionRequest) -> pb.HeightGrid:
         from terrain.validate import check_latlon
@@ -225,23 +225,49 @@ class TerrainServicer:
         raster = store.raster(request.level, float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1]))
         if raster is None:
             raise NotFound("no region of the store holds the box's centre")
-        return height_grid(store, raster, request.level, 0)
+        return height_grid(store, raster, request.level, 0, request.encoding)
 
 
-def height_grid(store, raster, level: int, cell_id: int) -> pb.HeightGrid:
+def height_grid(store, raster, level: int, cell_id: int, encoding: int = pb.HEIGHT_ENCODING_FLOAT32) -> pb.HeightGrid:
     """A store raster (row 0 south) as the wire's HeightGrid (row 0 north)."""
     g = raster.georef
     rows, cols = raster.shape
-    heights = np.ascontiguousarray(raster.heights[::-1], dtype="<f4")
+    heights = np.ascontiguousarray(raster.heights[::-1])
     classes = np.ones(raster.shape, np.uint8)
     classes[np.isnan(raster.heights)] = 0
     if raster.filled is not None:
         classes[raster.filled.astype(bool)] = 2
-    return pb.HeightGrid(level=level, depth=store.cell_depth(level), rows=rows, cols=cols,
+    grid = pb.HeightGrid(level=level, depth=store.cell_depth(level), rows=rows, cols=cols,
                          lat_north_deg=g.y0 + (rows - 1) * g.dy, lon_west_deg=(g.x0 + 180.0) % 360.0 - 180.0,
-                         dlat_deg=g.dy, dlon_deg=g.dx, heights_f32=heights.tobytes(),
-                         post_class=np.ascontiguousarray(classes[::-1]).tobytes(),
+                         dlat_deg=g.dy, dlon_deg=g.dx, post_class=np.ascontiguousarray(classes[::-1]).tobytes(),
                          max_error_m=store.max_error_m, cell_id=cell_id)
+    if encoding == pb.HEIGHT_ENCODING_ZSTD_CM:
+        import zstandard
+
+        grid.heights_zstd = encode_heights_zstd_cm(heights)
+        grid.post_class = zstandard.ZstdCompressor(level=3).compress(grid.post_class)
+    else:
+        grid.heights_f32 = heights.astype("<f4").tobytes()
+    return grid
+
+
+def encode_heights_zstd_cm(heights: np.ndarray) -> bytes:
+    """HEIGHT_ENCODING_ZSTD_CM of a (rows, cols) grid of metres (NaN: 0)."""
+    import zstandard
+
+    cm = np.round(np.nan_to_num(np.asarray(heights, np.float64), nan=0.0) * 100.0).astype(np.int64)
+    d = np.diff(cm, axis=1, prepend=0).astype("<i4")
+    return zstandard.ZstdCompressor(level=3).compress(d.tobytes())
+
+
+def decode_heights_zstd_cm(data: bytes, rows: int, cols: int) -> np.ndarray:
+    """Inverse of :func:`encode_heights_zstd_cm`: float64 metres (rows, cols)."""
+    import zstandard
+
+    d = np.frombuffer(zstandard.ZstdDecompressor().decompress(data, max_output_size=4 * rows * cols), "<i4")
+    if d.size != rows * cols:
+        raise DataFormatError(f"heights_zstd: {d.size} heights for {rows} x {cols} posts")
+    return np.cumsum(d.reshape(rows, cols).astype(np.int64), axis=1) / 100.0
 
 
 # RPC name -> (request class, response class, parameter -> field names). Every

@@ -68,7 +68,7 @@ def stream_to_thin_client(store_address: str, dem_address: str, console) -> dict
                 except Exception:  # a cell of the radius beyond the store's data: nothing to stream
                     continue
                 got += 1
-                wire += len(grid.heights.tobytes()) + len(grid.classes.tobytes())
+                wire += grid.wire_bytes
             tiles += got
             out["levels"].append({"level": level, "depth": depth - level, "cells": int(cells.size), "tiles": got})
         out["stream_s"] = time.perf_counter() - t0
@@ -84,7 +84,7 @@ def stream_to_thin_client(store_address: str, dem_address: str, console) -> dict
         out["heights_vs_dem"] = {"points": int(ok.sum()), "rms_m": float(np.sqrt(np.mean(d ** 2))),
                                  "max_m": float(np.abs(d).max())}
     console.print(f"thin client: {tiles} tiles at {levels} levels around {lat}, {lon} "
-                  f"({wire / 1e6:.1f} MB decoded on the wire) in {out['stream_s']:.1f} s; heights against the "
+                  f"({wire / 1e6:.1f} MB on the wire, zstd of centimetres) in {out['stream_s']:.1f} s; heights against the "
                   f"DEM service: RMS {out['heights_vs_dem']['rms_m']:.2f} m, max {out['heights_vs_dem']['max_m']:.1f} m "
                   f"at {out['heights_vs_dem']['points']:,} points")
     return out

@@ -468,7 +468,12 @@ class StoreSource:
         lat_max = max(r.bounds[2] for r in s.regions)
         lon_max = max(r.bounds[3] for r in s.regions)
         dlat, dlon = s.spacing_deg(self.level)
+        # Ground spacing at the first region's centre latitude (the regions may lie anywhere).
+        lat_c = math.radians((s.regions[0].bounds[0] + s.regions[0].bounds[2]) / 2)
+        metres_per_deg = math.pi / 180.0 * 6371008.8
         return {"name": s.name, "kind": "store", "crs": "EPSG:4326",
+                "spacing_east_m": dlon * metres_per_deg * math.cos(lat_c), "spacing_north_m": dlat * metres_per_deg,
+                "store_regions": len(s.regions), "store_step_m": s.step_units * s.unit_m,
                 "lat_min": lat_min, "lon_min": lon_min, "lat_max": lat_max, "lon_max": lon_max,
                 "resolution_lat_deg": dlat, "resolution_lon_deg": dlon,
                 "vertical_datum": s.manifest.get("vertical_datum", "EGM96"),

@@ -364,11 +364,16 @@ def test_cli_import_and_serve_store_over_grpc(tmp_path):
         ti, tj = rect.row0 // store.tile, rect.col0 // store.tile
         cid = quadtree.cell_id(store.depth - level, ti, tj)
         grid = client.get_tile(cid)
+        raw = client.get_tile(cid, compressed=False)
         assert grid.cell_id == cid and grid.level == level
+        # Compressed on the wire, the same heights to the centimetre.
+        assert grid.wire_bytes < raw.wire_bytes / 2
+        assert np.array_equal(grid.classes, raw.classes)
+        assert np.allclose(grid.heights, raw.heights, atol=0.0051, equal_nan=True)
         lat_min, lon_min, lat_max, lon_max = quadtree.bounds(cid)
         assert grid.lat_north_deg == pytest.approx(lat_max) and grid.lon_west_deg == pytest.approx(lon_min)
         local = store.tile_raster(region, level, ti, tj)
-        assert np.array_equal(np.nan_to_num(grid.heights[::-1], nan=-1e9),
+        assert np.array_equal(np.nan_to_num(raw.heights[::-1], nan=-1e9),
                               np.nan_to_num(np.asarray(local.heights, np.float32), nan=-1e9))
         b = region.bounds
         box = client.get_region(0, b[0] + 0.01, b[1] + 0.01, b[0] + 0.05, b[1] + 0.05)

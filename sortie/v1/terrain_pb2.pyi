@@ -7,39 +7,50 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class HeightEncoding(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    HEIGHT_ENCODING_FLOAT32: _ClassVar[HeightEncoding]
+    HEIGHT_ENCODING_ZSTD_CM: _ClassVar[HeightEncoding]
+
 class PointStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     POINT_STATUS_UNSPECIFIED: _ClassVar[PointStatus]
     POINT_STATUS_OK: _ClassVar[PointStatus]
     POINT_STATUS_FILLED: _ClassVar[PointStatus]
     POINT_STATUS_OUTSIDE: _ClassVar[PointStatus]
+HEIGHT_ENCODING_FLOAT32: HeightEncoding
+HEIGHT_ENCODING_ZSTD_CM: HeightEncoding
 POINT_STATUS_UNSPECIFIED: PointStatus
 POINT_STATUS_OK: PointStatus
 POINT_STATUS_FILLED: PointStatus
 POINT_STATUS_OUTSIDE: PointStatus
 
 class GetTileRequest(_message.Message):
-    __slots__ = ("cell_id",)
+    __slots__ = ("cell_id", "encoding")
     CELL_ID_FIELD_NUMBER: _ClassVar[int]
+    ENCODING_FIELD_NUMBER: _ClassVar[int]
     cell_id: int
-    def __init__(self, cell_id: _Optional[int] = ...) -> None: ...
+    encoding: HeightEncoding
+    def __init__(self, cell_id: _Optional[int] = ..., encoding: _Optional[_Union[HeightEncoding, str]] = ...) -> None: ...
 
 class GetRegionRequest(_message.Message):
-    __slots__ = ("level", "lat_min_deg", "lon_min_deg", "lat_max_deg", "lon_max_deg")
+    __slots__ = ("level", "lat_min_deg", "lon_min_deg", "lat_max_deg", "lon_max_deg", "encoding")
     LEVEL_FIELD_NUMBER: _ClassVar[int]
     LAT_MIN_DEG_FIELD_NUMBER: _ClassVar[int]
     LON_MIN_DEG_FIELD_NUMBER: _ClassVar[int]
     LAT_MAX_DEG_FIELD_NUMBER: _ClassVar[int]
     LON_MAX_DEG_FIELD_NUMBER: _ClassVar[int]
+    ENCODING_FIELD_NUMBER: _ClassVar[int]
     level: int
     lat_min_deg: float
     lon_min_deg: float
     lat_max_deg: float
     lon_max_deg: float
-    def __init__(self, level: _Optional[int] = ..., lat_min_deg: _Optional[float] = ..., lon_min_deg: _Optional[float] = ..., lat_max_deg: _Optional[float] = ..., lon_max_deg: _Optional[float] = ...) -> None: ...
+    encoding: HeightEncoding
+    def __init__(self, level: _Optional[int] = ..., lat_min_deg: _Optional[float] = ..., lon_min_deg: _Optional[float] = ..., lat_max_deg: _Optional[float] = ..., lon_max_deg: _Optional[float] = ..., encoding: _Optional[_Union[HeightEncoding, str]] = ...) -> None: ...
 
 class HeightGrid(_message.Message):
-    __slots__ = ("level", "depth", "rows", "cols", "lat_north_deg", "lon_west_deg", "dlat_deg", "dlon_deg", "heights_f32", "post_class", "max_error_m", "cell_id")
+    __slots__ = ("level", "depth", "rows", "cols", "lat_north_deg", "lon_west_deg", "dlat_deg", "dlon_deg", "heights_f32", "post_class", "max_error_m", "cell_id", "heights_zstd")
     LEVEL_FIELD_NUMBER: _ClassVar[int]
     DEPTH_FIELD_NUMBER: _ClassVar[int]
     ROWS_FIELD_NUMBER: _ClassVar[int]
@@ -52,6 +63,7 @@ class HeightGrid(_message.Message):
     POST_CLASS_FIELD_NUMBER: _ClassVar[int]
     MAX_ERROR_M_FIELD_NUMBER: _ClassVar[int]
     CELL_ID_FIELD_NUMBER: _ClassVar[int]
+    HEIGHTS_ZSTD_FIELD_NUMBER: _ClassVar[int]
     level: int
     depth: int
     rows: int
@@ -64,7 +76,8 @@ class HeightGrid(_message.Message):
     post_class: bytes
     max_error_m: float
     cell_id: int
-    def __init__(self, level: _Optional[int] = ..., depth: _Optional[int] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., lat_north_deg: _Optional[float] = ..., lon_west_deg: _Optional[float] = ..., dlat_deg: _Optional[float] = ..., dlon_deg: _Optional[float] = ..., heights_f32: _Optional[bytes] = ..., post_class: _Optional[bytes] = ..., max_error_m: _Optional[float] = ..., cell_id: _Optional[int] = ...) -> None: ...
+    heights_zstd: bytes
+    def __init__(self, level: _Optional[int] = ..., depth: _Optional[int] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., lat_north_deg: _Optional[float] = ..., lon_west_deg: _Optional[float] = ..., dlat_deg: _Optional[float] = ..., dlon_deg: _Optional[float] = ..., heights_f32: _Optional[bytes] = ..., post_class: _Optional[bytes] = ..., max_error_m: _Optional[float] = ..., cell_id: _Optional[int] = ..., heights_zstd: _Optional[bytes] = ...) -> None: ...
 
 class GetMetadataRequest(_message.Message):
     __slots__ = ()
