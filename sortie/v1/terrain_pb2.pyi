@@ -9,6 +9,7 @@ DESCRIPTOR: _descriptor.FileDescriptor
 
 class HeightEncoding(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
+    HEIGHT_ENCODING_UNSPECIFIED: _ClassVar[HeightEncoding]
     HEIGHT_ENCODING_FLOAT32: _ClassVar[HeightEncoding]
     HEIGHT_ENCODING_ZSTD_CM: _ClassVar[HeightEncoding]
 
@@ -18,6 +19,7 @@ class PointStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     POINT_STATUS_OK: _ClassVar[PointStatus]
     POINT_STATUS_FILLED: _ClassVar[PointStatus]
     POINT_STATUS_OUTSIDE: _ClassVar[PointStatus]
+HEIGHT_ENCODING_UNSPECIFIED: HeightEncoding
 HEIGHT_ENCODING_FLOAT32: HeightEncoding
 HEIGHT_ENCODING_ZSTD_CM: HeightEncoding
 POINT_STATUS_UNSPECIFIED: PointStatus
