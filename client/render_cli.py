@@ -109,6 +109,9 @@ def _view_args(p) -> None:
     p.add_argument("--geoid-undulation-m", type=float, default=None, metavar="N",
                    help="ellipsoid height = MSL + N, metres (render: default 0; view: default the server's)")
     p.add_argument("--no-fog", action="store_true")
+    p.add_argument("--land-classes", action="store_true",
+                   help="colour the clipmap terrain by land class (water, beach, farmland, forest, alpine, rock, "
+                        "snow from height, slope and latitude; terrain/texture.py) instead of the height tint")
 
 
 # -- argument parsing ----------------------------------------------------------------------------
@@ -171,7 +174,7 @@ def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "obs
     factory = None
     if args.terrain_renderer == "clipmap" and terrain is not None:
         factory = clipmap_factory(terrain, geoid_undulation_m=geoid_undulation_m, insets=insets,
-                                  **profile(args.profile or profile_name).layer_args())
+                                  land_classes=args.land_classes, **profile(args.profile or profile_name).layer_args())
     return Renderer(terrain, w, h, window_m=args.window_km * 1000.0, horizon_m=args.horizon_km * 1000.0,
                     geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog, terrain_layer_factory=factory,
                     insets=insets)

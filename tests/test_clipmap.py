@@ -255,3 +255,50 @@ def test_sortie_client_follow_headless_renders_like_sortie_view(tank_server, tmp
                "--out", str(tmp_path)])
     s = json.loads((tmp_path / "summary.json").read_text())
     assert rc == 0 and s["frames"] == 1 and s["follow"] == "tank1" and s["profile"] == "ground_vehicle"
+
+
+# -- land classes (terrain/texture.py) as the base colour -------------------------------------------
+
+def test_land_classes_follow_height_and_slope(alps):
+    """The clipmap's per-texel classes are terrain.texture.class_map's: rock where the normal
+    is steep, none of the lowland classes above the snow line, water at or below sea level."""
+    from terrain import texture
+
+    c = make_clipmap(alps, levels=2)
+    c.land_classes = True
+    c.update(47.1, 9.6, unlimited=True)
+    level = c.levels[0]
+    classes = level.normal[..., 3].astype(np.int64)
+    assert set(np.unique(classes)) <= set(range(texture.N_CLASSES))
+    up_cos = []
+    fi, fj = c.focus_index(0, 47.1, 9.6)
+    reg = level.region
+    h = np.repeat(np.repeat(level.unrolled()[0][..., 3], 2, 0), 2, 1)
+    assert h.shape == classes.shape
+    n = level.normal[..., :3].astype(np.float64)
+    lat, lon = c.latlon(0, (reg.i0 + reg.i1) / 2, (reg.j0 + reg.j1) / 2)
+    up = enu_basis(float(lat), float(lon))[2]
+    # The normal texels are stored toroidally; compare in storage order (classes and normals share it).
+    up_cos = n @ up
+    steep = up_cos < np.cos(np.radians(45.0))
+    assert steep.sum() > 20
+    assert np.mean(classes[steep] == texture.CLASS_NAMES.index("rock")) > 0.6
+    assert texture.CLASS_NAMES.index("forest") in set(np.unique(classes))
+    del fi, fj
+
+
+def test_land_classes_colour_the_terrain(alps):
+    """--land-classes: the same frame, coloured by the classes' palette."""
+    cam = Camera.from_geodetic(47.15, 9.5, 3500.0, 45.0, -10.0)
+    frames = {}
+    for flag in (False, True):
+        with Renderer(alps, W, H, flat_sky_rgb=MAGENTA, sea=False,
+                      terrain_layer_factory=clipmap_factory(alps, levels=5, n=63, budget=10 ** 9,
+                                                            land_classes=flag)) as r:
+            frames[flag] = r.render(cam).astype(np.int64)
+    ground = ~np.all(frames[False] == MAGENTA, axis=-1)
+    assert ground.mean() > 0.3
+    assert np.abs(frames[True] - frames[False])[ground].mean() > 5.0  # coloured otherwise
+    # Forest green (40, 80, 38) dominates lit forest pixels: green well above red and blue.
+    g = frames[True][ground]
+    assert np.mean((g[:, 1] > g[:, 0] + 15) & (g[:, 1] > g[:, 2] + 15)) > 0.2

@@ -254,6 +254,9 @@ class Clipmap:
         self.cutout = None
         self.store, self.store_level0 = _store_on_lattice(terrain, lattice)
         self.remote_store_levels, self.remote_level0 = _remote_store_on_lattice(terrain, lattice)
+        # Land classes (terrain/texture.py, global-terrain-flight-sim §7.1) in the normal map's
+        # fourth channel, one per normal texel, when asked for: the base colour of the terrain.
+        self.land_classes = False
         self._trimmed_at = -math.inf
         self.store_blocks = 0  # level blocks read straight from the store
 
@@ -366,6 +369,28 @@ class Clipmap:
         return np.stack([-ne * so - nn * sl * co + nu * cl * co, ne * co - nn * sl * so + nu * cl * so,
                          nn * cl + nu * sl], axis=-1)
 
+    def classes_of(self, k: int, r: Rect, h: np.ndarray, normals_ecef: np.ndarray) -> np.ndarray:
+        """Land class (terrain.texture.class_map) of each normal texel of a rectangle: the height
+        of its post, the slope of its normal, band noise placed by world position (so that
+        neighbouring strips agree). (2 rows, 2 cols) float."""
+        from terrain.texture import class_map
+
+        lat_rows, lon_cols = self.latlon(k, np.arange(2 * r.i0, 2 * r.i1 + 2) / 2.0,
+                                         np.arange(2 * r.j0, 2 * r.j1 + 2) / 2.0)
+        lat_rows = np.clip(lat_rows, -90.0, 90.0)
+        sl, cl = np.sin(np.radians(lat_rows))[:, None], np.cos(np.radians(lat_rows))[:, None]
+        so, co = np.sin(np.radians(lon_cols))[None, :], np.cos(np.radians(lon_cols))[None, :]
+        up = np.stack(np.broadcast_arrays(cl * co, cl * so, sl), axis=-1)
+        cos_slope = np.clip(np.sum(normals_ecef * up, axis=-1), -1.0, 1.0)
+        slope = np.degrees(np.arccos(cos_slope))
+        heights = np.repeat(np.repeat(h, 2, axis=0), 2, axis=1)
+        dy = self.spacing_m(k) / 2.0
+        dx = dy * self.lattice.dlon / self.lattice.dlat * max(float(np.cos(np.radians(lat_rows.mean()))), 1e-6)
+        north = np.radians(lat_rows)[:, None] * 6_371_000.0
+        east = np.radians(lon_cols)[None, :] * 6_371_000.0 * cl
+        east, north = np.broadcast_arrays(east, north)
+        return class_map(heights, slope, dx, dy, lat_rows[:, None], noise_en_m=(east, north)).astype(np.float64)
+
     @staticmethod
     def cost(r: Rect) -> int:
         return r.size * (1 + NORMALS_PER_POST)
@@ -417,6 +442,8 @@ class Clipmap:
         for r in todo:
             pos, h = self.sample_posts(level.k, r)
             normals = self.sample_normals(level.k, r)
+            if self.land_classes:
+                normals = np.concatenate([normals, self.classes_of(level.k, r, h, normals)[..., None]], axis=-1)
             for piece, t0, c0 in toroidal_pieces(r, n):
                 a, b = piece.i0 - r.i0, piece.j0 - r.j0
                 rows, cols = piece.i1 - piece.i0 + 1, piece.j1 - piece.j0 + 1
@@ -428,7 +455,7 @@ class Clipmap:
             for piece, t0, c0 in toroidal_pieces(Rect(2 * r.i0, 2 * r.j0, 2 * r.i1 + 1, 2 * r.j1 + 1), 2 * n):
                 a, b = piece.i0 - 2 * r.i0, piece.j0 - 2 * r.j0
                 rows, cols = piece.i1 - piece.i0 + 1, piece.j1 - piece.j0 + 1
-                level.normal[t0:t0 + rows, c0:c0 + cols, :3] = normals[a:a + rows, b:b + cols]
+                level.normal[t0:t0 + rows, c0:c0 + cols, :normals.shape[-1]] = normals[a:a + rows, b:b + cols]
                 uploads.append(Upload(level.k, "normal", t0, c0, rows, cols))
         level.region = new
         if move_origin:  # every offset against the new origin (from the float64 copy)

@@ -71,6 +71,7 @@ from client.render.clipmap import Clipmap, Rect, active_origin, blocks, clip_reg
 from client.render.gl import check_gl_error
 from client.render.shading import GLSL_COMMON, Frame
 from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
+from terrain.texture import CLASS_COLOURS_RGB, N_CLASSES
 from sortie.errors import InvalidArgument
 from terrain.geodesy import WGS84_A_M, ecef_to_geodetic
 
@@ -169,6 +170,8 @@ uniform sampler2D u_detail;      // four tileable noise patterns, mean 1/2
 uniform mat3 u_rot;
 uniform int u_has_coarse;
 uniform float u_detail_strength;
+uniform int u_classes;           // land classes in the normal maps' fourth channel (terrain/texture.py)
+uniform vec3 u_class_colour[%(N_CLASSES)d];
 in vec3 v_world;
 in float v_height;
 in vec2 v_nuv_fine;
@@ -178,6 +181,20 @@ in vec3 v_up;
 in vec3 v_ecef_mod;
 out vec4 out_colour;
 const vec3 PERIODS = vec3%(PERIODS)s;
+
+vec3 class_at(sampler2D t, ivec2 ij, int n2) {
+    ivec2 w = ivec2(ij.x - n2 * int(floor(float(ij.x) / float(n2))), ij.y - n2 * int(floor(float(ij.y) / float(n2))));
+    return u_class_colour[clamp(int(texelFetch(t, w, 0).w + 0.5), 0, %(N_CLASSES)d - 1)];
+}
+
+vec3 class_colour(sampler2D t, vec2 uv) {
+    int n2 = textureSize(t, 0).x;
+    vec2 x = uv * float(n2) - 0.5;
+    ivec2 i = ivec2(floor(x));
+    vec2 f = x - floor(x);
+    return mix(mix(class_at(t, i, n2), class_at(t, i + ivec2(1, 0), n2), f.x),
+               mix(class_at(t, i + ivec2(0, 1), n2), class_at(t, i + ivec2(1, 1), n2), f.x), f.y);
+}
 
 vec4 planar(vec3 p, vec3 w, float period) {  // three planar projections along the ECEF axes
     return w.x * texture(u_detail, p.yz / period) + w.y * texture(u_detail, p.zx / period)
@@ -191,6 +208,14 @@ void main() {
     vec3 n = u_rot * ne;
     float cos_slope = dot(n, normalize(v_up));
     vec3 c = terrain_colour(v_world, n, v_height, cos_slope);
+    if (u_classes != 0 && v_height > 0.0) {
+        // The land-class map is the base colour (FSX §7.1, §7.2): the colours of the four
+        // nearest normal texels' classes, blended bilinearly (classes themselves do not
+        // interpolate), fine and coarse blended by the morph.
+        vec3 base = class_colour(u_nfine, v_nuv_fine);
+        if (u_has_coarse != 0) base = mix(base, class_colour(u_ncoarse, v_nuv_coarse), v_alpha);
+        c = fogged(lambert(base, n), v_world);
+    }
     if (u_detail_strength > 0.0 && v_height > 0.0) {
         vec3 w = pow(abs(ne), vec3(4.0));
         w /= (w.x + w.y + w.z);
@@ -205,7 +230,7 @@ void main() {
     }
     out_colour = vec4(c, 1.0);
 }
-""" % {"PERIODS": str(DETAIL_PERIODS_M)}
+""" % {"PERIODS": str(DETAIL_PERIODS_M), "N_CLASSES": N_CLASSES}
 
 
 def detail_texture(size: int = DETAIL_TEXTURE_SIZE, seed: int = 7) -> np.ndarray:
@@ -284,7 +309,7 @@ class ClipmapLayer:
 
     def __init__(self, ctx, terrain, origin: LocalOrigin, *, levels: int = 7, n: int = 127,
                  budget: int = 100_000, finest_spacing_factor: float = 1.0, geoid_undulation_m: float = 0.0,
-                 lattice=None, focus_lat_lon=None, insets=()):
+                 lattice=None, focus_lat_lon=None, insets=(), land_classes: bool = False):
         e = math.log2(finest_spacing_factor) if finest_spacing_factor > 0 else math.nan
         if not (math.isfinite(e) and e == round(e) and -8 <= e <= 8):
             raise InvalidArgument("finest_spacing_factor", "must be a power of two in [1/256, 256]",
@@ -298,6 +323,7 @@ class ClipmapLayer:
         self.clipmap: Clipmap | None = None
         self.focus_lat_lon = focus_lat_lon  # None: the camera's position
         self.insets = list(insets)  # terrain.inset.InsetSource: the clipmap is lowered beneath them
+        self.land_classes = bool(land_classes)  # base colour from terrain/texture.py's land classes
         self.program = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER)
         verts, tris = block_grid()
         self._grid_vbo = ctx.buffer(verts.tobytes())
@@ -331,6 +357,7 @@ class ClipmapLayer:
             f = self._finest_factor
             lattice = type(base)(base.lat0, base.lon0, base.dlat * f, base.dlon * f, base.exact and f >= 1)
         self.clipmap = Clipmap(self.terrain, lattice, levels, n, budget, undulation)
+        self.clipmap.land_classes = self.land_classes
         if self.insets:
             from terrain.inset import cutout_depth_m
 
@@ -469,6 +496,10 @@ class ClipmapLayer:
         p = self.program
         frame.write_common(p)
         p["u_detail_strength"].value = float(self.detail_strength)
+        if "u_classes" in p:
+            p["u_classes"].value = int(self.land_classes)
+            if self.land_classes:
+                p["u_class_colour"].write((np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes())
         self._detail.use(4)
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
