@@ -35,7 +35,10 @@ def build_store(dems: list[Path], store: Path, console) -> dict:
     wanted = sorted(str(p.resolve()) for p in dems)
     if manifest.is_file():
         m = json.loads(manifest.read_text())
-        if m.get("summary") and sorted(s["path"] for s in m["sources"]) == wanted:
+        from terrain.store import FORMAT_VERSION
+
+        if (m.get("summary") and m.get("version") == FORMAT_VERSION
+                and sorted(s["path"] for s in m["sources"]) == wanted):
             console.print(f"[bold]terrain store[/]: reusing {store} (built earlier from the same DEMs)")
             return m["summary"]
     command = [sys.executable, "-m", "sortie.cli", "terrain", "import", *wanted, "-o", str(store)]

@@ -1,7 +1,7 @@
 """The terrain store: a compressed multi-resolution height pyramid on disk,
 tiled by the geographic quad tree.
 
-Layout (version 1, documented in docs/STORE.md)::
+Layout (version 2, documented in docs/STORE.md)::
 
     STORE/store.json              the manifest (written last: a store without it is unfinished)
     STORE/region-NNN/level-KK.tiles   one file per region and level
@@ -47,7 +47,7 @@ from terrain.heightcodec import LevelRect, PyramidReader
 from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
 
 FORMAT_NAME = "sortie-terrain-store"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: height blobs of heightcodec BLOB_VERSION 2
 MANIFEST = "store.json"
 LEVEL_MAGIC = b"SRTL"
 _LEVEL_HEAD = struct.Struct("<4sHHI")

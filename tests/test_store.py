@@ -153,7 +153,7 @@ def canyon_store(tmp_path_factory):
 def test_import_summary_and_manifest(canyon_store):
     out, s = canyon_store
     m = json.loads((out / "store.json").read_text())
-    assert m["format"] == "sortie-terrain-store" and m["version"] == 1
+    assert m["format"] == "sortie-terrain-store" and m["version"] == 2
     assert m["summary"]["posts"] == s.posts > 0
     assert s.max_quantisation_error_m <= 0.25 + 1e-9
     assert s.levels >= 3
