@@ -134,6 +134,7 @@ class TerrainStore:
                          for r in self.regions]
         self._class_cache: OrderedDict = OrderedDict()
         self._block_cache: OrderedDict = OrderedDict()
+        self._viewers: dict = {}  # key -> (lat, lon) of every view reading this store
         self._cache_tiles = cache_tiles
         self._dctx = zstandard.ZstdDecompressor()
 
@@ -350,12 +351,25 @@ class TerrainStore:
     def cache_tiles_held(self) -> int:
         return sum(len(r._cache) for r in self._readers)
 
+    def set_viewer(self, key, lat: float, lon: float) -> None:
+        """Where one view (a clipmap, a bot's camera) now is; ``retain_near`` keeps the cells
+        around every view registered, so views sharing the store never evict each other."""
+        with self._lock:
+            self._viewers[key] = (float(lat), float(lon))
+
+    def forget_viewer(self, key) -> None:
+        with self._lock:
+            self._viewers.pop(key, None)
+
     def retain_near(self, viewers, radius_cells: float) -> int:
         """Keep only the decoded tiles of cells within ``radius_cells`` of any viewer
-        (lat, lon) at their own level (the per-level scene-graph radius of
-        ``global-terrain-flight-sim.txt`` §5); returns how many were evicted."""
+        (lat, lon), and of any view registered with :meth:`set_viewer`, at their own
+        level (the per-level scene-graph radius of ``global-terrain-flight-sim.txt``
+        §5); returns how many were evicted."""
         from terrain import quadtree
 
+        with self._lock:
+            viewers = list(viewers) + list(self._viewers.values())
         keep = set()
         for lat, lon in viewers:
             for level in range(self.levels):

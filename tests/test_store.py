@@ -452,3 +452,25 @@ def test_thin_clipmap_fetches_store_levels_over_grpc(canyon_store):
             assert thin.store_blocks == 3
     finally:
         server.stop(0)
+
+
+def test_views_sharing_a_store_keep_each_others_cells(canyon_store):
+    """Two views far apart on one store: trimming around one never evicts the other's cells."""
+    out, _ = canyon_store
+    store = TerrainStore(out)
+    region = store.regions[0]
+    rect = region.rects[0]
+    a = store.post_latlon(0, rect.row0 + 5, rect.col0 + 5)
+    b = store.post_latlon(0, rect.row1 - 5, rect.col1 - 5)
+    store.decode(region, 0, rect.row0, rect.row0 + 16, rect.col0, rect.col0 + 16)
+    store.decode(region, 0, rect.row1 - 16, rect.row1, rect.col1 - 16, rect.col1)
+    store.set_viewer("view b", float(b[0]), float(b[1]))
+    store.retain_near([(float(a[0]), float(a[1]))], 1.0)
+    held = {k[1:] for r in store._readers for k in r._cache if k[0] == 0}
+    T = store.tile
+    assert ((rect.row1 - 1) // T, (rect.col1 - 1) // T) in held  # b's cell, kept for the registered view
+    assert (rect.row0 // T, rect.col0 // T) in held  # a's cell
+    store.forget_viewer("view b")
+    store.retain_near([(float(a[0]), float(a[1]))], 1.0)
+    held = {k[1:] for r in store._readers for k in r._cache if k[0] == 0}
+    assert ((rect.row1 - 1) // T, (rect.col1 - 1) // T) not in held

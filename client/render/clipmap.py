@@ -253,6 +253,10 @@ class Clipmap:
         # terrain/inset.cutout_depth_m, given the level's post spacing).
         self.cutout = None
         self.store, self.store_level0 = _store_on_lattice(terrain, lattice)
+        if self.store is not None:  # views sharing the store keep each other's cells cached
+            import weakref
+
+            weakref.finalize(self, self.store.forget_viewer, id(self))
         self.remote_store_levels, self.remote_level0 = _remote_store_on_lattice(terrain, lattice)
         # Land classes (terrain/texture.py, global-terrain-flight-sim §7.1) in the normal map's
         # fourth channel, one per normal texel, when asked for: the base colour of the terrain.
@@ -422,9 +426,10 @@ class Clipmap:
             import time
 
             now = time.monotonic()
+            self.store.set_viewer(id(self), focus_lat, focus_lon)
             if now - self._trimmed_at >= STORE_CACHE_TRIM_S:
                 self._trimmed_at = now
-                self.store.retain_near([(focus_lat, focus_lon)], STORE_CACHE_RADIUS_CELLS)
+                self.store.retain_near([], STORE_CACHE_RADIUS_CELLS)
         return uploads
 
     def _move(self, level: LevelStore, new: Rect, todo: list[Rect]) -> list[Upload]:
