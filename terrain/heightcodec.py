@@ -824,6 +824,17 @@ _pools: dict[int, ThreadPoolExecutor] = {}
 _pools_lock = threading.Lock()
 
 
+def _reset_pools_after_fork() -> None:
+    """A forked child has none of its parent's threads (and maybe a lock held by one):
+    it starts with no pools and a fresh lock."""
+    global _pools, _pools_lock
+    _pools = {}
+    _pools_lock = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_reset_pools_after_fork)
+
+
 def _map_shared(fn, items: list, threads: int) -> list:
     """[fn(x) for x in items], on up to ``threads`` threads: the caller's and helpers
     from a process-wide pool, each taking the next item until none is left. The caller
