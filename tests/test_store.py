@@ -474,3 +474,51 @@ def test_views_sharing_a_store_keep_each_others_cells(canyon_store):
     store.retain_near([(float(a[0]), float(a[1]))], 1.0)
     held = {k[1:] for r in store._readers for k in r._cache if k[0] == 0}
     assert ((rect.row1 - 1) // T, (rect.col1 - 1) // T) not in held
+
+
+def _smooth_asc(path: Path, lat0: float, lon0: float, posts: int, spacing_deg: float) -> Path:
+    """A smooth synthetic DEM (ESRI ASCII, integer metres) at (lat0, lon0) south-west."""
+    lines = [f"ncols {posts}", f"nrows {posts}", f"xllcenter {lon0!r}", f"yllcenter {lat0!r}",
+             f"cellsize {spacing_deg!r}", "NODATA_value -32768"]
+    k = np.arange(posts)
+    lat = lat0 + k * spacing_deg
+    lon = lon0 + k * spacing_deg
+    h = 1000.0 + 400.0 * np.sin(np.radians(lat * 90.0))[:, None] * np.cos(np.radians(lon * 60.0))[None, :]
+    lines += [" ".join(str(int(round(v))) for v in row) for row in h[::-1]]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("where", ["antimeridian", "north_pole"])
+def test_store_across_the_antimeridian_and_at_the_pole(tmp_path, where):
+    """Hard cases of the global lattice: a DEM straddling 180° (its region runs past the
+    lattice's last column and wraps), and one whose top row is the North Pole (lattice row 0).
+    Heights from the store equal the DEM's within resampling of a smooth surface (0.5 m) plus
+    the store's quantisation (0.505 m)."""
+    if where == "antimeridian":
+        src = _smooth_asc(tmp_path / "am.asc", 10.0, 179.5, 61, 1.0 / 60.0)
+        lat = np.linspace(10.05, 10.95, 200)
+        lon = np.linspace(179.55, 180.45, 200)
+        lon = (lon + 180.0) % 360.0 - 180.0  # both 179.x and -179.x
+    else:
+        src = _smooth_asc(tmp_path / "pole.asc", 89.0, 20.0, 61, 1.0 / 60.0)
+        lat = np.linspace(89.05, 89.999, 200)
+        lon = np.linspace(20.05, 20.95, 200)
+    out = tmp_path / "store"
+    import_dems([src], out, resolution_arcsec=30.0)
+    store = TerrainStore(out)
+    got = Terrain([StoreSource(store)]).heights(lat, lon)
+    want = Terrain([read_dem(src)]).heights(lat, lon)
+    assert np.all(want.status == STATUS_OK)
+    assert np.all(got.status == STATUS_OK)
+    assert np.abs(got.height_msl_m - want.height_msl_m).max() <= 0.5 + store.max_error_m
+    if where == "antimeridian":
+        assert (lon < 0).any() and (lon > 0).any()
+        assert store.regions[0].rects[0].col1 > store._cols_per_turn(0)  # the region runs past 180°
+    else:
+        assert store.regions[0].rects[0].row0 == 0
+        # The pole itself: the synthetic surface is 1000 m there at every longitude
+        # (sin(90 x 90°) = 0), and so is the store's row 0.
+        at_pole = Terrain([StoreSource(store)]).heights(np.array([90.0, 90.0]), np.array([20.2, 20.8]))
+        assert np.all(at_pole.status == STATUS_OK)
+        assert np.abs(at_pole.height_msl_m - 1000.0).max() <= store.max_error_m
