@@ -1,6 +1,7 @@
 """``sortie terrain texture``: synthesize an aerial texture of a lat/lon box (terrain/texture.py).
 
-    sortie terrain texture (--dem FILE... | --store PATH... | --procedural SEED) --bbox LAT_MIN LON_MIN LAT_MAX LON_MAX
+    sortie terrain texture (--dem FILE... | --store PATH... | --procedural SEED)
+                           (--bbox LAT_MIN LON_MIN LAT_MAX LON_MAX | --cell CELL_ID)
                            [--size COLSxROWS | --spacing-m M] --time 2026-06-21T12:00:00Z -o DIR
                            [--seed N] [--soft-px N] [--no-refraction]
 
@@ -66,8 +67,11 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
     from server.terrain_cli import add_terrain_args  # loaded by now: it registers this command
 
     add_terrain_args(p)
-    p.add_argument("--bbox", nargs=4, type=float, required=True,
-                   metavar=("LAT_MIN", "LON_MIN", "LAT_MAX", "LON_MAX"), help="the box, degrees WGS84")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--cell", type=int, metavar="CELL_ID",
+                       help="the box of one quad-tree cell (terrain/quadtree.py id; e.g. a store tile's cell)")
+    where.add_argument("--bbox", nargs=4, type=float,
+                       metavar=("LAT_MIN", "LON_MIN", "LAT_MAX", "LON_MAX"), help="the box, degrees WGS84")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--size", metavar="COLSxROWS",
                       help=f"pixels across and down (at most {MAX_PIXELS:,} in all); default: "
@@ -264,7 +268,15 @@ def write_texture(tex, summary: dict, out_dir) -> list:
 def texture_command(args) -> int:
     from server.terrain_cli import build_terrain
 
-    req = texture_request(args.bbox, args.size, args.spacing_m, args.time)
+    bbox = args.bbox
+    if args.cell is not None:
+        from terrain import quadtree
+
+        try:
+            bbox = quadtree.bounds(args.cell)
+        except InvalidArgument as e:
+            raise InvalidArgument("--cell", f"is not a quad-tree cell id ({e})", value=args.cell) from None
+    req = texture_request(bbox, args.size, args.spacing_m, args.time)
     if args.soft_px < 0:
         raise InvalidArgument("--soft-px", "must be 0 or more", value=args.soft_px)
     terrain = build_terrain(args.dem, args.procedural, args.store)

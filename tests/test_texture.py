@@ -452,3 +452,19 @@ def test_request_limits():
     assert 4096 * 4096 == MAX_PIXELS
     with pytest.raises(InvalidArgument, match="16 Mpixel"):
         texture_request([47.0, 9.0, 48.0, 10.0], None, 1.0, "2026-06-21T12:00:00Z")
+
+
+def test_cli_texture_of_one_quadtree_cell(tmp_path, hgt_kattegat):
+    """--cell: the texture of one quad-tree cell (a store tile's footprint)."""
+    from terrain import quadtree
+
+    cell = int(quadtree.cell_at(57.65, 11.8, 9))
+    argv = ["terrain", "texture", "--dem", str(hgt_kattegat), "--cell", str(cell), "--size", "64x48",
+            "--time", "2026-06-21T12:00:00Z", "-o", str(tmp_path / "c")]
+    assert _run(argv) == 0
+    box = json.loads((tmp_path / "c" / "texture.json").read_text())["bbox"]
+    lat_min, lon_min, lat_max, lon_max = quadtree.bounds(cell)
+    assert (box["lat_min"], box["lon_min"], box["lat_max"], box["lon_max"]) == (lat_min, lon_min, lat_max, lon_max)
+    with pytest.raises(InvalidArgument) as err:
+        _run(argv[:4] + ["--cell", str(-5)] + argv[6:])
+    assert err.value.field == "--cell"
