@@ -564,22 +564,17 @@ class ClipmapLayer:
 def border_segments(region: Rect) -> tuple[np.ndarray, np.ndarray]:
     """Instances (i0, j0, i1, j1), relative to the region's first post, of the zero-area border
     triangles of a drawn region: along its first and last rows (segments of BLOCK cells starting
-    at even lattice columns), then along its first and last columns. Only borders on an even
-    lattice row (column) get them: there the morphed border posts lie on the coarser level's
-    edges; a border on an odd one (a lagging level cropped inside the coarser) has no such edge,
-    and a triangle there would stand out of the surface."""
+    at even lattice columns), then along its first and last columns."""
     rows_out, cols_out = [], []
     h, w = region.i1 - region.i0, region.j1 - region.j0
-    first_j = region.j0 & 1  # relative offset of the first even lattice column
-    first_i = region.i0 & 1
+    first_j = (region.j0 & 1)  # relative offset of the first even lattice column
+    first_i = (region.i0 & 1)
     for i in (0, h):
-        if (region.i0 + i) & 1 == 0:
-            for j in range(first_j, w, BLOCK):
-                rows_out.append((i, j, i, min(j + BLOCK, w)))
+        for j in range(first_j, w, BLOCK):
+            rows_out.append((i, j, i, min(j + BLOCK, w)))
     for j in (0, w):
-        if (region.j0 + j) & 1 == 0:
-            for i in range(first_i, h, BLOCK):
-                cols_out.append((i, j, min(i + BLOCK, h), j))
+        for i in range(first_i, h, BLOCK):
+            cols_out.append((i, j, min(i + BLOCK, h), j))
     return (np.array(rows_out, np.int32).reshape(-1, 4), np.array(cols_out, np.int32).reshape(-1, 4))
 
 
