@@ -333,20 +333,6 @@ class ClipmapLayer:
         self._vao = ctx.vertex_array(self.program, [(self._grid_vbo, "2i", "in_cell"),
                                                     (self._inst, "4i/i", "in_block")],
                                      index_buffer=self._grid_ibo, index_element_size=4)
-        # Zero-area triangles along each level's outer border (GPU Gems 2 ch. 2): (even, odd, even)
-        # posts of a border row or column, which the morph puts on the coarser level's edge; drawn,
-        # they fill the float32 slivers of the T-junctions there. One VAO per direction.
-        line = np.arange(BLOCK + 1, dtype=np.int32)
-        zero = np.zeros_like(line)
-        fan = np.array([(j, j + 1, j + 2) for j in range(0, BLOCK - 1, 2)], np.uint32)
-        self._border_ibo = ctx.buffer(fan.tobytes())
-        self._border_vbos = [ctx.buffer(np.stack([zero, line], -1).astype(np.int32).tobytes()),  # along a row
-                             ctx.buffer(np.stack([line, zero], -1).astype(np.int32).tobytes())]  # along a column
-        self._border_inst = ctx.buffer(reserve=16 * 1024)
-        self._border_vaos = [ctx.vertex_array(self.program, [(vbo, "2i", "in_cell"), (self._border_inst, "4i/i", "in_block")],
-                                              index_buffer=self._border_ibo, index_element_size=4)
-                             for vbo in self._border_vbos]
-        self.border_triangles = True  # False: draw without them (tests, the bench's comparison)
         self._tex: list = []  # per level: (texel texture, normal texture)
         self.detail_strength = DETAIL_STRENGTH
         self._detail = ctx.texture((DETAIL_TEXTURE_SIZE, DETAIL_TEXTURE_SIZE), 4, detail_texture().tobytes())
@@ -536,17 +522,6 @@ class ClipmapLayer:
             self._vao.render(moderngl.TRIANGLES, instances=len(d.blocks))
             self.triangles += 2 * d.cells
             self.vertices += len(d.blocks) * (BLOCK + 1) ** 2
-            if coarse and self.border_triangles:
-                self.ctx.disable(moderngl.CULL_FACE)  # zero-area: either winding
-                for vao, segments in zip(self._border_vaos, border_segments(r)):
-                    if len(segments):
-                        data = segments.astype(np.int32).tobytes()
-                        if len(data) > self._border_inst.size:
-                            self._border_inst.orphan(len(data) * 2)
-                        self._border_inst.write(data)
-                        vao.render(moderngl.TRIANGLES, instances=len(segments))
-                        self.triangles += len(segments) * (BLOCK // 2)
-                self.ctx.enable(moderngl.CULL_FACE)
         self.ctx.disable(moderngl.CULL_FACE)
         check_gl_error(self.ctx, "clipmap draw")
 
@@ -555,27 +530,9 @@ class ClipmapLayer:
         for t, nm in self._tex:
             t.release()
             nm.release()
-        for obj in (self._vao, self._inst, self._grid_vbo, self._grid_ibo, *self._border_vaos,
-                    *self._border_vbos, self._border_ibo, self._border_inst, self.program):
+        for obj in (self._vao, self._inst, self._grid_vbo, self._grid_ibo, self.program):
             obj.release()
         self._tex = []
-
-
-def border_segments(region: Rect) -> tuple[np.ndarray, np.ndarray]:
-    """Instances (i0, j0, i1, j1), relative to the region's first post, of the zero-area border
-    triangles of a drawn region: along its first and last rows (segments of BLOCK cells starting
-    at even lattice columns), then along its first and last columns."""
-    rows_out, cols_out = [], []
-    h, w = region.i1 - region.i0, region.j1 - region.j0
-    first_j = (region.j0 & 1)  # relative offset of the first even lattice column
-    first_i = (region.i0 & 1)
-    for i in (0, h):
-        for j in range(first_j, w, BLOCK):
-            rows_out.append((i, j, i, min(j + BLOCK, w)))
-    for j in (0, w):
-        for i in range(first_i, h, BLOCK):
-            cols_out.append((i, j, min(i + BLOCK, h), j))
-    return (np.array(rows_out, np.int32).reshape(-1, 4), np.array(cols_out, np.int32).reshape(-1, 4))
 
 
 def clipmap_factory(terrain, **kw):
