@@ -18,8 +18,8 @@ gRPC's ``round_robin`` policy, client-side health checking (a replica leaves
 the rotation as soon as its health says NOT_SERVING, i.e. when it starts to
 drain on SIGTERM) and a retry policy for UNAVAILABLE (a replica that died
 with calls in flight: they are sent again to another one); a call gRPC does
-not retry because the dead replica had begun to answer is sent once more by
-the client. Terrain queries are read-only, so a repeated call is harmless.
+not retry because the dead replica had begun to answer, or that a stopping
+replica cancelled, is sent once more by the client. Terrain queries are read-only, so a repeated call is harmless.
 See :func:`replica_service_config` for the numbers and docs/DEPLOYMENT.md for
 what was measured. One address behaves as it always has: a plain channel, no
 retries.
@@ -214,7 +214,7 @@ class TerrainClient:
     array-likes (scalars are one point) and return the Terrain's result
     dataclasses with numpy arrays. Thread-safe: many threads (bots) may share
     one client. ``target`` is the channel's gRPC target; ``resent_calls`` counts
-    the calls a client of replicas sent again after UNAVAILABLE.
+    the calls a client of replicas sent again after UNAVAILABLE or CANCELLED.
     """
 
     def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S, chunk_points: int = CHUNK_POINTS,
@@ -274,8 +274,8 @@ class TerrainClient:
             return self._resend_or_raise(rpc, request, exc)
 
     def _resend_or_raise(self, rpc: str, request, exc: grpc.RpcError):
-        """After a failed call: when it failed UNAVAILABLE on a client of replicas, the
-        answer to ``request`` sent once more; otherwise, or if that fails too, the failure
+        """After a failed call: when it failed UNAVAILABLE (or CANCELLED by a stopping
+        replica) on a client of replicas, the answer to ``request`` sent once more; otherwise, or if that fails too, the failure
         as a sortie.errors exception.
 
         gRPC's retry policy never retries a call once its response has begun to arrive
@@ -283,7 +283,10 @@ class TerrainClient:
         answer fails that call (an unretried UNAVAILABLE was seen once in about twenty
         SIGKILLs in tests/test_terrain_replicas.py). Terrain queries are read-only:
         sending it again is safe, and round robin sends it to another replica."""
-        if self.replicated and exc.code() == grpc.StatusCode.UNAVAILABLE:
+        # CANCELLED too: a replica shutting down cancels the calls that reach it as it stops
+        # (seen once in a CI run of tests/test_terrain_replicas.py: a 5 ms call, SIGTERM);
+        # this client never cancels its own calls (its deadline is DEADLINE_EXCEEDED).
+        if self.replicated and exc.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED):
             with self._resent_lock:
                 self.resent_calls += 1
             try:
