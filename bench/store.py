@@ -58,7 +58,7 @@ def _delta_baseline(units: np.ndarray, step: int) -> int:
     return _zstd(d.astype(dtype).tobytes())
 
 
-def codec_figures(name: str, units: np.ndarray, steps) -> dict:
+def codec_figures(units: np.ndarray, steps) -> dict:
     """Rate and distortion of the codec on one grid of integer metres."""
     from terrain import heightcodec as hc
 
@@ -91,7 +91,7 @@ def run(quick: bool = False) -> Report:
         units = np.round(h).astype(np.int64)  # the shared DEMs hold integer metres
         if not np.array_equal(units, h):
             raise ValueError(f"{path.name}: not integer metres; the bench's unit is 1 m")
-        rd[path.stem] = codec_figures(path.stem, units, steps)
+        rd[path.stem] = codec_figures(units, steps)
     lossless = {k: v["steps"][1]["bytes"] / v["zstd_raw_bytes"] for k, v in rd.items()}
     vs_delta_1 = {k: v["steps"][1]["bytes"] / v["steps"][1]["delta_zstd_bytes"] for k, v in rd.items()}
     vs_delta_2 = {k: v["steps"][2]["bytes"] / v["steps"][2]["delta_zstd_bytes"] for k, v in rd.items()}

@@ -189,22 +189,8 @@ class TerrainServicer:
         raise NotFound("this terrain service has no terrain store (serve it with --store)")
 
     def GetTile(self, request: pb.GetTileRequest) -> pb.HeightGrid:
-        from terrain import quadtree
-
         store = self._store()
-        depth, row, col = quadtree.unpack(int(request.cell_id))
-        level = store.depth - depth
-        if not 0 <= level < store.levels:
-            raise NotFound(f"cell_id: depth {depth} is not a level of the store (depths "
-                           f"{store.depth - store.levels + 1}..{store.depth})")
-        T = store.tile
-        region = store.region_of(level, row * T, col * T)
-        if region is None:
-            raise NotFound(f"cell_id: no region of the store holds cell ({depth}, {row}, {col})")
-        from terrain.store import _unwrap_col
-
-        col_in_region = int(_unwrap_col(col * T, region.rects[level], store._cols_per_turn(level))) // T
-        raster = store.tile_raster(region, level, row, col_in_region)
+        level, raster = store.cell_raster(int(request.cell_id))
         return height_grid(store, raster, level, int(request.cell_id), request.encoding)
 
     def GetRegion(self, request: pb.GetRegionRequest) -> pb.HeightGrid:

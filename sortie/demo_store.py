@@ -50,6 +50,7 @@ def build_store(dems: list[Path], store: Path, console) -> dict:
 def stream_to_thin_client(store_address: str, dem_address: str, console) -> dict:
     """Tiles around a viewer at every level, over gRPC; heights checked against the DEMs."""
     from client.terrain_client import TerrainClient
+    from sortie.errors import NotFound
     from terrain import quadtree
 
     lat, lon = VIEWER_LAT_LON
@@ -68,7 +69,7 @@ def stream_to_thin_client(store_address: str, dem_address: str, console) -> dict
             for cid in cells:
                 try:
                     grid = thin.get_tile(int(cid))
-                except Exception:  # a cell of the radius beyond the store's data: nothing to stream
+                except NotFound:  # a cell of the radius beyond the store's data: nothing to stream
                     continue
                 got += 1
                 wire += grid.wire_bytes

@@ -175,12 +175,13 @@ class TerrainStore:
             if level >= len(region.rects):
                 continue
             r = region.rects[level]
-            c = _unwrap_col(col, r, self._cols_per_turn(level))
+            c = _unwrap_col(col, r, self.cols_per_turn(level))
             if r.row0 <= row <= r.row1 - 1 and r.col0 <= c <= r.col1 - 1:
                 return region
         return None
 
-    def _cols_per_turn(self, level: int) -> int:
+    def cols_per_turn(self, level: int) -> int:
+        """Lattice columns of a level round the globe (columns wrap at this)."""
         return (3 << self.depth) * self.tile >> level
 
     # ------------------------------------------------------------------ decoding
@@ -205,7 +206,7 @@ class TerrainStore:
             if region is None:
                 return None
         rect = region.rects[level]
-        c_left = _unwrap_col(c_left, rect, self._cols_per_turn(level))
+        c_left = _unwrap_col(c_left, rect, self.cols_per_turn(level))
         row_a = max(int(math.floor(r_top)), rect.row0)
         row_b = min(int(math.floor(r_bot)) + 2, rect.row1)
         col_a = max(int(math.floor(c_left)), rect.col0)
@@ -221,13 +222,31 @@ class TerrainStore:
         heights[classes == CLASS_OUTSIDE] = np.nan
         filled = classes == CLASS_FILLED
         dlat, dlon = self.spacing_deg(level)
-        lat_south, lon_west = self.post_latlon(level, row_b - 1, col_a)
-        lon_west = float(col_a * dlon - 180.0)  # unwrapped: a raster may run past +180
-        georef = Georef(CRS_GEOGRAPHIC, lon_west, float(lat_south), dlon, dlat)
+        lat_south = 90.0 - (row_b - 1) * dlat
+        lon_west = col_a * dlon - 180.0  # unwrapped: a raster may run past +180
+        georef = Georef(CRS_GEOGRAPHIC, lon_west, lat_south, dlon, dlat)
         return Raster(heights.astype(np.float32), georef, name=f"{self.name}:L{level}",
                       vertical_datum=self.manifest.get("vertical_datum", "EGM96"),
                       filled=filled if filled.any() else None, source=str(self.path),
                       meta={"store_level": level, "region": region.index})
+
+    def cell_raster(self, cell_id: int) -> tuple[int, Raster]:
+        """(level, tile raster) of a quad-tree cell: the cell at depth d is the tile of level
+        depth - d, in whichever region holds it (its column unwrapped into the region's).
+        NotFound, naming cell_id, when no level or region holds it."""
+        from terrain import quadtree
+
+        depth, row, col = quadtree.unpack(int(cell_id))
+        level = self.depth - depth
+        if not 0 <= level < self.levels:
+            raise NotFound(f"cell_id: depth {depth} is not a level of the store (depths "
+                           f"{self.depth - self.levels + 1}..{self.depth})")
+        T = self.tile
+        region = self.region_of(level, row * T, col * T)
+        if region is None:
+            raise NotFound(f"cell_id: no region of the store holds cell ({depth}, {row}, {col})")
+        col_in_region = int(_unwrap_col(col * T, region.rects[level], self.cols_per_turn(level))) // T
+        return level, self.tile_raster(region, level, row, col_in_region)
 
     def tile_raster(self, region: Region, level: int, tile_row: int, tile_col: int) -> Raster:
         """One tile with its east and south edge posts (T + 1)^2, as a Raster: every
@@ -341,10 +360,6 @@ class TerrainStore:
                 raise DataFormatError(f"terrain store {self.path}: tile ({ti}, {tj}) of level {level} is truncated")
             return data[:int(e["hlen"])], data[int(e["hlen"]):]
 
-    def tile_blobs(self, region: Region, level: int) -> int:
-        """How many tiles a region's level holds."""
-        return len(self._level_index(region.index, level)[1])
-
     def stored_bytes(self) -> int:
         return sum(p.stat().st_size for p in self.path.rglob("*.tiles"))
 
@@ -381,7 +396,7 @@ class TerrainStore:
             for reader in self._readers:
                 for key in list(reader._cache):
                     level, ti, tj = key
-                    if (level, ti, tj % (self._cols_per_turn(level) // self.tile)) not in keep:
+                    if (level, ti, tj % (self.cols_per_turn(level) // self.tile)) not in keep:
                         del reader._cache[key]
                         evicted += 1
         return evicted
@@ -439,7 +454,7 @@ class StoreSource:
         n = BLOCK_TILES * self.store.tile
         for region in self.store.regions:
             rect = region.rects[self.level]
-            per_turn = self.store._cols_per_turn(self.level)
+            per_turn = self.store.cols_per_turn(self.level)
             c = cols + np.where(cols < rect.col0, per_turn, 0)
             inside = (rows >= rect.row0) & (rows <= rect.row1 - 1) & (c >= rect.col0) & (c <= rect.col1 - 1)
             idx = np.flatnonzero(inside)

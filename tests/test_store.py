@@ -514,7 +514,7 @@ def test_store_across_the_antimeridian_and_at_the_pole(tmp_path, where):
     assert np.abs(got.height_msl_m - want.height_msl_m).max() <= 0.5 + store.max_error_m
     if where == "antimeridian":
         assert (lon < 0).any() and (lon > 0).any()
-        assert store.regions[0].rects[0].col1 > store._cols_per_turn(0)  # the region runs past 180°
+        assert store.regions[0].rects[0].col1 > store.cols_per_turn(0)  # the region runs past 180°
     else:
         assert store.regions[0].rects[0].row0 == 0
         # The pole itself: the synthetic surface is 1000 m there at every longitude

@@ -317,7 +317,7 @@ class Clipmap:
         if region is None:
             return None
         rect = region.rects[m]
-        per_turn = self.store._cols_per_turn(m)
+        per_turn = self.store.cols_per_turn(m)
         shift = per_turn * math.floor((r.j0 - rect.col0) / per_turn)
         col_a, col_b = r.j0 - shift, r.j1 + 1 - shift
         if not (rect.row0 <= row_a and row_b <= rect.row1 and rect.col0 <= col_a and col_b <= rect.col1):
