@@ -245,21 +245,32 @@ def encode_tile(fine: np.ndarray, coarse: np.ndarray, tile_r0: int, tile_c0: int
 
 
 def decode_tile(blob: bytes, coarse: np.ndarray, tile: int, tile_r0: int, tile_c0: int, rect: LevelRect,
-                cr0: int, cc0: int, step: int, rows: int | None = None) -> np.ndarray:
-    """Inverse of :func:`encode_tile`: the decoded (T, T) int64 tile.
+                cr0: int, cc0: int, step: int, rows: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of :func:`encode_tile`: the decoded (T, T) int32 tile (values are
+    within MAX_ABS_UNITS plus half a step; int32 halves the memory traffic of int64).
 
     rows: decode only the tile's first ``rows`` rows (the rest of the array is
     left unset), which needs the coarse rows down to tile_r0 / 2 + rows // 2 + 1
     only; the residual streams are row-major, so a prefix decodes on its own.
     The arithmetic is the encoder's, sample by sample, in one numba kernel.
+    out: a (T, T) int32 array to decode into (a recycled one), else a new one.
     """
     half = tile // 2
     raw, offs = _decompress_parts(blob, 2, half * tile)
-    out = np.empty((tile, tile), np.int64)
+    out = _tile_buffer(out, (tile, tile))
     _decode_tile_kernel(coarse, tile_r0 // 2 - cr0, tile_c0 // 2 - cc0, rect.row0 // 2 - cr0,
                         rect.row1 // 2 - 1 - cr0, rect.col0 // 2 - cc0, rect.col1 // 2 - 1 - cc0, step,
                         raw, offs, np.empty(2 * half * half, np.int32), np.empty(2 * half * tile, np.int32),
                         out, tile if rows is None else rows)
+    return out
+
+
+def _tile_buffer(out: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """out when it is a writable C-contiguous int32 array of the shape, else a new one."""
+    if out is None:
+        return np.empty(shape, np.int32)
+    if out.shape != shape or out.dtype != np.int32 or not out.flags.c_contiguous or not out.flags.writeable:
+        raise ValueError(f"out must be a writable C-contiguous int32 array of shape {shape}")
     return out
 
 
@@ -431,11 +442,12 @@ def _med_predict(q):
     return pred, rough
 
 
-def decode_top(blob: bytes, shape: tuple[int, int], step: int, rows: int | None = None) -> np.ndarray:
+def decode_top(blob: bytes, shape: tuple[int, int], step: int, rows: int | None = None,
+               out: np.ndarray | None = None) -> np.ndarray:
     """Inverse of :func:`encode_top`; rows: decode only the first ``rows`` rows (the
-    rest of the array is left unset)."""
+    rest of the array is left unset); out as in :func:`decode_tile`."""
     raw, offs = _decompress_parts(blob, 1, shape[0] * shape[1])
-    out = np.empty(shape, np.int64)
+    out = _tile_buffer(out, shape)
     _decode_top_kernel(raw, offs, np.empty(2 * out.size, np.int32), step, out, shape[0] if rows is None else rows)
     return out
 
@@ -670,8 +682,8 @@ def encode_pyramid(values: np.ndarray, row0: int, col0: int, tile: int, step: in
     values = np.asarray(values)
     if values.ndim != 2 or values.dtype.kind not in "iu":
         raise ValueError(f"values must be a 2-D integer grid, got {values.dtype} {values.shape}")
-    if step < 1:
-        raise ValueError(f"step must be a positive integer number of units, got {step}")
+    if not 1 <= step <= MAX_ABS_UNITS:
+        raise ValueError(f"step must be a positive integer number of units up to {MAX_ABS_UNITS}, got {step}")
     if values.size and int(np.abs(values).max()) > MAX_ABS_UNITS:
         raise ValueError(f"values must lie within +-{MAX_ABS_UNITS} units, got {int(np.abs(values).max())}")
     rects = pyramid_rects(row0, col0, values.shape[0], values.shape[1], tile, max_levels)
@@ -724,6 +736,12 @@ class PyramidReader:
     thread per CPU; the numba kernels run without the GIL). get_blob is only
     called from the caller's thread. A reader may be shared between threads:
     one lock serialises its decodes.
+
+    A tile leaving the cache leaves its array for the next tile decoded (up to
+    ``cache_tiles`` spare arrays): decoding into memory already mapped instead
+    of fresh pages saved a third of a tile's decode time (0.455 -> 0.294 ms, 25
+    tiles of an Alps region kept alive or not). Cached arrays never leave the
+    reader (regions are copied out of them), so reusing one is safe.
     """
 
     def __init__(self, rects: list[LevelRect], tile: int, step: int, get_blob, cache_tiles: int = 256,
@@ -735,6 +753,8 @@ class PyramidReader:
         self.step = step
         self._get_blob = get_blob
         self._cache: OrderedDict = OrderedDict()
+        self._spare: list[np.ndarray] = []  # arrays of evicted tiles, to decode into again
+        self._evicted: list[np.ndarray] = []  # evicted during the decode running (recycled after it)
         self.cache_tiles = cache_tiles
         self.tiles_decoded = 0
         self.threads = max(1, threads if threads is not None else _cpu_count())
@@ -744,17 +764,47 @@ class PyramidReader:
     def levels(self) -> int:
         return len(self.rects)
 
-    def decode_region(self, level: int, row_a: int, row_b: int, col_a: int, col_b: int) -> np.ndarray:
-        """Decoded values (int64) of lattice rows [row_a, row_b) and cols [col_a, col_b)
-        of a level; the region must lie inside that level's rectangle."""
+    def cached(self) -> list[tuple[int, int, int]]:
+        """The (level, tile row, tile col) of every decoded tile held."""
+        with self._lock:
+            return list(self._cache)
+
+    def evict(self, keys=None) -> int:
+        """Drop the given cached tiles (every one when None); returns how many were held."""
+        with self._lock:
+            keys = list(self._cache) if keys is None else keys
+            n = 0
+            for key in keys:
+                hit = self._cache.pop(key, None)
+                if hit is not None:
+                    self._recycle(hit[0])
+                    n += 1
+            return n
+
+    def _recycle(self, array: np.ndarray) -> None:
+        if len(self._spare) < self.cache_tiles and array.shape == (self.tile, self.tile):
+            array.setflags(write=True)
+            self._spare.append(array)
+
+    def decode_region(self, level: int, row_a: int, row_b: int, col_a: int, col_b: int,
+                      scale: float | None = None) -> np.ndarray:
+        """Decoded values (int32) of lattice rows [row_a, row_b) and cols [col_a, col_b)
+        of a level; the region must lie inside that level's rectangle. With ``scale``,
+        float64 values times scale instead (converted tile by tile on the decoding
+        threads, in the copy into the result)."""
         rect = self.rects[level]
         if not (rect.row0 <= row_a < row_b <= rect.row1 and rect.col0 <= col_a < col_b <= rect.col1):
             raise ValueError(f"region rows [{row_a}, {row_b}) cols [{col_a}, {col_b}) is outside level "
                              f"{level}'s rows [{rect.row0}, {rect.row1}) cols [{rect.col0}, {rect.col1})")
         with self._lock:
-            return self._region(level, row_a, row_b, col_a, col_b)
+            try:
+                return self._region(level, row_a, row_b, col_a, col_b, scale)
+            finally:  # tiles evicted during the decode are free only now: a finer level's held ones were in use
+                for array in self._evicted:
+                    self._recycle(array)
+                self._evicted.clear()
 
-    def _region(self, level, row_a, row_b, col_a, col_b) -> np.ndarray:
+    def _region(self, level, row_a, row_b, col_a, col_b, scale=None) -> np.ndarray:
         """:meth:`decode_region` under the lock: the coarser level's region first (recursively),
         then this level's missing tiles, in parallel, each copied into the result."""
         rect = self.rects[level]
@@ -783,33 +833,42 @@ class PyramidReader:
             cc1 = min(max(tj * T // 2 for _, tj in missing) + T // 2 + 1, hi_c) + 1
             assert c.row0 <= cr0 and cr1 <= c.row1 and c.col0 <= cc0 and cc1 <= c.col1
             coarse = self._region(level + 1, cr0, cr1, cc0, cc1)
-        out = np.empty((row_b - row_a, col_b - col_a), np.int64)
+        out = np.empty((row_b - row_a, col_b - col_a), np.int32 if scale is None else np.float64)
 
         def place(t, dec):
             r_a, r_b = max(row_a, t[0] * T), min(row_b, (t[0] + 1) * T)
             c_a, c_b = max(col_a, t[1] * T), min(col_b, (t[1] + 1) * T)
-            out[r_a - row_a:r_b - row_a, c_a - col_a:c_b - col_a] = \
-                dec[r_a - t[0] * T:r_b - t[0] * T, c_a - t[1] * T:c_b - t[1] * T]
+            part = dec[r_a - t[0] * T:r_b - t[0] * T, c_a - t[1] * T:c_b - t[1] * T]
+            if scale is None:
+                out[r_a - row_a:r_b - row_a, c_a - col_a:c_b - col_a] = part
+            else:
+                np.multiply(part, scale, out=out[r_a - row_a:r_b - row_a, c_a - col_a:c_b - col_a])
 
         def decode(job):
-            t, blob = job
+            t, blob, buf = job
             if top:
-                dec = decode_top(blob, (T, T), self.step, need[t])
+                dec = decode_top(blob, (T, T), self.step, need[t], out=buf)
             else:
-                dec = decode_tile(blob, coarse, T, t[0] * T, t[1] * T, rect, cr0, cc0, self.step, need[t])
+                dec = decode_tile(blob, coarse, T, t[0] * T, t[1] * T, rect, cr0, cc0, self.step, need[t],
+                                  out=buf)
             place(t, dec)
             return dec
 
-        decoded = _map_shared(decode, [(t, self._get_blob(level, *t)) for t in missing], self.threads)
+        jobs = []
+        for t in missing:
+            stale = self._cache.pop((level, *t), None)  # a shorter decode of the tile
+            if stale is not None:
+                self._evicted.append(stale[0])
+            jobs.append((t, self._get_blob(level, *t), self._spare.pop() if self._spare else None))
+        decoded = _map_shared(decode, jobs, self.threads)
+        for t, dec in held.items():
+            place(t, dec)
         for t, dec in zip(missing, decoded):
             dec.setflags(write=False)
             self._cache[(level, *t)] = (dec, need[t])
-            self._cache.move_to_end((level, *t))  # when it replaces a shorter decode
         self.tiles_decoded += len(decoded)
         while len(self._cache) > self.cache_tiles:
-            self._cache.popitem(last=False)
-        for t, dec in held.items():
-            place(t, dec)
+            self._evicted.append(self._cache.popitem(last=False)[1][0])
         return out
 
 

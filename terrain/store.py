@@ -133,6 +133,7 @@ class TerrainStore:
                                        self._blob_getter(r.index), cache_tiles=cache_tiles)
                          for r in self.regions]
         self._class_cache: OrderedDict = OrderedDict()
+        self._uniform_classes: dict[int, np.ndarray] = {}  # class -> a read-only tile of it
         self._block_cache: OrderedDict = OrderedDict()
         self._viewers: dict = {}  # key -> (lat, lon) of every view reading this store
         self._cache_tiles = cache_tiles
@@ -190,9 +191,10 @@ class TerrainStore:
         """(heights_m float64, classes uint8) of a block of a level's lattice, inside the
         region's rectangle for that level (rows north to south)."""
         with self._lock:
-            units = self._readers[region.index].decode_region(level, row_a, row_b, col_a, col_b)
+            heights = self._readers[region.index].decode_region(level, row_a, row_b, col_a, col_b,
+                                                                scale=self.unit_m)
             classes = self._classes(region, level, row_a, row_b, col_a, col_b)
-        return units * self.unit_m, classes
+        return heights, classes
 
     def raster(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float,
                region: Region | None = None) -> Raster | None:
@@ -306,19 +308,21 @@ class TerrainStore:
         return out
 
     def _decode_classes(self, region: int, level: int, ti: int, tj: int) -> np.ndarray:
-        _, blob = self._read_tile(region, level, ti, tj)
-        T = self.tile
-        if len(blob) == 0:
-            return np.full((T, T), CLASS_MEASURED, np.uint8)
-        if len(blob) == 1:
-            return np.full((T, T), blob[0], np.uint8)
-        return np.frombuffer(self._dctx.decompress(blob), np.uint8).reshape(T, T)
+        blob = self._read_tile(region, level, ti, tj, classes=True)
+        if len(blob) <= 1:  # every post of one class: one shared read-only tile per class
+            value = CLASS_MEASURED if len(blob) == 0 else blob[0]
+            tile = self._uniform_classes.get(value)
+            if tile is None:
+                tile = self._uniform_classes[value] = np.full((self.tile, self.tile), value, np.uint8)
+                tile.setflags(write=False)
+            return tile
+        return np.frombuffer(self._dctx.decompress(blob), np.uint8).reshape(self.tile, self.tile)
 
     # ------------------------------------------------------------------ files
 
     def _blob_getter(self, region: int):
         def get(level, ti, tj):
-            return self._read_tile(region, level, ti, tj)[0]
+            return self._read_tile(region, level, ti, tj, classes=False)
         return get
 
     def _level_index(self, region: int, level: int):
@@ -345,7 +349,8 @@ class TerrainStore:
             self._files[key] = f
         return hit
 
-    def _read_tile(self, region: int, level: int, ti: int, tj: int) -> tuple[bytes, bytes]:
+    def _read_tile(self, region: int, level: int, ti: int, tj: int, classes: bool) -> bytes:
+        """One tile's height blob, or its class blob when ``classes``."""
         with self._lock:
             entries, lookup = self._level_index(region, level)
             i = lookup.get((ti, tj))
@@ -354,17 +359,19 @@ class TerrainStore:
                                       f"({ti}, {tj})")
             e = entries[i]
             f = self._files[(region, level)]
-            f.seek(int(e["offset"]))
-            data = f.read(int(e["hlen"]) + int(e["clen"]))
-            if len(data) != int(e["hlen"]) + int(e["clen"]):
+            offset, size = (int(e["offset"]) + int(e["hlen"]), int(e["clen"])) if classes \
+                else (int(e["offset"]), int(e["hlen"]))
+            f.seek(offset)
+            data = f.read(size)
+            if len(data) != size:
                 raise DataFormatError(f"terrain store {self.path}: tile ({ti}, {tj}) of level {level} is truncated")
-            return data[:int(e["hlen"])], data[int(e["hlen"]):]
+            return data
 
     def stored_bytes(self) -> int:
         return sum(p.stat().st_size for p in self.path.rglob("*.tiles"))
 
     def cache_tiles_held(self) -> int:
-        return sum(len(r._cache) for r in self._readers)
+        return sum(len(r.cached()) for r in self._readers)
 
     def set_viewer(self, key, lat: float, lon: float) -> None:
         """Where one view (a clipmap, a bot's camera) now is; ``retain_near`` keeps the cells
@@ -394,18 +401,15 @@ class TerrainStore:
         evicted = 0
         with self._lock:
             for reader in self._readers:
-                for key in list(reader._cache):
-                    level, ti, tj = key
-                    if (level, ti, tj % (self.cols_per_turn(level) // self.tile)) not in keep:
-                        del reader._cache[key]
-                        evicted += 1
+                evicted += reader.evict([(level, ti, tj) for level, ti, tj in reader.cached()
+                                         if (level, ti, tj % (self.cols_per_turn(level) // self.tile)) not in keep])
         return evicted
 
     def clear_cache(self) -> None:
         """Forget every decoded tile, class tile and block (benchmarks; memory pressure)."""
         with self._lock:
             for reader in self._readers:
-                reader._cache.clear()
+                reader.evict()
             self._class_cache.clear()
             self._block_cache.clear()
 

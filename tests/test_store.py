@@ -47,7 +47,7 @@ def test_lossless_round_trip_is_bit_exact_on_real_dems(path):
     rects, _, reader = _pyramid(v, 1)
     r = rects[0]
     dec = reader.decode_region(0, 0, v.shape[0], 0, v.shape[1])
-    assert dec.dtype == np.int64
+    assert dec.dtype == np.int32
     assert np.array_equal(dec, v)
     assert len(rects) >= 3 and r.rows % 64 == 0
 
@@ -98,7 +98,34 @@ def test_roi_decode_equals_full_decode_cropped():
         roi = fresh.decode_region(k, a, b, c, d)
         assert np.array_equal(roi, whole[a - rect.row0:b - rect.row0, c - rect.col0:d - rect.col0])
         # Decoding a small region touches few tiles, never the finer levels.
-        assert all(key[0] >= k for key in fresh._cache)
+        assert all(key[0] >= k for key in fresh.cached())
+
+
+def test_tiny_cache_recycles_tile_arrays_without_corrupting_regions():
+    """Tiles evicted (even in the middle of a decode, while a finer level holds cached tiles
+    it has yet to copy out) give their arrays to later tiles: every region still equals the
+    full decode cropped, and regions returned earlier are never written again."""
+    v = _dem_units(CANYON)
+    rects, blobs, full = _pyramid(v, 4)
+    wholes = [full.decode_region(k, r.row0, r.row1, r.col0, r.col1) for k, r in enumerate(rects)]
+    small = hc.PyramidReader(rects, 64, 4, lambda l, i, j: blobs[(l, i, j)], cache_tiles=3)
+    rng = np.random.default_rng(11)
+    kept = []
+    for _ in range(60):
+        k = int(rng.integers(0, 2))
+        rect = rects[k]
+        a = int(rng.integers(rect.row0, rect.row1 - 1))
+        c = int(rng.integers(rect.col0, rect.col1 - 1))
+        b = int(rng.integers(a + 1, min(rect.row1, a + 200) + 1))
+        d = int(rng.integers(c + 1, min(rect.col1, c + 200) + 1))
+        roi = small.decode_region(k, a, b, c, d)
+        want = wholes[k][a - rect.row0:b - rect.row0, c - rect.col0:d - rect.col0]
+        assert np.array_equal(roi, want)
+        kept.append((roi, roi.copy()))
+        metres = small.decode_region(k, a, b, c, d, scale=0.01)
+        assert metres.dtype == np.float64 and np.array_equal(metres, want * 0.01)
+    assert len(small.cached()) <= 3 and small.tiles_decoded > 60
+    assert all(np.array_equal(roi, copy) for roi, copy in kept)
 
 
 def test_roi_outside_the_level_is_refused():
@@ -466,13 +493,13 @@ def test_views_sharing_a_store_keep_each_others_cells(canyon_store):
     store.decode(region, 0, rect.row1 - 16, rect.row1, rect.col1 - 16, rect.col1)
     store.set_viewer("view b", float(b[0]), float(b[1]))
     store.retain_near([(float(a[0]), float(a[1]))], 1.0)
-    held = {k[1:] for r in store._readers for k in r._cache if k[0] == 0}
+    held = {k[1:] for r in store._readers for k in r.cached() if k[0] == 0}
     T = store.tile
     assert ((rect.row1 - 1) // T, (rect.col1 - 1) // T) in held  # b's cell, kept for the registered view
     assert (rect.row0 // T, rect.col0 // T) in held  # a's cell
     store.forget_viewer("view b")
     store.retain_near([(float(a[0]), float(a[1]))], 1.0)
-    held = {k[1:] for r in store._readers for k in r._cache if k[0] == 0}
+    held = {k[1:] for r in store._readers for k in r.cached() if k[0] == 0}
     assert ((rect.row1 - 1) // T, (rect.col1 - 1) // T) not in held
 
 
