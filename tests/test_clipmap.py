@@ -302,3 +302,29 @@ def test_land_classes_colour_the_terrain(alps):
     # Forest green (40, 80, 38) dominates lit forest pixels: green well above red and blue.
     g = frames[True][ground]
     assert np.mean((g[:, 1] > g[:, 0] + 15) & (g[:, 1] > g[:, 2] + 15)) > 0.2
+
+
+@pytest.mark.parametrize("i0, j0, i1, j1", [(0, 0, 126, 126), (-37, 12, 89, 140), (3, -5, 60, 33), (2, 4, 63, 64)])
+def test_border_segments_cover_every_border_cell_from_even_posts(i0, j0, i1, j1):
+    """The zero-area border triangles (GPU Gems 2 ch. 2) span every cell of the region's outer
+    rows and columns on even lattice lines (but at most one at an odd start), each segment
+    starting at an even lattice post; borders on odd lines get none."""
+    from client.render.clipmap_layer import BLOCK, border_segments
+
+    region = Rect(i0, j0, i1, j1)
+    rows, cols = border_segments(region)
+    h, w = i1 - i0, j1 - j0
+    for seg in rows:
+        assert seg[0] == seg[2] and seg[0] in (0, h)
+        assert (j0 + seg[1]) % 2 == 0 and seg[3] - seg[1] <= BLOCK
+    for seg in cols:
+        assert seg[1] == seg[3] and seg[1] in (0, w)
+        assert (i0 + seg[0]) % 2 == 0 and seg[2] - seg[0] <= BLOCK
+    covered = {(s[0], j) for s in rows for j in range(s[1], s[3])}
+    for i in (0, h):
+        line = {(i, j) for j in range(j0 % 2, w)}
+        assert line <= covered if (i0 + i) % 2 == 0 else not (line & covered)
+    covered = {(i, s[1]) for s in cols for i in range(s[0], s[2])}
+    for j in (0, w):
+        line = {(i, j) for i in range(i0 % 2, h)}
+        assert line <= covered if (j0 + j) % 2 == 0 else not (line & covered)

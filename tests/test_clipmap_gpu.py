@@ -49,7 +49,7 @@ import pytest
 
 from client.render.camera import Camera
 from client.render.clipmap import Rect, blocks, ring_rects
-from client.render.clipmap_layer import BLOCK, MORPH_WIDTH_FRACTION, VERTEX_SHADER, clipmap_factory
+from client.render.clipmap_layer import BLOCK, MORPH_WIDTH_FRACTION, VERTEX_SHADER, clipmap_factory, shader_variant
 from client.render.gl import check_gl_error
 from client.render.renderer import Renderer
 from terrain.geodesy import radii_of_curvature
@@ -81,7 +81,7 @@ class Capture:
         self.r = renderer
         ctx = renderer.ctx
         with ctx:
-            self.program = ctx.program(vertex_shader=VERTEX_SHADER, varyings=list(self.VARYINGS))
+            self.program = ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, False), varyings=list(self.VARYINGS))
             r, c = np.meshgrid(np.arange(BLOCK + 1), np.arange(BLOCK + 1), indexing="ij")
             self.cells = np.stack([r.ravel(), c.ravel()], -1).astype(np.int32)  # (V, 2) (row, column)
             self.grid = ctx.buffer(self.cells.tobytes())
@@ -91,10 +91,12 @@ class Capture:
             self.grid.release()
             self.program.release()
 
-    def levels(self, cull: bool = True) -> dict:
+    def levels(self, cull: bool = True, overrides: dict | None = None) -> dict:
         """{k: dict(G (m, 2) int64 lattice (i, j), world (m, 3) float64 local ENU from the shader's float32,
         height (m,), alpha (m,), view (m, 3) view-space x, y, z from gl_Position)} of the last frame's
-        plan, one record per lattice vertex (duplicates at block seams dropped)."""
+        plan, one record per lattice vertex (duplicates at block seams dropped), and "blocks" (the
+        level's blocks drawn, or every block of its ring when not ``cull``). ``overrides``: uniforms
+        set over the layer's own."""
         layer = self.r.terrain_layer
         draws = layer.draws
         drawn = {d.k for d in draws}
@@ -109,11 +111,12 @@ class Capture:
                     blk = blocks(ring_rects(d.region, hole_k), BLOCK)
                 if len(blk) == 0:
                     continue
-                out[d.k] = self._level(d, blk, d.k + 1 in drawn)
+                out[d.k] = self._level(d, blk, d.k + 1 in drawn, overrides or {})
+                out[d.k]["blocks"] = blk
             check_gl_error(self.r.ctx, "transform feedback capture")
         return out
 
-    def _level(self, d, blk: np.ndarray, coarse: bool) -> dict:
+    def _level(self, d, blk: np.ndarray, coarse: bool, overrides: dict) -> dict:
         """Set the uniforms ClipmapLayer.draw sets for level d.k, and capture its vertices."""
         import moderngl
 
@@ -121,7 +124,7 @@ class Capture:
         origin, cam = layer.origin, self.last_camera
         layer.set_uniforms(p, {"u_view": cam.view_matrix(origin).T.astype("f4").tobytes(),
                                "u_projection": cam.projection(self.r.width, self.r.height).T.astype("f4").tobytes(),
-                               **layer.level_uniforms(d, coarse)})
+                               **layer.level_uniforms(d, coarse), **overrides})
         r = d.region
         layer._tex[d.k][0].use(0)
         if coarse:
@@ -333,6 +336,38 @@ def test_no_cracks_when_finer_levels_lag_behind(alps):
         try:
             cap.render(CRACK_CAMERA)
             check_border_gaps(r, cap, JUMPED_CAMERA, lagging=True)
+        finally:
+            cap.release()
+
+
+@pytest.mark.parametrize("alpha_h", [None, 1.0])
+def test_culling_boxes_hold_every_vertex_of_their_blocks(alps, alpha_h):
+    """Every vertex the shader makes of a block, unmorphed, as drawn (None) or fully morphed
+    (alpha_h = 1), lies inside the block's culling box (clipmap_layer.block_bounds), on a
+    settled clipmap and on one whose finer levels lag behind and are cropped."""
+    from client.render.clipmap_layer import block_bounds
+
+    with Renderer(alps, W, H, terrain_layer_factory=clipmap_factory(alps, levels=6, n=63, budget=30_000)) as r:
+        cap = Capture(r)
+        try:
+            for camera in (CRACK_CAMERA, JUMPED_CAMERA):
+                cap.render(camera)
+                layer = r.terrain_layer
+                c = layer.clipmap
+                drawn = {d.k for d in layer.draws}
+                got = cap.levels(cull=False, overrides=None if alpha_h is None else {"u_alpha_h": alpha_h})
+                assert len(got) >= 4
+                for k, v in got.items():
+                    blk = v["blocks"]
+                    coarse = c.levels[k + 1] if k + 1 in drawn else None
+                    lo, hi = block_bounds(blk, c.levels[k], coarse, c.n, layer.origin)
+                    G, world = v["G"], v["world"]
+                    inside = ((blk[:, None, 0] <= G[None, :, 0]) & (G[None, :, 0] <= blk[:, None, 2])
+                              & (blk[:, None, 1] <= G[None, :, 1]) & (G[None, :, 1] <= blk[:, None, 3]))
+                    assert inside.any(axis=0).all()
+                    b, vtx = np.nonzero(inside)
+                    out = np.maximum(lo[b] - world[vtx], world[vtx] - hi[b]).max(axis=1)
+                    assert out.max() <= 0.0, (k, out.max())
         finally:
             cap.release()
 

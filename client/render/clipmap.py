@@ -188,6 +188,7 @@ class LevelStore:
     normal: np.ndarray = None  # (2n, 2n, 4) float16: unit normal (ECEF axes), 0
     h_min: float = math.inf
     h_max: float = -math.inf
+    version: int = 0  # counts the writes to the storage (culling bounds are cached against it)
 
     def __post_init__(self):
         self.pos_ecef = np.zeros((self.n, self.n, 3))
@@ -468,6 +469,7 @@ class Clipmap:
             uploads.append(Upload(level.k, "texel", 0, 0, n, n))
         hs = level.texel[..., 3]
         level.h_min, level.h_max = float(hs.min()), float(hs.max())
+        level.version += 1
         self.stats.levels_moved += 1
         return uploads
 

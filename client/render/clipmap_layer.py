@@ -11,11 +11,16 @@ pieces, and one vertex shader that displaces a small grid block per instance
   tiled by BLOCK x BLOCK-cell blocks; one static (BLOCK + 1)^2 vertex grid is
   drawn once per visible block (instancing), each vertex clamped to its
   block's rectangle (cells beyond it collapse to nothing).
-- **Culling** (§3.1.6). A block is drawn unless its bounding box — its corner
-  posts, padded by the level's height range and the Earth's bulge over the
-  block — lies wholly outside one side of the view frustum or behind the
-  camera (the box's 8 corners against the clip-space planes, every block at
-  once in numpy).
+- **Culling** (§3.1.6). A block is drawn unless its bounding box lies wholly
+  outside one side of the view frustum or behind the camera (the box's 8
+  corners against the clip-space planes, every block at once in numpy). The
+  box is the local-ENU box of every post the block's vertices can take: its
+  own posts and, when it morphs, the coarser level's posts under it (a
+  morphed vertex is an average of those), so it holds every vertex for any
+  alpha, whatever the curvature; computed when the level's or the coarser
+  level's storage changes, not every frame. (The first version padded the
+  corner posts by the level's whole height range: every block of a mountain
+  level was kilometres taller and wider than its ground.)
 - **Geomorphing** (§3.1.5, §3.2.1, §3.2.2). Each vertex also fetches the
   coarser level's posts around it — the post itself (even, even), the two
   ends of its coarse edge (one index odd) or the four corners of its coarse
@@ -73,7 +78,7 @@ from client.render.shading import GLSL_COMMON, Frame
 from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
 from terrain.texture import CLASS_COLOURS_RGB, N_CLASSES
 from sortie.errors import InvalidArgument
-from terrain.geodesy import WGS84_A_M, ecef_to_geodetic
+from terrain.geodesy import ecef_to_geodetic
 
 BLOCK = 16  # cells a side of an instanced block
 MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
@@ -85,6 +90,9 @@ DETAIL_TILE_M = 1024.0  # texture coordinates are ECEF modulo this; every period
 DETAIL_PERIODS_M = (128.0, 32.0, 8.0)  # the detail tilings, coarse to fine
 DETAIL_TEXTURE_SIZE = 256
 DETAIL_STRENGTH = 0.3  # 0: no detail; the masks' weight scale
+# A border triangle's fragments lie 1e-5 of their distance behind its provoking vertex
+# (reversed-Z: depth near/d), so where a level's own surface is drawn too it wins.
+BORDER_DEPTH_SCALE = 1.0 - 1e-5
 
 VERTEX_SHADER = """#version 330 core
 uniform sampler2D u_fine;        // level k: offset from its origin (ECEF axes) + height MSL
@@ -106,13 +114,16 @@ uniform mat4 u_view;
 uniform mat4 u_projection;
 in ivec2 in_cell;                // (row, column) in the block grid, 0..BLOCK
 in ivec4 in_block;               // (i0, j0, i1, j1) posts, relative to u_base
-out vec3 v_world;
-out float v_height;
-out vec2 v_nuv_fine;
-out vec2 v_nuv_coarse;
-out float v_alpha;
-out vec3 v_up;
-out vec3 v_ecef_mod;
+VARYING out vec3 v_world;
+VARYING out float v_height;
+VARYING out vec2 v_nuv_fine;
+VARYING out vec2 v_nuv_coarse;
+VARYING out float v_alpha;
+VARYING out vec3 v_up;
+VARYING out vec3 v_ecef_mod;
+#ifdef BORDER
+flat out float v_depth;          // the provoking vertex's window depth
+#endif
 uniform vec3 u_origin_mod;       // renderer origin ECEF modulo the detail tile, metres
 
 int pmod(int a, int m) { return a - m * int(floor(float(a) / float(m))); }
@@ -160,6 +171,9 @@ void main() {
     v_ecef_mod = u_origin_mod + transpose(u_rot) * v_world;
     v_up = u_rot * normalize(vec3(e.x, e.y, e.z * %(E2)r));
     gl_Position = u_projection * (u_view * vec4(v_world, 1.0));
+#ifdef BORDER
+    v_depth = gl_Position.z / gl_Position.w;  // reversed-Z, NDC depth [0, 1] is the window depth
+#endif
 }
 """ % {"E2": E2_COMPLEMENT_INV}
 
@@ -172,13 +186,16 @@ uniform int u_has_coarse;
 uniform float u_detail_strength;
 uniform int u_classes;           // land classes in the normal maps' fourth channel (terrain/texture.py)
 uniform vec3 u_class_colour[%(N_CLASSES)d];
-in vec3 v_world;
-in float v_height;
-in vec2 v_nuv_fine;
-in vec2 v_nuv_coarse;
-in float v_alpha;
-in vec3 v_up;
-in vec3 v_ecef_mod;
+VARYING in vec3 v_world;
+VARYING in float v_height;
+VARYING in vec2 v_nuv_fine;
+VARYING in vec2 v_nuv_coarse;
+VARYING in float v_alpha;
+VARYING in vec3 v_up;
+VARYING in vec3 v_ecef_mod;
+#ifdef BORDER
+flat in float v_depth;
+#endif
 out vec4 out_colour;
 const vec3 PERIODS = vec3%(PERIODS)s;
 
@@ -229,8 +246,23 @@ void main() {
         }
     }
     out_colour = vec4(c, 1.0);
+#ifdef BORDER
+    gl_FragDepth = v_depth * BORDER_DEPTH_SCALE;
+#endif
 }
 """ % {"PERIODS": str(DETAIL_PERIODS_M), "N_CLASSES": N_CLASSES}
+
+
+def shader_variant(source: str, border: bool) -> str:
+    """The clipmap's shader source for the level draws, or (border) for the zero-area border
+    triangles: their varyings flat (the provoking vertex's, the border's odd post) and their
+    depth that vertex's, a hair farther (BORDER_DEPTH_SCALE). A zero-area triangle's plane
+    equations are ill-conditioned: interpolated, its few covered pixels took depths and
+    attributes from anywhere (screen errors of thousands of pixels on llvmpipe)."""
+    head, rest = source.split("\n", 1)
+    defines = ("#define BORDER\n#define VARYING flat\n#define BORDER_DEPTH_SCALE %r\n" % BORDER_DEPTH_SCALE
+               if border else "#define VARYING\n")
+    return head + "\n" + defines + rest
 
 
 def detail_texture(size: int = DETAIL_TEXTURE_SIZE, seed: int = 7) -> np.ndarray:
@@ -270,18 +302,37 @@ def block_grid(size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
     return verts, tris
 
 
-def visible_blocks(blk: np.ndarray, level, clipmap: Clipmap, origin: LocalOrigin, view_proj: np.ndarray) -> np.ndarray:
-    """Mask of blocks (m, 4) whose padded bounding box may be in the view frustum (module docstring)."""
+# Culling boxes are padded by this (metres) plus BOX_PAD_RELATIVE of the block's distance from
+# the origin: float32 vertex offsets round to ~6e-8 of their level's extent.
+BOX_PAD_M = 1.0
+BOX_PAD_RELATIVE = 1e-6
+
+
+def block_bounds(blk: np.ndarray, level, coarse, n: int, origin: LocalOrigin) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (m, 3) local-ENU boxes of blocks (m, 4) of a level: over the block's own posts
+    (clamped to the block as the vertex shader clamps them) and, when ``coarse`` (the coarser
+    level's storage) is given, the coarser posts under the block, the morph targets' corners."""
     if len(blk) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    off = np.arange(BLOCK + 1)
+    rows = np.minimum(blk[:, :1] + off, blk[:, 2:3]) % n  # (m, BLOCK + 1)
+    cols = np.minimum(blk[:, 1:2] + off, blk[:, 3:4]) % n
+    pts = origin.to_local(level.pos_ecef[rows[:, :, None], cols[:, None, :]]).reshape(len(blk), -1, 3)
+    lo, hi = pts.min(axis=1), pts.max(axis=1)
+    if coarse is not None:
+        half = np.arange(BLOCK // 2 + 2)
+        rows = np.minimum(blk[:, :1] // 2 + half, -(-blk[:, 2:3] // 2)) % n
+        cols = np.minimum(blk[:, 1:2] // 2 + half, -(-blk[:, 3:4] // 2)) % n
+        pts = origin.to_local(coarse.pos_ecef[rows[:, :, None], cols[:, None, :]]).reshape(len(blk), -1, 3)
+        lo, hi = np.minimum(lo, pts.min(axis=1)), np.maximum(hi, pts.max(axis=1))
+    pad = BOX_PAD_M + BOX_PAD_RELATIVE * np.linalg.norm(lo + hi, axis=1) / 2.0
+    return lo - pad[:, None], hi + pad[:, None]
+
+
+def visible_blocks(lo: np.ndarray, hi: np.ndarray, view_proj: np.ndarray) -> np.ndarray:
+    """Mask of the blocks whose boxes (lo, hi) (m, 3), local ENU, may be in the view frustum."""
+    if len(lo) == 0:
         return np.zeros(0, bool)
-    n = clipmap.n
-    corners = np.stack([blk[:, [0, 1]], blk[:, [0, 3]], blk[:, [2, 1]], blk[:, [2, 3]]], 1)  # (m, 4, 2) posts
-    p = level.pos_ecef[corners[..., 0] % n, corners[..., 1] % n]  # (m, 4, 3)
-    local = origin.to_local(p)
-    lo, hi = local.min(axis=1), local.max(axis=1)
-    span = np.linalg.norm(local[:, 3] - local[:, 0], axis=1)
-    pad = (level.h_max - level.h_min) + span * span / (8.0 * WGS84_A_M) + 1.0
-    lo, hi = lo - pad[:, None], hi + pad[:, None]
     box = np.stack([np.stack([np.where(k & 1, hi[:, 0], lo[:, 0]), np.where(k & 2, hi[:, 1], lo[:, 1]),
                               np.where(k & 4, hi[:, 2], lo[:, 2])], -1) for k in range(8)], 1)  # (m, 8, 3)
     clip = np.concatenate([box, np.ones((*box.shape[:2], 1))], -1) @ view_proj.T  # (m, 8, 4)
@@ -324,7 +375,10 @@ class ClipmapLayer:
         self.focus_lat_lon = focus_lat_lon  # None: the camera's position
         self.insets = list(insets)  # terrain.inset.InsetSource: the clipmap is lowered beneath them
         self.land_classes = bool(land_classes)  # base colour from terrain/texture.py's land classes
-        self.program = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER)
+        self.program = ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, False),
+                                   fragment_shader=shader_variant(FRAGMENT_SHADER, False))
+        self._border_program = ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, True),
+                                           fragment_shader=shader_variant(FRAGMENT_SHADER, True))
         verts, tris = block_grid()
         self._grid_vbo = ctx.buffer(verts.tobytes())
         self._grid_ibo = ctx.buffer(tris.tobytes())
@@ -333,12 +387,29 @@ class ClipmapLayer:
         self._vao = ctx.vertex_array(self.program, [(self._grid_vbo, "2i", "in_cell"),
                                                     (self._inst, "4i/i", "in_block")],
                                      index_buffer=self._grid_ibo, index_element_size=4)
+        # Zero-area triangles along each level's outer border (GPU Gems 2 ch. 2): (even, even, odd)
+        # posts of a border row or column, which the morph puts on the coarser level's edge; drawn,
+        # they fill the float32 slivers of the T-junctions there. The odd post is the provoking
+        # (last) vertex, whose attributes and depth the flat border program takes. One VAO per direction.
+        line = np.arange(BLOCK + 1, dtype=np.int32)
+        zero = np.zeros_like(line)
+        fan = np.array([(j, j + 2, j + 1) for j in range(0, BLOCK - 1, 2)], np.uint32)
+        self._border_ibo = ctx.buffer(fan.tobytes())
+        self._border_vbos = [ctx.buffer(np.stack([zero, line], -1).astype(np.int32).tobytes()),  # along a row
+                             ctx.buffer(np.stack([line, zero], -1).astype(np.int32).tobytes())]  # along a column
+        self._border_inst = ctx.buffer(reserve=16 * 1024)
+        self._border_vaos = [ctx.vertex_array(self._border_program,
+                                              [(vbo, "2i", "in_cell"), (self._border_inst, "4i/i", "in_block")],
+                                              index_buffer=self._border_ibo, index_element_size=4)
+                             for vbo in self._border_vbos]
+        self.border_triangles = True  # False: draw without them (tests, the bench's comparison)
         self._tex: list = []  # per level: (texel texture, normal texture)
         self.detail_strength = DETAIL_STRENGTH
         self._detail = ctx.texture((DETAIL_TEXTURE_SIZE, DETAIL_TEXTURE_SIZE), 4, detail_texture().tobytes())
         self._detail.repeat_x = self._detail.repeat_y = True
         self._detail.build_mipmaps()
         self.draws: list[LevelDraw] = []
+        self._bounds: dict[int, tuple] = {}  # level -> (key, lo, hi): its ring's blocks' culling boxes
         self.triangles = self.vertices = 0
         self.update_ms = 0.0
         self.rebuilds = 0
@@ -449,7 +520,13 @@ class ClipmapLayer:
             hole = regions.get(k - 1)
             hole_k = None if hole is None else Rect(hole.i0 // 2, hole.j0 // 2, hole.i1 // 2, hole.j1 // 2)
             blk = blocks(ring_rects(regions[k], hole_k), BLOCK)
-            blk = blk[visible_blocks(blk, c.levels[k], c, self.origin, view_proj)]
+            coarse = c.levels[k + 1] if k + 1 in regions else None
+            key = (regions[k], hole_k, c.levels[k].version, None if coarse is None else coarse.version,
+                   self.origin.ecef.tobytes())
+            bounds = self._bounds.get(k)
+            if bounds is None or bounds[0] != key:
+                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin))
+            blk = blk[visible_blocks(bounds[1], bounds[2], view_proj)]
             cells = int(((blk[:, 2] - blk[:, 0]) * (blk[:, 3] - blk[:, 1])).sum())
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
             out.append(LevelDraw(k, regions[k], alpha_h, blk, cells))
@@ -493,13 +570,14 @@ class ClipmapLayer:
         if self.clipmap is None:
             return
         self.draws = self.plan(frame)
-        p = self.program
-        frame.write_common(p)
-        p["u_detail_strength"].value = float(self.detail_strength)
-        if "u_classes" in p:
-            p["u_classes"].value = int(self.land_classes)
-            if self.land_classes:
-                p["u_class_colour"].write((np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes())
+        p, bp = self.program, self._border_program
+        for prog in (p, bp):
+            frame.write_common(prog)
+            prog["u_detail_strength"].value = float(self.detail_strength)
+            if "u_classes" in prog:
+                prog["u_classes"].value = int(self.land_classes)
+                if self.land_classes:
+                    prog["u_class_colour"].write((np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes())
         self._detail.use(4)
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
@@ -508,7 +586,8 @@ class ClipmapLayer:
             if len(d.blocks) == 0:
                 continue
             coarse = d.k + 1 in drawn
-            self.set_uniforms(p, self.level_uniforms(d, coarse))
+            uniforms = self.level_uniforms(d, coarse)
+            self.set_uniforms(p, uniforms)
             self._tex[d.k][0].use(0)
             self._tex[d.k][1].use(2)
             if coarse:
@@ -522,6 +601,18 @@ class ClipmapLayer:
             self._vao.render(moderngl.TRIANGLES, instances=len(d.blocks))
             self.triangles += 2 * d.cells
             self.vertices += len(d.blocks) * (BLOCK + 1) ** 2
+            if coarse and self.border_triangles:
+                self.set_uniforms(bp, uniforms)
+                self.ctx.disable(moderngl.CULL_FACE)  # zero-area: either winding
+                for vao, segments in zip(self._border_vaos, border_segments(r)):
+                    if len(segments):
+                        data = segments.astype(np.int32).tobytes()
+                        if len(data) > self._border_inst.size:
+                            self._border_inst.orphan(len(data) * 2)
+                        self._border_inst.write(data)
+                        vao.render(moderngl.TRIANGLES, instances=len(segments))
+                        self.triangles += len(segments) * (BLOCK // 2)
+                self.ctx.enable(moderngl.CULL_FACE)
         self.ctx.disable(moderngl.CULL_FACE)
         check_gl_error(self.ctx, "clipmap draw")
 
@@ -530,9 +621,32 @@ class ClipmapLayer:
         for t, nm in self._tex:
             t.release()
             nm.release()
-        for obj in (self._vao, self._inst, self._grid_vbo, self._grid_ibo, self.program):
+        for obj in (self._vao, self._inst, self._grid_vbo, self._grid_ibo, *self._border_vaos,
+                    *self._border_vbos, self._border_ibo, self._border_inst, self.program, self._border_program):
             obj.release()
         self._tex = []
+
+
+def border_segments(region: Rect) -> tuple[np.ndarray, np.ndarray]:
+    """Instances (i0, j0, i1, j1), relative to the region's first post, of the zero-area border
+    triangles of a drawn region: along its first and last rows (segments of BLOCK cells starting
+    at even lattice columns), then along its first and last columns. Only borders on an even
+    lattice row (column) get them: there the morphed border posts lie on the coarser level's
+    edges; a border on an odd one (a lagging level cropped inside the coarser) has no such edge,
+    and a triangle there would stand out of the surface."""
+    rows_out, cols_out = [], []
+    h, w = region.i1 - region.i0, region.j1 - region.j0
+    first_j = region.j0 & 1  # relative offset of the first even lattice column
+    first_i = region.i0 & 1
+    for i in (0, h):
+        if (region.i0 + i) & 1 == 0:
+            for j in range(first_j, w, BLOCK):
+                rows_out.append((i, j, i, min(j + BLOCK, w)))
+    for j in (0, w):
+        if (region.j0 + j) & 1 == 0:
+            for i in range(first_i, h, BLOCK):
+                cols_out.append((i, j, min(i + BLOCK, h), j))
+    return (np.array(rows_out, np.int32).reshape(-1, 4), np.array(cols_out, np.int32).reshape(-1, 4))
 
 
 def clipmap_factory(terrain, **kw):
