@@ -240,6 +240,9 @@ class Aircraft:
         self.name = catalog.resolve(name)
         self.aircraft_class = catalog.aircraft_class(self.name)
         self.terrain = terrain
+        # One point at a time without the batch path's arrays (Terrain.height_at), where offered.
+        self._height_at = getattr(terrain, "height_at", None)
+        self._one_height = np.zeros(1)
         self.dt = float(dt)
         self.geoid_undulation_m = float(geoid_undulation_m)
         self.max_penetration_m = float(max_penetration_m)
@@ -337,6 +340,10 @@ class Aircraft:
         self._nz_max = self._detector_limits.nz_max_g
 
     def _terrain_msl_m(self, lat_deg, lon_deg) -> np.ndarray:
+        if len(lat_deg) == 1 and self._height_at is not None:  # the refresh far from the ground
+            h = self._height_at(float(lat_deg[0]), float(lon_deg[0]))
+            self._one_height[0] = 0.0 if math.isnan(h) else h
+            return self._one_height
         return terrain_msl_m(self.terrain, lat_deg, lon_deg)
 
     def _contact_terrain(self, lat, lon, alt_m, cg_in, phi, theta, psi, ahead_ned):

@@ -63,6 +63,27 @@ def test_outside_nan_holes_and_priority():
     assert res.status[2] == STATUS_OUTSIDE and np.isnan(res.height_msl_m[2])
 
 
+def test_height_at_is_heights_for_one_point():
+    """The one-point path answers what the batch path answers, bit for bit: inside, on a
+    hole, outside (NaN), with several sources (priority), and refuses what heights() refuses."""
+    a = _raster(seed=1)
+    hole = np.array(a.heights)
+    hole[10, 10] = np.nan
+    one, two = Terrain([Raster(hole, a.georef)]), Terrain([Raster(hole, a.georef), _raster(seed=2)])
+    rng = np.random.default_rng(3)
+    lat = np.concatenate([rng.uniform(46.99, 47.03, 300), [47.0 + 10 / 1200, 10.0, 47.01]])
+    lon = np.concatenate([rng.uniform(8.99, 9.04, 300), [9.0 + 10 / 1200, 10.0, 369.01]])
+    for t in (one, two):
+        want = t.heights(lat, lon).height_msl_m
+        got = np.array([t.height_at(float(a_), float(b_)) for a_, b_ in zip(lat, lon)])
+        assert np.array_equal(got, want, equal_nan=True)
+    assert np.isnan(one.height_at(47.0 + 10 / 1200, 9.0 + 10 / 1200))
+    assert not np.isnan(two.height_at(47.0 + 10 / 1200, 9.0 + 10 / 1200))
+    for lat_, lon_, field in ((91.0, 9.0, "lat"), (47.0, float("nan"), "lon"), (float("inf"), 9.0, "lat")):
+        with pytest.raises(InvalidArgument, match=field):
+            one.height_at(lat_, lon_)
+
+
 def test_filled_status():
     r = _raster()
     filled = np.zeros(r.shape, bool)
