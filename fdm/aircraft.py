@@ -240,9 +240,9 @@ class Aircraft:
         self.name = catalog.resolve(name)
         self.aircraft_class = catalog.aircraft_class(self.name)
         self.terrain = terrain
-        # One point at a time without the batch path's arrays (Terrain.height_at), where offered.
+        # Queries without the batch path's arrays (Terrain.height_at / heights_of), where offered.
         self._height_at = getattr(terrain, "height_at", None)
-        self._one_height = np.zeros(1)
+        self._heights_of = getattr(terrain, "heights_of", None) if self._height_at is not None else None
         self.dt = float(dt)
         self.geoid_undulation_m = float(geoid_undulation_m)
         self.max_penetration_m = float(max_penetration_m)
@@ -334,16 +334,23 @@ class Aircraft:
         self._q_lat = np.empty(len(contacts) + 1)  # terrain query points of a check step
         self._q_lon = np.empty(len(contacts) + 1)
         self._q_alt = np.empty(len(contacts))  # contact altitudes, m
+        self._terr = np.empty(len(contacts) + 1)  # their terrain heights (see _terrain_msl_m)
         self._structure = np.array([c.kind == "structure" for c in contacts], dtype=bool)
         self._detector_limits = LIMITS[self.aircraft_class]
         self._nz_min = self._detector_limits.nz_min_g
         self._nz_max = self._detector_limits.nz_max_g
 
     def _terrain_msl_m(self, lat_deg, lon_deg) -> np.ndarray:
-        if len(lat_deg) == 1 and self._height_at is not None:  # the refresh far from the ground
-            h = self._height_at(float(lat_deg[0]), float(lon_deg[0]))
-            self._one_height[0] = 0.0 if math.isnan(h) else h
-            return self._one_height
+        """Terrain heights (m MSL; no data is sea level) of the query points; the result may
+        be this aircraft's own buffer, valid until the next query."""
+        if self._heights_of is not None and isinstance(lat_deg, np.ndarray) and lat_deg.size <= self._terr.size:
+            n = lat_deg.size
+            if n == 1:  # the refresh far from the ground
+                h = self._height_at(float(lat_deg[0]), float(lon_deg[0]))
+                self._terr[0] = 0.0 if math.isnan(h) else h
+            else:  # the CG and every contact, near the ground
+                np.copyto(self._terr[:n], 0.0, where=np.isnan(self._heights_of(lat_deg, lon_deg, self._terr[:n])))
+            return self._terr[:n]
         return terrain_msl_m(self.terrain, lat_deg, lon_deg)
 
     def _contact_terrain(self, lat, lon, alt_m, cg_in, phi, theta, psi, ahead_ned):

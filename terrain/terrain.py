@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from terrain.raster import STATUS_OUTSIDE, Raster
-from terrain.validate import LON_ABS_MAX_DEG, check_latlon
+from terrain.validate import LON_ABS_MAX_DEG, latlon_all_valid, check_latlon
 
 
 # Least margin around the endpoints' box when a source builds a raster for rays.
@@ -73,6 +73,24 @@ class Terrain:
         la[0], lo[0], h[0], st[0] = lat, lon, np.nan, STATUS_OUTSIDE
         self.sources[0].heights_into(la, lo, h, st)
         return float(h[0])
+
+    def heights_of(self, lat: np.ndarray, lon: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Heights (m MSL, NaN outside every source) of a few points held in (n,) float64
+        C-contiguous arrays, written into ``out`` (n,) float64 and returned: what
+        :meth:`heights` answers, without its per-call arrays and result object (a host
+        asking a handful of points every step: an aircraft's contacts near the ground).
+        Invalid points raise as :meth:`heights` does."""
+        if len(self.sources) != 1 or not latlon_all_valid(lat, lon, LON_ABS_MAX_DEG):
+            out[:] = self.heights(lat, lon).height_msl_m
+            return out
+        st = getattr(self._one, "status", None)
+        if st is None or st.size < lat.size:
+            st = self._one.status = np.empty(max(lat.size, 64), np.uint8)
+        st = st[:lat.size]
+        st.fill(STATUS_OUTSIDE)
+        out.fill(np.nan)
+        self.sources[0].heights_into(lat, lon, out, st)
+        return out
 
     def heights(self, lat, lon, *, warm: bool = False) -> HeightResult:
         """Bilinear heights (m, MSL) at (lat, lon) degrees, float64 (n,).

@@ -27,7 +27,7 @@ def as_1d_f64(name: str, values) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _latlon_all_valid(lat, lon, lon_abs_max):
+def latlon_all_valid(lat, lon, lon_abs_max):
     """One pass over both arrays: True when every point is finite and in range."""
     ok = True
     for k in range(lat.shape[0]):
@@ -58,7 +58,7 @@ def check_latlon(lat, lon, prefix: str = "", max_points: int | None = None):
         raise InvalidArgument(lon_name, f"must have as many values as {lat_name} ({lat.size}), got {lon.size}")
     if max_points is not None and lat.size > max_points:
         raise LimitExceeded(lat_name, lat.size, max_points)
-    if _latlon_all_valid(lat, lon, LON_ABS_MAX_DEG):
+    if latlon_all_valid(lat, lon, LON_ABS_MAX_DEG):
         return lat, lon
     # Something is wrong: find the first culprit, and name it.
     check_finite(lat_name, lat)

@@ -63,9 +63,10 @@ def test_outside_nan_holes_and_priority():
     assert res.status[2] == STATUS_OUTSIDE and np.isnan(res.height_msl_m[2])
 
 
-def test_height_at_is_heights_for_one_point():
-    """The one-point path answers what the batch path answers, bit for bit: inside, on a
-    hole, outside (NaN), with several sources (priority), and refuses what heights() refuses."""
+def test_height_at_and_heights_of_are_heights():
+    """The one-point and few-point paths answer what the batch path answers, bit for bit:
+    inside, on a hole, outside (NaN), with several sources (priority), and refuse what
+    heights() refuses."""
     a = _raster(seed=1)
     hole = np.array(a.heights)
     hole[10, 10] = np.nan
@@ -77,11 +78,17 @@ def test_height_at_is_heights_for_one_point():
         want = t.heights(lat, lon).height_msl_m
         got = np.array([t.height_at(float(a_), float(b_)) for a_, b_ in zip(lat, lon)])
         assert np.array_equal(got, want, equal_nan=True)
+        for k in range(0, lat.size, 11):  # heights_of, a few points at a time into the caller's array
+            out = np.full(11, 7.0)[:lat[k:k + 11].size]
+            assert t.heights_of(lat[k:k + 11], lon[k:k + 11], out) is out
+            assert np.array_equal(out, want[k:k + 11], equal_nan=True)
     assert np.isnan(one.height_at(47.0 + 10 / 1200, 9.0 + 10 / 1200))
     assert not np.isnan(two.height_at(47.0 + 10 / 1200, 9.0 + 10 / 1200))
     for lat_, lon_, field in ((91.0, 9.0, "lat"), (47.0, float("nan"), "lon"), (float("inf"), 9.0, "lat")):
         with pytest.raises(InvalidArgument, match=field):
             one.height_at(lat_, lon_)
+        with pytest.raises(InvalidArgument, match=field):
+            one.heights_of(np.array([47.0, lat_]), np.array([9.0, lon_]), np.empty(2))
 
 
 def test_filled_status():
