@@ -134,6 +134,16 @@ class Terrain:
 
         warm: as for :meth:`heights`.
         """
+        de, dn, status = self.gradients(lat, lon, warm=warm)
+        normal = np.stack([-de, -dn, np.ones_like(de)], axis=-1)
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        slope = np.degrees(np.arctan(np.hypot(de, dn)))
+        return NormalResult(normal, slope, status)
+
+    def gradients(self, lat, lon, *, warm: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(dh/d east metre, dh/d north metre, status) of the bilinear surface at (lat, lon),
+        float64 (n,) each, NaN where outside: what :meth:`normals` is made from, for callers
+        that build their own (the clipmap's normal maps). warm: as for :meth:`heights`."""
         lat, lon = check_latlon(lat, lon)
         de = np.full(lat.shape, np.nan)
         dn = np.full(lat.shape, np.nan)
@@ -148,10 +158,7 @@ class Terrain:
                 sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
                 source.gradient_into(lat[idx], lon[idx], sub_de, sub_dn, sub_status)
                 de[idx], dn[idx], status[idx] = sub_de, sub_dn, sub_status
-        normal = np.stack([-de, -dn, np.ones_like(de)], axis=-1)
-        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-        slope = np.degrees(np.arctan(np.hypot(de, dn)))
-        return NormalResult(normal, slope, status)
+        return de, dn, status
 
     def profile(self, lat1: float, lon1: float, lat2: float, lon2: float, n_samples: int) -> ProfileResult:
         """Heights (m, MSL) at n_samples equally spaced points along the WGS84
