@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from terrain.raster import STATUS_OUTSIDE, Raster
-from terrain.validate import LON_ABS_MAX_DEG, latlon_all_valid, check_latlon
+from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
 
 
 # Least margin around the endpoints' box when a source builds a raster for rays.

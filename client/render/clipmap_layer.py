@@ -402,7 +402,7 @@ class ClipmapLayer:
                                               [(vbo, "2i", "in_cell"), (self._border_inst, "4i/i", "in_block")],
                                               index_buffer=self._border_ibo, index_element_size=4)
                              for vbo in self._border_vbos]
-        self.border_triangles = True  # False: draw without them (tests, the bench's comparison)
+        self.border_triangles = True  # False: draw without them (to compare)
         self._tex: list = []  # per level: (texel texture, normal texture)
         self.detail_strength = DETAIL_STRENGTH
         self._detail = ctx.texture((DETAIL_TEXTURE_SIZE, DETAIL_TEXTURE_SIZE), 4, detail_texture().tobytes())
