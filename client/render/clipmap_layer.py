@@ -582,7 +582,7 @@ class ClipmapLayer:
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
         drawn = {x.k for x in self.draws}
-        for d in self.draws:
+        for d in reversed(self.draws):  # fine to coarse: near terrain hides far fragments before shading
             if len(d.blocks) == 0:
                 continue
             coarse = d.k + 1 in drawn
