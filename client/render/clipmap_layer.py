@@ -508,7 +508,7 @@ class ClipmapLayer:
             nmap.write(np.ascontiguousarray(data).tobytes(), viewport=(u.c0, u.r0, u.cols, u.rows))
 
     def plan(self, frame: Frame) -> list[LevelDraw]:
-        """What to draw this frame: levels (coarse to fine), their regions, alpha_h, visible blocks."""
+        """What to draw this frame: levels (coarse to fine; drawn in reverse), their regions, alpha_h, visible blocks."""
         c = self.clipmap
         top = len(c.levels) - 1
         drawn = [lv.k for lv in c.levels if lv.valid and
