@@ -836,13 +836,11 @@ class PyramidReader:
         out = np.empty((row_b - row_a, col_b - col_a), np.int32 if scale is None else np.float64)
 
         def place(t, dec):
-            r_a, r_b = max(row_a, t[0] * T), min(row_b, (t[0] + 1) * T)
-            c_a, c_b = max(col_a, t[1] * T), min(col_b, (t[1] + 1) * T)
-            part = dec[r_a - t[0] * T:r_b - t[0] * T, c_a - t[1] * T:c_b - t[1] * T]
+            dst, src = tile_overlap(t[0], t[1], T, row_a, row_b, col_a, col_b)
             if scale is None:
-                out[r_a - row_a:r_b - row_a, c_a - col_a:c_b - col_a] = part
+                out[dst] = dec[src]
             else:
-                np.multiply(part, scale, out=out[r_a - row_a:r_b - row_a, c_a - col_a:c_b - col_a])
+                np.multiply(dec[src], scale, out=out[dst])
 
         def decode(job):
             t, blob, buf = job
@@ -870,6 +868,16 @@ class PyramidReader:
         while len(self._cache) > self.cache_tiles:
             self._evicted.append(self._cache.popitem(last=False)[1][0])
         return out
+
+
+def tile_overlap(ti: int, tj: int, tile: int, row_a: int, row_b: int, col_a: int, col_b: int):
+    """(region slices, tile slices): where tile (ti, tj) of a lattice tiled by ``tile`` overlaps
+    rows [row_a, row_b) x cols [col_a, col_b), as indices into a region array starting at
+    (row_a, col_a) and into the tile."""
+    r_a, r_b = max(row_a, ti * tile), min(row_b, (ti + 1) * tile)
+    c_a, c_b = max(col_a, tj * tile), min(col_b, (tj + 1) * tile)
+    return ((slice(r_a - row_a, r_b - row_a), slice(c_a - col_a, c_b - col_a)),
+            (slice(r_a - ti * tile, r_b - ti * tile), slice(c_a - tj * tile, c_b - tj * tile)))
 
 
 def _cpu_count() -> int:

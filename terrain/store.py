@@ -43,7 +43,7 @@ import zstandard
 
 from sortie.errors import DataFormatError, InvalidArgument, NotFound
 from terrain import heightcodec
-from terrain.heightcodec import LevelRect, PyramidReader
+from terrain.heightcodec import LevelRect, PyramidReader, tile_overlap
 from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
 
 FORMAT_NAME = "sortie-terrain-store"
@@ -301,10 +301,8 @@ class TerrainStore:
                 if cls is None:
                     cls = self._decode_classes(region.index, level, ti, tj)
                     self._remember(key, cls)
-                r_a, r_b = max(row_a, ti * T), min(row_b, (ti + 1) * T)
-                c_a, c_b = max(col_a, tj * T), min(col_b, (tj + 1) * T)
-                out[r_a - row_a:r_b - row_a, c_a - col_a:c_b - col_a] = \
-                    cls[r_a - ti * T:r_b - ti * T, c_a - tj * T:c_b - tj * T]
+                dst, src = tile_overlap(ti, tj, T, row_a, row_b, col_a, col_b)
+                out[dst] = cls[src]
         return out
 
     def _decode_classes(self, region: int, level: int, ti: int, tj: int) -> np.ndarray:

@@ -357,30 +357,25 @@ class Clipmap:
 
     def sample_normals(self, k: int, r: Rect) -> np.ndarray:
         """(2 rows, 2 cols, 3) ECEF unit normals at the half-lattice points of a rectangle of posts
-        (half-lattice point (p, q) is at post coordinates (p / 2, q / 2)). The ENU -> ECEF rotation
-        is separable on the lattice (east depends on the column, north and up on both through
-        per-row and per-column sines and cosines), so it costs a few broadcasts, not a basis a point."""
+        (half-lattice point (p, q) is at post coordinates (p / 2, q / 2)), from the terrain's
+        gradients in one pass (:func:`_normals_ecef`: the ENU -> ECEF rotation is separable on
+        the lattice, per-row and per-column sines and cosines)."""
         lat_rows, lon_cols = self.latlon(k, np.arange(2 * r.i0, 2 * r.i1 + 2) / 2.0,
                                          np.arange(2 * r.j0, 2 * r.j1 + 2) / 2.0)
         lat_rows = np.clip(lat_rows, -90.0, 90.0)
         lat = np.repeat(lat_rows, lon_cols.size)
         lon = np.tile(lon_cols, lat_rows.size)
         gradients = getattr(self.terrain, "gradients", None)
-        if gradients is not None:  # in process: one fused pass from the gradients (half the time)
+        if gradients is not None:  # in process
             de, dn, _ = gradients(lat, lon)
-            out = np.empty((lat_rows.size, lon_cols.size, 3))
-            lam = np.radians(lon_cols)
-            _normals_ecef(de, dn, np.radians(lat_rows), np.sin(lam), np.cos(lam), out)
-            return out
-        n_enu = np.asarray(self.terrain.normals(lat, lon).normal_enu, np.float64)
-        n_enu = np.where(np.isfinite(n_enu).all(axis=1, keepdims=True), n_enu, (0.0, 0.0, 1.0))
-        n_enu = n_enu.reshape(lat_rows.size, lon_cols.size, 3)
-        sl, cl = np.sin(np.radians(lat_rows))[:, None], np.cos(np.radians(lat_rows))[:, None]
-        so, co = np.sin(np.radians(lon_cols))[None, :], np.cos(np.radians(lon_cols))[None, :]
-        ne, nn, nu = n_enu[..., 0], n_enu[..., 1], n_enu[..., 2]
-        # east = (-so, co, 0), north = (-sl co, -sl so, cl), up = (cl co, cl so, sl)  (terrain.geodesy.enu_basis)
-        return np.stack([-ne * so - nn * sl * co + nu * cl * co, ne * co - nn * sl * so + nu * cl * so,
-                         nn * cl + nu * sl], axis=-1)
+        else:  # a terrain service answers normals: their slopes are -n_e / n_u, -n_n / n_u (n_u > 0)
+            n = np.asarray(self.terrain.normals(lat, lon).normal_enu, np.float64)
+            de, dn = -n[:, 0] / n[:, 2], -n[:, 1] / n[:, 2]
+        out = np.empty((lat_rows.size, lon_cols.size, 3))
+        lam = np.radians(lon_cols)
+        _normals_ecef(np.ascontiguousarray(de), np.ascontiguousarray(dn), np.radians(lat_rows),
+                      np.sin(lam), np.cos(lam), out)
+        return out
 
     def classes_of(self, k: int, r: Rect, h: np.ndarray, normals_ecef: np.ndarray) -> np.ndarray:
         """Land class (terrain.texture.class_map) of each normal texel of a rectangle: the height
