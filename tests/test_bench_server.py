@@ -1,0 +1,21 @@
+"""The server benchmark's measuring path (bench/server.py) against the real server: the
+load clients' receipts must match the publishes it taps, or every latency and tick
+figure of ``sortie bench server`` is lost (a change to the publisher's signature once
+stopped the world clock of the bench without any test noticing)."""
+
+import numpy as np
+
+
+def test_serve_measures_ticks_and_latencies_of_a_small_load(hgt_alps):
+    from bench.server import _serve
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([read_dem(hgt_alps)])
+    r = _serve(terrain, 2, "realtime", 2.5, 20, clients=4, workers=0)
+    lat = r["latency_ms"]
+    assert lat.size >= 1, r  # the updates dead reckoning lets through to 4 random areas
+    assert np.all(np.isfinite(lat)) and np.all(lat > 0.0) and np.all(lat < 5_000.0)
+    assert np.isfinite(r["tick_mean_ms"]) and 0.0 < r["tick_mean_ms"] <= r["tick_p99_ms"]
+    assert 0.5 < r["world_rate"] < 1.5  # real time
+    assert r["states"] > 0 and r["bytes"] > 0 and r["entities"] == 22
