@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from server.grpc_common import varint
-from server.interest import relevant
+from server.interest import changes
 from server.world import rows_of
 
 
@@ -203,6 +203,13 @@ def encode_watch_update(p: Pending) -> bytes:
     return b"".join(out)
 
 
+def _spans(idx: np.ndarray, start: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """idx[start[i]:start[i] + count[i]] of every i, concatenated."""
+    if not count.any():
+        return np.zeros(0, np.int64)
+    return np.concatenate([idx[a:a + c] for a, c in zip(start.tolist(), count.tolist()) if c])
+
+
 def wake_all(queues) -> None:
     """Wake the asyncio readers of ``queues`` with one call per loop: a publisher that
     pushed to every session with wake=False hands the loop all its writes at once,
@@ -310,13 +317,9 @@ class Publisher:
             if c is not None:
                 centres[s_k] = c
                 radii[s_k] = s.radius_m
-        now = relevant(centres, radii, snap.ecef_m)
-        has_agent = np.flatnonzero(agent_k >= 0)
-        now[has_agent, agent_k[has_agent]] = True
         prev, gone = self._previous(sessions, snap.ids)
-        entered = now & ~prev
-        left = prev & ~now
-        updated = now & due[None, :] & ~entered
+        # Each session's view, with the hysteresis at its area's edge: who enters, leaves, updates.
+        now, counts, ptr, idx = changes(centres, radii, snap.ecef_m, prev, agent_k, due)
 
         # Encode once: the due states, and each newcomer's last *sent* state (what every
         # other receiver extrapolates from, so one model stays true for all of them).
@@ -324,8 +327,9 @@ class Publisher:
         state_of = dict(zip(due_k.tolist(), encode_states(snap.ids[due_k], snap.time_s, snap.ecef_m[due_k],
                                                           vel[due_k], acc[due_k], quat[due_k], omega[due_k],
                                                           algorithms[due_k])))
-        new_k = np.array([k for k in np.flatnonzero(entered.any(axis=0)).tolist() if int(snap.ids[k]) in infos],
-                         np.int64)
+        entering = np.zeros(n, bool)
+        entering[_spans(idx, ptr[:, 0], counts[:, 0])] = True
+        new_k = np.array([k for k in np.flatnonzero(entering).tolist() if int(snap.ids[k]) in infos], np.int64)
         enter_of = {}
         if new_k.size:
             last = self.reckoner.last_sent(snap.ids[new_k])
@@ -334,17 +338,19 @@ class Publisher:
             enter_of = {k: (encode_info(infos[int(snap.ids[k])]), b) for k, b in zip(new_k.tolist(), sent)}
 
         ids_list = snap.ids.tolist()
+        idx_list = idx.tolist()
         pushed = []
-        busy = entered.any(axis=1) | left.any(axis=1) | updated.any(axis=1)
+        busy = counts.any(axis=1).tolist()
         for s_k, s in enumerate(sessions):
             s.visible_mask = now[s_k]
             s.visible_ids = snap.ids[now[s_k]]
             s.visible_layout = self._layout
             if not (busy[s_k] or gone[s_k] or s.queue.needs_snapshot or rescaled):
                 continue
-            ent = {ids_list[k]: enter_of[k] for k in np.flatnonzero(entered[s_k]).tolist() if k in enter_of}
-            states = {ids_list[k]: state_of[k] for k in np.flatnonzero(updated[s_k]).tolist()}
-            left_ids = [ids_list[k] for k in np.flatnonzero(left[s_k]).tolist()] + list(gone[s_k])
+            (e0, l0, u0), (ne, nl, nu) = ptr[s_k].tolist(), counts[s_k].tolist()
+            ent = {ids_list[k]: enter_of[k] for k in idx_list[e0:e0 + ne] if k in enter_of}
+            states = {ids_list[k]: state_of[k] for k in idx_list[u0:u0 + nu]}
+            left_ids = [ids_list[k] for k in idx_list[l0:l0 + nl]] + list(gone[s_k])
             s.queue.push(snap.time_s, ent, left_ids, states, wake=False, time_scale=time_scale)
             pushed.append(s.queue)
         wake_all(pushed)

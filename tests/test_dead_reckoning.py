@@ -584,9 +584,12 @@ def test_publish_rows_is_due_then_mark_sent_then_algorithm():
     n = 40
     ids = rng.permutation(np.arange(1, n + 1))
     a, b = DeadReckoner(), DeadReckoner()
-    for r in (a, b):
-        r.add(ids[:20], Thresholds(1.0, math.radians(3.0), 5.0, RVW))
-        r.add(ids[20:], Thresholds(0.5, math.radians(2.0), 2.0, FPW))
+    for r in (a, b):  # every algorithm (the one-pass kernel spells out each one's extrapolation)
+        r.add(ids[:12], Thresholds(1.0, math.radians(3.0), 5.0, RVW))
+        r.add(ids[12:20], Thresholds(0.5, math.radians(2.0), 2.0, FPW))
+        r.add(ids[20:28], Thresholds(0.7, math.radians(2.5), 3.0, RPW))
+        r.add(ids[28:34], Thresholds(0.7, math.radians(2.5), 3.0, FVW))
+        r.add(ids[34:], Thresholds(2.0, math.radians(4.0), 1.0, STATIC))
     pos, vel, acc, quat, omega = _state(rng, n)
     k = b.slots(ids)
     for step in range(60):
