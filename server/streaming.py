@@ -249,6 +249,10 @@ class Publisher:
         self._layout = 0  # bumped when it changes
         self._slots = np.zeros(0, np.int64)  # the reckoner's rows of self._ids
         self._time_scale = 1.0  # of the last publish: a change goes to every session
+        # Load (or compile) the compiled passes now, not on the clock thread's first publish.
+        z3 = np.zeros((0, 3))
+        changes(z3, np.zeros(0), z3, np.zeros((0, 0), bool), np.zeros(0, np.int64), np.zeros(0, bool))
+        reckoner.publish_rows(0.0, np.zeros(0, np.int64), z3, z3, z3, np.zeros((0, 4)), z3)
 
     def reset(self) -> None:
         """Forget what was sent (a replay's seek): at the next publish every entity is
