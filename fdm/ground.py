@@ -377,6 +377,55 @@ def _resolve_kernel(idx, type_id, table, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts
 
 
 @numba.njit(cache=True, nogil=True)
+def _snapshot_kernel(idx, lat, lon, height, heading_deg, speed, yaw_rate_dps, pitch_grad, roll_grad, undulation,
+                     ecef, vel, quat, rates):
+    """The world snapshot's rows of vehicles idx in one pass: ECEF position (height MSL +
+    undulation above the ellipsoid), ECEF velocity, the ECEF -> body quaternion and body
+    rates. The numpy compositions they replace, formula for formula:
+    terrain.geodesy.geodetic_to_ecef / enu_basis, fdm.state.euler_to_quaternion (w >= 0),
+    server.dead_reckoning.ned_to_ecef_quat, :meth:`GroundVehicles.velocity_ned`."""
+    for k in range(idx.shape[0]):
+        j = idx[k]
+        phi_g, lam = math.radians(lat[j]), math.radians(lon[j])
+        sl, cl = math.sin(phi_g), math.cos(phi_g)
+        so, co = math.sin(lam), math.cos(lam)
+        h = height[j] + undulation
+        n = WGS84_A_M / math.sqrt(1.0 - WGS84_E2 * sl * sl)
+        ecef[k, 0] = (n + h) * cl * co
+        ecef[k, 1] = (n + h) * cl * so
+        ecef[k, 2] = (n * (1.0 - WGS84_E2) + h) * sl
+        psi = math.radians(heading_deg[j])
+        th = math.atan(pitch_grad[j])
+        ph = math.atan(roll_grad[j])
+        horiz = speed[j] * math.cos(th)
+        vn, ve, vd = horiz * math.cos(psi), horiz * math.sin(psi), -speed[j] * math.sin(th)
+        # v_n north + v_e east - v_d up, with east (-so, co, 0), north (-sl co, -sl so, cl), up (cl co, cl so, sl)
+        vel[k, 0] = vn * (-sl * co) + ve * (-so) - vd * (cl * co)
+        vel[k, 1] = vn * (-sl * so) + ve * co - vd * (cl * so)
+        vel[k, 2] = vn * cl - vd * sl
+        # NED -> body from z-y-x Euler angles (Stevens & Lewis eq. 1.8-17), w >= 0
+        cr, sr = math.cos(0.5 * ph), math.sin(0.5 * ph)
+        cp, sp = math.cos(0.5 * th), math.sin(0.5 * th)
+        cy, sy = math.cos(0.5 * psi), math.sin(0.5 * psi)
+        bw, bx = cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy
+        by, bz = cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy
+        if bw < 0.0:
+            bw, bx, by, bz = -bw, -bx, -by, -bz
+        # ECEF -> NED: about z by the longitude, then about the new y by -(lat + 90 deg)
+        zw, zz = math.cos(0.5 * lam), math.sin(0.5 * lam)
+        tilt = -0.5 * (phi_g + 0.5 * math.pi)
+        yw, yy = math.cos(tilt), math.sin(tilt)
+        aw, ax, ay, az = zw * yw, -zz * yy, zw * yy, zz * yw
+        quat[k, 0] = aw * bw - ax * bx - ay * by - az * bz
+        quat[k, 1] = aw * bx + ax * bw + ay * bz - az * by
+        quat[k, 2] = aw * by - ax * bz + ay * bw + az * bx
+        quat[k, 3] = aw * bz + ax * by - ay * bx + az * bw
+        rates[k, 0] = 0.0
+        rates[k, 1] = 0.0
+        rates[k, 2] = math.radians(yaw_rate_dps[j])
+
+
+@numba.njit(cache=True, nogil=True)
 def _divisor_kernel(lat, lon, obs_xyz, near_m, max_divisor, out):
     """Step divisor per vehicle from the great-circle distance to its nearest observer.
 
@@ -580,6 +629,20 @@ class GroundVehicles:
         return GroundState(self.lat.copy(), self.lon.copy(), self.height_msl_m.copy(), self.heading_deg.copy(),
                            self.speed_mps.copy(), self.yaw_rate_dps.copy(), self.pitch_deg,
                            self.roll_deg, self.blocked.copy(), self.last_time_s.copy())
+
+    def snapshot_rows(self, idx, undulation_m: float = 0.0) -> tuple:
+        """(ECEF position, ECEF velocity, ECEF -> body quaternion (w, x, y, z), body rates,
+        lat, lon, height MSL) of vehicles ``idx`` (rows), as a world snapshot holds them:
+        positions at height MSL + ``undulation_m`` above the ellipsoid, the body turning
+        only about its vertical (rates (0, 0, yaw rate)). One compiled pass."""
+        idx = np.ascontiguousarray(idx, np.int64)
+        m = idx.size
+        ecef, vel, rates = np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3))
+        quat = np.empty((m, 4))
+        _snapshot_kernel(idx, self.lat, self.lon, self.height_msl_m, self.heading_deg, self.speed_mps,
+                         self.yaw_rate_dps, self.pitch_grad, self.roll_grad, float(undulation_m),
+                         ecef, vel, quat, rates)
+        return ecef, vel, quat, rates, self.lat[idx], self.lon[idx], self.height_msl_m[idx]
 
     def velocity_ned(self) -> np.ndarray:
         """(n, 3) velocity north, east, down in m/s along the ground (pitch included)."""

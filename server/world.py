@@ -57,7 +57,7 @@ import numpy as np
 from fdm.aircraft import InitialConditions, validate_controls
 from fdm.convoy import Convoy, Route, RouteFollower
 from fdm.ground import GroundVehicles
-from fdm.state import euler_to_quaternion, ned_to_ecef_vectors, state_arrays
+from fdm.state import euler_to_quaternion, state_arrays
 from server.aircraft_host import LocalAircraftHost
 from server.dead_reckoning import extrapolate, ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
@@ -652,16 +652,8 @@ class World(EventLog):
                           s["lat_deg"], s["lon_deg"], s["alt_msl_m"]))
         gnd_ids, idx, static_part = self._layout()
         if gnd_ids.size:
-            g = self.ground
-            lat, lon, h = g.lat[idx], g.lon[idx], g.height_msl_m[idx]
-            psi = np.radians(g.heading_deg[idx])
-            q_ned = euler_to_quaternion(np.radians(g.roll_deg[idx]), np.radians(g.pitch_deg[idx]), psi)
-            v_ned = g.velocity_ned()[idx]
-            rates = np.zeros((idx.size, 3))
-            rates[:, 2] = np.radians(g.yaw_rate_dps[idx])
             ids += gnd_ids.tolist()
-            parts.append((geodetic_to_ecef(lat, lon, h + self.geoid_undulation_m), ned_to_ecef_vectors(v_ned, lat, lon),
-                          ned_to_ecef_quat(q_ned, lat, lon), rates, lat, lon, h))
+            parts.append(self.ground.snapshot_rows(idx, self.geoid_undulation_m))
         if static_part is not None:
             ids += static_part[0]
             parts.append(static_part[1])

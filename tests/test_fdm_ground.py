@@ -104,6 +104,29 @@ def test_pitch_and_roll_from_the_wheel_base(alps):
     assert np.abs(g.pitch_deg).max() > 1.0  # the Alps are not flat: the check has teeth
 
 
+def test_snapshot_rows_are_the_state_in_ecef(alps):
+    """GroundVehicles.snapshot_rows (one compiled pass) against the numpy compositions it
+    replaced in the world's snapshot: same positions, velocities (along the ground, pitch
+    included) and ECEF -> body quaternions to rounding, on rows in any order."""
+    from fdm.state import euler_to_quaternion, ned_to_ecef_vectors
+    from server.dead_reckoning import ned_to_ecef_quat
+
+    g = _alps_fleet(alps, n=40)
+    for _ in range(10):
+        g.step(0.1)
+    idx = np.random.default_rng(2).permutation(g.n)[:30]
+    und = 47.3
+    ecef, vel, quat, rates, lat, lon, h = g.snapshot_rows(idx, und)
+    assert np.array_equal(lat, g.lat[idx]) and np.array_equal(lon, g.lon[idx]) and np.array_equal(h, g.height_msl_m[idx])
+    np.testing.assert_allclose(ecef, geodetic_to_ecef(lat, lon, h + und), rtol=0, atol=1e-8)
+    np.testing.assert_allclose(vel, ned_to_ecef_vectors(g.velocity_ned()[idx], lat, lon), rtol=0, atol=1e-12)
+    q_ned = euler_to_quaternion(np.radians(g.roll_deg[idx]), np.radians(g.pitch_deg[idx]), np.radians(g.heading_deg[idx]))
+    np.testing.assert_allclose(quat, ned_to_ecef_quat(q_ned, lat, lon), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(rates[:, :2], 0.0)
+    np.testing.assert_allclose(rates[:, 2], np.radians(g.yaw_rate_dps[idx]), rtol=1e-15)
+    assert np.abs(g.pitch_deg[idx]).max() > 1.0 and np.abs(vel).max() > 1.0  # not a flat, standing fleet
+
+
 # --- cliffs, shores, slopes --------------------------------------------------------------------
 
 def _cliff(top=140.0, foot=100.0):
