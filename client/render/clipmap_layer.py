@@ -184,8 +184,9 @@ uniform sampler2D u_detail;      // four tileable noise patterns, mean 1/2
 uniform mat3 u_rot;
 uniform int u_has_coarse;
 uniform float u_detail_strength;
-uniform int u_classes;           // land classes in the normal maps' fourth channel (terrain/texture.py)
-uniform vec3 u_class_colour[%(N_CLASSES)d];
+#ifdef CLASSES
+uniform vec3 u_class_colour[%(N_CLASSES)d];  // land classes in the normal maps' fourth channel (terrain/texture.py)
+#endif
 VARYING in vec3 v_world;
 VARYING in float v_height;
 VARYING in vec2 v_nuv_fine;
@@ -199,6 +200,7 @@ flat in float v_depth;
 out vec4 out_colour;
 const vec3 PERIODS = vec3%(PERIODS)s;
 
+#ifdef CLASSES
 vec3 class_at(sampler2D t, ivec2 ij, int n2) {
     ivec2 w = ivec2(ij.x - n2 * int(floor(float(ij.x) / float(n2))), ij.y - n2 * int(floor(float(ij.y) / float(n2))));
     return u_class_colour[clamp(int(texelFetch(t, w, 0).w + 0.5), 0, %(N_CLASSES)d - 1)];
@@ -212,6 +214,7 @@ vec3 class_colour(sampler2D t, vec2 uv) {
     return mix(mix(class_at(t, i, n2), class_at(t, i + ivec2(1, 0), n2), f.x),
                mix(class_at(t, i + ivec2(0, 1), n2), class_at(t, i + ivec2(1, 1), n2), f.x), f.y);
 }
+#endif
 
 vec4 planar(vec3 p, vec3 w, float period) {  // three planar projections along the ECEF axes
     return w.x * texture(u_detail, p.yz / period) + w.y * texture(u_detail, p.zx / period)
@@ -225,7 +228,8 @@ void main() {
     vec3 n = u_rot * ne;
     float cos_slope = dot(n, normalize(v_up));
     vec3 c = terrain_colour(v_world, n, v_height, cos_slope);
-    if (u_classes != 0 && v_height > 0.0) {
+#ifdef CLASSES
+    if (v_height > 0.0) {
         // The land-class map is the base colour (FSX §7.1, §7.2): the colours of the four
         // nearest normal texels' classes, blended bilinearly (classes themselves do not
         // interpolate), fine and coarse blended by the morph.
@@ -233,8 +237,10 @@ void main() {
         if (u_has_coarse != 0) base = mix(base, class_colour(u_ncoarse, v_nuv_coarse), v_alpha);
         c = fogged(lambert(base, n), v_world);
     }
+#endif
     if (u_detail_strength > 0.0 && v_height > 0.0) {
-        vec3 w = pow(abs(ne), vec3(4.0));
+        vec3 w = ne * ne;
+        w *= w;  // |ne|^4, without pow (three exp2/log2 a fragment on llvmpipe)
         w /= (w.x + w.y + w.z);
         float rock = smoothstep(ROCK_COS_START, ROCK_COS_FULL, cos_slope);
         float snow = smoothstep(0.8 * HIGH_M, HIGH_M, v_height) * (1.0 - rock);
@@ -253,15 +259,19 @@ void main() {
 """ % {"PERIODS": str(DETAIL_PERIODS_M), "N_CLASSES": N_CLASSES}
 
 
-def shader_variant(source: str, border: bool) -> str:
+def shader_variant(source: str, border: bool, classes: bool = False) -> str:
     """The clipmap's shader source for the level draws, or (border) for the zero-area border
     triangles: their varyings flat (the provoking vertex's, the border's odd post) and their
     depth that vertex's, a hair farther (BORDER_DEPTH_SCALE). A zero-area triangle's plane
     equations are ill-conditioned: interpolated, its few covered pixels took depths and
-    attributes from anywhere (screen errors of thousands of pixels on llvmpipe)."""
+    attributes from anywhere (screen errors of thousands of pixels on llvmpipe).
+
+    ``classes``: with the land-class base colour (``#define CLASSES``). A feature is left out
+    of the source, not switched off by a uniform: llvmpipe runs both sides of every branch
+    under execution masks, so the unused class code cost 14-20 ms a 960 x 540 frame."""
     head, rest = source.split("\n", 1)
     defines = ("#define BORDER\n#define VARYING flat\n#define BORDER_DEPTH_SCALE %r\n" % BORDER_DEPTH_SCALE
-               if border else "#define VARYING\n")
+               if border else "#define VARYING\n") + ("#define CLASSES\n" if classes else "")
     return head + "\n" + defines + rest
 
 
@@ -374,11 +384,11 @@ class ClipmapLayer:
         self.clipmap: Clipmap | None = None
         self.focus_lat_lon = focus_lat_lon  # None: the camera's position
         self.insets = list(insets)  # terrain.inset.InsetSource: the clipmap is lowered beneath them
-        self.land_classes = bool(land_classes)  # base colour from terrain/texture.py's land classes
-        self.program = ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, False),
-                                   fragment_shader=shader_variant(FRAGMENT_SHADER, False))
-        self._border_program = ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, True),
-                                           fragment_shader=shader_variant(FRAGMENT_SHADER, True))
+        self._land_classes = bool(land_classes)  # base colour from terrain/texture.py's land classes
+        self.program, self._border_program = (
+            ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, border),
+                        fragment_shader=shader_variant(FRAGMENT_SHADER, border, self._land_classes))
+            for border in (False, True))
         verts, tris = block_grid()
         self._grid_vbo = ctx.buffer(verts.tobytes())
         self._grid_ibo = ctx.buffer(tris.tobytes())
@@ -416,6 +426,12 @@ class ClipmapLayer:
         self._height_above_ground = 0.0
         self._focus = (0.0, 0.0)
 
+    @property
+    def land_classes(self) -> bool:
+        """Whether the base colour comes from the land classes (fixed when the layer is made: its
+        shaders are built with or without the class code)."""
+        return self._land_classes
+
     # -- set-up on the first update (the lattice depends on where the camera is)
 
     def _setup(self, lat: float, lon: float) -> None:
@@ -428,7 +444,7 @@ class ClipmapLayer:
             f = self._finest_factor
             lattice = type(base)(base.lat0, base.lon0, base.dlat * f, base.dlon * f, base.exact and f >= 1)
         self.clipmap = Clipmap(self.terrain, lattice, levels, n, budget, undulation)
-        self.clipmap.land_classes = self.land_classes
+        self.clipmap.land_classes = self._land_classes
         if self.insets:
             from terrain.inset import cutout_depth_m
 
@@ -574,10 +590,8 @@ class ClipmapLayer:
         for prog in (p, bp):
             frame.write_common(prog)
             prog["u_detail_strength"].value = float(self.detail_strength)
-            if "u_classes" in prog:
-                prog["u_classes"].value = int(self.land_classes)
-                if self.land_classes:
-                    prog["u_class_colour"].write((np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes())
+            if self._land_classes:
+                prog["u_class_colour"].write((np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes())
         self._detail.use(4)
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
