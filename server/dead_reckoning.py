@@ -643,7 +643,8 @@ class DeadReckoner:
         pos, quat = _check_rows("pos", pos, n, 3), _check_rows("quat", quat, n, 4)
         vel, acc, omega = (_shaped(name, v, (n, 3)) for name, v in (("vel", vel), ("acc", acc), ("omega", omega)))
         send, codes = np.empty(n, bool), np.empty(n, np.int64)
-        _publish_kernel(t, np.ascontiguousarray(k, np.int64), *(np.ascontiguousarray(a) for a in (pos, vel, acc, quat, omega)),
+        rows = (np.ascontiguousarray(a) for a in (pos, vel, acc, quat, omega))
+        _publish_kernel(t, np.ascontiguousarray(k, np.int64), *rows,
                         c["algorithm"], c["t0"], c["pos"], c["vel"], c["acc"], c["quat"], c["omega"],
                         c["sent"], c["position_m"], c["orientation_rad"], c["heartbeat_s"], send, codes)
         return send, codes

@@ -23,11 +23,11 @@ HYSTERESIS = 0.05
 
 @numba.njit(cache=True, nogil=True)
 def _relevant_kernel(c, r, p, prev, own, due, now, counts):
-    """now[i, j] = entity j relevant to receiver i (|p_j - c_i| <= r_i, or <= r_i (1 +
-    HYSTERESIS) while prev[i, j], or j == own[i]; a negative r_i: only its own); counts[i] =
-    (entered, left, updated)
-    of receiver i against prev, ``updated`` being relevant, due and not entered. prev
-    (m, n) or (0, 0) for none; own (m,) rows, -1 for none; due (n,) bool."""
+    """now[i, j] = entity j relevant to receiver i: |p_j - c_i| <= r_i, or <= r_i (1 +
+    HYSTERESIS) while prev[i, j], or j == own[i] (a negative r_i: only its own).
+    counts[i] = (entered, left, updated) of receiver i against prev, ``updated`` being
+    relevant, due and not entered. prev (m, n), or (0, 0) for none; own (m,) columns, -1
+    for none; due (n,) bool."""
     m, n = now.shape
     has_prev = prev.shape[0] > 0
     grow = (1.0 + HYSTERESIS) * (1.0 + HYSTERESIS)

@@ -117,10 +117,12 @@ def test_snapshot_rows_are_the_state_in_ecef(alps):
     idx = np.random.default_rng(2).permutation(g.n)[:30]
     und = 47.3
     ecef, vel, quat, rates, lat, lon, h = g.snapshot_rows(idx, und)
-    assert np.array_equal(lat, g.lat[idx]) and np.array_equal(lon, g.lon[idx]) and np.array_equal(h, g.height_msl_m[idx])
+    assert np.array_equal(lat, g.lat[idx]) and np.array_equal(lon, g.lon[idx])
+    assert np.array_equal(h, g.height_msl_m[idx])
     np.testing.assert_allclose(ecef, geodetic_to_ecef(lat, lon, h + und), rtol=0, atol=1e-8)
     np.testing.assert_allclose(vel, ned_to_ecef_vectors(g.velocity_ned()[idx], lat, lon), rtol=0, atol=1e-12)
-    q_ned = euler_to_quaternion(np.radians(g.roll_deg[idx]), np.radians(g.pitch_deg[idx]), np.radians(g.heading_deg[idx]))
+    q_ned = euler_to_quaternion(np.radians(g.roll_deg[idx]), np.radians(g.pitch_deg[idx]),
+                                np.radians(g.heading_deg[idx]))
     np.testing.assert_allclose(quat, ned_to_ecef_quat(q_ned, lat, lon), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(rates[:, :2], 0.0)
     np.testing.assert_allclose(rates[:, 2], np.radians(g.yaw_rate_dps[idx]), rtol=1e-15)
