@@ -10,7 +10,9 @@ of interest at random points) streaming at 20 Hz from separate processes
   120 Hz with a bare ``FGFDMExec.run()`` loop, same run, measured at the
   same two fleet sizes as the server and fitted the same way (see
   :func:`bench_bare`: the cost of a step grows with the fleet, so a
-  4-aircraft loop, ``bare_small_fleet_realtime_aircraft``, overstates it).
+  4-aircraft loop, ``bare_small_fleet_realtime_aircraft``, overstates it),
+  before and after the server's fits, averaged (``..._before`` and
+  ``..._after`` show the machine's drift between them).
 - ``realtime_aircraft``: f16s the server keeps in real time at that load:
   the world tick (30 Hz, 4 JSBSim steps each, the aircraft in one worker
   process per core as ``sortie server`` runs them) plus the publish step,
@@ -90,29 +92,39 @@ def _capacity(sizes, tick_ms) -> tuple[float, float, float]:
     return (max(0.0, math.floor((TICK_BUDGET_MS - base) / slope)) if slope > 0 else float("nan")), slope, base
 
 
-def bench_bare(report: Report, terrain, sizes, quick: bool) -> float:
-    """One core's bare JSBSim capacity at the fleet sizes the server is measured at.
+def bench_bare(report: Report, terrain, sizes, quick: bool, measured_between):
+    """One core's bare JSBSim capacity at the fleet sizes the server is measured at,
+    bracketing ``measured_between()`` (the server's runs), whose result is returned with it.
 
     A bare loop's cost per step grows with the fleet: a few aircraft keep their
     JSBSim instances in the CPU caches, a hundred do not (measured here: about
     20 us a step for 4 f16s, 50-100 us for 64 or more). So the baseline is
     measured like the server, at the same two fleet sizes, in the same
     stepping order and as a mean over seconds, and the same line fit gives its
-    capacity. The 4-aircraft
-    figure is kept as ``bare_small_fleet_realtime_aircraft``.
+    capacity. It is measured before and after the server's runs and the two
+    averaged: this VM's speed drifts over minutes (the baseline alone read 132
+    to 232 aircraft in full runs an hour apart), and a baseline taken only
+    before the server's half minute of runs carried that drift into the ratio.
+    Both are reported. The 4-aircraft figure is kept as
+    ``bare_small_fleet_realtime_aircraft``.
     """
     fleet = _f16_fleet(terrain, max(sizes))
-    seconds = 1.0 if quick else 4.0
+    seconds = 0.6 if quick else 3.0
     small = _bare_tick_ms(fleet[:4], seconds) / (4 * STEPS_PER_TICK)  # ms per step
     report.metrics["bare_small_fleet_realtime_aircraft"] = float(math.floor(1000.0 / (120.0 * small)))
-    ticks = [_bare_tick_ms(fleet[:n], seconds) for n in sizes]
+    before = [_bare_tick_ms(fleet[:n], seconds) for n in sizes]
+    result = measured_between()
+    after = [_bare_tick_ms(fleet[:n], seconds) for n in sizes]
+    ticks = [(a + b) / 2.0 for a, b in zip(before, after)]
     bare, slope, _ = _capacity(sizes, ticks)
     report.metrics["bare_jsbsim_realtime_aircraft"] = float(bare)
+    report.metrics["bare_jsbsim_realtime_aircraft_before"] = float(_capacity(sizes, before)[0])
+    report.metrics["bare_jsbsim_realtime_aircraft_after"] = float(_capacity(sizes, after)[0])
     report.metrics["bare_us_per_step"] = slope * 1e3 / STEPS_PER_TICK
     report.metrics["bare_small_fleet_us_per_step"] = small * 1e3
-    report.params.update(bare_tick_ms=ticks)
+    report.params.update(bare_tick_ms=ticks, bare_tick_ms_before=before, bare_tick_ms_after=after)
     del fleet
-    return bare
+    return bare, result
 
 
 def _host(terrain, workers: int):
@@ -232,10 +244,9 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
     window = QUICK_WINDOW if quick else (STEADY_SKIP_S, STEADY_TAIL_S)
     sizes = (32, 96) if quick else (64, 192)
     workers = max(1, os.cpu_count() or 1)  # as `sortie server --aircraft-workers auto`
-    bare = bench_bare(report, terrain, sizes, quick)
-    fits = [_serve(terrain, n, "fast", seconds, n_ground, clients=clients, workers=workers, window=window)
-            for n in sizes]
-    r1, r2 = fits
+    bare, (r1, r2) = bench_bare(report, terrain, sizes, quick, lambda: [
+        _serve(terrain, n, "fast", seconds, n_ground, clients=clients, workers=workers, window=window)
+        for n in sizes])
     realtime, slope, base = _capacity(sizes, [r1["tick_mean_ms"], r2["tick_mean_ms"]])
     report.metrics["realtime_aircraft"] = float(realtime)
     report.metrics["capacity_ratio"] = realtime / bare
