@@ -240,9 +240,8 @@ class Aircraft:
         self.name = catalog.resolve(name)
         self.aircraft_class = catalog.aircraft_class(self.name)
         self.terrain = terrain
-        # Queries without the batch path's arrays (Terrain.height_at / heights_of), where offered.
-        self._height_at = getattr(terrain, "height_at", None)
-        self._heights_of = getattr(terrain, "heights_of", None) if self._height_at is not None else None
+        # Queries without the batch path's arrays (Terrain.heights_of), where offered.
+        self._heights_of = getattr(terrain, "heights_of", None)
         self.dt = float(dt)
         self.geoid_undulation_m = float(geoid_undulation_m)
         self.max_penetration_m = float(max_penetration_m)
@@ -344,13 +343,9 @@ class Aircraft:
         """Terrain heights (m MSL; no data is sea level) of the query points; the result may
         be this aircraft's own buffer, valid until the next query."""
         if self._heights_of is not None and isinstance(lat_deg, np.ndarray) and lat_deg.size <= self._terr.size:
-            n = lat_deg.size
-            if n == 1:  # the refresh far from the ground
-                h = self._height_at(float(lat_deg[0]), float(lon_deg[0]))
-                self._terr[0] = 0.0 if math.isnan(h) else h
-            else:  # the CG and every contact, near the ground
-                np.copyto(self._terr[:n], 0.0, where=np.isnan(self._heights_of(lat_deg, lon_deg, self._terr[:n])))
-            return self._terr[:n]
+            out = self._terr[:lat_deg.size]  # the CG alone far from the ground; every contact near it
+            np.copyto(out, 0.0, where=np.isnan(self._heights_of(lat_deg, lon_deg, out)))
+            return out
         return terrain_msl_m(self.terrain, lat_deg, lon_deg)
 
     def _contact_terrain(self, lat, lon, alt_m, cg_in, phi, theta, psi, ahead_ned):

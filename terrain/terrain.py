@@ -57,22 +57,19 @@ class Terrain:
         self.sources = list(sources)
         if not self.sources:
             raise ValueError("a Terrain needs at least one source")
-        self._one = threading.local()  # height_at's one-point buffers, per thread
+        self._one = threading.local()  # height_at's and heights_of's buffers, per thread
 
     def height_at(self, lat: float, lon: float) -> float:
         """The height (m MSL) at one point, NaN outside every source: what :meth:`heights`
         answers for it, without its per-call arrays, validation pass and result object (a
         host asking one point at a time: an aircraft far from the ground refreshes the
         terrain under it once a second). An invalid point raises as :meth:`heights` does."""
-        if not (abs(lat) <= 90.0 and abs(lon) <= LON_ABS_MAX_DEG) or len(self.sources) != 1:
-            return float(self.heights([lat], [lon]).height_msl_m[0])
         buf = getattr(self._one, "buf", None)
         if buf is None:
-            buf = self._one.buf = (np.empty(1), np.empty(1), np.empty(1), np.empty(1, np.uint8))
-        la, lo, h, st = buf
-        la[0], lo[0], h[0], st[0] = lat, lon, np.nan, STATUS_OUTSIDE
-        self.sources[0].heights_into(la, lo, h, st)
-        return float(h[0])
+            buf = self._one.buf = (np.empty(1), np.empty(1), np.empty(1))
+        la, lo, h = buf
+        la[0], lo[0] = lat, lon
+        return float(self.heights_of(la, lo, h)[0])
 
     def heights_of(self, lat: np.ndarray, lon: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Heights (m MSL, NaN outside every source) of a few points held in (n,) float64
