@@ -93,6 +93,7 @@ DETAIL_STRENGTH = 0.3  # 0: no detail; the masks' weight scale
 # A border triangle's fragments lie 1e-5 of their distance behind its provoking vertex
 # (reversed-Z: depth near/d), so where a level's own surface is drawn too it wins.
 BORDER_DEPTH_SCALE = 1.0 - 1e-5
+CLASS_COLOURS_F32 = (np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes()  # the u_class_colour uniform
 
 VERTEX_SHADER = """#version 330 core
 uniform sampler2D u_fine;        // level k: offset from its origin (ECEF axes) + height MSL
@@ -591,7 +592,7 @@ class ClipmapLayer:
             frame.write_common(prog)
             prog["u_detail_strength"].value = float(self.detail_strength)
             if self._land_classes:
-                prog["u_class_colour"].write((np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes())
+                prog["u_class_colour"].write(CLASS_COLOURS_F32)
         self._detail.use(4)
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
@@ -608,10 +609,7 @@ class ClipmapLayer:
                 self._tex[d.k + 1][0].use(1)
                 self._tex[d.k + 1][1].use(3)
             r = d.region
-            data = (d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)).astype(np.int32).tobytes()
-            if len(data) > self._inst.size:
-                self._inst.orphan(len(data) * 2)
-            self._inst.write(data)
+            _write_instances(self._inst, d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32))
             self._vao.render(moderngl.TRIANGLES, instances=len(d.blocks))
             self.triangles += 2 * d.cells
             self.vertices += len(d.blocks) * (BLOCK + 1) ** 2
@@ -620,10 +618,7 @@ class ClipmapLayer:
                 self.ctx.disable(moderngl.CULL_FACE)  # zero-area: either winding
                 for vao, segments in zip(self._border_vaos, border_segments(r)):
                     if len(segments):
-                        data = segments.astype(np.int32).tobytes()
-                        if len(data) > self._border_inst.size:
-                            self._border_inst.orphan(len(data) * 2)
-                        self._border_inst.write(data)
+                        _write_instances(self._border_inst, segments)
                         vao.render(moderngl.TRIANGLES, instances=len(segments))
                         self.triangles += len(segments) * (BLOCK // 2)
                 self.ctx.enable(moderngl.CULL_FACE)
@@ -639,6 +634,14 @@ class ClipmapLayer:
                     *self._border_vbos, self._border_ibo, self._border_inst, self.program, self._border_program):
             obj.release()
         self._tex = []
+
+
+def _write_instances(buffer, instances: np.ndarray) -> None:
+    """Instance records (m, 4) int32 into a buffer, grown (twice the need) when too small."""
+    data = instances.astype(np.int32).tobytes()
+    if len(data) > buffer.size:
+        buffer.orphan(len(data) * 2)
+    buffer.write(data)
 
 
 def border_segments(region: Rect) -> tuple[np.ndarray, np.ndarray]:
