@@ -123,3 +123,19 @@ def test_a_dead_worker_loses_only_its_aircraft():
         world.close()
         assert time.monotonic() - t0 < 10.0
         assert not any(w.process.is_alive() for w in host._workers)
+
+
+def test_workers_run_at_a_lower_cpu_priority(workers):
+    """Off the critical path, the workers yield the CPU to the server's process (nice +WORKER_NICE)."""
+    from server.aircraft_host import WORKER_NICE
+
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+    assert WORKER_NICE > 0
+    for pid in workers.pids:
+        assert os.getpriority(os.PRIO_PROCESS, pid) == min(mine + WORKER_NICE, 19)
+
+
+@pytest.mark.parametrize("nice", [-1, 20, 2.5, True, "10"])
+def test_worker_nice_out_of_range_is_rejected(nice):
+    with pytest.raises(InvalidArgument, match="worker_nice"):
+        ProcessAircraftHost(FLAT, DT, workers=1, nice=nice)
