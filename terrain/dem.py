@@ -274,6 +274,9 @@ def read_geotiff(path) -> Raster:
     run north->south (usual, positive ModelPixelScale y) or south->north; both
     come out row 0 = south. GDAL_NODATA and non-finite values are voids,
     filled by the harmonic rule. Georef x, y are in the CRS's native units.
+    Strips or tiles, classic TIFF or BigTIFF, uncompressed or compressed as
+    GDAL writes DEMs (LZW, DEFLATE, ZSTD, PackBits; horizontal or
+    floating-point predictor): tifffile decodes them with imagecodecs.
     """
     path = _existing(path)
     try:

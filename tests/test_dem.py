@@ -403,8 +403,9 @@ def test_geotiff_web_mercator_georeference(tif_grand_canyon):
 
 # ----------------------------------------------------------------------------- GeoTIFF (synthetic)
 
-def _write_geotiff(path, data, keys, scale=None, tiepoint=None, transform=None, nodata=None):
-    """A GeoTIFF with the given GeoKeys {id: SHORT} and georeference tags."""
+def _write_geotiff(path, data, keys, scale=None, tiepoint=None, transform=None, nodata=None, **write):
+    """A GeoTIFF with the given GeoKeys {id: SHORT} and georeference tags (``write``: more
+    tifffile.imwrite options: compression, predictor, tile, bigtiff)."""
     directory = [1, 1, 0, len(keys)]
     for key, value in sorted(keys.items()):
         directory += [key, 0, 1, value]
@@ -417,7 +418,7 @@ def _write_geotiff(path, data, keys, scale=None, tiepoint=None, transform=None, 
         tags.append((34264, "d", 16, transform, True))
     if nodata is not None:
         tags.append((42113, "s", 0, nodata, True))
-    tifffile.imwrite(path, data, extratags=tags)
+    tifffile.imwrite(path, data, extratags=tags, **write)
     return path
 
 
@@ -533,6 +534,35 @@ def test_geotiff_unsupported_crs_names_the_key(tmp_path, keys, message):
     with pytest.raises(DataFormatError, match=message) as info:
         read_geotiff(path)
     assert "crs.tif" in str(info.value)
+
+
+# How DEM GeoTIFFs come (GDAL's creation options, USGS 3DEP, Copernicus GLO-30, OpenTopography):
+# LZW or DEFLATE, with horizontal differencing (integers) or the floating-point predictor,
+# in strips or tiles, sometimes BigTIFF. Each must give the same posts as the plain file.
+@pytest.mark.parametrize("dtype", [np.int16, np.float32])
+@pytest.mark.parametrize("write", [
+    {"compression": "lzw"}, {"compression": "lzw", "predictor": True},
+    {"compression": "zlib", "predictor": True}, {"compression": "zstd"},
+    {"compression": "lzw", "predictor": True, "tile": (16, 16)}, {"bigtiff": True, "compression": "zlib"},
+], ids=["lzw", "lzw+predictor", "deflate+predictor", "zstd", "tiled-lzw+predictor", "bigtiff-deflate"])
+def test_geotiff_compressed_tiled_and_bigtiff_read_the_same_posts(tmp_path, dtype, write):
+    rng = np.random.default_rng(5)
+    data = (rng.normal(900.0, 300.0, (37, 45)) if dtype == np.float32
+            else rng.integers(-400, 4000, (37, 45))).astype(dtype)
+    georef = ({1024: 2, 1025: 2, 2048: 4326}, (0.01, 0.01, 0.0), (0.0, 0.0, 0.0, 9.0, 47.5, 0.0))
+    plain = read_geotiff(_write_geotiff(tmp_path / "plain.tif", data, *georef))
+    packed = read_geotiff(_write_geotiff(tmp_path / "packed.tif", data, *georef, **write))
+    assert packed.heights.dtype == plain.heights.dtype
+    np.testing.assert_array_equal(packed.heights, plain.heights)
+    np.testing.assert_array_equal(packed.heights, data[::-1])  # row 0 = south, bit for bit
+    assert packed.georef == plain.georef
+
+
+def test_geotiff_with_several_bands_is_a_format_error(tmp_path):
+    rgb = np.zeros((8, 9, 3), np.uint8)
+    with pytest.raises(DataFormatError, match="rgb.tif.*one band"):
+        read_geotiff(_write_geotiff(tmp_path / "rgb.tif", rgb, GEOGRAPHIC_AREA, (1.0, 1.0, 0.0),
+                                    (0.0, 0.0, 0.0, 0.0, 8.0, 0.0), photometric="rgb"))
 
 
 def test_geotiff_rotation_and_missing_georeference_are_format_errors(tmp_path):
