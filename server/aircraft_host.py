@@ -24,16 +24,28 @@ A world begins the next tick as soon as it has ended one (server.world), so
 requests may meet a tick under way: its answer is received first and kept
 for :meth:`ProcessAircraftHost.end_tick`.
 
-The workers run at a lower CPU priority than the server's process (``nice``
-+WORKER_NICE). A world tick's aircraft run while the server's process is idle
-(the next tick is begun as soon as one ends), so they are off the critical
-path; what is on it is the clock thread's own work and the streams. On a
-machine whose cores are all busy, the scheduler then lets the server's
-process (and anything else of ordinary priority) run as soon as it wakes,
-and the workers take every cycle left over: measured on 2 cores at 90 f16s,
-2000 ground vehicles and 32 clients in real time, tick p99 46-54 -> 25-27 ms
-and publish -> client latency p50 17 -> 9-10 ms, with the same capacity in
-"fast" mode (docs/BENCHMARKS.md).
+The workers run at a slightly lower CPU priority than the server's process
+(``nice`` +WORKER_NICE). A world tick's aircraft run while the server's
+process is idle (the next tick is begun as soon as one ends); on a machine
+whose cores are all busy, the scheduler then lets the clock thread and the
+streams run sooner when they wake, and the workers take the cycles left
+over. Measured on 2 cores (90 f16s, 2000 ground vehicles, 32 clients in
+real time, 4-5 interleaved runs each; docs/BENCHMARKS.md):
+
+======  ==============================  =========================  ===========================
+nice    publish -> client latency p50   latency p99                tick p99 over the whole run
+======  ==============================  =========================  ===========================
+0       14-17 ms                        25-36 ms                   57-77 ms
++3      12-14 ms                        24-30 ms                   70-93 ms
++10     9.5-11 ms                       20-26 ms                   143-253 ms
+======  ==============================  =========================  ===========================
+
+The whole-run column holds the start-up of the 4 load-client processes
+beside the server: at +10 the workers starve while other processes of
+ordinary priority are busy and the world stalls up to a quarter second. A
+simulator's physics must not wait on the rest of its machine, so the
+default is the mild +3; ``sortie server --aircraft-worker-nice 10`` trades
+those stalls for the lower latency where nothing else runs beside it.
 
 A tick's result, :class:`AirTick`, holds every aircraft's raw state row
 (``fdm.state.RAW_PROPERTIES``), its crashed / on-ground flags and its fdm
@@ -66,9 +78,9 @@ MAX_WORKERS = 64
 # other than a tick before it is taken for dead.
 WORKER_START_TIMEOUT_S = 120.0
 # How much lower the workers' CPU priority is than the server's (os.nice
-# increment, 0-19; see the module docstring). Lowering one's own priority needs
-# no privilege.
-WORKER_NICE = 10
+# increment, 0-19; see the module docstring for the measured trade-off).
+# Lowering one's own priority needs no privilege.
+WORKER_NICE = 3
 
 
 @dataclass
@@ -340,7 +352,7 @@ class ProcessAircraftHost:
         if not (isinstance(workers, int) and 1 <= workers <= MAX_WORKERS):
             raise InvalidArgument("aircraft_workers", f"must be an integer in [1, {MAX_WORKERS}]", value=workers)
         if not (isinstance(nice, int) and not isinstance(nice, bool) and 0 <= nice <= 19):
-            raise InvalidArgument("worker_nice", "must be an integer in [0, 19]", value=nice)
+            raise InvalidArgument("aircraft_worker_nice", "must be an integer in [0, 19]", value=nice)
         if not callable(terrain_factory):
             raise InvalidArgument("terrain_factory", "must be a picklable callable that opens the terrain",
                                   value=terrain_factory)

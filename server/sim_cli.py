@@ -2,7 +2,7 @@
 
     sortie server --scenario FILE [--dem FILE... | --terrain HOST:PORT] --port N [--host H]
                   [--clock realtime|fast|paused] [--time-scale X] [--duration S]
-                  [--aircraft-workers N|auto] [--record FILE | --record-dir DIR | --no-record]
+                  [--aircraft-workers N|auto] [--aircraft-worker-nice N] [--record FILE | --record-dir DIR | --no-record]
 
 Every sortie is recorded by default, into ``recordings/<exercise>-<UTC time>.sortie``
 (server/recorder.py; read it with ``sortie recording``, ``sortie replay``,
@@ -41,6 +41,10 @@ def add_parser(sub) -> None:
     p.add_argument("--aircraft-workers", default="auto", metavar="N|auto",
                    help="processes the aircraft's JSBSim runs in: 0 = in the server's process; auto = "
                         "one per CPU core (%(default)s); see server/aircraft_host.py")
+    p.add_argument("--aircraft-worker-nice", type=int, metavar="N",
+                   help="how much lower the aircraft workers' CPU priority is than the server's, 0-19 "
+                        "(default: server.aircraft_host.WORKER_NICE, 3); higher lowers stream latency "
+                        "on a busy machine but lets other processes stall the physics")
     rec = p.add_mutually_exclusive_group()
     rec.add_argument("--record", metavar="FILE", help="record the sortie into FILE (a new file)")
     rec.add_argument("--record-dir", metavar="DIR", default="recordings",
@@ -91,7 +95,8 @@ def server_command(args) -> int:
     workers = aircraft_workers(args.aircraft_workers)
     scenario = load_scenario(args.scenario)
     terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
-    world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers))
+    world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers,
+                                                         args.aircraft_worker_nice))
     recorder = None
     path = recording_path(args, scenario.exercise.name)
     if path is not None:

@@ -291,15 +291,17 @@ def open_terrain(scenario, dem=None, service: str | None = None):
     return open_terrain_source(**spec), desc, functools.partial(open_terrain_source, **spec)
 
 
-def aircraft_host(scenario, terrain, terrain_factory, workers: int):
+def aircraft_host(scenario, terrain, terrain_factory, workers: int, nice: int | None = None):
     """Where a scenario's aircraft fly: this process (workers=0) or ``workers``
-    processes (server.aircraft_host)."""
-    from server.aircraft_host import LocalAircraftHost, ProcessAircraftHost
+    processes (server.aircraft_host) at CPU priority ``nice`` below this one
+    (None: server.aircraft_host.WORKER_NICE)."""
+    from server.aircraft_host import WORKER_NICE, LocalAircraftHost, ProcessAircraftHost
 
     ex = scenario.exercise
     if workers == 0:
         return LocalAircraftHost(terrain, 1.0 / ex.fdm_rate_hz, scenario.terrain.geoid_undulation_m)
-    return ProcessAircraftHost(terrain_factory, 1.0 / ex.fdm_rate_hz, scenario.terrain.geoid_undulation_m, workers)
+    return ProcessAircraftHost(terrain_factory, 1.0 / ex.fdm_rate_hz, scenario.terrain.geoid_undulation_m, workers,
+                               nice=WORKER_NICE if nice is None else nice)
 
 
 def build_world(scenario, terrain, host=None) -> World:

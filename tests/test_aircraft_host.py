@@ -137,5 +137,5 @@ def test_workers_run_at_a_lower_cpu_priority(workers):
 
 @pytest.mark.parametrize("nice", [-1, 20, 2.5, True, "10"])
 def test_worker_nice_out_of_range_is_rejected(nice):
-    with pytest.raises(InvalidArgument, match="worker_nice"):
+    with pytest.raises(InvalidArgument, match="aircraft_worker_nice"):
         ProcessAircraftHost(FLAT, DT, workers=1, nice=nice)

@@ -75,6 +75,9 @@ def test_start_up_errors_are_clear_and_exit_non_zero(hgt_alps, tmp_path):
     assert r.returncode == 2 and "exercise.name: must be a string" in r.stderr
     r = run_sortie("--config", str(tmp_path / "none.toml"), "server", "--scenario", SCENARIO, "--port", "0")
     assert r.returncode == 2 and "none.toml" in r.stderr
+    r = run_sortie("server", "--scenario", SCENARIO, "--port", "0", "--dem", str(hgt_alps), "--no-record",
+                   "--aircraft-workers", "1", "--aircraft-worker-nice", "25")
+    assert r.returncode == 2 and "aircraft_worker_nice" in r.stderr and "25" in r.stderr
     with ServiceProcess(["terrain", "serve", "--dem", str(hgt_alps)]) as svc:
         # The port is taken: both services refuse to start (no silent SO_REUSEPORT sharing).
         r = run_sortie("terrain", "serve", "--dem", str(hgt_alps), "--port", str(svc.port))
