@@ -32,6 +32,11 @@ of interest at random points) streaming at 20 Hz from separate processes
   channels, writing their logs), as a real exercise streams between its
   joins and its end; ``tick_p99_ms_whole_run`` and
   ``latency_p99_ms_whole_run`` keep the ready-to-stop figures beside them.
+- ``latency_floor_p50_ms`` / ``latency_floor_p99_ms`` (full runs only): the
+  same 32 clients and message size streamed by a gRPC server that does
+  nothing else (bench/stream_floor.py): what the transport allows on this
+  machine; ``latency_floor_loaded_*`` the same beside one busy process per
+  core at the workers' priority, busy FLOOR_DUTY of each tick.
 - dead reckoning: bench/dr.py (``dr_*`` metrics and the bandwidth plot).
 """
 
@@ -58,6 +63,9 @@ STEPS_PER_TICK = 4  # 120 Hz JSBSim in a 30 Hz world tick
 STEADY_SKIP_S = 1.0
 STEADY_TAIL_S = 0.5
 QUICK_WINDOW = (0.5, 0.25)  # --quick: (skip, tail) of 2 s loads
+# The latency floor's stand-in for the aircraft workers: one busy process per core,
+# busy this fraction of each tick (the real-time run flies 75 % of the capacity).
+FLOOR_DUTY = 0.75
 
 
 def _f16_fleet(terrain, n: int) -> list:
@@ -233,7 +241,7 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
             "tick_p99_ms_whole_run": float(np.percentile(whole, 99)),
             "world_rate": (t_world1 - t_world0) / (wall1 - wall0), "latency_ms": latencies(t_world0, t_world1),
             "latency_ms_whole_run": latencies(t_ready, np.inf), "bytes": sum(data["bytes"]),
-            "states": sum(data["states"]), "entities": len(world.entities), "updates": server.publisher.updates_sent,
+            "states": sum(data["states"]), "messages": sum(len(log) for log in data["received"]), "entities": len(world.entities), "updates": server.publisher.updates_sent,
             "samples": server.publisher.entity_samples}
 
 
@@ -262,6 +270,17 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
     report.metrics["latency_p99_ms"] = float(np.percentile(calm["latency_ms"], 99))
     report.metrics["latency_p99_ms_whole_run"] = float(np.percentile(calm["latency_ms_whole_run"], 99))
     report.metrics["slow_client_tick_ratio"] = slow["tick_p99_ms"] / calm["tick_p99_ms"]
+    if not quick:  # the transport's own floor, same clients and message size (bench/stream_floor.py)
+        from bench.stream_floor import measure_floor
+
+        msg_bytes = int(calm["bytes"] / max(calm["messages"], 1))
+        idle = measure_floor(clients, CLIENTS_PER_PROCESS, seconds, msg_bytes)
+        loaded = measure_floor(clients, CLIENTS_PER_PROCESS, seconds, msg_bytes, duty=FLOOR_DUTY)
+        report.metrics["latency_floor_p50_ms"] = float(np.percentile(idle, 50))
+        report.metrics["latency_floor_p99_ms"] = float(np.percentile(idle, 99))
+        report.metrics["latency_floor_loaded_p50_ms"] = float(np.percentile(loaded, 50))
+        report.metrics["latency_floor_loaded_p99_ms"] = float(np.percentile(loaded, 99))
+        report.params.update(floor_message_bytes=msg_bytes, floor_duty=FLOOR_DUTY)
     report.metrics["realtime_world_rate"] = calm["world_rate"]
     report.metrics["stream_bytes_per_state"] = calm["bytes"] / max(calm["states"], 1)
     report.metrics["server_message_reduction"] = 1.0 - calm["updates"] / max(calm["samples"], 1)

@@ -19,3 +19,12 @@ def test_serve_measures_ticks_and_latencies_of_a_small_load(hgt_alps):
     assert np.isfinite(r["tick_mean_ms"]) and 0.0 < r["tick_mean_ms"] <= r["tick_p99_ms"]
     assert 0.5 < r["world_rate"] < 1.5  # real time
     assert r["states"] > 0 and r["bytes"] > 0 and r["entities"] == 22
+
+
+def test_stream_floor_measures_trigger_to_receipt():
+    """The transport-floor stand-in streams to real gRPC clients and times each message."""
+    from bench.stream_floor import WARM_MESSAGES, measure_floor
+
+    lat = measure_floor(clients=3, per_process=2, seconds=2.0, msg_bytes=1500, duty=0.3)
+    assert lat.size >= 3 * (30 - WARM_MESSAGES)  # ~40 messages each in 2 s at 20 Hz
+    assert np.all(np.isfinite(lat)) and lat.min() > 0.0 and np.median(lat) < 1000.0
