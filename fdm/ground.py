@@ -108,6 +108,9 @@ SUBSTEP_MAX_LENGTH_FRAC = 0.5
 SUBSTEP_MAX_TURN_DEG = 10.0
 # Poleward of this latitude moves are made in ECEF (about 11 km from a pole).
 POLAR_LAT_DEG = 89.9
+# Below this turn (rad) a sub-step rotates its heading's cosine and sine by Taylor
+# terms (_rotate: truncation < 0.05^6 / 720 = 2e-11, nanometres at a wheel base).
+SMALL_TURN_RAD = 0.05
 # Contact points sampled per vehicle: centre, front, rear, right, left.
 N_CONTACTS = 5
 # Divisors are recomputed every this many ticks (and when the observers change):
@@ -212,12 +215,12 @@ def _contacts(k, lat, lon, psi, half_l, half_w, pts_lat, pts_lon):
     The offsets (a few metres) use the radii at the pose, computed once: the
     latitude change across the wheel base moves them by parts in 1e7.
     """
-    c = math.cos(psi)
-    s = math.sin(psi)
-    b = N_CONTACTS * k
-    pts_lat[b] = lat
-    pts_lon[b] = lon
     if abs(lat) >= POLAR_LAT_DEG:
+        c = math.cos(psi)
+        s = math.sin(psi)
+        b = N_CONTACTS * k
+        pts_lat[b] = lat
+        pts_lon[b] = lon
         for q, (dn, de) in enumerate(((half_l * c, half_l * s), (-half_l * c, -half_l * s),
                                       (-half_w * s, half_w * c), (half_w * s, -half_w * c))):
             la, lo, _ = _offset(lat, lon, dn, de)
@@ -226,8 +229,17 @@ def _contacts(k, lat, lon, psi, half_l, half_w, pts_lat, pts_lon):
         return
     phi = math.radians(lat)
     m, n = _radii(phi)
-    to_lat = math.degrees(1.0) / m
-    to_lon = math.degrees(1.0) / (n * math.cos(phi))
+    _contacts_local(k, lat, lon, math.cos(psi), math.sin(psi), math.degrees(1.0) / m,
+                    math.degrees(1.0) / (n * math.cos(phi)), half_l, half_w, pts_lat, pts_lon)
+
+
+@numba.njit(cache=True, nogil=True)
+def _contacts_local(k, lat, lon, c, s, to_lat, to_lon, half_l, half_w, pts_lat, pts_lon):
+    """The five contact points away from the poles, from the heading's cosine and sine
+    and the degrees per metre north (to_lat) and east (to_lon) at the pose."""
+    b = N_CONTACTS * k
+    pts_lat[b] = lat
+    pts_lon[b] = lon
     fl, fo = half_l * c * to_lat, half_l * s * to_lon  # front
     rl, ro = -half_w * s * to_lat, half_w * c * to_lon  # right
     pts_lat[b + 1] = lat + fl
@@ -238,6 +250,20 @@ def _contacts(k, lat, lon, psi, half_l, half_w, pts_lat, pts_lon):
     pts_lon[b + 3] = _wrap_lon(lon + ro)
     pts_lat[b + 4] = lat - rl
     pts_lon[b + 4] = _wrap_lon(lon - ro)
+
+
+@numba.njit(cache=True, nogil=True)
+def _rotate(c, s, d):
+    """(cos, sin) of a + d from those of a, for a small turn d (rad): Taylor terms to
+    d^5 below SMALL_TURN_RAD (truncation < d^6 / 720 < 2e-11), exact above."""
+    if abs(d) < SMALL_TURN_RAD:
+        d2 = d * d
+        cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0))
+        sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)))
+    else:
+        cd = math.cos(d)
+        sd = math.sin(d)
+    return c * cd - s * sd, s * cd + c * sd
 
 
 @numba.njit(cache=True, nogil=True)
@@ -323,15 +349,37 @@ def _propose_kernel(idx, sub_dt, lat, lon, heading_deg, speed, pitch_grad, type_
         psi = math.radians(heading_deg[j])
         psi_mid = psi + 0.5 * r * h
         s = v_mid * h / sec  # ground distance projected on the horizontal
-        la, lo, dpsi = _offset(lat[j], lon[j], s * math.cos(psi_mid), s * math.sin(psi_mid))
-        psi2 = psi + r * h + dpsi
-        p_lat[k] = la
-        p_lon[k] = lo
-        p_psi[k] = psi2
+        cm, sm = math.cos(psi_mid), math.sin(psi_mid)
         p_v[k] = v_new
         p_r[k] = math.degrees(r)
         p_s[k] = s
-        _contacts(k, la, lo, psi2, 0.5 * table[t, P_LEN], 0.5 * table[t, P_WID], pts_lat, pts_lon)
+        half_l, half_w = 0.5 * table[t, P_LEN], 0.5 * table[t, P_WID]
+        la0 = lat[j]
+        if abs(la0) >= POLAR_LAT_DEG:
+            la, lo, dpsi = _offset(la0, lon[j], s * cm, s * sm)
+            psi2 = psi + r * h + dpsi
+            _contacts(k, la, lo, psi2, half_l, half_w, pts_lat, pts_lon)
+        else:
+            # _offset's non-polar branch, inlined to keep its radii and cos(phi_mid) for the
+            # contacts (at the new point they differ by parts in 1e9 and 1e6 of a few
+            # metres: micrometres), and the new heading's cosine and sine rotated from
+            # psi_mid's: four sines and cosines a vehicle instead of nine.
+            phi = math.radians(la0)
+            m, n = _radii(phi)
+            dphi = s * cm / m
+            phi_mid = phi + 0.5 * dphi
+            cpm = math.cos(phi_mid)
+            dlam = s * sm / (n * cpm)
+            la = la0 + math.degrees(dphi)
+            lo = _wrap_lon(lon[j] + math.degrees(dlam))
+            turn = 0.5 * r * h + dlam * math.sin(phi_mid)
+            psi2 = psi_mid + turn
+            c2, s2 = _rotate(cm, sm, turn)
+            _contacts_local(k, la, lo, c2, s2, math.degrees(1.0) / m, math.degrees(1.0) / (n * cpm),
+                            half_l, half_w, pts_lat, pts_lon)
+        p_lat[k] = la
+        p_lon[k] = lo
+        p_psi[k] = psi2
 
 
 @numba.njit(cache=True, nogil=True)
