@@ -73,7 +73,14 @@ MODEL_TYPE_GEOGRAPHIC = 2
 # GTRasterTypeGeoKey codes (GeoTIFF 1.0 section 6.3.1.2; OGC 19-008r4 7.2.1).
 RASTER_PIXEL_IS_AREA = 1
 RASTER_PIXEL_IS_POINT = 2
-EPSG_WGS84 = 4326
+# Geographic CRSs read as WGS 84, with the accuracy of the EPSG registry's null
+# transformation to it (the datums differ by about that much in position):
+# WGS 84 (geographic 3D, 4979) exactly; NAD83 (4269, USGS 3DEP DEMs) through
+# EPSG:1188 "NAD83 to WGS 84 (1)", 4 m; ETRS89 (4258, European national DEMs)
+# through EPSG:1149 "ETRS89 to WGS 84 (1)", 1 m. Other datums (ED50, Tokyo,
+# ...) differ by tens to hundreds of metres and are refused.
+GEOGRAPHIC_AS_WGS84 = {4326: ("WGS 84", 0.0, None), 4979: ("WGS 84 (3D)", 0.0, None),
+                       4269: ("NAD83", 4.0, 1188), 4258: ("ETRS89", 1.0, 1149)}
 # EPSG:3857 and its deprecated alias EPSG:3785. The older unofficial code
 # 900913 exceeds 65535, so it cannot appear in a SHORT GeoKey value.
 EPSG_WEB_MERCATOR = (3857, 3785)
@@ -264,7 +271,9 @@ def _asc_origin(path: Path, header: dict, axis: str, spacing: float) -> tuple[fl
 # --------------------------------------------------------------------------- GeoTIFF
 
 def read_geotiff(path) -> Raster:
-    """Single-band GeoTIFF in EPSG:4326 or EPSG:3857 (Web Mercator).
+    """Single-band GeoTIFF in EPSG:4326 or EPSG:3857 (Web Mercator); NAD83 and ETRS89
+    geographic rasters are read as WGS 84 within the EPSG registry's stated accuracy
+    (GEOGRAPHIC_AS_WGS84; the raster's meta["horizontal_datum"] says so).
 
     Georeference from ModelPixelScale + one ModelTiepoint, or from a
     ModelTransformation without rotation. GTRasterTypeGeoKey decides where
@@ -317,6 +326,12 @@ def read_geotiff(path) -> Raster:
     meta = {"format": "GeoTIFF", "dtype": str(data.dtype),
             "raster_type": "PixelIsArea" if half else "PixelIsPoint",
             "nodata": nodata, "rows_south_to_north": bool(sy > 0)}
+    if crs == CRS_GEOGRAPHIC:
+        name, accuracy_m, transformation = GEOGRAPHIC_AS_WGS84[keys[KEY_GEOGRAPHIC_TYPE]]
+        meta["horizontal_datum"] = name
+        if transformation is not None:
+            meta["horizontal_datum"] = (f"{name} (EPSG:{keys[KEY_GEOGRAPHIC_TYPE]}) read as WGS 84: EPSG:"
+                                        f"{transformation} null transformation, accurate to {accuracy_m:g} m")
     datum = VERTICAL_DATUMS_EPSG.get(keys.get(KEY_VERTICAL_CS_TYPE), VERTICAL_DATUM_DEFAULT)
     return _finish(path, data, voids, _make_georef(path, crs, x0, y0, abs(sx), abs(sy)), datum, meta)
 
@@ -354,9 +369,10 @@ def _geotiff_crs(path: Path, keys: dict) -> int:
     model = keys.get(KEY_GT_MODEL_TYPE)
     if model == MODEL_TYPE_GEOGRAPHIC:
         code = keys.get(KEY_GEOGRAPHIC_TYPE)
-        if code != EPSG_WGS84:
+        if code not in GEOGRAPHIC_AS_WGS84:
+            known = ", ".join(f"{c} ({name})" for c, (name, _, _) in GEOGRAPHIC_AS_WGS84.items())
             raise DataFormatError(f"{path}: unsupported geographic CRS: GeographicTypeGeoKey "
-                                  f"({KEY_GEOGRAPHIC_TYPE}) = {code!r}; only {EPSG_WGS84} (WGS 84) is read")
+                                  f"({KEY_GEOGRAPHIC_TYPE}) = {code!r}; read are {known}")
         return CRS_GEOGRAPHIC
     if model == MODEL_TYPE_PROJECTED:
         code = keys.get(KEY_PROJECTED_CS_TYPE)

@@ -524,7 +524,7 @@ def test_geotiff_web_mercator_synthetic(tmp_path):
 
 @pytest.mark.parametrize("keys, message", [
     ({1024: 1, 1025: 1, 3072: 32633}, r"ProjectedCSTypeGeoKey \(3072\) = 32633"),
-    ({1024: 2, 1025: 1, 2048: 4269}, r"GeographicTypeGeoKey \(2048\) = 4269"),
+    ({1024: 2, 1025: 1, 2048: 4230}, r"GeographicTypeGeoKey \(2048\) = 4230; read are 4326"),  # ED50
     ({1024: 3, 1025: 1}, r"GTModelTypeGeoKey \(1024\) = 3"),
     ({1025: 1, 2048: 4326}, r"GTModelTypeGeoKey \(1024\) = None"),
     ({1024: 2, 1025: 7, 2048: 4326}, r"GTRasterTypeGeoKey \(1025\) = 7"),
@@ -556,6 +556,20 @@ def test_geotiff_compressed_tiled_and_bigtiff_read_the_same_posts(tmp_path, dtyp
     np.testing.assert_array_equal(packed.heights, plain.heights)
     np.testing.assert_array_equal(packed.heights, data[::-1])  # row 0 = south, bit for bit
     assert packed.georef == plain.georef
+
+
+@pytest.mark.parametrize("code, datum", [(4326, "WGS 84"), (4979, "WGS 84 (3D)"),
+                                         (4269, "NAD83 (EPSG:4269) read as WGS 84: EPSG:1188"),
+                                         (4258, "ETRS89 (EPSG:4258) read as WGS 84: EPSG:1149")])
+def test_geotiff_wgs84_compatible_datums_are_read_and_said(tmp_path, code, datum):
+    """USGS 3DEP (NAD83) and European (ETRS89) DEMs: the same posts and place as WGS 84,
+    with the datum and the EPSG null transformation's accuracy in the metadata."""
+    raster = read_geotiff(_write_geotiff(tmp_path / "d.tif", _ramp(), {1024: 2, 1025: 2, 2048: code},
+                                         (0.5, 0.25, 0.0), (0.0, 0.0, 0.0, -105.0, 40.0, 0.0)))
+    assert raster.meta["horizontal_datum"].startswith(datum)
+    assert raster.georef.crs == CRS_GEOGRAPHIC
+    assert (raster.georef.x0, raster.georef.y0) == (-105.0, 40.0 - 3 * 0.25)
+    np.testing.assert_array_equal(raster.heights, _ramp()[::-1])
 
 
 def test_geotiff_with_several_bands_is_a_format_error(tmp_path):
