@@ -94,7 +94,7 @@ def _positive_int(text: str) -> int:
 
 def add_terrain_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dem", nargs="+", default=[], metavar="FILE",
-                        help="DEM files (.hgt, .asc, .tif), highest priority first")
+                        help="DEM files (.hgt, .asc, .tif, .raw, or a .zip holding one), highest priority first")
     parser.add_argument("--store", nargs="+", default=[], metavar="PATH",
                         help="terrain stores (sortie terrain import), under the DEMs")
     parser.add_argument("--procedural", type=int, metavar="SEED",

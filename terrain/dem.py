@@ -24,6 +24,9 @@ from __future__ import annotations
 
 import math
 import re
+import shutil
+import tempfile
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -96,10 +99,13 @@ def read_dem(path, **kwargs) -> Raster:
 
     .hgt -> :func:`read_hgt`, .asc -> :func:`read_asc`, .tif/.tiff ->
     :func:`read_geotiff`, .raw/.r16 -> :func:`read_raw16` (which needs its
-    georeference as keyword arguments).
+    georeference as keyword arguments); .zip -> the one DEM inside it, as
+    SRTM tiles are distributed (``N47E009.SRTMGL1.hgt.zip``).
     """
     path = _existing(path)
     suffix = path.suffix.lower()
+    if suffix == ".zip":
+        return _read_zipped(path, **kwargs)
     if suffix == ".hgt":
         return read_hgt(path, **kwargs)
     if suffix == ".asc":
@@ -109,7 +115,40 @@ def read_dem(path, **kwargs) -> Raster:
     if suffix in RAW_SUFFIXES:
         return read_raw16(path, **kwargs)
     raise DataFormatError(f"{path}: unknown DEM suffix {path.suffix!r} "
-                          f"(expected .hgt, .asc, .tif, .tiff, {', '.join(RAW_SUFFIXES)})")
+                          f"(expected {', '.join(DEM_SUFFIXES)} or .zip of one of them)")
+
+
+DEM_SUFFIXES = (".hgt", ".asc", ".tif", ".tiff", *RAW_SUFFIXES)
+# Largest DEM read out of a .zip (its declared size; a 1" SRTM tile is 26 MB).
+MAX_ZIPPED_DEM_BYTES = 4 << 30
+
+
+def _read_zipped(path: Path, **kwargs) -> Raster:
+    """The one DEM file inside a zip archive, read by its own suffix and name."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            members = [m for m in archive.infolist()
+                       if not m.is_dir() and Path(m.filename).suffix.lower() in DEM_SUFFIXES]
+            if len(members) != 1:
+                names = ", ".join(m.filename for m in archive.infolist()) or "nothing"
+                raise DataFormatError(f"{path}: a DEM archive must hold exactly one DEM file "
+                                      f"({', '.join(DEM_SUFFIXES)}); it holds {names}")
+            member = members[0]
+            if member.file_size > MAX_ZIPPED_DEM_BYTES:
+                raise DataFormatError(f"{path}: {member.filename} unpacks to {member.file_size} bytes, "
+                                      f"over the {MAX_ZIPPED_DEM_BYTES} read from an archive")
+            with tempfile.TemporaryDirectory(prefix="sortie-dem-") as tmp:
+                inner = Path(tmp) / Path(member.filename).name
+                with archive.open(member) as src, open(inner, "wb") as dst:
+                    shutil.copyfileobj(src, dst, 1 << 20)
+                try:
+                    raster = read_dem(inner, **kwargs)
+                except DataFormatError as e:  # named by the archive, not the scratch copy
+                    raise DataFormatError(str(e).replace(str(inner), f"{path}!{member.filename}")) from None
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError) as e:
+        raise DataFormatError(f"{path}: not a readable zip archive ({e})") from None
+    raster.source = f"{path}!{member.filename}"
+    return raster
 
 
 # --------------------------------------------------------------------------- SRTM .hgt

