@@ -202,9 +202,14 @@ def read_asc(path) -> Raster:
     ``*corner`` is the outer corner of the south-west cell (cell-area
     registration): posts are put at cell centres, half a cell inwards.
     ``*center`` is the centre of that cell, i.e. the post itself. File row 0 is
-    the north row. NODATA posts are voids, filled by the harmonic rule.
+    the north row. NODATA posts are voids, filled by the harmonic rule. A
+    sidecar ``.prj`` (the WKT GDAL and ArcGIS write beside the grid) is read
+    when present: a projected CRS, or a geographic one on another datum than
+    WGS 84 (or those read as it, see GEOGRAPHIC_AS_WGS84), is refused by name
+    instead of read as degrees.
     """
     path = _existing(path)
+    prj = _asc_sidecar_crs(path)
     try:
         text = path.read_text(encoding="ascii")
     except UnicodeDecodeError as e:
@@ -227,8 +232,49 @@ def read_asc(path) -> Raster:
     voids = ~np.isfinite(grid) if nodata is None else (grid == nodata) | ~np.isfinite(grid)
     meta = {"format": "ESRI ASCII grid", "registration_x": x_reg, "registration_y": y_reg,
             "nodata_value": nodata, "crs_assumed": "EPSG:4326"}
+    if prj:
+        meta["crs_prj"] = prj
     return _finish(path, grid, voids, _make_georef(path, CRS_GEOGRAPHIC, x0, y0, dx, dy),
                    VERTICAL_DATUM_DEFAULT, meta)
+
+
+# Datum names in WKT that are WGS 84 or read as it (GEOGRAPHIC_AS_WGS84's NAD83, ETRS89).
+WKT_WGS84_DATUMS = ("WGS_1984", "WGS84", "WGS 84", "WORLD GEODETIC SYSTEM 1984", "NORTH_AMERICAN_DATUM_1983",
+                    "NORTH AMERICAN DATUM 1983", "EUROPEAN_TERRESTRIAL_REFERENCE_SYSTEM_1989",
+                    "EUROPEAN TERRESTRIAL REFERENCE SYSTEM 1989", "ETRS89", "ETRS_1989", "NAD83", "NAD_1983")
+
+
+def _asc_sidecar_crs(path: Path) -> str | None:
+    """The name of the CRS in the grid's .prj sidecar (None without one); a projected
+    CRS or another datum is a DataFormatError naming it."""
+    prj = path.with_suffix(".prj")
+    if not prj.is_file():
+        prj = path.with_suffix(".PRJ")
+        if not prj.is_file():
+            return None
+    text = prj.read_text(encoding="utf-8", errors="replace").strip()
+    head = re.match(r"\s*(\w+)\s*\[\s*\"([^\"]*)\"", text)
+    if head is not None:  # WKT (GDAL, ArcGIS)
+        kind, name = head.group(1).upper(), head.group(2)
+        projected = kind in ("PROJCS", "PROJCRS", "PROJECTEDCRS")
+        datum = re.search(r"DATUM\s*\[\s*\"([^\"]*)\"", text, re.IGNORECASE)
+        datum_name = datum.group(1) if datum else name
+    else:  # the older ArcInfo form: "Projection GEOGRAPHIC", "Datum WGS84", ...
+        fields = dict((line.split(None, 1) + [""])[:2] for line in text.splitlines() if line.strip())
+        fields = {k.upper(): v.strip() for k, v in fields.items()}
+        if "PROJECTION" not in fields:
+            return None  # not a CRS we can read: the grid is taken as degrees, as without one
+        name = fields["PROJECTION"]
+        projected = name.upper() != "GEOGRAPHIC"
+        datum_name = fields.get("DATUM", "WGS84")
+    if projected:
+        raise DataFormatError(f"{path}: its {prj.name} is a projected CRS ({name}); ESRI ASCII grids are "
+                              "read in geographic degrees only (convert it to EPSG:4326, or to a GeoTIFF in "
+                              "EPSG:4326 or 3857)")
+    if not any(d in datum_name.upper().replace("D_", "", 1) for d in WKT_WGS84_DATUMS):
+        raise DataFormatError(f"{path}: its {prj.name} is on datum {datum_name!r}; read are WGS 84, NAD83 "
+                              "and ETRS89")
+    return name
 
 
 ASC_HEADER_KEYS = ("ncols", "nrows", "xllcorner", "xllcenter", "yllcorner", "yllcenter",

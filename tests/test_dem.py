@@ -285,6 +285,39 @@ def test_asc_center_registration_case_insensitive_and_nodata(tmp_path):
     assert list(status) == [STATUS_FILLED, STATUS_OK, STATUS_OK, STATUS_FILLED]
 
 
+WKT_WGS84 = ('GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]],'
+             'PRIMEM["Greenwich",0.0],UNIT["Degree",0.0174532925199433]]')
+WKT_UTM = ('PROJCS["WGS_1984_UTM_Zone_13N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",'
+           '6378137.0,298.257223563]]],PROJECTION["Transverse_Mercator"],UNIT["Meter",1.0]]')
+WKT_ED50 = ('GEOGCS["ED50",DATUM["European_Datum_1950",SPHEROID["International 1924",6378388,297]],'
+            'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]]')
+
+
+@pytest.mark.parametrize("prj, outcome", [
+    (WKT_WGS84, "GCS_WGS_1984"),
+    ('GEOGCS["NAD83",DATUM["North_American_Datum_1983",SPHEROID["GRS 1980",6378137,298.257222101]]]', "NAD83"),
+    ("Projection    GEOGRAPHIC\nDatum         WGS84\nZunits        NO\nUnits         DD\n", "GEOGRAPHIC"),
+    ("something else entirely", None),
+    (WKT_UTM, "projected CRS \\(WGS_1984_UTM_Zone_13N\\)"),
+    ("Projection    UTM\nZone 13\nDatum WGS84\n", "projected CRS \\(UTM\\)"),
+    (WKT_ED50, "datum 'European_Datum_1950'"),
+])
+def test_asc_prj_sidecar_is_read_and_projected_grids_refused(tmp_path, prj, outcome):
+    """The .prj beside a grid (GDAL and ArcGIS write one) names its CRS: geographic WGS 84
+    (or NAD83 / ETRS89) reads, a projected one or another datum is refused by name instead
+    of read as degrees; a sidecar that is no CRS at all is left aside."""
+    path = _write_asc(tmp_path / "g.asc", ["ncols 3", "nrows 2", "xllcorner 9.0", "yllcorner 47.0",
+                                           "cellsize 0.01"], [[1, 2, 3], [4, 5, 6]])
+    (tmp_path / "g.prj").write_text(prj)
+    if outcome is None or not outcome.startswith(("projected", "datum")):
+        raster = read_asc(path)
+        assert raster.meta.get("crs_prj") == outcome
+        assert (raster.georef.x0, raster.georef.y0) == (9.005, 47.005)
+    else:
+        with pytest.raises(DataFormatError, match="g.asc: its g.prj is .*" + outcome):
+            read_asc(path)
+
+
 def test_asc_nan_values_are_voids(tmp_path):
     path = _write_asc(tmp_path / "n.asc", ["ncols 3", "nrows 3", "xllcenter 0", "yllcenter 0", "cellsize 1"],
                       [["nan", 1, 1], [1, "NaN", 1], [1, 1, 1]])
