@@ -25,6 +25,9 @@ On the shared real DEMs (issue #7):
   the store (tile rasters cached) / from the DEM itself, same points;
   ``store_rms_error_vs_dem_m``: the store's bilinear heights against the DEM's
   at those points (resampling + 1 m quantisation).
+- ``store_vs_dem_contacts_speed``: the same for an aircraft's query near the
+  ground, 11 points within 10 m (its CG and gear contacts), one call at a
+  time at 200 places; ``store_contacts_us`` the store's time a call.
 """
 
 from __future__ import annotations
@@ -172,6 +175,19 @@ def store_figures(report: Report, paths, out: Path, quick: bool) -> None:
     d = got.height_msl_m[ok] - want.height_msl_m[ok]
     m["store_rms_error_vs_dem_m"] = float(np.sqrt(np.mean(d ** 2)))
     m["store_heights_mpts"] = lat.size / t_store / 1e6
+    # An aircraft near the ground: 11 points within 10 m, one call at a time.
+    places = [(a + rng.uniform(-1e-4, 1e-4, 11), b + rng.uniform(-1e-4, 1e-4, 11))
+              for a, b in zip(lat[:200], lon[:200])]
+
+    def calls(terrain):
+        for a, b in places:
+            terrain.heights(a, b)
+
+    calls(from_store)
+    t_dem = best_time(lambda: calls(from_dem), 5)
+    t_store = best_time(lambda: calls(from_store), 5)
+    m["store_vs_dem_contacts_speed"] = t_dem / t_store
+    m["store_contacts_us"] = t_store / len(places) * 1e6
 
 
 __all__ = ["run", "codec_figures"]

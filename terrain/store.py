@@ -38,6 +38,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 import zstandard
 
@@ -442,40 +443,133 @@ def open_store(path) -> TerrainStore:
         return store
 
 
+# Block keys of StoreSource._groups: (region, block row, block column) packed in one int64.
+KEY_STRIDE = 1 << 21
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_keys(lat, lon, dlat, dlon, per_turn, rects, n, out_key):
+    """Each point's block key ((region * KEY_STRIDE + block row) * KEY_STRIDE + block
+    column, or -1 outside every region) at one level; True when all keys are equal.
+
+    rects: (regions, 4) int64 rows of (row0, row1, col0, col1) of the level's
+    rectangles; n: posts a block side. The later region holding a point wins,
+    as the group order of StoreSource.heights_into always had it. The same
+    arithmetic as TerrainStore.fractional_post and _unwrap_col, one pass."""
+    same = True
+    for i in range(lat.shape[0]):
+        row = (90.0 - lat[i]) / dlat
+        col = ((lon[i] + 180.0) % 360.0) / dlon
+        key = -1
+        for r in range(rects.shape[0] - 1, -1, -1):
+            row0, row1, col0, col1 = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3]
+            c = col + per_turn if col < col0 else col
+            if row >= row0 and row <= row1 - 1 and c >= col0 and c <= col1 - 1:
+                bi = min(int(math.floor(row)), row1 - 2) // n
+                bj = min(int(math.floor(c)), col1 - 2) // n
+                key = (r * KEY_STRIDE + bi) * KEY_STRIDE + bj
+                break
+        out_key[i] = key
+        if key != out_key[0]:
+            same = False
+    return same
+
+
+# Most distinct blocks one batch is grouped into by the compiled counting sort (more: argsort).
+MAX_GROUPS = 256
+
+
+@numba.njit(cache=True, nogil=True)
+def _group_by_key(keys, out_order, out_keys, out_starts):
+    """Counting sort of the points by key, stable: out_order lists the point indices group
+    by group, group g being out_order[out_starts[g]:out_starts[g + 1]] with key out_keys[g]
+    (in order of first appearance). Returns the number of groups, or -1 past MAX_GROUPS."""
+    n_groups = 0
+    group = np.empty(keys.shape[0], np.int64)
+    counts = np.zeros(out_keys.shape[0], np.int64)
+    last = 0
+    for i in range(keys.shape[0]):
+        k = keys[i]
+        if n_groups > 0 and out_keys[last] == k:
+            g = last  # runs of one key are the common case (nearby points)
+        else:
+            g = -1
+            for j in range(n_groups):
+                if out_keys[j] == k:
+                    g = j
+                    break
+            if g < 0:
+                if n_groups == out_keys.shape[0]:
+                    return -1
+                g = n_groups
+                out_keys[g] = k
+                n_groups += 1
+            last = g
+        group[i] = g
+        counts[g] += 1
+    out_starts[0] = 0
+    for g in range(n_groups):
+        out_starts[g + 1] = out_starts[g] + counts[g]
+    fill = out_starts[:n_groups].copy()
+    for i in range(keys.shape[0]):
+        g = group[i]
+        out_order[fill[g]] = i
+        fill[g] += 1
+    return n_groups
+
+
 class StoreSource:
-    """A :class:`terrain.terrain.Terrain` source answering from a store's finest level."""
+    """A :class:`terrain.terrain.Terrain` source answering from a store's finest level.
+
+    Points are grouped by the block (BLOCK_TILES^2 tiles) they fall in, in one
+    compiled pass (:func:`_block_keys`); a batch inside one block, like an
+    aircraft's contact points, goes to that block's raster without any
+    grouping or copies."""
 
     def __init__(self, store: TerrainStore, level: int = 0):
         self.store = store
         self.level = level
+        self._rects = np.array([[r.rects[level].row0, r.rects[level].row1, r.rects[level].col0,
+                                 r.rects[level].col1] for r in store.regions], np.int64).reshape(-1, 4)
 
     def _groups(self, lat, lon):
-        """(block raster, point indices) for the points inside some region, one group
-        per block of BLOCK_TILES^2 tiles."""
-        rows, cols = self.store.fractional_post(self.level, lat, lon)
-        n = BLOCK_TILES * self.store.tile
-        for region in self.store.regions:
-            rect = region.rects[self.level]
-            per_turn = self.store.cols_per_turn(self.level)
-            c = cols + np.where(cols < rect.col0, per_turn, 0)
-            inside = (rows >= rect.row0) & (rows <= rect.row1 - 1) & (c >= rect.col0) & (c <= rect.col1 - 1)
-            idx = np.flatnonzero(inside)
-            if idx.size == 0:
-                continue
-            bi = np.minimum(np.floor(rows[idx]).astype(np.int64), rect.row1 - 2) // n
-            bj = np.minimum(np.floor(c[idx]).astype(np.int64), rect.col1 - 2) // n
-            nbj = (rect.col1 - 1) // n - rect.col0 // n + 1
-            key = (bi - rect.row0 // n) * nbj + (bj - rect.col0 // n)
-            # Few distinct keys: a counting sort (numpy's stable sort of small ints is a radix sort).
-            order = np.argsort(key.astype(np.uint16) if key.max() < 65536 else key, kind="stable")
-            sorted_key = key[order]
-            cuts = np.flatnonzero(np.diff(sorted_key)) + 1
-            for part in np.split(order, cuts):
-                k = part[0]
-                yield self.store.block_raster(region, self.level, int(bi[k]), int(bj[k])), idx[part]
+        """(block raster, point indices or None for all of them) for the points inside
+        some region, one group per block of BLOCK_TILES^2 tiles."""
+        if lat.size == 0:
+            return
+        keys = np.empty(lat.size, np.int64)
+        dlat, dlon = self.store.spacing_deg(self.level)
+        same = _block_keys(lat, lon, dlat, dlon, self.store.cols_per_turn(self.level), self._rects,
+                           BLOCK_TILES * self.store.tile, keys)
+        if same:
+            if keys[0] >= 0:
+                yield self._block(int(keys[0])), None
+            return
+        order = np.empty(lat.size, np.int64)
+        group_keys = np.empty(MAX_GROUPS, np.int64)
+        starts = np.empty(MAX_GROUPS + 1, np.int64)
+        n_groups = _group_by_key(keys, order, group_keys, starts)
+        if n_groups < 0:  # points over very many blocks
+            order = np.argsort(keys, kind="stable")
+            cuts = np.flatnonzero(np.diff(keys[order])) + 1
+            parts = np.split(order, cuts)
+            group_keys = [int(keys[part[0]]) for part in parts]
+        else:
+            parts = [order[starts[g]:starts[g + 1]] for g in range(n_groups)]
+        for key, part in zip(group_keys, parts):
+            if key >= 0:
+                yield self._block(int(key)), part
+
+    def _block(self, key: int) -> Raster:
+        region, rest = divmod(key, KEY_STRIDE * KEY_STRIDE)
+        bi, bj = divmod(rest, KEY_STRIDE)
+        return self.store.block_raster(self.store.regions[region], self.level, bi, bj)
 
     def heights_into(self, lat, lon, out_h, out_status) -> None:
         for raster, sel in self._groups(lat, lon):
+            if sel is None:
+                raster.heights_into(lat, lon, out_h, out_status)
+                continue
             h = np.full(sel.size, np.nan)
             st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
             raster.heights_into(lat[sel], lon[sel], h, st)
@@ -484,6 +578,9 @@ class StoreSource:
 
     def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
         for raster, sel in self._groups(lat, lon):
+            if sel is None:
+                raster.gradient_into(lat, lon, out_de, out_dn, out_status)
+                continue
             de, dn = np.full(sel.size, np.nan), np.full(sel.size, np.nan)
             st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
             raster.gradient_into(lat[sel], lon[sel], de, dn, st)

@@ -257,6 +257,48 @@ def test_store_source_answers_like_the_dem(canyon_store):
     assert far.status[0] == STATUS_OUTSIDE and np.isnan(far.height_msl_m[0])
 
 
+def test_store_batches_answer_as_their_points_one_by_one(canyon_store):
+    """A mixed batch (points in several blocks, outside every region, across the
+    antimeridian's wrap of the longitudes) is grouped by block in one compiled pass; a
+    batch inside one block goes to its block whole. Both give each point the answer
+    it gets alone, bit for bit, heights and gradients."""
+    out, _ = canyon_store
+    dem = read_dem(CANYON)
+    lat0, lon0, lat1, lon1 = dem.bounds
+    rng = np.random.default_rng(5)
+    lat = np.concatenate([rng.uniform(lat0 - 0.05, lat1 + 0.05, 300), [0.0, 89.9, -89.9]])
+    lon = np.concatenate([rng.uniform(lon0 - 0.05, lon1 + 0.05, 300), [0.0, 179.99, -180.0]])
+    t = Terrain([StoreSource(TerrainStore(out, cache_tiles=4))])
+    batch = t.heights(lat, lon)
+    alone = [t.heights(lat[k:k + 1], lon[k:k + 1]) for k in range(lat.size)]
+    np.testing.assert_array_equal(batch.height_msl_m, [a.height_msl_m[0] for a in alone])
+    np.testing.assert_array_equal(batch.status, [a.status[0] for a in alone])
+    assert 0.5 < np.mean(batch.status != STATUS_OUTSIDE) < 1.0
+    de, dn, st = t.gradients(lat, lon)
+    for k in range(0, lat.size, 7):
+        de1, dn1, st1 = t.gradients(lat[k:k + 1], lon[k:k + 1])
+        assert (de1[0], dn1[0], st1[0]) == (de[k], dn[k], st[k]) or (np.isnan(de[k]) and np.isnan(de1[0]))
+
+
+@settings(max_examples=60, deadline=None)
+@given(hs.lists(hs.integers(-1, 12), max_size=300), hs.integers(1, 8))
+def test_group_by_key_is_a_stable_counting_sort(keys, max_groups):
+    from terrain import store as store_mod
+
+    keys = np.array(keys, np.int64)
+    order = np.empty(keys.size, np.int64)
+    group_keys = np.empty(max_groups, np.int64)
+    starts = np.empty(max_groups + 1, np.int64)
+    n = store_mod._group_by_key(keys, order, group_keys, starts)
+    distinct = list(dict.fromkeys(keys.tolist()))  # in order of first appearance
+    if len(distinct) > max_groups:
+        assert n == -1
+        return
+    assert n == len(distinct) and group_keys[:n].tolist() == distinct
+    for g, k in enumerate(distinct):
+        assert order[starts[g]:starts[g + 1]].tolist() == np.flatnonzero(keys == k).tolist()
+
+
 def test_line_of_sight_through_the_store(canyon_store):
     out, _ = canyon_store
     t = Terrain([StoreSource(TerrainStore(out))])
