@@ -62,6 +62,7 @@ TAG_GEO_KEY_DIRECTORY = 34735
 TAG_GEO_DOUBLE_PARAMS = 34736
 TAG_GEO_ASCII_PARAMS = 34737
 TAG_GDAL_NODATA = 42113
+TAG_GDAL_METADATA = 42112
 
 # GeoKey ids (GeoTIFF 1.0 section 6.2; OGC 19-008r4 sections 7.2 and 7.4).
 KEY_GT_MODEL_TYPE = 1024
@@ -69,6 +70,9 @@ KEY_GT_RASTER_TYPE = 1025
 KEY_GEOGRAPHIC_TYPE = 2048  # GeodeticCRSGeoKey in GeoTIFF 1.1
 KEY_PROJECTED_CS_TYPE = 3072  # ProjectedCRSGeoKey in GeoTIFF 1.1
 KEY_VERTICAL_CS_TYPE = 4096
+KEY_VERTICAL_UNITS = 4099
+# VerticalUnitsGeoKey codes (EPSG unit of measure): metre, international foot, US survey foot.
+VERTICAL_UNITS_M = {9001: ("metre", 1.0), 9002: ("foot", 0.3048), 9003: ("US survey foot", 1200.0 / 3937.0)}
 
 # GTModelTypeGeoKey codes (GeoTIFF 1.0 section 6.3.1.1).
 MODEL_TYPE_PROJECTED = 1
@@ -370,7 +374,9 @@ def read_geotiff(path) -> Raster:
     filled by the harmonic rule. Georef x, y are in the CRS's native units.
     Strips or tiles, classic TIFF or BigTIFF, uncompressed or compressed as
     GDAL writes DEMs (LZW, DEFLATE, ZSTD, PackBits; horizontal or
-    floating-point predictor): tifffile decodes them with imagecodecs.
+    floating-point predictor): tifffile decodes them with imagecodecs. Heights
+    stored scaled (GDAL_METADATA's band scale and offset, e.g. decimetres in
+    int16) or in feet (VerticalUnitsGeoKey 9002, 9003) come out in metres.
     """
     path = _existing(path)
     try:
@@ -417,8 +423,41 @@ def read_geotiff(path) -> Raster:
         if transformation is not None:
             meta["horizontal_datum"] = (f"{name} (EPSG:{keys[KEY_GEOGRAPHIC_TYPE]}) read as WGS 84: EPSG:"
                                         f"{transformation} null transformation, accurate to {accuracy_m:g} m")
+    scale, offset = _gdal_scale_offset(path, tags.get(TAG_GDAL_METADATA))
+    unit_code = keys.get(KEY_VERTICAL_UNITS, 9001)
+    if unit_code not in VERTICAL_UNITS_M:
+        raise DataFormatError(f"{path}: VerticalUnitsGeoKey ({KEY_VERTICAL_UNITS}) = {unit_code!r}; read are "
+                              + ", ".join(f"{c} ({name})" for c, (name, _) in VERTICAL_UNITS_M.items()))
+    unit_name, to_m = VERTICAL_UNITS_M[unit_code]
+    if (scale, offset, to_m) != (1.0, 0.0, 1.0):  # stored values -> metres (GDAL's unscaling, then units)
+        data = (data.astype(np.float64) * scale + offset) * to_m
+        meta.update(scale=scale, offset=offset, vertical_units=unit_name)
     datum = VERTICAL_DATUMS_EPSG.get(keys.get(KEY_VERTICAL_CS_TYPE), VERTICAL_DATUM_DEFAULT)
     return _finish(path, data, voids, _make_georef(path, crs, x0, y0, abs(sx), abs(sy)), datum, meta)
+
+
+def _gdal_scale_offset(path: Path, text) -> tuple[float, float]:
+    """(scale, offset) of band 1 from the GDAL_METADATA tag's XML (``<Item name="SCALE"
+    sample="0" role="scale">``); (1, 0) without them. Heights are value * scale + offset."""
+    if not text:
+        return 1.0, 0.0
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(str(text).strip().rstrip("\x00"))
+    except ET.ParseError as e:
+        raise DataFormatError(f"{path}: GDAL_METADATA ({TAG_GDAL_METADATA}) is not XML ({e})") from None
+    found = {"scale": 1.0, "offset": 0.0}
+    for item in root.iter("Item"):
+        role = (item.get("role") or "").lower()
+        if role in found and item.get("sample", "0") == "0":
+            try:
+                found[role] = float((item.text or "").strip())
+            except ValueError:
+                raise DataFormatError(f"{path}: GDAL_METADATA {role} must be a number, got {item.text!r}") from None
+            if not math.isfinite(found[role]) or (role == "scale" and found[role] == 0.0):
+                raise DataFormatError(f"{path}: GDAL_METADATA {role} = {found[role]!r} cannot scale heights")
+    return found["scale"], found["offset"]
 
 
 def parse_geokeys(path, directory, doubles=(), ascii_params: str = "") -> dict[int, object]:

@@ -437,7 +437,8 @@ def test_geotiff_web_mercator_georeference(tif_grand_canyon):
 
 # ----------------------------------------------------------------------------- GeoTIFF (synthetic)
 
-def _write_geotiff(path, data, keys, scale=None, tiepoint=None, transform=None, nodata=None, **write):
+def _write_geotiff(path, data, keys, scale=None, tiepoint=None, transform=None, nodata=None, gdal_metadata=None,
+                   **write):
     """A GeoTIFF with the given GeoKeys {id: SHORT} and georeference tags (``write``: more
     tifffile.imwrite options: compression, predictor, tile, bigtiff)."""
     directory = [1, 1, 0, len(keys)]
@@ -452,6 +453,8 @@ def _write_geotiff(path, data, keys, scale=None, tiepoint=None, transform=None, 
         tags.append((34264, "d", 16, transform, True))
     if nodata is not None:
         tags.append((42113, "s", 0, nodata, True))
+    if gdal_metadata is not None:
+        tags.append((42112, "s", 0, gdal_metadata, True))
     tifffile.imwrite(path, data, extratags=tags, **write)
     return path
 
@@ -604,6 +607,44 @@ def test_geotiff_wgs84_compatible_datums_are_read_and_said(tmp_path, code, datum
     assert raster.georef.crs == CRS_GEOGRAPHIC
     assert (raster.georef.x0, raster.georef.y0) == (-105.0, 40.0 - 3 * 0.25)
     np.testing.assert_array_equal(raster.heights, _ramp()[::-1])
+
+
+def _scaled(scale, offset):
+    return ("<GDALMetadata>\n  <Item name=\"OFFSET\" sample=\"0\" role=\"offset\">%s</Item>\n"
+            "  <Item name=\"SCALE\" sample=\"0\" role=\"scale\">%s</Item>\n</GDALMetadata>" % (offset, scale))
+
+
+@pytest.mark.parametrize("units, scale, offset, to_m", [
+    (None, 0.1, 0.0, 1.0),          # decimetres in int16, as GDAL writes with -a_scale
+    (None, 0.5, -100.0, 1.0),
+    (9002, 1.0, 0.0, 0.3048),       # international feet
+    (9003, 0.1, 0.0, 1200 / 3937),  # tenths of US survey feet
+    (9001, 1.0, 0.0, 1.0),          # metres, said
+])
+def test_geotiff_scaled_or_in_feet_comes_out_in_metres(tmp_path, units, scale, offset, to_m):
+    keys = {1024: 2, 1025: 2, 2048: 4326, **({4099: units} if units else {})}
+    stored = _ramp().astype(np.int16)
+    stored[1, 2] = -32768
+    meta = _scaled(scale, offset) if (scale, offset) != (1.0, 0.0) else None
+    raster = read_geotiff(_write_geotiff(tmp_path / "s.tif", stored, keys, (1.0, 1.0, 0.0),
+                                         (0.0, 0.0, 0.0, 0.0, 3.0, 0.0), nodata="-32768", gdal_metadata=meta))
+    want = (stored[::-1].astype(np.float64) * scale + offset) * to_m
+    ok = stored[::-1] != -32768
+    np.testing.assert_allclose(raster.heights[ok], want[ok], rtol=0, atol=1e-9)
+    assert raster.meta["void_posts"] == 1  # the nodata test is on the stored value
+
+
+@pytest.mark.parametrize("meta, units, message", [
+    ("<GDALMetadata><Item", None, "GDAL_METADATA .42112. is not XML"),
+    (_scaled("ten", 0.0), None, "GDAL_METADATA scale must be a number"),
+    (_scaled(0.0, 0.0), None, "GDAL_METADATA scale = 0.0 cannot scale"),
+    (None, 9030, r"VerticalUnitsGeoKey \(4099\) = 9030"),
+])
+def test_geotiff_bad_scaling_is_a_format_error(tmp_path, meta, units, message):
+    keys = {1024: 2, 1025: 2, 2048: 4326, **({4099: units} if units else {})}
+    with pytest.raises(DataFormatError, match=message):
+        read_geotiff(_write_geotiff(tmp_path / "b.tif", _ramp(), keys, (1.0, 1.0, 0.0),
+                                    (0.0, 0.0, 0.0, 0.0, 3.0, 0.0), gdal_metadata=meta))
 
 
 def test_geotiff_with_several_bands_is_a_format_error(tmp_path):
