@@ -155,6 +155,19 @@ def _wrap_lon(lon):
 
 
 @numba.njit(cache=True, nogil=True)
+def _offset_local(lat, lon, dn, de):
+    """:func:`_offset` away from the poles, with what a caller placing points around
+    the new pose can reuse: (lat2, lon2, dpsi, M, N, cos of the mid-step latitude)."""
+    phi = math.radians(lat)
+    m, n = _radii(phi)
+    dphi = dn / m
+    phi_mid = phi + 0.5 * dphi
+    cpm = math.cos(phi_mid)
+    dlam = de / (n * cpm)
+    return lat + math.degrees(dphi), _wrap_lon(lon + math.degrees(dlam)), dlam * math.sin(phi_mid), m, n, cpm
+
+
+@numba.njit(cache=True, nogil=True)
 def _offset(lat, lon, dn, de):
     """(lat, lon) degrees moved dn metres north and de east on the surface.
 
@@ -163,12 +176,8 @@ def _offset(lat, lon, dn, de):
     convergence). Near the poles the step is made in ECEF (see module doc).
     """
     if abs(lat) < POLAR_LAT_DEG:
-        phi = math.radians(lat)
-        m, n = _radii(phi)
-        dphi = dn / m
-        phi_mid = phi + 0.5 * dphi
-        dlam = de / (n * math.cos(phi_mid))
-        return lat + math.degrees(dphi), _wrap_lon(lon + math.degrees(dlam)), dlam * math.sin(phi_mid)
+        la, lo, dpsi, _, _, _ = _offset_local(lat, lon, dn, de)
+        return la, lo, dpsi
     if dn == 0.0 and de == 0.0:
         return lat, lon, 0.0
     phi = math.radians(lat)
@@ -360,19 +369,12 @@ def _propose_kernel(idx, sub_dt, lat, lon, heading_deg, speed, pitch_grad, type_
             psi2 = psi + r * h + dpsi
             _contacts(k, la, lo, psi2, half_l, half_w, pts_lat, pts_lon)
         else:
-            # _offset's non-polar branch, inlined to keep its radii and cos(phi_mid) for the
-            # contacts (at the new point they differ by parts in 1e9 and 1e6 of a few
-            # metres: micrometres), and the new heading's cosine and sine rotated from
-            # psi_mid's: four sines and cosines a vehicle instead of nine.
-            phi = math.radians(la0)
-            m, n = _radii(phi)
-            dphi = s * cm / m
-            phi_mid = phi + 0.5 * dphi
-            cpm = math.cos(phi_mid)
-            dlam = s * sm / (n * cpm)
-            la = la0 + math.degrees(dphi)
-            lo = _wrap_lon(lon[j] + math.degrees(dlam))
-            turn = 0.5 * r * h + dlam * math.sin(phi_mid)
+            # The move's radii and cos(phi_mid) serve the contacts too (at the new point they
+            # differ by parts in 1e9 and 1e6 of a few metres: micrometres), and the new
+            # heading's cosine and sine are psi_mid's rotated: four sines and cosines a
+            # vehicle instead of nine.
+            la, lo, dpsi, m, n, cpm = _offset_local(la0, lon[j], s * cm, s * sm)
+            turn = 0.5 * r * h + dpsi
             psi2 = psi_mid + turn
             c2, s2 = _rotate(cm, sm, turn)
             _contacts_local(k, la, lo, c2, s2, math.degrees(1.0) / m, math.degrees(1.0) / (n * cpm),
