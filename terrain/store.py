@@ -565,26 +565,24 @@ class StoreSource:
         bi, bj = divmod(rest, KEY_STRIDE)
         return self.store.block_raster(self.store.regions[region], self.level, bi, bj)
 
-    def heights_into(self, lat, lon, out_h, out_status) -> None:
+    def _by_block(self, lat, lon, outs, answer) -> None:
+        """``answer(raster, lat, lon, *outs)`` (a Raster method filling NaN / OUTSIDE
+        outputs) block by block: on the batch itself when one block holds it, else on
+        each block's points, gathered and scattered back."""
         for raster, sel in self._groups(lat, lon):
             if sel is None:
-                raster.heights_into(lat, lon, out_h, out_status)
+                answer(raster, lat, lon, *outs)
                 continue
-            h = np.full(sel.size, np.nan)
-            st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
-            raster.heights_into(lat[sel], lon[sel], h, st)
-            out_h[sel] = h
-            out_status[sel] = st
+            part = [np.full(sel.size, np.nan) for _ in outs[:-1]] + [np.full(sel.size, STATUS_OUTSIDE, np.uint8)]
+            answer(raster, lat[sel], lon[sel], *part)
+            for out, values in zip(outs, part):
+                out[sel] = values
+
+    def heights_into(self, lat, lon, out_h, out_status) -> None:
+        self._by_block(lat, lon, (out_h, out_status), Raster.heights_into)
 
     def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
-        for raster, sel in self._groups(lat, lon):
-            if sel is None:
-                raster.gradient_into(lat, lon, out_de, out_dn, out_status)
-                continue
-            de, dn = np.full(sel.size, np.nan), np.full(sel.size, np.nan)
-            st = np.full(sel.size, STATUS_OUTSIDE, np.uint8)
-            raster.gradient_into(lat[sel], lon[sel], de, dn, st)
-            out_de[sel], out_dn[sel], out_status[sel] = de, dn, st
+        self._by_block(lat, lon, (out_de, out_dn, out_status), Raster.gradient_into)
 
     def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> Raster | None:
         return self.store.raster(self.level, lat_min, lon_min, lat_max, lon_max)
