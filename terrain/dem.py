@@ -149,6 +149,7 @@ def _read_zipped(path: Path, **kwargs) -> Raster:
                     raster = read_dem(inner, **kwargs)
                 except DataFormatError as e:  # named by the archive, not the scratch copy
                     raise DataFormatError(str(e).replace(str(inner), f"{path}!{member.filename}")) from None
+    # zipfile raises NotImplementedError for a compression method it lacks (e.g. Deflate64).
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError) as e:
         raise DataFormatError(f"{path}: not a readable zip archive ({e})") from None
     raster.source = f"{path}!{member.filename}"
@@ -419,10 +420,9 @@ def read_geotiff(path) -> Raster:
             "nodata": nodata, "rows_south_to_north": bool(sy > 0)}
     if crs == CRS_GEOGRAPHIC:
         name, accuracy_m, transformation = GEOGRAPHIC_AS_WGS84[keys[KEY_GEOGRAPHIC_TYPE]]
-        meta["horizontal_datum"] = name
-        if transformation is not None:
-            meta["horizontal_datum"] = (f"{name} (EPSG:{keys[KEY_GEOGRAPHIC_TYPE]}) read as WGS 84: EPSG:"
-                                        f"{transformation} null transformation, accurate to {accuracy_m:g} m")
+        meta["horizontal_datum"] = name if transformation is None else (
+            f"{name} (EPSG:{keys[KEY_GEOGRAPHIC_TYPE]}) read as WGS 84: EPSG:{transformation} null "
+            f"transformation, accurate to {accuracy_m:g} m")
     scale, offset = _gdal_scale_offset(path, tags.get(TAG_GDAL_METADATA))
     unit_code = keys.get(KEY_VERTICAL_UNITS, 9001)
     if unit_code not in VERTICAL_UNITS_M:
