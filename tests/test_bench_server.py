@@ -12,13 +12,16 @@ def test_serve_measures_ticks_and_latencies_of_a_small_load(hgt_alps):
     from terrain.terrain import Terrain
 
     terrain = Terrain([read_dem(hgt_alps)])
-    r = _serve(terrain, 2, "realtime", 2.5, 20, clients=4, workers=0)
+    # 1000 ground vehicles: dead reckoning lets few updates through once a vehicle's motion is
+    # steady, and the steady window is 1 s of world time that starts later on a slow machine;
+    # with 20 vehicles the window sometimes held none (CI, stop 18), with 1000 it holds ~50.
+    r = _serve(terrain, 2, "realtime", 2.5, 1000, clients=4, workers=0)
     lat = r["latency_ms"]
     assert lat.size >= 1, r  # the updates dead reckoning lets through to 4 random areas
     assert np.all(np.isfinite(lat)) and np.all(lat > 0.0) and np.all(lat < 5_000.0)
     assert np.isfinite(r["tick_mean_ms"]) and 0.0 < r["tick_mean_ms"] <= r["tick_p99_ms"]
     assert 0.5 < r["world_rate"] < 1.5  # real time
-    assert r["states"] > 0 and r["bytes"] > 0 and r["entities"] == 22
+    assert r["states"] > 0 and r["bytes"] > 0 and r["entities"] == 1002
 
 
 def test_stream_floor_measures_trigger_to_receipt():
