@@ -242,6 +242,8 @@ class Aircraft:
         self.terrain = terrain
         # Queries without the batch path's arrays (Terrain.heights_of), where offered.
         self._heights_of = getattr(terrain, "heights_of", None)
+        # The refresh far from the ground asks one point: the terrain's scalar path, where offered.
+        self._point_height = terrain.point_height() if hasattr(terrain, "point_height") else None
         self.dt = float(dt)
         self.geoid_undulation_m = float(geoid_undulation_m)
         self.max_penetration_m = float(max_penetration_m)
@@ -570,6 +572,14 @@ class Aircraft:
     def _check(self) -> list:
         """The full check of this step: plan, terrain heights, finish."""
         n = self._plan()
+        if n == 1 and self._point_height is not None:  # far from the ground: the CG alone
+            lat, lon = float(self._q_lat[0]), float(self._q_lon[0])
+            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):  # NaN: refused by name, below
+                return self._finish(self._terrain_msl_m(self._q_lat[:1], self._q_lon[:1]))
+            h = self._point_height(lat, lon)
+            terr = self._terr[:1]
+            terr[0] = 0.0 if h != h else h  # no data is sea level, as _terrain_msl_m
+            return self._finish(terr)
         return self._finish(None if n == 0 else self._terrain_msl_m(self._q_lat[:n], self._q_lon[:n]))
 
     def _where(self, alt_ft):
@@ -653,10 +663,15 @@ class Aircraft:
             self._set_terrain_ft(self._terrain_ft)
             # Far from the ground: only the load factor can end the flight; and the
             # detector hears of leaving the near band without the take-off debounce.
-            events += self._detector.update(t, lat, lon, alt_m, False, False, self._get_vd() * FT_M,
-                                            self._get_nz())
+            # Airborne with the load factor within limits it has nothing to do: not called
+            # (each call costs, its code cold after the JSBSim steps between refreshes).
+            d, nz = self._detector, self._get_nz()
+            if not d.airborne or d.on_ground or d._g_since is not None or not self._nz_min < nz < self._nz_max:
+                events += d.update(t, lat, lon, alt_m, False, False, self._get_vd() * FT_M, nz)
         if self._steps >= self._next_refresh:
-            events += self._detector.fuel(t, lat, lon, alt_m, self._get_fuel_lbs() * LB_KG)
+            fuel_lbs = self._get_fuel_lbs()
+            if fuel_lbs <= 0.0 and not self._detector.out_of_fuel:
+                events += self._detector.fuel(t, lat, lon, alt_m, fuel_lbs * LB_KG)
             # Near-ground band: the set distance plus twice what can be flown before the next refresh.
             vt_ft = self._get_vt_fps()
             step_ft = max(vt_ft, 1.0) * self.dt

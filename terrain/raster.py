@@ -115,11 +115,12 @@ def _cell(v, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _bilinear_point(heights, filled, has_filled, r, c, out_h, out_status, k):
-    """The careful path for one point at fractional index (r, c): edges, holes, filled voids."""
+def _bilinear_value(heights, filled, has_filled, r, c):
+    """(height, status) of one point at fractional index (r, c), the careful way: edges,
+    holes, filled voids; (NaN, STATUS_OUTSIDE) where this raster has no answer."""
     ny, nx = heights.shape
     if not (r >= 0.0 and r <= ny - 1 and c >= 0.0 and c <= nx - 1):
-        return
+        return np.nan, STATUS_OUTSIDE
     i, fy = _cell(r, ny)
     j, fx = _cell(c, nx)
     # Corners of zero weight are not read, so a post beside a hole or a
@@ -135,13 +136,30 @@ def _bilinear_point(heights, filled, has_filled, r, c, out_h, out_status, k):
     south = h00 * (1.0 - fx) + h01 * fx
     north = h10 * (1.0 - fx) + h11 * fx
     h = south * (1.0 - fy) + north * fy
-    if h != h:  # a NaN post is a hole in coverage: leave it to the next source
-        return
-    out_h[k] = h
-    status = STATUS_OK
+    if h != h:  # a NaN post is a hole in coverage: left to the next source
+        return np.nan, STATUS_OUTSIDE
     if has_filled and (filled[i0, j0] | filled[i0, j1] | filled[i1, j0] | filled[i1, j1]):
-        status = STATUS_FILLED
-    out_status[k] = status
+        return h, STATUS_FILLED
+    return h, STATUS_OK
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear_point(heights, filled, has_filled, r, c, out_h, out_status, k):
+    """:func:`_bilinear_value` into out_h[k], out_status[k], where it has an answer."""
+    h, status = _bilinear_value(heights, filled, has_filled, r, c)
+    if status != STATUS_OUTSIDE:
+        out_h[k] = h
+        out_status[k] = status
+
+
+@numba.njit(cache=True, nogil=True)
+def bilinear_one(heights, filled, lat, lon, crs, x0, y0, dx, dy):
+    """The height of one point (lat, lon degrees) as :func:`bilinear_into` answers it (the
+    same snap, wrap and careful path, so bit for bit), NaN where the raster has none. One
+    call with scalars: what a host asking one point now and then pays for least, its
+    caches cold after the rest of its work (an aircraft's refresh far from the ground)."""
+    r, c = fractional_index(lat, lon, crs, x0, y0, dx, dy)
+    return _bilinear_value(heights, filled, filled.shape[0] > 0, r, c)[0]
 
 
 # Points per chunk of the fast path: its scratch arrays stay in L1.
@@ -391,6 +409,12 @@ class Raster:
         g = self.georef
         bilinear_into(self.heights, self._filled_arg, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy,
                       out_h, out_status)
+
+    def height_at(self, lat: float, lon: float) -> float:
+        """The height at one valid point (lat, lon degrees), NaN where this raster has none:
+        what :meth:`heights_into` answers for it, bit for bit (:func:`bilinear_one`)."""
+        g = self.georef
+        return bilinear_one(self.heights, self._filled_arg, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy)
 
     def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
         """Surface slope dh/d(east metre), dh/d(north metre) for points still OUTSIDE."""

@@ -58,12 +58,27 @@ class Terrain:
         if not self.sources:
             raise ValueError("a Terrain needs at least one source")
         self._one = threading.local()  # height_at's and heights_of's buffers, per thread
+        # A single source with a scalar path of its own (Raster.height_at) answers height_at.
+        self._scalar = getattr(self.sources[0], "height_at", None) if len(self.sources) == 1 else None
+
+    def point_height(self):
+        """A callable (lat, lon) -> height (m MSL, NaN outside) for one point the caller
+        knows is valid (finite, lat within +-90, lon within +-LON_ABS_MAX_DEG): the single
+        raster's own compiled call when there is one (no validation, no wrapper between),
+        else :meth:`height_at`. For a host whose caches are cold at each call, where every
+        layer costs (an aircraft refreshing the terrain under it)."""
+        return self._scalar if self._scalar is not None else self.height_at
 
     def height_at(self, lat: float, lon: float) -> float:
         """The height (m MSL) at one point, NaN outside every source: what :meth:`heights`
         answers for it, without its per-call arrays, validation pass and result object (a
         host asking one point at a time: an aircraft far from the ground refreshes the
-        terrain under it once a second). An invalid point raises as :meth:`heights` does."""
+        terrain under it once a second). An invalid point raises as :meth:`heights` does.
+        A single source with a scalar path of its own (:meth:`terrain.raster.Raster.height_at`)
+        answers a valid point through it: one compiled call, where the arrays of
+        :meth:`heights_of` cost about four times as much when the caller's caches are cold."""
+        if -90.0 <= lat <= 90.0 and -LON_ABS_MAX_DEG <= lon <= LON_ABS_MAX_DEG and self._scalar is not None:
+            return self._scalar(lat, lon)
         buf = getattr(self._one, "buf", None)
         if buf is None:
             buf = self._one.buf = (np.empty(1), np.empty(1), np.empty(1))

@@ -91,6 +91,40 @@ def test_height_at_and_heights_of_are_heights():
             one.heights_of(np.array([47.0, lat_]), np.array([9.0, lon_]), np.empty(2))
 
 
+def test_height_at_scalar_path_is_the_batch_path_everywhere():
+    """Raster.height_at (one compiled call with scalars, what Terrain.height_at takes for a
+    single raster) against the batch kernel, bit for bit: on posts, on the last row and
+    column, just inside and outside the edges, beside holes and filled voids, wrapped
+    longitudes, and on a Web Mercator raster."""
+    from terrain.geodesy import web_mercator_inverse
+
+    base = _raster(ny=21, nx=27, seed=5, dtype=np.float64)
+    h = np.array(base.heights)
+    h[4, 6] = np.nan
+    filled = np.zeros(h.shape, bool)
+    filled[9, 9] = filled[20, 26] = True
+    geo = Raster(h, base.georef, filled=filled)
+    merc = Raster(h, Georef(CRS_WEB_MERCATOR, 1.0e6, 5.9e6, 90.0, 90.0))
+    rng = np.random.default_rng(11)
+    for r in (geo, merc):
+        rows = np.concatenate([np.repeat(np.arange(21.0), 27), rng.uniform(-0.5, 20.5, 2000),
+                               [0.0, 20.0, 20.0, 1e-12, 20.0 - 1e-12, 4.0, 4.5, 9.0, 19.9]])
+        cols = np.concatenate([np.tile(np.arange(27.0), 21), rng.uniform(-0.5, 26.5, 2000),
+                               [0.0, 26.0, 26.0 - 1e-12, 26.0, 1e-12, 6.0, 6.0, 9.5, 25.9]])
+        x, y = r.georef.post_xy(rows, cols)
+        lat, lon = (y, x) if r.georef.crs == CRS_GEOGRAPHIC else web_mercator_inverse(x, y)
+        if r is geo:
+            lat = np.concatenate([lat, [47.0 + 3 / 1200]])
+            lon = np.concatenate([lon, [9.0 + 5 / 1200 + 360.0]])  # wraps onto the grid
+        want = Terrain([r]).heights(lat, lon).height_msl_m
+        got = np.array([r.height_at(float(a_), float(b_)) for a_, b_ in zip(lat, lon)])
+        assert np.array_equal(got, want, equal_nan=True)
+        assert np.isnan(got).any() and np.isfinite(got).sum() > 500
+        one = Terrain([r])
+        assert np.array_equal([one.height_at(float(a_), float(b_)) for a_, b_ in zip(lat, lon)], want,
+                              equal_nan=True)
+
+
 def test_filled_status():
     r = _raster()
     filled = np.zeros(r.shape, bool)
