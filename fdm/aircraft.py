@@ -573,13 +573,11 @@ class Aircraft:
         """The full check of this step: plan, terrain heights, finish."""
         n = self._plan()
         if n == 1 and self._point_height is not None:  # far from the ground: the CG alone
-            lat, lon = float(self._q_lat[0]), float(self._q_lon[0])
-            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):  # NaN: refused by name, below
-                return self._finish(self._terrain_msl_m(self._q_lat[:1], self._q_lon[:1]))
-            h = self._point_height(lat, lon)
-            terr = self._terr[:1]
-            terr[0] = 0.0 if h != h else h  # no data is sea level, as _terrain_msl_m
-            return self._finish(terr)
+            lat, lon = self._cg_lat, self._cg_lon
+            if -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0:  # else NaN: refused by name, below
+                # Floats throughout, no array: numpy's code is as cold as ours here.
+                h = self._point_height(lat, lon)
+                return self._finish([0.0 if h != h else h])  # no data is sea level, as _terrain_msl_m
         return self._finish(None if n == 0 else self._terrain_msl_m(self._q_lat[:n], self._q_lon[:n]))
 
     def _where(self, alt_ft):
@@ -603,17 +601,20 @@ class Aircraft:
         alt_ft = self._get_alt_ft()
         self._alt_ft = alt_ft
         self._near = near = alt_ft - self._terrain_ft < self._near_ground_ft
+        # The CG's position as floats for _couple (also _q_lat/_q_lon[0], for a batch query).
+        self._cg_lat = lat = math.degrees(self._get_lat_rad())
+        self._cg_lon = lon = math.degrees(self._get_lon_rad())
         if near:
             cg = self._get_cg_in
             dt_ft = FT_M * self.dt
-            place_contacts(math.degrees(self._get_lat_rad()), math.degrees(self._get_lon_rad()), alt_ft * FT_M,
+            place_contacts(lat, lon, alt_ft * FT_M,
                            cg[0](), cg[1](), cg[2](), *(g() for g in self._get_euler),
                            self._get_vn() * dt_ft, self._get_ve() * dt_ft,
                            self._contact_locations_in, self._q_lat, self._q_lon, self._q_alt)
             return self._q_lat.size
         if self._steps >= self._next_refresh:
-            self._q_lat[0] = math.degrees(self._get_lat_rad())
-            self._q_lon[0] = math.degrees(self._get_lon_rad())
+            self._q_lat[0] = lat
+            self._q_lon[0] = lon
             return 1
         return 0
 
@@ -643,7 +644,7 @@ class Aircraft:
         """Apply the terrain under the aircraft (and its contacts when near); see the module docstring."""
         t = self._get_time()
         alt_ft = self._alt_ft
-        lat, lon = float(self._q_lat[0]), float(self._q_lon[0])
+        lat, lon = self._cg_lat, self._cg_lon
         alt_m = alt_ft * FT_M
         events = []
         self._terrain_cg_ft = terr[0] / FT_M
