@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import math
 import operator
+import re
 import warnings
 from dataclasses import dataclass, fields, replace
 
@@ -66,7 +67,7 @@ import numpy as np
 from fdm import catalog
 from fdm.contacts import contact_points, ground_clearance, place_contacts
 from fdm.events import LIMITS, EventDetector
-from fdm.state import FT_M, RAW_PROPERTIES, RAW_WIDTH, AircraftState
+from fdm.state import FT_M, RAW_COLUMNS, RAW_PROPERTIES, RAW_WIDTH, AircraftState
 from sortie.errors import InvalidArgument, SortieError
 from terrain.geodesy import wrap_lon_deg
 
@@ -82,6 +83,28 @@ MAX_REFRESH_S = 1.0
 # Far above the terrain, height band and load factor are checked at this rate (Hz) between refreshes.
 CHECK_HZ = 30.0
 
+# Some catalog models read properties that nothing in JSBSim defines: FlightGear's own (its
+# /controls tree, /sim/model/pushback/*) or a name misspelt in the model (L17's
+# fcs/flaps-pos-deg). JSBSim resolves a property when first evaluated and raises there. The
+# host creates each such property (at 0, as FlightGear's tree starts), once per model and
+# process, up to this many per model.
+MAX_UNDEFINED_PROPERTIES = 16
+_UNDEFINED_RE = re.compile(r"The property (\S+) does not exist")
+_undefined: dict[str, tuple[str, ...]] = {}  # model -> the properties its runs found undefined
+# FlightGear's pilot inputs (its property tree, Docs/README.properties): a model that reads
+# one instead of JSBSim's fcs/*-cmd-norm gets the same control value, in the same convention
+# (FlightGear copies them to fcs/*-cmd-norm unchanged); the fokker50's throttles are read so.
+FG_CONTROL_INPUTS = (
+    (re.compile(r"/?controls/engines/engine(\[\d+\])?/throttle"), "throttle"),
+    (re.compile(r"/?controls/engines/engine(\[\d+\])?/mixture"), "mixture"),
+    (re.compile(r"/?controls/flight/elevator"), "pitch"),
+    (re.compile(r"/?controls/flight/aileron"), "roll"),
+    (re.compile(r"/?controls/flight/rudder"), "yaw"),
+    (re.compile(r"/?controls/flight/flaps"), "flaps"),
+    (re.compile(r"/?controls/gear/brake-(left|right)"), "brakes"),
+    (re.compile(r"/?controls/gear/gear-down"), "gear_down"),
+)
+
 _quiet = False
 
 
@@ -94,6 +117,17 @@ def _jsbsim():
         jsbsim.FGJSBBase().debug_lvl = 0
         _quiet = True
     return jsbsim
+
+
+def _spans_a_plane(points_in: np.ndarray) -> bool:
+    """Whether (n, 3) contact locations (inches) hold three points not on one line."""
+    d = points_in - points_in[:1]
+    return len(points_in) >= 3 and np.linalg.matrix_rank(d, tol=1e-3) >= 2
+
+
+def _no_fuel() -> float:
+    """The fuel check's reading for a model without tanks: never runs out."""
+    return math.inf
 
 
 class TrimFailed(SortieError):
@@ -250,26 +284,54 @@ class Aircraft:
         self.events: list = []
         self.crashed = False
 
-        jsbsim = _jsbsim()
-        self._trim_error = jsbsim.TrimFailureError
-        fdm = jsbsim.FGFDMExec(catalog.root_dir().as_posix())
-        fdm.set_debug_level(0)
-        if not fdm.load_model(self.name):
-            raise SortieError(f"JSBSim could not load aircraft {self.name!r}")
-        fdm.disable_output()  # models may declare CSV outputs (c172x: JSBout172B.csv); the host records
-        fdm.set_dt(self.dt)
-        self.fdm = fdm
-        self._bind()
-
         self._refresh_steps = max(1, round(1.0 / (terrain_refresh_hz * self.dt)))
         self._max_refresh_steps = max(self._refresh_steps, round(MAX_REFRESH_S / self.dt))
         self._check_steps = max(1, min(round(1.0 / (CHECK_HZ * self.dt)), self._refresh_steps))
         self._near_ground_base_ft = near_ground_m / FT_M
         self._near_ground_ft = self._near_ground_base_ft
-        self._controls = Controls()
-        self._start(ic)
+        self._load_and_start(_jsbsim(), ic)
 
     # -- set-up ---------------------------------------------------------------------------------
+
+    def _load_and_start(self, jsbsim, ic: InitialConditions) -> None:
+        """Load the model and start it at ``ic``. Where JSBSim finds a property the model
+        reads undefined (see MAX_UNDEFINED_PROPERTIES), it is remembered for the model and
+        the load starts over with it created; a FlightGear pilot input among them is
+        driven by the matching control (FG_CONTROL_INPUTS)."""
+        self._trim_error = jsbsim.TrimFailureError
+        while True:
+            fdm = jsbsim.FGFDMExec(catalog.root_dir().as_posix())
+            fdm.set_debug_level(0)
+            if not fdm.load_model(self.name):
+                raise SortieError(f"JSBSim could not load aircraft {self.name!r}")
+            fdm.disable_output()  # models may declare CSV outputs (c172x: JSBout172B.csv); the host records
+            fdm.set_dt(self.dt)
+            pm = fdm.get_property_manager()
+            for name in _undefined.get(self.name, ()):
+                pm.get_node(name, True)
+            self.fdm = fdm
+            self._bind()
+            self._controls = Controls()
+            try:
+                self._start(ic)
+                return
+            except jsbsim.BaseError as exc:
+                if isinstance(exc, self._trim_error):
+                    raise
+                m = _UNDEFINED_RE.search(str(exc))
+                known = _undefined.get(self.name, ())
+                if m is None or m.group(1) in known:
+                    raise SortieError(f"JSBSim failed to start aircraft {self.name!r}: {str(exc).strip()}") from exc
+                if len(known) >= MAX_UNDEFINED_PROPERTIES:
+                    raise SortieError(f"aircraft {self.name!r} reads more than {MAX_UNDEFINED_PROPERTIES} "
+                                      f"properties that nothing defines ({', '.join(known)}, ...)") from exc
+                _undefined[self.name] = known + (m.group(1),)
+
+    @property
+    def undefined_properties(self) -> tuple[str, ...]:
+        """Properties this model reads that nothing defines, created by the host at 0 (or
+        driven by a control: FG_CONTROL_INPUTS)."""
+        return _undefined.get(self.name, ())
 
     def _node(self, name: str):
         node = self._pm.get_node(name)
@@ -293,7 +355,9 @@ class Aircraft:
         self._get_vd = n("velocities/v-down-fps").get_double_value
         self._get_euler = [n(f"attitude/{a}-rad").get_double_value for a in ("phi", "theta", "psi")]
         self._get_cg_in = [n(f"inertia/cg-{a}-in").get_double_value for a in "xyz"]
-        self._get_fuel_lbs = n("propulsion/total-fuel-lbs").get_double_value
+        # A model without tanks (a glider, a bomb, a balloon) has no fuel to run out of.
+        self.has_fuel = self._pm.hasNode("propulsion/total-fuel-lbs")
+        self._get_fuel_lbs = n("propulsion/total-fuel-lbs").get_double_value if self.has_fuel else _no_fuel
         self._get_time = n("simulation/sim-time-sec").get_double_value
         self._set_terrain_ft = n("position/terrain-elevation-asl-ft").set_double_value
         # The terrain column is the host's own value (JSBSim's getter recomputes it, ~10x
@@ -316,6 +380,10 @@ class Aircraft:
                        n("fcs/right-brake-cmd-norm").set_double_value],
             "gear_down": [n("gear/gear-cmd-norm").set_double_value],
         }
+        for name in _undefined.get(self.name, ()):
+            control = next((c for pattern, c in FG_CONTROL_INPUTS if pattern.fullmatch(name)), None)
+            if control is not None:
+                self._set[control].append(n(name).set_double_value)
         self._sign = {"pitch": -1.0, "yaw": -1.0}
         self._set_elevator = self._set["pitch"][0]
         self._set_aileron = self._set["roll"][0]
@@ -414,11 +482,18 @@ class Aircraft:
         self._band_floor_ft = math.inf
         self._near = False
         self._alt_ft = agl_ft + t_m / FT_M
+        self._diverged = False
+        self._last_good = (ic.lat_deg, lon, self._alt_ft * FT_M)  # lat, lon, alt m: the last finite check
+        # JSBSim's ground trim settles height, pitch and roll on the contacts; it needs
+        # them to span a plane (JSBSim 1.3.3 crashes the process on SGS and minisgs, whose
+        # six contacts all sit at the origin). Otherwise, or when it fails, the placement
+        # at rest height stands and the gear settles in the first steps.
         if ic.on_ground:
-            try:
-                fdm.do_trim(2)  # JSBSim ground trim: settles height, pitch and roll on the gear
-            except self._trim_error:
-                pass  # the placement at rest height stands; the gear settles in the first steps
+            if _spans_a_plane(self._contact_locations_in):
+                try:
+                    fdm.do_trim(2)
+                except self._trim_error:
+                    pass
         elif ic.trim:
             self.trim()
         self._detector = EventDetector(self._detector_limits, on_ground=ic.on_ground)
@@ -477,9 +552,10 @@ class Aircraft:
         except self._trim_error as exc:
             raise TrimFailed(f"{self.name}: JSBSim trim failed at the initial conditions ({exc}); "
                              "try another speed or altitude, or trim=False") from None
-        throttle = self.fdm["fcs/throttle-cmd-norm[0]"] if self.n_engines else 0.0
-        self._controls = replace(self._controls, pitch=0.0, roll=0.0, yaw=0.0,
-                                 throttle=min(1.0, max(0.0, throttle)))
+        throttle = min(1.0, max(0.0, self.fdm["fcs/throttle-cmd-norm[0]"] if self.n_engines else 0.0))
+        self._controls = replace(self._controls, pitch=0.0, roll=0.0, yaw=0.0, throttle=throttle)
+        for setter in self._set["throttle"][self.n_engines:]:  # a FlightGear input the model reads
+            setter(throttle)
 
     # -- stepping -------------------------------------------------------------------------------
 
@@ -604,6 +680,9 @@ class Aircraft:
         # The CG's position as floats for _couple (also _q_lat/_q_lon[0], for a batch query).
         self._cg_lat = lat = math.degrees(self._get_lat_rad())
         self._cg_lon = lon = math.degrees(self._get_lon_rad())
+        if not (lat - lat == 0.0 and lon - lon == 0.0 and alt_ft - alt_ft == 0.0):
+            self._diverged = True  # JSBSim's state is NaN or infinite: _finish ends the flight
+            return 0
         if near:
             cg = self._get_cg_in
             dt_ft = FT_M * self.dt
@@ -620,6 +699,8 @@ class Aircraft:
 
     def _finish(self, terr) -> list:
         """Events of this check step, given the terrain (m MSL, no NaN) at the planned points or None."""
+        if self._diverged:
+            return self._end_diverged()
         events = self._check_g() if terr is None else self._couple(terr)
         if self._near or self._detector._g_since is not None or self._detector.on_ground:
             self._next_check = self._steps + 1
@@ -631,6 +712,23 @@ class Aircraft:
             self._quiet_until = self._next_refresh
             self._band_floor_ft = self._terrain_ft + self._near_ground_ft
         return events
+
+    def _end_diverged(self) -> list:
+        """JSBSim's state went NaN or infinite (a model flown far outside its envelope): a
+        crash where the aircraft last was finite (its last check of the terrain, at most
+        MAX_REFRESH_S ago), and from then on its state out is that place at rest, heading
+        north, never the non-finite numbers (hosts, streams and recordings stay finite)."""
+        lat, lon, alt_m = self._last_good
+        t = self._get_time()
+        row = [0.0] * RAW_WIDTH
+        row[RAW_COLUMNS["time_s"]] = t
+        row[RAW_COLUMNS["lat_rad"]] = math.radians(lat)
+        row[RAW_COLUMNS["lon_rad"]] = math.radians(lon)
+        row[RAW_COLUMNS["alt_ft"]] = alt_m / FT_M
+        row[RAW_COLUMNS["nz_g"]] = 1.0
+        row[RAW_COLUMNS["terrain_ft"]] = self._terrain_cg_ft
+        self.raw_values = row.copy  # shadows the method: the frozen row, a fresh list each call
+        return self._record([self._detector._crash(t, lat, lon, alt_m, "state diverged")])
 
     def _check_g(self) -> list:
         """Far from the ground between refreshes only the load factor can end the flight."""
@@ -646,6 +744,7 @@ class Aircraft:
         alt_ft = self._alt_ft
         lat, lon = self._cg_lat, self._cg_lon
         alt_m = alt_ft * FT_M
+        self._last_good = (lat, lon, alt_m)
         events = []
         self._terrain_cg_ft = terr[0] / FT_M
         if self._near:
@@ -708,7 +807,8 @@ class Aircraft:
         return AircraftState.from_raw(self.raw_state(), self.geoid_undulation_m)
 
     def fuel_kg(self) -> float:
-        return self._get_fuel_lbs() * LB_KG
+        """Fuel on board (kg); 0 for a model without tanks."""
+        return self._get_fuel_lbs() * LB_KG if self.has_fuel else 0.0
 
     def set_fuel_kg(self, kg: float) -> None:
         """Spread ``kg`` of fuel evenly over the tanks (tests, scenario set-up)."""
@@ -717,5 +817,7 @@ class Aircraft:
         tanks = 0
         while self._pm.hasNode(f"propulsion/tank[{tanks}]/contents-lbs"):
             tanks += 1
+        if tanks == 0 and kg > 0:
+            raise InvalidArgument("fuel_kg", f"aircraft {self.name!r} has no fuel tanks", value=kg)
         for i in range(tanks):
             self.fdm[f"propulsion/tank[{i}]/contents-lbs"] = kg / LB_KG / tanks
