@@ -27,6 +27,7 @@ from server.grpc_common import AioManagedServer
 from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, StreamStats, method_handlers
 from server.streaming import Publisher
 from server.world import KIND_NAMES, World
+from server.scenario import ScenarioError
 from sortie.errors import InvalidArgument, SortieError
 from sortie.v1 import simulation_pb2 as pb
 
@@ -312,40 +313,52 @@ def build_world(scenario, terrain, host=None) -> World:
     world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m, host)
     convoy_of = {m: c for c in scenario.convoys for m in c.members}
     done = set()
-    for a in scenario.agents:
+    for i, a in enumerate(scenario.agents):
         if a.name in done:
             continue
-        if a.kind == "aircraft":
-            ap = a.autopilot
-            route = list(ap.waypoints) if ap is not None and hasattr(ap, "waypoints") else None
-            hold = None
-            if ap is not None and not hasattr(ap, "waypoints"):
-                hold = {k: v for k, v in (("heading_deg", ap.heading_deg), ("alt_msl_m", ap.alt_msl_m),
-                                          ("speed_mps", ap.speed_mps)) if v is not None}
-            ic = a.initial_conditions()
-            if route is None and hold is None and not a.on_ground:
-                hold = {"heading_deg": a.heading_deg, "speed_mps": max(a.speed_mps, 1.0),
-                        "alt_msl_m": ic.alt_m if ic.alt_ref == "msl" else None}
-                hold = {k: v for k, v in hold.items() if v is not None}
-            world.spawn_aircraft(a.name, a.type, ic, coalition=a.coalition, controllable=a.controllable,
-                                 route=route, hold=hold or None,
-                                 speed_mps=getattr(ap, "speed_mps", None) if route else None, on_vanish=ex.on_vanish)
-        elif a.kind == "ground":
-            c = convoy_of.get(a.name)
-            members = [scenario.agent(m) for m in c.members] if c else [a]
-            ap = a.autopilot
-            world.spawn_ground([m.name for m in members], [m.type for m in members],
-                               [m.lat_deg for m in members], [m.lon_deg for m in members],
-                               [m.heading_deg for m in members], coalition=a.coalition,
-                               controllable=a.controllable,
-                               route=(c.points if c else (ap.points if ap is not None else None)),
-                               cruise_mps=(c.cruise_mps if c else (ap.cruise_mps if ap is not None else None)),
-                               spacing_m=c.spacing_m if c else None, on_vanish=ex.on_vanish)
-            done.update(m.name for m in members)
-        else:
-            world.spawn_static(a.name, a.type, a.lat_deg, a.lon_deg, a.alt_m, a.heading_deg, coalition=a.coalition)
+        try:
+            _spawn(world, scenario, a, convoy_of, done)
+        except ScenarioError:
+            raise
+        except SortieError as exc:  # valid values the model cannot start at (an aircraft's trim)
+            raise ScenarioError(f"agents[{i}]", f"{a.name!r} ({a.type}) cannot start: {exc}") from exc
         done.add(a.name)
     return world
+
+
+def _spawn(world: World, scenario, a, convoy_of: dict, done: set) -> None:
+    """Spawn scenario agent ``a`` (a whole convoy for its first member; ``done`` gains the
+    other members)."""
+    ex = scenario.exercise
+    if a.kind == "aircraft":
+        ap = a.autopilot
+        route = list(ap.waypoints) if ap is not None and hasattr(ap, "waypoints") else None
+        hold = None
+        if ap is not None and not hasattr(ap, "waypoints"):
+            hold = {k: v for k, v in (("heading_deg", ap.heading_deg), ("alt_msl_m", ap.alt_msl_m),
+                                      ("speed_mps", ap.speed_mps)) if v is not None}
+        ic = a.initial_conditions()
+        if route is None and hold is None and not a.on_ground:
+            hold = {"heading_deg": a.heading_deg, "speed_mps": max(a.speed_mps, 1.0),
+                    "alt_msl_m": ic.alt_m if ic.alt_ref == "msl" else None}
+            hold = {k: v for k, v in hold.items() if v is not None}
+        world.spawn_aircraft(a.name, a.type, ic, coalition=a.coalition, controllable=a.controllable,
+                             route=route, hold=hold or None,
+                             speed_mps=getattr(ap, "speed_mps", None) if route else None, on_vanish=ex.on_vanish)
+    elif a.kind == "ground":
+        c = convoy_of.get(a.name)
+        members = [scenario.agent(m) for m in c.members] if c else [a]
+        ap = a.autopilot
+        world.spawn_ground([m.name for m in members], [m.type for m in members],
+                           [m.lat_deg for m in members], [m.lon_deg for m in members],
+                           [m.heading_deg for m in members], coalition=a.coalition,
+                           controllable=a.controllable,
+                           route=(c.points if c else (ap.points if ap is not None else None)),
+                           cruise_mps=(c.cruise_mps if c else (ap.cruise_mps if ap is not None else None)),
+                           spacing_m=c.spacing_m if c else None, on_vanish=ex.on_vanish)
+        done.update(m.name for m in members)
+    else:
+        world.spawn_static(a.name, a.type, a.lat_deg, a.lon_deg, a.alt_m, a.heading_deg, coalition=a.coalition)
 
 
 def _kind_of_type(type_name: str) -> str:

@@ -462,3 +462,16 @@ def test_any_latitude_is_accepted_in_range_or_named_with_its_value(lat):
         with pytest.raises(ScenarioError) as info:
             parse_scenario(doc, EXAMPLE.parent)
         assert str(info.value).startswith("agents[3].lat_deg: must be ") and f"(got {lat!r})" in str(info.value)
+
+
+def test_an_agent_that_cannot_start_is_named(tmp_path):
+    """Valid values a model cannot start at (a J3 Cub trimmed at 220 m/s): building the
+    world fails with the agent's key path, name and type, and JSBSim's reason."""
+    from server.sim_server import build_world, open_terrain
+
+    doc = base()
+    doc["agents"][0]["type"] = "J3Cub"
+    scenario = parse_scenario(doc, tmp_path)
+    terrain, _, _ = open_terrain(scenario)
+    with pytest.raises(ScenarioError, match=r"agents\[0\].*'viper1' \(J3Cub\) cannot start.*trim"):
+        build_world(scenario, terrain)
