@@ -26,7 +26,8 @@ of interest at random points) streaming at 20 Hz from separate processes
   clients streaming; ``latency_p99_ms``: world tick -> client receipt, the
   publish's wall time on the server against the update's arrival in the
   client process (one machine clock); ``slow_client_tick_ratio``: tick p99
-  with one more client that never reads its stream, over the run without.
+  with one more client that never reads its stream, over the run without
+  (the same world, served again where the calm run left it).
   Every tick and latency figure (the fits' mean ticks too) is taken over the
   steady window: from STEADY_SKIP_S after every load client is ready (each
   one's first full snapshot) to STEADY_TAIL_S before they stop (closing 32
@@ -197,13 +198,16 @@ def _gather(procs: list, timeout_s: float) -> dict:
 
 
 def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, stall: int = 0,
-           clients: int = CLIENTS, workers: int = 0, window=(STEADY_SKIP_S, STEADY_TAIL_S)) -> dict:
+           clients: int = CLIENTS, workers: int = 0, window=(STEADY_SKIP_S, STEADY_TAIL_S), world=None) -> dict:
     """Run a server with the load for ``seconds`` of wall time; tick and latency figures over
-    its steady window (``window``: seconds left out after the clients are ready, before they stop)."""
+    its steady window (``window``: seconds left out after the clients are ready, before they stop).
+    ``world``: one of :func:`_world` to serve (left open: the caller's), else a new one."""
     skip_s, tail_s = window
     from server.sim_server import ServerConfig, SimulationServer
 
-    world = _world(terrain, n_aircraft, n_ground, workers=workers)
+    own = world is None
+    if own:
+        world = _world(terrain, n_aircraft, n_ground, workers=workers)
     server = SimulationServer(world, ServerConfig(clock=clock, time_scale=1000.0 if clock == "fast" else 1.0,
                                                   vanished_timeout_s=60.0))
     published = {}
@@ -231,7 +235,8 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
         whole = np.array(server.tick_ms)
     finally:
         server.stop(0.5)
-        world.close()
+        if own:
+            world.close()
     ticks = whole[first:last]
 
     def latencies(t_from: float, t_to: float) -> np.ndarray:
@@ -266,9 +271,15 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
     report.metrics["tick_ms_per_aircraft"] = slope
     report.metrics["tick_ms_fixed"] = base
     n_rt = max(1, int(0.75 * realtime))
-    calm = _serve(terrain, n_rt, "realtime", seconds, n_ground, clients=clients, workers=workers, window=window)
-    slow = _serve(terrain, n_rt, "realtime", seconds, n_ground, stall=1, clients=clients, workers=workers,
-                  window=window)
+    # One world for both real-time runs (building it, 150 trimmed f16s in the workers, took
+    # 6-7 s of the --quick suite's 55): the stalled-client run goes on where the calm one ended.
+    world = _world(terrain, n_rt, n_ground, workers=workers)
+    try:
+        calm = _serve(terrain, n_rt, "realtime", seconds, n_ground, clients=clients, window=window, world=world)
+        slow = _serve(terrain, n_rt, "realtime", seconds, n_ground, stall=1, clients=clients, window=window,
+                      world=world)
+    finally:
+        world.close()
     report.metrics["tick_p99_ms"] = calm["tick_p99_ms"]
     report.metrics["tick_p99_ms_whole_run"] = calm["tick_p99_ms_whole_run"]
     report.metrics["latency_p50_ms"] = float(np.percentile(calm["latency_ms"], 50))
