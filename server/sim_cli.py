@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 import time
 from pathlib import Path
 
@@ -144,4 +145,8 @@ def server_command(args) -> int:
     if recorder is not None:
         state = f"failed: {recorder.error}" if recorder.error else f"{recorder.bytes_written:,} bytes"
         print(f"recording {path}: {state}", flush=True)
+    if server.error is not None:  # the world's clock died: not a clean end of the exercise
+        print(f"sortie server: error: the world clock stopped: {type(server.error).__name__}: {server.error}",
+              file=sys.stderr, flush=True)
+        return 1
     return 0

@@ -135,7 +135,8 @@ class SimulationServer:
             raise SortieError(f"cannot listen on {address}: {exc}") from exc
         self.port = self.grpc.port
         self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"
-        self.finished = threading.Event()
+        self.finished = threading.Event()  # set when the clock thread ends (duration reached, or an error)
+        self.error: Exception | None = None  # what stopped the clock thread, if an error did
 
     # -- parameters -----------------------------------------------------------------------------
 
@@ -219,8 +220,9 @@ class SimulationServer:
                         wall_next = time.monotonic()
                     elif lag < 0:
                         self._stop.wait(-lag)
-        except Exception:  # noqa: BLE001 - the clock thread must say why it died
+        except Exception as exc:  # noqa: BLE001 - the clock thread must say why it died
             logger.exception("world clock stopped by an error")
+            self.error = exc
         finally:
             self.finished.set()
 

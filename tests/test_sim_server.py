@@ -329,3 +329,26 @@ def test_watch_updates_assembled_from_bytes_parse_as_the_generated_message():
     assert got == want
     assert pb.WatchUpdate.FromString(encode_watch_update(Pending(3.0, False, [], [], [], 0.0))) == \
         pb.WatchUpdate(time_s=3.0, time_scale=0.0)
+
+
+def test_an_error_in_the_world_tick_stops_the_clock_and_says_why(alps):
+    """The clock thread records what stopped it (``sortie server`` then exits non-zero with
+    it), instead of a world that silently stops moving; the server still stops cleanly."""
+    w = World(alps)
+    w.spawn_static("sam1", "sam_site", 47.35, 9.45)
+    ticks = []
+
+    def before_tick(world):
+        ticks.append(world.time_s)
+        if len(ticks) == 5:
+            raise RuntimeError("a broken tick")
+
+    srv = SimulationServer(w, ServerConfig(clock="fast", time_scale=10.0), before_tick=before_tick)
+    srv.start()
+    try:
+        assert srv.finished.wait(10.0)
+        assert isinstance(srv.error, RuntimeError) and "a broken tick" in str(srv.error)
+        assert len(ticks) == 5
+    finally:
+        srv.stop(0.5)
+        w.close()
