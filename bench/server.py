@@ -153,11 +153,16 @@ def _world(terrain, n_aircraft: int, n_ground: int, seed: int = 3, workers: int 
 
     rng = np.random.default_rng(seed)
     w = World(terrain, aircraft_host=_host(terrain, workers))
+    specs = []
     for i in range(n_aircraft):
         lat, lon = rng.uniform(47.1, 47.9), rng.uniform(9.1, 9.9)
         hdg = float(rng.uniform(0, 360))
-        w.spawn_aircraft(f"f16-{i}", "f16", InitialConditions(lat, lon, 4500.0, heading_deg=hdg, speed_mps=200.0),
-                         hold={"heading_deg": hdg, "alt_msl_m": 4500.0, "speed_mps": 200.0})
+        specs.append(dict(name=f"f16-{i}", type_="f16", ic=InitialConditions(lat, lon, 4500.0, heading_deg=hdg,
+                                                                              speed_mps=200.0),
+                          hold={"heading_deg": hdg, "alt_msl_m": 4500.0, "speed_mps": 200.0}))
+    for e in w.spawn_aircraft_many(specs):  # every worker loads and trims its share at once
+        if isinstance(e, BaseException):
+            raise e
     # Ground vehicles on land (above the lake's 395 m and below 1500 m), in one batch.
     lat, lon = rng.uniform(47.05, 47.95, 4 * n_ground), rng.uniform(9.05, 9.95, 4 * n_ground)
     h = terrain.heights(lat, lon).height_msl_m

@@ -17,7 +17,9 @@ Commands (stick, autopilot targets, hand-over to the autopilot, crash,
 removal) are queued and reach the aircraft before the next tick's pilot
 updates, in the order given, which is exactly when the local host applies
 them; spawning is a request answered at once (so a trim failure is the
-caller's error). Each aircraft's trajectory depends only on its own initial
+caller's error), and a batch of spawns (``spawn_many``) is asked of every
+worker before any answer is awaited, so the workers load and trim their
+shares at the same time (150 f16s over 2 workers: 5.9 -> 4.1 s). Each aircraft's trajectory depends only on its own initial
 conditions, commands and terrain answers, so it is the same in any worker.
 
 A world begins the next tick as soon as it has ended one (server.world), so
@@ -161,6 +163,18 @@ class LocalAircraftHost:
         self._pilots[entity_id] = pilot
         return ac.name
 
+    def spawn_many(self, specs: list) -> list:
+        """:meth:`spawn` for each ``(entity_id, type_, ic, keywords)`` of ``specs``, in order:
+        per spec its catalog name, or the error that refused it (the others are spawned
+        regardless)."""
+        out = []
+        for entity_id, type_, ic, kw in specs:
+            try:
+                out.append(self.spawn(entity_id, type_, ic, **kw))
+            except Exception as exc:  # noqa: BLE001 - this spec's error; the others go on
+                out.append(_portable(exc))  # it may cross a pipe
+        return out
+
     def remove(self, entity_id: int) -> None:
         self.fleet.remove(self._get(entity_id))
         del self._aircraft[entity_id]
@@ -246,7 +260,7 @@ class LocalAircraftHost:
 
 # What a queued command may call on the worker's LocalAircraftHost.
 _COMMANDS = frozenset({"remove", "stick", "autopilot", "hand_to_autopilot", "crash"})
-_REQUESTS = frozenset({"spawn", "controls", "pilot_kind", "tick", "close"})
+_REQUESTS = frozenset({"spawn", "spawn_many", "controls", "pilot_kind", "tick", "close"})
 
 
 def _worker_main(conn, terrain_factory, dt: float, geoid_undulation_m: float, nice: int = 0) -> None:
@@ -326,10 +340,17 @@ class _Worker:
         return value
 
     def request(self, name: str, *args, **kwargs):
+        self.ask(name, *args, **kwargs)
+        return self.answer(name)
+
+    def ask(self, name: str, *args, **kwargs) -> None:
+        """Send a request (:meth:`answer` receives its answer: other workers can be asked between)."""
         if self.waiting:  # a tick is under way: its answer comes first
             self.stash = self.receive()
             self.waiting = False
         self.send(name, *args, **kwargs)
+
+    def answer(self, name: str):
         if not self.conn.poll(WORKER_START_TIMEOUT_S):
             raise SortieError(f"aircraft worker {self.index} did not answer {name} within "
                               f"{WORKER_START_TIMEOUT_S:g} s")
@@ -397,6 +418,49 @@ class ProcessAircraftHost:
         w.ids.add(entity_id)
         self._where[entity_id] = w
         return name
+
+    def spawn_many(self, specs: list) -> list:
+        """:meth:`LocalAircraftHost.spawn_many`, the specs shared out over the workers (each
+        to the one holding the fewest) and spawned by all of them at once: a scenario's
+        aircraft load and trim on every core instead of one after the other."""
+        live = [w for w in self._workers if w.alive]
+        if not live:
+            raise SortieError("every aircraft worker has exited")
+        for entity_id, *_ in specs:
+            if entity_id in self._where:
+                raise InvalidArgument("entity_id", "already has an aircraft on this host", value=entity_id)
+        load = {w.index: len(w.ids) for w in live}
+        share: dict[int, list[int]] = {w.index: [] for w in live}
+        for k in range(len(specs)):
+            w = min(live, key=lambda w: (load[w.index], w.index))
+            load[w.index] += 1
+            share[w.index].append(k)
+        out: list = [None] * len(specs)
+        asked = []
+        for w in live:
+            if not share[w.index]:
+                continue
+            try:
+                w.ask("spawn_many", [specs[k] for k in share[w.index]])
+                asked.append(w)
+            except (EOFError, OSError):
+                self._lost += self._lose(w)
+                for k in share[w.index]:
+                    out[k] = SortieError(f"aircraft worker {w.index} exited; try again")
+        for w in asked:  # every answer is received, whatever happened to the others
+            try:
+                names = w.answer("spawn_many")
+            except (EOFError, OSError):
+                self._lost += self._lose(w)
+                names = [SortieError(f"aircraft worker {w.index} exited; try again")] * len(share[w.index])
+            except Exception as exc:  # noqa: BLE001 - the worker's error, for each of its specs
+                names = [exc] * len(share[w.index])
+            for k, name in zip(share[w.index], names):
+                out[k] = name
+                if not isinstance(name, BaseException):
+                    w.ids.add(specs[k][0])
+                    self._where[specs[k][0]] = w
+        return out
 
     def _command(self, entity_id: int, name: str, *args) -> None:
         self._of(entity_id).commands.append((name, (entity_id, *args)))

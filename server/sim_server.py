@@ -315,39 +315,58 @@ def build_world(scenario, terrain, host=None) -> World:
     world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m, host)
     convoy_of = {m: c for c in scenario.convoys for m in c.members}
     done = set()
-    for i, a in enumerate(scenario.agents):
+    agents = list(scenario.agents)
+    for i, a in enumerate(agents):
         if a.name in done:
+            continue
+        if a.kind == "aircraft":
+            # This agent and the aircraft right after it, spawned at once (every aircraft
+            # worker loads and trims its share); entity ids stay in the file's order.
+            run = [i]
+            while run[-1] + 1 < len(agents) and agents[run[-1] + 1].kind == "aircraft":
+                run.append(run[-1] + 1)
+            results = world.spawn_aircraft_many([_aircraft_spec(agents[k], ex.on_vanish) for k in run])
+            for k, r in zip(run, results):
+                if isinstance(r, SortieError):  # valid values the model cannot start at (its trim)
+                    raise ScenarioError(f"agents[{k}]", f"{agents[k].name!r} ({agents[k].type}) cannot start: "
+                                                        f"{r}") from r
+                if isinstance(r, BaseException):
+                    raise r
+                done.add(agents[k].name)
             continue
         try:
             _spawn(world, scenario, a, convoy_of, done)
         except ScenarioError:
             raise
-        except SortieError as exc:  # valid values the model cannot start at (an aircraft's trim)
+        except SortieError as exc:
             raise ScenarioError(f"agents[{i}]", f"{a.name!r} ({a.type}) cannot start: {exc}") from exc
         done.add(a.name)
     return world
 
 
+def _aircraft_spec(a, on_vanish: str) -> dict:
+    """World.spawn_aircraft's keywords for scenario aircraft agent ``a``."""
+    ap = a.autopilot
+    route = list(ap.waypoints) if ap is not None and hasattr(ap, "waypoints") else None
+    hold = None
+    if ap is not None and not hasattr(ap, "waypoints"):
+        hold = {k: v for k, v in (("heading_deg", ap.heading_deg), ("alt_msl_m", ap.alt_msl_m),
+                                  ("speed_mps", ap.speed_mps)) if v is not None}
+    ic = a.initial_conditions()
+    if route is None and hold is None and not a.on_ground:
+        hold = {"heading_deg": a.heading_deg, "speed_mps": max(a.speed_mps, 1.0),
+                "alt_msl_m": ic.alt_m if ic.alt_ref == "msl" else None}
+        hold = {k: v for k, v in hold.items() if v is not None}
+    return dict(name=a.name, type_=a.type, ic=ic, coalition=a.coalition, controllable=a.controllable,
+                route=route, hold=hold or None, speed_mps=getattr(ap, "speed_mps", None) if route else None,
+                on_vanish=on_vanish)
+
+
 def _spawn(world: World, scenario, a, convoy_of: dict, done: set) -> None:
-    """Spawn scenario agent ``a`` (a whole convoy for its first member; ``done`` gains the
-    other members)."""
+    """Spawn scenario ground or static agent ``a`` (a whole convoy for its first member;
+    ``done`` gains the other members)."""
     ex = scenario.exercise
-    if a.kind == "aircraft":
-        ap = a.autopilot
-        route = list(ap.waypoints) if ap is not None and hasattr(ap, "waypoints") else None
-        hold = None
-        if ap is not None and not hasattr(ap, "waypoints"):
-            hold = {k: v for k, v in (("heading_deg", ap.heading_deg), ("alt_msl_m", ap.alt_msl_m),
-                                      ("speed_mps", ap.speed_mps)) if v is not None}
-        ic = a.initial_conditions()
-        if route is None and hold is None and not a.on_ground:
-            hold = {"heading_deg": a.heading_deg, "speed_mps": max(a.speed_mps, 1.0),
-                    "alt_msl_m": ic.alt_m if ic.alt_ref == "msl" else None}
-            hold = {k: v for k, v in hold.items() if v is not None}
-        world.spawn_aircraft(a.name, a.type, ic, coalition=a.coalition, controllable=a.controllable,
-                             route=route, hold=hold or None,
-                             speed_mps=getattr(ap, "speed_mps", None) if route else None, on_vanish=ex.on_vanish)
-    elif a.kind == "ground":
+    if a.kind == "ground":
         c = convoy_of.get(a.name)
         members = [scenario.agent(m) for m in c.members] if c else [a]
         ap = a.autopilot

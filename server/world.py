@@ -260,14 +260,42 @@ class World(EventLog):
                        on_vanish: str = "autopilot") -> Entity:
         """An aircraft; ``route`` [(lat, lon, alt_msl_m), ...] flown at ``speed_mps``, or
         ``hold`` {heading_deg, alt_msl_m, speed_mps} held, or neither (stick, trimmed)."""
+        e = self.spawn_aircraft_many([dict(name=name, type_=type_, ic=ic, coalition=coalition,
+                                           controllable=controllable, route=route, hold=hold,
+                                           speed_mps=speed_mps, on_vanish=on_vanish)])[0]
+        if isinstance(e, BaseException):
+            raise e
+        return e
+
+    def spawn_aircraft_many(self, specs: list[dict]) -> list:
+        """Aircraft, each spec the keywords of :meth:`spawn_aircraft` (name, type_, ic
+        required), loaded and trimmed by every aircraft worker at once. Per spec its Entity,
+        or the SortieError that refused it (a model that cannot trim there: the others are
+        spawned regardless). A bad name or too many entities refuses the whole batch."""
         with self._lock:
-            e = self._new_entity(name, AIRCRAFT, type_, coalition=coalition, controllable=controllable,
-                                 on_vanish=on_vanish)
-            e.type = self.air.spawn(e.id, type_, ic, route=route, hold=hold, speed_mps=speed_mps)
-            self._register(e)
-            self._emit(WorldEvent(self.time_s, "spawn", e.id, ic.lat_deg, ic.lon_deg, math.nan,
-                                  {"name": name, "kind": "aircraft", "type": e.type}))
-            return e
+            names = [s["name"] for s in specs]
+            if len(set(names)) != len(names):
+                dup = next(n for n in names if names.count(n) > 1)
+                raise InvalidArgument("name", "appears twice among the aircraft spawned", value=dup)
+            if len(self.entities) + len(specs) > MAX_ENTITIES:
+                raise LimitExceeded("entities", len(self.entities) + len(specs), MAX_ENTITIES)
+            ents = [self._new_entity(s["name"], AIRCRAFT, s["type_"], coalition=s.get("coalition", "neutral"),
+                                     controllable=s.get("controllable", False),
+                                     on_vanish=s.get("on_vanish", "autopilot")) for s in specs]
+            results = self.air.spawn_many([(e.id, s["type_"], s["ic"], {k: s.get(k) for k in ("route", "hold",
+                                                                                              "speed_mps")})
+                                           for e, s in zip(ents, specs)])
+            out = []
+            for e, s, r in zip(ents, specs, results):
+                if isinstance(r, BaseException):
+                    out.append(r)
+                    continue
+                e.type = r
+                self._register(e)
+                self._emit(WorldEvent(self.time_s, "spawn", e.id, s["ic"].lat_deg, s["ic"].lon_deg, math.nan,
+                                      {"name": e.name, "kind": "aircraft", "type": e.type}))
+                out.append(e)
+            return out
 
     def spawn_ground(self, names, type_, lat, lon, heading_deg, *, coalition: str = "neutral",
                      controllable: bool = False, route=None, cruise_mps: float | None = None,

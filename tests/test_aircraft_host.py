@@ -85,6 +85,54 @@ def test_worker_errors_reach_the_caller_typed(workers):
     assert len(workers) == 0  # nothing half-made
 
 
+@pytest.mark.parametrize("where", ["local", "workers"])
+def test_a_batch_spawn_answers_per_aircraft_and_flies_as_one_by_one(where):
+    """World.spawn_aircraft_many (both workers load and trim their share at once): an entity
+    per spec, or the typed error of the one that cannot start (a J3 Cub trimmed at 220 m/s),
+    the others spawned regardless; the same ids and trajectories as spawning them one by
+    one; a name twice in a batch refuses the whole batch."""
+    from fdm.aircraft import TrimFailed
+
+    def specs():
+        return [dict(name=f"f{k}", type_="f16", ic=InitialConditions(47.0 + 0.01 * k, 9.0, 2500.0, heading_deg=30.0 * k,
+                                                                      speed_mps=200.0),
+                     hold={"heading_deg": 30.0 * k, "alt_msl_m": 2500.0}) for k in range(3)] + [
+            dict(name="cub", type_="J3Cub", ic=InitialConditions(47.1, 9.0, 2000.0, speed_mps=220.0)),
+            dict(name="c172", type_="c172x", ic=InitialConditions(47.2, 9.0, 1500.0, speed_mps=50.0),
+                 route=[(47.25, 9.02, 1500.0)], speed_mps=50.0, controllable=True)]
+
+    # A host of its own: a world begins its next tick as soon as one ends, so a host shared
+    # with a previous world would hand this one that world's last tick first.
+    host = ProcessAircraftHost(FLAT, DT, workers=2) if where == "workers" else LocalAircraftHost(FlatTerrain(400.0), DT)
+    batch = World(FlatTerrain(400.0), aircraft_host=host)
+    single = World(FlatTerrain(400.0), aircraft_host=LocalAircraftHost(FlatTerrain(400.0), DT))
+    try:
+        got = batch.spawn_aircraft_many(specs())
+        assert isinstance(got[3], TrimFailed) and "J3Cub" in str(got[3])
+        assert [e.name for e in got if not isinstance(e, Exception)] == ["f0", "f1", "f2", "c172"]
+        assert len(host) == 4
+        if where == "workers":  # shared out in turn: f0 f2 c172 on one, f1 and the refused cub on the other
+            assert sorted(len(w.ids) for w in host._workers) == [1, 3]
+        for spec in specs():
+            if spec["name"] != "cub":
+                single.spawn_aircraft(**{k: v for k, v in spec.items() if k not in ("name", "type_", "ic")},
+                                      name=spec["name"], type_=spec["type_"], ic=spec["ic"])
+        by_name = {e.name: e for e in single.entities.values()}
+        for _ in range(20):
+            batch.tick()
+            single.tick()
+        a, b = batch.snapshot, single.snapshot
+        for e in batch.entities.values():
+            ka, kb = int(np.flatnonzero(a.ids == e.id)[0]), int(np.flatnonzero(b.ids == by_name[e.name].id)[0])
+            assert np.array_equal(a.ecef_m[ka], b.ecef_m[kb]), e.name
+        with pytest.raises(InvalidArgument, match="twice"):
+            batch.spawn_aircraft_many([specs()[0] | {"name": "dup"}, specs()[1] | {"name": "dup"}])
+        assert len(host) == 4
+    finally:
+        batch.close()
+        single.close()
+
+
 def test_sortie_errors_survive_pickling():
     for exc in (InvalidArgument("lat_deg", "must be finite", index=3, value=float("nan")),
                 LimitExceeded("points", 10, 5), ScenarioError("agents[1].type", "unknown", value="x", file="a.toml")):
