@@ -105,6 +105,10 @@ FG_CONTROL_INPUTS = (
     (re.compile(r"/?controls/gear/gear-down"), "gear_down"),
 )
 
+# An airborne start whose trim fails at full rich is tried again leaned (Aircraft._start)
+# where the air's density ratio is below this (about 500 m and higher).
+LEAN_BELOW_SIGMA = 0.95
+
 _quiet = False
 
 
@@ -465,14 +469,18 @@ class Aircraft:
         fdm["ic/h-agl-ft"] = agl_ft
         fdm["ic/psi-true-deg"] = ic.heading_deg
         fdm["ic/vt-fps"] = ic.speed_mps / FT_M
-        if not fdm.run_ic():
-            raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
-        if ic.engines_running:
-            fdm["propulsion/set-running"] = -1
         gear_down = ic.on_ground if ic.gear_down is None else ic.gear_down
-        self._apply(validate_controls({"gear_down": gear_down, "mixture": 1.0,
-                                       "throttle": 0.0 if ic.on_ground else self._controls.throttle,
-                                       "brakes": 1.0 if ic.on_ground and ic.speed_mps == 0 else 0.0}))
+        throttle = 0.0 if ic.on_ground else self._controls.throttle
+
+        def initialise(mixture: float) -> None:
+            if not fdm.run_ic():
+                raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
+            if ic.engines_running:
+                fdm["propulsion/set-running"] = -1
+            self._apply(validate_controls({"gear_down": gear_down, "mixture": mixture, "throttle": throttle,
+                                           "brakes": 1.0 if ic.on_ground and ic.speed_mps == 0 else 0.0}))
+
+        initialise(1.0)
         self._terrain_ft = t_m / FT_M
         self._terrain_cg_ft = self._terrain_ft
         self._steps = 0
@@ -495,7 +503,19 @@ class Aircraft:
                 except self._trim_error:
                     pass
         elif ic.trim:
-            self.trim()
+            try:
+                self.trim()
+            except TrimFailed:
+                # Full rich high up starves a piston engine of the power to hold level flight
+                # (a c172p or c182 at 3000 m fails at every speed). A pilot leans: to the air's
+                # density ratio sigma, which keeps the fuel-air ratio of full rich at sea level
+                # (fuel flow goes with the mixture, air flow with the density). Tried only when
+                # full rich fails: a model tuned otherwise (the c310) keeps its full-rich trim.
+                sigma = fdm["atmosphere/sigma"]
+                if not (math.isfinite(sigma) and 0.0 < sigma < LEAN_BELOW_SIGMA):
+                    raise
+                initialise(sigma)
+                self.trim()
         self._detector = EventDetector(self._detector_limits, on_ground=ic.on_ground)
 
     # -- controls -------------------------------------------------------------------------------

@@ -118,3 +118,18 @@ def test_a_diverging_model_crashes_where_it_was_finite_and_the_fleet_flies_on():
     state = pg.state()
     assert np.isfinite(fleet.raw_values()).all()
     assert state.lat_deg == pytest.approx(crash[0].lat_deg) and state.alt_msl_m == pytest.approx(crash[0].alt_msl_m)
+
+
+def test_a_piston_aircraft_that_cannot_trim_full_rich_high_up_is_leaned():
+    """At 3000 m full rich leaves a c172p without the power for level flight at any speed
+    (JSBSim's trim fails); the start tries again leaned to the air's density ratio, as a
+    pilot leans, and it trims and holds level. A model that trims full rich keeps it (the
+    c310 there, a c172x low down)."""
+    c172p = Aircraft("c172p", FlatTerrain(0.0), InitialConditions(47.0, 9.0, 3000.0, speed_mps=50.0))
+    sigma = c172p.fdm["atmosphere/sigma"]
+    assert 0.7 < sigma < 0.8 and c172p.controls.mixture == pytest.approx(sigma, abs=0.01)
+    start = c172p.state()
+    c172p.run(10.0)
+    assert abs(c172p.state().alt_msl_m - start.alt_msl_m) < 1.0 and not c172p.crashed
+    assert Aircraft("c310", FlatTerrain(0.0), InitialConditions(47.0, 9.0, 3000.0, speed_mps=100.0)).controls.mixture == 1.0
+    assert Aircraft("c172x", FlatTerrain(0.0), InitialConditions(47.0, 9.0, 300.0, speed_mps=50.0)).controls.mixture == 1.0
