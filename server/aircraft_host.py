@@ -19,8 +19,9 @@ updates, in the order given, which is exactly when the local host applies
 them; spawning is a request answered at once (so a trim failure is the
 caller's error), and a batch of spawns (``spawn_many``) is asked of every
 worker before any answer is awaited, so the workers load and trim their
-shares at the same time (150 f16s over 2 workers: 5.9 -> 4.1 s). Each aircraft's trajectory depends only on its own initial
-conditions, commands and terrain answers, so it is the same in any worker.
+shares at the same time (150 f16s over 2 workers: 5.9 -> 4.1 s). Each
+aircraft's trajectory depends only on its own initial conditions, commands
+and terrain answers, so it is the same in any worker.
 
 A world begins the next tick as soon as it has ended one (server.world), so
 requests may meet a tick under way: its answer is received first and kept
@@ -260,7 +261,7 @@ class LocalAircraftHost:
 
 # What a queued command may call on the worker's LocalAircraftHost.
 _COMMANDS = frozenset({"remove", "stick", "autopilot", "hand_to_autopilot", "crash"})
-_REQUESTS = frozenset({"spawn", "spawn_many", "controls", "pilot_kind", "tick", "close"})
+_REQUESTS = frozenset({"spawn_many", "controls", "pilot_kind", "tick", "close"})
 
 
 def _worker_main(conn, terrain_factory, dt: float, geoid_undulation_m: float, nice: int = 0) -> None:
@@ -404,19 +405,10 @@ class ProcessAircraftHost:
 
     def spawn(self, entity_id: int, type_: str, ic: InitialConditions, *, route=None, hold=None,
               speed_mps: float | None = None) -> str:
-        if entity_id in self._where:
-            raise InvalidArgument("entity_id", "already has an aircraft on this host", value=entity_id)
-        live = [w for w in self._workers if w.alive]
-        if not live:
-            raise SortieError("every aircraft worker has exited")
-        w = min(live, key=lambda w: (len(w.ids), w.index))
-        try:
-            name = w.request("spawn", entity_id, type_, ic, route=route, hold=hold, speed_mps=speed_mps)
-        except (EOFError, OSError):
-            self._lost += self._lose(w)
-            raise SortieError(f"aircraft worker {w.index} exited; try again") from None
-        w.ids.add(entity_id)
-        self._where[entity_id] = w
+        """:meth:`LocalAircraftHost.spawn` on the worker holding the fewest (a batch of one)."""
+        name = self.spawn_many([(entity_id, type_, ic, dict(route=route, hold=hold, speed_mps=speed_mps))])[0]
+        if isinstance(name, BaseException):
+            raise name
         return name
 
     def spawn_many(self, specs: list) -> list:

@@ -24,10 +24,10 @@ import numpy as np
 
 from server.dead_reckoning import DeadReckoner, Thresholds, THRESHOLDS_BY_KIND, ALGORITHM_NAMES
 from server.grpc_common import AioManagedServer
+from server.scenario import ScenarioError
 from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, StreamStats, method_handlers
 from server.streaming import Publisher
 from server.world import KIND_NAMES, World
-from server.scenario import ScenarioError
 from sortie.errors import InvalidArgument, SortieError
 from sortie.v1 import simulation_pb2 as pb
 
