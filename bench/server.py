@@ -27,7 +27,7 @@ of interest at random points) streaming at 20 Hz from separate processes
   publish's wall time on the server against the update's arrival in the
   client process (one machine clock); ``slow_client_tick_ratio``: tick p99
   with one more client that never reads its stream, over the run without
-  (the same world, served again where the calm run left it).
+  (--quick: the same world, served again where the calm run left it).
   Every tick and latency figure (the fits' mean ticks too) is taken over the
   steady window: from STEADY_SKIP_S after every load client is ready (each
   one's first full snapshot) to STEADY_TAIL_S before they stop (closing 32
@@ -276,15 +276,18 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
     report.metrics["tick_ms_per_aircraft"] = slope
     report.metrics["tick_ms_fixed"] = base
     n_rt = max(1, int(0.75 * realtime))
-    # One world for both real-time runs (building it, 150 trimmed f16s in the workers, took
-    # 6-7 s of the --quick suite's 55): the stalled-client run goes on where the calm one ended.
-    world = _world(terrain, n_rt, n_ground, workers=workers)
+    # --quick: one world for both real-time runs (building it, 150 trimmed f16s in the workers,
+    # took 6-7 s of the suite's 55), the stalled-client run going on where the calm one ended.
+    # Full runs build each its own, as the runs before this change did.
+    world = _world(terrain, n_rt, n_ground, workers=workers) if quick else None
     try:
-        calm = _serve(terrain, n_rt, "realtime", seconds, n_ground, clients=clients, window=window, world=world)
-        slow = _serve(terrain, n_rt, "realtime", seconds, n_ground, stall=1, clients=clients, window=window,
-                      world=world)
+        calm = _serve(terrain, n_rt, "realtime", seconds, n_ground, clients=clients, workers=workers,
+                      window=window, world=world)
+        slow = _serve(terrain, n_rt, "realtime", seconds, n_ground, stall=1, clients=clients, workers=workers,
+                      window=window, world=world)
     finally:
-        world.close()
+        if world is not None:
+            world.close()
     report.metrics["tick_p99_ms"] = calm["tick_p99_ms"]
     report.metrics["tick_p99_ms_whole_run"] = calm["tick_p99_ms_whole_run"]
     report.metrics["latency_p50_ms"] = float(np.percentile(calm["latency_ms"], 50))
