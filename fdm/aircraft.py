@@ -670,7 +670,9 @@ class Aircraft:
         n = self._plan()
         if n == 1 and self._point_height is not None:  # far from the ground: the CG alone
             lat, lon = self._cg_lat, self._cg_lon
-            if -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0:  # else NaN: refused by name, below
+            # Finite here (_plan ends a diverged flight); point_height does not validate, so
+            # anything out of range still goes the validated way below.
+            if -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0:
                 # Floats throughout, no array: numpy's code is as cold as ours here.
                 h = self._point_height(lat, lon)
                 return self._finish([0.0 if h != h else h])  # no data is sea level, as _terrain_msl_m

@@ -259,7 +259,8 @@ class LocalAircraftHost:
 
 # -- worker processes ---------------------------------------------------------------------------
 
-# What a queued command may call on the worker's LocalAircraftHost.
+# What a queued command and a request may call on the worker's LocalAircraftHost (anything
+# else is refused there).
 _COMMANDS = frozenset({"remove", "stick", "autopilot", "hand_to_autopilot", "crash"})
 _REQUESTS = frozenset({"spawn_many", "controls", "pilot_kind", "tick", "close"})
 
@@ -281,6 +282,8 @@ def _worker_main(conn, terrain_factory, dt: float, geoid_undulation_m: float, ni
             return  # the parent has gone
         for cmd, cargs in commands:
             try:
+                if cmd not in _COMMANDS:
+                    raise SortieError(f"not an aircraft command: {cmd!r}")
                 getattr(host, cmd)(*cargs)
             except SortieError as exc:  # e.g. a command for an aircraft removed meanwhile
                 logger.warning("aircraft worker: %s%r ignored: %s", cmd, cargs, exc)
@@ -291,6 +294,8 @@ def _worker_main(conn, terrain_factory, dt: float, geoid_undulation_m: float, ni
             elif name == "close":
                 conn.send(("ok", None))
                 return
+            elif name not in _REQUESTS:
+                raise SortieError(f"not an aircraft host request: {name!r}")
             else:
                 reply = ("ok", getattr(host, name)(*args, **kwargs))
         except BaseException as exc:  # noqa: BLE001 - the parent raises it as the caller's error
