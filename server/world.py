@@ -270,7 +270,7 @@ class World(EventLog):
     def spawn_aircraft_many(self, specs: list[dict]) -> list:
         """Aircraft, each spec the keywords of :meth:`spawn_aircraft` (name, type_, ic
         required), loaded and trimmed by every aircraft worker at once. Per spec its Entity,
-        or the SortieError that refused it (a model that cannot trim there: the others are
+        or the error that refused it (a model that cannot trim there: the others are
         spawned regardless). A bad name or too many entities refuses the whole batch."""
         with self._lock:
             names = [s["name"] for s in specs]
