@@ -115,35 +115,39 @@ DEFAULT_PROFILE = "fast_jet"  # client/render/profiles.py: the profile of an air
 
 @dataclass(frozen=True)
 class Setting:
-    """A clipmap configuration: levels L, n posts a side, budget (samples per frame)."""
+    """A clipmap configuration: levels L, n posts a side, budget (samples per frame), and the
+    blocks' decimation bound in pixels (None: every post)."""
 
     levels: int
     n: int
     budget: int
     finest_spacing_factor: float = 1.0
+    pixel_error: float | None = None
 
     @property
     def key(self) -> str:
-        return f"L{self.levels}_n{self.n}_b{self.budget}"
+        return f"L{self.levels}_n{self.n}_b{self.budget}" + ("" if self.pixel_error is None else f"_e{self.pixel_error:g}")
 
     def layer_args(self) -> dict:
         return {"levels": self.levels, "n": self.n, "budget": self.budget,
-                "finest_spacing_factor": self.finest_spacing_factor}
+                "finest_spacing_factor": self.finest_spacing_factor, "pixel_error": self.pixel_error}
 
 
 def _default_setting() -> Setting:
     from client.render.profiles import profile
 
     p = profile(DEFAULT_PROFILE)
-    return Setting(p.levels, p.n, p.budget, p.finest_spacing_factor)
+    return Setting(p.levels, p.n, p.budget, p.finest_spacing_factor, p.pixel_error)
 
 
 def _sweep(default: Setting, quick: bool) -> list[Setting]:
     if quick:
-        return [Setting(5, 63, default.budget), default, Setting(7, 255, default.budget)]
-    grid = [Setting(L, n, default.budget) for n in (63, 127, 255) for L in (5, 6, 7)]
+        return [Setting(7, 127, 1_500), default, Setting(6, 255, default.budget)]
+    grid = [Setting(L, n, 1_500) for n in (63, 127, 255) for L in (5, 6, 7)]
     small = [Setting(7, 127, 3_000), Setting(7, 255, 6_000)]  # about one level's strips a frame
-    return grid + small + ([] if default in grid else [default])
+    decimated = [Setting(7, 127, 1_500, 1.0, 1.0), Setting(7, 127, 1_500, 1.0, 2.0)] + [
+        Setting(6, 255, 3_000, 1.0, e) for e in (1.0, 2.0, 3.0)]
+    return grid + small + decimated + ([] if default in grid + decimated else [default])
 
 
 def _dem(name: str) -> Path:

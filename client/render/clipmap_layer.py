@@ -80,7 +80,7 @@ from terrain.texture import CLASS_COLOURS_RGB, N_CLASSES
 from sortie.errors import InvalidArgument
 from terrain.geodesy import ecef_to_geodetic
 
-BLOCK = 16  # cells a side of an instanced block
+BLOCK = 8  # cells a side of an instanced block
 MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
 # Level clipping by height (§3.2.2): a level fades out as the viewer's height above the ground
 # grows from HEIGHT_FADE[0] to HEIGHT_FADE[1] times the level's extent, then is not drawn.
@@ -313,6 +313,114 @@ def block_grid(size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
     return verts, tris
 
 
+# Decimation by screen-space error: a whole block (BLOCK x BLOCK cells) whose surface, drawn with
+# every stride-th post inside a border of every post, stays within the layer's pixel_error of the
+# level's own surface at the block's distance, is drawn so (DECIMATION_STRIDES, coarse to fine).
+DECIMATION_STRIDES = (4, 2)
+
+
+def decimated_grid(stride: int, size: int = BLOCK) -> np.ndarray:
+    """(t, 3) uint32 triangles over :func:`block_grid`'s (size + 1)^2 vertices that draw the block
+    with every ``stride``-th post inside and every post on its four edges, counter-clockwise seen
+    from above. Inner cells of stride x stride posts split along the south-west to north-east
+    diagonal, as the full grid's cells are; a cell on the block's edge is a convex polygon (its
+    edge sides carry every post) fanned from its one corner on no such side. The edges are the
+    full grid's whatever the stride, so blocks of any strides meet without a T-junction, and the
+    level's borders (its morph to the coarser level, the finer level's border on it) are as
+    without decimation. ``stride`` 1: the full grid."""
+    if stride == 1:
+        return block_grid(size)[1]
+    m = size // stride
+    if m * stride != size or m < 2:
+        raise ValueError(f"stride {stride} must divide the block's {size} cells at least twice")
+
+    def idx(rc):
+        return rc[0] * (size + 1) + rc[1]
+
+    tris = []
+    for rr in range(m):
+        for cc in range(m):
+            r0, c0, r1, c1 = rr * stride, cc * stride, (rr + 1) * stride, (cc + 1) * stride
+            south, north, west, east = rr == 0, rr == m - 1, cc == 0, cc == m - 1
+            if not (south or north or west or east):
+                a, b, d, e = idx((r0, c0)), idx((r0, c1)), idx((r1, c1)), idx((r1, c0))
+                tris += [(a, b, d), (a, d, e)]
+                continue
+            # The cell's outline, counter-clockwise (x = column, y = row): its south side eastwards,
+            # east side northwards, north side westwards, west side southwards; every post on an
+            # edge side, the corners only on the others.
+            ring = ([(r0, c) for c in (range(c0, c1) if south else (c0,))]
+                    + [(r, c1) for r in (range(r0, r1) if east else (r0,))]
+                    + [(r1, c) for c in (range(c1, c0, -1) if north else (c1,))]
+                    + [(r, c0) for r in (range(r1, r0, -1) if west else (r1,))])
+            on_edge = {(r0, c0): south or west, (r0, c1): south or east, (r1, c1): north or east,
+                       (r1, c0): north or west}
+            apex = ring.index(next(p for p, edge in on_edge.items() if not edge))
+            ring = ring[apex:] + ring[:apex]
+            tris += [(idx(ring[0]), idx(p), idx(q)) for p, q in zip(ring[1:-1], ring[2:])]
+    return np.array(tris, np.uint32)
+
+
+def grid_weights(tris: np.ndarray, size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
+    """((V, 3) vertex indices, (V, 3) weights): each of the (size + 1)^2 grid vertices as the
+    barycentric combination of the corners of a triangle of ``tris`` that holds it, so that
+    ``(posts[idx] * w[..., None]).sum(1)`` is where the triangles draw each post."""
+    verts = block_grid(size)[0].astype(np.float64)[:, ::-1]  # (x, y) = (column, row)
+    a, b, c = (verts[tris[:, i]] for i in range(3))
+    p = verts[:, None, :]  # (V, 1, 2) against (T, 2)
+    det = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    wb = ((p - a)[..., 0] * (c - a)[:, 1] - (p - a)[..., 1] * (c - a)[:, 0]) / det
+    wc = ((b - a)[:, 0] * (p - a)[..., 1] - (b - a)[:, 1] * (p - a)[..., 0]) / det
+    w = np.stack([1.0 - wb - wc, wb, wc], -1)  # (V, T, 3)
+    inside = (w >= -1e-12).all(-1)
+    t = inside.argmax(axis=1)
+    assert inside[np.arange(len(verts)), t].all(), "the triangles do not cover the block"
+    return tris[t].astype(np.int64), w[np.arange(len(verts)), t]
+
+
+def block_posts(blk: np.ndarray, level, n: int) -> np.ndarray:
+    """(m, BLOCK + 1, BLOCK + 1, 3) float64 ECEF of the posts the vertex shader takes for blocks
+    (m, 4) of a level (each vertex clamped to its block's rectangle, as the shader clamps it)."""
+    off = np.arange(BLOCK + 1)
+    rows = np.minimum(blk[:, :1] + off, blk[:, 2:3]) % n  # (m, BLOCK + 1)
+    cols = np.minimum(blk[:, 1:2] + off, blk[:, 3:4]) % n
+    return level.pos_ecef[rows[:, :, None], cols[:, None, :]]
+
+
+_GRID_WEIGHTS = {s: grid_weights(decimated_grid(s)) for s in DECIMATION_STRIDES}
+
+
+def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
+    """(m, len(DECIMATION_STRIDES)) metres: for each block (m, 4) of a level and each stride, the
+    largest distance between a post and where :func:`decimated_grid` draws it (the interpolated
+    position; 0 at the drawn posts). Infinite for a block smaller than BLOCK x BLOCK cells (at
+    a ring's edge: its clamped grid is drawn whole)."""
+    out = np.full((len(blk), len(DECIMATION_STRIDES)), np.inf)
+    full = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+    if full.any():
+        posts = block_posts(blk[full], level, n).reshape(int(full.sum()), -1, 3)
+        for s_i, s in enumerate(DECIMATION_STRIDES):
+            idx, w = _GRID_WEIGHTS[s]
+            drawn = np.einsum("mvkc,vk->mvc", posts[:, idx], w)
+            out[full, s_i] = np.sqrt(((posts - drawn) ** 2).sum(-1)).max(axis=1)
+    return out
+
+
+def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_local: np.ndarray,
+                  focal_px: float, pixel_error: float) -> np.ndarray:
+    """(m,) the stride each block is drawn with: the coarsest of DECIMATION_STRIDES whose error
+    (:func:`decimation_errors`), seen from the nearest point of the block's box (lo, hi, local
+    ENU) at ``focal_px`` pixels per radian, stays within ``pixel_error`` pixels; else 1. A
+    displacement e at distance d moves a point at most e x focal / d pixels on screen."""
+    gap = np.maximum(np.maximum(lo - camera_local, camera_local - hi), 0.0)
+    dist = np.sqrt((gap ** 2).sum(-1))
+    px = err_m * focal_px / np.maximum(dist, 1e-9)[:, None]
+    out = np.ones(len(err_m), np.int32)
+    for s_i in reversed(range(len(DECIMATION_STRIDES))):  # fine to coarse: the coarsest that holds wins
+        out = np.where(px[:, s_i] <= pixel_error, DECIMATION_STRIDES[s_i], out)
+    return out
+
+
 # Culling boxes are padded by this (metres) plus BOX_PAD_RELATIVE of the block's distance from
 # the origin: float32 vertex offsets round to ~6e-8 of their level's extent.
 BOX_PAD_M = 1.0
@@ -325,10 +433,7 @@ def block_bounds(blk: np.ndarray, level, coarse, n: int, origin: LocalOrigin) ->
     level's storage) is given, the coarser posts under the block, the morph targets' corners."""
     if len(blk) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    off = np.arange(BLOCK + 1)
-    rows = np.minimum(blk[:, :1] + off, blk[:, 2:3]) % n  # (m, BLOCK + 1)
-    cols = np.minimum(blk[:, 1:2] + off, blk[:, 3:4]) % n
-    pts = origin.to_local(level.pos_ecef[rows[:, :, None], cols[:, None, :]]).reshape(len(blk), -1, 3)
+    pts = origin.to_local(block_posts(blk, level, n)).reshape(len(blk), -1, 3)
     lo, hi = pts.min(axis=1), pts.max(axis=1)
     if coarse is not None:
         half = np.arange(BLOCK // 2 + 2)
@@ -359,6 +464,8 @@ class LevelDraw:
     alpha_h: float
     blocks: np.ndarray  # (m, 4) visible blocks, lattice posts
     cells: int
+    strides: np.ndarray | None = None  # (m,) each block's stride (decimated_grid); None: all 1
+    triangles: int = 0  # what the blocks draw (without the border triangles)
 
 
 class ClipmapLayer:
@@ -367,15 +474,21 @@ class ClipmapLayer:
     terrain: Terrain or TerrainClient. levels, n, budget: the clipmap (client/render/clipmap.py;
     budget = terrain samples per frame). finest_spacing_factor: the finest level's spacing over the
     terrain's post spacing (a power of two: 1 = the DEM's own posts, 1/2 = twice as fine).
+    pixel_error: draw a block with fewer posts (:func:`decimated_grid`) where that moves its
+    surface by at most this many pixels on screen (:func:`block_strides`); None: every post.
     """
 
     def __init__(self, ctx, terrain, origin: LocalOrigin, *, levels: int = 7, n: int = 127,
                  budget: int = 100_000, finest_spacing_factor: float = 1.0, geoid_undulation_m: float = 0.0,
-                 lattice=None, focus_lat_lon=None, insets=(), land_classes: bool = False):
+                 lattice=None, focus_lat_lon=None, insets=(), land_classes: bool = False,
+                 pixel_error: float | None = None):
         e = math.log2(finest_spacing_factor) if finest_spacing_factor > 0 else math.nan
         if not (math.isfinite(e) and e == round(e) and -8 <= e <= 8):
             raise InvalidArgument("finest_spacing_factor", "must be a power of two in [1/256, 256]",
                                   value=finest_spacing_factor)
+        if pixel_error is not None and not (isinstance(pixel_error, (int, float)) and 0 < pixel_error <= 100):
+            raise InvalidArgument("pixel_error", "must be None or a number of pixels in (0, 100]", value=pixel_error)
+        self.pixel_error = None if pixel_error is None else float(pixel_error)
         self.ctx = ctx
         self.terrain = terrain
         self.origin = origin
@@ -398,6 +511,15 @@ class ClipmapLayer:
         self._vao = ctx.vertex_array(self.program, [(self._grid_vbo, "2i", "in_cell"),
                                                     (self._inst, "4i/i", "in_block")],
                                      index_buffer=self._grid_ibo, index_element_size=4)
+        # The decimated blocks: the same vertices, fewer triangles; an instance buffer per stride
+        # (moderngl draws have no base instance).
+        self._decimated = {}  # stride -> (index buffer, instance buffer, vao, triangles a block)
+        for stride in DECIMATION_STRIDES:
+            dtris = decimated_grid(stride)
+            ibo, inst = ctx.buffer(dtris.tobytes()), ctx.buffer(reserve=16 * 1024)
+            vao = ctx.vertex_array(self.program, [(self._grid_vbo, "2i", "in_cell"), (inst, "4i/i", "in_block")],
+                                   index_buffer=ibo, index_element_size=4)
+            self._decimated[stride] = (ibo, inst, vao, len(dtris))
         # Zero-area triangles along each level's outer border (GPU Gems 2 ch. 2): (even, even, odd)
         # posts of a border row or column, which the morph puts on the coarser level's edge; drawn,
         # they fill the float32 slivers of the T-junctions there. The odd post is the provoking
@@ -420,7 +542,8 @@ class ClipmapLayer:
         self._detail.repeat_x = self._detail.repeat_y = True
         self._detail.build_mipmaps()
         self.draws: list[LevelDraw] = []
-        self._bounds: dict[int, tuple] = {}  # level -> (key, lo, hi): its ring's blocks' culling boxes
+        self._bounds: dict[int, tuple] = {}  # level -> (key, lo, hi, errors): its ring's blocks' culling
+        # boxes and decimation errors (None without pixel_error)
         self.triangles = self.vertices = 0
         self.update_ms = 0.0
         self.rebuilds = 0
@@ -542,11 +665,22 @@ class ClipmapLayer:
                    self.origin.ecef.tobytes())
             bounds = self._bounds.get(k)
             if bounds is None or bounds[0] != key:
-                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin))
-            blk = blk[visible_blocks(bounds[1], bounds[2], view_proj)]
+                errors = None if self.pixel_error is None else decimation_errors(blk, c.levels[k], c.n)
+                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin), errors)
+            _, lo, hi, errors = bounds
+            seen = visible_blocks(lo, hi, view_proj)
+            blk = blk[seen]
             cells = int(((blk[:, 2] - blk[:, 0]) * (blk[:, 3] - blk[:, 1])).sum())
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
-            out.append(LevelDraw(k, regions[k], alpha_h, blk, cells))
+            strides, triangles = None, 2 * cells
+            if errors is not None:
+                strides = block_strides(errors[seen], lo[seen], hi[seen], frame.camera_local,
+                                        frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0,
+                                        self.pixel_error)
+                full = strides == 1
+                triangles = 2 * int(((blk[full, 2] - blk[full, 0]) * (blk[full, 3] - blk[full, 1])).sum())
+                triangles += sum(int((strides == s).sum()) * self._decimated[s][3] for s in DECIMATION_STRIDES)
+            out.append(LevelDraw(k, regions[k], alpha_h, blk, cells, strides, triangles))
         return out
 
     def level_uniforms(self, d: LevelDraw, coarse: bool) -> dict:
@@ -609,9 +743,15 @@ class ClipmapLayer:
                 self._tex[d.k + 1][0].use(1)
                 self._tex[d.k + 1][1].use(3)
             r = d.region
-            _write_instances(self._inst, d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32))
-            self._vao.render(moderngl.TRIANGLES, instances=len(d.blocks))
-            self.triangles += 2 * d.cells
+            rel = d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)
+            groups = [(self._inst, self._vao, rel)] if d.strides is None else (
+                [(self._inst, self._vao, rel[d.strides == 1])]
+                + [(inst, vao, rel[d.strides == s]) for s, (_, inst, vao, _) in self._decimated.items()])
+            for inst, vao, instances in groups:
+                if len(instances):
+                    _write_instances(inst, instances)
+                    vao.render(moderngl.TRIANGLES, instances=len(instances))
+            self.triangles += d.triangles
             self.vertices += len(d.blocks) * (BLOCK + 1) ** 2
             if coarse and self.border_triangles:
                 self.set_uniforms(bp, uniforms)
@@ -630,6 +770,10 @@ class ClipmapLayer:
         for t, nm in self._tex:
             t.release()
             nm.release()
+        for ibo, inst, vao, _ in self._decimated.values():
+            vao.release()
+            inst.release()
+            ibo.release()
         for obj in (self._vao, self._inst, self._grid_vbo, self._grid_ibo, *self._border_vaos,
                     *self._border_vbos, self._border_ibo, self._border_inst, self.program, self._border_program):
             obj.release()

@@ -3,21 +3,24 @@
 A profile sets the clipmap (client/render/clipmap.py) a render client uses:
 ``levels`` L and ``n`` posts a side per level, the ``budget`` of terrain samples
 it may take per frame (heights + 4 normals a post; thesis §3.1.4: "this sample
-budget may have to be adjusted on each client"), and the finest level's
+budget may have to be adjusted on each client"), the finest level's
 spacing as a power-of-two factor of the terrain's post spacing (below 1: finer
 than the DEM, where the terrain's fractal detail synthesis, terrain/detail.py,
-answers if the terrain has it, else the bilinear surface). The view distance
-follows: about half the coarsest level's extent, (n - 1) / 2 x spacing x
+answers if the terrain has it, else the bilinear surface), and ``pixel_error``:
+a block of a level is drawn with every 2nd or 4th post inside its edges where
+that moves its surface by at most this many pixels on screen
+(client/render/clipmap_layer.py, ``decimated_grid``; None: every post). The view
+distance follows: about half the coarsest level's extent, (n - 1) / 2 x spacing x
 2^(L - 1); fog hides the edge there.
 
 Figures below for a 3-arc-second (about 90 m) DEM; they scale with its spacing.
 
-| profile | L | n | budget | finest | coarsest | view distance | why |
-|---|---|---|---|---|---|---|---|
-| fast_jet | 7 | 127 | 1,500 | 90 m | 5.8 km | ~365 km | at 10 km the horizon is ~360 km away; 300 m/s uncovers a finest row every 0.3 s |
-| helicopter | 6 | 127 | 1,500 | 90 m | 2.9 km | ~180 km | low and slow: the near field matters, the horizon is nearer |
-| ground_vehicle | 7 | 127 | 1,500 | 23 m | 1.4 km | ~90 km | on the ground: detail under the wheels (fractal below the DEM), a hill's horizon |
-| observer | 6 | 255 | 3,000 | 90 m | 2.9 km | ~365 km | a fixed or slow viewpoint: more posts a level, updated rarely |
+| profile | L | n | budget | pixel_error | finest | coarsest | view distance | why |
+|---|---|---|---|---|---|---|---|---|
+| fast_jet | 6 | 255 | 3,000 | 2 px | 90 m | 2.9 km | ~365 km | at 10 km the horizon is ~360 km away; 300 m/s uncovers a finest row every 0.3 s; n = 255 keeps the screen error within 2 px on mountains, decimation cuts its triangles by half |
+| helicopter | 6 | 127 | 1,500 | — | 90 m | 2.9 km | ~180 km | low and slow: the near field matters, the horizon is nearer |
+| ground_vehicle | 7 | 127 | 1,500 | — | 23 m | 1.4 km | ~90 km | on the ground: detail under the wheels (fractal below the DEM), a hill's horizon |
+| observer | 6 | 255 | 3,000 | — | 90 m | 2.9 km | ~365 km | a fixed or slow viewpoint: more posts a level, updated rarely |
 
 The budgets hold about one level's move a frame (a move uncovers two rows or columns of
 n posts, x 5 samples a post; the first move of a frame is always made): a move costs about
@@ -47,6 +50,7 @@ class LodProfile:
     n: int
     budget: int
     finest_spacing_factor: float
+    pixel_error: float | None = None  # blocks drawn with fewer posts within this many pixels (None: never)
 
     def layer_args(self) -> dict:
         """Keyword arguments of client.render.clipmap_layer.ClipmapLayer / clipmap_factory."""
@@ -59,7 +63,7 @@ class LodProfile:
 
 
 PROFILES = {p.name: p for p in (
-    LodProfile("fast_jet", 7, 127, 1_500, 1.0),
+    LodProfile("fast_jet", 6, 255, 3_000, 1.0, 2.0),
     LodProfile("helicopter", 6, 127, 1_500, 1.0),
     LodProfile("ground_vehicle", 7, 127, 1_500, 0.25),
     LodProfile("observer", 6, 255, 3_000, 1.0),

@@ -1,0 +1,191 @@
+"""Blocks of a clipmap level drawn with fewer posts where the screen allows
+(client/render/clipmap_layer.py: decimated_grid, grid_weights, decimation_errors, block_strides).
+
+The meshes are checked combinatorially (they tile the block, wind counter-clockwise, keep every
+post of the block's edges and leave no T-junction inside, so neighbouring blocks of any strides
+meet watertight), the error of a decimated block against analytic surfaces (zero on a plane, the
+bump's height on a bump), and on the GPU, a frame of the Alps drawn with decimation against the
+same frame without: fewer triangles, no holes, and a screen error against the full-resolution
+surface no more than the pixel bound above the undecimated frame's (bench/render.py's measure).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from client.render.clipmap_layer import (BLOCK, DECIMATION_STRIDES, block_grid, block_strides, decimated_grid,
+                                         decimation_errors, grid_weights)
+from sortie.errors import InvalidArgument
+
+STRIDES = (1, *DECIMATION_STRIDES)
+
+
+def _xy(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    verts = block_grid()[0][:, ::-1].astype(np.float64)  # (x, y) = (column, row)
+    return verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+
+
+@pytest.mark.parametrize("stride", STRIDES)
+def test_decimated_grid_tiles_the_block_counter_clockwise(stride):
+    tris = decimated_grid(stride)
+    a, b, c = _xy(tris)
+    area = 0.5 * ((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+    assert area.min() > 0  # counter-clockwise seen from above, none degenerate
+    assert area.sum() == pytest.approx(BLOCK * BLOCK, abs=1e-9)
+
+
+@pytest.mark.parametrize("stride", STRIDES)
+def test_decimated_grid_keeps_every_edge_post_and_has_no_t_junction(stride):
+    """Each directed edge appears once; an edge used once (undirected) is on the block's outline and one
+    cell long; the others are used twice, in opposite directions; no vertex lies inside another's edge."""
+    tris = decimated_grid(stride)
+    directed = Counter()
+    for t in tris:
+        for i in range(3):
+            directed[(int(t[i]), int(t[(i + 1) % 3]))] += 1
+    assert max(directed.values()) == 1
+    verts = block_grid()[0]  # (row, column)
+    outline = 0
+    for (p, q) in directed:
+        if (q, p) in directed:
+            continue
+        (r0, c0), (r1, c1) = verts[p], verts[q]
+        assert (r0 == r1 and r0 in (0, BLOCK)) or (c0 == c1 and c0 in (0, BLOCK)), (verts[p], verts[q])
+        assert abs(int(r1) - int(r0)) + abs(int(c1) - int(c0)) == 1  # every post of the edge is a vertex
+        outline += 1
+    assert outline == 4 * BLOCK
+    used = np.unique(tris)
+    rc = verts[used]
+    on_edge = (rc[:, 0] % BLOCK == 0) | (rc[:, 1] % BLOCK == 0)
+    assert np.all(on_edge | ((rc[:, 0] % stride == 0) & (rc[:, 1] % stride == 0)))
+    # No T-junction: no used vertex strictly inside any triangle edge.
+    xy = rc[:, ::-1].astype(np.float64)
+    for p, q in directed:
+        a, b = verts[p][::-1].astype(np.float64), verts[q][::-1].astype(np.float64)
+        d = b - a
+        cross = d[0] * (xy[:, 1] - a[1]) - d[1] * (xy[:, 0] - a[0])
+        along = ((xy - a) @ d) / (d @ d)
+        assert not np.any((np.abs(cross) < 1e-12) & (along > 1e-12) & (along < 1 - 1e-12)), (verts[p], verts[q])
+
+
+def test_decimated_grid_counts_and_bad_stride():
+    assert len(decimated_grid(1)) == 2 * BLOCK * BLOCK
+    counts = [len(decimated_grid(s)) for s in sorted(STRIDES)]
+    assert counts == sorted(counts, reverse=True) and counts[-1] <= counts[0] / 4
+    with pytest.raises(ValueError):
+        decimated_grid(3)
+    with pytest.raises(ValueError):
+        decimated_grid(BLOCK)  # one cell: its four sides would all carry every post
+
+
+@pytest.mark.parametrize("stride", STRIDES)
+def test_grid_weights_reproduce_every_post(stride):
+    """The weights are barycentric (non-negative, summing to 1) over a triangle's corners and put every
+    grid vertex back where it is: an affine function is reproduced exactly; a drawn vertex takes itself."""
+    tris = decimated_grid(stride)
+    idx, w = grid_weights(tris)
+    assert np.all(w >= -1e-12) and np.allclose(w.sum(1), 1.0)
+    verts = block_grid()[0].astype(np.float64)
+    assert np.allclose((verts[idx] * w[..., None]).sum(1), verts, atol=1e-12)
+    for v in np.unique(tris):
+        assert np.isclose(w[v][idx[v] == v].sum(), 1.0)
+
+
+def _level(heights: np.ndarray):
+    """A level's storage stand-in: (n, n) posts 90 m apart in a local plane, z = heights (ECEF-like
+    metres; decimation_errors only reads pos_ecef)."""
+    n = heights.shape[0]
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    pos = np.stack([90.0 * j, 90.0 * i, heights], -1).astype(np.float64)
+    return SimpleNamespace(pos_ecef=pos)
+
+
+def test_decimation_errors_on_a_plane_a_bump_and_a_partial_block():
+    n = 4 * BLOCK + 1
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    plane = _level(1000.0 + 3.0 * i - 7.5 * j)
+    blk = np.array([[0, 0, BLOCK, BLOCK], [BLOCK, 2 * BLOCK, 2 * BLOCK, 3 * BLOCK],
+                    [0, 3 * BLOCK, BLOCK, 3 * BLOCK + 5]], np.int32)  # the last: 5 cells wide (a ring's edge)
+    err = decimation_errors(blk, plane, n)
+    assert err.shape == (3, len(DECIMATION_STRIDES))
+    assert np.all(err[:2] < 1e-9) and np.all(np.isinf(err[2]))
+    # A bump of 40 m at an odd post inside the first block: every stride skips that post.
+    bumped = 1000.0 + np.zeros((n, n))
+    bumped[BLOCK // 2 + 1, BLOCK // 2 + 1] += 40.0
+    err = decimation_errors(blk[:1], _level(bumped), n)
+    assert err[0] == pytest.approx(40.0, abs=1e-9)
+    # A bump at a post every stride draws: the post is kept, and the drawn triangles around it pull its
+    # flat neighbours up, the nearest (one cell along a triangle's edge) by 40 (s - 1) / s.
+    kept = 1000.0 + np.zeros((n, n))
+    s = max(DECIMATION_STRIDES)
+    kept[s, s] += 40.0
+    err = decimation_errors(blk[:1], _level(kept), n)
+    assert err[0] == pytest.approx([40.0 * (st - 1) / st for st in DECIMATION_STRIDES], abs=1e-9)
+
+
+def test_block_strides_take_the_coarsest_within_the_pixel_bound():
+    # Errors (m) for strides DECIMATION_STRIDES (coarse to fine); boxes at 1, 10 and 100 km straight ahead.
+    err = np.tile(np.array([[10.0, 1.0]])[:, :len(DECIMATION_STRIDES)], (4, 1))
+    lo = np.array([[0.0, 1_000.0, 0.0], [0.0, 10_000.0, 0.0], [0.0, 100_000.0, 0.0], [-5.0, -5.0, -5.0]])
+    hi = lo + 10.0
+    got = block_strides(err, lo, hi, np.zeros(3), focal_px=1000.0, pixel_error=1.0)
+    # 1 km: 10 m -> 10 px, 1 m -> 1 px; 10 km: 1 px and 0.1 px; 100 km: 0.1 px; the camera's own box: 1.
+    assert got.tolist() == [DECIMATION_STRIDES[-1], DECIMATION_STRIDES[0], DECIMATION_STRIDES[0], 1]
+    err[:, :] = np.inf  # a partial block is never decimated
+    assert block_strides(err, lo, hi, np.zeros(3), 1000.0, 100.0).tolist() == [1, 1, 1, 1]
+
+
+def test_layer_rejects_a_bad_pixel_error(hgt_alps):
+    from client.render.clipmap_layer import clipmap_factory
+    from client.render.renderer import Renderer
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([read_dem(hgt_alps)])
+    for bad in (0.0, -1.0, float("nan"), 1e9, "1"):
+        with pytest.raises(InvalidArgument, match="pixel_error"):
+            with Renderer(terrain, 32, 18, terrain_layer_factory=clipmap_factory(terrain, pixel_error=bad)):
+                pass
+
+
+def test_decimated_frame_has_no_holes_and_stays_within_the_pixel_bound(hgt_alps):
+    """One Alps frame (960 x 540, 60 degrees, 2000 m above the ground, test mode) without and with
+    decimation at 1 px: fewer triangles, some blocks decimated, no holes, and the screen error against
+    the full-resolution surface (bench/render.py's per-pixel measure) at p99 within 1 px of the
+    undecimated frame's, the median within 0.1 px."""
+    from bench.render import FLAT_SKY_RGB, error_summary, measure_frame
+    from client.render.camera import Camera
+    from client.render.clipmap_layer import clipmap_factory
+    from client.render.renderer import Renderer
+    from client.render.terrain_mesh import lattice_for
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([read_dem(hgt_alps)])
+    lat, lon = 47.15, 9.25
+    ground = float(terrain.heights(np.array([lat]), np.array([lon])).height_msl_m[0])
+    camera = Camera.from_geodetic(lat, lon, ground + 2000.0, 45.0, -10.0, fov_x_deg=60.0)
+    lattice = lattice_for(terrain.describe(), lat, lon)
+    got = {}
+    for pixel_error in (None, 1.0):
+        factory = clipmap_factory(terrain, levels=6, n=127, budget=10**7, pixel_error=pixel_error)
+        with Renderer(terrain, 960, 540, terrain_layer_factory=factory, flat_sky_rgb=FLAT_SKY_RGB) as r:
+            r.render(camera)
+            image = r.render(camera)
+            layer = r.terrain_layer
+            strides = [d.strides for d in layer.draws if d.strides is not None]
+            got[pixel_error] = (layer.triangles, strides, measure_frame(r, camera, image, terrain, lattice))
+    tris0, _, frame0 = got[None]
+    tris1, strides, frame1 = got[1.0]
+    decimated = int(sum((s > 1).sum() for s in strides))
+    print(f"\ntriangles {tris0} -> {tris1}, {decimated} blocks decimated")
+    assert decimated > 0 and tris1 < 0.9 * tris0
+    assert frame0.holes_px == 0 and frame1.holes_px == 0
+    e0, e1 = error_summary([frame0]), error_summary([frame1])
+    print(f"screen error p50/p99 px: {e0['median']:.3f}/{e0['p99']:.2f} -> {e1['median']:.3f}/{e1['p99']:.2f}")
+    assert e1["p99"] <= e0["p99"] + 1.0
+    assert e1["median"] <= e0["median"] + 0.1
