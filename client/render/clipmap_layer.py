@@ -11,6 +11,15 @@ pieces, and one vertex shader that displaces a small grid block per instance
   tiled by BLOCK x BLOCK-cell blocks; one static (BLOCK + 1)^2 vertex grid is
   drawn once per visible block (instancing), each vertex clamped to its
   block's rectangle (cells beyond it collapse to nothing).
+- **Decimation** (screen-space error, as geomipmapping and Losasso-Hoppe bound it). With
+  a ``pixel_error``, a whole block is drawn with every 4th or 2nd post inside and every
+  post on its edges (:func:`decimated_grid`) where the largest distance between a post and
+  where that mesh draws it (:func:`decimation_errors`, exact for the mesh: each post's
+  barycentric weights in its triangle), seen from the nearest point of the block's culling
+  box, moves it by at most ``pixel_error`` pixels (:func:`block_strides`). The edges keep
+  every post, so neighbouring blocks of any strides, the finer level's border and the
+  morph band meet as without decimation (no T-junction). A block changing stride pops by
+  at most ``pixel_error`` pixels.
 - **Culling** (§3.1.6). A block is drawn unless its bounding box lies wholly
   outside one side of the view frustum or behind the camera (the box's 8
   corners against the clip-space planes, every block at once in numpy). The
