@@ -128,15 +128,55 @@ def test_decimation_errors_on_a_plane_a_bump_and_a_partial_block():
 
 
 def test_block_strides_take_the_coarsest_within_the_pixel_bound():
-    # Errors (m) for strides DECIMATION_STRIDES (coarse to fine); boxes at 1, 10 and 100 km straight ahead.
-    err = np.tile(np.array([[10.0, 1.0]])[:, :len(DECIMATION_STRIDES)], (4, 1))
-    lo = np.array([[0.0, 1_000.0, 0.0], [0.0, 10_000.0, 0.0], [0.0, 100_000.0, 0.0], [-5.0, -5.0, -5.0]])
+    coarse, fine = DECIMATION_STRIDES
+    # Errors (m) for strides (coarse, fine); boxes at 1, 10, 100 and 15 km straight ahead, and one
+    # holding the camera.
+    err = np.tile(np.array([[10.0, 1.0]]), (5, 1))
+    lo = np.array([[0.0, 1_000.0, 0.0], [0.0, 10_000.0, 0.0], [0.0, 100_000.0, 0.0], [0.0, 15_000.0, 0.0],
+                   [-5.0, -5.0, -5.0]])
     hi = lo + 10.0
-    got = block_strides(err, lo, hi, np.zeros(3), focal_px=1000.0, pixel_error=1.0)
-    # 1 km: 10 m -> 10 px, 1 m -> 1 px; 10 km: 1 px and 0.1 px; 100 km: 0.1 px; the camera's own box: 1.
-    assert got.tolist() == [DECIMATION_STRIDES[-1], DECIMATION_STRIDES[0], DECIMATION_STRIDES[0], 1]
-    err[:, :] = np.inf  # a partial block is never decimated
-    assert block_strides(err, lo, hi, np.zeros(3), 1000.0, 100.0).tolist() == [1, 1, 1, 1]
+    strides, morph = block_strides(err, lo, hi, np.zeros(3), focal_px=1000.0, pixel_error=1.0)
+    # 1 km: 10 px and 1 px; 10 km: 1 px and 0.1 px; 100 km: 0.1 px; 15 km: 0.67 and 0.067 px.
+    assert strides.tolist() == [fine, coarse, coarse, coarse, 1]
+    # Morph towards the next stride: at 1 km the coarse stride's 10 px is past 2 px (0); the
+    # coarsest stride has none; the camera's block (both errors infinite in pixels) none.
+    assert morph.tolist() == [0.0, 0.0, 0.0, 0.0, 0.0]
+    strides, morph = block_strides(err, lo, hi, np.zeros(3), focal_px=1000.0, pixel_error=6.0)
+    # 1 km: the coarse stride's 10 px is within 2 x 6: morph 2 - 10 / 6.
+    assert strides[0] == fine and morph[0] == pytest.approx(2.0 - 10.0 / 6.0, rel=1e-6)
+    # A finer stride out of bounds keeps a block off the coarser one, whatever the coarser's error.
+    odd = np.array([[0.5, 50.0]])
+    strides, morph = block_strides(odd, lo[:1], hi[:1], np.zeros(3), 1000.0, 1.0)
+    assert strides.tolist() == [1] and morph.tolist() == [0.0]
+    assert block_strides(np.full((5, 2), np.inf), lo, hi, np.zeros(3), 1000.0, 100.0)[0].tolist() == [1] * 5
+
+
+def test_the_morph_moves_a_post_by_at_most_the_pixel_bound():
+    """morph x r <= pixel_error for every error r (px) of the next stride: the bound holds while morphing."""
+    r = np.linspace(0.0, 10.0, 10_001)
+    lo = np.zeros((len(r), 3)) + [0.0, 1000.0, 0.0]
+    err = np.stack([r, r / 10.0], -1)  # metres = pixels at 1 km with a 1000 px focal length; the fine stride always holds
+    strides, morph = block_strides(err, lo, lo + 1e-9, np.zeros(3), 1000.0, 2.0)
+    at_fine = strides == DECIMATION_STRIDES[1]
+    assert np.all(morph[at_fine] * r[at_fine] <= 2.0 + 1e-6)
+    assert np.all(np.diff(morph[at_fine]) <= 0)  # rises as the error falls
+    assert morph[at_fine][0] == pytest.approx(1.0, abs=1e-3) and morph[at_fine][-1] == 0.0
+
+
+@pytest.mark.parametrize("stride", [1, *DECIMATION_STRIDES[1:]])
+def test_morph_targets_are_the_next_stride_mesh(stride):
+    from client.render.clipmap_layer import morph_targets
+
+    order = sorted(STRIDES)
+    nxt = order[order.index(stride) + 1]
+    t = morph_targets(stride)
+    idx, w = grid_weights(decimated_grid(nxt))
+    kept = np.zeros(len(idx), bool)
+    kept[np.unique(decimated_grid(nxt))] = True
+    got = t["m"][..., 0] * (BLOCK + 1) + t["m"][..., 1]
+    assert np.array_equal(got[~kept], idx[~kept]) and np.allclose(t["w"][~kept], w[~kept], atol=1e-7)
+    assert np.all(t["w"][kept] == [1.0, 0.0, 0.0]) and np.all(got[kept] == np.arange(len(idx))[kept, None])
+    assert np.all(t["w"][~kept].max(axis=1) < 1.0)  # every dropped post lies inside or on an edge, not at a corner
 
 
 def test_layer_rejects_a_bad_pixel_error(hgt_alps):
@@ -189,3 +229,67 @@ def test_decimated_frame_has_no_holes_and_stays_within_the_pixel_bound(hgt_alps)
     print(f"screen error p50/p99 px: {e0['median']:.3f}/{e0['p99']:.2f} -> {e1['median']:.3f}/{e1['p99']:.2f}")
     assert e1["p99"] <= e0["p99"] + 1.0
     assert e1["median"] <= e0["median"] + 0.1
+
+
+def test_the_vertex_shader_morphs_dropped_posts_onto_the_next_stride_mesh(hgt_alps):
+    """Transform feedback of the layer's vertex shader over whole blocks of a drawn Alps frame: with
+    morph 0 every vertex is the level's own surface; with morph 1 each vertex is the barycentric
+    combination (morph_targets) of the morph-0 vertices of its triangle in the next stride's mesh,
+    to float32 rounding; posts that mesh keeps do not move."""
+    import moderngl
+
+    from client.render.camera import Camera
+    from client.render.clipmap_layer import VERTEX_SHADER, clipmap_factory, morph_targets, shader_variant
+    from client.render.renderer import Renderer
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([read_dem(hgt_alps)])
+    camera = Camera.from_geodetic(47.15, 9.25, 4000.0, 45.0, -10.0, fov_x_deg=60.0)
+    with Renderer(terrain, 96, 54, terrain_layer_factory=clipmap_factory(terrain, levels=5, n=63, budget=10**7,
+                                                                          pixel_error=1.0)) as r:
+        r.render(camera)
+        layer, ctx = r.terrain_layer, r.ctx
+        with ctx:
+            prog = ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, False), varyings=["v_world"])
+            grid = ctx.buffer(block_grid()[0].tobytes())
+            checked = 0
+            drawn = {d.k for d in layer.draws}
+            for d in layer.draws:
+                full = d.blocks[((d.blocks[:, 2] - d.blocks[:, 0]) == BLOCK) & ((d.blocks[:, 3] - d.blocks[:, 1]) == BLOCK)]
+                if len(full) == 0:
+                    continue
+                layer.set_uniforms(prog, {"u_view": camera.view_matrix(layer.origin).T.astype("f4").tobytes(),
+                                          "u_projection": camera.projection(96, 54).T.astype("f4").tobytes(),
+                                          **layer.level_uniforms(d, d.k + 1 in drawn)})
+                layer._tex[d.k][0].use(0)
+                if d.k + 1 in drawn:
+                    layer._tex[d.k + 1][0].use(1)
+                rel = full[:3] - np.array([d.region.i0, d.region.j0, d.region.i0, d.region.j0], np.int32)
+                for stride in (1, *DECIMATION_STRIDES[1:]):
+                    targets = morph_targets(stride)
+                    tbuf = ctx.buffer(targets.tobytes())
+                    out = {}
+                    for morph in (0.0, 1.0):
+                        rec = np.zeros(len(rel), dtype=[("b", "<i4", 4), ("m", "<f4")])
+                        rec["b"], rec["m"] = rel, morph
+                        ibuf = ctx.buffer(rec.tobytes())
+                        obuf = ctx.buffer(reserve=len(rel) * len(targets) * 12)
+                        vao = ctx.vertex_array(prog, [(grid, "2i", "in_cell"), (ibuf, "4i 1f/i", "in_block", "in_morph"),
+                                                      (tbuf, "2i 2i 2i 3f", "in_m0", "in_m1", "in_m2", "in_mw")])
+                        vao.transform(obuf, mode=moderngl.POINTS, vertices=len(targets), instances=len(rel))
+                        out[morph] = np.frombuffer(obuf.read(), np.float32).reshape(len(rel), len(targets), 3).astype(np.float64)
+                        for obj in (vao, ibuf, obuf):
+                            obj.release()
+                    tbuf.release()
+                    idx = targets["m"][..., 0] * (BLOCK + 1) + targets["m"][..., 1]
+                    want = (out[0.0][:, idx] * targets["w"][None, :, :, None].astype(np.float64)).sum(2)
+                    scale = np.abs(out[0.0]).max()
+                    assert np.abs(out[1.0] - want).max() <= 16 * 2.0 ** -24 * scale + 1e-4, (d.k, stride)
+                    kept = targets["w"].max(axis=1) == 1.0
+                    assert np.array_equal(out[1.0][:, kept], out[0.0][:, kept])
+                    assert np.abs(out[1.0][:, ~kept] - out[0.0][:, ~kept]).max() > 0.0  # relief: they do move
+                    checked += 1
+            grid.release()
+            prog.release()
+    assert checked >= 4

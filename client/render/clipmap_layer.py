@@ -124,6 +124,11 @@ uniform mat4 u_view;
 uniform mat4 u_projection;
 in ivec2 in_cell;                // (row, column) in the block grid, 0..BLOCK
 in ivec4 in_block;               // (i0, j0, i1, j1) posts, relative to u_base
+in float in_morph;               // decimation morph of the block (block_strides); 0 where not bound
+in ivec2 in_m0;                  // where the block's next coarser stride draws this post: the
+in ivec2 in_m1;                  // corners (block grid) of its triangle there and their weights
+in ivec2 in_m2;                  // (grid_weights); in_mw.x = 1 where that stride keeps the post
+in vec3 in_mw;
 VARYING out vec3 v_world;
 VARYING out float v_height;
 VARYING out vec2 v_nuv_fine;
@@ -139,13 +144,14 @@ uniform vec3 u_origin_mod;       // renderer origin ECEF modulo the detail tile,
 int pmod(int a, int m) { return a - m * int(floor(float(a) / float(m))); }
 vec4 post(sampler2D t, ivec2 ij) { return texelFetch(t, ivec2(pmod(ij.y, u_n), pmod(ij.x, u_n)), 0); }
 
-void main() {
-    ivec2 g = clamp(in_block.xy + in_cell, in_block.xy, in_block.zw);
+// Level k's surface at block-relative post g: its own post morphed towards the coarser level's
+// surface by alpha (the thesis' vertex cases).
+void surface(ivec2 g, out vec3 world, out float height, out float alpha) {
     ivec2 G = u_base + g;
     vec4 f = post(u_fine, G);
     vec3 p = u_rot * f.xyz + u_off_fine;
     float h = f.w;
-    float alpha = 0.0;
+    alpha = 0.0;
     vec3 pc = p;
     float hc = h;
     if (u_has_coarse != 0) {
@@ -168,8 +174,26 @@ void main() {
         pc = u_rot * s.xyz + u_off_coarse;
         hc = s.w;
     }
-    v_world = alpha >= 1.0 ? pc : mix(p, pc, alpha);  // exactly the coarse vertex on the border
-    v_height = alpha >= 1.0 ? hc : mix(h, hc, alpha);
+    world = alpha >= 1.0 ? pc : mix(p, pc, alpha);  // exactly the coarse vertex on the border
+    height = alpha >= 1.0 ? hc : mix(h, hc, alpha);
+}
+
+void main() {
+    ivec2 g = clamp(in_block.xy + in_cell, in_block.xy, in_block.zw);
+    float alpha;
+    surface(g, v_world, v_height, alpha);
+    if (in_morph > 0.0 && in_mw.x < 1.0) {
+        // A post the block's next coarser stride drops moves towards where that stride's mesh
+        // draws it, so the block's switch of stride does not pop (decimated blocks are whole:
+        // no clamping).
+        vec3 w0, w1, w2;
+        float h0, h1, h2, a0, a1, a2;
+        surface(in_block.xy + in_m0, w0, h0, a0);
+        surface(in_block.xy + in_m1, w1, h1, a1);
+        surface(in_block.xy + in_m2, w2, h2, a2);
+        v_world = mix(v_world, in_mw.x * w0 + in_mw.y * w1 + in_mw.z * w2, in_morph);
+        v_height = mix(v_height, in_mw.x * h0 + in_mw.y * h1 + in_mw.z * h2, in_morph);
+    }
     v_alpha = alpha;
     // Normal-map coordinates: the fine map has 2 texels a post, the coarse map 1 (its half-posts).
     int n2 = 2 * u_n;
@@ -399,6 +423,23 @@ def block_posts(blk: np.ndarray, level, n: int) -> np.ndarray:
 _GRID_WEIGHTS = {s: grid_weights(decimated_grid(s)) for s in DECIMATION_STRIDES}
 
 
+def morph_targets(stride: int) -> np.ndarray:
+    """(V,) records (m0, m1, m2: (row, column) of the block grid; w: 3 weights) of the block
+    grid's vertices: where the next coarser stride than ``stride`` (1 or one of
+    DECIMATION_STRIDES but the coarsest) draws each post, for the vertex shader's morph
+    (in_m0, in_m1, in_m2, in_mw). A post that stride keeps has itself with weight 1."""
+    order = sorted((1, *DECIMATION_STRIDES))
+    idx, w = _GRID_WEIGHTS[order[order.index(stride) + 1]]
+    kept = (w == 1.0).any(axis=1)
+    idx, w = idx.copy(), w.copy()
+    idx[kept] = np.arange(len(idx))[kept, None]
+    w[kept] = (1.0, 0.0, 0.0)  # in_mw.x = 1: the shader leaves the post where it is
+    out = np.zeros(len(idx), dtype=[("m", "<i4", (3, 2)), ("w", "<f4", 3)])
+    out["m"] = np.stack([idx // (BLOCK + 1), idx % (BLOCK + 1)], -1)
+    out["w"] = w
+    return out
+
+
 def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
     """(m, len(DECIMATION_STRIDES)) metres: for each block (m, 4) of a level and each stride, the
     largest distance between a post and where :func:`decimated_grid` draws it (the interpolated
@@ -416,18 +457,30 @@ def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
 
 
 def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_local: np.ndarray,
-                  focal_px: float, pixel_error: float) -> np.ndarray:
-    """(m,) the stride each block is drawn with: the coarsest of DECIMATION_STRIDES whose error
-    (:func:`decimation_errors`), seen from the nearest point of the block's box (lo, hi, local
-    ENU) at ``focal_px`` pixels per radian, stays within ``pixel_error`` pixels; else 1. A
-    displacement e at distance d moves a point at most e x focal / d pixels on screen."""
+                  focal_px: float, pixel_error: float) -> tuple[np.ndarray, np.ndarray]:
+    """((m,) int32 strides, (m,) float32 morphs) of blocks: each block's stride is the coarsest of
+    DECIMATION_STRIDES whose error (:func:`decimation_errors`), and every finer stride's, seen
+    from the nearest point of the block's box (lo, hi, local ENU) at ``focal_px`` pixels per
+    radian, stays within ``pixel_error`` pixels; else 1. A displacement e at distance d moves a
+    point at most e x focal / d pixels on screen.
+
+    The morph moves the posts the next coarser stride drops towards where its mesh draws them
+    (the vertex shader): 0 while that stride's error r is 2 x pixel_error pixels or more, rising
+    to 1 as r falls to pixel_error, where the block takes that stride. The posts move by at most
+    morph x r = (2 - r / pixel_error) r <= pixel_error pixels, so the bound holds throughout."""
     gap = np.maximum(np.maximum(lo - camera_local, camera_local - hi), 0.0)
     dist = np.sqrt((gap ** 2).sum(-1))
     px = err_m * focal_px / np.maximum(dist, 1e-9)[:, None]
-    out = np.ones(len(err_m), np.int32)
-    for s_i in reversed(range(len(DECIMATION_STRIDES))):  # fine to coarse: the coarsest that holds wins
-        out = np.where(px[:, s_i] <= pixel_error, DECIMATION_STRIDES[s_i], out)
-    return out
+    strides = np.ones(len(err_m), np.int32)
+    morph = np.zeros(len(err_m), np.float32)
+    ok = np.ones(len(err_m), bool)
+    for s_i in reversed(range(len(DECIMATION_STRIDES))):  # fine to coarse
+        r = px[:, s_i]
+        morph = np.where(ok, np.clip(2.0 - r / pixel_error, 0.0, 1.0), morph)  # towards this stride
+        ok &= r <= pixel_error
+        strides = np.where(ok, DECIMATION_STRIDES[s_i], strides)
+    morph = np.where(strides == DECIMATION_STRIDES[0], 0.0, morph).astype(np.float32)  # the coarsest
+    return strides, morph
 
 
 # Culling boxes are padded by this (metres) plus BOX_PAD_RELATIVE of the block's distance from
@@ -475,6 +528,7 @@ class LevelDraw:
     cells: int
     strides: np.ndarray | None = None  # (m,) each block's stride (decimated_grid); None: all 1
     triangles: int = 0  # what the blocks draw (without the border triangles)
+    morph: np.ndarray | None = None  # (m,) each block's morph towards its next stride (block_strides)
 
 
 class ClipmapLayer:
@@ -512,23 +566,21 @@ class ClipmapLayer:
             ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, border),
                         fragment_shader=shader_variant(FRAGMENT_SHADER, border, self._land_classes))
             for border in (False, True))
-        verts, tris = block_grid()
-        self._grid_vbo = ctx.buffer(verts.tobytes())
-        self._grid_ibo = ctx.buffer(tris.tobytes())
-        self._grid_triangles = len(tris)
-        self._inst = ctx.buffer(reserve=16 * 1024)
-        self._vao = ctx.vertex_array(self.program, [(self._grid_vbo, "2i", "in_cell"),
-                                                    (self._inst, "4i/i", "in_block")],
-                                     index_buffer=self._grid_ibo, index_element_size=4)
-        # The decimated blocks: the same vertices, fewer triangles; an instance buffer per stride
-        # (moderngl draws have no base instance).
-        self._decimated = {}  # stride -> (index buffer, instance buffer, vao, triangles a block)
-        for stride in DECIMATION_STRIDES:
+        self._grid_vbo = ctx.buffer(block_grid()[0].tobytes())
+        # Blocks of each stride: the same vertices, the stride's triangles, an instance buffer
+        # ((i0, j0, i1, j1), morph) per stride (moderngl draws have no base instance), and the
+        # posts' morph targets towards the next coarser stride (none for the coarsest).
+        self._strides = {}  # stride -> (index buffer, instance buffer, morph buffer | None, vao, triangles a block)
+        for stride in (1, *DECIMATION_STRIDES):
             dtris = decimated_grid(stride)
             ibo, inst = ctx.buffer(dtris.tobytes()), ctx.buffer(reserve=16 * 1024)
-            vao = ctx.vertex_array(self.program, [(self._grid_vbo, "2i", "in_cell"), (inst, "4i/i", "in_block")],
-                                   index_buffer=ibo, index_element_size=4)
-            self._decimated[stride] = (ibo, inst, vao, len(dtris))
+            content = [(self._grid_vbo, "2i", "in_cell"), (inst, "4i 1f/i", "in_block", "in_morph")]
+            targets = None
+            if stride != DECIMATION_STRIDES[0]:
+                targets = ctx.buffer(morph_targets(stride).tobytes())
+                content.append((targets, "2i 2i 2i 3f", "in_m0", "in_m1", "in_m2", "in_mw"))
+            vao = ctx.vertex_array(self.program, content, index_buffer=ibo, index_element_size=4)
+            self._strides[stride] = (ibo, inst, targets, vao, len(dtris))
         # Zero-area triangles along each level's outer border (GPU Gems 2 ch. 2): (even, even, odd)
         # posts of a border row or column, which the morph puts on the coarser level's edge; drawn,
         # they fill the float32 slivers of the T-junctions there. The odd post is the provoking
@@ -681,15 +733,15 @@ class ClipmapLayer:
             blk = blk[seen]
             cells = int(((blk[:, 2] - blk[:, 0]) * (blk[:, 3] - blk[:, 1])).sum())
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
-            strides, triangles = None, 2 * cells
+            strides, morph, triangles = None, None, 2 * cells
             if errors is not None:
-                strides = block_strides(errors[seen], lo[seen], hi[seen], frame.camera_local,
-                                        frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0,
-                                        self.pixel_error)
+                strides, morph = block_strides(errors[seen], lo[seen], hi[seen], frame.camera_local,
+                                               frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0,
+                                               self.pixel_error)
                 full = strides == 1
                 triangles = 2 * int(((blk[full, 2] - blk[full, 0]) * (blk[full, 3] - blk[full, 1])).sum())
-                triangles += sum(int((strides == s).sum()) * self._decimated[s][3] for s in DECIMATION_STRIDES)
-            out.append(LevelDraw(k, regions[k], alpha_h, blk, cells, strides, triangles))
+                triangles += sum(int((strides == s).sum()) * self._strides[s][4] for s in DECIMATION_STRIDES)
+            out.append(LevelDraw(k, regions[k], alpha_h, blk, cells, strides, triangles, morph))
         return out
 
     def level_uniforms(self, d: LevelDraw, coarse: bool) -> dict:
@@ -752,11 +804,13 @@ class ClipmapLayer:
                 self._tex[d.k + 1][0].use(1)
                 self._tex[d.k + 1][1].use(3)
             r = d.region
-            rel = d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)
-            groups = [(self._inst, self._vao, rel)] if d.strides is None else (
-                [(self._inst, self._vao, rel[d.strides == 1])]
-                + [(inst, vao, rel[d.strides == s]) for s, (_, inst, vao, _) in self._decimated.items()])
-            for inst, vao, instances in groups:
+            records = np.zeros(len(d.blocks), dtype=[("block", "<i4", 4), ("morph", "<f4")])
+            records["block"] = d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)
+            strides = np.ones(len(d.blocks), np.int32) if d.strides is None else d.strides
+            if d.morph is not None:
+                records["morph"] = d.morph
+            for s, (_, inst, _, vao, _) in self._strides.items():
+                instances = records[strides == s]
                 if len(instances):
                     _write_instances(inst, instances)
                     vao.render(moderngl.TRIANGLES, instances=len(instances))
@@ -779,19 +833,19 @@ class ClipmapLayer:
         for t, nm in self._tex:
             t.release()
             nm.release()
-        for ibo, inst, vao, _ in self._decimated.values():
-            vao.release()
-            inst.release()
-            ibo.release()
-        for obj in (self._vao, self._inst, self._grid_vbo, self._grid_ibo, *self._border_vaos,
+        for ibo, inst, targets, vao, _ in self._strides.values():
+            for obj in (vao, inst, ibo) + (() if targets is None else (targets,)):
+                obj.release()
+        for obj in (self._grid_vbo, *self._border_vaos,
                     *self._border_vbos, self._border_ibo, self._border_inst, self.program, self._border_program):
             obj.release()
         self._tex = []
 
 
 def _write_instances(buffer, instances: np.ndarray) -> None:
-    """Instance records (m, 4) int32 into a buffer, grown (twice the need) when too small."""
-    data = instances.astype(np.int32).tobytes()
+    """Instance records (m, 4) int32, or structured records, into a buffer, grown (twice the
+    need) when too small."""
+    data = (instances if instances.dtype.names else instances.astype(np.int32)).tobytes()
     if len(data) > buffer.size:
         buffer.orphan(len(data) * 2)
     buffer.write(data)
