@@ -78,6 +78,7 @@ import math
 import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from client.render.camera import Camera, LocalOrigin
@@ -420,7 +421,82 @@ def block_posts(blk: np.ndarray, level, n: int) -> np.ndarray:
     return level.pos_ecef[rows[:, :, None], cols[:, None, :]]
 
 
+def _edges(tris: np.ndarray) -> np.ndarray:
+    """(e, 2) unique undirected edges (vertex indices) of triangles."""
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def overlay_rows(stride: int, size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
+    """((K, 6) vertex indices, (K, 6) weights) over the block grid: at each vertex of the overlay
+    of the full grid's triangles and :func:`decimated_grid`'s (the posts, and every point where an
+    edge of one crosses an edge of the other), the full surface minus the decimated one as a
+    combination of posts (3 weights summing to 1, then 3 summing to -1). The two surfaces are
+    linear on each cell of the overlay, so the largest distance between them is the largest
+    norm of these combinations: at a post it is the post's own error, but where a decimated
+    edge crosses a fine edge it can be several times that (measured on the Alps: up to 5x for
+    stride 2 at 8-cell blocks, 1.4x at the 99th percentile)."""
+    fine, dec = decimated_grid(1, size), decimated_grid(stride, size)
+    verts = block_grid(size)[0].astype(np.float64)[:, ::-1]  # (x, y) = (column, row)
+    pts = [verts]
+    ef, ed = _edges(fine), _edges(dec)
+    a, b = verts[ef[:, 0]][:, None], verts[ef[:, 1]][:, None]  # (F, 1, 2)
+    c, d = verts[ed[:, 0]][None], verts[ed[:, 1]][None]  # (1, D, 2)
+    r, q = b - a, d - c
+    den = r[..., 0] * q[..., 1] - r[..., 1] * q[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((c - a)[..., 0] * q[..., 1] - (c - a)[..., 1] * q[..., 0]) / den
+        u = ((c - a)[..., 0] * r[..., 1] - (c - a)[..., 1] * r[..., 0]) / den
+    hit = (np.abs(den) > 1e-12) & (t > 1e-9) & (t < 1 - 1e-9) & (u > 1e-9) & (u < 1 - 1e-9)
+    pts.append((a + np.where(hit, t, 0.0)[..., None] * r)[hit])
+    pts = np.unique(np.round(np.concatenate(pts), 9), axis=0)
+    fi, fw = _weights_at(fine, verts, pts)
+    di, dw = _weights_at(dec, verts, pts)
+    return np.concatenate([fi, di], 1), np.concatenate([fw, -dw], 1)
+
+
+def _weights_at(tris: np.ndarray, verts: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((P, 3) vertex indices, (P, 3) barycentric weights) of points (P, 2) in triangles holding them."""
+    a, b, c = (verts[tris[:, i]] for i in range(3))
+    p = pts[:, None, :]
+    det = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    wb = ((p - a)[..., 0] * (c - a)[:, 1] - (p - a)[..., 1] * (c - a)[:, 0]) / det
+    wc = ((b - a)[:, 0] * (p - a)[..., 1] - (b - a)[:, 1] * (p - a)[..., 0]) / det
+    w = np.stack([1.0 - wb - wc, wb, wc], -1)  # (P, T, 3)
+    inside = (w >= -1e-9).all(-1)
+    t = inside.argmax(axis=1)
+    assert inside[np.arange(len(pts)), t].all(), "the triangles do not cover the points"
+    return tris[t].astype(np.int64), w[np.arange(len(pts)), t]
+
+
 _GRID_WEIGHTS = {s: grid_weights(decimated_grid(s)) for s in DECIMATION_STRIDES}
+_OVERLAY = {s: overlay_rows(s) for s in DECIMATION_STRIDES}
+
+
+@numba.njit(cache=True, nogil=True)
+def _overlay_errors(pos, blk, n, size, idx, w, out, col):
+    """out[b, col] = the largest norm over overlay rows (idx, w) of block b's combination of posts
+    (each block's posts taken relative to its first, so the float64 ECEF magnitudes cancel first)."""
+    side = size + 1
+    local = np.empty((side * side, 3))
+    for b in range(blk.shape[0]):
+        i0, j0 = blk[b, 0], blk[b, 1]
+        o = pos[i0 % n, j0 % n]
+        for r in range(side):
+            for c in range(side):
+                p = pos[(i0 + r) % n, (j0 + c) % n]
+                for a in range(3):
+                    local[r * side + c, a] = p[a] - o[a]
+        best = 0.0
+        for k in range(idx.shape[0]):
+            x = y = z = 0.0
+            for j in range(idx.shape[1]):
+                v, wk = idx[k, j], w[k, j]
+                x += wk * local[v, 0]
+                y += wk * local[v, 1]
+                z += wk * local[v, 2]
+            best = max(best, x * x + y * y + z * z)
+        out[b, col] = math.sqrt(best)
 
 
 def morph_targets(stride: int) -> np.ndarray:
@@ -442,17 +518,18 @@ def morph_targets(stride: int) -> np.ndarray:
 
 def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
     """(m, len(DECIMATION_STRIDES)) metres: for each block (m, 4) of a level and each stride, the
-    largest distance between a post and where :func:`decimated_grid` draws it (the interpolated
-    position; 0 at the drawn posts). Infinite for a block smaller than BLOCK x BLOCK cells (at
-    a ring's edge: its clamped grid is drawn whole)."""
+    largest distance between the level's full surface over the block and what
+    :func:`decimated_grid` draws (exact: over the vertices of the two meshes' overlay,
+    :func:`overlay_rows`). Infinite for a block smaller than BLOCK x BLOCK cells (at a ring's
+    edge: its clamped grid is drawn whole)."""
     out = np.full((len(blk), len(DECIMATION_STRIDES)), np.inf)
     full = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
     if full.any():
-        posts = block_posts(blk[full], level, n).reshape(int(full.sum()), -1, 3)
+        errs = np.empty((int(full.sum()), len(DECIMATION_STRIDES)))
+        sub = np.ascontiguousarray(blk[full], dtype=np.int64)
         for s_i, s in enumerate(DECIMATION_STRIDES):
-            idx, w = _GRID_WEIGHTS[s]
-            drawn = np.einsum("mvkc,vk->mvc", posts[:, idx], w)
-            out[full, s_i] = np.sqrt(((posts - drawn) ** 2).sum(-1)).max(axis=1)
+            _overlay_errors(level.pos_ecef, sub, n, BLOCK, *_OVERLAY[s], errs, s_i)
+        out[full] = errs
     return out
 
 
