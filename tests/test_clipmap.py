@@ -209,6 +209,7 @@ def test_profiles_per_agent_type():
     assert profile_for("static").name == "observer"
     for p in PROFILES.values():  # every profile is a valid clipmap reaching past 80 km at 90 m posts
         assert (p.n + 1) & p.n == 0 and p.view_distance_m(90.0) > 80_000.0
+        assert p.pixel_error is None or 0 < p.pixel_error <= 2  # decimation within a couple of pixels
     assert profile("fast_jet").view_distance_m(90.0) > 350_000.0  # the horizon from 10 km
     with pytest.raises(InvalidArgument, match="profile"):
         profile("submarine")
