@@ -232,7 +232,7 @@ def test_layer_rejects_a_bad_pixel_error(hgt_alps):
     from terrain.terrain import Terrain
 
     terrain = Terrain([read_dem(hgt_alps)])
-    for bad in (0.0, -1.0, float("nan"), 1e9, "1"):
+    for bad in (0.0, -1.0, float("nan"), 1e9, "1", True):
         with pytest.raises(InvalidArgument, match="pixel_error"):
             with Renderer(terrain, 32, 18, terrain_layer_factory=clipmap_factory(terrain, pixel_error=bad)):
                 pass

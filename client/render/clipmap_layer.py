@@ -189,8 +189,9 @@ void main() {
     surface(g, v_world, v_height, alpha);
     if (in_morph > 0.0 && in_mw.x < 1.0) {
         // A post the block's next coarser stride drops moves towards where that stride's mesh
-        // draws it, so the block's switch of stride does not pop (decimated blocks are whole:
-        // no clamping).
+        // draws it, so the block's switch of stride pops only in its edge cells, whose fans in
+        // the coarser mesh do not nest over the finer cells (decimated blocks are whole: no
+        // clamping).
         vec3 w0, w1, w2;
         float h0, h1, h2, a0, a1, a2;
         surface(in_block.xy + in_m0, w0, h0, a0);
@@ -404,16 +405,7 @@ def grid_weights(tris: np.ndarray, size: int = BLOCK) -> tuple[np.ndarray, np.nd
     barycentric combination of the corners of a triangle of ``tris`` that holds it, so that
     ``(posts[idx] * w[..., None]).sum(1)`` is where the triangles draw each post."""
     verts = block_grid(size)[0].astype(np.float64)[:, ::-1]  # (x, y) = (column, row)
-    a, b, c = (verts[tris[:, i]] for i in range(3))
-    p = verts[:, None, :]  # (V, 1, 2) against (T, 2)
-    det = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
-    wb = ((p - a)[..., 0] * (c - a)[:, 1] - (p - a)[..., 1] * (c - a)[:, 0]) / det
-    wc = ((b - a)[:, 0] * (p - a)[..., 1] - (b - a)[:, 1] * (p - a)[..., 0]) / det
-    w = np.stack([1.0 - wb - wc, wb, wc], -1)  # (V, T, 3)
-    inside = (w >= -1e-12).all(-1)
-    t = inside.argmax(axis=1)
-    assert inside[np.arange(len(verts)), t].all(), "the triangles do not cover the block"
-    return tris[t].astype(np.int64), w[np.arange(len(verts)), t]
+    return _weights_at(tris, verts, verts)
 
 
 def block_posts(blk: np.ndarray, level, n: int) -> np.ndarray:
@@ -467,7 +459,7 @@ def _weights_at(tris: np.ndarray, verts: np.ndarray, pts: np.ndarray) -> tuple[n
     wb = ((p - a)[..., 0] * (c - a)[:, 1] - (p - a)[..., 1] * (c - a)[:, 0]) / det
     wc = ((b - a)[:, 0] * (p - a)[..., 1] - (b - a)[:, 1] * (p - a)[..., 0]) / det
     w = np.stack([1.0 - wb - wc, wb, wc], -1)  # (P, T, 3)
-    inside = (w >= -1e-9).all(-1)
+    inside = (w >= -1e-9).all(-1)  # grid coordinates are small integers: 1e-9 is rounding
     t = inside.argmax(axis=1)
     assert inside[np.arange(len(pts)), t].all(), "the triangles do not cover the points"
     return tris[t].astype(np.int64), w[np.arange(len(pts)), t]
@@ -652,7 +644,8 @@ class ClipmapLayer:
         if not (math.isfinite(e) and e == round(e) and -8 <= e <= 8):
             raise InvalidArgument("finest_spacing_factor", "must be a power of two in [1/256, 256]",
                                   value=finest_spacing_factor)
-        if pixel_error is not None and not (isinstance(pixel_error, (int, float)) and 0 < pixel_error <= 100):
+        if pixel_error is not None and not (isinstance(pixel_error, (int, float)) and not isinstance(pixel_error, bool)
+                                            and 0 < pixel_error <= 100):
             raise InvalidArgument("pixel_error", "must be None or a number of pixels in (0, 100]", value=pixel_error)
         self.pixel_error = None if pixel_error is None else float(pixel_error)
         self.ctx = ctx
