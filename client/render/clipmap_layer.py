@@ -392,7 +392,10 @@ def decimated_grid(stride: int, size: int = BLOCK) -> np.ndarray:
                     + [(r, c1) for r in (range(r0, r1) if east else (r0,))]
                     + [(r1, c) for c in (range(c1, c0, -1) if north else (c1,))]
                     + [(r, c0) for r in (range(r1, r0, -1) if west else (r1,))])
-            on_edge = {(r0, c0): south or west, (r0, c1): south or east, (r1, c1): north or east,
+            # The apex: a corner on no edge side, on the cell's south-west to north-east diagonal
+            # where one is (NE, then SW): its fan's long edge then runs along the fine cells'
+            # diagonals instead of across them, so the two surfaces part less.
+            on_edge = {(r1, c1): north or east, (r0, c0): south or west, (r0, c1): south or east,
                        (r1, c0): north or west}
             apex = ring.index(next(p for p, edge in on_edge.items() if not edge))
             ring = ring[apex:] + ring[:apex]
