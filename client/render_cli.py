@@ -101,6 +101,9 @@ def _view_args(p) -> None:
     p.add_argument("--profile", choices=sorted(PROFILES),
                    help="the clipmap's level-of-detail profile (client/render/profiles.py; default: the "
                         "followed agent's, observer for sortie render)")
+    p.add_argument("--pixel-error", type=float, default=None, metavar="PX",
+                   help="clipmap: draw a block with fewer posts where that moves its surface by at most PX "
+                        "pixels, 0 for every post (default: the profile's)")
     p.add_argument("--fov-deg", type=float, default=60.0, help="horizontal field of view (default %(default)s)")
     p.add_argument("--window-km", type=float, default=20.0,
                    help="mesh: half-width of the full-resolution terrain window (default %(default)s)")
@@ -171,10 +174,16 @@ def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "obs
     from client.render.renderer import Renderer
 
     w, h = parse_size(args.size)
+    layer_args = profile(args.profile or profile_name).layer_args()
+    px = getattr(args, "pixel_error", None)
+    if px is not None:
+        if not (math.isfinite(px) and 0.0 <= px <= 100.0):
+            raise InvalidArgument("--pixel-error", "must be a number of pixels in [0, 100] (0: every post)", value=px)
+        layer_args["pixel_error"] = px or None
     factory = None
     if args.terrain_renderer == "clipmap" and terrain is not None:
         factory = clipmap_factory(terrain, geoid_undulation_m=geoid_undulation_m, insets=insets,
-                                  land_classes=args.land_classes, **profile(args.profile or profile_name).layer_args())
+                                  land_classes=args.land_classes, **layer_args)
     return Renderer(terrain, w, h, window_m=args.window_km * 1000.0, horizon_m=args.horizon_km * 1000.0,
                     geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog, terrain_layer_factory=factory,
                     insets=insets)

@@ -352,6 +352,26 @@ def test_sortie_render_writes_a_png_of_the_right_size(hgt_alps, tmp_path):
         assert img.size == (200, 120) and img.mode == "RGB"
 
 
+def test_sortie_render_pixel_error_sets_the_decimation(hgt_alps, tmp_path):
+    """--pixel-error overrides the profile's decimation: 0 draws every post, a larger bound fewer
+    triangles; a negative one is refused naming the flag."""
+    import re
+
+    def triangles(*extra):
+        run = subprocess.run([sys.executable, "-m", "sortie.cli", "render", "--dem", str(hgt_alps), "--camera",
+                              "47.15,9.25,4000,45,-10", "--out", str(tmp_path / "f.png"), "--size", "320x180",
+                              "--profile", "observer", *extra], capture_output=True, text=True, timeout=120)
+        assert run.returncode == 0, run.stderr
+        return int(re.search(r"([\d,]+) triangles", run.stdout).group(1).replace(",", ""))
+
+    every, bounded = triangles("--pixel-error", "0"), triangles("--pixel-error", "4")
+    assert bounded < 0.8 * every
+    bad = subprocess.run([sys.executable, "-m", "sortie.cli", "render", "--dem", str(hgt_alps), "--camera",
+                          "47.15,9.25,4000,45,-10", "--out", str(tmp_path / "g.png"), "--pixel-error", "-1"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode != 0 and "--pixel-error" in bad.stderr
+
+
 def test_sortie_view_follows_a_ground_vehicle(alps, hgt_alps, tmp_path):
     from PIL import Image
 
