@@ -41,21 +41,6 @@ def geodetic_to_ecef(lat_deg, lon_deg, h_m):
     return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
 
 
-def geodetic_grid_to_ecef(lat_rows_deg, lon_cols_deg, h_m):
-    """ECEF (rows, cols, 3) of the grid of latitudes lat_rows_deg (rows,) by longitudes
-    lon_cols_deg (cols,) at heights h_m (rows, cols): geodetic_to_ecef of the broadcast grid,
-    bit for bit, with the sines, cosines and radii taken once a row and once a column."""
-    lat = np.radians(np.asarray(lat_rows_deg, dtype=np.float64))[:, None]
-    lon = np.radians(np.asarray(lon_cols_deg, dtype=np.float64))[None, :]
-    h = np.asarray(h_m, dtype=np.float64)
-    sin_lat, cos_lat = np.sin(lat), np.cos(lat)
-    n = WGS84_A_M / np.sqrt(1.0 - WGS84_E2 * sin_lat * sin_lat)
-    x = (n + h) * cos_lat * np.cos(lon)
-    y = (n + h) * cos_lat * np.sin(lon)
-    z = (n * (1.0 - WGS84_E2) + h) * sin_lat
-    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
-
-
 def ecef_to_geodetic(points_ecef):
     """(..., 3) float64 ECEF metres -> (lat_deg, lon_deg, h_m), each of shape (...).
 

@@ -60,11 +60,12 @@ def test_web_mercator_round_trip_and_known_value():
 
 
 def test_grid_to_ecef_equals_the_broadcast_conversion_bit_for_bit():
-    """geodetic_grid_to_ecef (sines, cosines and radii once a row and a column; the clipmap's posts)
-    is geodetic_to_ecef of the broadcast grid, bit for bit, poles and the antimeridian included."""
+    """geodetic_to_ecef of a (rows, 1) by (1, cols) grid (sines, cosines and radii once a row and a
+    column: the clipmap's posts) is that of the broadcast grid, bit for bit, poles and the
+    antimeridian included."""
     rng = np.random.default_rng(3)
     lat = np.concatenate([[-90.0, 90.0, 0.0], rng.uniform(-90.0, 90.0, 40)])
     lon = np.concatenate([[-180.0, 180.0, 179.999999], rng.uniform(-180.0, 180.0, 50)])
     h = rng.uniform(-430.0, 8850.0, (lat.size, lon.size))
     la, lo = np.broadcast_arrays(lat[:, None], lon[None, :])
-    assert np.array_equal(g.geodetic_grid_to_ecef(lat, lon, h), g.geodetic_to_ecef(la, lo, h))
+    assert np.array_equal(g.geodetic_to_ecef(lat[:, None], lon[None, :], h), g.geodetic_to_ecef(la, lo, h))

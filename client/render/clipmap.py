@@ -69,7 +69,7 @@ import numba
 import numpy as np
 
 from sortie.errors import InvalidArgument
-from terrain.geodesy import geodetic_grid_to_ecef, geodetic_to_ecef
+from terrain.geodesy import geodetic_to_ecef
 
 MAX_LEVELS = 16
 MIN_N, MAX_N = 15, 1023
@@ -310,7 +310,8 @@ class Clipmap:
     def sample_posts(self, k: int, r: Rect) -> tuple[np.ndarray, np.ndarray]:
         """(ECEF positions (rows, cols, 3) float64, heights MSL (rows, cols)) of a rectangle of posts."""
         lat_rows, lon_cols = self.latlon(k, np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1))
-        lat, lon = np.broadcast_arrays(np.clip(lat_rows, -90.0, 90.0)[:, None], lon_cols[None, :])
+        lat_rows = np.clip(lat_rows, -90.0, 90.0)
+        lat, lon = np.broadcast_arrays(lat_rows[:, None], lon_cols[None, :])
         h = self._store_posts(k, r)
         if h is None:
             h = np.asarray(self.terrain.heights(lat.ravel(), lon.ravel()).height_msl_m, np.float64).reshape(lat.shape)
@@ -318,7 +319,8 @@ class Clipmap:
         surface = h.copy()
         if self.cutout is not None:
             surface -= self.cutout(lat.ravel(), lon.ravel(), self.spacing_m(k)).reshape(lat.shape)
-        return geodetic_grid_to_ecef(lat[:, 0], lon_cols, surface + self.geoid_undulation_m), h
+        # A row's and a column's trigonometry once each: geodetic_to_ecef broadcasts them.
+        return geodetic_to_ecef(lat_rows[:, None], lon_cols[None, :], surface + self.geoid_undulation_m), h
 
     def _store_posts(self, k: int, r: Rect) -> np.ndarray | None:
         """Heights of a rectangle of level k's posts decoded from the store's own level (NaN

@@ -411,15 +411,6 @@ def grid_weights(tris: np.ndarray, size: int = BLOCK) -> tuple[np.ndarray, np.nd
     return _weights_at(tris, verts, verts)
 
 
-def block_posts(blk: np.ndarray, level, n: int) -> np.ndarray:
-    """(m, BLOCK + 1, BLOCK + 1, 3) float64 ECEF of the posts the vertex shader takes for blocks
-    (m, 4) of a level (each vertex clamped to its block's rectangle, as the shader clamps it)."""
-    off = np.arange(BLOCK + 1)
-    rows = np.minimum(blk[:, :1] + off, blk[:, 2:3]) % n  # (m, BLOCK + 1)
-    cols = np.minimum(blk[:, 1:2] + off, blk[:, 3:4]) % n
-    return level.pos_ecef[rows[:, :, None], cols[:, None, :]]
-
-
 def _edges(tris: np.ndarray) -> np.ndarray:
     """(e, 2) unique undirected edges (vertex indices) of triangles."""
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
