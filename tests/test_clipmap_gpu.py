@@ -416,3 +416,41 @@ def test_rebasing_1000_km_away_keeps_vertices_within_a_centimetre(hgt_alps):
     assert near_m < 0.01, near_m
     assert far_rel < 8.0 * EPS32, far_rel / EPS32
     assert unrebased_m > 0.01, unrebased_m
+
+
+def test_shader_modulo_is_exact_for_every_lattice_index():
+    """The shaders' toroidal wrap (clipmap_layer.GLSL_PMOD), run on the GPU by transform feedback,
+    equals numpy's floor modulo for every n of the profiles and the normal maps (2n) at exact
+    multiples of n and one either side, negative indices, and indices past 2^24 (a lattice finer
+    than the DEM, or a global one at 1"). Its float form (a - m floor(a / m)) failed here past
+    2^24 on llvmpipe, and at multiples of 255 on an NVIDIA H200 (a x rcp(m) one ulp low)."""
+    import moderngl
+
+    from client.render.clipmap_layer import GLSL_PMOD
+    from client.render.gl import create_context
+
+    ks = np.concatenate([np.arange(-40, 41), np.arange(-2 ** 20, 2 ** 20, 997), 2 ** np.arange(20, 31) // 3])
+    ctx = create_context()
+    try:
+        ctx.simple_framebuffer((1, 1)).use()  # draws, transform feedback too, need a complete framebuffer
+        prog = ctx.program(vertex_shader="#version 330 core\n" + GLSL_PMOD + """
+            uniform int u_m;
+            in int in_a;
+            out int v_r;
+            void main() { v_r = pmod(in_a, u_m); }""", varyings=["v_r"])
+        for m in (63, 127, 255, 511, 126, 254, 510, 1022):
+            a = np.unique(np.concatenate([ks * m + d for d in (-1, 0, 1)] + [ks]))
+            a = a[np.abs(a) < 2 ** 31 - 1].astype(np.int32)
+            prog["u_m"].value = m
+            src, dst = ctx.buffer(a.tobytes()), ctx.buffer(reserve=a.nbytes)
+            vao = ctx.vertex_array(prog, [(src, "i", "in_a")])
+            vao.transform(dst, mode=moderngl.POINTS, vertices=len(a))
+            got = np.frombuffer(dst.read(), np.int32)
+            want = np.mod(a.astype(np.int64), m)
+            bad = np.flatnonzero(got != want)
+            assert len(bad) == 0, f"m={m}: pmod({a[bad[:5]].tolist()}) = {got[bad[:5]].tolist()}, want {want[bad[:5]].tolist()}"
+            for obj in (vao, src, dst):
+                obj.release()
+        check_gl_error(ctx, "pmod capture")
+    finally:
+        ctx.release()

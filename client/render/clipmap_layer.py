@@ -109,6 +109,15 @@ DETAIL_STRENGTH = 0.3  # 0: no detail; the masks' weight scale
 BORDER_DEPTH_SCALE = 1.0 - 1e-5
 CLASS_COLOURS_F32 = (np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes()  # the u_class_colour uniform
 
+# a mod m in [0, m) for any int a and m > 0, in integers only. GLSL's % is defined for
+# non-negative operands alone (GLSL 3.30 §5.9), hence the mirror for negative a. A float form,
+# a - m floor(a / m), is wrong twice: beyond 2^24 float(a) rounds, and GPUs divide as a x rcp(m)
+# with an ulp or two of error, so at exact multiples of m floor() can land one below. On an
+# NVIDIA H200 that put every post whose lattice index is a multiple of n = 255 on texel n (out of
+# range, fetched as 0) and drew spikes: screen error p99 46 px where llvmpipe's exact division
+# gave 1.7 px (docs/BENCHMARKS.md).
+GLSL_PMOD = "int pmod(int a, int m) { return a >= 0 ? a % m : m - 1 - (-1 - a) % m; }"
+
 VERTEX_SHADER = """#version 330 core
 uniform sampler2D u_fine;        // level k: offset from its origin (ECEF axes) + height MSL
 uniform sampler2D u_coarse;      // level k + 1
@@ -146,7 +155,7 @@ flat out float v_depth;          // the provoking vertex's window depth
 #endif
 uniform vec3 u_origin_mod;       // renderer origin ECEF modulo the detail tile, metres
 
-int pmod(int a, int m) { return a - m * int(floor(float(a) / float(m))); }
+%(PMOD)s
 vec4 post(sampler2D t, ivec2 ij) { return texelFetch(t, ivec2(pmod(ij.y, u_n), pmod(ij.x, u_n)), 0); }
 
 // Level k's surface at block-relative post g: its own post morphed towards the coarser level's
@@ -215,7 +224,7 @@ void main() {
     v_depth = gl_Position.z / gl_Position.w;  // reversed-Z, NDC depth [0, 1] is the window depth
 #endif
 }
-""" % {"E2": E2_COMPLEMENT_INV}
+""" % {"E2": E2_COMPLEMENT_INV, "PMOD": GLSL_PMOD}
 
 FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + TERRAIN_COLOUR_GLSL + """
 uniform sampler2D u_nfine;
@@ -241,8 +250,10 @@ out vec4 out_colour;
 const vec3 PERIODS = vec3%(PERIODS)s;
 
 #ifdef CLASSES
+%(PMOD)s
+
 vec3 class_at(sampler2D t, ivec2 ij, int n2) {
-    ivec2 w = ivec2(ij.x - n2 * int(floor(float(ij.x) / float(n2))), ij.y - n2 * int(floor(float(ij.y) / float(n2))));
+    ivec2 w = ivec2(pmod(ij.x, n2), pmod(ij.y, n2));
     return u_class_colour[clamp(int(texelFetch(t, w, 0).w + 0.5), 0, %(N_CLASSES)d - 1)];
 }
 
@@ -296,7 +307,7 @@ void main() {
     gl_FragDepth = v_depth * BORDER_DEPTH_SCALE;
 #endif
 }
-""" % {"PERIODS": str(DETAIL_PERIODS_M), "N_CLASSES": N_CLASSES}
+""" % {"PERIODS": str(DETAIL_PERIODS_M), "N_CLASSES": N_CLASSES, "PMOD": GLSL_PMOD}
 
 
 def shader_variant(source: str, border: bool, classes: bool = False) -> str:
