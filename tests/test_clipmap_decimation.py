@@ -17,8 +17,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from client.render.clipmap_layer import (BLOCK, DECIMATION_STRIDES, block_grid, block_strides, decimated_grid,
-                                         decimation_errors, grid_weights)
+from client.render.clipmap_layer import (BLOCK, DECIMATION_STRIDES, SHAPE_TRIANGLES, block_grid, block_strides,
+                                         clamped_triangles, decimated_grid, decimation_errors, grid_weights)
 from sortie.errors import InvalidArgument
 
 STRIDES = (1, *DECIMATION_STRIDES)
@@ -72,6 +72,86 @@ def test_decimated_grid_keeps_every_edge_post_and_has_no_t_junction(stride):
         assert not np.any((np.abs(cross) < 1e-12) & (along > 1e-12) & (along < 1 - 1e-12)), (verts[p], verts[q])
 
 
+@pytest.mark.parametrize("stride", STRIDES)
+def test_clamped_meshes_tile_a_cut_short_block_watertight(stride):
+    """A block a ring's edge cuts to h x w cells draws the clamped mesh (clamped_triangles): for every
+    shape, its triangles wind counter-clockwise or stand upright (no area in plan, none folded over),
+    their areas sum to the block's, and its outline is every post of the h x w block's four edges,
+    each directed edge inside used once each way: it meets any neighbour watertight."""
+    verts = block_grid()[0]  # (row, column)
+    for h in range(1, BLOCK + 1):
+        for w in range(1, BLOCK + 1):
+            tris = clamped_triangles(stride, h, w)
+            a, b, c = _xy(tris)
+            area = 0.5 * ((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+            assert area.min() >= -1e-12 and area.sum() == pytest.approx(h * w), (h, w)
+            rc = verts[np.unique(tris)]
+            assert rc[:, 0].max() <= h and rc[:, 1].max() <= w
+            directed = Counter((int(t[i]), int(t[(i + 1) % 3])) for t in tris for i in range(3))
+            assert max(directed.values()) == 1, (h, w)
+            outline = []
+            for p, q in directed:
+                if (q, p) in directed:
+                    continue
+                (r0, c0), (r1, c1) = verts[p], verts[q]
+                assert (r0 == r1 and r0 in (0, h)) or (c0 == c1 and c0 in (0, w)), (h, w, verts[p], verts[q])
+                assert abs(int(r1) - int(r0)) + abs(int(c1) - int(c0)) == 1
+                outline.append((p, q))
+            assert len(outline) == 2 * (h + w), (h, w)
+            assert SHAPE_TRIANGLES[h, w, STRIDES.index(stride)] == len(tris)
+
+
+def test_cut_short_blocks_errors_are_the_largest_distance_between_the_clamped_surfaces(hgt_alps):
+    """decimation_errors of blocks cut short, against dense sampling of both clamped surfaces (their
+    triangles with area in plan: the upright ones lie between the two) over real Alps posts."""
+    from terrain.dem import read_dem
+
+    h_m = np.asarray(read_dem(hgt_alps).heights, np.float64)
+    n = BLOCK + 1
+    rng = np.random.default_rng(11)
+    verts = block_grid()[0][:, ::-1].astype(np.float64)
+    for h, w in ((BLOCK, 5), (3, BLOCK), (6, 6), (1, BLOCK), (BLOCK, 2), (7, 3)):
+        gi, gj = np.linspace(0.0, h, 32 * h + 1), np.linspace(0.0, w, 32 * w + 1)
+        pts = np.stack(np.meshgrid(gj, gi), -1).reshape(-1, 2)
+        for _ in range(3):
+            i0, j0 = rng.integers(0, h_m.shape[0] - n, 2)
+            i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+            pos = np.stack([90.0 * j, 90.0 * i, h_m[i0:i0 + n, j0:j0 + n]], -1)
+            err = decimation_errors(np.array([[0, 0, h, w]], np.int32), SimpleNamespace(pos_ecef=pos), n)[0]
+            zf = pos.reshape(-1, 3)
+
+            def flat(t):
+                a, b, c = verts[t[:, 0]], verts[t[:, 1]], verts[t[:, 2]]
+                return t[np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]) > 1e-12]
+
+            full = _surface_at(flat(clamped_triangles(1, h, w)), zf, pts)
+            for s_i, s in enumerate(DECIMATION_STRIDES):
+                dense = np.linalg.norm(full - _surface_at(flat(clamped_triangles(s, h, w)), zf, pts), axis=1).max()
+                assert dense <= err[s_i] + 1e-9 and err[s_i] <= 1.02 * dense + 1e-9, (h, w, s, dense, err[s_i])
+
+
+def test_cut_short_blocks_take_the_fewest_triangles_within_the_bound():
+    """A cut-short block does not take a coarser stride that draws more triangles than a finer one
+    within the bound (a 1-cell-wide block draws 16 triangles at every stride: it keeps stride 1 on a
+    tie only if the coarser are out of bounds), and never morphs."""
+    coarse, fine = DECIMATION_STRIDES
+    blk = np.array([[0, 0, BLOCK, BLOCK], [0, 0, BLOCK, 1], [0, 0, 3, 3], [0, 0, BLOCK, 6]], np.int32)
+    tri = SHAPE_TRIANGLES[blk[:, 2] - blk[:, 0], blk[:, 3] - blk[:, 1]]
+    lo = np.tile([[0.0, 1000.0, 0.0]], (4, 1))
+    err = np.array([[0.0, 0.0]] * 4)
+    strides, morph = block_strides(err, lo, lo + 10.0, np.zeros(3), 1000.0, 1.0, tri)
+    want = [coarse]
+    for t in tri[1:]:
+        col = min(range(3), key=lambda c: (t[c], -STRIDES[c]))
+        want.append(STRIDES[col])
+    assert strides.tolist() == want and strides[1] == coarse  # the tie goes to the coarser
+    assert np.all(morph == 0.0)
+    err_fine_only = np.array([[5.0, 0.5]] * 4)  # the coarse stride out of bounds at 1 km (5 px)
+    strides, morph = block_strides(err_fine_only, lo, lo + 10.0, np.zeros(3), 1000.0, 1.0, tri)
+    assert strides[0] == fine and all(s in (1, fine) for s in strides)
+    assert np.all(morph[1:] == 0.0)
+
+
 def test_decimated_grid_counts_and_bad_stride():
     assert len(decimated_grid(1)) == 2 * BLOCK * BLOCK
     counts = [len(decimated_grid(s)) for s in sorted(STRIDES)]
@@ -112,7 +192,7 @@ def test_decimation_errors_on_a_plane_a_bump_and_a_partial_block():
                     [0, 3 * BLOCK, BLOCK, 3 * BLOCK + 5]], np.int32)  # the last: 5 cells wide (a ring's edge)
     err = decimation_errors(blk, plane, n)
     assert err.shape == (3, len(DECIMATION_STRIDES))
-    assert np.all(err[:2] < 1e-9) and np.all(np.isinf(err[2]))
+    assert np.all(err < 1e-9)  # the cut-short block too: clamped, its meshes lie on the plane
     # A bump of 40 m at an odd post inside the first block: every stride skips that post.
     bumped = 1000.0 + np.zeros((n, n))
     bumped[BLOCK // 2 + 1, BLOCK // 2 + 1] += 40.0

@@ -78,6 +78,8 @@ move when the origin is rebased.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 import time
 from dataclasses import dataclass
@@ -199,8 +201,8 @@ void main() {
     if (in_morph > 0.0 && in_mw.x < 1.0) {
         // A post the block's next coarser stride drops moves towards where that stride's mesh
         // draws it, so the block's switch of stride pops only in its edge cells, whose fans in
-        // the coarser mesh do not nest over the finer cells (decimated blocks are whole: no
-        // clamping).
+        // the coarser mesh do not nest over the finer cells. (A block cut short has morph 0:
+        // block_strides.)
         vec3 w0, w1, w2;
         float h0, h1, h2, a0, a1, a2;
         surface(in_block.xy + in_m0, w0, h0, a0);
@@ -428,7 +430,33 @@ def _edges(tris: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
-def overlay_rows(stride: int, size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
+def clamp_map(h: int, w: int, size: int = BLOCK) -> np.ndarray:
+    """(V,) the block grid vertex each of the (size + 1)^2 vertices becomes in a block of h x w
+    cells: (min(row, h), min(column, w)), as the vertex shader clamps a ring's cut-short blocks."""
+    r, c = np.meshgrid(np.arange(size + 1), np.arange(size + 1), indexing="ij")
+    return (np.minimum(r, h) * (size + 1) + np.minimum(c, w)).ravel()
+
+
+def clamped_triangles(stride: int, h: int = BLOCK, w: int = BLOCK, size: int = BLOCK) -> np.ndarray:
+    """(t, 3) the triangles of :func:`decimated_grid` that an h x w block draws after the clamp
+    (:func:`clamp_map`), those whose three corners are three posts: the others collapse to a
+    point or a segment and cover nothing. Some that remain have no area in plan: where the clamp
+    lays a decimated inner column (row) onto the block's edge, triangles between it and the edge's
+    every post stand upright and close the gap between the decimated side and the edge (what the
+    zero-area border triangles do at a level's edge). What a block of a stride costs."""
+    tris = clamp_map(h, w, size)[decimated_grid(stride, size)]
+    distinct = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
+    return tris[distinct]
+
+
+def _flat(tris: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """Triangles of ``tris`` with area in plan."""
+    a, b, c = (verts[tris[:, i]] for i in range(3))
+    area = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    return tris[np.abs(area) > 1e-12]
+
+
+def overlay_rows(stride: int, size: int = BLOCK, h: int | None = None, w: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((K, 6) vertex indices, (K, 6) weights) over the block grid: at each vertex of the overlay
     of the full grid's triangles and :func:`decimated_grid`'s (the posts, and every point where an
     edge of one crosses an edge of the other), the full surface minus the decimated one as a
@@ -436,10 +464,16 @@ def overlay_rows(stride: int, size: int = BLOCK) -> tuple[np.ndarray, np.ndarray
     linear on each cell of the overlay, so the largest distance between them is the largest
     norm of these combinations: at a post it is the post's own error, but where a decimated
     edge crosses a fine edge it can be several times that (measured on the Alps: up to 5x for
-    stride 2 at 8-cell blocks, 1.4x at the 99th percentile)."""
-    fine, dec = decimated_grid(1, size), decimated_grid(stride, size)
+    stride 2 at 8-cell blocks, 1.4x at the 99th percentile).
+
+    ``h``, ``w``: for a block cut short to h x w cells, both meshes as the clamp draws them
+    (:func:`clamped_triangles`; the upright triangles, with no area in plan, lie between the two
+    surfaces and are left out)."""
+    h, w = size if h is None else h, size if w is None else w
     verts = block_grid(size)[0].astype(np.float64)[:, ::-1]  # (x, y) = (column, row)
-    pts = [verts]
+    fine = _flat(clamped_triangles(1, h, w, size), verts)
+    dec = _flat(clamped_triangles(stride, h, w, size), verts)
+    pts = [verts[np.unique(fine)]]
     ef, ed = _edges(fine), _edges(dec)
     a, b = verts[ef[:, 0]][:, None], verts[ef[:, 1]][:, None]  # (F, 1, 2)
     c, d = verts[ed[:, 0]][None], verts[ed[:, 1]][None]  # (1, D, 2)
@@ -471,20 +505,20 @@ def _weights_at(tris: np.ndarray, verts: np.ndarray, pts: np.ndarray) -> tuple[n
 
 
 _GRID_WEIGHTS = {s: grid_weights(decimated_grid(s)) for s in DECIMATION_STRIDES}
-_OVERLAY = {s: overlay_rows(s) for s in DECIMATION_STRIDES}
 
 
 @numba.njit(cache=True, nogil=True)
 def _overlay_errors(pos, blk, n, size, idx, w, out, col):
     """out[b, col] = the largest norm over overlay rows (idx, w) of block b's combination of posts
-    (each block's posts taken relative to its first, so the float64 ECEF magnitudes cancel first)."""
+    (each block's posts taken relative to its first, so the float64 ECEF magnitudes cancel first).
+    Every block of ``blk`` has the shape the rows were made for."""
     side = size + 1
     local = np.empty((side * side, 3))
     for b in range(blk.shape[0]):
         i0, j0 = blk[b, 0], blk[b, 1]
         o = pos[i0 % n, j0 % n]
-        for r in range(side):
-            for c in range(side):
+        for r in range(blk[b, 2] - i0 + 1):  # the block's own posts: the rows index no others
+            for c in range(blk[b, 3] - j0 + 1):
                 p = pos[(i0 + r) % n, (j0 + c) % n]
                 for a in range(3):
                     local[r * side + c, a] = p[a] - o[a]
@@ -517,25 +551,55 @@ def morph_targets(stride: int) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=None)
+def _overlay(stride: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    return overlay_rows(stride, BLOCK, h, w)
+
+
+def _shape_triangles() -> np.ndarray:
+    """(BLOCK + 1, BLOCK + 1, 1 + len(DECIMATION_STRIDES)) int: triangles an h x w block draws at
+    each stride (1, then DECIMATION_STRIDES), :func:`clamped_triangles`."""
+    out = np.zeros((BLOCK + 1, BLOCK + 1, 1 + len(DECIMATION_STRIDES)), np.int64)
+    for h in range(1, BLOCK + 1):
+        for w in range(1, BLOCK + 1):
+            out[h, w] = [len(clamped_triangles(s, h, w)) for s in (1, *DECIMATION_STRIDES)]
+    return out
+
+
+SHAPE_TRIANGLES = _shape_triangles()
+_STRIDE_COLUMNS_SORTED = np.array(sorted((1, *DECIMATION_STRIDES)))  # stride -> its SHAPE_TRIANGLES column
+_STRIDE_COLUMN_OF = np.array([(1, *DECIMATION_STRIDES).index(int(v)) for v in _STRIDE_COLUMNS_SORTED])
+
+
+def block_triangles(blk: np.ndarray) -> np.ndarray:
+    """(m, 1 + len(DECIMATION_STRIDES)) triangles each block (m, 4) draws at stride 1, then at each
+    of DECIMATION_STRIDES."""
+    return SHAPE_TRIANGLES[blk[:, 2] - blk[:, 0], blk[:, 3] - blk[:, 1]]
+
+
 def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
     """(m, len(DECIMATION_STRIDES)) metres: for each block (m, 4) of a level and each stride, the
     largest distance between the level's full surface over the block and what
     :func:`decimated_grid` draws (exact: over the vertices of the two meshes' overlay,
-    :func:`overlay_rows`). Infinite for a block smaller than BLOCK x BLOCK cells (at a ring's
-    edge: its clamped grid is drawn whole)."""
-    out = np.full((len(blk), len(DECIMATION_STRIDES)), np.inf)
-    full = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
-    if full.any():
-        errs = np.empty((int(full.sum()), len(DECIMATION_STRIDES)))
-        sub = np.ascontiguousarray(blk[full], dtype=np.int64)
+    :func:`overlay_rows`). A block a ring's edge cuts short is measured as the clamp draws it."""
+    out = np.empty((len(blk), len(DECIMATION_STRIDES)))
+    if len(blk) == 0:
+        return out
+    shape = (blk[:, 2] - blk[:, 0]) * (BLOCK + 1) + (blk[:, 3] - blk[:, 1])
+    for key in np.unique(shape):
+        h, w = divmod(int(key), BLOCK + 1)
+        sel = shape == key
+        errs = np.empty((int(sel.sum()), len(DECIMATION_STRIDES)))
+        sub = np.ascontiguousarray(blk[sel], dtype=np.int64)
         for s_i, s in enumerate(DECIMATION_STRIDES):
-            _overlay_errors(level.pos_ecef, sub, n, BLOCK, *_OVERLAY[s], errs, s_i)
-        out[full] = errs
+            _overlay_errors(level.pos_ecef, sub, n, BLOCK, *_overlay(s, h, w), errs, s_i)
+        out[sel] = errs
     return out
 
 
 def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_local: np.ndarray,
-                  focal_px: float, pixel_error: float) -> tuple[np.ndarray, np.ndarray]:
+                  focal_px: float, pixel_error: float, triangles: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """((m,) int32 strides, (m,) float32 morphs) of blocks: each block's stride is the coarsest of
     DECIMATION_STRIDES whose error (:func:`decimation_errors`), and every finer stride's, seen
     from the nearest point of the block's box (lo, hi, local ENU) at ``focal_px`` pixels per
@@ -545,19 +609,33 @@ def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_loca
     The morph moves the posts the next coarser stride drops towards where its mesh draws them
     (the vertex shader): 0 while that stride's error r is 2 x pixel_error pixels or more, rising
     to 1 as r falls to pixel_error, where the block takes that stride. The posts move by at most
-    morph x r = (2 - r / pixel_error) r <= pixel_error pixels, so the bound holds throughout."""
+    morph x r = (2 - r / pixel_error) r <= pixel_error pixels, so the bound holds throughout.
+
+    ``triangles`` ((m, 1 + len(DECIMATION_STRIDES)), :func:`block_triangles`): a block a ring's
+    edge cuts short takes, of the strides within the bound, the one that draws the fewest
+    triangles (a coarser one can draw more: the clamp keeps every post of the cut edge), coarser
+    on a tie, without a morph (it pops by at most pixel_error pixels when it changes)."""
     gap = np.maximum(np.maximum(lo - camera_local, camera_local - hi), 0.0)
     dist = np.sqrt((gap ** 2).sum(-1))
     px = err_m * focal_px / np.maximum(dist, 1e-9)[:, None]
     strides = np.ones(len(err_m), np.int32)
     morph = np.zeros(len(err_m), np.float32)
     ok = np.ones(len(err_m), bool)
+    oks = np.ones((len(err_m), 1 + len(DECIMATION_STRIDES)), bool)  # columns: stride 1, DECIMATION_STRIDES
     for s_i in reversed(range(len(DECIMATION_STRIDES))):  # fine to coarse
         r = px[:, s_i]
         morph = np.where(ok, np.clip(2.0 - r / pixel_error, 0.0, 1.0), morph)  # towards this stride
         ok &= r <= pixel_error
+        oks[:, 1 + s_i] = ok
         strides = np.where(ok, DECIMATION_STRIDES[s_i], strides)
     morph = np.where(strides == DECIMATION_STRIDES[0], 0.0, morph).astype(np.float32)  # the coarsest
+    if triangles is not None:
+        cut = triangles[:, 0] != 2 * BLOCK * BLOCK
+        if cut.any():
+            order = np.array([*range(1, 1 + len(DECIMATION_STRIDES)), 0])  # coarse to fine: argmin's tie
+            cost = np.where(oks[cut], triangles[cut], np.iinfo(np.int64).max)[:, order]
+            strides[cut] = np.array([1, *DECIMATION_STRIDES], np.int32)[order[np.argmin(cost, axis=1)]]
+            morph[cut] = 0.0
     return strides, morph
 
 
@@ -653,6 +731,9 @@ class ClipmapLayer:
                                             and 0 < pixel_error <= 100):
             raise InvalidArgument("pixel_error", "must be None or a number of pixels in (0, 100]", value=pixel_error)
         self.pixel_error = None if pixel_error is None else float(pixel_error)
+        if self.pixel_error is not None:  # every cut-short block's overlay, once a process (0.4 s), not mid-flight
+            for s, h, w in itertools.product(DECIMATION_STRIDES, range(1, BLOCK + 1), range(1, BLOCK + 1)):
+                _overlay(s, h, w)
         self.ctx = ctx
         self.terrain = terrain
         self.origin = origin
@@ -836,12 +917,12 @@ class ClipmapLayer:
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
             strides, morph, triangles = None, None, 2 * cells
             if errors is not None:
+                counts = block_triangles(blk)
                 strides, morph = block_strides(errors[seen], lo[seen], hi[seen], frame.camera_local,
                                                frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0,
-                                               self.pixel_error)
-                full = strides == 1
-                triangles = 2 * int(((blk[full, 2] - blk[full, 0]) * (blk[full, 3] - blk[full, 1])).sum())
-                triangles += sum(int((strides == s).sum()) * self._strides[s][4] for s in DECIMATION_STRIDES)
+                                               self.pixel_error, counts)
+                column = np.searchsorted(_STRIDE_COLUMNS_SORTED, strides)
+                triangles = int(counts[np.arange(len(blk)), _STRIDE_COLUMN_OF[column]].sum())
             out.append(LevelDraw(k, regions[k], alpha_h, blk, cells, strides, triangles, morph))
         return out
 
