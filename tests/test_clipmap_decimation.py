@@ -17,8 +17,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from client.render.clipmap_layer import (BLOCK, DECIMATION_STRIDES, SHAPE_TRIANGLES, block_grid, block_strides,
-                                         clamped_triangles, decimated_grid, decimation_errors, grid_weights)
+from client.render.clipmap_layer import (BLOCK, DECIMATION_STRIDES, SHAPE_TRIANGLES, VARIANTS, block_grid,
+                                         block_strides, clamped_triangles, decimated_grid, decimation_errors,
+                                         grid_weights)
 from sortie.errors import InvalidArgument
 
 STRIDES = (1, *DECIMATION_STRIDES)
@@ -344,12 +345,14 @@ def test_decimated_frame_has_no_holes_and_stays_within_the_pixel_bound(hgt_alps)
             image = r.render(camera)
             layer = r.terrain_layer
             strides = [d.strides for d in layer.draws if d.strides is not None]
-            got[pixel_error] = (layer.triangles, strides, measure_frame(r, camera, image, terrain, lattice))
-    tris0, _, frame0 = got[None]
-    tris1, strides, frame1 = got[1.0]
+            stitched = sum(int((np.array([VARIANTS[v][1] for v in d.variants]) > 1).any(1).sum())
+                           for d in layer.draws if d.variants is not None)
+            got[pixel_error] = (layer.triangles, strides, measure_frame(r, camera, image, terrain, lattice), stitched)
+    tris0, _, frame0, _ = got[None]
+    tris1, strides, frame1, stitched = got[1.0]
     decimated = int(sum((s > 1).sum() for s in strides))
-    print(f"\ntriangles {tris0} -> {tris1}, {decimated} blocks decimated")
-    assert decimated > 0 and tris1 < 0.9 * tris0
+    print(f"\ntriangles {tris0} -> {tris1}, {decimated} blocks decimated, {stitched} with stitched edges")
+    assert decimated > 0 and stitched > 0 and tris1 < 0.9 * tris0
     assert frame0.holes_px == 0 and frame1.holes_px == 0
     e0, e1 = error_summary([frame0]), error_summary([frame1])
     print(f"screen error p50/p99 px: {e0['median']:.3f}/{e0['p99']:.2f} -> {e1['median']:.3f}/{e1['p99']:.2f}")
@@ -419,3 +422,130 @@ def test_the_vertex_shader_morphs_dropped_posts_onto_the_next_stride_mesh(hgt_al
             grid.release()
             prog.release()
     assert checked >= 4
+
+
+# -- stitched edges -------------------------------------------------------------------------------
+
+def _outline_and_pairs(tris: np.ndarray):
+    directed = Counter((int(t[i]), int(t[(i + 1) % 3])) for t in tris for i in range(3))
+    return directed, [(p, q) for p, q in directed if (q, p) not in directed]
+
+
+@pytest.mark.parametrize("stride", DECIMATION_STRIDES)
+def test_stitched_meshes_tile_the_block_with_each_edge_at_its_stride(stride):
+    """Every (stride, edges) mesh the layer draws (VARIANTS): counter-clockwise, tiling the block,
+    each inner directed edge used once each way, and its outline on side X made of segments of
+    exactly edges[X] cells between the posts at the multiples of edges[X]: two blocks that give their
+    shared edge one stride meet watertight. Its triangle count is VARIANT_TRIANGLES'."""
+    from client.render.clipmap_layer import VARIANT_TRIANGLES
+
+    verts = block_grid()[0]
+    for v, (s, edges) in enumerate(VARIANTS):
+        if s != stride:
+            continue
+        tris = decimated_grid(s, BLOCK, edges)
+        a, b, c = _xy(tris)
+        area = 0.5 * ((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+        assert area.min() > 0 and area.sum() == pytest.approx(BLOCK * BLOCK)
+        directed, outline = _outline_and_pairs(tris)
+        assert max(directed.values()) == 1
+        seen = Counter()
+        for p, q in outline:
+            (r0, c0), (r1, c1) = verts[p], verts[q]
+            side = (0 if r0 == r1 == 0 else 2 if r0 == r1 == BLOCK else 1 if c0 == c1 == BLOCK
+                    else 3 if c0 == c1 == 0 else None)
+            assert side is not None, (edges, verts[p], verts[q])
+            e = edges[side]
+            assert abs(int(r1) - int(r0)) + abs(int(c1) - int(c0)) == e
+            assert (r0 % e, c0 % e, r1 % e, c1 % e) == (0, 0, 0, 0)
+            seen[side] += 1
+        assert [seen[x] for x in range(4)] == [BLOCK // e for e in edges]
+        assert VARIANT_TRIANGLES[v] == len(tris)
+    with pytest.raises(ValueError):
+        decimated_grid(stride, BLOCK, (stride * 2, 1, 1, 1))
+    with pytest.raises(ValueError):
+        decimated_grid(1, BLOCK, (2, 1, 1, 1))
+
+
+def test_stitched_mesh_error_is_within_the_stride_error_plus_the_edge_deviation(hgt_alps):
+    """The bound edge_strides relies on: a mesh with coarser edges parts from the full surface by at
+    most the full-edge mesh's error (decimation_errors) plus the largest deviation of its coarsened
+    edges (edge_deviations), against dense sampling of both surfaces over real Alps posts. The
+    deviations equal a brute-force line fit."""
+    from client.render.clipmap_layer import edge_deviations
+    from terrain.dem import read_dem
+
+    h_m = np.asarray(read_dem(hgt_alps).heights, np.float64)
+    n = BLOCK + 1
+    g = np.linspace(0.0, BLOCK, 16 * BLOCK + 1)
+    pts = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    rng = np.random.default_rng(17)
+    blk = np.array([[0, 0, BLOCK, BLOCK]], np.int32)
+    for _ in range(6):
+        i0, j0 = rng.integers(0, h_m.shape[0] - n, 2)
+        i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        pos = np.stack([90.0 * j, 90.0 * i, h_m[i0:i0 + n, j0:j0 + n]], -1)
+        level = SimpleNamespace(pos_ecef=pos)
+        err = decimation_errors(blk, level, n)[0]
+        dev = edge_deviations(blk, level, n)[0]  # (north, east) x strides
+        def brute(line, e):  # the largest distance of the posts from their edge at every e-th post
+            t = np.arange(BLOCK + 1)
+            t0 = t - t % e
+            f = (t % e / e)[:, None]
+            return np.linalg.norm(line - ((1 - f) * line[t0] + f * line[np.minimum(t0 + e, BLOCK)]), axis=1).max()
+
+        sides = (pos[0, :, :], pos[:, BLOCK, :], pos[BLOCK, :, :], pos[:, 0, :])  # south, east, north, west
+        for s_i, e in enumerate(DECIMATION_STRIDES):
+            assert dev[0, s_i] == pytest.approx(brute(sides[2], e), abs=1e-9)
+            assert dev[1, s_i] == pytest.approx(brute(sides[1], e), abs=1e-9)
+        zf = pos.reshape(-1, 3)
+        full = _surface_at(decimated_grid(1), zf, pts)
+        for s_i, s in enumerate(DECIMATION_STRIDES):
+            for edges in [(s, s, s, s), (s, 1, s, 1), (1, s, 1, s), (max(s // 2, 1), s, 1, s)]:
+                tris = decimated_grid(s, BLOCK, edges)
+                dense = np.linalg.norm(full - _surface_at(tris, zf, pts), axis=1).max()
+                side_dev = [brute(line, e) if e > 1 else 0.0 for line, e in zip(sides, edges)]
+                assert dense <= err[s_i] + max(side_dev) + 1e-9, (s, edges, dense, err[s_i], side_dev)
+
+
+def test_neighbours_and_edge_strides_are_shared_and_within_the_bound():
+    """block_neighbours against a brute-force search over a real ring's blocks; edge_strides gives a
+    shared edge one stride on both sides, dividing both blocks' strides, with each block's own error
+    plus the edge's deviation within the bound; 1 on every edge without a whole neighbour."""
+    from client.render.clipmap import Rect, blocks, ring_rects
+    from client.render.clipmap_layer import block_neighbours, edge_strides
+
+    blk = blocks(ring_rects(Rect(-7, 1001, 247, 1255), Rect(57, 1065, 183, 1191)), BLOCK)
+    nb = block_neighbours(blk)
+    whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+    for a in range(len(blk)):
+        for side, (di, dj) in enumerate(((BLOCK, 0), (0, BLOCK))):
+            want = [b for b in range(len(blk)) if whole[a] and whole[b]
+                    and blk[b, 0] == blk[a, 0] + di and blk[b, 1] == blk[a, 1] + dj]
+            assert nb[a, side] == (want[0] if want else -1)
+    assert (nb >= 0).sum() > len(blk)  # most whole blocks have neighbours
+    rng = np.random.default_rng(3)
+    m = len(blk)
+    strides = rng.choice([1, *DECIMATION_STRIDES], m).astype(np.int32)
+    err = rng.uniform(0.0, 2.0, (m, len(DECIMATION_STRIDES)))
+    dev = rng.uniform(0.0, 2.0, (m, 2, len(DECIMATION_STRIDES)))
+    dist = np.full(m, 1000.0)
+    edges = edge_strides(strides, err, dev, nb, dist, 1000.0, 3.0)  # px = metres at 1 km
+    cols = {s: i for i, s in enumerate(DECIMATION_STRIDES)}
+    own = np.array([err[i, cols[s]] if s > 1 else 0.0 for i, s in enumerate(strides)])
+    for a in range(m):
+        for side, (mine, theirs) in enumerate(((2, 0), (1, 3))):
+            b = nb[a, side]
+            if b < 0:
+                continue
+            e = edges[a, mine]
+            assert edges[b, theirs] == e
+            assert strides[a] % e == 0 and strides[b] % e == 0
+            if e > 1:
+                d = dev[a, side, cols[e]]
+                assert own[a] + d <= 3.0 and own[b] + d <= 3.0
+    has = np.zeros((m, 4), bool)
+    has[:, 2], has[:, 1] = nb[:, 0] >= 0, nb[:, 1] >= 0
+    has[nb[nb[:, 0] >= 0, 0], 0] = True
+    has[nb[nb[:, 1] >= 0, 1], 3] = True
+    assert np.all(edges[~has] == 1) and (edges > 1).any()

@@ -371,20 +371,31 @@ def block_grid(size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
 DECIMATION_STRIDES = (4, 2)
 
 
-def decimated_grid(stride: int, size: int = BLOCK) -> np.ndarray:
+def decimated_grid(stride: int, size: int = BLOCK, edges: tuple = (1, 1, 1, 1)) -> np.ndarray:
     """(t, 3) uint32 triangles over :func:`block_grid`'s (size + 1)^2 vertices that draw the block
-    with every ``stride``-th post inside and every post on its four edges, counter-clockwise seen
-    from above. Inner cells of stride x stride posts split along the south-west to north-east
-    diagonal, as the full grid's cells are; a cell on the block's edge is a convex polygon (its
-    edge sides carry every post) fanned from its one corner on no such side. The edges are the
-    full grid's whatever the stride, so blocks of any strides meet without a T-junction, and the
-    level's borders (its morph to the coarser level, the finer level's border on it) are as
-    without decimation. ``stride`` 1: the full grid."""
+    with every ``stride``-th post inside and every ``edges``-th post on its four edges (south,
+    east, north, west; each a divisor of ``stride``), counter-clockwise seen from above. Inner
+    cells of stride x stride posts split along the south-west to north-east diagonal, as the full
+    grid's cells are; a cell on the block's edge is a convex polygon (its edge sides carry their
+    edge's posts) fanned from its one corner on no edge of the block.
+
+    With every edge 1 (the default) the edges are the full grid's whatever the stride, so blocks of
+    any strides meet without a T-junction, and the level's borders (its morph to the coarser level,
+    the finer level's border on it) are as without decimation. Two blocks that give their shared
+    edge the same stride (``ClipmapLayer``: the lesser of theirs, where the error allows) meet so
+    too, with fewer triangles: such a mesh is the all-1 mesh with some edge posts taken out of its
+    fans, so it parts from it by at most how far those posts lie from the coarser edge
+    (:func:`edge_deviations`). ``stride`` 1: the full grid."""
     if stride == 1:
+        if any(e != 1 for e in edges):
+            raise ValueError(f"edges {edges} of a stride-1 block must be 1")
         return block_grid(size)[1]
     m = size // stride
     if m * stride != size or m < 2:
         raise ValueError(f"stride {stride} must divide the block's {size} cells at least twice")
+    if len(edges) != 4 or any(e < 1 or stride % e for e in edges):
+        raise ValueError(f"edges {edges} must be four divisors of the stride {stride}")
+    e_s, e_e, e_n, e_w = edges
 
     def idx(rc):
         return rc[0] * (size + 1) + rc[1]
@@ -399,12 +410,12 @@ def decimated_grid(stride: int, size: int = BLOCK) -> np.ndarray:
                 tris += [(a, b, d), (a, d, e)]
                 continue
             # The cell's outline, counter-clockwise (x = column, y = row): its south side eastwards,
-            # east side northwards, north side westwards, west side southwards; every post on an
-            # edge side, the corners only on the others.
-            ring = ([(r0, c) for c in (range(c0, c1) if south else (c0,))]
-                    + [(r, c1) for r in (range(r0, r1) if east else (r0,))]
-                    + [(r1, c) for c in (range(c1, c0, -1) if north else (c1,))]
-                    + [(r, c0) for r in (range(r1, r0, -1) if west else (r1,))])
+            # east side northwards, north side westwards, west side southwards; the edge's posts on
+            # an edge side, the corners only on the others.
+            ring = ([(r0, c) for c in (range(c0, c1, e_s) if south else (c0,))]
+                    + [(r, c1) for r in (range(r0, r1, e_e) if east else (r0,))]
+                    + [(r1, c) for c in (range(c1, c0, -e_n) if north else (c1,))]
+                    + [(r, c0) for r in (range(r1, r0, -e_w) if west else (r1,))])
             # The apex: a corner on no edge side, on the cell's south-west to north-east diagonal
             # where one is (NE, then SW): its fan's long edge then runs along the fine cells'
             # diagonals instead of across them, so the two surfaces part less.
@@ -537,10 +548,13 @@ def _overlay_errors(pos, blk, n, size, idx, w, out, col):
 def morph_targets(stride: int) -> np.ndarray:
     """(V,) records (m0, m1, m2: (row, column) of the block grid; w: 3 weights) of the block
     grid's vertices: where the next coarser stride than ``stride`` (1 or one of
-    DECIMATION_STRIDES but the coarsest) draws each post, for the vertex shader's morph
-    (in_m0, in_m1, in_m2, in_mw). A post that stride keeps has itself with weight 1."""
+    DECIMATION_STRIDES) draws each post, for the vertex shader's morph (in_m0, in_m1, in_m2,
+    in_mw). A post that stride keeps, and every post of the coarsest, has itself with weight 1."""
     order = sorted((1, *DECIMATION_STRIDES))
-    idx, w = _GRID_WEIGHTS[order[order.index(stride) + 1]]
+    if stride == order[-1]:  # the coarsest: every post stays
+        idx, w = np.zeros(((BLOCK + 1) ** 2, 3), np.int64), np.ones(((BLOCK + 1) ** 2, 3))
+    else:
+        idx, w = _GRID_WEIGHTS[order[order.index(stride) + 1]]
     kept = (w == 1.0).any(axis=1)
     idx, w = idx.copy(), w.copy()
     idx[kept] = np.arange(len(idx))[kept, None]
@@ -615,9 +629,7 @@ def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_loca
     edge cuts short takes, of the strides within the bound, the one that draws the fewest
     triangles (a coarser one can draw more: the clamp keeps every post of the cut edge), coarser
     on a tie, without a morph (it pops by at most pixel_error pixels when it changes)."""
-    gap = np.maximum(np.maximum(lo - camera_local, camera_local - hi), 0.0)
-    dist = np.sqrt((gap ** 2).sum(-1))
-    px = err_m * focal_px / np.maximum(dist, 1e-9)[:, None]
+    px = err_m * focal_px / np.maximum(_distances(lo, hi, camera_local), 1e-9)[:, None]
     strides = np.ones(len(err_m), np.int32)
     morph = np.zeros(len(err_m), np.float32)
     ok = np.ones(len(err_m), bool)
@@ -637,6 +649,135 @@ def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_loca
             strides[cut] = np.array([1, *DECIMATION_STRIDES], np.int32)[order[np.argmin(cost, axis=1)]]
             morph[cut] = 0.0
     return strides, morph
+
+
+# -- stitched edges: two neighbouring decimated blocks draw their shared edge with fewer posts
+
+def block_neighbours(blk: np.ndarray) -> np.ndarray:
+    """(m, 2) the index of each block's north and east neighbour among ``blk`` (m, 4): a whole
+    (BLOCK x BLOCK) block that shares the whole edge; -1 where there is none (the ring's outer
+    border, the hole, a block cut short, on either side)."""
+    out = np.full((len(blk), 2), -1, np.int64)
+    whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+    if not whole.any():
+        return out
+    key = (blk[:, 0].astype(np.int64) << 32) + blk[:, 1].astype(np.int64)  # (i0, j0): indices within 2^31
+    ids = np.flatnonzero(whole)
+    order = np.argsort(key[ids])
+    sorted_keys, sorted_ids = key[ids][order], ids[order]
+    for side, (di, dj) in enumerate(((BLOCK, 0), (0, BLOCK))):
+        want = key + (di << 32) + dj
+        at = np.minimum(np.searchsorted(sorted_keys, want), len(sorted_keys) - 1)
+        hit = whole & (sorted_keys[at] == want)
+        out[hit, side] = sorted_ids[at[hit]]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge_kernel(pos, blk, n, size, strides, out):
+    """out[b, side, s_i]: the largest distance of a post of block b's north (side 0) or east
+    (side 1) edge from the straight line between the posts at the multiples of strides[s_i]
+    around it (float64, relative to the edge's first post)."""
+    for b in range(blk.shape[0]):
+        for side in range(2):
+            i, j = (blk[b, 2], blk[b, 1]) if side == 0 else (blk[b, 0], blk[b, 3])
+            di, dj = (0, 1) if side == 0 else (1, 0)
+            o = pos[i % n, j % n]
+            line = np.empty((size + 1, 3))
+            for t in range(size + 1):
+                p = pos[(i + di * t) % n, (j + dj * t) % n]
+                for a in range(3):
+                    line[t, a] = p[a] - o[a]
+            for s_i in range(strides.shape[0]):
+                e = strides[s_i]
+                best = 0.0
+                for t in range(size + 1):
+                    r = t % e
+                    if r == 0:
+                        continue
+                    t0 = t - r
+                    f = r / e
+                    d2 = 0.0
+                    for a in range(3):
+                        x = line[t, a] - ((1.0 - f) * line[t0, a] + f * line[t0 + e, a])
+                        d2 += x * x
+                    best = max(best, d2)
+                out[b, side, s_i] = math.sqrt(best)
+
+
+def edge_deviations(blk: np.ndarray, level, n: int) -> np.ndarray:
+    """(m, 2, len(DECIMATION_STRIDES)) metres: how far the posts of each block's north and east
+    edge lie from that edge drawn with every stride-th post (:func:`decimated_grid`'s ``edges``).
+    Infinite for a block cut short (its edges keep every post)."""
+    out = np.full((len(blk), 2, len(DECIMATION_STRIDES)), np.inf)
+    whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+    if whole.any():
+        dev = np.empty((int(whole.sum()), 2, len(DECIMATION_STRIDES)))
+        _edge_kernel(level.pos_ecef, np.ascontiguousarray(blk[whole], dtype=np.int64), n, BLOCK,
+                     np.array(DECIMATION_STRIDES, np.int64), dev)
+        out[whole] = dev
+    return out
+
+
+def _distances(lo: np.ndarray, hi: np.ndarray, camera_local: np.ndarray) -> np.ndarray:
+    """(m,) distance from the camera to the nearest point of each box (lo, hi)."""
+    gap = np.maximum(np.maximum(lo - camera_local, camera_local - hi), 0.0)
+    return np.sqrt((gap ** 2).sum(-1))
+
+
+def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neighbours: np.ndarray,
+                 dist: np.ndarray, focal_px: float, pixel_error: float) -> np.ndarray:
+    """(m, 4) int32 strides of each block's south, east, north and west edges (decimated_grid's
+    ``edges``). A shared edge takes the coarsest of DECIMATION_STRIDES that divides both blocks'
+    strides and keeps each block within the bound: its own stride's error (err_m, ``strides``)
+    plus the edge's deviation (dev_m, :func:`edge_deviations`) at that block's distance, at most
+    ``pixel_error`` pixels (decimated_grid: the two add at most). Else 1, as every edge
+    without a neighbour (``neighbours``, :func:`block_neighbours`). Each edge is decided once,
+    from its south or west block, and written to both blocks: they draw it alike, watertight."""
+    m = len(strides)
+    edges = np.ones((m, 4), np.int32)
+    px_scale = focal_px / np.maximum(dist, 1e-9)
+    col = {s: i for i, s in enumerate(DECIMATION_STRIDES)}
+    own = np.zeros(m)
+    for s, i in col.items():
+        at = strides == s
+        own[at] = err_m[at, i] * px_scale[at]
+    for side, (mine, theirs) in enumerate(((2, 0), (1, 3))):  # north: my N = their S; east: my E = their W
+        nb = neighbours[:, side]
+        a = np.flatnonzero(nb >= 0)
+        b = nb[a]
+        limit = np.minimum(strides[a], strides[b])
+        e = np.ones(len(a), np.int32)
+        for s_i, s in enumerate(DECIMATION_STRIDES):  # coarse to fine: the first that holds
+            d = dev_m[a, side, s_i]
+            ok = ((e == 1) & (limit % s == 0) & (own[a] + d * px_scale[a] <= pixel_error)
+                  & (own[b] + d * px_scale[b] <= pixel_error))
+            e = np.where(ok, s, e)
+        edges[a, mine] = e
+        edges[b, theirs] = e
+    return edges
+
+
+def _variants() -> tuple[list, np.ndarray]:
+    """([(stride, edges)], table): every block mesh the layer draws, stride 1 first, and the
+    table (log2 stride, log2 of each edge's stride) -> its index (-1: none)."""
+    out, table = [], np.full((3, 3, 3, 3, 3), -1, np.int64)
+    for stride in sorted((1, *DECIMATION_STRIDES)):
+        divisors = [e for e in (1, 2, 4) if stride % e == 0]
+        for edges in itertools.product(divisors, repeat=4):
+            table[(stride.bit_length() - 1, *[e.bit_length() - 1 for e in edges])] = len(out)
+            out.append((stride, edges))
+    return out, table
+
+
+VARIANTS, _VARIANT_TABLE = _variants()
+VARIANT_TRIANGLES = np.array([len(decimated_grid(s, BLOCK, e)) for s, e in VARIANTS], np.int64)
+
+
+def block_variants(strides: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(m,) index into VARIANTS of each block's (stride, edges)."""
+    log = lambda x: np.log2(x).astype(np.int64)  # noqa: E731 - powers of two
+    return _VARIANT_TABLE[log(strides), log(edges[:, 0]), log(edges[:, 1]), log(edges[:, 2]), log(edges[:, 3])]
 
 
 # Culling boxes are padded by this (metres) plus BOX_PAD_RELATIVE of the block's distance from
@@ -707,6 +848,7 @@ class LevelDraw:
     strides: np.ndarray | None = None  # (m,) each block's stride (decimated_grid); None: all 1
     triangles: int = 0  # what the blocks draw (without the border triangles)
     morph: np.ndarray | None = None  # (m,) each block's morph towards its next stride (block_strides)
+    variants: np.ndarray | None = None  # (m,) each block's mesh, an index into VARIANTS; None: all 0 (stride 1)
 
 
 class ClipmapLayer:
@@ -748,21 +890,26 @@ class ClipmapLayer:
             ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, border),
                         fragment_shader=shader_variant(FRAGMENT_SHADER, border, self._land_classes))
             for border in (False, True))
-        self._grid_vbo = ctx.buffer(block_grid()[0].tobytes())
-        # Blocks of each stride: the same vertices, the stride's triangles, an instance buffer
-        # ((i0, j0, i1, j1), morph) per stride (moderngl draws have no base instance), and the
-        # posts' morph targets towards the next coarser stride (none for the coarsest).
-        self._strides = {}  # stride -> (index buffer, instance buffer, morph buffer | None, vao, triangles a block)
-        for stride in (1, *DECIMATION_STRIDES):
-            dtris = decimated_grid(stride)
-            ibo, inst = ctx.buffer(dtris.tobytes()), ctx.buffer(reserve=16 * 1024)
-            content = [(self._grid_vbo, "2i", "in_cell"), (inst, "4i 1f/i", "in_block", "in_morph")]
-            targets = None
-            if stride != DECIMATION_STRIDES[0]:
-                targets = ctx.buffer(morph_targets(stride).tobytes())
-                content.append((targets, "2i 2i 2i 3f", "in_m0", "in_m1", "in_m2", "in_mw"))
-            vao = ctx.vertex_array(self.program, content, index_buffer=ibo, index_element_size=4)
-            self._strides[stride] = (ibo, inst, targets, vao, len(dtris))
+        # Every block mesh (VARIANTS: a stride and its edges' strides) in one index buffer, over
+        # one vertex buffer that holds the block grid once a stride, each copy with its posts'
+        # morph targets towards the next coarser stride. A level is one multi-draw
+        # (glMultiDrawElementsIndirect, OpenGL 4.3): a command a mesh in use, whose blocks'
+        # instance records ((i0, j0, i1, j1), morph) lie together from its base instance on.
+        order = sorted((1, *DECIMATION_STRIDES))
+        grid = block_grid()[0]
+        self._grid_vbo = ctx.buffer(np.tile(grid, (len(order), 1)).tobytes())
+        self._targets_vbo = ctx.buffer(np.concatenate([morph_targets(st) for st in order]).tobytes())
+        meshes = [decimated_grid(st, BLOCK, e).astype(np.int64) + order.index(st) * len(grid) for st, e in VARIANTS]
+        self._index_count = np.array([3 * len(t) for t in meshes], np.int64)
+        self._first_index = np.concatenate([[0], np.cumsum(self._index_count)[:-1]])
+        self._block_ibo = ctx.buffer(np.concatenate(meshes).astype(np.uint32).tobytes())
+        self._inst = ctx.buffer(reserve=16 * 1024)
+        self._indirect = ctx.buffer(reserve=20 * len(VARIANTS))
+        self._block_vao = ctx.vertex_array(
+            self.program, [(self._grid_vbo, "2i", "in_cell"),
+                           (self._targets_vbo, "2i 2i 2i 3f", "in_m0", "in_m1", "in_m2", "in_mw"),
+                           (self._inst, "4i 1f/i", "in_block", "in_morph")],
+            index_buffer=self._block_ibo, index_element_size=4)
         # Zero-area triangles along each level's outer border (GPU Gems 2 ch. 2): (even, even, odd)
         # posts of a border row or column, which the morph puts on the coarser level's edge; drawn,
         # they fill the float32 slivers of the T-junctions there. The odd post is the provoking
@@ -785,8 +932,8 @@ class ClipmapLayer:
         self._detail.repeat_x = self._detail.repeat_y = True
         self._detail.build_mipmaps()
         self.draws: list[LevelDraw] = []
-        self._bounds: dict[int, tuple] = {}  # level -> (key, lo, hi, errors): its ring's blocks' culling
-        # boxes and decimation errors (None without pixel_error)
+        self._bounds: dict[int, tuple] = {}  # level -> (key, lo, hi, decimation): its ring's blocks'
+        # culling boxes and (errors, edge deviations, neighbours, triangles a stride) (None without pixel_error)
         self.triangles = self.vertices = 0
         self.update_ms = 0.0
         self.rebuilds = 0
@@ -908,22 +1055,32 @@ class ClipmapLayer:
                    self.origin.ecef.tobytes())
             bounds = self._bounds.get(k)
             if bounds is None or bounds[0] != key:
-                errors = None if self.pixel_error is None else decimation_errors(blk, c.levels[k], c.n)
-                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin), errors)
-            _, lo, hi, errors = bounds
+                decimation = None
+                if self.pixel_error is not None:
+                    decimation = (decimation_errors(blk, c.levels[k], c.n), edge_deviations(blk, c.levels[k], c.n),
+                                  block_neighbours(blk), block_triangles(blk))
+                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin), decimation)
+            _, lo, hi, decimation = bounds
             seen = visible_blocks(lo, hi, view_proj)
-            blk = blk[seen]
-            cells = int(((blk[:, 2] - blk[:, 0]) * (blk[:, 3] - blk[:, 1])).sum())
+            cells = int(((blk[seen, 2] - blk[seen, 0]) * (blk[seen, 3] - blk[seen, 1])).sum())
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
-            strides, morph, triangles = None, None, 2 * cells
-            if errors is not None:
-                counts = block_triangles(blk)
-                strides, morph = block_strides(errors[seen], lo[seen], hi[seen], frame.camera_local,
-                                               frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0,
-                                               self.pixel_error, counts)
-                column = np.searchsorted(_STRIDE_COLUMNS_SORTED, strides)
-                triangles = int(counts[np.arange(len(blk)), _STRIDE_COLUMN_OF[column]].sum())
-            out.append(LevelDraw(k, regions[k], alpha_h, blk, cells, strides, triangles, morph))
+            strides = morph = variants = None
+            triangles = 2 * cells
+            if decimation is not None:
+                # Strides and edges of the whole ring (an edge depends on the block beyond it,
+                # seen or not), then the seen blocks'.
+                errors, deviations, neighbours, counts = decimation
+                focal_px = frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0
+                strides, morph = block_strides(errors, lo, hi, frame.camera_local, focal_px, self.pixel_error, counts)
+                edges = edge_strides(strides, errors, deviations, neighbours, _distances(lo, hi, frame.camera_local),
+                                     focal_px, self.pixel_error)
+                variants = block_variants(strides, edges)
+                whole = counts[:, 0] == 2 * BLOCK * BLOCK
+                tris = np.where(whole, VARIANT_TRIANGLES[variants],
+                                counts[np.arange(len(blk)), _STRIDE_COLUMN_OF[np.searchsorted(_STRIDE_COLUMNS_SORTED, strides)]])
+                strides, morph, variants = strides[seen], morph[seen], variants[seen]
+                triangles = int(tris[seen].sum())
+            out.append(LevelDraw(k, regions[k], alpha_h, blk[seen], cells, strides, triangles, morph, variants))
         return out
 
     def level_uniforms(self, d: LevelDraw, coarse: bool) -> dict:
@@ -988,14 +1145,16 @@ class ClipmapLayer:
             r = d.region
             records = np.zeros(len(d.blocks), dtype=[("block", "<i4", 4), ("morph", "<f4")])
             records["block"] = d.blocks - np.array([r.i0, r.j0, r.i0, r.j0], np.int32)
-            strides = np.ones(len(d.blocks), np.int32) if d.strides is None else d.strides
             if d.morph is not None:
                 records["morph"] = d.morph
-            for s, (_, inst, _, vao, _) in self._strides.items():
-                instances = records[strides == s]
-                if len(instances):
-                    _write_instances(inst, instances)
-                    vao.render(moderngl.TRIANGLES, instances=len(instances))
+            variants = np.zeros(len(d.blocks), np.int64) if d.variants is None else d.variants
+            by_mesh = np.argsort(variants, kind="stable")
+            used, first, count = np.unique(variants[by_mesh], return_index=True, return_counts=True)
+            commands = np.stack([self._index_count[used], count, self._first_index[used], np.zeros_like(used),
+                                 first], -1).astype(np.uint32)  # (count, instances, first index, base vertex, base instance)
+            _write_instances(self._inst, records[by_mesh])
+            _write_instances(self._indirect, commands)
+            self._block_vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(commands))
             self.triangles += d.triangles
             self.vertices += len(d.blocks) * (BLOCK + 1) ** 2
             if coarse and self.border_triangles:
@@ -1015,10 +1174,8 @@ class ClipmapLayer:
         for t, nm in self._tex:
             t.release()
             nm.release()
-        for ibo, inst, targets, vao, _ in self._strides.values():
-            for obj in (vao, inst, ibo) + (() if targets is None else (targets,)):
-                obj.release()
-        for obj in (self._grid_vbo, *self._border_vaos,
+        for obj in (self._block_vao, self._grid_vbo, self._targets_vbo, self._block_ibo, self._inst, self._indirect,
+                    *self._border_vaos,
                     *self._border_vbos, self._border_ibo, self._border_inst, self.program, self._border_program):
             obj.release()
         self._tex = []
