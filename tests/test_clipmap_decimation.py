@@ -1,12 +1,16 @@
 """Blocks of a clipmap level drawn with fewer posts where the screen allows
-(client/render/clipmap_layer.py: decimated_grid, grid_weights, decimation_errors, block_strides).
+(client/render/clipmap_layer.py: decimated_grid, clamped_triangles, grid_weights,
+decimation_errors, edge_deviations, block_neighbours, block_strides, edge_strides).
 
-The meshes are checked combinatorially (they tile the block, wind counter-clockwise, keep every
-post of the block's edges and leave no T-junction inside, so neighbouring blocks of any strides
-meet watertight), the error of a decimated block against analytic surfaces (zero on a plane, the
-bump's height on a bump), and on the GPU, a frame of the Alps drawn with decimation against the
-same frame without: fewer triangles, no holes, and a screen error against the full-resolution
-surface no more than the pixel bound above the undecimated frame's (bench/render.py's measure).
+The meshes are checked combinatorially (they tile the block, wind counter-clockwise, draw each
+edge with exactly its edge stride's posts and leave no T-junction inside, so neighbouring blocks
+that give their shared edge one stride meet watertight; so do blocks cut short, as the clamp
+draws them), the error of a decimated block against analytic surfaces (zero on a plane, the
+bump's height on a bump) and against dense sampling of real Alps posts (the exact overlay error;
+with stitched edges, within the full-edge error plus the edge's deviation), and on the GPU, a
+frame of the Alps drawn with decimation against the same frame without: fewer triangles, no
+holes, and a screen error against the full-resolution surface no more than the pixel bound above
+the undecimated frame's (bench/render.py's measure).
 """
 
 from __future__ import annotations
@@ -462,7 +466,9 @@ def test_stitched_meshes_tile_the_block_with_each_edge_at_its_stride(stride):
         assert [seen[x] for x in range(4)] == [BLOCK // e for e in edges]
         assert VARIANT_TRIANGLES[v] == len(tris)
     with pytest.raises(ValueError):
-        decimated_grid(stride, BLOCK, (stride * 2, 1, 1, 1))
+        decimated_grid(stride, BLOCK, (3, 1, 1, 1))
+    with pytest.raises(ValueError):
+        decimated_grid(stride, BLOCK, (1, 1, 2 * BLOCK, 1))
     with pytest.raises(ValueError):
         decimated_grid(1, BLOCK, (2, 1, 1, 1))
 
@@ -472,7 +478,7 @@ def test_stitched_mesh_error_is_within_the_stride_error_plus_the_edge_deviation(
     most the full-edge mesh's error (decimation_errors) plus the largest deviation of its coarsened
     edges (edge_deviations), against dense sampling of both surfaces over real Alps posts. The
     deviations equal a brute-force line fit."""
-    from client.render.clipmap_layer import edge_deviations
+    from client.render.clipmap_layer import EDGE_STRIDES, edge_deviations
     from terrain.dem import read_dem
 
     h_m = np.asarray(read_dem(hgt_alps).heights, np.float64)
@@ -495,13 +501,16 @@ def test_stitched_mesh_error_is_within_the_stride_error_plus_the_edge_deviation(
             return np.linalg.norm(line - ((1 - f) * line[t0] + f * line[np.minimum(t0 + e, BLOCK)]), axis=1).max()
 
         sides = (pos[0, :, :], pos[:, BLOCK, :], pos[BLOCK, :, :], pos[:, 0, :])  # south, east, north, west
-        for s_i, e in enumerate(DECIMATION_STRIDES):
+        for s_i, e in enumerate(EDGE_STRIDES):
             assert dev[0, s_i] == pytest.approx(brute(sides[2], e), abs=1e-9)
             assert dev[1, s_i] == pytest.approx(brute(sides[1], e), abs=1e-9)
         zf = pos.reshape(-1, 3)
         full = _surface_at(decimated_grid(1), zf, pts)
         for s_i, s in enumerate(DECIMATION_STRIDES):
-            for edges in [(s, s, s, s), (s, 1, s, 1), (1, s, 1, s), (max(s // 2, 1), s, 1, s)]:
+            combos = [(s, s, s, s), (s, 1, s, 1), (1, s, 1, s), (max(s // 2, 1), s, 1, s)]
+            if 2 * s == BLOCK:  # a two-cell block's edges can run corner to corner
+                combos += [(BLOCK,) * 4, (BLOCK, 1, s, BLOCK)]
+            for edges in combos:
                 tris = decimated_grid(s, BLOCK, edges)
                 dense = np.linalg.norm(full - _surface_at(tris, zf, pts), axis=1).max()
                 side_dev = [brute(line, e) if e > 1 else 0.0 for line, e in zip(sides, edges)]
@@ -513,7 +522,7 @@ def test_neighbours_and_edge_strides_are_shared_and_within_the_bound():
     shared edge one stride on both sides, dividing both blocks' strides, with each block's own error
     plus the edge's deviation within the bound; 1 on every edge without a whole neighbour."""
     from client.render.clipmap import Rect, blocks, ring_rects
-    from client.render.clipmap_layer import block_neighbours, edge_strides
+    from client.render.clipmap_layer import EDGE_STRIDES, block_neighbours, edge_choices, edge_strides
 
     blk = blocks(ring_rects(Rect(-7, 1001, 247, 1255), Rect(57, 1065, 183, 1191)), BLOCK)
     nb = block_neighbours(blk)
@@ -528,11 +537,12 @@ def test_neighbours_and_edge_strides_are_shared_and_within_the_bound():
     m = len(blk)
     strides = rng.choice([1, *DECIMATION_STRIDES], m).astype(np.int32)
     err = rng.uniform(0.0, 2.0, (m, len(DECIMATION_STRIDES)))
-    dev = rng.uniform(0.0, 2.0, (m, 2, len(DECIMATION_STRIDES)))
+    dev = rng.uniform(0.0, 2.0, (m, 2, len(EDGE_STRIDES)))
     dist = np.full(m, 1000.0)
     edges = edge_strides(strides, err, dev, nb, dist, 1000.0, 3.0)  # px = metres at 1 km
     cols = {s: i for i, s in enumerate(DECIMATION_STRIDES)}
     own = np.array([err[i, cols[s]] if s > 1 else 0.0 for i, s in enumerate(strides)])
+    cols = {s: i for i, s in enumerate(EDGE_STRIDES)}
     for a in range(m):
         for side, (mine, theirs) in enumerate(((2, 0), (1, 3))):
             b = nb[a, side]
@@ -540,7 +550,7 @@ def test_neighbours_and_edge_strides_are_shared_and_within_the_bound():
                 continue
             e = edges[a, mine]
             assert edges[b, theirs] == e
-            assert strides[a] % e == 0 and strides[b] % e == 0
+            assert e in edge_choices(strides[a]) and e in edge_choices(strides[b])
             if e > 1:
                 d = dev[a, side, cols[e]]
                 assert own[a] + d <= 3.0 and own[b] + d <= 3.0
@@ -548,4 +558,4 @@ def test_neighbours_and_edge_strides_are_shared_and_within_the_bound():
     has[:, 2], has[:, 1] = nb[:, 0] >= 0, nb[:, 1] >= 0
     has[nb[nb[:, 0] >= 0, 0], 0] = True
     has[nb[nb[:, 1] >= 0, 1], 3] = True
-    assert np.all(edges[~has] == 1) and (edges > 1).any()
+    assert np.all(edges[~has] == 1) and (edges > 1).any() and (edges == BLOCK).any()

@@ -371,10 +371,18 @@ def block_grid(size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
 DECIMATION_STRIDES = (4, 2)
 
 
+def edge_choices(stride: int, size: int = BLOCK) -> tuple:
+    """The strides an edge of a ``stride`` block can take (:func:`decimated_grid`'s ``edges``):
+    the divisors of the stride, and for a block of two cells a side (stride = size / 2, fanned from
+    its centre) also the whole side, corner to corner."""
+    out = tuple(e for e in (1, 2, 4, 8, 16, 32) if e <= stride and stride % e == 0)
+    return out + ((size,) if stride > 1 and 2 * stride == size else ())
+
+
 def decimated_grid(stride: int, size: int = BLOCK, edges: tuple = (1, 1, 1, 1)) -> np.ndarray:
     """(t, 3) uint32 triangles over :func:`block_grid`'s (size + 1)^2 vertices that draw the block
     with every ``stride``-th post inside and every ``edges``-th post on its four edges (south,
-    east, north, west; each a divisor of ``stride``), counter-clockwise seen from above. Inner
+    east, north, west; each of :func:`edge_choices`), counter-clockwise seen from above. Inner
     cells of stride x stride posts split along the south-west to north-east diagonal, as the full
     grid's cells are; a cell on the block's edge is a convex polygon (its edge sides carry their
     edge's posts) fanned from its one corner on no edge of the block.
@@ -393,13 +401,21 @@ def decimated_grid(stride: int, size: int = BLOCK, edges: tuple = (1, 1, 1, 1)) 
     m = size // stride
     if m * stride != size or m < 2:
         raise ValueError(f"stride {stride} must divide the block's {size} cells at least twice")
-    if len(edges) != 4 or any(e < 1 or stride % e for e in edges):
-        raise ValueError(f"edges {edges} must be four divisors of the stride {stride}")
+    if len(edges) != 4 or any(e not in edge_choices(stride, size) for e in edges):
+        raise ValueError(f"edges {edges} must be four of {edge_choices(stride, size)} for stride {stride}")
     e_s, e_e, e_n, e_w = edges
 
     def idx(rc):
         return rc[0] * (size + 1) + rc[1]
 
+    if m == 2:
+        # Four corner cells, each fanned from the block's centre: one fan of the block's outline
+        # around the centre, which lets an edge drop its middle post too (edge stride = size).
+        outline = ([(0, c) for c in range(0, size, e_s)] + [(r, size) for r in range(0, size, e_e)]
+                   + [(size, c) for c in range(size, 0, -e_n)] + [(r, 0) for r in range(size, 0, -e_w)])
+        centre = (stride, stride)
+        return np.array([(idx(centre), idx(p), idx(q)) for p, q in zip(outline, outline[1:] + outline[:1])],
+                        np.uint32)
     tris = []
     for rr in range(m):
         for cc in range(m):
@@ -705,16 +721,20 @@ def _edge_kernel(pos, blk, n, size, strides, out):
                 out[b, side, s_i] = math.sqrt(best)
 
 
+# The strides an edge can take beyond 1, coarse to fine (edge_choices of every stride).
+EDGE_STRIDES = tuple(sorted({e for s in DECIMATION_STRIDES for e in edge_choices(s)} - {1}, reverse=True))
+
+
 def edge_deviations(blk: np.ndarray, level, n: int) -> np.ndarray:
-    """(m, 2, len(DECIMATION_STRIDES)) metres: how far the posts of each block's north and east
-    edge lie from that edge drawn with every stride-th post (:func:`decimated_grid`'s ``edges``).
+    """(m, 2, len(EDGE_STRIDES)) metres: how far the posts of each block's north and east edge
+    lie from that edge drawn with every stride-th post (:func:`decimated_grid`'s ``edges``).
     Infinite for a block cut short (its edges keep every post)."""
-    out = np.full((len(blk), 2, len(DECIMATION_STRIDES)), np.inf)
+    out = np.full((len(blk), 2, len(EDGE_STRIDES)), np.inf)
     whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
     if whole.any():
-        dev = np.empty((int(whole.sum()), 2, len(DECIMATION_STRIDES)))
+        dev = np.empty((int(whole.sum()), 2, len(EDGE_STRIDES)))
         _edge_kernel(level.pos_ecef, np.ascontiguousarray(blk[whole], dtype=np.int64), n, BLOCK,
-                     np.array(DECIMATION_STRIDES, np.int64), dev)
+                     np.array(EDGE_STRIDES, np.int64), dev)
         out[whole] = dev
     return out
 
@@ -728,29 +748,29 @@ def _distances(lo: np.ndarray, hi: np.ndarray, camera_local: np.ndarray) -> np.n
 def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neighbours: np.ndarray,
                  dist: np.ndarray, focal_px: float, pixel_error: float) -> np.ndarray:
     """(m, 4) int32 strides of each block's south, east, north and west edges (decimated_grid's
-    ``edges``). A shared edge takes the coarsest of DECIMATION_STRIDES that divides both blocks'
-    strides and keeps each block within the bound: its own stride's error (err_m, ``strides``)
-    plus the edge's deviation (dev_m, :func:`edge_deviations`) at that block's distance, at most
-    ``pixel_error`` pixels (decimated_grid: the two add at most). Else 1, as every edge
-    without a neighbour (``neighbours``, :func:`block_neighbours`). Each edge is decided once,
-    from its south or west block, and written to both blocks: they draw it alike, watertight."""
+    ``edges``). A shared edge takes the coarsest of EDGE_STRIDES that both blocks' strides allow
+    (:func:`edge_choices`) and that keeps each block within the bound: its own stride's error
+    (err_m, ``strides``) plus the edge's deviation (dev_m, :func:`edge_deviations`) at that
+    block's distance, at most ``pixel_error`` pixels (decimated_grid: the two add at most). Else
+    1, as every edge without a neighbour (``neighbours``, :func:`block_neighbours`). Each edge is
+    decided once, from its south or west block, and written to both blocks: they draw it alike,
+    watertight."""
     m = len(strides)
     edges = np.ones((m, 4), np.int32)
     px_scale = focal_px / np.maximum(dist, 1e-9)
-    col = {s: i for i, s in enumerate(DECIMATION_STRIDES)}
     own = np.zeros(m)
-    for s, i in col.items():
+    for i, s in enumerate(DECIMATION_STRIDES):
         at = strides == s
         own[at] = err_m[at, i] * px_scale[at]
+    allowed = {e: np.isin(strides, [s for s in DECIMATION_STRIDES if e in edge_choices(s)]) for e in EDGE_STRIDES}
     for side, (mine, theirs) in enumerate(((2, 0), (1, 3))):  # north: my N = their S; east: my E = their W
         nb = neighbours[:, side]
         a = np.flatnonzero(nb >= 0)
         b = nb[a]
-        limit = np.minimum(strides[a], strides[b])
         e = np.ones(len(a), np.int32)
-        for s_i, s in enumerate(DECIMATION_STRIDES):  # coarse to fine: the first that holds
+        for s_i, s in enumerate(EDGE_STRIDES):  # coarse to fine: the first that holds
             d = dev_m[a, side, s_i]
-            ok = ((e == 1) & (limit % s == 0) & (own[a] + d * px_scale[a] <= pixel_error)
+            ok = ((e == 1) & allowed[s][a] & allowed[s][b] & (own[a] + d * px_scale[a] <= pixel_error)
                   & (own[b] + d * px_scale[b] <= pixel_error))
             e = np.where(ok, s, e)
         edges[a, mine] = e
@@ -761,10 +781,11 @@ def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neig
 def _variants() -> tuple[list, np.ndarray]:
     """([(stride, edges)], table): every block mesh the layer draws, stride 1 first, and the
     table (log2 stride, log2 of each edge's stride) -> its index (-1: none)."""
-    out, table = [], np.full((3, 3, 3, 3, 3), -1, np.int64)
-    for stride in sorted((1, *DECIMATION_STRIDES)):
-        divisors = [e for e in (1, 2, 4) if stride % e == 0]
-        for edges in itertools.product(divisors, repeat=4):
+    strides = sorted((1, *DECIMATION_STRIDES))
+    out = []
+    table = np.full((max(strides).bit_length(), *[BLOCK.bit_length()] * 4), -1, np.int64)
+    for stride in strides:
+        for edges in itertools.product(edge_choices(stride), repeat=4):
             table[(stride.bit_length() - 1, *[e.bit_length() - 1 for e in edges])] = len(out)
             out.append((stride, edges))
     return out, table
