@@ -559,3 +559,45 @@ def test_neighbours_and_edge_strides_are_shared_and_within_the_bound():
     has[nb[nb[:, 0] >= 0, 0], 0] = True
     has[nb[nb[:, 1] >= 0, 1], 3] = True
     assert np.all(edges[~has] == 1) and (edges > 1).any() and (edges == BLOCK).any()
+
+
+def test_border_edges_take_the_coarser_levels_posts_and_spare_their_border_triangles():
+    """On the drawn border of a level (with the coarser level drawn), a whole decimated block that
+    starts on an even post draws its border side with the even posts alone (edge stride 2): the
+    morph puts the odd ones halfway between them. Only on even border rows and columns; the border
+    triangles (border_segments) are left out exactly where every cell of a segment is so drawn."""
+    from client.render.clipmap import Rect, blocks, ring_rects
+    from client.render.clipmap_layer import border_edges, border_segments, border_segments_left
+
+    rng = np.random.default_rng(23)
+    for region in (Rect(-8, 1000, 246, 1254), Rect(-7, 1001, 247, 1255), Rect(2, 4, 256, 258)):
+        hole = Rect(region.i0 + 63, region.j0 + 63, region.i0 + 190, region.j0 + 190)
+        blk = blocks(ring_rects(region, hole), BLOCK)
+        strides = rng.choice([1, *DECIMATION_STRIDES], len(blk)).astype(np.int32)
+        edges = border_edges(blk, region, strides, np.ones((len(blk), 4), np.int32))
+        whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+        for b in range(len(blk)):
+            i0, j0, i1, j1 = blk[b]
+            ok = whole[b] and strides[b] >= 2
+            want = [ok and i0 == region.i0 and i0 % 2 == 0 and j0 % 2 == 0,
+                    ok and j1 == region.j1 and j1 % 2 == 0 and i0 % 2 == 0,
+                    ok and i1 == region.i1 and i1 % 2 == 0 and j0 % 2 == 0,
+                    ok and j0 == region.j0 and j0 % 2 == 0 and i0 % 2 == 0]
+            assert (edges[b] == 2).tolist() == want and np.all(edges[b][~np.array(want)] == 1)
+        if region.i0 % 2 == 0:
+            assert (edges == 2).any()
+        rows, cols = border_segments(region)
+        left = border_segments_left(region, blk, edges)
+        for segments, kept, along in ((rows, left[0], "row"), (cols, left[1], "col")):
+            for seg in segments:
+                i0, j0, i1, j1 = seg + np.array([region.i0, region.j0, region.i0, region.j0])
+                if along == "row":
+                    side = 0 if i0 == region.i0 else 2
+                    cells = range(j0, j1)
+                    spans = [(blk[b, 1], blk[b, 3]) for b in range(len(blk)) if edges[b, side] == 2]
+                else:
+                    side = 3 if j0 == region.j0 else 1
+                    cells = range(i0, i1)
+                    spans = [(blk[b, 0], blk[b, 2]) for b in range(len(blk)) if edges[b, side] == 2]
+                spared = all(any(a <= c < z for a, z in spans) for c in cells)
+                assert spared != any(np.array_equal(seg, k) for k in kept), (region, seg)

@@ -778,6 +778,47 @@ def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neig
     return edges
 
 
+def border_edges(blk: np.ndarray, region: Rect, strides: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``edges`` (m, 4) with 2 on each side that lies on the level's drawn border where the block
+    (whole, of stride 2 or more) starts on an even post and the border row (column) is even: there
+    the morph puts every post on the coarser level's edge (alpha = 1), the odd ones halfway
+    between two coarser posts, so the edge drawn with the even posts alone is the same surface and
+    meets the coarser level's vertices exactly, with no T-junction for the border triangles to
+    fill (``border_segments_left``)."""
+    whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK) & (strides >= 2)
+    even_j, even_i = blk[:, 1] % 2 == 0, blk[:, 0] % 2 == 0
+    out = edges.copy()
+    for side, on in enumerate((whole & even_j & (blk[:, 0] == region.i0) & (region.i0 % 2 == 0),   # south
+                               whole & even_i & (blk[:, 3] == region.j1) & (region.j1 % 2 == 0),   # east
+                               whole & even_j & (blk[:, 2] == region.i1) & (region.i1 % 2 == 0),   # north
+                               whole & even_i & (blk[:, 1] == region.j0) & (region.j0 % 2 == 0))):  # west
+        out[on, side] = 2
+    return out
+
+
+def border_segments_left(region: Rect, blk: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`border_segments` of ``region`` without those whose every cell lies on a block side
+    drawn with edge stride 2 (:func:`border_edges`): nothing there for a border triangle to fill."""
+    rows, cols = border_segments(region)
+    h, w = region.i1 - region.i0, region.j1 - region.j0
+    out = []
+    for segments, length, sides in ((rows, w, ((0, 0, 0), (2, h, 2))), (cols, h, ((3, 0, 1), (1, w, 3)))):
+        keep = np.ones(len(segments), bool)
+        for side, at, col in sides:
+            on = edges[:, side] == 2
+            if not on.any():
+                continue
+            start = (blk[on, 1] - region.j0) if side in (0, 2) else (blk[on, 0] - region.i0)
+            covered = np.zeros(length + 1, bool)
+            covered[(start[:, None] + np.arange(BLOCK)).ravel()] = True
+            gaps = np.concatenate([[0], np.cumsum(~covered[:length])])
+            mine = segments[:, col] == at
+            a, b = (segments[:, 1], segments[:, 3]) if side in (0, 2) else (segments[:, 0], segments[:, 2])
+            keep &= ~(mine & (gaps[b] - gaps[a] == 0))
+        out.append(segments[keep])
+    return out[0], out[1]
+
+
 def _variants() -> tuple[list, np.ndarray]:
     """([(stride, edges)], table): every block mesh the layer draws, stride 1 first, and the
     table (log2 stride, log2 of each edge's stride) -> its index (-1: none)."""
@@ -870,6 +911,7 @@ class LevelDraw:
     triangles: int = 0  # what the blocks draw (without the border triangles)
     morph: np.ndarray | None = None  # (m,) each block's morph towards its next stride (block_strides)
     variants: np.ndarray | None = None  # (m,) each block's mesh, an index into VARIANTS; None: all 0 (stride 1)
+    border: tuple | None = None  # (rows, columns) border-triangle segments to draw (with the coarser level)
 
 
 class ClipmapLayer:
@@ -1087,6 +1129,7 @@ class ClipmapLayer:
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
             strides = morph = variants = None
             triangles = 2 * cells
+            border = border_segments(regions[k]) if k + 1 in regions else None
             if decimation is not None:
                 # Strides and edges of the whole ring (an edge depends on the block beyond it,
                 # seen or not), then the seen blocks'.
@@ -1095,13 +1138,16 @@ class ClipmapLayer:
                 strides, morph = block_strides(errors, lo, hi, frame.camera_local, focal_px, self.pixel_error, counts)
                 edges = edge_strides(strides, errors, deviations, neighbours, _distances(lo, hi, frame.camera_local),
                                      focal_px, self.pixel_error)
+                if k + 1 in regions:
+                    edges = border_edges(blk, regions[k], strides, edges)
+                    border = border_segments_left(regions[k], blk, edges)
                 variants = block_variants(strides, edges)
                 whole = counts[:, 0] == 2 * BLOCK * BLOCK
                 tris = np.where(whole, VARIANT_TRIANGLES[variants],
                                 counts[np.arange(len(blk)), _STRIDE_COLUMN_OF[np.searchsorted(_STRIDE_COLUMNS_SORTED, strides)]])
                 strides, morph, variants = strides[seen], morph[seen], variants[seen]
                 triangles = int(tris[seen].sum())
-            out.append(LevelDraw(k, regions[k], alpha_h, blk[seen], cells, strides, triangles, morph, variants))
+            out.append(LevelDraw(k, regions[k], alpha_h, blk[seen], cells, strides, triangles, morph, variants, border))
         return out
 
     def level_uniforms(self, d: LevelDraw, coarse: bool) -> dict:
@@ -1181,7 +1227,7 @@ class ClipmapLayer:
             if coarse and self.border_triangles:
                 self.set_uniforms(bp, uniforms)
                 self.ctx.disable(moderngl.CULL_FACE)  # zero-area: either winding
-                for vao, segments in zip(self._border_vaos, border_segments(r)):
+                for vao, segments in zip(self._border_vaos, border_segments(r) if d.border is None else d.border):
                     if len(segments):
                         _write_instances(self._border_inst, segments)
                         vao.render(moderngl.TRIANGLES, instances=len(segments))
