@@ -574,7 +574,10 @@ def test_border_edges_take_the_coarser_levels_posts_and_spare_their_border_trian
         hole = Rect(region.i0 + 63, region.j0 + 63, region.i0 + 190, region.j0 + 190)
         blk = blocks(ring_rects(region, hole), BLOCK)
         strides = rng.choice([1, *DECIMATION_STRIDES], len(blk)).astype(np.int32)
-        edges = border_edges(blk, region, strides, np.ones((len(blk), 4), np.int32))
+        inner = np.where(rng.random((len(blk), 4)) < 0.5, 2, 1).astype(np.int32)  # stitched inside
+        for side, (c, at) in enumerate(((0, region.i0), (3, region.j1), (2, region.i1), (1, region.j0))):
+            inner[blk[:, c] == at, side] = 1  # nothing beyond the border to stitch with
+        edges = border_edges(blk, region, strides, inner)
         whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
         for b in range(len(blk)):
             i0, j0, i1, j1 = blk[b]
@@ -583,7 +586,8 @@ def test_border_edges_take_the_coarser_levels_posts_and_spare_their_border_trian
                     ok and j1 == region.j1 and j1 % 2 == 0 and i0 % 2 == 0,
                     ok and i1 == region.i1 and i1 % 2 == 0 and j0 % 2 == 0,
                     ok and j0 == region.j0 and j0 % 2 == 0 and i0 % 2 == 0]
-            assert (edges[b] == 2).tolist() == want and np.all(edges[b][~np.array(want)] == 1)
+            assert np.all(edges[b][np.array(want)] == 2) and np.array_equal(edges[b][~np.array(want)],
+                                                                             inner[b][~np.array(want)])
         if region.i0 % 2 == 0:
             assert (edges == 2).any()
         rows, cols = border_segments(region)
@@ -594,10 +598,12 @@ def test_border_edges_take_the_coarser_levels_posts_and_spare_their_border_trian
                 if along == "row":
                     side = 0 if i0 == region.i0 else 2
                     cells = range(j0, j1)
-                    spans = [(blk[b, 1], blk[b, 3]) for b in range(len(blk)) if edges[b, side] == 2]
+                    spans = [(blk[b, 1], blk[b, 3]) for b in range(len(blk))
+                             if edges[b, side] == 2 and blk[b, side] == (region.i0 if side == 0 else region.i1)]
                 else:
                     side = 3 if j0 == region.j0 else 1
                     cells = range(i0, i1)
-                    spans = [(blk[b, 0], blk[b, 2]) for b in range(len(blk)) if edges[b, side] == 2]
+                    spans = [(blk[b, 0], blk[b, 2]) for b in range(len(blk))
+                             if edges[b, side] == 2 and blk[b, 4 - side] == (region.j0 if side == 3 else region.j1)]
                 spared = all(any(a <= c < z for a, z in spans) for c in cells)
                 assert spared != any(np.array_equal(seg, k) for k in kept), (region, seg)

@@ -797,15 +797,16 @@ def border_edges(blk: np.ndarray, region: Rect, strides: np.ndarray, edges: np.n
 
 
 def border_segments_left(region: Rect, blk: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`border_segments` of ``region`` without those whose every cell lies on a block side
-    drawn with edge stride 2 (:func:`border_edges`): nothing there for a border triangle to fill."""
+    """:func:`border_segments` of ``region`` without those whose every cell lies on a block's
+    border side drawn with edge stride 2 (:func:`border_edges`): nothing there for a border
+    triangle to fill. (An edge stride 2 inside the region, between two blocks, spares nothing.)"""
     rows, cols = border_segments(region)
     h, w = region.i1 - region.i0, region.j1 - region.j0
     out = []
     for segments, length, sides in ((rows, w, ((0, 0, 0), (2, h, 2))), (cols, h, ((3, 0, 1), (1, w, 3)))):
         keep = np.ones(len(segments), bool)
         for side, at, col in sides:
-            on = edges[:, side] == 2
+            on = (edges[:, side] == 2) & (blk[:, (0, 3, 2, 1)[side]] == (region.i0, region.j1, region.i1, region.j0)[side])
             if not on.any():
                 continue
             start = (blk[on, 1] - region.j0) if side in (0, 2) else (blk[on, 0] - region.i0)
