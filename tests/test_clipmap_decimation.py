@@ -559,6 +559,9 @@ def test_neighbours_and_edge_strides_are_shared_and_within_the_bound():
     has[nb[nb[:, 0] >= 0, 0], 0] = True
     has[nb[nb[:, 1] >= 0, 1], 3] = True
     assert np.all(edges[~has] == 1) and (edges > 1).any() and (edges == BLOCK).any()
+    # Where a corner-to-corner edge would sag too far (MAX_CORNER_EDGE_SAG_M), the next stride down.
+    capped = edge_strides(strides, err, dev, nb, dist, 1000.0, 3.0, corner_to_corner=False)
+    assert not (capped == BLOCK).any() and np.array_equal(capped[edges < BLOCK], edges[edges < BLOCK])
 
 
 def test_border_edges_take_the_coarser_levels_posts_and_spare_their_border_triangles():

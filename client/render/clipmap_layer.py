@@ -94,7 +94,7 @@ from client.render.shading import GLSL_COMMON, Frame
 from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
 from terrain.texture import CLASS_COLOURS_RGB, N_CLASSES
 from sortie.errors import InvalidArgument
-from terrain.geodesy import ecef_to_geodetic
+from terrain.geodesy import WGS84_A_M, ecef_to_geodetic
 
 BLOCK = 8  # cells a side of an instanced block
 MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
@@ -723,6 +723,12 @@ def _edge_kernel(pos, blk, n, size, strides, out):
 
 # The strides an edge can take beyond 1, coarse to fine (edge_choices of every stride).
 EDGE_STRIDES = tuple(sorted({e for s in DECIMATION_STRIDES for e in edge_choices(s)} - {1}, reverse=True))
+# A straight edge of length L between two posts sags L^2 / 8R below the ellipsoid between them.
+# The pixel bound covers how far it is drawn from the surface, but where that edge is the far
+# horizon a sag shows sky below it: a corner-to-corner edge (BLOCK cells) is drawn only where it
+# sags at most this much (levels whose BLOCK cells span at most ~23 km). Found by the render
+# bench's hole count at n = 127: L = 7's coarsest level, 46 km edges, sagged 41 m.
+MAX_CORNER_EDGE_SAG_M = 10.0
 
 
 def edge_deviations(blk: np.ndarray, level, n: int) -> np.ndarray:
@@ -746,7 +752,7 @@ def _distances(lo: np.ndarray, hi: np.ndarray, camera_local: np.ndarray) -> np.n
 
 
 def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neighbours: np.ndarray,
-                 dist: np.ndarray, focal_px: float, pixel_error: float) -> np.ndarray:
+                 dist: np.ndarray, focal_px: float, pixel_error: float, corner_to_corner: bool = True) -> np.ndarray:
     """(m, 4) int32 strides of each block's south, east, north and west edges (decimated_grid's
     ``edges``). A shared edge takes the coarsest of EDGE_STRIDES that both blocks' strides allow
     (:func:`edge_choices`) and that keeps each block within the bound: its own stride's error
@@ -754,7 +760,7 @@ def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neig
     block's distance, at most ``pixel_error`` pixels (decimated_grid: the two add at most). Else
     1, as every edge without a neighbour (``neighbours``, :func:`block_neighbours`). Each edge is
     decided once, from its south or west block, and written to both blocks: they draw it alike,
-    watertight."""
+    watertight. ``corner_to_corner`` False: no edge of BLOCK cells (MAX_CORNER_EDGE_SAG_M)."""
     m = len(strides)
     edges = np.ones((m, 4), np.int32)
     px_scale = focal_px / np.maximum(dist, 1e-9)
@@ -762,7 +768,8 @@ def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neig
     for i, s in enumerate(DECIMATION_STRIDES):
         at = strides == s
         own[at] = err_m[at, i] * px_scale[at]
-    allowed = {e: np.isin(strides, [s for s in DECIMATION_STRIDES if e in edge_choices(s)]) for e in EDGE_STRIDES}
+    allowed = {e: np.isin(strides, [s for s in DECIMATION_STRIDES if e in edge_choices(s)])
+               & (corner_to_corner or e < BLOCK) for e in EDGE_STRIDES}
     for side, (mine, theirs) in enumerate(((2, 0), (1, 3))):  # north: my N = their S; east: my E = their W
         nb = neighbours[:, side]
         a = np.flatnonzero(nb >= 0)
@@ -1137,8 +1144,10 @@ class ClipmapLayer:
                 errors, deviations, neighbours, counts = decimation
                 focal_px = frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0
                 strides, morph = block_strides(errors, lo, hi, frame.camera_local, focal_px, self.pixel_error, counts)
+                chord_m = BLOCK * c.spacing_m(k)
                 edges = edge_strides(strides, errors, deviations, neighbours, _distances(lo, hi, frame.camera_local),
-                                     focal_px, self.pixel_error)
+                                     focal_px, self.pixel_error,
+                                     chord_m ** 2 / (8.0 * WGS84_A_M) <= MAX_CORNER_EDGE_SAG_M)
                 if k + 1 in regions:
                     edges = border_edges(blk, regions[k], strides, edges)
                     border = border_segments_left(regions[k], blk, edges)
