@@ -12,18 +12,22 @@ pieces, and one vertex shader that displaces a small grid block per instance
   drawn once per visible block (instancing), each vertex clamped to its
   block's rectangle (cells beyond it collapse to nothing).
 - **Decimation** (screen-space error, as geomipmapping and Losasso-Hoppe bound it). With
-  a ``pixel_error``, a whole block is drawn with every 4th or 2nd post inside and every
-  post on its edges (:func:`decimated_grid`) where the largest distance between the level's
-  surface and that mesh's (:func:`decimation_errors`: exact, over the vertices of the two
-  meshes' overlay), seen from the nearest point of the block's culling box, moves it by at
-  most ``pixel_error`` pixels (:func:`block_strides`). The edges keep every post, so
-  neighbouring blocks of any strides, the finer level's border and the morph band meet as
-  without decimation (no T-junction). Before a block takes its next coarser stride, the
-  posts that stride drops morph towards where its mesh draws them (``in_morph``, per block;
-  ``in_m0..2``/``in_mw``, :func:`morph_targets`), within the same pixel bound: inside the
-  block the switch is seamless; in its edge cells (fans in the coarser mesh) a residual pop
-  remains (measured on the Alps: median half the coarser stride's error, at most about
-  twice it).
+  a ``pixel_error``, a block is drawn with every 4th or 2nd post inside (:func:`decimated_grid`)
+  where the largest distance between the level's surface and that mesh's
+  (:func:`decimation_errors`: exact, over the vertices of the two meshes' overlay), seen from
+  the nearest point of the block's culling box, moves it by at most ``pixel_error`` pixels
+  (:func:`block_strides`). Two whole neighbouring blocks draw their shared edge with the
+  coarsest stride both allow within the bound (:func:`edge_strides`, decided once a pair:
+  no T-junction); a side on the level's drawn border takes the coarser level's posts
+  (:func:`border_edges`); other edges keep every post, so the finer level's border and the
+  morph band meet as without decimation. A block a ring's edge cuts short is decimated as the
+  clamp draws it (:func:`clamped_triangles`). Before a whole block takes its next coarser
+  stride, the posts that stride drops morph towards where its mesh draws them (``in_morph``,
+  per block; ``in_m0..2``/``in_mw``, :func:`morph_targets`), within the same pixel bound:
+  inside the block the switch is seamless; in its edge cells (fans in the coarser mesh) a
+  residual pop remains (measured on the Alps: median half the coarser stride's error, at most
+  about twice it), and an edge's change of stride pops by at most the bound. Every block mesh
+  (VARIANTS) is in one index buffer, and a level is one multi-draw.
 - **Culling** (§3.1.6). A block is drawn unless its bounding box lies wholly
   outside one side of the view frustum or behind the camera (the box's 8
   corners against the clip-space planes, every block at once in numpy). The
