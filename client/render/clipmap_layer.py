@@ -601,8 +601,8 @@ def _shape_triangles() -> np.ndarray:
 
 
 SHAPE_TRIANGLES = _shape_triangles()
-_STRIDE_COLUMNS_SORTED = np.array(sorted((1, *DECIMATION_STRIDES)))  # stride -> its SHAPE_TRIANGLES column
-_STRIDE_COLUMN_OF = np.array([(1, *DECIMATION_STRIDES).index(int(v)) for v in _STRIDE_COLUMNS_SORTED])
+_STRIDE_COLUMN = np.full(max(DECIMATION_STRIDES) + 1, -1, np.int64)  # stride -> its SHAPE_TRIANGLES column
+_STRIDE_COLUMN[[1, *DECIMATION_STRIDES]] = np.arange(1 + len(DECIMATION_STRIDES))
 
 
 def block_triangles(blk: np.ndarray) -> np.ndarray:
@@ -698,12 +698,12 @@ def _edge_kernel(pos, blk, n, size, strides, out):
     """out[b, side, s_i]: the largest distance of a post of block b's north (side 0) or east
     (side 1) edge from the straight line between the posts at the multiples of strides[s_i]
     around it (float64, relative to the edge's first post)."""
+    line = np.empty((size + 1, 3))
     for b in range(blk.shape[0]):
         for side in range(2):
             i, j = (blk[b, 2], blk[b, 1]) if side == 0 else (blk[b, 0], blk[b, 3])
             di, dj = (0, 1) if side == 0 else (1, 0)
             o = pos[i % n, j % n]
-            line = np.empty((size + 1, 3))
             for t in range(size + 1):
                 p = pos[(i + di * t) % n, (j + dj * t) % n]
                 for a in range(3):
@@ -1158,7 +1158,7 @@ class ClipmapLayer:
                 variants = block_variants(strides, edges)
                 whole = counts[:, 0] == 2 * BLOCK * BLOCK
                 tris = np.where(whole, VARIANT_TRIANGLES[variants],
-                                counts[np.arange(len(blk)), _STRIDE_COLUMN_OF[np.searchsorted(_STRIDE_COLUMNS_SORTED, strides)]])
+                                counts[np.arange(len(blk)), _STRIDE_COLUMN[strides]])
                 strides, morph, variants = strides[seen], morph[seen], variants[seen]
                 triangles = int(tris[seen].sum())
             out.append(LevelDraw(k, regions[k], alpha_h, blk[seen], cells, strides, triangles, morph, variants, border))
