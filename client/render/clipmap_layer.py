@@ -118,10 +118,10 @@ CLASS_COLOURS_F32 = (np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes(
 # a mod m in [0, m) for any int a and m > 0, in integers only. GLSL's % is defined for
 # non-negative operands alone (GLSL 3.30 §5.9), hence the mirror for negative a. A float form,
 # a - m floor(a / m), is wrong twice: beyond 2^24 float(a) rounds, and GPUs divide as a x rcp(m)
-# with an ulp or two of error, so at exact multiples of m floor() can land one below. On an
-# NVIDIA H200 that put every post whose lattice index is a multiple of n = 255 on texel n (out of
-# range, fetched as 0) and drew spikes: screen error p99 46 px where llvmpipe's exact division
-# gave 1.7 px (docs/BENCHMARKS.md).
+# with an ulp or two of error, so at exact multiples of m floor() can land one below, on texel m
+# (out of range, fetched as 0). On an NVIDIA H200 every n = 255 setting drew spikes (screen error
+# p99 46 px where llvmpipe's exact division gave 1.7 px) until this integer form
+# (docs/BENCHMARKS.md).
 GLSL_PMOD = "int pmod(int a, int m) { return a >= 0 ? a % m : m - 1 - (-1 - a) % m; }"
 
 VERTEX_SHADER = """#version 330 core
