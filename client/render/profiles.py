@@ -17,15 +17,15 @@ Figures below for a 3-arc-second (about 90 m) DEM; they scale with its spacing.
 
 | profile | L | n | budget | pixel_error | finest | coarsest | view distance | why |
 |---|---|---|---|---|---|---|---|---|
-| fast_jet | 6 | 255 | 3,000 | 2 px | 90 m | 2.9 km | ~365 km | at 10 km the horizon is ~360 km away; 300 m/s uncovers a finest row every 0.3 s; n = 255 keeps the screen error within 2 px on mountains, decimation cuts its triangles by half |
+| fast_jet | 6 | 255 | 3,000 | 2 px | 90 m | 2.9 km | ~365 km | at 10 km the horizon is ~360 km away; 300 m/s uncovers a finest row every 0.3 s; n = 255 keeps the screen error within 2 px on mountains, decimation cuts its triangles by more than half |
 | helicopter | 6 | 127 | 1,500 | 1 px | 90 m | 2.9 km | ~180 km | low and slow: the near field matters, the horizon is nearer |
 | ground_vehicle | 7 | 127 | 1,500 | 1 px | 23 m | 1.4 km | ~90 km | on the ground: detail under the wheels (fractal below the DEM), a hill's horizon |
 | observer | 6 | 255 | 3,000 | 2 px | 90 m | 2.9 km | ~365 km | a fixed or slow viewpoint: more posts a level, updated rarely |
 
-The n = 127 profiles decimate within 1 px: on the bench's Alps paths (L 7, n 127) that drew
-27k triangles a frame instead of 35k at the same p99 screen error (4.25 px), median 0.167 →
-0.176 px. At n = 255, 2 px drew 69k instead of 118k, p99 1.73 → 1.82 px (`sortie bench render`,
-docs/BENCHMARKS.md).
+The n = 127 profiles decimate within 1 px: on the bench's Alps paths (L 7, n 127) that draws
+22k triangles a frame instead of 35k at the same p99 screen error (4.25 px), median 0.167 →
+0.18 px. At n = 255, 2 px draws 51k instead of 118k, p99 1.73 → 1.82 px (`sortie bench render`,
+docs/BENCHMARKS.md: blocks with stitched edges, sixth session).
 
 The budgets hold about one level's move a frame (a move uncovers two rows or columns of
 n posts, x 5 samples a post; the first move of a frame is always made): a move costs about
