@@ -580,7 +580,7 @@ def test_border_edges_take_the_coarser_levels_posts_and_spare_their_border_trian
         inner = np.where(rng.random((len(blk), 4)) < 0.5, 2, 1).astype(np.int32)  # stitched inside
         for side, (c, at) in enumerate(((0, region.i0), (3, region.j1), (2, region.i1), (1, region.j0))):
             inner[blk[:, c] == at, side] = 1  # nothing beyond the border to stitch with
-        edges = border_edges(blk, region, strides, inner)
+        edges, spared = border_edges(blk, region, strides, inner)
         whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
         for b in range(len(blk)):
             i0, j0, i1, j1 = blk[b]
@@ -594,7 +594,7 @@ def test_border_edges_take_the_coarser_levels_posts_and_spare_their_border_trian
         if region.i0 % 2 == 0:
             assert (edges == 2).any()
         rows, cols = border_segments(region)
-        left = border_segments_left(region, blk, edges)
+        left = border_segments_left(region, blk, spared)
         for segments, kept, along in ((rows, left[0], "row"), (cols, left[1], "col")):
             for seg in segments:
                 i0, j0, i1, j1 = seg + np.array([region.i0, region.j0, region.i0, region.j0])

@@ -673,12 +673,17 @@ def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_loca
 
 # -- stitched edges: two neighbouring decimated blocks draw their shared edge with fewer posts
 
+def _whole(blk: np.ndarray) -> np.ndarray:
+    """Mask of the blocks (m, 4) of BLOCK x BLOCK cells (not cut short by a ring's edge)."""
+    return ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+
+
 def block_neighbours(blk: np.ndarray) -> np.ndarray:
     """(m, 2) the index of each block's north and east neighbour among ``blk`` (m, 4): a whole
     (BLOCK x BLOCK) block that shares the whole edge; -1 where there is none (the ring's outer
     border, the hole, a block cut short, on either side)."""
     out = np.full((len(blk), 2), -1, np.int64)
-    whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+    whole = _whole(blk)
     if not whole.any():
         return out
     key = (blk[:, 0].astype(np.int64) << 32) + blk[:, 1].astype(np.int64)  # (i0, j0): indices within 2^31
@@ -740,7 +745,7 @@ def edge_deviations(blk: np.ndarray, level, n: int) -> np.ndarray:
     lie from that edge drawn with every stride-th post (:func:`decimated_grid`'s ``edges``).
     Infinite for a block cut short (its edges keep every post)."""
     out = np.full((len(blk), 2, len(EDGE_STRIDES)), np.inf)
-    whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK)
+    whole = _whole(blk)
     if whole.any():
         dev = np.empty((int(whole.sum()), 2, len(EDGE_STRIDES)))
         _edge_kernel(level.pos_ecef, np.ascontiguousarray(blk[whole], dtype=np.int64), n, BLOCK,
@@ -789,35 +794,34 @@ def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neig
     return edges
 
 
-def border_edges(blk: np.ndarray, region: Rect, strides: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """``edges`` (m, 4) with 2 on each side that lies on the level's drawn border where the block
-    (whole, of stride 2 or more) starts on an even post and the border row (column) is even: there
-    the morph puts every post on the coarser level's edge (alpha = 1), the odd ones halfway
-    between two coarser posts, so the edge drawn with the even posts alone is the same surface and
-    meets the coarser level's vertices exactly, with no T-junction for the border triangles to
-    fill (``border_segments_left``)."""
-    whole = ((blk[:, 2] - blk[:, 0]) == BLOCK) & ((blk[:, 3] - blk[:, 1]) == BLOCK) & (strides >= 2)
+def border_edges(blk: np.ndarray, region: Rect, strides: np.ndarray, edges: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(``edges`` (m, 4) with 2 on the sides below, (m, 4) mask of those sides): each side that
+    lies on the level's drawn border where the block (whole, of stride 2 or more) starts on an
+    even post and the border row (column) is even. There the morph puts every post on the
+    coarser level's edge (alpha = 1), the odd ones halfway between two coarser posts, so the edge
+    drawn with the even posts alone is the same surface and meets the coarser level's vertices
+    exactly, with no T-junction for the border triangles to fill (``border_segments_left``)."""
+    whole = _whole(blk) & (strides >= 2)
     even_j, even_i = blk[:, 1] % 2 == 0, blk[:, 0] % 2 == 0
-    out = edges.copy()
-    for side, on in enumerate((whole & even_j & (blk[:, 0] == region.i0) & (region.i0 % 2 == 0),   # south
-                               whole & even_i & (blk[:, 3] == region.j1) & (region.j1 % 2 == 0),   # east
-                               whole & even_j & (blk[:, 2] == region.i1) & (region.i1 % 2 == 0),   # north
-                               whole & even_i & (blk[:, 1] == region.j0) & (region.j0 % 2 == 0))):  # west
-        out[on, side] = 2
-    return out
+    sides = np.stack([whole & even_j & (blk[:, 0] == region.i0) & (region.i0 % 2 == 0),  # south
+                      whole & even_i & (blk[:, 3] == region.j1) & (region.j1 % 2 == 0),  # east
+                      whole & even_j & (blk[:, 2] == region.i1) & (region.i1 % 2 == 0),  # north
+                      whole & even_i & (blk[:, 1] == region.j0) & (region.j0 % 2 == 0)], -1)  # west
+    return np.where(sides, 2, edges).astype(edges.dtype), sides
 
 
-def border_segments_left(region: Rect, blk: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def border_segments_left(region: Rect, blk: np.ndarray, sides: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`border_segments` of ``region`` without those whose every cell lies on a block's
-    border side drawn with edge stride 2 (:func:`border_edges`): nothing there for a border
-    triangle to fill. (An edge stride 2 inside the region, between two blocks, spares nothing.)"""
+    border side drawn with the coarser level's posts alone (``sides``, (m, 4) south, east,
+    north, west: :func:`border_edges`' mask): nothing there for a border triangle to fill."""
     rows, cols = border_segments(region)
     h, w = region.i1 - region.i0, region.j1 - region.j0
     out = []
-    for segments, length, sides in ((rows, w, ((0, 0, 0), (2, h, 2))), (cols, h, ((3, 0, 1), (1, w, 3)))):
+    for segments, length, along in ((rows, w, ((0, 0, 0), (2, h, 2))), (cols, h, ((3, 0, 1), (1, w, 3)))):
         keep = np.ones(len(segments), bool)
-        for side, at, col in sides:
-            on = (edges[:, side] == 2) & (blk[:, (0, 3, 2, 1)[side]] == (region.i0, region.j1, region.i1, region.j0)[side])
+        for side, at, col in along:
+            on = sides[:, side]
             if not on.any():
                 continue
             start = (blk[on, 1] - region.j0) if side in (0, 2) else (blk[on, 0] - region.i0)
@@ -923,7 +927,7 @@ class LevelDraw:
     triangles: int = 0  # what the blocks draw (without the border triangles)
     morph: np.ndarray | None = None  # (m,) each block's morph towards its next stride (block_strides)
     variants: np.ndarray | None = None  # (m,) each block's mesh, an index into VARIANTS; None: all 0 (stride 1)
-    border: tuple | None = None  # (rows, columns) border-triangle segments to draw (with the coarser level)
+    border: tuple | None = None  # (rows, columns) border-triangle segments to draw (with the coarser level); None: all
 
 
 class ClipmapLayer:
@@ -1141,7 +1145,7 @@ class ClipmapLayer:
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
             strides = morph = variants = None
             triangles = 2 * cells
-            border = border_segments(regions[k]) if k + 1 in regions else None
+            border = None  # draw(): every border segment
             if decimation is not None:
                 # Strides and edges of the whole ring (an edge depends on the block beyond it,
                 # seen or not), then the seen blocks'.
@@ -1153,11 +1157,10 @@ class ClipmapLayer:
                                      focal_px, self.pixel_error,
                                      chord_m ** 2 / (8.0 * WGS84_A_M) <= MAX_CORNER_EDGE_SAG_M)
                 if k + 1 in regions:
-                    edges = border_edges(blk, regions[k], strides, edges)
-                    border = border_segments_left(regions[k], blk, edges)
+                    edges, spared = border_edges(blk, regions[k], strides, edges)
+                    border = border_segments_left(regions[k], blk, spared)
                 variants = block_variants(strides, edges)
-                whole = counts[:, 0] == 2 * BLOCK * BLOCK
-                tris = np.where(whole, VARIANT_TRIANGLES[variants],
+                tris = np.where(_whole(blk), VARIANT_TRIANGLES[variants],
                                 counts[np.arange(len(blk)), _STRIDE_COLUMN[strides]])
                 strides, morph, variants = strides[seen], morph[seen], variants[seen]
                 triangles = int(tris[seen].sum())
