@@ -71,7 +71,10 @@ each measured camera is rendered FRAME_REPEATS times and the least time kept
 (its update was done and timed at the step; a repeat's update finds nothing to
 do), and the reference and the clipmap are rendered in turn at each step so
 that they meet the same load on a shared machine. The sweep's frame times are
-those of its test-mode frames. Figures are from whatever OpenGL the machine has
+those of its test-mode frames. ``draw_plan_ms``: ClipmapLayer.plan_ms, the CPU
+time of the clipmap's draw plan (culling, block and edge strides of every level)
+in the last of those renders: CPU work on every frame, whatever the GPU.
+Figures are from whatever OpenGL the machine has
 (Mesa llvmpipe without a GPU; the report's params say which); ``fps_gpu`` only
 when the GL renderer is a GPU.
 
@@ -411,6 +414,7 @@ class Flight:
     levels_moved: list = field(default_factory=list)
     steps_behind: int = 0
     frame_ms: list = field(default_factory=list)  # normal-mode renderer
+    plan_ms: list = field(default_factory=list)  # its clipmap's draw plan (CPU ms), last repeat
     frame_ms_test: list = field(default_factory=list)
     triangles: list = field(default_factory=list)
     first_fill_ms: float = 0.0  # the first frame's update: every level filled (the mesh built)
@@ -456,6 +460,9 @@ class Subject:
         f = self.flight
         if self.normal is not None:
             f.frame_ms.append(render_best(self.normal, camera)[1])
+            plan_ms = getattr(self.normal.terrain_layer, "plan_ms", None)
+            if plan_ms is not None:
+                f.plan_ms.append(plan_ms)
         image, ms = render_best(self.test, camera)
         f.frame_ms_test.append(ms)
         f.triangles.append(self.test.terrain_layer.triangles)
@@ -625,6 +632,7 @@ def _headline_metrics(report: Report, runs: list[PathRun]) -> None:
     m["update_ms_per_frame_p99"] = _pct(update, 99)
     m["frame_ms"] = statistics.median(t for r in runs for t in r.default.frame_ms)
     m["reference_frame_ms"] = statistics.median(t for r in runs for t in r.reference.frame_ms)
+    m["draw_plan_ms"] = statistics.median(t for r in runs for t in r.default.plan_ms)
     gl = str(report.params["gl_renderer"]).lower()
     if not any(s in gl for s in SOFTWARE_GL):
         m["fps_gpu"] = 1e3 / m["frame_ms"]

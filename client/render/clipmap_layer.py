@@ -648,27 +648,65 @@ def block_strides(err_m: np.ndarray, lo: np.ndarray, hi: np.ndarray, camera_loca
     ``triangles`` ((m, 1 + len(DECIMATION_STRIDES)), :func:`block_triangles`): a block a ring's
     edge cuts short takes, of the strides within the bound, the one that draws the fewest
     triangles (a coarser one can draw more: the clamp keeps every post of the cut edge), coarser
-    on a tie, without a morph (it pops by at most pixel_error pixels when it changes)."""
-    px = err_m * focal_px / np.maximum(_distances(lo, hi, camera_local), 1e-9)[:, None]
-    strides = np.ones(len(err_m), np.int32)
-    morph = np.zeros(len(err_m), np.float32)
-    ok = np.ones(len(err_m), bool)
-    oks = np.ones((len(err_m), 1 + len(DECIMATION_STRIDES)), bool)  # columns: stride 1, DECIMATION_STRIDES
-    for s_i in reversed(range(len(DECIMATION_STRIDES))):  # fine to coarse
-        r = px[:, s_i]
-        morph = np.where(ok, np.clip(2.0 - r / pixel_error, 0.0, 1.0), morph)  # towards this stride
-        ok &= r <= pixel_error
-        oks[:, 1 + s_i] = ok
-        strides = np.where(ok, DECIMATION_STRIDES[s_i], strides)
-    morph = np.where(strides == DECIMATION_STRIDES[0], 0.0, morph).astype(np.float32)  # the coarsest
-    if triangles is not None:
-        cut = triangles[:, 0] != 2 * BLOCK * BLOCK
-        if cut.any():
-            order = np.array([*range(1, 1 + len(DECIMATION_STRIDES)), 0])  # coarse to fine: argmin's tie
-            cost = np.where(oks[cut], triangles[cut], np.iinfo(np.int64).max)[:, order]
-            strides[cut] = np.array([1, *DECIMATION_STRIDES], np.int32)[order[np.argmin(cost, axis=1)]]
-            morph[cut] = 0.0
+    on a tie, without a morph (it pops by at most pixel_error pixels when it changes).
+
+    One compiled pass (:func:`_strides_kernel`): on the frame's path, for every level."""
+    m = len(err_m)
+    strides = np.ones(m, np.int32)
+    morph = np.zeros(m, np.float32)
+    if m:
+        tri = np.zeros((0, 1 + len(DECIMATION_STRIDES)), np.int64) if triangles is None else triangles
+        _strides_kernel(np.ascontiguousarray(err_m, np.float64), lo, hi, np.asarray(camera_local, np.float64),
+                        float(focal_px), float(pixel_error), np.ascontiguousarray(tri, np.int64),
+                        triangles is not None, _DECIMATION_STRIDES_ARRAY, 2 * BLOCK * BLOCK, strides, morph)
     return strides, morph
+
+
+_DECIMATION_STRIDES_ARRAY = np.array(DECIMATION_STRIDES, np.int32)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _box_distance(lo, hi, b, cam):
+    """Distance from cam (3,) to the nearest point of box b of (lo, hi) (m, 3)."""
+    d2 = 0.0
+    for a in range(3):
+        g = max(max(lo[b, a] - cam[a], cam[a] - hi[b, a]), 0.0)
+        d2 += g * g
+    return math.sqrt(d2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _strides_kernel(err, lo, hi, cam, focal_px, pixel_error, triangles, cut_rule, ds, whole_triangles,
+                    strides, morph):
+    """:func:`block_strides` into strides, morph, block by block."""
+    n_s = ds.shape[0]
+    oks = np.empty(n_s + 1, np.bool_)
+    for b in range(err.shape[0]):
+        dist = max(_box_distance(lo, hi, b, cam), 1e-9)
+        stride = 1
+        mo = 0.0
+        ok = True
+        oks[0] = True
+        for s_i in range(n_s - 1, -1, -1):  # fine to coarse
+            r = err[b, s_i] * focal_px / dist
+            if ok:
+                mo = min(max(2.0 - r / pixel_error, 0.0), 1.0)  # towards this stride
+            ok = ok and r <= pixel_error
+            oks[1 + s_i] = ok
+            if ok:
+                stride = ds[s_i]
+        if stride == ds[0]:  # the coarsest
+            mo = 0.0
+        if cut_rule and triangles[b, 0] != whole_triangles:
+            best = -1  # coarse to fine, stride 1 last: the first of the fewest triangles
+            for c in range(1, n_s + 2):
+                col = c if c <= n_s else 0
+                if oks[col] and (best < 0 or triangles[b, col] < triangles[b, best]):
+                    best = col
+            stride = 1 if best == 0 else ds[best - 1]
+            mo = 0.0
+        strides[b] = stride
+        morph[b] = mo
 
 
 # -- stitched edges: two neighbouring decimated blocks draw their shared edge with fewer posts
@@ -756,8 +794,29 @@ def edge_deviations(blk: np.ndarray, level, n: int) -> np.ndarray:
 
 def _distances(lo: np.ndarray, hi: np.ndarray, camera_local: np.ndarray) -> np.ndarray:
     """(m,) distance from the camera to the nearest point of each box (lo, hi)."""
-    gap = np.maximum(np.maximum(lo - camera_local, camera_local - hi), 0.0)
-    return np.sqrt((gap ** 2).sum(-1))
+    out = np.empty(len(lo))
+    _distances_kernel(lo, hi, np.asarray(camera_local, np.float64), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _distances_kernel(lo, hi, cam, out):
+    for b in range(lo.shape[0]):
+        out[b] = _box_distance(lo, hi, b, cam)
+
+
+def _allowed_edges(corner_to_corner: bool) -> np.ndarray:
+    """(max stride + 1, len(EDGE_STRIDES)) bool: whether a block of stride s may draw an edge
+    with EDGE_STRIDES[i] (:func:`edge_choices`; not BLOCK unless ``corner_to_corner``)."""
+    out = np.zeros((max(DECIMATION_STRIDES) + 1, len(EDGE_STRIDES)), bool)
+    for s in DECIMATION_STRIDES:
+        for i, e in enumerate(EDGE_STRIDES):
+            out[s, i] = e in edge_choices(s) and (corner_to_corner or e < BLOCK)
+    return out
+
+
+_ALLOWED_EDGES = {c: _allowed_edges(c) for c in (False, True)}
+_EDGE_STRIDES_ARRAY = np.array(EDGE_STRIDES, np.int32)
 
 
 def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neighbours: np.ndarray,
@@ -769,29 +828,45 @@ def edge_strides(strides: np.ndarray, err_m: np.ndarray, dev_m: np.ndarray, neig
     block's distance, at most ``pixel_error`` pixels (decimated_grid: the two add at most). Else
     1, as every edge without a neighbour (``neighbours``, :func:`block_neighbours`). Each edge is
     decided once, from its south or west block, and written to both blocks: they draw it alike,
-    watertight. ``corner_to_corner`` False: no edge of BLOCK cells (MAX_CORNER_EDGE_SAG_M)."""
+    watertight. ``corner_to_corner`` False: no edge of BLOCK cells (MAX_CORNER_EDGE_SAG_M).
+    One compiled pass (:func:`_edges_kernel`)."""
     m = len(strides)
     edges = np.ones((m, 4), np.int32)
-    px_scale = focal_px / np.maximum(dist, 1e-9)
-    own = np.zeros(m)
-    for i, s in enumerate(DECIMATION_STRIDES):
-        at = strides == s
-        own[at] = err_m[at, i] * px_scale[at]
-    allowed = {e: np.isin(strides, [s for s in DECIMATION_STRIDES if e in edge_choices(s)])
-               & (corner_to_corner or e < BLOCK) for e in EDGE_STRIDES}
-    for side, (mine, theirs) in enumerate(((2, 0), (1, 3))):  # north: my N = their S; east: my E = their W
-        nb = neighbours[:, side]
-        a = np.flatnonzero(nb >= 0)
-        b = nb[a]
-        e = np.ones(len(a), np.int32)
-        for s_i, s in enumerate(EDGE_STRIDES):  # coarse to fine: the first that holds
-            d = dev_m[a, side, s_i]
-            ok = ((e == 1) & allowed[s][a] & allowed[s][b] & (own[a] + d * px_scale[a] <= pixel_error)
-                  & (own[b] + d * px_scale[b] <= pixel_error))
-            e = np.where(ok, s, e)
-        edges[a, mine] = e
-        edges[b, theirs] = e
+    if m:
+        _edges_kernel(np.asarray(strides, np.int64), np.ascontiguousarray(err_m, np.float64),
+                      np.ascontiguousarray(dev_m, np.float64), np.ascontiguousarray(neighbours, np.int64),
+                      np.asarray(dist, np.float64), float(focal_px), float(pixel_error),
+                      _DECIMATION_STRIDES_ARRAY, _EDGE_STRIDES_ARRAY, _ALLOWED_EDGES[bool(corner_to_corner)], edges)
     return edges
+
+
+@numba.njit(cache=True, nogil=True)
+def _edges_kernel(strides, err, dev, neighbours, dist, focal_px, pixel_error, ds, es, allowed, edges):
+    """:func:`edge_strides` into edges (m, 4), ones on entry."""
+    m = strides.shape[0]
+    own = np.zeros(m)
+    scale = np.empty(m)
+    for b in range(m):
+        scale[b] = focal_px / max(dist[b], 1e-9)
+        for i in range(ds.shape[0]):
+            if strides[b] == ds[i]:
+                own[b] = err[b, i] * scale[b]
+    for side in range(2):  # north: my N (2) = their S (0); east: my E (1) = their W (3)
+        mine, theirs = (2, 0) if side == 0 else (1, 3)
+        for a in range(m):
+            b = neighbours[a, side]
+            if b < 0:
+                continue
+            e = 1
+            sa, sb = strides[a], strides[b]
+            for s_i in range(es.shape[0]):  # coarse to fine: the first that holds
+                d = dev[a, side, s_i]
+                if (sa < allowed.shape[0] and sb < allowed.shape[0] and allowed[sa, s_i] and allowed[sb, s_i]
+                        and own[a] + d * scale[a] <= pixel_error and own[b] + d * scale[b] <= pixel_error):
+                    e = es[s_i]
+                    break
+            edges[a, mine] = e
+            edges[b, theirs] = e
 
 
 def border_edges(blk: np.ndarray, region: Rect, strides: np.ndarray, edges: np.ndarray
@@ -802,13 +877,26 @@ def border_edges(blk: np.ndarray, region: Rect, strides: np.ndarray, edges: np.n
     coarser level's edge (alpha = 1), the odd ones halfway between two coarser posts, so the edge
     drawn with the even posts alone is the same surface and meets the coarser level's vertices
     exactly, with no T-junction for the border triangles to fill (``border_segments_left``)."""
-    whole = _whole(blk) & (strides >= 2)
-    even_j, even_i = blk[:, 1] % 2 == 0, blk[:, 0] % 2 == 0
-    sides = np.stack([whole & even_j & (blk[:, 0] == region.i0) & (region.i0 % 2 == 0),  # south
-                      whole & even_i & (blk[:, 3] == region.j1) & (region.j1 % 2 == 0),  # east
-                      whole & even_j & (blk[:, 2] == region.i1) & (region.i1 % 2 == 0),  # north
-                      whole & even_i & (blk[:, 1] == region.j0) & (region.j0 % 2 == 0)], -1)  # west
-    return np.where(sides, 2, edges).astype(edges.dtype), sides
+    out = np.array(edges, dtype=edges.dtype, copy=True)
+    sides = np.zeros((len(blk), 4), bool)
+    if len(blk):
+        _border_edges_kernel(blk, region.i0, region.j0, region.i1, region.j1, strides, BLOCK, out, sides)
+    return out, sides
+
+
+@numba.njit(cache=True, nogil=True)
+def _border_edges_kernel(blk, i0, j0, i1, j1, strides, size, edges, sides):
+    for b in range(blk.shape[0]):
+        if not (blk[b, 2] - blk[b, 0] == size and blk[b, 3] - blk[b, 1] == size and strides[b] >= 2):
+            continue
+        even_j, even_i = blk[b, 1] % 2 == 0, blk[b, 0] % 2 == 0
+        sides[b, 0] = even_j and blk[b, 0] == i0 and i0 % 2 == 0  # south
+        sides[b, 1] = even_i and blk[b, 3] == j1 and j1 % 2 == 0  # east
+        sides[b, 2] = even_j and blk[b, 2] == i1 and i1 % 2 == 0  # north
+        sides[b, 3] = even_i and blk[b, 1] == j0 and j0 % 2 == 0  # west
+        for side in range(4):
+            if sides[b, side]:
+                edges[b, side] = 2
 
 
 def border_segments_left(region: Rect, blk: np.ndarray, sides: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -816,23 +904,42 @@ def border_segments_left(region: Rect, blk: np.ndarray, sides: np.ndarray) -> tu
     border side drawn with the coarser level's posts alone (``sides``, (m, 4) south, east,
     north, west: :func:`border_edges`' mask): nothing there for a border triangle to fill."""
     rows, cols = border_segments(region)
+    if not sides.any():
+        return rows, cols
     h, w = region.i1 - region.i0, region.j1 - region.j0
     out = []
+    # (segments, their length along the border, ((side, at, column of segments holding at), ...))
     for segments, length, along in ((rows, w, ((0, 0, 0), (2, h, 2))), (cols, h, ((3, 0, 1), (1, w, 3)))):
         keep = np.ones(len(segments), bool)
         for side, at, col in along:
-            on = sides[:, side]
-            if not on.any():
-                continue
-            start = (blk[on, 1] - region.j0) if side in (0, 2) else (blk[on, 0] - region.i0)
-            covered = np.zeros(length + 1, bool)
-            covered[(start[:, None] + np.arange(BLOCK)).ravel()] = True
-            gaps = np.concatenate([[0], np.cumsum(~covered[:length])])
-            mine = segments[:, col] == at
-            a, b = (segments[:, 1], segments[:, 3]) if side in (0, 2) else (segments[:, 0], segments[:, 2])
-            keep &= ~(mine & (gaps[b] - gaps[a] == 0))
+            by_cols = side in (0, 2)  # a row's segments run along columns
+            _spare_kernel(segments, blk, sides, side, 1 if by_cols else 0, region.j0 if by_cols else region.i0,
+                          at, col, length, BLOCK, keep)
         out.append(segments[keep])
     return out[0], out[1]
+
+
+@numba.njit(cache=True, nogil=True)
+def _spare_kernel(segments, blk, sides, side, start_col, offset, at, col, length, size, keep):
+    """Clear keep[s] for the segments (columns col == at) whose every cell along the border a
+    block's side ``side`` covers (its cells from blk[:, start_col] - offset, size of them)."""
+    covered = np.zeros(length + 1, np.bool_)
+    found = False
+    for b in range(blk.shape[0]):
+        if sides[b, side]:
+            found = True
+            first = blk[b, start_col] - offset
+            for t in range(size):
+                covered[first + t] = True
+    if not found:
+        return
+    gaps = np.zeros(length + 1, np.int64)  # uncovered cells before each post
+    for t in range(length):
+        gaps[t + 1] = gaps[t] + (0 if covered[t] else 1)
+    a_col, b_col = (1, 3) if start_col == 1 else (0, 2)
+    for s in range(segments.shape[0]):
+        if segments[s, col] == at and gaps[segments[s, b_col]] == gaps[segments[s, a_col]]:
+            keep[s] = False
 
 
 def _variants() -> tuple[list, np.ndarray]:
@@ -854,8 +961,25 @@ VARIANT_TRIANGLES = np.array([len(decimated_grid(s, BLOCK, e)) for s, e in VARIA
 
 def block_variants(strides: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """(m,) index into VARIANTS of each block's (stride, edges)."""
-    log = lambda x: np.log2(x).astype(np.int64)  # noqa: E731 - powers of two
-    return _VARIANT_TABLE[log(strides), log(edges[:, 0]), log(edges[:, 1]), log(edges[:, 2]), log(edges[:, 3])]
+    out = np.empty(len(strides), np.int64)
+    _variants_kernel(strides, edges, _VARIANT_TABLE, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _log2(x):
+    """log2 of a power of two."""
+    k = 0
+    while (1 << k) < x:
+        k += 1
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
+def _variants_kernel(strides, edges, table, out):
+    for b in range(strides.shape[0]):
+        out[b] = table[_log2(strides[b]), _log2(edges[b, 0]), _log2(edges[b, 1]), _log2(edges[b, 2]),
+                       _log2(edges[b, 3])]
 
 
 # Culling boxes are padded by this (metres) plus BOX_PAD_RELATIVE of the block's distance from
@@ -905,15 +1029,31 @@ def _box_kernel(pos, blk, n, size, coarser, origin, basis, lo, hi):
 
 
 def visible_blocks(lo: np.ndarray, hi: np.ndarray, view_proj: np.ndarray) -> np.ndarray:
-    """Mask of the blocks whose boxes (lo, hi) (m, 3), local ENU, may be in the view frustum."""
-    if len(lo) == 0:
-        return np.zeros(0, bool)
-    box = np.stack([np.stack([np.where(k & 1, hi[:, 0], lo[:, 0]), np.where(k & 2, hi[:, 1], lo[:, 1]),
-                              np.where(k & 4, hi[:, 2], lo[:, 2])], -1) for k in range(8)], 1)  # (m, 8, 3)
-    clip = np.concatenate([box, np.ones((*box.shape[:2], 1))], -1) @ view_proj.T  # (m, 8, 4)
-    x, y, w = clip[..., 0], clip[..., 1], clip[..., 3]
-    outside = ((x > w).all(1) | (x < -w).all(1) | (y > w).all(1) | (y < -w).all(1) | (w <= 0).all(1))
-    return ~outside
+    """Mask of the blocks whose boxes (lo, hi) (m, 3), local ENU, may be in the view frustum: not
+    all eight corners beyond one of the left, right, bottom and top planes or behind the eye."""
+    out = np.zeros(len(lo), bool)
+    if len(lo):
+        _frustum_kernel(lo, hi, np.ascontiguousarray(view_proj, np.float64), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _frustum_kernel(lo, hi, m, out):
+    for b in range(lo.shape[0]):
+        right = left = above = below = behind = True  # every corner beyond that plane so far
+        for k in range(8):
+            x = hi[b, 0] if k & 1 else lo[b, 0]
+            y = hi[b, 1] if k & 2 else lo[b, 1]
+            z = hi[b, 2] if k & 4 else lo[b, 2]
+            cx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+            cy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+            cw = m[3, 0] * x + m[3, 1] * y + m[3, 2] * z + m[3, 3]
+            right = right and cx > cw
+            left = left and cx < -cw
+            above = above and cy > cw
+            below = below and cy < -cw
+            behind = behind and cw <= 0.0
+        out[b] = not (right or left or above or below or behind)
 
 
 @dataclass
@@ -1011,10 +1151,12 @@ class ClipmapLayer:
         self._detail.repeat_x = self._detail.repeat_y = True
         self._detail.build_mipmaps()
         self.draws: list[LevelDraw] = []
+        self._rings: dict[int, tuple] = {}  # level -> ((region, hole), its ring's blocks)
         self._bounds: dict[int, tuple] = {}  # level -> (key, lo, hi, decimation): its ring's blocks'
         # culling boxes and (errors, edge deviations, neighbours, triangles a stride) (None without pixel_error)
         self.triangles = self.vertices = 0
         self.update_ms = 0.0
+        self.plan_ms = 0.0  # CPU time of the last draw's plan (culling, strides, edges: every level)
         self.rebuilds = 0
         self._height_above_ground = 0.0
         self._focus = (0.0, 0.0)
@@ -1128,7 +1270,10 @@ class ClipmapLayer:
         for k in sorted(regions, reverse=True):
             hole = regions.get(k - 1)
             hole_k = None if hole is None else Rect(hole.i0 // 2, hole.j0 // 2, hole.i1 // 2, hole.j1 // 2)
-            blk = blocks(ring_rects(regions[k], hole_k), BLOCK)
+            ring = self._rings.get(k)
+            if ring is None or ring[0] != (regions[k], hole_k):
+                ring = self._rings[k] = ((regions[k], hole_k), blocks(ring_rects(regions[k], hole_k), BLOCK))
+            blk = ring[1]
             coarse = c.levels[k + 1] if k + 1 in regions else None
             key = (regions[k], hole_k, c.levels[k].version, None if coarse is None else coarse.version,
                    self.origin.ecef.tobytes())
@@ -1193,18 +1338,21 @@ class ClipmapLayer:
     @staticmethod
     def set_uniforms(program, values: dict) -> None:
         for name, value in values.items():
-            if name in program:
+            member = program.get(name, None)  # one lookup (``name in program`` walks every member)
+            if member is not None:
                 if isinstance(value, bytes):
-                    program[name].write(value)
+                    member.write(value)
                 else:
-                    program[name].value = value
+                    member.value = value
 
     def draw(self, frame: Frame) -> None:
         import moderngl
 
         if self.clipmap is None:
             return
+        t0 = time.perf_counter()
         self.draws = self.plan(frame)
+        self.plan_ms = (time.perf_counter() - t0) * 1e3
         p, bp = self.program, self._border_program
         for prog in (p, bp):
             frame.write_common(prog)
@@ -1274,6 +1422,7 @@ def _write_instances(buffer, instances: np.ndarray) -> None:
     buffer.write(data)
 
 
+@functools.lru_cache(maxsize=64)
 def border_segments(region: Rect) -> tuple[np.ndarray, np.ndarray]:
     """Instances (i0, j0, i1, j1), relative to the region's first post, of the zero-area border
     triangles of a drawn region: along its first and last rows (segments of BLOCK cells starting
@@ -1293,7 +1442,10 @@ def border_segments(region: Rect) -> tuple[np.ndarray, np.ndarray]:
         if (region.j0 + j) & 1 == 0:
             for i in range(first_i, h, BLOCK):
                 cols_out.append((i, j, min(i + BLOCK, h), j))
-    return (np.array(rows_out, np.int32).reshape(-1, 4), np.array(cols_out, np.int32).reshape(-1, 4))
+    rows, cols = np.array(rows_out, np.int32).reshape(-1, 4), np.array(cols_out, np.int32).reshape(-1, 4)
+    rows.setflags(write=False)  # cached: shared by every caller
+    cols.setflags(write=False)
+    return rows, cols
 
 
 def clipmap_factory(terrain, **kw):

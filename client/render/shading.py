@@ -114,8 +114,9 @@ class Frame:
             "u_fog_rgb": np.array(self.fog_rgb, "f4").tobytes(),
         }
         for name, data in values.items():
-            if name in program:
-                program[name].write(data)
+            member = program.get(name, None)  # one lookup (``name in program`` walks every member)
+            if member is not None:
+                member.write(data)
 
 
 GLSL_COMMON = f"""
