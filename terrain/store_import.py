@@ -358,7 +358,7 @@ def _error_vs_sources(source: st.StoreSource, rasters, max_points: int = 200_000
         source.heights_into(lat, lon, h, s)
         ok = (s == STATUS_OK) & np.isfinite(want)
         if r.filled is not None:
-            ok &= ~r.filled[rows, cols]
+            ok &= r.filled[rows, cols] == 0  # uint8 flags: 1 where a void was filled
         d = np.abs(h[ok] - want[ok])
         worst = max(worst, float(d.max(initial=0.0)))
         sq += float(np.sum(d ** 2))

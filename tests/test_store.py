@@ -16,7 +16,7 @@ from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFo
 from terrain import heightcodec as hc, quadtree
 from terrain.dem import read_dem
 from terrain.raster import STATUS_OK, STATUS_OUTSIDE
-from terrain.store import CLASS_MEASURED, CLASS_OUTSIDE, StoreSource, TerrainStore, lattice_spacing_deg
+from terrain.store import CLASS_FILLED, CLASS_MEASURED, CLASS_OUTSIDE, StoreSource, TerrainStore, lattice_spacing_deg
 from terrain.store_import import import_dems
 from terrain.terrain import Terrain
 
@@ -393,6 +393,25 @@ def _small_asc(path: Path, posts: int = 100) -> Path:
     lines += [" ".join(str(int(v)) for v in row) for row in h[::-1]]
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def test_import_of_a_dem_with_voids_fills_them_and_measures_only_the_rest(tmp_path):
+    """An SRTM-style void (NODATA) is filled by the documented rule and imported as filled; the
+    summary's error against the source is taken over the measured posts only (a DEM with voids
+    once crashed the import there)."""
+    src = _small_asc(tmp_path / "alps_voids.asc")
+    lines = src.read_text().splitlines()
+    for k in range(30, 36):  # a 6 x 8 void inside the grid
+        row = lines[6 + k].split()
+        row[40:48] = ["-32768"] * 8
+        lines[6 + k] = " ".join(row)
+    src.write_text("\n".join(lines) + "\n")
+    summary = import_dems([src], tmp_path / "store", step_m=1.0)
+    assert summary.filled_posts > 0 and summary.max_error_vs_source_m < 100.0
+    store = TerrainStore(tmp_path / "store")
+    r = store.regions[0].rects[0]
+    _, classes = store.decode(store.regions[0], 0, r.row0, r.row1, r.col0, r.col1)
+    assert (classes == CLASS_FILLED).any() and (classes == CLASS_MEASURED).sum() > 50 * (classes == CLASS_FILLED).sum()
 
 
 @pytest.mark.parametrize("kind", ["fractal", "cellular"])
