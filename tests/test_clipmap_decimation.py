@@ -704,3 +704,27 @@ def test_compiled_frame_passes_equal_their_vectorised_definitions():
         assert np.array_equal(vis, visible_np(lo, hi, proj @ view))
         n_vis += int(vis.sum())
     assert 0 < n_vis < 40 * m  # some blocks in view and some out
+
+
+def test_pruned_overlay_rows_give_the_errors_of_the_whole_rows():
+    """decimation_errors evaluates the overlay rows without their zero-weight terms and without
+    the rows that are a post minus itself: bit for bit the errors of every row in full, on the
+    blocks of a ring over rough terrain (whole blocks and blocks cut short)."""
+    from client.render.clipmap import Rect, blocks, ring_rects
+    from client.render.clipmap_layer import _overlay_errors, overlay_rows
+
+    n = 256
+    rng = np.random.default_rng(8)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    pos = np.stack([90.0 * j + 6.4e6, 90.0 * i, np.cumsum(rng.normal(0, 30.0, (n, n)), 1)], -1)
+    blk = blocks(ring_rects(Rect(-7, 1001, 247, 1255), Rect(57, 1065, 183, 1191)), BLOCK)
+    got = decimation_errors(blk, SimpleNamespace(pos_ecef=pos), n)
+    want = np.empty_like(got)
+    for b in range(len(blk)):
+        h, w = int(blk[b, 2] - blk[b, 0]), int(blk[b, 3] - blk[b, 1])
+        for s_i, s in enumerate(DECIMATION_STRIDES):
+            idx, wt = overlay_rows(s, BLOCK, h, w)
+            _overlay_errors(pos, blk[b:b + 1].astype(np.int64), n, BLOCK, idx, wt,
+                            np.full(len(idx), idx.shape[1], np.int64), want[b:b + 1], s_i)
+    assert len({(int(b[2] - b[0]), int(b[3] - b[1])) for b in blk}) > 1 and (got > 0).all()
+    assert np.array_equal(got, want)

@@ -539,10 +539,11 @@ _GRID_WEIGHTS = {s: grid_weights(decimated_grid(s)) for s in DECIMATION_STRIDES}
 
 
 @numba.njit(cache=True, nogil=True)
-def _overlay_errors(pos, blk, n, size, idx, w, out, col):
-    """out[b, col] = the largest norm over overlay rows (idx, w) of block b's combination of posts
-    (each block's posts taken relative to its first, so the float64 ECEF magnitudes cancel first).
-    Every block of ``blk`` has the shape the rows were made for."""
+def _overlay_errors(pos, blk, n, size, idx, w, terms, out, col):
+    """out[b, col] = the largest norm over overlay rows (idx, w; the first terms[k] of row k) of
+    block b's combination of posts (each block's posts taken relative to its first, so the
+    float64 ECEF magnitudes cancel first). Every block of ``blk`` has the shape the rows were
+    made for."""
     side = size + 1
     local = np.empty((side * side, 3))
     for b in range(blk.shape[0]):
@@ -556,7 +557,7 @@ def _overlay_errors(pos, blk, n, size, idx, w, out, col):
         best = 0.0
         for k in range(idx.shape[0]):
             x = y = z = 0.0
-            for j in range(idx.shape[1]):
+            for j in range(terms[k]):
                 v, wk = idx[k, j], w[k, j]
                 x += wk * local[v, 0]
                 y += wk * local[v, 1]
@@ -586,8 +587,20 @@ def morph_targets(stride: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def _overlay(stride: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    return overlay_rows(stride, BLOCK, h, w)
+def _overlay(stride: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`overlay_rows` for :func:`_overlay_errors`: (idx, w, terms) with each row's terms of
+    weight zero dropped (the others kept in order, first), and the rows that are one post minus
+    itself (a post both meshes keep: exactly zero) left out. The same sums, bit for bit, with
+    about half the work (stride 2: 109 rows of 6 terms -> 68 of 3.2; stride 4: 233 -> 200 of 4.3)."""
+    idx, w = overlay_rows(stride, BLOCK, h, w)
+    keep = [k for k in range(len(w)) if not (len(set(idx[k][w[k] != 0.0])) == 1 and w[k].sum() == 0.0)]
+    out_i, out_w = np.zeros((len(keep), idx.shape[1]), np.int64), np.zeros((len(keep), idx.shape[1]))
+    terms = np.zeros(len(keep), np.int64)
+    for r, k in enumerate(keep):
+        nz = w[k] != 0.0
+        terms[r] = nz.sum()
+        out_i[r, :terms[r]], out_w[r, :terms[r]] = idx[k][nz], w[k][nz]
+    return out_i, out_w, terms
 
 
 def _shape_triangles() -> np.ndarray:
@@ -1151,9 +1164,11 @@ class ClipmapLayer:
         self._detail.repeat_x = self._detail.repeat_y = True
         self._detail.build_mipmaps()
         self.draws: list[LevelDraw] = []
-        self._rings: dict[int, tuple] = {}  # level -> ((region, hole), its ring's blocks)
-        self._bounds: dict[int, tuple] = {}  # level -> (key, lo, hi, decimation): its ring's blocks'
-        # culling boxes and (errors, edge deviations, neighbours, triangles a stride) (None without pixel_error)
+        # level -> (key, ...) of its ring: (blocks, neighbours, triangles a stride); (decimation
+        # errors, edge deviations) when pixel_error is set; (lo, hi) culling boxes. See plan().
+        self._rings: dict[int, tuple] = {}
+        self._errors: dict[int, tuple] = {}
+        self._bounds: dict[int, tuple] = {}
         self.triangles = self.vertices = 0
         self.update_ms = 0.0
         self.plan_ms = 0.0  # CPU time of the last draw's plan (culling, strides, edges: every level)
@@ -1270,21 +1285,30 @@ class ClipmapLayer:
         for k in sorted(regions, reverse=True):
             hole = regions.get(k - 1)
             hole_k = None if hole is None else Rect(hole.i0 // 2, hole.j0 // 2, hole.i1 // 2, hole.j1 // 2)
+            # Three caches, each recomputed only when what it depends on changes: the ring's blocks
+            # (its region and hole), their decimation errors (also the level's posts), their
+            # culling boxes (also the coarser level's posts and the origin).
+            ring_key = (regions[k], hole_k)
             ring = self._rings.get(k)
-            if ring is None or ring[0] != (regions[k], hole_k):
-                ring = self._rings[k] = ((regions[k], hole_k), blocks(ring_rects(regions[k], hole_k), BLOCK))
-            blk = ring[1]
+            if ring is None or ring[0] != ring_key:
+                blk = blocks(ring_rects(regions[k], hole_k), BLOCK)
+                ring = self._rings[k] = (ring_key, blk, block_neighbours(blk), block_triangles(blk))
+            _, blk, neighbours, counts = ring
             coarse = c.levels[k + 1] if k + 1 in regions else None
-            key = (regions[k], hole_k, c.levels[k].version, None if coarse is None else coarse.version,
+            decimation = None
+            if self.pixel_error is not None:
+                key = (ring_key, c.levels[k].version)
+                cached = self._errors.get(k)
+                if cached is None or cached[0] != key:
+                    cached = self._errors[k] = (key, decimation_errors(blk, c.levels[k], c.n),
+                                                edge_deviations(blk, c.levels[k], c.n))
+                decimation = (cached[1], cached[2], neighbours, counts)
+            key = (ring_key, c.levels[k].version, None if coarse is None else coarse.version,
                    self.origin.ecef.tobytes())
             bounds = self._bounds.get(k)
             if bounds is None or bounds[0] != key:
-                decimation = None
-                if self.pixel_error is not None:
-                    decimation = (decimation_errors(blk, c.levels[k], c.n), edge_deviations(blk, c.levels[k], c.n),
-                                  block_neighbours(blk), block_triangles(blk))
-                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin), decimation)
-            _, lo, hi, decimation = bounds
+                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin))
+            _, lo, hi = bounds
             seen = visible_blocks(lo, hi, view_proj)
             cells = int(((blk[seen, 2] - blk[seen, 0]) * (blk[seen, 3] - blk[seen, 1])).sum())
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
