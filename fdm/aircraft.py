@@ -105,9 +105,27 @@ FG_CONTROL_INPUTS = (
     (re.compile(r"/?controls/gear/gear-down"), "gear_down"),
 )
 
+
+def _fg_input_paths(engines: int) -> tuple[str, ...]:
+    """The FlightGear pilot inputs (FG_CONTROL_INPUTS) a model of ``engines`` engines may
+    declare, spelt as JSBSim's tree holds them (absolute paths). An engine's node without an
+    index is the node [0]; only one spelling of each is listed, so none is driven twice."""
+    engine = [f"/controls/engines/engine[{i}]/{x}" for x in ("throttle", "mixture") for i in range(engines)]
+    return (*engine, "/controls/flight/elevator", "/controls/flight/aileron", "/controls/flight/rudder",
+            "/controls/flight/flaps", "/controls/gear/brake-left", "/controls/gear/brake-right",
+            "/controls/gear/gear-down")
+
+
 # An airborne start whose trim fails at full rich is tried again leaned (Aircraft._start)
 # where the air's density ratio is below this (about 500 m and higher).
 LEAN_BELOW_SIGMA = 0.95
+
+# Glide trim (Aircraft._trim_glide). Steeper than this is a dive, not a glide (L/D below 1).
+GLIDE_GAMMA_MIN_DEG = -45.0
+GLIDE_ITERATIONS = 12
+# Newton's target for (udot, wdot ft/s², qdot rad/s²): a tenth of JSBSim's trim tolerances
+# (FGTrimAxis.cpp: 1e-3, 1e-3, 1e-4), so its full trim at the gamma found passes udot unaided.
+GLIDE_TOLERANCE = np.array([1e-4, 1e-4, 1e-5])
 
 _quiet = False
 
@@ -145,7 +163,9 @@ class InitialConditions:
     ``alt_ref`` is "msl" (alt_m above mean sea level) or "agl" (above the
     terrain under the aircraft). ``on_ground`` places the aircraft at rest on
     its wheels (alt_m is ignored) and settles it with JSBSim's ground trim;
-    airborne starts are trimmed (full trim) unless ``trim`` is False.
+    airborne starts are trimmed (full trim) unless ``trim`` is False: in
+    level flight, or a model without engines (a glider) in its steady glide
+    at ``speed_mps``, descending (:meth:`Aircraft.trim`, ``trim_gamma_deg``).
     ``gear_down`` None means down on the ground, up in the air.
     """
 
@@ -346,6 +366,7 @@ class Aircraft:
     def _bind(self) -> None:
         """Look every property up once; the hot loop calls bound C methods only."""
         self._pm = self.fdm.get_property_manager()
+        self._propulsion = self.fdm.get_propulsion()
         n = self._node
         self._run = self.fdm.run
         self._get_alt_ft = n("position/geod-alt-ft").get_double_value
@@ -384,7 +405,13 @@ class Aircraft:
                        n("fcs/right-brake-cmd-norm").set_double_value],
             "gear_down": [n("gear/gear-cmd-norm").set_double_value],
         }
-        for name in _undefined.get(self.name, ()):
+        # FlightGear inputs the model reads: those it left undefined (created by the host) and
+        # those it declares itself (the p51d's <property> /controls/engines/engine/throttle).
+        # One setter a node: "/a/engine/x" and "a/engine[0]/x" name the same one.
+        fg = {}
+        for name in (*_undefined.get(self.name, ()), *(p for p in _fg_input_paths(engines) if self._pm.hasNode(p))):
+            fg.setdefault(name.lstrip("/").replace("/engine/", "/engine[0]/"), name)
+        for name in fg.values():
             control = next((c for pattern, c in FG_CONTROL_INPUTS if pattern.fullmatch(name)), None)
             if control is not None:
                 self._set[control].append(n(name).set_double_value)
@@ -492,6 +519,7 @@ class Aircraft:
         self._alt_ft = agl_ft + t_m / FT_M
         self._diverged = False
         self._last_good = (ic.lat_deg, lon, self._alt_ft * FT_M)  # lat, lon, alt m: the last finite check
+        self._trim_gamma_deg = 0.0
         # JSBSim's ground trim settles height, pitch and roll on the contacts; it needs
         # them to span a plane (JSBSim 1.3.3 crashes the process on SGS and minisgs, whose
         # six contacts all sit at the origin). Otherwise, or when it fails, the placement
@@ -512,7 +540,7 @@ class Aircraft:
                 # (fuel flow goes with the mixture, air flow with the density). Tried only when
                 # full rich fails: a model tuned otherwise (the c310) keeps its full-rich trim.
                 sigma = fdm["atmosphere/sigma"]
-                if not (math.isfinite(sigma) and 0.0 < sigma < LEAN_BELOW_SIGMA):
+                if not (self.n_engines and math.isfinite(sigma) and 0.0 < sigma < LEAN_BELOW_SIGMA):
                     raise
                 initialise(sigma)
                 self.trim()
@@ -561,21 +589,120 @@ class Aircraft:
                                   c.mixture, c.flaps, c.brakes, c.gear_down)
 
     def trim(self) -> None:
-        """JSBSim's full trim; TrimFailed when it finds none.
+        """JSBSim's full trim at the initial conditions; TrimFailed when it finds none.
 
         JSBSim trims at the *initial conditions* and restarts from them (as a
-        script's ``do_simple_trim`` does), so call it at the start. The trim sets throttle and the trim tabs, so afterwards a centred stick
+        script's ``do_simple_trim`` does), so call it at the start. The trim
+        sets throttle and the trim tabs, so afterwards a centred stick
         (pitch = roll = yaw = 0) holds the trimmed flight.
+
+        Level flight (``trim_gamma_deg`` 0) for an aircraft with engines. One
+        without (a glider) cannot hold level flight: JSBSim's trim zeroes udot
+        with the throttle, which it lacks. It is trimmed instead in the steady
+        glide at the requested speed (:meth:`_trim_glide`): ``trim_gamma_deg``
+        is then the glide's flight-path angle (negative, descending): what
+        JSBSim's own trim does with its "gamma fallback" (FGTrim.cpp: "Can't
+        trim udot with throttle, trying flight path angle"), which its Python
+        binding does not expose.
         """
-        try:
-            self.fdm.do_trim(1)
-        except self._trim_error as exc:
-            raise TrimFailed(f"{self.name}: JSBSim trim failed at the initial conditions ({exc}); "
-                             "try another speed or altitude, or trim=False") from None
+        self._trim_gamma_deg = 0.0
+        if self._propulsion.get_num_engines() == 0:
+            self._trim_glide()
+        else:
+            self._do_trim("level flight")
         throttle = min(1.0, max(0.0, self.fdm["fcs/throttle-cmd-norm[0]"] if self.n_engines else 0.0))
         self._controls = replace(self._controls, pitch=0.0, roll=0.0, yaw=0.0, throttle=throttle)
         for setter in self._set["throttle"][self.n_engines:]:  # a FlightGear input the model reads
             setter(throttle)
+
+    @property
+    def trim_gamma_deg(self) -> float:
+        """The flight-path angle of the last trim (degrees, negative descending): 0 for level
+        flight (and for a start without trim), a glider's glide angle (:meth:`trim`)."""
+        return self._trim_gamma_deg
+
+    def _do_trim(self, what: str) -> None:
+        """JSBSim's full trim of the current initial conditions; TrimFailed saying what to try."""
+        try:
+            self.fdm.do_trim(1)
+        except self._trim_error as exc:
+            raise TrimFailed(self._trim_failed_message(what, str(exc))) from None
+
+    def _trim_failed_message(self, what: str, why: str) -> str:
+        fdm = self.fdm
+        speed = fdm["ic/vt-fps"] * FT_M
+        alt = (fdm["ic/h-agl-ft"] + fdm["ic/terrain-elevation-ft"]) * FT_M
+        return (f"{self.name}: JSBSim trim failed for {what} at {speed:.1f} m/s, {alt:.0f} m MSL ({why}); "
+                f"{catalog.trim_hint(self.name, alt)}, or start with trim=False")
+
+    def _glide_residual(self, alpha_deg: float, pitch_trim: float, gamma_deg: float) -> np.ndarray:
+        """(udot, wdot ft/s², qdot rad/s²) at the initial conditions with this angle of attack,
+        pitch trim and flight-path angle: the accelerations JSBSim's trim zeroes, evaluated
+        as its trim does (the state initialised, the models run once, trim status set so the
+        flight controls' filters pass their input through)."""
+        fdm = self.fdm
+        fdm["ic/gamma-deg"] = gamma_deg
+        fdm["ic/alpha-deg"] = alpha_deg  # JSBSim keeps gamma and moves theta
+        fdm["fcs/pitch-trim-cmd-norm"] = pitch_trim
+        fdm.set_trim_status(True)
+        try:
+            fdm.run_ic()
+        finally:
+            fdm.set_trim_status(False)
+        return np.array([fdm["accelerations/udot-ft_sec2"], fdm["accelerations/wdot-ft_sec2"],
+                         fdm["accelerations/qdot-rad_sec2"]])
+
+    def _trim_glide(self) -> None:
+        """Trim an aircraft without engines in its steady glide at the requested speed.
+
+        JSBSim's full trim zeroes udot with the throttle; with no thrust only the
+        flight-path angle gamma can: drag is balanced by the weight's component
+        along the path, so gamma = -atan(D/L) (equilibrium glide, Anderson,
+        *Introduction to Flight*, "Gliding flight": tan(theta) = 1/(L/D)). udot
+        must be within JSBSim's 1e-3 ft/s² (FGTrimAxis.cpp), i.e. gamma within
+        about 0.002 degrees, so gamma is not guessed: a Newton iteration on
+        (alpha, pitch trim, gamma) zeroes (udot, wdot, qdot), started from the
+        L/D estimate; JSBSim's full trim at that gamma then settles every axis
+        (its throttle axis already in tolerance). A model with no glide at that
+        speed (no lift: a ball, a bomb, a balloon; too slow or too fast) is
+        TrimFailed. A few ms for a glider (about 20 evaluations of the models).
+        """
+        fdm = self.fdm
+        lo, hi = fdm["aero/alpha-min-rad"], fdm["aero/alpha-max-rad"]
+        # JSBSim's trim searches alpha over the model's CL-max range, or -5..20 degrees if it has none.
+        lo, hi = (math.degrees(lo), math.degrees(hi)) if hi > lo else (-5.0, 20.0)
+        x = np.array([min(max(2.0, lo), hi), 0.0, 0.0])
+        self._glide_residual(*x)  # level at 2 degrees alpha: L/D for the first estimate of gamma
+        lod = fdm["forces/lod-norm"]
+        x[2] = -math.degrees(math.atan(1.0 / lod)) if lod > 1.0 else -10.0
+        lower = np.array([lo, -1.0, GLIDE_GAMMA_MIN_DEG])
+        upper = np.array([hi, 1.0, 0.0])
+        steps = np.array([1e-3, 1e-4, 1e-3])  # finite-difference steps: deg, norm, deg
+        for _ in range(GLIDE_ITERATIONS):
+            r = self._glide_residual(*x)
+            if not np.isfinite(r).all():
+                break
+            if (np.abs(r) < GLIDE_TOLERANCE).all():
+                fdm["ic/gamma-deg"] = x[2]
+                self._do_trim(f"a steady glide at gamma {x[2]:.2f} deg")
+                self._trim_gamma_deg = float(x[2])
+                return
+            jac = np.empty((3, 3))
+            for j in range(3):
+                xj = x.copy()
+                xj[j] += steps[j]
+                jac[:, j] = (self._glide_residual(*xj) - r) / steps[j]
+            try:
+                dx = np.linalg.solve(jac, -r)
+            except np.linalg.LinAlgError:
+                break
+            # At most 5 degrees of alpha or gamma a step: Newton from a poor start can leap past stall.
+            dx *= min(1.0, 5.0 / max(abs(dx[0]), abs(dx[2]), 1e-12))
+            x = np.clip(x + dx, lower, upper)
+        fdm["ic/gamma-deg"] = 0.0
+        raise TrimFailed(self._trim_failed_message(
+            "a steady glide", f"it has no engines, and no glide at {GLIDE_GAMMA_MIN_DEG:g} to 0 degrees holds "
+            "this speed with the pitch trim's authority"))
 
     # -- stepping -------------------------------------------------------------------------------
 
@@ -843,3 +970,30 @@ class Aircraft:
             raise InvalidArgument("fuel_kg", f"aircraft {self.name!r} has no fuel tanks", value=kg)
         for i in range(tanks):
             self.fdm[f"propulsion/tank[{i}]/contents-lbs"] = kg / LB_KG / tanks
+
+
+# Speeds tried by trim_speeds (m/s): the catalog survey's grid, from a paraglider's to a jet's.
+TRIM_SCAN_SPEEDS = catalog.TRIM_SURVEY_SPEEDS
+_trim_speeds: dict = {}  # (model, altitude to 100 m, speeds) -> the speeds that trimmed
+
+
+def trim_speeds(name: str, alt_m: float = 1500.0, speeds=TRIM_SCAN_SPEEDS) -> tuple:
+    """The speeds (m/s) of ``speeds`` at which ``name`` trims at ``alt_m`` MSL over flat
+    ground: level, or a glider's glide. What TrimFailed's message suggests.
+
+    Opt-in, not part of a failing start: each speed is a whole start and trim, a few ms
+    where JSBSim's trim converges but up to tens of seconds where it wanders (the B17, the
+    ah1s) and JSBSim cannot be interrupted. Cached per (model, altitude to 100 m).
+    """
+    name = catalog.resolve(name)
+    key = (name, round(alt_m, -2), tuple(speeds))
+    if key not in _trim_speeds:
+        ok = []
+        for v in speeds:
+            try:
+                Aircraft(name, FlatTerrain(0.0), InitialConditions(0.0, 0.0, key[1], speed_mps=float(v)))
+            except TrimFailed:
+                continue
+            ok.append(v)
+        _trim_speeds[key] = tuple(ok)
+    return _trim_speeds[key]

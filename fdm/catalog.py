@@ -165,3 +165,100 @@ def replay_script(script: str = "c172_elevator_doublet.xml", seconds: float | No
     our_pos = np.array(our_pos)
     return (geodetic_to_ecef(our_pos[:, 0], our_pos[:, 1], our_pos[:, 2] * FT_M),
             geodetic_to_ecef(ref_pos[:, 0], ref_pos[:, 1], ref_pos[:, 2] * FT_M))
+
+
+# Where each model trims: `sortie fdm trims` (fdm/trim_survey.py: an airborne trimmed start on flat
+# ground at 1500 m MSL, speeds 5 to 150 m/s in 5 m/s steps and 175, 200, 250; JSBSim 1.3.3),
+# the speeds (m/s) that trimmed. Level flight for a powered model, the steady glide for one without
+# engines. The trim window moves with altitude and JSBSim's trim is fragile (a speed inside a
+# window can fail): fdm.aircraft.trim_speeds scans one model at one altitude on request.
+TRIM_SURVEY_ALT_M = 1500.0
+TRIM_SURVEY_SPEEDS = tuple(range(5, 155, 5)) + (175, 200, 250)
+TRIM_SPEEDS_SURVEYED = {
+    "737": (105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "787-8": (100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "A320": (100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "A4": (75, 80, 85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "B747": (95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "Boeing314": (45, 50, 55, 60, 65, 70, 75, 80, 85, 90, 95, 100, 105, 110, 115),
+    "c172p": (30, 35, 40, 45, 50, 55, 60, 65),
+    "c172r": (35, 40, 45, 50, 55, 60, 65),
+    "c172x": (25, 30, 35, 40, 45, 50, 55, 60),
+    "c182": (35, 40, 45, 50, 55, 60, 65),
+    "c310": (55, 65, 70),
+    "Concorde": (110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "DHC6": (45, 50, 55, 60, 65, 70, 75),
+    "f104": (115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "f15": (80, 85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "f16": (70, 75, 80, 85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "F4N": (85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "F80C": (70, 75, 80, 85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200),
+    "fokker100": (75, 80, 85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150),
+    "global5000": (85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "J3Cub": (20, 25, 30, 35, 40, 45),
+    "L17": (40, 45, 50, 55, 60, 65, 70),
+    "MD11": (100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "minisgs": (5, 10),
+    "OV10": (65, 70, 75, 80, 85, 90, 95, 100, 105, 110, 115, 120, 125),
+    "pogo-jsbsim": (175, 200),
+    "SGS": (20, 25, 30),
+    "sgs126": (15, 20, 25, 30, 35, 40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90, 95, 100),
+    "sgs233": (30, 35, 40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90, 95, 100, 105, 110, 115),
+    "T37": (50, 55, 60, 65, 70, 75, 80, 85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175),
+    "T38": (85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+    "t6texan2": (50, 55, 60, 65, 70, 75, 80, 85, 90, 95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150),
+    "XB-70": (95, 100, 105, 110, 115, 120, 125, 130, 135, 140, 145, 150, 175, 200, 250),
+}
+# Models that trim at no speed in the survey, and why (where looked into: see the survey notes).
+TRIM_NEVER = {
+    "ah1s": "a helicopter; JSBSim's full trim is a fixed wing's, and its tries run for seconds each",
+    "B17": "at full throttle its propellers, at JSBSim's trim steady state, cannot hold level flight",
+    "ball": "a sphere: no lift, so neither level flight nor a glide",
+    "ballx": "a sphere: no lift, so neither level flight nor a glide",
+    "C130": "its turboprops give almost no thrust here (about 30 lbf at full throttle, 70 m/s)",
+    "dr1": "its pitch trim cannot balance the pitching moment (JSBSim trims pitch with the trim alone)",
+    "f22": "its fly-by-wire flight controls do not settle in JSBSim's trim",
+    "F450": "a quadcopter: no wing lift; JSBSim's full trim is a fixed wing's",
+    "fokker50": "its flight controls compute the throttle from FlightGear's lever: JSBSim's trim cannot move it",
+    "J246": "a launch vehicle",
+    "L410": "its turboprops make no power here (propellers at 83 degrees, feathered)",
+    "mk82": "a bomb: no engines and L/D below 1, no glide shallower than 45 degrees",
+    "p51d": "its engine does not run after JSBSim's set-running; its throttle is a FlightGear "
+            "manifold-pressure autothrottle that JSBSim's trim cannot move",
+    "pa28": "full throttle cannot hold level flight at 1500 m in the model",
+    "paraglider": "a parafoil under a suspended pilot (not investigated further)",
+    "pc7": "its turboprop gives little thrust here (about 50 lbf at full throttle, 70 m/s)",
+    "Pterosaur": "not investigated",
+    "Short_S23": "not investigated",
+    "Shuttle": "no engines, and its flight controls map the pitch trim to the elevator unevenly: no glide found",
+    "Submarine_Scout": "an airship: buoyancy, not wing lift, holds it up",
+    "weather-balloon": "a balloon: no lift, so neither level flight nor a glide",
+    "wrightFlyer1903": "not investigated",
+    "X15": "a rocket plane (not investigated further)",
+    "x24b": "a rocket-powered lifting body (not investigated further)",
+    "ZLT-NT": "an airship: buoyancy, not wing lift, holds it up",
+}
+
+
+def _ranges(speeds) -> str:
+    """'55, 65-70' for (55, 65, 70): the surveyed speeds as runs of neighbours on the grid."""
+    runs = []
+    for v in speeds:
+        k = TRIM_SURVEY_SPEEDS.index(v)
+        if runs and TRIM_SURVEY_SPEEDS.index(runs[-1][1]) == k - 1:
+            runs[-1][1] = v
+        else:
+            runs.append([v, v])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def trim_hint(name: str, alt_m: float) -> str:
+    """What to try when ``name`` does not trim at ``alt_m`` m MSL, from the survey above."""
+    scan = (f"`sortie fdm trims {name} --alt-m {alt_m:.0f}` (fdm.aircraft.trim_speeds) lists the speeds "
+            "that trim there")
+    where = f"at {TRIM_SURVEY_ALT_M:.0f} m MSL in the catalog survey"
+    if name in TRIM_NEVER:
+        return f"{name} trims at no speed {where} ({TRIM_NEVER[name]})"
+    if name in TRIM_SPEEDS_SURVEYED:
+        return f"{name} trims at {_ranges(TRIM_SPEEDS_SURVEYED[name])} m/s {where}; {scan}"
+    return f"try another speed or altitude; {scan}"

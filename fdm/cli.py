@@ -3,6 +3,7 @@
     sortie fdm list [--json]
     sortie fdm fly AIRCRAFT --lat DEG --lon DEG --alt-m M [--agl] --heading-deg DEG --speed-mps V
                    --seconds S [--dem FILE...] [--ground] [--hold] [--dt S] [--json]
+    sortie fdm trims [AIRCRAFT...] [--alt-m M] [--speeds MPS...] [--timeout-s S] [--json]
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import math
 
 
 def add_parser(sub) -> None:
-    fdm = sub.add_parser("fdm", help="JSBSim aircraft: list the catalog, fly one",
+    fdm = sub.add_parser("fdm", help="JSBSim aircraft: list the catalog, fly one, survey trims",
                          description="List the aircraft of the JSBSim catalog, or fly one over a terrain "
                                      "and print a short track summary.")
     commands = fdm.add_subparsers(dest="fdm_command", metavar="SUBCOMMAND", required=True)
@@ -42,6 +43,10 @@ def add_parser(sub) -> None:
     fly.add_argument("--hold", action="store_true", help="autopilot: hold start heading, altitude and speed")
     fly.add_argument("--json", action="store_true", help="print JSON instead of text")
     fly.set_defaults(func=fly_command)
+
+    from fdm.trim_survey import add_parser as add_trims
+
+    add_trims(commands)
 
 
 def list_command(args) -> int:

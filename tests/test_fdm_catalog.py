@@ -70,6 +70,19 @@ def test_undefined_properties_are_created_and_flightgear_throttles_driven():
     # A second aircraft of the model starts without rediscovering them.
     again = _airborne("fokker50", speed_mps=80.0)
     assert again.undefined_properties == fokker.undefined_properties
+    assert len(fokker._set["throttle"]) == 4  # two engines: fcs/* and FlightGear's, one setter a node
+
+
+def test_flightgear_inputs_a_model_declares_are_driven_too():
+    """The p51d declares FlightGear's /controls/engines/engine/throttle itself (<property>) and
+    reads it (its boost schedule's input): nothing is undefined, and Sortie's throttle still
+    reaches it, once (one node, one setter)."""
+    p51 = _airborne("p51d", speed_mps=80.0)
+    assert not p51.undefined_properties and len(p51._set["throttle"]) == 2
+    for throttle in (0.2, 0.9):
+        p51.set_controls(throttle=throttle)
+        p51.run(0.5)
+        assert p51.fdm["/controls/engines/engine/throttle"] == throttle
 
 
 @pytest.mark.parametrize("name", ["SGS", "minisgs"])
@@ -133,3 +146,21 @@ def test_a_piston_aircraft_that_cannot_trim_full_rich_high_up_is_leaned():
     assert abs(c172p.state().alt_msl_m - start.alt_msl_m) < 1.0 and not c172p.crashed
     assert Aircraft("c310", FlatTerrain(0.0), InitialConditions(47.0, 9.0, 3000.0, speed_mps=100.0)).controls.mixture == 1.0
     assert Aircraft("c172x", FlatTerrain(0.0), InitialConditions(47.0, 9.0, 300.0, speed_mps=50.0)).controls.mixture == 1.0
+
+
+def test_the_trim_survey_covers_the_catalog_and_still_holds():
+    """catalog.TRIM_SPEEDS_SURVEYED / TRIM_NEVER (what TrimFailed's message quotes) name every
+    model once, on the survey's grid; a sample still trims where the table says (a powered
+    model at its lowest and highest speed, a glider at its lowest) and a model the table
+    says never trims fails there (so a JSBSim upgrade that moves them fails here)."""
+    names = set(catalog.list_aircraft())
+    surveyed, never = set(catalog.TRIM_SPEEDS_SURVEYED), set(catalog.TRIM_NEVER)
+    assert surveyed | never == names and not surveyed & never
+    assert all(v in catalog.TRIM_SURVEY_SPEEDS for s in catalog.TRIM_SPEEDS_SURVEYED.values() for v in s)
+    alt = catalog.TRIM_SURVEY_ALT_M
+    for name, v in (("c172x", min), ("c172x", max), ("sgs126", min)):
+        ac = Aircraft(name, FlatTerrain(0.0), InitialConditions(47.0, 9.0, alt, speed_mps=float(
+            v(catalog.TRIM_SPEEDS_SURVEYED[name]))))
+        assert ac.trim_gamma_deg == 0.0 if name == "c172x" else ac.trim_gamma_deg < 0.0
+    with pytest.raises(SortieError, match="trims at no speed"):
+        Aircraft("weather-balloon", FlatTerrain(0.0), InitialConditions(47.0, 9.0, alt, speed_mps=20.0))
