@@ -277,24 +277,79 @@ def gradient_into(heights, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, ou
     On a cell edge the cell to the north-east is used (the last cell at the
     far edges), matching bilinear_into's choice.
     """
-    ny, nx = heights.shape
     for k in range(lat.shape[0]):
         if out_status[k] != STATUS_OUTSIDE:
             continue
         r, c = fractional_index(lat[k], lon[k], crs, x0, y0, dx, dy)
-        if not (r >= 0.0 and r <= ny - 1 and c >= 0.0 and c <= nx - 1):
-            continue
-        i, fy = _cell(r, ny)
-        j, fx = _cell(c, nx)
-        h00 = np.float64(heights[i, j])
-        h01 = np.float64(heights[i, j + 1])
-        h10 = np.float64(heights[i + 1, j])
-        h11 = np.float64(heights[i + 1, j + 1])
-        if (h00 + h01 + h10 + h11) != (h00 + h01 + h10 + h11):
-            continue
-        out_dcol[k] = (h01 - h00) * (1.0 - fy) + (h11 - h10) * fy
-        out_drow[k] = (h10 - h00) * (1.0 - fx) + (h11 - h01) * fx
-        out_status[k] = STATUS_OK
+        dcol, drow, found = _gradient_value(heights, r, c)
+        if found:
+            out_dcol[k] = dcol
+            out_drow[k] = drow
+            out_status[k] = STATUS_OK
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_indices(lat_rows, lon_cols, crs, x0, y0, dx, dy):
+    """(row index of each latitude, column index of each longitude): fractional_index is
+    separable (y from the latitude alone, x from the longitude alone), so a lattice of rows x
+    columns needs rows + columns of them, each what the point's own call gives."""
+    rr = np.empty(lat_rows.shape[0])
+    cc = np.empty(lon_cols.shape[0])
+    for i in range(lat_rows.shape[0]):
+        rr[i] = fractional_index(lat_rows[i], lon_cols[0], crs, x0, y0, dx, dy)[0]
+    for j in range(lon_cols.shape[0]):
+        cc[j] = fractional_index(lat_rows[0], lon_cols[j], crs, x0, y0, dx, dy)[1]
+    return rr, cc
+
+
+@numba.njit(cache=True, nogil=True)
+def bilinear_grid_into(heights, filled, lat_rows, lon_cols, crs, x0, y0, dx, dy, out_h, out_status):
+    """:func:`bilinear_into` over the lattice lat_rows x lon_cols (out_h, out_status (rows,
+    cols)): the same answer at each point, bit for bit, with one index per row and column."""
+    rr, cc = _grid_indices(lat_rows, lon_cols, crs, x0, y0, dx, dy)
+    has_filled = filled.shape[0] > 0
+    for i in range(rr.shape[0]):
+        for j in range(cc.shape[0]):
+            if out_status[i, j] == STATUS_OUTSIDE:
+                h, status = _bilinear_value(heights, filled, has_filled, rr[i], cc[j])
+                if status != STATUS_OUTSIDE:
+                    out_h[i, j] = h
+                    out_status[i, j] = status
+
+
+@numba.njit(cache=True, nogil=True)
+def _gradient_value(heights, r, c):
+    """(d/dcol, d/drow, found) of the bilinear surface at fractional index (r, c): the cell
+    :func:`gradient_into` takes (the north-east one on an edge)."""
+    ny, nx = heights.shape
+    if not (r >= 0.0 and r <= ny - 1 and c >= 0.0 and c <= nx - 1):
+        return 0.0, 0.0, False
+    i, fy = _cell(r, ny)
+    j, fx = _cell(c, nx)
+    h00 = np.float64(heights[i, j])
+    h01 = np.float64(heights[i, j + 1])
+    h10 = np.float64(heights[i + 1, j])
+    h11 = np.float64(heights[i + 1, j + 1])
+    if (h00 + h01 + h10 + h11) != (h00 + h01 + h10 + h11):
+        return 0.0, 0.0, False
+    return (h01 - h00) * (1.0 - fy) + (h11 - h10) * fy, (h10 - h00) * (1.0 - fx) + (h11 - h01) * fx, True
+
+
+@numba.njit(cache=True, nogil=True)
+def gradient_grid_into(heights, lat_rows, lon_cols, crs, x0, y0, dx, dy, mx_rows, my_rows, out_de, out_dn,
+                       out_status):
+    """Raster.gradient_into over the lattice lat_rows x lon_cols, with each row's metres per
+    column and per row step (mx_rows, my_rows: :func:`metres_per_index` of lat_rows) given:
+    the same slopes, bit for bit, for the points still OUTSIDE."""
+    rr, cc = _grid_indices(lat_rows, lon_cols, crs, x0, y0, dx, dy)
+    for i in range(rr.shape[0]):
+        for j in range(cc.shape[0]):
+            if out_status[i, j] == STATUS_OUTSIDE:
+                dcol, drow, found = _gradient_value(heights, rr[i], cc[j])
+                if found:
+                    out_de[i, j] = dcol / mx_rows[i]
+                    out_dn[i, j] = drow / my_rows[i]
+                    out_status[i, j] = STATUS_OK
 
 
 def grid_bounds(georef: Georef, shape: tuple[int, int]) -> tuple[float, float, float, float]:
@@ -430,6 +485,21 @@ class Raster:
             out_de[hit] = dcol[hit] / mx
             out_dn[hit] = drow[hit] / my
             out_status[hit] = st[hit]
+
+    def grid_heights_into(self, lat_rows, lon_cols, out_h, out_status) -> None:
+        """:meth:`heights_into` over the lattice lat_rows x lon_cols (float64 (rows,), (cols,);
+        out_h, out_status (rows, cols)): the same answers, one index per row and column."""
+        g = self.georef
+        bilinear_grid_into(self.heights, self._filled_arg, lat_rows, lon_cols, g.crs, g.x0, g.y0, g.dx, g.dy,
+                           out_h, out_status)
+
+    def grid_gradient_into(self, lat_rows, lon_cols, out_de, out_dn, out_status) -> None:
+        """:meth:`gradient_into` over the lattice lat_rows x lon_cols (outputs (rows, cols))."""
+        g = self.georef
+        mx, my = metres_per_index(g.crs, g.dx, g.dy, lat_rows)
+        gradient_grid_into(self.heights, lat_rows, lon_cols, g.crs, g.x0, g.y0, g.dx, g.dy,
+                           np.ascontiguousarray(mx, np.float64), np.ascontiguousarray(my, np.float64),
+                           out_de, out_dn, out_status)
 
     def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float):
         """This raster if it covers the box (degrees) entirely, else None."""

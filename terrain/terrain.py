@@ -172,6 +172,50 @@ class Terrain:
                 de[idx], dn[idx], status[idx] = sub_de, sub_dn, sub_status
         return de, dn, status
 
+    def height_grid(self, lat_rows, lon_cols) -> HeightResult:
+        """:meth:`heights` at every point of the lattice lat_rows x lon_cols (degrees, (rows,) and
+        (cols,)): height_msl_m and status (rows, cols), the answers :meth:`heights` gives for
+        those points, bit for bit. Sources that answer lattices (rasters) index each row and
+        column once instead of each point (a clipmap level's strips, its normal maps)."""
+        def by_points(lat, lon):
+            r = self.heights(lat, lon)
+            return (r.height_msl_m,), r.status
+
+        outs, status = self._grid(lat_rows, lon_cols, "grid_heights_into", 1, by_points)
+        return HeightResult(outs[0], status)
+
+    def gradient_grid(self, lat_rows, lon_cols) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`gradients` at every point of the lattice lat_rows x lon_cols: (de, dn, status),
+        (rows, cols) each, as :meth:`height_grid`."""
+        def by_points(lat, lon):
+            de, dn, st = self.gradients(lat, lon)
+            return (de, dn), st
+
+        outs, status = self._grid(lat_rows, lon_cols, "grid_gradient_into", 2, by_points)
+        return outs[0], outs[1], status
+
+    def _grid(self, lat_rows, lon_cols, method: str, n_out: int, by_points):
+        """(outputs, status) of a lattice query: the first source's lattice method where it has
+        one, then the per-point query (``by_points``) for the points left, which tries every
+        source in order as the per-point query of the whole lattice would."""
+        lat_rows = check_latlon(lat_rows, np.zeros(np.size(lat_rows)), "row ")[0]
+        lon_cols = check_latlon(np.zeros(np.size(lon_cols)), lon_cols, "column ")[1]
+        shape = (lat_rows.size, lon_cols.size)
+        outs = [np.full(shape, np.nan) for _ in range(n_out)]
+        status = np.full(shape, STATUS_OUTSIDE, np.uint8)
+        if lat_rows.size and lon_cols.size and hasattr(self.sources[0], method):
+            getattr(self.sources[0], method)(lat_rows, lon_cols, *outs, status)
+            left = np.flatnonzero(status.ravel() == STATUS_OUTSIDE)
+            if left.size == 0 or len(self.sources) == 1:
+                return outs, status
+        else:
+            left = np.arange(status.size)
+        got, st = by_points(np.repeat(lat_rows, lon_cols.size)[left], np.tile(lon_cols, lat_rows.size)[left])
+        for out, values in zip(outs, got):
+            out.ravel()[left] = values
+        status.ravel()[left] = st
+        return outs, status
+
     def profile(self, lat1: float, lon1: float, lat2: float, lon2: float, n_samples: int) -> ProfileResult:
         """Heights (m, MSL) at n_samples equally spaced points along the WGS84
         geodesic from (lat1, lon1) to (lat2, lon2), degrees."""

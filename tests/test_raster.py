@@ -275,3 +275,40 @@ def test_warm_terrain_answers_bit_for_bit_the_same(monkeypatch):
     n_cold, n_warm = t.normals(lat, lon), t.normals(lat, lon, warm=True)
     assert np.array_equal(n_cold.normal_enu, n_warm.normal_enu, equal_nan=True)
     assert np.array_equal(n_cold.status, n_warm.status)
+
+
+@pytest.mark.parametrize("dem", ["hgt_alps", "tif_grand_canyon", "asc_boulder"])
+def test_lattice_queries_answer_as_the_points_queries(dem, request):
+    """Terrain.height_grid / gradient_grid (a clipmap level's strips and normal maps: one index a
+    row and a column) give the per-point answers bit for bit, on real DEMs (geographic and Web
+    Mercator), at posts, between them and outside; with a second source behind a cropped first
+    (the points the crop lacks go on to it), and with a first source that answers no lattice."""
+    from types import SimpleNamespace
+
+    from terrain.dem import read_dem
+
+    r = read_dem(request.getfixturevalue(dem))
+    g, b = r.georef, r.bounds
+    crop = Raster(np.asarray(r.heights)[40:200, 30:300], Georef(g.crs, g.x0 + 30 * g.dx, g.y0 + 40 * g.dy, g.dx, g.dy))
+    points_only = SimpleNamespace(heights_into=r.heights_into, gradient_into=r.gradient_into)
+    rng = np.random.default_rng(4)
+    for terrain in (Terrain([r]), Terrain([crop, r]), Terrain([points_only])):
+        lat_rows = np.sort(np.r_[rng.uniform(b[0], b[2], 27), b[0] - 0.01, b[2] + 0.01])  # two rows outside
+        lon_cols = np.r_[rng.uniform(b[1], b[3], 40), b[3] + 0.01]
+        lat, lon = np.repeat(lat_rows, lon_cols.size), np.tile(lon_cols, lat_rows.size)
+        grid, points = terrain.height_grid(lat_rows, lon_cols), terrain.heights(lat, lon)
+        assert grid.height_msl_m.shape == (29, 41)
+        assert np.array_equal(grid.height_msl_m.ravel(), points.height_msl_m, equal_nan=True)
+        assert np.array_equal(grid.status.ravel(), points.status)
+        assert (points.status == STATUS_OK).any() and (points.status == STATUS_OUTSIDE).any()
+        for got, want in zip(terrain.gradient_grid(lat_rows, lon_cols), terrain.gradients(lat, lon)):
+            assert np.array_equal(got.ravel(), want, equal_nan=True)
+    # Exactly at posts, where the snap decides the cell.
+    if g.crs == CRS_GEOGRAPHIC:
+        rows, cols = g.y0 + np.arange(0, 200, 7) * g.dy, g.x0 + np.arange(0, 200, 5) * g.dx
+        assert np.array_equal(Terrain([r]).height_grid(rows, cols).height_msl_m,
+                              np.asarray(r.heights, np.float64)[0:200:7, 0:200:5])
+    with pytest.raises(InvalidArgument, match="column lon"):
+        Terrain([r]).height_grid([b[0]], [np.nan])
+    with pytest.raises(InvalidArgument, match="row lat"):
+        Terrain([r]).gradient_grid([91.0], [b[1]])

@@ -313,7 +313,9 @@ class Clipmap:
         lat_rows = np.clip(lat_rows, -90.0, 90.0)
         lat, lon = np.broadcast_arrays(lat_rows[:, None], lon_cols[None, :])
         h = self._store_posts(k, r)
-        if h is None:
+        if h is None and hasattr(self.terrain, "height_grid"):  # in process: one index a row and a column
+            h = self.terrain.height_grid(lat_rows, lon_cols).height_msl_m
+        elif h is None:
             h = np.asarray(self.terrain.heights(lat.ravel(), lon.ravel()).height_msl_m, np.float64).reshape(lat.shape)
         h = np.where(np.isfinite(h), h, 0.0)  # no data: water at sea level
         surface = h.copy()
@@ -382,17 +384,16 @@ class Clipmap:
         lat_rows, lon_cols = self.latlon(k, np.arange(2 * r.i0, 2 * r.i1 + 2) / 2.0,
                                          np.arange(2 * r.j0, 2 * r.j1 + 2) / 2.0)
         lat_rows = np.clip(lat_rows, -90.0, 90.0)
-        lat = np.repeat(lat_rows, lon_cols.size)
-        lon = np.tile(lon_cols, lat_rows.size)
-        gradients = getattr(self.terrain, "gradients", None)
-        if gradients is not None:  # in process
-            de, dn, _ = gradients(lat, lon)
+        gradient_grid = getattr(self.terrain, "gradient_grid", None)
+        if gradient_grid is not None:  # in process: one index a row and a column
+            de, dn, _ = gradient_grid(lat_rows, lon_cols)
         else:  # a terrain service answers normals: their slopes are -n_e / n_u, -n_n / n_u (n_u > 0)
-            n = np.asarray(self.terrain.normals(lat, lon).normal_enu, np.float64)
+            n = np.asarray(self.terrain.normals(np.repeat(lat_rows, lon_cols.size),
+                                                np.tile(lon_cols, lat_rows.size)).normal_enu, np.float64)
             de, dn = -n[:, 0] / n[:, 2], -n[:, 1] / n[:, 2]
         out = np.empty((lat_rows.size, lon_cols.size, 3))
         lam = np.radians(lon_cols)
-        _normals_ecef(np.ascontiguousarray(de), np.ascontiguousarray(dn), np.radians(lat_rows),
+        _normals_ecef(np.ascontiguousarray(de).ravel(), np.ascontiguousarray(dn).ravel(), np.radians(lat_rows),
                       np.sin(lam), np.cos(lam), out)
         return out
 
