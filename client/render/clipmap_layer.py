@@ -1295,14 +1295,14 @@ class ClipmapLayer:
                 ring = self._rings[k] = (ring_key, blk, block_neighbours(blk), block_triangles(blk))
             _, blk, neighbours, counts = ring
             coarse = c.levels[k + 1] if k + 1 in regions else None
-            decimation = None
+            errors = deviations = None
             if self.pixel_error is not None:
                 key = (ring_key, c.levels[k].version)
                 cached = self._errors.get(k)
                 if cached is None or cached[0] != key:
                     cached = self._errors[k] = (key, decimation_errors(blk, c.levels[k], c.n),
                                                 edge_deviations(blk, c.levels[k], c.n))
-                decimation = (cached[1], cached[2], neighbours, counts)
+                _, errors, deviations = cached
             key = (ring_key, c.levels[k].version, None if coarse is None else coarse.version,
                    self.origin.ecef.tobytes())
             bounds = self._bounds.get(k)
@@ -1315,10 +1315,9 @@ class ClipmapLayer:
             strides = morph = variants = None
             triangles = 2 * cells
             border = None  # draw(): every border segment
-            if decimation is not None:
+            if errors is not None:
                 # Strides and edges of the whole ring (an edge depends on the block beyond it,
                 # seen or not), then the seen blocks'.
-                errors, deviations, neighbours, counts = decimation
                 focal_px = frame.camera.focal(frame.width, frame.height)[0] * frame.width / 2.0
                 strides, morph = block_strides(errors, lo, hi, frame.camera_local, focal_px, self.pixel_error, counts)
                 chord_m = BLOCK * c.spacing_m(k)
