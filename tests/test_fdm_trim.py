@@ -115,3 +115,21 @@ def test_trim_speeds_scans_on_request_and_caches():
     got = trim_speeds("sgs233", 1510.0, speeds=(20, 30, 40))
     assert got == (30, 40)
     assert trim_speeds("SGS233", 1490.0, speeds=(20, 30, 40)) is got
+
+
+def test_sortie_fdm_trims_surveys_models_in_child_processes():
+    """`sortie fdm trims` runs each model in its own process and reports the speeds that trim:
+    the c172x at 50 m/s, not at 10; the ball at neither. Bad arguments are refused by name."""
+    import json
+    import subprocess
+    import sys
+
+    run = lambda *a: subprocess.run([sys.executable, "-m", "sortie.cli", "fdm", "trims", *a],  # noqa: E731
+                                    capture_output=True, text=True, timeout=300)
+    r = run("c172x", "ball", "--speeds", "10", "50", "--json", "--timeout-s", "120")
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = {m["name"]: m for m in json.loads(r.stdout.strip().splitlines()[-1])["results"]}
+    assert got["c172x"]["trims"] == [50.0] and got["ball"]["trims"] == []
+    assert "error" in got["c172x"]["rows"][0] and not got["c172x"]["timed_out"]
+    bad = run("c172x", "--speeds", "0")
+    assert bad.returncode != 0 and "speeds" in bad.stderr
