@@ -164,8 +164,9 @@ class InitialConditions:
     terrain under the aircraft). ``on_ground`` places the aircraft at rest on
     its wheels (alt_m is ignored) and settles it with JSBSim's ground trim;
     airborne starts are trimmed (full trim) unless ``trim`` is False: in
-    level flight, or a model without engines (a glider) in its steady glide
-    at ``speed_mps``, descending (:meth:`Aircraft.trim`, ``trim_gamma_deg``).
+    level flight, or a model without engines (a glider) or started with
+    ``engines_running`` False in its steady glide at ``speed_mps``,
+    descending (:meth:`Aircraft.trim`, ``trim_gamma_deg``).
     ``gear_down`` None means down on the ground, up in the air.
     """
 
@@ -520,6 +521,7 @@ class Aircraft:
         self._diverged = False
         self._last_good = (ic.lat_deg, lon, self._alt_ft * FT_M)  # lat, lon, alt m: the last finite check
         self._trim_gamma_deg = 0.0
+        self._engines_running = ic.engines_running
         # JSBSim's ground trim settles height, pitch and roll on the contacts; it needs
         # them to span a plane (JSBSim 1.3.3 crashes the process on SGS and minisgs, whose
         # six contacts all sit at the origin). Otherwise, or when it fails, the placement
@@ -540,7 +542,8 @@ class Aircraft:
                 # (fuel flow goes with the mixture, air flow with the density). Tried only when
                 # full rich fails: a model tuned otherwise (the c310) keeps its full-rich trim.
                 sigma = fdm["atmosphere/sigma"]
-                if not (self.n_engines and math.isfinite(sigma) and 0.0 < sigma < LEAN_BELOW_SIGMA):
+                if not (self.n_engines and ic.engines_running and math.isfinite(sigma)
+                        and 0.0 < sigma < LEAN_BELOW_SIGMA):
                     raise
                 initialise(sigma)
                 self.trim()
@@ -596,9 +599,10 @@ class Aircraft:
         sets throttle and the trim tabs, so afterwards a centred stick
         (pitch = roll = yaw = 0) holds the trimmed flight.
 
-        Level flight (``trim_gamma_deg`` 0) for an aircraft with engines. One
-        without (a glider) cannot hold level flight: JSBSim's trim zeroes udot
-        with the throttle, which it lacks. It is trimmed instead in the steady
+        Level flight (``trim_gamma_deg`` 0) for an aircraft with engines running.
+        One without (a glider), or started with its engines off (an engine-out
+        exercise), cannot hold level flight: JSBSim's trim zeroes udot with the
+        throttle. It is trimmed instead in the steady
         glide at the requested speed (:meth:`_trim_glide`): ``trim_gamma_deg``
         is then the glide's flight-path angle (negative, descending): what
         JSBSim's own trim does with its "gamma fallback" (FGTrim.cpp: "Can't
@@ -606,7 +610,7 @@ class Aircraft:
         binding does not expose.
         """
         self._trim_gamma_deg = 0.0
-        if self._propulsion.get_num_engines() == 0:
+        if self._propulsion.get_num_engines() == 0 or not self._engines_running:
             self._trim_glide()
         else:
             self._do_trim("level flight")
@@ -701,7 +705,8 @@ class Aircraft:
             x = np.clip(x + dx, lower, upper)
         fdm["ic/gamma-deg"] = 0.0
         raise TrimFailed(self._trim_failed_message(
-            "a steady glide", f"it has no engines, and no glide at {GLIDE_GAMMA_MIN_DEG:g} to 0 degrees holds "
+            "a steady glide", f"{'its engines are off' if self.n_engines else 'it has no engines'}, and no glide "
+            f"at {GLIDE_GAMMA_MIN_DEG:g} to 0 degrees holds "
             "this speed with the pitch trim's authority"))
 
     # -- stepping -------------------------------------------------------------------------------

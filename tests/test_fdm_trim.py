@@ -133,3 +133,21 @@ def test_sortie_fdm_trims_surveys_models_in_child_processes():
     assert "error" in got["c172x"]["rows"][0] and not got["c172x"]["timed_out"]
     bad = run("c172x", "--speeds", "0")
     assert bad.returncode != 0 and "speeds" in bad.stderr
+
+
+@pytest.mark.parametrize("name, speed", [("c172x", 40.0), ("A4", 120.0)])
+def test_an_engine_out_start_is_trimmed_in_its_glide(name, speed):
+    """Started airborne with its engines off (an engine-out exercise), a powered model cannot
+    hold level flight: it starts in its steady glide (a piston and a jet), no thrust, and holds
+    the speed; a model whose glide the pitch trim cannot hold (the f16's fly-by-wire) is
+    refused saying its engines are off."""
+    ac = _start(name, speed, engines_running=False)
+    assert -15.0 < ac.trim_gamma_deg < -1.0
+    s0 = ac.state()
+    ac.run(10.0)
+    assert abs(ac.state().airspeed_true_mps - s0.airspeed_true_mps) < 1.5 and not ac.crashed
+    # (JSBSim's trim evaluation leaves a jet's spooled-down turbine about 120 lbf at first.)
+    assert ac.fdm["propulsion/engine/thrust-lbs"] == pytest.approx(0.0, abs=1.0)
+    assert ac.state().alt_msl_m < s0.alt_msl_m - 20.0
+    with pytest.raises(TrimFailed, match="engines are off"):
+        _start("f16", 150.0, engines_running=False)
