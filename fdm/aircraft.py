@@ -367,7 +367,6 @@ class Aircraft:
     def _bind(self) -> None:
         """Look every property up once; the hot loop calls bound C methods only."""
         self._pm = self.fdm.get_property_manager()
-        self._propulsion = self.fdm.get_propulsion()
         n = self._node
         self._run = self.fdm.run
         self._get_alt_ft = n("position/geod-alt-ft").get_double_value
@@ -610,7 +609,7 @@ class Aircraft:
         binding does not expose.
         """
         self._trim_gamma_deg = 0.0
-        if self._propulsion.get_num_engines() == 0 or not self._engines_running:
+        if self.n_engines == 0 or not self._engines_running:
             self._trim_glide()
         else:
             self._do_trim("level flight")
@@ -657,7 +656,8 @@ class Aircraft:
                          fdm["accelerations/qdot-rad_sec2"]])
 
     def _trim_glide(self) -> None:
-        """Trim an aircraft without engines in its steady glide at the requested speed.
+        """Trim an aircraft without engines, or with them off, in its steady glide at the
+        requested speed.
 
         JSBSim's full trim zeroes udot with the throttle; with no thrust only the
         flight-path angle gamma can: drag is balanced by the weight's component
