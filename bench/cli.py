@@ -19,7 +19,11 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from bench import calibration
+
+    before = calibration.probe()
     report = importlib.import_module(f"bench.{args.suite}").run(quick=args.quick)
+    calibration.add_to(report, before, calibration.probe())
     report.print_table()
     if args.json:
         report.write(args.json)

@@ -74,6 +74,11 @@ that they meet the same load on a shared machine. The sweep's frame times are
 those of its test-mode frames. ``draw_plan_ms``: ClipmapLayer.plan_ms, the CPU
 time of the clipmap's draw plan (culling, block and edge strides of every level)
 in the last of those renders: CPU work on every frame, whatever the GPU.
+``step_plan_ms_median`` / ``_p99`` / ``_max``: the same plan timed at every step
+of the paths right after its update (what a 60 Hz client's frame pays before
+its first draw call), so it includes the steps where a level moved and the plan
+recomputes that level's decimation errors, edge deviations and culling boxes;
+``move_plan_ms_median`` over those steps only.
 Figures are from whatever OpenGL the machine has
 (Mesa llvmpipe without a GPU; the report's params say which); ``fps_gpu`` only
 when the GL renderer is a GPU.
@@ -392,6 +397,18 @@ def update_only(renderer, camera) -> None:
         renderer.terrain_layer.update(camera)
 
 
+def step_plan_ms(renderer, camera) -> float:
+    """CPU ms of the clipmap's draw plan for ``camera`` right after the step's update: what a 60 Hz
+    client's frame pays before its first draw call, a level's move (its errors, edge deviations and
+    culling boxes recomputed) included. The plan is cached as a draw would leave it."""
+    layer = renderer.terrain_layer
+    with renderer.ctx:
+        frame = renderer._frame(camera)
+        t0 = time.perf_counter()
+        layer.plan(frame)
+        return (time.perf_counter() - t0) * 1e3
+
+
 def render_best(renderer, camera, repeats: int = FRAME_REPEATS) -> tuple[np.ndarray, float]:
     """(image, least frame_ms) of ``repeats`` renders of one camera: the least disturbed is the best
     estimate of the frame's own cost on a shared machine (bench.harness.best_time)."""
@@ -415,6 +432,7 @@ class Flight:
     steps_behind: int = 0
     frame_ms: list = field(default_factory=list)  # normal-mode renderer
     plan_ms: list = field(default_factory=list)  # its clipmap's draw plan (CPU ms), last repeat
+    step_plan_ms: list = field(default_factory=list)  # the draw plan at every step (normal-mode clipmap)
     frame_ms_test: list = field(default_factory=list)
     triangles: list = field(default_factory=list)
     first_fill_ms: float = 0.0  # the first frame's update: every level filled (the mesh built)
@@ -449,6 +467,8 @@ class Subject:
         wall_ms = (time.perf_counter() - t0) * 1e3
         for r in self.renderers[1:]:
             update_only(r, camera)
+        if self.normal is not None and hasattr(self.normal.terrain_layer, "plan"):
+            self.flight.step_plan_ms.append(step_plan_ms(self.normal, camera))
         clipmap = getattr(layer, "clipmap", None)
         self.flight.update_ms.append(layer.update_ms if clipmap is not None else wall_ms)
         if clipmap is not None:
@@ -633,6 +653,12 @@ def _headline_metrics(report: Report, runs: list[PathRun]) -> None:
     m["frame_ms"] = statistics.median(t for r in runs for t in r.default.frame_ms)
     m["reference_frame_ms"] = statistics.median(t for r in runs for t in r.reference.frame_ms)
     m["draw_plan_ms"] = statistics.median(t for r in runs for t in r.default.plan_ms)
+    plans = np.concatenate([r.default.step_plan_ms for r in runs])
+    moved = np.concatenate([np.asarray(r.default.levels_moved) > 0 for r in runs])
+    m["step_plan_ms_median"] = _pct(plans, 50)
+    m["step_plan_ms_p99"] = _pct(plans, 99)
+    m["step_plan_ms_max"] = float(plans.max())
+    m["move_plan_ms_median"] = _pct(plans[moved], 50)
     gl = str(report.params["gl_renderer"]).lower()
     if not any(s in gl for s in SOFTWARE_GL):
         m["fps_gpu"] = 1e3 / m["frame_ms"]

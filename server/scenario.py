@@ -84,6 +84,9 @@ Schema (``*`` required; everything else has the default shown)::
       alt_m*                   airborne only; msl: [-500, 100,000] m; agl: (0, 100,000] m
       alt_ref = "msl"          "msl" | "agl"
       speed_mps*               airborne: (0, 8000] true airspeed; on the ground: 0 (default)
+      engines_running = true   false: every engine off (an engine-out exercise); airborne, the
+                               aircraft starts trimmed in its steady glide at speed_mps, and
+                               without an autopilot table it holds only its heading
     ground only:
       speed_mps = 0.0          [0, the vehicle type's top speed]
     aircraft and ground:
@@ -307,6 +310,7 @@ class Agent:
     alt_m: float | None = None
     alt_ref: str = "msl"
     on_ground: bool = False
+    engines_running: bool = True
     controllable: bool = False
     autopilot: WaypointRoute | Hold | GroundRoute | None = None
 
@@ -317,7 +321,7 @@ class Agent:
         from fdm.aircraft import InitialConditions
 
         return InitialConditions(self.lat_deg, self.lon_deg, self.alt_m or 0.0, self.alt_ref, self.heading_deg,
-                                 self.speed_mps, on_ground=self.on_ground)
+                                 self.speed_mps, on_ground=self.on_ground, engines_running=self.engines_running)
 
 
 @dataclass(frozen=True)
@@ -729,7 +733,8 @@ def _type_name(key: str, path: str, static_types) -> str:
 
 _COMMON_KEYS = ("name", "kind", "type", "coalition", "lat_deg", "lon_deg", "heading_deg")
 _AGENT_KEYS = {
-    "aircraft": _COMMON_KEYS + ("alt_m", "alt_ref", "speed_mps", "on_ground", "controllable", "autopilot"),
+    "aircraft": _COMMON_KEYS + ("alt_m", "alt_ref", "speed_mps", "on_ground", "engines_running", "controllable",
+                              "autopilot"),
     "ground": _COMMON_KEYS + ("speed_mps", "controllable", "autopilot"),
     "static": _COMMON_KEYS,
 }
@@ -778,7 +783,7 @@ def _aircraft(t: _Table, common: dict) -> Agent:
         speed = t.number("speed_mps", lo=0.0, lo_open=True, hi=SPEED_MAX_MPS)
     autopilot = _aircraft_autopilot(t.table("autopilot"), t.key("autopilot")) if "autopilot" in t.data else None
     return Agent(type=type_name, speed_mps=speed, alt_m=alt, alt_ref=alt_ref, on_ground=on_ground,
-                 controllable=t.boolean("controllable", False), autopilot=autopilot, **common)
+                 engines_running=t.boolean("engines_running", True), controllable=t.boolean("controllable", False), autopilot=autopilot, **common)
 
 
 def _aircraft_autopilot(value, path: str) -> WaypointRoute | Hold:

@@ -356,6 +356,8 @@ def _aircraft_spec(a, on_vanish: str) -> dict:
     if route is None and hold is None and not a.on_ground:
         hold = {"heading_deg": a.heading_deg, "speed_mps": max(a.speed_mps, 1.0),
                 "alt_msl_m": ic.alt_m if ic.alt_ref == "msl" else None}
+        if not a.engines_running:  # gliding: no thrust to hold a speed or height with
+            hold = {"heading_deg": a.heading_deg}
         hold = {k: v for k, v in hold.items() if v is not None}
     return dict(name=a.name, type_=a.type, ic=ic, coalition=a.coalition, controllable=a.controllable,
                 route=route, hold=hold or None, speed_mps=getattr(ap, "speed_mps", None) if route else None,

@@ -64,15 +64,15 @@ level on several threads.
 from __future__ import annotations
 
 import itertools
-import os
 import struct
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 import zstandard
+
+from terrain.threads import cpu_count, map_shared
 
 # Four-point interpolatory subdivision mask (-1, 9, 9, -1) / 16 (Dyn, Levin &
 # Gregory 1987; the mask GPU Gems 2 ch. 2 uses to upsample clipmap levels).
@@ -757,7 +757,7 @@ class PyramidReader:
         self._evicted: list[np.ndarray] = []  # evicted during the decode running (recycled after it)
         self.cache_tiles = cache_tiles
         self.tiles_decoded = 0
-        self.threads = max(1, threads if threads is not None else _cpu_count())
+        self.threads = max(1, threads if threads is not None else cpu_count())
         self._lock = threading.Lock()
 
     @property
@@ -858,7 +858,7 @@ class PyramidReader:
             if stale is not None:
                 self._evicted.append(stale[0])
             jobs.append((t, self._get_blob(level, *t), self._spare.pop() if self._spare else None))
-        decoded = _map_shared(decode, jobs, self.threads)
+        decoded = map_shared(decode, jobs, self.threads)
         for t, dec in held.items():
             place(t, dec)
         for t, dec in zip(missing, decoded):
@@ -878,67 +878,3 @@ def tile_overlap(ti: int, tj: int, tile: int, row_a: int, row_b: int, col_a: int
     c_a, c_b = max(col_a, tj * tile), min(col_b, (tj + 1) * tile)
     return ((slice(r_a - row_a, r_b - row_a), slice(c_a - col_a, c_b - col_a)),
             (slice(r_a - ti * tile, r_b - ti * tile), slice(c_a - tj * tile, c_b - tj * tile)))
-
-
-def _cpu_count() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on every platform
-        return os.cpu_count() or 1
-
-
-_pools: dict[int, ThreadPoolExecutor] = {}
-_pools_lock = threading.Lock()
-
-
-def _reset_pools_after_fork() -> None:
-    """A forked child has none of its parent's threads (and maybe a lock held by one):
-    it starts with no pools and a fresh lock."""
-    global _pools, _pools_lock
-    _pools = {}
-    _pools_lock = threading.Lock()
-
-
-os.register_at_fork(after_in_child=_reset_pools_after_fork)
-
-
-def _map_shared(fn, items: list, threads: int) -> list:
-    """[fn(x) for x in items], on up to ``threads`` threads: the caller's and helpers
-    from a process-wide pool, each taking the next item until none is left. The caller
-    works too, so a helper that starts late costs nothing; the first exception raised
-    stops the hand-out and is re-raised once every thread has stopped."""
-    n = len(items)
-    helpers = min(threads, n) - 1
-    if helpers <= 0:
-        return [fn(x) for x in items]
-    results = [None] * n
-    counter = itertools.count()  # next() on it is atomic under the GIL
-    failed: list[BaseException] = []
-
-    def work():
-        while not failed:
-            i = next(counter)
-            if i >= n:
-                return
-            try:
-                results[i] = fn(items[i])
-            except BaseException as e:  # re-raised in the caller below
-                failed.append(e)
-
-    futures = [_pool(threads).submit(work) for _ in range(helpers)]
-    work()
-    for f in futures:
-        if not f.cancel():  # a helper that has not started (the pool is busy) is not waited for
-            f.result()
-    if failed:
-        raise failed[0]
-    return results
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """The process-wide pool of helper threads for readers of ``threads`` threads."""
-    with _pools_lock:
-        pool = _pools.get(threads)
-        if pool is None:
-            pool = _pools[threads] = ThreadPoolExecutor(threads - 1, thread_name_prefix="heightcodec")
-        return pool

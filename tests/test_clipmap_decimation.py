@@ -728,3 +728,113 @@ def test_pruned_overlay_rows_give_the_errors_of_the_whole_rows():
                             np.full(len(idx), idx.shape[1], np.int64), want[b:b + 1], s_i)
     assert len({(int(b[2] - b[0]), int(b[3] - b[1])) for b in blk}) > 1 and (got > 0).all()
     assert np.array_equal(got, want)
+
+
+def test_a_moved_levels_blocks_measured_in_parts_give_the_whole_rings_answers():
+    """The plan measures a moved level's blocks in parts on helper threads (by_parts): the
+    decimation errors, edge deviations and culling boxes are those of one call over the ring,
+    bit for bit, whatever the number of parts (cut-short blocks included)."""
+    from client.render.camera import LocalOrigin
+    from client.render.clipmap import Rect, blocks, ring_rects
+    from client.render.clipmap_layer import PLAN_PART_MIN_BLOCKS, block_bounds, by_parts, edge_deviations
+
+    n = 255
+    rng = np.random.default_rng(5)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    pos = np.stack([90.0 * j + 6.4e6, 90.0 * i, np.cumsum(rng.normal(0, 30.0, (n, n)), 1)], -1)
+    level, coarse = SimpleNamespace(pos_ecef=pos), SimpleNamespace(pos_ecef=pos[::-1].copy())
+    blk = blocks(ring_rects(Rect(1001, 2003, 1255, 2257), Rect(1065, 2067, 1191, 2193)), BLOCK)
+    origin = LocalOrigin(np.array([6.4e6 + 1e4, 1e4, 0.0]))
+    assert len(blk) > 4 * PLAN_PART_MIN_BLOCKS and len({(int(b[2] - b[0]), int(b[3] - b[1])) for b in blk}) > 1
+
+    def measure(b):
+        return (decimation_errors(b, level, n), edge_deviations(b, level, n), *block_bounds(b, level, coarse, n, origin))
+
+    whole = measure(blk)
+    for threads in (2, 3, 4):
+        parts = by_parts(measure, blk, threads)
+        assert len(parts) == len(whole)
+        for got, want in zip(parts, whole):
+            assert np.array_equal(got, want)
+    assert np.array_equal(by_parts(lambda b: decimation_errors(b, level, n), blk, 2), whole[0])  # one array
+    small = blk[:PLAN_PART_MIN_BLOCKS]  # too few blocks to split: one call
+    assert np.array_equal(by_parts(lambda b: edge_deviations(b, level, n), small, 4), whole[1][:len(small)])
+
+
+def test_a_moving_clipmaps_measures_reused_for_unchanged_blocks_equal_measuring_all(hgt_alps, monkeypatch):
+    """Flying over the Alps, every level's decimation errors, edge deviations and culling boxes,
+    as the plan keeps them (blocks whose posts did not change since they were measured reused,
+    the others measured anew: remeasure), equal measuring the whole ring afresh at every step, bit
+    for bit; and the reuse happens (a finer level's move leaves most of the coarser ring)."""
+    from bench.render import update_only
+    from client.render import clipmap_layer as cl
+    from client.render.camera import Camera
+    from client.render.renderer import Renderer
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    measured = []
+    whole = cl.by_parts
+
+    def counting(fn, blk, threads=None):
+        measured.append(len(blk))
+        return whole(fn, blk, threads)
+
+    monkeypatch.setattr(cl, "by_parts", counting)
+    terrain = Terrain([read_dem(hgt_alps)])
+    factory = cl.clipmap_factory(terrain, levels=5, n=63, budget=10**7, pixel_error=1.0)
+    lat, lon, alt = 47.30, 9.30, 2600.0
+    with Renderer(terrain, 64, 36, terrain_layer_factory=factory) as r:
+        layer = r.terrain_layer
+        rings_measured = 0
+        for step in range(40):
+            # North-east, then a turn east and a climb: moves of every level, some together.
+            lat += 0.0012 if step < 25 else 0.0002
+            lon += 0.0009 + (0.0015 if step >= 25 else 0.0)
+            alt += 0.0 if step < 25 else 60.0
+            camera = Camera.from_geodetic(lat, lon, alt, 45.0 if step < 25 else 80.0, -15.0, fov_x_deg=60.0)
+            update_only(r, camera)
+            before = len(measured)
+            with r.ctx:
+                drawn = [d.k for d in layer.plan(r._frame(camera))]
+            rings_measured += len(measured) - before
+            c = layer.clipmap
+            for k in drawn:  # (a level not drawn keeps what it had when it was)
+                _, errors, deviations, blk = layer._errors[k]
+                level = c.levels[k]
+                assert np.array_equal(errors, decimation_errors(blk, level, c.n)), (step, k)
+                assert np.array_equal(deviations, cl.edge_deviations(blk, level, c.n)), (step, k)
+                bkey, lo, hi, bblk = layer._bounds[k]
+                coarse = c.levels[k + 1] if bkey[2] is not None else None
+                want_lo, want_hi = cl.block_bounds(bblk, level, coarse, c.n, r.origin)
+                assert np.array_equal(lo, want_lo) and np.array_equal(hi, want_hi), (step, k)
+    rings = [len(b) for b in (ring[1] for ring in layer._rings.values())]
+    print(f"\n{rings_measured} measures of rings of {sorted(rings)} blocks; blocks measured: {sorted(measured)}")
+    assert rings_measured > 10
+    assert min(measured) < min(rings), "no ring was measured in part: nothing was reused"
+
+
+def test_a_levels_write_log_and_the_blocks_it_leaves_unchanged():
+    """LevelStore.written_since lists the posts written after a version (None once the log no
+    longer reaches back); same_blocks pairs equal blocks; posts_unchanged keeps the blocks
+    inside the region and clear of every write."""
+    from client.render.clipmap import WRITE_LOG_MOVES, LevelStore, Rect
+    from client.render.clipmap_layer import posts_unchanged, same_blocks
+
+    level = LevelStore(0, 31, region=Rect(0, 0, 30, 30))
+    for v in range(1, WRITE_LOG_MOVES + 3):  # move v writes row v
+        level.version = v
+        level._log_writes([Rect(v, 0, v, 30)])
+    last = level.version
+    assert last == 18
+    assert level.written_since(last) == []
+    assert level.written_since(16) == [Rect(17, 0, 17, 30), Rect(18, 0, 18, 30)]
+    assert level.written_since(1) is None  # older than the log
+    blk = np.array([[0, 0, 8, 8], [8, 0, 16, 8], [16, 8, 24, 16], [24, 0, 32, 8]], np.int32)
+    # Since version 16 rows 17 and 18 were written: the third block holds them; the last
+    # reaches row 32, outside the region.
+    assert posts_unchanged(blk, level, 16).tolist() == [True, True, False, False]
+    assert posts_unchanged(blk, level, 1).tolist() == [False] * 4  # unknown: none kept
+    rows, other = same_blocks(blk, blk[[3, 1, 0]])
+    assert sorted(zip(rows.tolist(), other.tolist())) == [(0, 2), (1, 1), (3, 0)]
+    assert len(same_blocks(blk, np.array([[1 << 30, 0, (1 << 30) + 8, 8]]))[0]) == 0

@@ -475,3 +475,46 @@ def test_an_agent_that_cannot_start_is_named(tmp_path):
     terrain, _, _ = open_terrain(scenario)
     with pytest.raises(ScenarioError, match=r"agents\[0\].*'viper1' \(J3Cub\) cannot start.*trim"):
         build_world(scenario, terrain)
+
+
+def test_engines_running_false_starts_an_aircraft_gliding_and_holds_only_its_heading(tmp_path):
+    """An engine-out exercise: ``engines_running = false`` parses (a non-boolean is named), and
+    in the world the c172x starts trimmed in its steady glide and, with no autopilot table, only
+    its heading is held: over 10 s it sinks at least 1 m/s and keeps its speed within 1.5 m/s,
+    where the same aircraft with its engine running holds its height within 10 m."""
+    from server.sim_server import _aircraft_spec, build_world, open_terrain
+
+    doc = base()
+    doc["agents"] = [{"name": "glider", "kind": "aircraft", "type": "c172x", "coalition": "blue", "lat_deg": 47.3,
+                      "lon_deg": 9.3, "alt_m": 2500.0, "heading_deg": 90.0, "speed_mps": 35.0,
+                      "engines_running": False}]
+    doc["target_areas"] = []
+    scenario = parse_scenario(doc, tmp_path)
+    agent = scenario.agents[0]
+    assert agent.engines_running is False and agent.initial_conditions().engines_running is False
+    assert _aircraft_spec(agent, "autopilot")["hold"] == {"heading_deg": 90.0}
+    with pytest.raises(ScenarioError, match=r"agents\[0\]\.engines_running: must be true or false"):
+        parse_scenario({**doc, "agents": [{**doc["agents"][0], "engines_running": "no"}]}, tmp_path)
+
+    def fly(document) -> tuple[float, float]:
+        """(height change m, speed change m/s) over 10 s of world time."""
+        s = parse_scenario(document, tmp_path)
+        terrain, _, _ = open_terrain(s)
+        world = build_world(s, terrain)
+        try:
+            world.tick()
+            h0, v0 = world.snapshot.alt_msl_m[0], np.linalg.norm(world.snapshot.vel_ecef_mps[0])
+            while world.snapshot.time_s < 10.0:
+                world.tick()
+            return (world.snapshot.alt_msl_m[0] - h0, np.linalg.norm(world.snapshot.vel_ecef_mps[0]) - v0)
+        finally:
+            world.close()
+
+    dh, dv = fly(doc)
+    print(f"\ngliding: {dh:.1f} m, {dv:+.2f} m/s in 10 s")
+    assert dh < -10.0 and abs(dv) < 1.5
+    powered = copy.deepcopy(doc)
+    del powered["agents"][0]["engines_running"]
+    dh, _ = fly(powered)
+    print(f"powered: {dh:.1f} m in 10 s")
+    assert abs(dh) < 10.0

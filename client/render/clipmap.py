@@ -77,6 +77,7 @@ ORIGIN_DRIFT_EXTENTS = 1.0  # move a level's origin once its region centre is th
 NORMALS_PER_POST = 4  # the normal map is 2 x 2 per post
 STORE_CACHE_RADIUS_CELLS = 3.5  # cells kept around the viewer at every store level (FSX: 2.5 - 4.5)
 STORE_CACHE_TRIM_S = 1.0
+WRITE_LOG_MOVES = 16  # moves a level remembers the written posts of (LevelStore.written_since)
 
 
 @dataclass(frozen=True)
@@ -189,6 +190,8 @@ class LevelStore:
     normal: np.ndarray = None  # (2n, 2n, 4) float16: unit normal (ECEF axes), 0
     version: int = 0  # counts the writes to the storage (culling bounds are cached against it)
     _range: tuple = (-1, math.inf, -math.inf)  # (version, h_min, h_max), computed when asked
+    # (version, Rect of posts written by the move to that version), the last WRITE_LOG_MOVES moves
+    writes: list = field(default_factory=list)
 
     def __post_init__(self):
         self.pos_ecef = np.zeros((self.n, self.n, 3))
@@ -198,6 +201,23 @@ class LevelStore:
     @property
     def valid(self) -> bool:
         return self.region is not None
+
+    def written_since(self, version: int) -> list[Rect] | None:
+        """The post rectangles written after ``version``; None when the log no longer reaches
+        back that far (take every post as written). A post of the current region outside
+        them holds the value it held at ``version``: a move writes only posts new to the
+        region, and two posts of one region never share a storage slot."""
+        if version == self.version:
+            return []
+        if not self.writes or self.writes[0][0] > version + 1:
+            return None
+        return [r for v, r in self.writes if v > version]
+
+    def _log_writes(self, rects: list[Rect]) -> None:
+        self.writes += [(self.version, r) for r in rects]
+        first = self.version - WRITE_LOG_MOVES
+        if self.writes[0][0] <= first:
+            self.writes = [(v, r) for v, r in self.writes if v > first]
 
     @property
     def h_min(self) -> float:
@@ -491,6 +511,7 @@ class Clipmap:
             level.texel[..., :3] = level.pos_ecef - level.origin_ecef
             uploads.append(Upload(level.k, "texel", 0, 0, n, n))
         level.version += 1
+        level._log_writes(todo)
         self.stats.levels_moved += 1
         return uploads
 

@@ -99,6 +99,7 @@ from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
 from terrain.texture import CLASS_COLOURS_RGB, N_CLASSES
 from sortie.errors import InvalidArgument
 from terrain.geodesy import WGS84_A_M, ecef_to_geodetic
+from terrain.threads import cpu_count, map_shared
 
 BLOCK = 8  # cells a side of an instanced block
 MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
@@ -1001,6 +1002,87 @@ BOX_PAD_M = 1.0
 BOX_PAD_RELATIVE = 1e-6
 
 
+# A moved level's blocks are measured (decimation errors, edge deviations, culling boxes) in
+# up to this many parts at once, each of at least PLAN_PART_MIN_BLOCKS blocks: the kernels
+# release the GIL, so the parts run on helper threads (terrain.threads).
+PLAN_THREADS = min(cpu_count(), 8)
+PLAN_PART_MIN_BLOCKS = 64
+
+
+def by_parts(fn, blk: np.ndarray, threads: int | None = None):
+    """fn(blk) for a per-block fn (its results arrays, or a tuple of arrays, with a row per
+    block): computed over contiguous parts of ``blk`` on up to ``threads`` threads (default
+    PLAN_THREADS) and joined, the same arrays as one call gives."""
+    threads = PLAN_THREADS if threads is None else threads
+    parts = max(1, min(threads, len(blk) // PLAN_PART_MIN_BLOCKS))
+    if parts == 1:
+        return fn(blk)
+    cuts = np.linspace(0, len(blk), parts + 1).astype(np.int64).tolist()
+    outs = map_shared(fn, [blk[a:b] for a, b in zip(cuts[:-1], cuts[1:])], parts)
+    if isinstance(outs[0], tuple):
+        return tuple(np.concatenate(arrays) for arrays in zip(*outs))
+    return np.concatenate(outs)
+
+
+def coarse_footprints(blk: np.ndarray) -> np.ndarray:
+    """(m, 4) inclusive rectangles of the coarser level's posts :func:`block_bounds` may read
+    under each block (m, 4) (rows i0 // 2 .. ceil(i1 / 2), the same for columns)."""
+    b = blk.astype(np.int64)
+    return np.stack([b[:, 0] // 2, b[:, 1] // 2, -(-b[:, 2] // 2), -(-b[:, 3] // 2)], -1)
+
+
+def posts_unchanged(footprints: np.ndarray, level, since: int) -> np.ndarray:
+    """Mask of the rectangles (m, 4: i0, j0, i1, j1 inclusive posts) whose posts ``level``
+    (client.render.clipmap.LevelStore) holds now, unchanged since its version ``since``:
+    inside its region and clear of every post written after that version."""
+    written = level.written_since(since)
+    if written is None or level.region is None:
+        return np.zeros(len(footprints), bool)
+    f, r = footprints, level.region
+    ok = (f[:, 0] >= r.i0) & (f[:, 1] >= r.j0) & (f[:, 2] <= r.i1) & (f[:, 3] <= r.j1)
+    for w in written:
+        ok &= (f[:, 2] < w.i0) | (f[:, 0] > w.i1) | (f[:, 3] < w.j0) | (f[:, 1] > w.j1)
+    return ok
+
+
+def same_blocks(blk: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows of blk, rows of other) of the blocks (m, 4) both hold (each block once in each):
+    every block packed into one int64 (its corner from the two arrays' least, and its size;
+    blocks at most BLOCK cells a side)."""
+    if not len(blk) or not len(other):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    a, b = blk.astype(np.int64), other.astype(np.int64)
+    i_min, j_min = min(a[:, 0].min(), b[:, 0].min()), min(a[:, 1].min(), b[:, 1].min())
+    if max(a[:, 0].max(), b[:, 0].max()) - i_min >= 1 << 27 or max(a[:, 1].max(), b[:, 1].max()) - j_min >= 1 << 24:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)  # too far apart to pack: none shared
+
+    def keys(x):
+        return ((x[:, 0] - i_min) << 36) | ((x[:, 1] - j_min) << 12) | ((x[:, 2] - x[:, 0]) << 6) | (x[:, 3] - x[:, 1])
+
+    _, rows, other_rows = np.intersect1d(keys(a), keys(b), assume_unique=True, return_indices=True)
+    return rows, other_rows
+
+
+def remeasure(measure, blk: np.ndarray, old_blk: np.ndarray, old: tuple, unchanged) -> tuple:
+    """measure(blk) (a tuple of arrays with a row per block, :func:`by_parts`), reusing the rows
+    ``old`` held for the blocks of ``old_blk`` that ``blk`` has again (the same rectangle) and
+    ``unchanged`` (blocks (m, 4) -> mask) says read the same posts; the others measured anew.
+    The same arrays as measuring every block, bit for bit: each row depends only on the
+    posts under its block."""
+    new_rows, old_rows = same_blocks(blk, old_blk)
+    keep = unchanged(blk[new_rows]) if len(new_rows) else np.zeros(0, bool)
+    rows = np.stack([new_rows[keep], old_rows[keep]], -1)
+    out = tuple(np.empty((len(blk), *a.shape[1:]), a.dtype) for a in old)
+    for o, a in zip(out, old):
+        o[rows[:, 0]] = a[rows[:, 1]]
+    todo = np.ones(len(blk), bool)
+    todo[rows[:, 0]] = False
+    if todo.any():
+        for o, a in zip(out, by_parts(measure, blk[todo])):
+            o[todo] = a
+    return out
+
+
 def block_bounds(blk: np.ndarray, level, coarse, n: int, origin: LocalOrigin) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) (m, 3) local-ENU boxes of blocks (m, 4) of a level: over the block's own posts
     (clamped to the block as the vertex shader clamps them) and, when ``coarse`` (the coarser
@@ -1294,21 +1376,48 @@ class ClipmapLayer:
                 blk = blocks(ring_rects(regions[k], hole_k), BLOCK)
                 ring = self._rings[k] = (ring_key, blk, block_neighbours(blk), block_triangles(blk))
             _, blk, neighbours, counts = ring
+            level = c.levels[k]
             coarse = c.levels[k + 1] if k + 1 in regions else None
             errors = deviations = None
             if self.pixel_error is not None:
-                key = (ring_key, c.levels[k].version)
+                # Measured again when the ring or the level's posts change: only the blocks
+                # that are new, or whose posts changed (remeasure), in parts on helper
+                # threads (by_parts). A finer level's move changes this ring's hole, not
+                # its posts; this level's own move shifts every block.
+                key = (ring_key, level.version)
                 cached = self._errors.get(k)
                 if cached is None or cached[0] != key:
-                    cached = self._errors[k] = (key, decimation_errors(blk, c.levels[k], c.n),
-                                                edge_deviations(blk, c.levels[k], c.n))
-                _, errors, deviations = cached
-            key = (ring_key, c.levels[k].version, None if coarse is None else coarse.version,
+                    def measure(b, level=level):
+                        return decimation_errors(b, level, c.n), edge_deviations(b, level, c.n)
+
+                    if cached is None:
+                        arrays = by_parts(measure, blk)
+                    else:
+                        since = cached[0][1]
+                        arrays = remeasure(measure, blk, cached[3], cached[1:3],
+                                           lambda b, level=level, since=since: posts_unchanged(b, level, since))
+                    cached = self._errors[k] = (key, *arrays, blk)
+                _, errors, deviations, _ = cached
+            # The culling boxes also read the coarser level's posts under each block, and are
+            # in the renderer's local frame: a coarser level's move changes few of them.
+            key = (ring_key, level.version, None if coarse is None else coarse.version,
                    self.origin.ecef.tobytes())
             bounds = self._bounds.get(k)
             if bounds is None or bounds[0] != key:
-                bounds = self._bounds[k] = (key, *block_bounds(blk, c.levels[k], coarse, c.n, self.origin))
-            _, lo, hi = bounds
+                def measure(b, level=level, coarse=coarse):
+                    return block_bounds(b, level, coarse, c.n, self.origin)
+
+                old_key = None if bounds is None else bounds[0]
+                if old_key is None or (old_key[2] is None) != (coarse is None) or old_key[3] != key[3]:
+                    arrays = by_parts(measure, blk)
+                else:
+                    def unchanged(b, level=level, coarse=coarse, old_key=old_key):
+                        ok = posts_unchanged(b, level, old_key[1])
+                        return ok if coarse is None else ok & posts_unchanged(coarse_footprints(b), coarse, old_key[2])
+
+                    arrays = remeasure(measure, blk, bounds[3], bounds[1:3], unchanged)
+                bounds = self._bounds[k] = (key, *arrays, blk)
+            _, lo, hi, _ = bounds
             seen = visible_blocks(lo, hi, view_proj)
             cells = int(((blk[seen, 2] - blk[seen, 0]) * (blk[seen, 3] - blk[seen, 1])).sum())
             alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
