@@ -108,6 +108,24 @@ def _project_kernel(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, lat, lon, hint,
                 out_seg[j] = k
 
 
+@numba.njit(cache=True, nogil=True)
+def _corner_ceiling_kernel(corner_at, corner_turn, s, lookahead_m, lat_accel, brake, out):
+    """Route.corner_speed_ceiling for each vehicle: the least ceiling over the corners at or
+    ahead of s. Corners come in order of distance, and a corner d metres beyond the turn's
+    start gives at least sqrt(2 brake d): once that reaches the least so far, no corner
+    further on can lower it, and the walk stops (the same least as over every corner)."""
+    first = np.searchsorted(corner_at, s)  # the first corner with at >= s
+    for j in range(s.shape[0]):
+        best = math.inf
+        for w in range(first[j], corner_at.shape[0]):
+            d = max(corner_at[w] - lookahead_m[j] - s[j], 0.0)
+            if math.sqrt(2.0 * brake[j] * d) >= best:
+                break
+            v_c = math.sqrt(lat_accel[j] * LOOKAHEAD_MIN_M / corner_turn[w])
+            best = min(best, math.sqrt(v_c * v_c + 2.0 * brake[j] * d))
+        out[j] = best
+
+
 class Route:
     """A polyline of at least two (lat, lon) waypoints, degrees; no zero-length legs."""
 
@@ -133,6 +151,12 @@ class Route:
         self.seg_dn = dn
         self.seg_de = de
         self.cum = np.concatenate([[0.0], np.cumsum(self.seg_len)])
+        # The corners (waypoints 1 .. n-2 where the route turns): where, and by how much.
+        psi = np.arctan2(self.seg_de, self.seg_dn)
+        turn = np.abs((np.diff(psi) + np.pi) % (2 * np.pi) - np.pi)
+        corner = np.flatnonzero(turn >= 1e-6)
+        self.corner_at = self.cum[corner + 1]
+        self.corner_turn = turn[corner]
 
     @property
     def length_m(self) -> float:
@@ -178,19 +202,11 @@ class Route:
         arguments broadcast over vehicles; corners behind (beyond s = corner)
         no longer count.
         """
-        s = np.asarray(s, dtype=np.float64)
-        out = np.full(np.broadcast(s, lookahead_m, lat_accel_mps2, brake_mps2).shape, np.inf)
-        if self.seg_len.size < 2:
-            return out
-        psi = np.arctan2(self.seg_de, self.seg_dn)
-        turn = np.abs((np.diff(psi) + np.pi) % (2 * np.pi) - np.pi)  # at waypoints 1 .. n-2
-        for w in range(turn.size):
-            if turn[w] < 1e-6:
-                continue
-            at = self.cum[w + 1]
-            v_c = np.sqrt(lat_accel_mps2 * LOOKAHEAD_MIN_M / turn[w])
-            d = np.maximum(at - lookahead_m - s, 0.0)
-            out = np.where(s <= at, np.minimum(out, np.sqrt(v_c * v_c + 2.0 * brake_mps2 * d)), out)
+        args = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (s, lookahead_m, lat_accel_mps2,
+                                                                                 brake_mps2)))
+        out = np.full(args[0].shape, np.inf)
+        if self.corner_at.size:
+            _corner_ceiling_kernel(self.corner_at, self.corner_turn, *(a.ravel() for a in args), out.reshape(-1))
         return out
 
 

@@ -160,3 +160,44 @@ def test_convoy_keeps_its_spacing_through_the_rhine_valley(alps):
     end = geodetic_to_ecef(RHINE[0][-1], RHINE[1][-1], 0.0)
     assert np.linalg.norm(geodetic_to_ecef(g.lat[0], g.lon[0], 0.0) - end) < 2.0
     assert np.abs(c.gaps_m - 50.0).max() <= 1.5
+
+
+def _corner_ceiling_oracle(route, s, lookahead_m, lat_accel_mps2, brake_mps2):
+    """Route.corner_speed_ceiling as first written: every corner, as numpy over the vehicles."""
+    from fdm.convoy import LOOKAHEAD_MIN_M
+
+    s = np.asarray(s, dtype=np.float64)
+    out = np.full(np.broadcast(s, lookahead_m, lat_accel_mps2, brake_mps2).shape, np.inf)
+    if route.seg_len.size < 2:
+        return out
+    psi = np.arctan2(route.seg_de, route.seg_dn)
+    turn = np.abs((np.diff(psi) + np.pi) % (2 * np.pi) - np.pi)
+    for w in range(turn.size):
+        if turn[w] < 1e-6:
+            continue
+        at = route.cum[w + 1]
+        v_c = np.sqrt(lat_accel_mps2 * LOOKAHEAD_MIN_M / turn[w])
+        d = np.maximum(at - lookahead_m - s, 0.0)
+        out = np.where(s <= at, np.minimum(out, np.sqrt(v_c * v_c + 2.0 * brake_mps2 * d)), out)
+    return out
+
+
+@pytest.mark.parametrize("waypoints", [2, 3, 40, 1000])
+def test_corner_ceiling_walk_equals_every_corner(waypoints):
+    """The compiled corner ceiling stops walking corners once none further on can lower it:
+    bit for bit the ceiling over every corner, for vehicles before, along and past the route,
+    scalar or per-vehicle limits, no braking at all, and straight stretches (no corner)."""
+    rng = np.random.default_rng(waypoints)
+    lat = 47.2 + np.cumsum(rng.uniform(0.0003, 0.002, waypoints))
+    lon = 9.5 + np.cumsum(rng.choice([0.0, 1.0], waypoints) * rng.uniform(-0.002, 0.002, waypoints))
+    route = Route(lat, lon)
+    s = np.concatenate([rng.uniform(-50.0, route.length_m + 50.0, 300), route.cum, [0.0, route.length_m]])
+    lookahead = rng.uniform(12.0, 40.0, s.size)
+    for lat_accel, brake in ((2.0, 3.0), (rng.uniform(0.5, 4.0, s.size), rng.uniform(0.5, 6.0, s.size)),
+                             (1.5, 0.0)):
+        got = route.corner_speed_ceiling(s, lookahead, lat_accel, brake)
+        want = _corner_ceiling_oracle(route, s, lookahead, lat_accel, brake)
+        assert got.shape == want.shape and np.array_equal(got, want)
+    one = route.corner_speed_ceiling(float(s[0]), 20.0, 2.0, 3.0)
+    assert np.shape(one) == () and one == _corner_ceiling_oracle(route, s[0], 20.0, 2.0, 3.0)
+    assert (waypoints <= 2) == bool(np.isinf(route.corner_speed_ceiling(s, lookahead, 2.0, 3.0)).all())
