@@ -21,6 +21,11 @@
   aircraft, shared by the fleet.
 - ``aircraft_realtime_120hz``: f16s one core keeps in real time at 120 Hz,
   hosted as above by a Fleet: 1 / (120 x time per aircraft step).
+- ``hold_autopilot_us_per_tick`` / ``route_follower_us_per_tick``: one update a
+  world tick of a bot's heading/altitude/speed hold and of its route follower
+  (the hold plus a geodesic inverse to the waypoint), on the tick's raw row;
+  ``route_follower_vs_tick_steps`` the latter over the aircraft's four bare
+  JSBSim steps of that tick.
 - ``script_max_abs_diff_m``: position difference against JSBSim's own run of
   ``scripts/c172_elevator_doublet.xml`` (see tests/test_fdm_script_reference.py
   for why it is not 0), and ``..._before_doublet_m`` over its first 5 s.
@@ -246,10 +251,44 @@ def bench_dt_convergence(report: Report, quick: bool) -> None:
                          dt_reference_cost_s_per_sim_s=ref_cost)
 
 
+def bench_pilots(report: Report, terrain, quick: bool) -> None:
+    """What a bot's autopilot costs a world tick (one update, on the row the host read),
+    against the aircraft's four bare JSBSim steps of that tick: a heading/altitude/speed
+    hold, and a route follower (the hold plus a geodesic inverse to its waypoint)."""
+    from fdm.aircraft import Aircraft, InitialConditions
+    from fdm.autopilot import Autopilot, WaypointFollower
+
+    ac = Aircraft("f16", terrain, InitialConditions(**CRUISE))
+    ac.run(1.0)
+    row = ac.raw_values()
+    hold = Autopilot(ac)
+    hold.set_targets(heading_deg=10.0, alt_msl_m=CRUISE["alt_m"], speed_mps=CRUISE["speed_mps"])
+    route = WaypointFollower(ac, [(47.6, 9.6, CRUISE["alt_m"]), (47.9, 9.4, CRUISE["alt_m"])], CRUISE["speed_mps"])
+    run = ac.fdm.run
+    n = 300 if quick else 2000
+
+    def per_call(fn) -> float:
+        best = math.inf
+        for _ in range(5):
+            t0 = time.perf_counter()
+            for _ in range(n):
+                fn()
+            best = min(best, (time.perf_counter() - t0) / n)
+        return best * 1e6
+
+    steps_us = per_call(lambda: (run(), run(), run(), run()))
+    m = report.metrics
+    m["hold_autopilot_us_per_tick"] = per_call(lambda: hold.update(row))
+    m["route_follower_us_per_tick"] = per_call(lambda: route.update(row))
+    m["route_follower_vs_tick_steps"] = m["route_follower_us_per_tick"] / steps_us
+    report.params.update(pilot_tick_steps_us=steps_us, pilot_calls=n)
+
+
 def run(quick: bool) -> Report:
     report = Report(suite="fdm", quick=quick)
     terrain = alps_terrain()
     bench_overhead(report, terrain, quick)
+    bench_pilots(report, terrain, quick)
     bench_realtime(report, terrain, quick)
     bench_near_ground_fleet(report, terrain, alps_dem_path(), quick)
     bench_script(report)
