@@ -783,7 +783,8 @@ def _aircraft(t: _Table, common: dict) -> Agent:
         speed = t.number("speed_mps", lo=0.0, lo_open=True, hi=SPEED_MAX_MPS)
     autopilot = _aircraft_autopilot(t.table("autopilot"), t.key("autopilot")) if "autopilot" in t.data else None
     return Agent(type=type_name, speed_mps=speed, alt_m=alt, alt_ref=alt_ref, on_ground=on_ground,
-                 engines_running=t.boolean("engines_running", True), controllable=t.boolean("controllable", False), autopilot=autopilot, **common)
+                 engines_running=t.boolean("engines_running", True), controllable=t.boolean("controllable", False),
+                 autopilot=autopilot, **common)
 
 
 def _aircraft_autopilot(value, path: str) -> WaypointRoute | Hold:

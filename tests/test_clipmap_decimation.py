@@ -748,7 +748,8 @@ def test_a_moved_levels_blocks_measured_in_parts_give_the_whole_rings_answers():
     assert len(blk) > 4 * PLAN_PART_MIN_BLOCKS and len({(int(b[2] - b[0]), int(b[3] - b[1])) for b in blk}) > 1
 
     def measure(b):
-        return (decimation_errors(b, level, n), edge_deviations(b, level, n), *block_bounds(b, level, coarse, n, origin))
+        return (decimation_errors(b, level, n), edge_deviations(b, level, n),
+                *block_bounds(b, level, coarse, n, origin))
 
     whole = measure(blk)
     for threads in (2, 3, 4):

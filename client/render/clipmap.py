@@ -216,7 +216,7 @@ class LevelStore:
     def _log_writes(self, rects: list[Rect]) -> None:
         self.writes += [(self.version, r) for r in rects]
         first = self.version - WRITE_LOG_MOVES
-        if self.writes[0][0] <= first:
+        if self.writes and self.writes[0][0] <= first:
             self.writes = [(v, r) for v, r in self.writes if v > first]
 
     @property

@@ -1057,7 +1057,8 @@ def same_blocks(blk: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndar
         return np.zeros(0, np.int64), np.zeros(0, np.int64)  # too far apart to pack: none shared
 
     def keys(x):
-        return ((x[:, 0] - i_min) << 36) | ((x[:, 1] - j_min) << 12) | ((x[:, 2] - x[:, 0]) << 6) | (x[:, 3] - x[:, 1])
+        corner = ((x[:, 0] - i_min) << 36) | ((x[:, 1] - j_min) << 12)
+        return corner | ((x[:, 2] - x[:, 0]) << 6) | (x[:, 3] - x[:, 1])
 
     _, rows, other_rows = np.intersect1d(keys(a), keys(b), assume_unique=True, return_indices=True)
     return rows, other_rows
@@ -1413,7 +1414,9 @@ class ClipmapLayer:
                 else:
                     def unchanged(b, level=level, coarse=coarse, old_key=old_key):
                         ok = posts_unchanged(b, level, old_key[1])
-                        return ok if coarse is None else ok & posts_unchanged(coarse_footprints(b), coarse, old_key[2])
+                        if coarse is not None:
+                            ok &= posts_unchanged(coarse_footprints(b), coarse, old_key[2])
+                        return ok
 
                     arrays = remeasure(measure, blk, bounds[3], bounds[1:3], unchanged)
                 bounds = self._bounds[k] = (key, *arrays, blk)
