@@ -247,12 +247,13 @@ class RouteFollower:
         return np.clip(LOOKAHEAD_GAIN_S * np.abs(self.vehicles.speed_mps[self.index]), LOOKAHEAD_MIN_M,
                        LOOKAHEAD_MAX_M)
 
-    def _corner_ceiling(self) -> np.ndarray:
-        """Speed each vehicle may have for the route's corners ahead (m/s)."""
+    def _corner_ceiling(self, lookahead=None) -> np.ndarray:
+        """Speed each vehicle may have for the route's corners ahead (m/s); ``lookahead``:
+        :meth:`_lookahead`'s, when the caller has it."""
         v = self.vehicles
         t = v.table[v.type_id[self.index]]
-        return self.route.corner_speed_ceiling(self.s, self._lookahead(), CURVE_LAT_ACCEL_FRAC * t[:, P_ALAT],
-                                               STOP_BRAKE_FRAC * t[:, P_BRAKE])
+        return self.route.corner_speed_ceiling(self.s, self._lookahead() if lookahead is None else lookahead,
+                                               CURVE_LAT_ACCEL_FRAC * t[:, P_ALAT], STOP_BRAKE_FRAC * t[:, P_BRAKE])
 
     def _end_ceiling(self) -> np.ndarray:
         """Speed from which each vehicle stops at the route's end, braking gently (m/s)."""
@@ -261,18 +262,21 @@ class RouteFollower:
         remaining = np.maximum(self.route.length_m - self.s, 0.0)
         return np.sqrt(2.0 * STOP_BRAKE_FRAC * t[:, P_BRAKE] * remaining)
 
-    def _speed_ceiling(self) -> np.ndarray:
-        ceiling = np.minimum(self._corner_ceiling(), self.cruise_mps)
+    def _speed_ceiling(self, corner=None) -> np.ndarray:
+        """The cruise speed within the corners' ceiling (``corner``, when the caller has it)
+        and, stopping at the end, the end's."""
+        ceiling = np.minimum(self._corner_ceiling() if corner is None else corner, self.cruise_mps)
         if self.stop_at_end:
             ceiling = np.minimum(ceiling, self._end_ceiling())
         return ceiling
 
-    def steer(self, speed_cmd: np.ndarray):
-        """(speed_cmd, yaw_rate_cmd_dps) after pure pursuit for the vehicles' current poses."""
+    def steer(self, speed_cmd: np.ndarray, lookahead=None):
+        """(speed_cmd, yaw_rate_cmd_dps) after pure pursuit for the vehicles' current poses
+        (``lookahead``: :meth:`_lookahead`'s, when the caller has it)."""
         v = self.vehicles
         idx = self.index
         speed = v.speed_mps[idx]
-        g_lat, g_lon, _ = self.route.point_at(self.s + self._lookahead())
+        g_lat, g_lon, _ = self.route.point_at(self.s + (self._lookahead() if lookahead is None else lookahead))
         m, n = radii_of_curvature(v.lat[idx])
         dn = np.radians(g_lat - v.lat[idx]) * m
         dlon = (g_lon - v.lon[idx] + 180.0) % 360.0 - 180.0
@@ -291,7 +295,8 @@ class RouteFollower:
     def commands(self):
         """(speed_cmd, yaw_rate_cmd_dps) for the follower's vehicles, not applied."""
         self.locate()
-        return self.steer(self._speed_ceiling())
+        lookahead = self._lookahead()
+        return self.steer(self._speed_ceiling(self._corner_ceiling(lookahead)), lookahead)
 
     def update(self) -> None:
         """Compute and apply this step's commands."""
@@ -322,8 +327,9 @@ class Convoy(RouteFollower):
         self.locate()
         v = self.vehicles
         _, vmax = v.speed_limits_mps
-        corner = self._corner_ceiling()
-        speed_cmd = self._speed_ceiling()
+        lookahead = self._lookahead()
+        corner = self._corner_ceiling(lookahead)
+        speed_cmd = self._speed_ceiling(corner)
         # The column moves at the speed its slowest corner allows: the leader holds to the lowest
         # corner ceiling of any vehicle, so the column takes a corner as one body.
         speed_cmd[0] = min(speed_cmd[0], float(corner.min()))
@@ -338,5 +344,5 @@ class Convoy(RouteFollower):
         cap = np.minimum(np.minimum(vmax[self.index[1:]], (1.0 + CATCH_UP_FRAC) * self.cruise_mps),
                          corner[1:])
         speed_cmd[1:] = np.clip(follow, 0.0, cap)
-        return self.steer(speed_cmd)
+        return self.steer(speed_cmd, lookahead)
 
