@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from fdm.ground import GroundVehicles
-from fdm.vehicle_types import P_ALAT, P_BRAKE, P_KIND, TRACKED
+from fdm.vehicle_types import P_ALAT, P_BRAKE, P_KIND, P_VMAX, TRACKED
 from sortie.errors import InvalidArgument
 from terrain.geodesy import radii_of_curvature
 from terrain.validate import check_latlon
@@ -124,6 +124,29 @@ def _corner_ceiling_kernel(corner_at, corner_turn, s, lookahead_m, lat_accel, br
             v_c = math.sqrt(lat_accel[j] * LOOKAHEAD_MIN_M / corner_turn[w])
             best = min(best, math.sqrt(v_c * v_c + 2.0 * brake[j] * d))
         out[j] = best
+
+
+def pursue(v: GroundVehicles, idx: np.ndarray, g_lat, g_lon, speed_cmd):
+    """(speed_cmd, yaw_rate_cmd_dps) of pure pursuit (Coulter 1992: curvature 2 sin(alpha) / L
+    towards the goal point at distance L) for vehicles ``idx`` of ``v`` towards goal points
+    (g_lat, g_lon); a tracked vehicle whose goal lies more than PIVOT_ALPHA_DEG off its
+    heading stops (speed 0) and pivots at its yaw-rate limit."""
+    speed = v.speed_mps[idx]
+    lat = v.lat[idx]
+    m, n = radii_of_curvature(lat)
+    dn = np.radians(g_lat - lat) * m
+    dlon = (g_lon - v.lon[idx] + 180.0) % 360.0 - 180.0
+    de = np.radians(dlon) * n * np.cos(np.radians(lat))
+    dist = np.maximum(np.hypot(dn, de), 1e-6)
+    alpha = (np.arctan2(de, dn) - np.radians(v.heading_deg[idx]) + np.pi) % (2 * np.pi) - np.pi
+    kappa = 2.0 * np.sin(alpha) / dist
+    yaw = np.degrees(speed * kappa)
+    tracked = v.table[v.type_id[idx], P_KIND] == TRACKED
+    lim = v.yaw_rate_limit_dps[idx]
+    pivot = tracked & (np.abs(alpha) > math.radians(PIVOT_ALPHA_DEG))
+    yaw = np.where(pivot, np.sign(alpha) * lim, yaw)
+    speed_cmd = np.where(pivot, 0.0, speed_cmd)
+    return speed_cmd, np.clip(yaw, -lim, lim)
 
 
 class Route:
@@ -273,24 +296,8 @@ class RouteFollower:
     def steer(self, speed_cmd: np.ndarray, lookahead=None):
         """(speed_cmd, yaw_rate_cmd_dps) after pure pursuit for the vehicles' current poses
         (``lookahead``: :meth:`_lookahead`'s, when the caller has it)."""
-        v = self.vehicles
-        idx = self.index
-        speed = v.speed_mps[idx]
         g_lat, g_lon, _ = self.route.point_at(self.s + (self._lookahead() if lookahead is None else lookahead))
-        m, n = radii_of_curvature(v.lat[idx])
-        dn = np.radians(g_lat - v.lat[idx]) * m
-        dlon = (g_lon - v.lon[idx] + 180.0) % 360.0 - 180.0
-        de = np.radians(dlon) * n * np.cos(np.radians(v.lat[idx]))
-        dist = np.maximum(np.hypot(dn, de), 1e-6)
-        alpha = (np.arctan2(de, dn) - np.radians(v.heading_deg[idx]) + np.pi) % (2 * np.pi) - np.pi
-        kappa = 2.0 * np.sin(alpha) / dist
-        yaw = np.degrees(speed * kappa)
-        tracked = v.table[v.type_id[idx], P_KIND] == TRACKED
-        lim = v.yaw_rate_limit_dps[idx]
-        pivot = tracked & (np.abs(alpha) > math.radians(PIVOT_ALPHA_DEG))
-        yaw = np.where(pivot, np.sign(alpha) * lim, yaw)
-        speed_cmd = np.where(pivot, 0.0, speed_cmd)
-        return speed_cmd, np.clip(yaw, -lim, lim)
+        return pursue(self.vehicles, self.index, g_lat, g_lon, speed_cmd)
 
     def commands(self):
         """(speed_cmd, yaw_rate_cmd_dps) for the follower's vehicles, not applied."""
@@ -346,3 +353,131 @@ class Convoy(RouteFollower):
         speed_cmd[1:] = np.clip(follow, 0.0, cap)
         return self.steer(speed_cmd, lookahead)
 
+
+
+# -- every follower of a world at once ---------------------------------------------------------------
+
+@numba.njit(cache=True, nogil=True)
+def _project_all(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, p0, g0, v0, lat, lon, hint, out_s, out_x, out_seg):
+    """Route.project of each follower's vehicles (rows v0[f]:v0[f + 1]) on its route (points
+    from p0[f], segments from g0[f] of the concatenated arrays): the same kernel on slices."""
+    for f in range(v0.shape[0] - 1):
+        a, b, p, q, g, h = v0[f], v0[f + 1], p0[f], p0[f + 1], g0[f], g0[f + 1]
+        _project_kernel(r_lat[p:q], r_lon[p:q], seg_m[g:h], seg_ncos[g:h], seg_len[g:h], cum[p:q], lat[a:b],
+                        lon[a:b], hint[a:b], out_s[a:b], out_x[a:b], out_seg[a:b])
+
+
+@numba.njit(cache=True, nogil=True)
+def _corners_all(corner_at, corner_turn, c0, v0, s, lookahead_m, lat_accel, brake, out):
+    """Route.corner_speed_ceiling of each follower's vehicles on its route's corners (c0[f]:c0[f + 1])."""
+    for f in range(v0.shape[0] - 1):
+        a, b, c, d = v0[f], v0[f + 1], c0[f], c0[f + 1]
+        _corner_ceiling_kernel(corner_at[c:d], corner_turn[c:d], s[a:b], lookahead_m[a:b], lat_accel[a:b],
+                               brake[a:b], out[a:b])
+
+
+@numba.njit(cache=True, nogil=True)
+def _points_all(r_lat, r_lon, seg_m, seg_ncos, seg_dn, seg_de, seg_len, cum, p0, g0, v0, s, out_lat, out_lon):
+    """Route.point_at's (lat, lon) for each follower's vehicles at arc lengths s, on its route."""
+    for f in range(v0.shape[0] - 1):
+        p, g = p0[f], g0[f]
+        nseg = g0[f + 1] - g
+        length = cum[p + nseg]
+        for j in range(v0[f], v0[f + 1]):
+            sj = s[j]
+            sj = sj if sj > 0.0 else 0.0  # np.clip's order: max, then min
+            sj = sj if sj < length else length
+            k = np.searchsorted(cum[p:p + nseg + 1], sj, side="right") - 1
+            k = min(max(k, 0), nseg - 1)
+            t = (sj - cum[p + k]) / seg_len[g + k]
+            out_lat[j] = r_lat[p + k] + t * np.degrees(seg_dn[g + k] / seg_m[g + k])
+            lon = r_lon[p + k] + t * np.degrees(seg_de[g + k] / seg_ncos[g + k])
+            out_lon[j] = lon if (lon >= -180.0) and (lon < 180.0) else (lon + 180.0) % 360.0 - 180.0
+
+
+class FollowerSet:
+    """Every route follower (and convoy) of one GroundVehicles, updated in one pass: the
+    same commands as each follower's :meth:`RouteFollower.update`, bit for bit, applied
+    at once. A world tick updates its followers through one (server/world.py): each
+    follower's own update is a few dozen numpy calls over its few vehicles, about 0.1 ms,
+    so a hundred convoys took 10 ms a tick; here the routes' arrays are concatenated once,
+    the projection, the corners and the goal points are compiled passes over every
+    vehicle, and the speed law and the steering numpy over all of them together."""
+
+    def __init__(self, followers):
+        self.followers = list(followers)
+        if not self.followers:
+            return
+        v = self.vehicles = self.followers[0].vehicles
+        if any(f.vehicles is not v for f in self.followers):
+            raise InvalidArgument("followers", "must all drive the same GroundVehicles")
+        routes = [f.route for f in self.followers]
+        sizes = np.array([f.index.size for f in self.followers], np.int64)
+        self.index = np.concatenate([f.index for f in self.followers])
+        self._v0 = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        self._p0 = np.concatenate([[0], np.cumsum([r.lat.size for r in routes])]).astype(np.int64)
+        self._g0 = np.concatenate([[0], np.cumsum([r.seg_len.size for r in routes])]).astype(np.int64)
+        self._c0 = np.concatenate([[0], np.cumsum([r.corner_at.size for r in routes])]).astype(np.int64)
+        self._route = {name: np.concatenate([getattr(r, name) for r in routes])
+                       for name in ("lat", "lon", "seg_m", "seg_ncos", "seg_dn", "seg_de", "seg_len", "cum",
+                                    "corner_at", "corner_turn")}
+
+        def each(values):
+            return np.repeat(np.asarray(values, np.float64), sizes)
+
+        self._length = each([r.length_m for r in routes])
+        self._cruise = each([f.cruise_mps for f in self.followers])
+        self._stops = np.repeat([f.stop_at_end for f in self.followers], sizes)
+        convoy = np.array([isinstance(f, Convoy) for f in self.followers])
+        self._starts = self._v0[:-1]
+        self._leaders = self._starts[convoy]  # rows of the convoys' leaders
+        member = np.repeat(convoy, sizes)
+        member[self._starts] = False
+        self._members = np.flatnonzero(member)  # rows of the convoys' other vehicles
+        self._spacing = each([getattr(f, "spacing_m", np.nan) for f in self.followers])
+        self._gain = each([getattr(f, "gain_per_s", np.nan) for f in self.followers])
+        self._convoy = convoy
+
+    def update(self) -> None:
+        """Every follower's update (locate, speed law, pure pursuit), applied at once."""
+        if not self.followers:
+            return
+        v, idx, fs, r = self.vehicles, self.index, self.followers, self._route
+        n = idx.size
+        hint = np.concatenate([f._hint for f in fs])
+        s, x, seg = np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
+        _project_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_len"], r["cum"], self._p0, self._g0,
+                     self._v0, v.lat[idx], v.lon[idx], hint, s, x, seg)
+        for f, a, b in zip(fs, self._v0[:-1].tolist(), self._v0[1:].tolist()):
+            f.s, f.cross_track_m, f._hint = s[a:b], x[a:b], seg[a:b]
+        speed = v.speed_mps[idx]
+        lookahead = np.clip(LOOKAHEAD_GAIN_S * np.abs(speed), LOOKAHEAD_MIN_M, LOOKAHEAD_MAX_M)
+        t = v.table[v.type_id[idx]]
+        corner = np.full(n, np.inf)
+        _corners_all(r["corner_at"], r["corner_turn"], self._c0, self._v0, s, lookahead,
+                     CURVE_LAT_ACCEL_FRAC * t[:, P_ALAT], STOP_BRAKE_FRAC * t[:, P_BRAKE], corner)
+        speed_cmd = np.minimum(corner, self._cruise)
+        end = np.sqrt(2.0 * STOP_BRAKE_FRAC * t[:, P_BRAKE] * np.maximum(self._length - s, 0.0))
+        speed_cmd = np.where(self._stops, np.minimum(speed_cmd, end), speed_cmd)
+        if self._leaders.size:
+            self._convoy_law(speed_cmd, corner, s, speed, t)
+        g_lat, g_lon = np.empty(n), np.empty(n)
+        _points_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_dn"], r["seg_de"], r["seg_len"], r["cum"],
+                    self._p0, self._g0, self._v0, s + lookahead, g_lat, g_lon)
+        v.set_controls(*pursue(v, idx, g_lat, g_lon, speed_cmd), index=idx)
+
+    def _convoy_law(self, speed_cmd, corner, s, speed, t) -> None:
+        """Convoy.commands' speed law for every convoy, into speed_cmd."""
+        gaps = np.append(s[:-1] - s[1:], -np.inf)  # row j: the gap behind vehicle j
+        excess_of = np.append(gaps[:-1] - self._spacing[1:], -np.inf)
+        excess_of[self._starts[1:] - 1] = -np.inf  # pairs across two followers
+        lead = self._leaders
+        k = np.flatnonzero(self._convoy)
+        corner_min = np.minimum.reduceat(corner, self._starts)[k]
+        excess = np.maximum(np.maximum.reduceat(excess_of, self._starts)[k], 0.0)
+        speed_cmd[lead] = np.minimum(speed_cmd[lead], corner_min)
+        speed_cmd[lead] *= np.minimum(np.maximum(1.0 - excess / WAIT_DISTANCE_M, WAIT_MIN_FRAC), 1.0)
+        m = self._members
+        follow = np.maximum(speed[m - 1], 0.0) + self._gain[m] * (gaps[m - 1] - self._spacing[m])
+        cap = np.minimum(np.minimum(t[m, P_VMAX], (1.0 + CATCH_UP_FRAC) * self._cruise[m]), corner[m])
+        speed_cmd[m] = np.clip(follow, 0.0, cap)

@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fdm.aircraft import InitialConditions, validate_controls
-from fdm.convoy import Convoy, Route, RouteFollower
+from fdm.convoy import Convoy, FollowerSet, Route, RouteFollower
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
 from server.aircraft_host import LocalAircraftHost
@@ -203,6 +203,7 @@ class World(EventLog):
         self.ground: GroundVehicles | None = None
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
         self._followers: list = []  # RouteFollower/Convoy per route, rebuilt when vehicles go
+        self._follower_set = FollowerSet([])
         self._followed: set = set()  # entity ids on a route
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
         self._external: dict[int, ExternalState] = {}  # external entities' last states
@@ -437,6 +438,7 @@ class World(EventLog):
             else:
                 self._followers.append(RouteFollower(self.ground, route, idx, cruise))
         self._followed = {i for _, ids in self.routes for i in ids}
+        self._follower_set = FollowerSet(self._followers)  # every follower's update in one pass
 
     # -- control --------------------------------------------------------------------------------
 
@@ -556,8 +558,7 @@ class World(EventLog):
                 self._apply_commands()
                 self.air.begin_tick(self.steps_per_tick)
             if self.ground is not None and self.ground.n:
-                for f in self._followers:
-                    f.update()
+                self._follower_set.update()
                 self._hold_ground_headings()
                 self.ground.step(self.dt)
             air = self._air_tick = self.air.end_tick()

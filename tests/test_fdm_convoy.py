@@ -201,3 +201,51 @@ def test_corner_ceiling_walk_equals_every_corner(waypoints):
     one = route.corner_speed_ceiling(float(s[0]), 20.0, 2.0, 3.0)
     assert np.shape(one) == () and one == _corner_ceiling_oracle(route, s[0], 20.0, 2.0, 3.0)
     assert (waypoints <= 2) == bool(np.isinf(route.corner_speed_ceiling(s, lookahead, 2.0, 3.0)).all())
+
+
+def test_a_follower_set_gives_every_followers_own_commands_bit_for_bit(alps):
+    """FollowerSet (what a world tick uses) against each follower's own update, over 20 s of
+    a mixed world: convoys and lone followers, stopping at the end or not, routes of 2 to 24
+    waypoints, four vehicle types, vehicles started off their route and heading: the same
+    commands and trajectories, bit for bit."""
+    from fdm.convoy import FollowerSet
+
+    def world():
+        rng = np.random.default_rng(4)
+        lats, lons, heads, specs, types, n0 = [], [], [], [], [], 0
+        for k in range(14):
+            nw = int(rng.integers(2, 25))
+            lat = 47.05 + 0.9 * rng.random() + np.cumsum(rng.uniform(0.0003, 0.0008, nw))
+            lon = 9.05 + 0.8 * rng.random() + np.cumsum(rng.uniform(-0.0008, 0.0008, nw))
+            route = Route(lat, lon)
+            m = int(rng.integers(1, 7))
+            la, lo, hd = route.point_at(np.maximum(route.length_m * rng.uniform(0, 0.8) - 60.0 * np.arange(m), 0.0))
+            lats.append(la + rng.normal(0, 1e-4, m))
+            lons.append(lo)
+            heads.append(hd + rng.normal(0, 30, m))
+            types += list(rng.choice(["hmmwv", "m1a2", "m2a3", "m1083"], m))
+            specs.append((route, np.arange(n0, n0 + m), m > 1 and k % 3 != 0, bool(k % 4)))
+            n0 += m
+        g = GroundVehicles(alps, np.concatenate(lats), np.concatenate(lons), np.concatenate(heads) % 360, types)
+        fs = [Convoy(g, r, idx, 9.0, 40.0, stop_at_end=stop) if convoy else
+              RouteFollower(g, r, idx, 8.0, stop_at_end=stop) for r, idx, convoy, stop in specs]
+        return g, fs
+
+    (g1, each), (g2, fs2) = world(), world()
+    together = FollowerSet(fs2)
+    assert any(isinstance(f, Convoy) for f in each) and any(not isinstance(f, Convoy) for f in each)
+    for _ in range(600):
+        for f in each:
+            f.update()
+        together.update()
+        assert np.array_equal(g1.speed_cmd_mps, g2.speed_cmd_mps)
+        assert np.array_equal(g1.yaw_rate_cmd_dps, g2.yaw_rate_cmd_dps)
+        g1.step(1 / 30)
+        g2.step(1 / 30)
+    assert np.array_equal(g1.lat, g2.lat) and np.array_equal(g1.lon, g2.lon)
+    assert all(np.array_equal(a.s, b.s) and np.array_equal(a._hint, b._hint) for a, b in zip(each, fs2))
+    assert float(np.abs(g1.speed_mps).max()) > 1.0  # they drove
+    FollowerSet([]).update()  # a world without routes
+    other = GroundVehicles(alps, [47.3], [9.5], [0.0], ["hmmwv"])
+    with pytest.raises(InvalidArgument, match="same GroundVehicles"):
+        FollowerSet([each[0], RouteFollower(other, each[0].route, [0], 5.0)])
