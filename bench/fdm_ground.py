@@ -20,6 +20,12 @@ the error of terrain following beside it.
   observers, far vehicles stepped at up to 1/8 rate: wall time saved, and after
   ``sync()`` the largest position difference of a free-running vehicle from
   full-rate stepping (speed against error).
+- ``route_followers_ms_per_tick``: a world tick's update of 100 route followers
+  (two in three convoys of 2-8 vehicles, the others lone vehicles; routes of 2-24
+  waypoints) through one ``fdm.convoy.FollowerSet``, as the world does;
+  ``route_followers_one_by_one_ms_per_tick`` each follower's own update in turn,
+  the same run; ``route_followers_speedup`` their quotient (the commands are the
+  same bit for bit: tests/test_fdm_convoy.py).
 - ``series["ground_dt_sweep"]``: wall time per simulated second against
   position error after 20 s versus dt = 0.01 s, for dt = 0.02 ... 1 s
   (median, p95, max, and the fraction of vehicles stopped by a terrain limit
@@ -179,6 +185,57 @@ def _dt_sweep(report: Report, terrain, quick: bool) -> None:
     report.params.update(ground_dt_sweep_vehicles=n, ground_dt_sweep_sim_s=sim_s, ground_dt_sweep_reference_dt=0.01)
 
 
+def followers(terrain, routes: int, seed: int = 4):
+    """(GroundVehicles, followers): ``routes`` routes of 2 to 24 waypoints over the tile, each
+    driven by a convoy (two in three, of 2-8 vehicles) or a lone follower, types mixed."""
+    from fdm.convoy import Convoy, Route, RouteFollower
+    from fdm.ground import GroundVehicles
+
+    rng = np.random.default_rng(seed)
+    lats, lons, heads, specs, types, n0 = [], [], [], [], [], 0
+    for k in range(routes):
+        nw = int(rng.integers(2, 25))
+        lat = BOX[0] + 0.1 + 0.7 * rng.random() + np.cumsum(rng.uniform(0.0003, 0.0008, nw))
+        lon = BOX[1] + 0.1 + 0.6 * rng.random() + np.cumsum(rng.uniform(-0.0008, 0.0008, nw))
+        route = Route(lat, lon)
+        m = int(rng.integers(2, 9)) if k % 3 else 1
+        la, lo, hd = route.point_at(np.maximum(route.length_m * rng.uniform(0, 0.8) - 60.0 * np.arange(m), 0.0))
+        lats.append(la)
+        lons.append(lo)
+        heads.append(hd)
+        types += [GROUND_TYPES[int(t)] for t in rng.integers(0, len(GROUND_TYPES), m)]
+        specs.append((route, np.arange(n0, n0 + m)))
+        n0 += m
+    g = GroundVehicles(terrain, np.concatenate(lats), np.concatenate(lons), np.concatenate(heads), types)
+    return g, [Convoy(g, r, idx, 8.0, 50.0) if idx.size > 1 else RouteFollower(g, r, idx, 8.0) for r, idx in specs]
+
+
+def _followers(report: Report, terrain, quick: bool) -> None:
+    """A world tick's route followers: 100 routes (convoys and lone followers), updated through
+    one FollowerSet (as the world does) and, in the same run, one by one."""
+    from fdm.convoy import FollowerSet
+
+    g, fs = followers(terrain, 100)
+    together = FollowerSet(fs)
+    together.update()
+    ticks, rounds = (10, 3) if quick else (30, 5)
+    each = best = math.inf
+    for _ in range(rounds):
+        t0 = time.perf_counter()
+        for _ in range(ticks):
+            for f in fs:
+                f.update()
+        each = min(each, (time.perf_counter() - t0) / ticks)
+        t0 = time.perf_counter()
+        for _ in range(ticks):
+            together.update()
+        best = min(best, (time.perf_counter() - t0) / ticks)
+    report.metrics["route_followers_ms_per_tick"] = best * 1e3
+    report.metrics["route_followers_one_by_one_ms_per_tick"] = each * 1e3
+    report.metrics["route_followers_speedup"] = each / best
+    report.params.update(route_followers=len(fs), route_follower_vehicles=g.n)
+
+
 def run_ground(report: Report, quick: bool) -> None:
     """Add the ground-vehicle metrics (see module doc) to ``report``."""
     from terrain.dem import read_dem
@@ -187,6 +244,7 @@ def run_ground(report: Report, quick: bool) -> None:
     path = ground_dem_path()
     terrain = Terrain([read_dem(path)])
     _throughput(report, terrain, quick)
+    _followers(report, terrain, quick)
     _lod(report, terrain, quick)
     _dt_sweep(report, terrain, quick)
     _grpc(report, path, quick)
