@@ -206,6 +206,8 @@ class World(EventLog):
         self._follower_set = FollowerSet([])
         self._followed: set = set()  # entity ids on a route
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
+        self._hold_version = 0  # bumped when a hold changes (its arrays are cached against it)
+        self._hold_cache = None
         self._external: dict[int, ExternalState] = {}  # external entities' last states
         self._external_ids: dict[str, int] = {}  # external id -> entity id
         self.entities: dict[int, Entity] = {}
@@ -414,6 +416,7 @@ class World(EventLog):
             self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
             self._pending.pop(entity_id, None)
             self._ground_heading_hold.pop(entity_id, None)
+            self._hold_version += 1
             if e.external_id:
                 self._external.pop(entity_id, None)
                 self._external_ids.pop(e.external_id, None)
@@ -548,6 +551,7 @@ class World(EventLog):
         else:  # autopilot: hold a heading (proportional heading-rate command) and a speed
             hold = self._ground_heading_hold.setdefault(e.id, {})
             hold.update({k: v for k, v in values.items() if v is not None})
+        self._hold_version += 1
 
     # -- ticking --------------------------------------------------------------------------------
 
@@ -635,12 +639,20 @@ class World(EventLog):
     def _hold_ground_headings(self) -> None:
         if not self._ground_heading_hold:
             return
-        ids = list(self._ground_heading_hold)
-        idx = self.ground.index_of([self.entities[i].ground_id for i in ids])
-        speed = np.array([self._ground_heading_hold[i].get("speed_mps", 0.0) for i in ids])
-        target = np.array([self._ground_heading_hold[i].get("heading_deg", h)
-                           for i, h in zip(ids, self.ground.heading_deg[idx])])
-        err = (target - self.ground.heading_deg[idx] + 180.0) % 360.0 - 180.0
+        # The holds' rows, speeds and headings (NaN: hold the current one), cached until a
+        # hold changes or an entity comes or goes (rebuilding them cost 0.4 ms a tick for
+        # 1800 held vehicles).
+        key = (self._layout_version, self._hold_version)
+        if self._hold_cache is None or self._hold_cache[0] != key:
+            holds = self._ground_heading_hold
+            ids = list(holds)
+            idx = self.ground.index_of([self.entities[i].ground_id for i in ids])
+            self._hold_cache = (key, idx, np.array([holds[i].get("speed_mps", 0.0) for i in ids]),
+                                np.array([holds[i].get("heading_deg", np.nan) for i in ids], np.float64))
+        _, idx, speed, target = self._hold_cache
+        heading = self.ground.heading_deg[idx]
+        target = np.where(np.isnan(target), heading, target)
+        err = (target - heading + 180.0) % 360.0 - 180.0
         rate = np.clip(0.5 * err, -self.ground.yaw_rate_limit_dps[idx], self.ground.yaw_rate_limit_dps[idx])
         self.ground.set_controls(speed, rate, index=idx)
 

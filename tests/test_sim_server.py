@@ -352,3 +352,38 @@ def test_an_error_in_the_world_tick_stops_the_clock_and_says_why(alps):
     finally:
         srv.stop(0.5)
         w.close()
+
+
+def test_ground_autopilot_holds_follow_every_change(alps):
+    """Ground vehicles' autopilot holds (heading and speed), whose arrays the world caches
+    between changes: a new target, a hold without a heading (keeps the one it has), a switch
+    to direct driving and a removal are each obeyed from the next tick."""
+    w = World(alps)
+    try:
+        ids = [e.id for e in w.spawn_ground(["a", "b", "c"], ["hmmwv"] * 3, [47.30, 47.31, 47.32],
+                                            [9.60, 9.60, 9.60], [0.0, 0.0, 0.0])]
+
+        def run(seconds):
+            for _ in range(int(seconds * 30)):
+                w.tick()
+
+        def heading(i):
+            return float(w.ground.heading_deg[w.ground.index_of([w.entities[i].ground_id])][0])
+
+        w.command(ids[0], "autopilot", {"heading_deg": 90.0, "speed_mps": 5.0})
+        w.command(ids[1], "autopilot", {"speed_mps": 4.0})  # no heading: keeps north
+        run(20.0)
+        assert abs(heading(ids[0]) - 90.0) < 1.0 and abs((heading(ids[1]) + 180.0) % 360.0 - 180.0) < 1.0
+        w.command(ids[0], "autopilot", {"heading_deg": 200.0})  # the speed target stays
+        w.command(ids[2], "autopilot", {"heading_deg": 300.0, "speed_mps": 3.0})
+        run(25.0)
+        assert abs(heading(ids[0]) - 200.0) < 1.0 and abs(heading(ids[2]) - 300.0) < 1.0
+        assert abs(float(w.ground.speed_mps[w.ground.index_of([w.entities[ids[0]].ground_id])][0]) - 5.0) < 0.2
+        w.command(ids[0], "drive", {"speed_mps": 0.0, "yaw_rate_dps": 0.0})  # out of the autopilot
+        w.remove(ids[1])
+        run(5.0)
+        assert abs(heading(ids[0]) - 200.0) < 5.0
+        assert abs(float(w.ground.speed_mps[w.ground.index_of([w.entities[ids[0]].ground_id])][0])) < 0.2
+        assert abs(heading(ids[2]) - 300.0) < 1.0
+    finally:
+        w.close()
