@@ -202,8 +202,7 @@ class World(EventLog):
         self._layout_cache = None
         self.ground: GroundVehicles | None = None
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
-        self._followers: list = []  # RouteFollower/Convoy per route, rebuilt when vehicles go
-        self._follower_set = FollowerSet([])
+        self._followers = FollowerSet([])  # a RouteFollower/Convoy per route, rebuilt when vehicles go
         self._followed: set = set()  # entity ids on a route
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
         self._hold_version = 0  # bumped when a hold changes (its arrays are cached against it)
@@ -431,17 +430,17 @@ class World(EventLog):
 
     def _rebuild_followers(self) -> None:
         """Route followers index vehicles by position in the arrays, which removals shift."""
-        self._followers = []
+        followers = []
         for spec, ids in self.routes:
             idx = self.ground.index_of([self.entities[i].ground_id for i in ids])
             route = Route(*np.array(spec["route"], float).T)
             cruise = spec["cruise_mps"] or float(self.ground.speed_limits_mps[1][idx].min()) * 0.5
             if spec["spacing_m"] and len(ids) > 1:
-                self._followers.append(Convoy(self.ground, route, idx, cruise, spec["spacing_m"]))
+                followers.append(Convoy(self.ground, route, idx, cruise, spec["spacing_m"]))
             else:
-                self._followers.append(RouteFollower(self.ground, route, idx, cruise))
+                followers.append(RouteFollower(self.ground, route, idx, cruise))
         self._followed = {i for _, ids in self.routes for i in ids}
-        self._follower_set = FollowerSet(self._followers)  # every follower's update in one pass
+        self._followers = FollowerSet(followers)  # every follower's update in one pass
 
     # -- control --------------------------------------------------------------------------------
 
@@ -562,7 +561,7 @@ class World(EventLog):
                 self._apply_commands()
                 self.air.begin_tick(self.steps_per_tick)
             if self.ground is not None and self.ground.n:
-                self._follower_set.update()
+                self._followers.update()
                 self._hold_ground_headings()
                 self.ground.step(self.dt)
             air = self._air_tick = self.air.end_tick()

@@ -1064,12 +1064,16 @@ def same_blocks(blk: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndar
     return rows, other_rows
 
 
-def remeasure(measure, blk: np.ndarray, old_blk: np.ndarray, old: tuple, unchanged) -> tuple:
-    """measure(blk) (a tuple of arrays with a row per block, :func:`by_parts`), reusing the rows
-    ``old`` held for the blocks of ``old_blk`` that ``blk`` has again (the same rectangle) and
-    ``unchanged`` (blocks (m, 4) -> mask) says read the same posts; the others measured anew.
-    The same arrays as measuring every block, bit for bit: each row depends only on the
-    posts under its block."""
+def remeasure(measure, blk: np.ndarray, previous=None) -> tuple:
+    """measure(blk) (a tuple of arrays with a row per block, :func:`by_parts`), reusing earlier
+    rows: ``previous`` (old_blk, old, unchanged) gives the arrays ``old`` measured for the
+    blocks ``old_blk``, and a block that ``blk`` has again (the same rectangle) keeps its rows
+    where ``unchanged`` (blocks (m, 4) -> mask) says it reads the same posts; the others (all,
+    without ``previous``) are measured anew. The same arrays as measuring every block, bit for
+    bit: each row depends only on the posts under its block."""
+    if previous is None:
+        return by_parts(measure, blk)
+    old_blk, old, unchanged = previous
     new_rows, old_rows = same_blocks(blk, old_blk)
     keep = unchanged(blk[new_rows]) if len(new_rows) else np.zeros(0, bool)
     rows = np.stack([new_rows[keep], old_rows[keep]], -1)
@@ -1391,13 +1395,9 @@ class ClipmapLayer:
                     def measure(b, level=level):
                         return decimation_errors(b, level, c.n), edge_deviations(b, level, c.n)
 
-                    if cached is None:
-                        arrays = by_parts(measure, blk)
-                    else:
-                        since = cached[0][1]
-                        arrays = remeasure(measure, blk, cached[3], cached[1:3],
-                                           lambda b, level=level, since=since: posts_unchanged(b, level, since))
-                    cached = self._errors[k] = (key, *arrays, blk)
+                    previous = None if cached is None else (
+                        cached[3], cached[1:3], lambda b, since=cached[0][1]: posts_unchanged(b, level, since))
+                    cached = self._errors[k] = (key, *remeasure(measure, blk, previous), blk)
                 _, errors, deviations, _ = cached
             # The culling boxes also read the coarser level's posts under each block, and are
             # in the renderer's local frame: a coarser level's move changes few of them.
@@ -1408,18 +1408,17 @@ class ClipmapLayer:
                 def measure(b, level=level, coarse=coarse):
                     return block_bounds(b, level, coarse, c.n, self.origin)
 
-                old_key = None if bounds is None else bounds[0]
-                if old_key is None or (old_key[2] is None) != (coarse is None) or old_key[3] != key[3]:
-                    arrays = by_parts(measure, blk)
-                else:
-                    def unchanged(b, level=level, coarse=coarse, old_key=old_key):
+                previous = None
+                # Boxes of another origin, or made with(out) the coarser level, are of no use.
+                if bounds is not None and bounds[0][3] == key[3] and (bounds[0][2] is None) == (coarse is None):
+                    def unchanged(b, old_key=bounds[0]):
                         ok = posts_unchanged(b, level, old_key[1])
                         if coarse is not None:
                             ok &= posts_unchanged(coarse_footprints(b), coarse, old_key[2])
                         return ok
 
-                    arrays = remeasure(measure, blk, bounds[3], bounds[1:3], unchanged)
-                bounds = self._bounds[k] = (key, *arrays, blk)
+                    previous = (bounds[3], bounds[1:3], unchanged)
+                bounds = self._bounds[k] = (key, *remeasure(measure, blk, previous), blk)
             _, lo, hi, _ = bounds
             seen = visible_blocks(lo, hi, view_proj)
             cells = int(((blk[seen, 2] - blk[seen, 0]) * (blk[seen, 3] - blk[seen, 1])).sum())
