@@ -5,6 +5,7 @@
     sortie terrain query --address HOST:PORT LAT LON [LAT LON ...]
     sortie terrain import FILES... -o STORE [--resolution ARCSEC] [--step M | --lossless] [--add-detail KIND]
     sortie terrain texture (--dem FILE... | --store PATH...) --bbox ... --time ISO8601 -o DIR
+    sortie terrain mesh (--dem FILE... | --store PATH...) --bbox ... [--spacing-m M] -o FILE.glb|.obj|.ply|.stl
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import json
 from server.grpc_common import DEFAULT_GRACE_S
 from server.terrain_service import DEFAULT_MAX_WORKERS
 from sortie.errors import InvalidArgument
+from terrain.mesh_cli import add_mesh_parser
 from terrain.store_cli import add_import_parser
 from terrain.texture_cli import add_texture_parser
 
@@ -43,7 +45,7 @@ def build_terrain(dem_paths, procedural_seed: int | None = None, store_paths=())
 
 
 def add_parser(sub) -> None:
-    terrain = sub.add_parser("terrain", help="terrain query service and store: serve, info, query, import, texture",
+    terrain = sub.add_parser("terrain", help="terrain query service and store: serve, info, query, import, texture, mesh",
                              description="Serve, describe or query the terrain query service.")
     commands = terrain.add_subparsers(dest="terrain_command", metavar="SUBCOMMAND", required=True)
 
@@ -83,6 +85,7 @@ def add_parser(sub) -> None:
 
     add_import_parser(commands)
     add_texture_parser(commands)
+    add_mesh_parser(commands)
 
 
 def _positive_int(text: str) -> int:

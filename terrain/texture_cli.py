@@ -67,16 +67,7 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
     from server.terrain_cli import add_terrain_args  # loaded by now: it registers this command
 
     add_terrain_args(p)
-    where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--cell", type=int, metavar="CELL_ID",
-                       help="the box of one quad-tree cell (terrain/quadtree.py id; e.g. a store tile's cell)")
-    where.add_argument("--bbox", nargs=4, type=float,
-                       metavar=("LAT_MIN", "LON_MIN", "LAT_MAX", "LON_MAX"), help="the box, degrees WGS84")
-    size = p.add_mutually_exclusive_group()
-    size.add_argument("--size", metavar="COLSxROWS",
-                      help=f"pixels across and down (at most {MAX_PIXELS:,} in all); default: "
-                           f"{DEFAULT_LONG_SIDE_PX} along the longer side, square pixels")
-    size.add_argument("--spacing-m", type=float, metavar="M", help="pixel size in metres at the box's centre")
+    add_grid_args(p, "pixels", f"at most {MAX_PIXELS:,} in all")
     p.add_argument("--time", required=True, metavar="ISO8601",
                    help="UTC instant with its zone, e.g. 2026-06-21T12:00:00Z")
     p.add_argument("--no-refraction", action="store_true", help="geometric sun elevation (no refraction)")
@@ -86,6 +77,33 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the images (created)")
     p.set_defaults(func=texture_command)
     return p
+
+
+def add_grid_args(p, what: str, limit: str) -> None:
+    """The box (--cell or --bbox) and the grid's size (--size or --spacing-m) of a command that
+    samples a lat/lon grid; ``what`` names its points ("pixels"), ``limit`` their limit."""
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--cell", type=int, metavar="CELL_ID",
+                       help="the box of one quad-tree cell (terrain/quadtree.py id; e.g. a store tile's cell)")
+    where.add_argument("--bbox", nargs=4, type=float,
+                       metavar=("LAT_MIN", "LON_MIN", "LAT_MAX", "LON_MAX"), help="the box, degrees WGS84")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--size", metavar="COLSxROWS",
+                      help=f"{what} across and down ({limit}); default: {DEFAULT_LONG_SIDE_PX} along the longer "
+                           "side, square cells")
+    size.add_argument("--spacing-m", type=float, metavar="M", help=f"{what}' spacing in metres at the box's centre")
+
+
+def box_of(args) -> list:
+    """The box of --bbox, or of --cell's quad-tree cell (InvalidArgument naming --cell)."""
+    if args.cell is None:
+        return args.bbox
+    from terrain import quadtree
+
+    try:
+        return list(quadtree.bounds(args.cell))
+    except InvalidArgument as e:
+        raise InvalidArgument("--cell", f"is not a quad-tree cell id ({e})", value=args.cell) from None
 
 
 def parse_time(text: str) -> datetime:
@@ -186,8 +204,10 @@ def sample_heights(terrain, req: TextureRequest):
     return heights, lat, lon
 
 
-def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 0, refraction: bool = True):
-    """(Texture, summary dict) for a request over a Terrain (see terrain.texture.synthesize)."""
+def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 0, refraction: bool = True,
+                 sampled=None):
+    """(Texture, summary dict) for a request over a Terrain (see terrain.texture.synthesize);
+    ``sampled``: :func:`sample_heights`'s result for the request, if the caller has it."""
     import numpy as np
 
     from terrain.geodesy import radii_of_curvature
@@ -195,7 +215,7 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
     from terrain.texture import (CLASS_COLOURS_RGB, CLASS_NAMES, class_histogram, metre_spacing,
                                  synthesize)
 
-    heights, lat, lon = sample_heights(terrain, req)
+    heights, lat, lon = sample_heights(terrain, req) if sampled is None else sampled
     dx, dy = metre_spacing(req.lat_min, req.lat_max, (req.lat_max - req.lat_min) / req.rows,
                            (req.lon_max - req.lon_min) / req.cols)
     lat_c, lon_c = 0.5 * (req.lat_min + req.lat_max), 0.5 * (req.lon_min + req.lon_max)
@@ -268,15 +288,7 @@ def write_texture(tex, summary: dict, out_dir) -> list:
 def texture_command(args) -> int:
     from server.terrain_cli import build_terrain
 
-    bbox = args.bbox
-    if args.cell is not None:
-        from terrain import quadtree
-
-        try:
-            bbox = quadtree.bounds(args.cell)
-        except InvalidArgument as e:
-            raise InvalidArgument("--cell", f"is not a quad-tree cell id ({e})", value=args.cell) from None
-    req = texture_request(bbox, args.size, args.spacing_m, args.time)
+    req = texture_request(box_of(args), args.size, args.spacing_m, args.time)
     if args.soft_px < 0:
         raise InvalidArgument("--soft-px", "must be 0 or more", value=args.soft_px)
     terrain = build_terrain(args.dem, args.procedural, args.store)

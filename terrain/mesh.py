@@ -1,0 +1,268 @@
+"""The terrain as a triangle mesh in a local frame, for export (glTF, OBJ, PLY, STL).
+
+Analysts and debriefs take terrain into other tools: a glTF viewer, Blender, Cesium, a
+3-D printer. This module holds the pure array part (a lat/lon grid of heights -> vertices,
+triangles, texture coordinates in a local frame) and writes the files through trimesh.
+
+**The grid.** Heights on a regular lat/lon grid, row 0 north, column 0 west (the layout of
+``terrain.texture.grid_latlon`` and of ``sortie terrain texture``): one vertex per grid
+point, two triangles per cell whose four corners have data, none where a corner has none
+(NaN: no source covers it). Each cell is cut along its NW-SE diagonal. Against the terrain's
+own surface (bilinear between posts: ``terrain.raster``), a triangle pair z = a + bx + cy
+(two planes) differs from the bilinear patch z = a + bx + cy + dxy by at most |d| / 4 at the
+cell's centre, d = h_NW - h_NE - h_SW + h_SE, whichever diagonal is cut: the mesh is exact at
+its vertices and within a quarter of each cell's twist in between.
+
+**The frame.** Vertices are float64 metres east, north and up (ENU) from an origin on the
+WGS84 ellipsoid (``terrain.geodesy``), so a mesh of a few hundred kilometres keeps
+millimetres in float32 files. Heights are MSL (the terrain's); a vertex's ellipsoidal height
+is the MSL height plus ``geoid_undulation_m``, the constant the simulation world uses
+(``server.world.World``), so a recorded track and the mesh meet where the world had them meet.
+
+**Axes in the files.** glTF is Y up (glTF 2.0 specification, "Coordinate System and Units":
+right-handed, +Y up, metres), so .glb/.gltf files carry (x, y, z) = (east, up, -north). OBJ,
+PLY and STL carry ENU as it is (z up, the convention of GIS, CAD and slicers). The origin's
+latitude, longitude and height go with the scene (glTF: the scene's ``extras``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sortie.errors import InvalidArgument
+from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
+
+# The largest mesh one call builds: 4 Mi vertices (2048 x 2048), about 8 Mi triangles,
+# some 150 MB as glTF; past that a viewer struggles and the grid should be coarser.
+MAX_VERTICES = 2048 * 2048
+# Output formats by file suffix (trimesh's exporters).
+FORMATS = {".glb": "glb", ".gltf": "gltf", ".obj": "obj", ".ply": "ply", ".stl": "stl"}
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    """An ENU frame at a point of the ellipsoid: what mesh vertices are offsets from."""
+
+    lat_deg: float
+    lon_deg: float
+    h_m: float  # above the ellipsoid
+    origin_ecef: np.ndarray  # (3,)
+    basis: np.ndarray  # (3, 3) rows east, north, up in ECEF
+
+    @classmethod
+    def at(cls, lat_deg: float, lon_deg: float, h_m: float = 0.0) -> "LocalFrame":
+        values = {"lat_deg": lat_deg, "lon_deg": lon_deg, "h_m": h_m}
+        for name, v in values.items():
+            if not np.isfinite(v):
+                raise InvalidArgument(name, "must be finite", value=v)
+        if abs(lat_deg) > 90.0:
+            raise InvalidArgument("lat_deg", "must be within [-90, 90]", value=lat_deg)
+        return cls(float(lat_deg), float(lon_deg), float(h_m),
+                   geodetic_to_ecef(lat_deg, lon_deg, h_m).reshape(3), np.stack(enu_basis(lat_deg, lon_deg)))
+
+    def to_local(self, points_ecef) -> np.ndarray:
+        """(..., 3) ECEF metres -> (..., 3) ENU metres from the origin (float64)."""
+        return (np.asarray(points_ecef, dtype=np.float64) - self.origin_ecef) @ self.basis.T
+
+    def to_ecef(self, points_enu) -> np.ndarray:
+        """(..., 3) ENU metres from the origin -> (..., 3) ECEF metres (float64)."""
+        return np.asarray(points_enu, dtype=np.float64) @ self.basis + self.origin_ecef
+
+    def as_dict(self) -> dict:
+        return {"lat_deg": self.lat_deg, "lon_deg": self.lon_deg, "h_m": self.h_m, "datum": "WGS84",
+                "axes": "east, north, up (metres)"}
+
+
+def enu_to_gltf(points_enu) -> np.ndarray:
+    """ENU (x east, y north, z up) -> glTF axes (east, up, -north): right-handed, Y up."""
+    p = np.asarray(points_enu, dtype=np.float64)
+    return np.stack([p[..., 0], p[..., 2], -p[..., 1]], axis=-1)
+
+
+def gltf_to_enu(points_gltf) -> np.ndarray:
+    """The inverse of :func:`enu_to_gltf`."""
+    p = np.asarray(points_gltf, dtype=np.float64)
+    return np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)
+
+
+def grid_faces(valid) -> np.ndarray:
+    """(m, 3) int64 triangles of a (rows, cols) vertex grid (vertex index i * cols + j), two a
+    cell whose four corners are ``valid``, cut NW-SE, counter-clockwise seen from above (+up)
+    when row 0 is north and column 0 west."""
+    valid = np.asarray(valid, dtype=bool)
+    if valid.ndim != 2:
+        raise InvalidArgument("valid", f"must be a 2-D grid, got shape {valid.shape}")
+    rows, cols = valid.shape
+    if rows < 2 or cols < 2:
+        return np.zeros((0, 3), np.int64)
+    cell = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
+    i, j = np.nonzero(cell)
+    nw = i * cols + j
+    ne, sw, se = nw + 1, nw + cols, nw + cols + 1
+    # East is +x and north +y: NW -> SW -> SE turns left (counter-clockwise), as does NW -> SE -> NE.
+    return np.stack([np.stack([nw, sw, se], -1), np.stack([nw, se, ne], -1)], axis=1).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class TerrainMesh:
+    """Vertices (rows x cols, 3) ENU float64 in ``frame``; ``faces`` (m, 3) int64; ``uv`` (rows x
+    cols, 2) at the grid points' pixel centres of a (rows, cols) image of the same grid
+    (OpenGL's convention, v up: trimesh flips it for glTF); the grid's ``lat`` (rows,) north
+    to south, ``lon`` (cols,) west to east and ``heights_msl_m`` (rows, cols; NaN: no data)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    heights_msl_m: np.ndarray
+    frame: LocalFrame
+    geoid_undulation_m: float = 0.0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.heights_msl_m.shape
+
+    def max_twist_m(self) -> float:
+        """The largest |d| / 4 over the meshed cells: the mesh's largest vertical distance
+        from the bilinear surface through its vertices (module docstring)."""
+        h = self.heights_msl_m
+        d = np.abs(h[:-1, :-1] - h[:-1, 1:] - h[1:, :-1] + h[1:, 1:]) / 4.0
+        d = d[np.isfinite(d)]
+        return float(d.max()) if d.size else 0.0
+
+
+def build_mesh(heights_msl_m, lat, lon, *, frame: LocalFrame | None = None,
+               geoid_undulation_m: float = 0.0) -> TerrainMesh:
+    """The mesh of heights (rows, cols) m MSL (NaN: no data) at latitudes ``lat`` (rows,) and
+    longitudes ``lon`` (cols,) degrees, (lat, lon) order. ``frame``: default an origin at the
+    grid's centre on the ellipsoid. Vertices where the height is NaN are kept (every grid
+    point has one, so indices stay i * cols + j) at the origin's height; no face uses them."""
+    h = np.asarray(heights_msl_m, dtype=np.float64)
+    lat = np.asarray(lat, dtype=np.float64)
+    lon = np.asarray(lon, dtype=np.float64)
+    if h.ndim != 2 or h.shape != (lat.size, lon.size):
+        raise InvalidArgument("heights_msl_m", f"must have shape (len(lat), len(lon)) = ({lat.size}, {lon.size})",
+                              value=list(h.shape))
+    if h.size > MAX_VERTICES:
+        raise InvalidArgument("grid", f"{h.shape[1]}x{h.shape[0]} = {h.size:,} vertices is over the limit of "
+                                      f"{MAX_VERTICES:,}", value=h.size)
+    for name, a, limit in (("lat", lat, 90.0), ("lon", lon, 540.0)):
+        bad = np.flatnonzero(~(np.isfinite(a) & (np.abs(a) <= limit)))
+        if bad.size:
+            raise InvalidArgument(f"{name}[{bad[0]}]", f"must be finite and within +-{limit:g} degrees",
+                                  value=float(a[bad[0]]))
+    if not np.isfinite(geoid_undulation_m):
+        raise InvalidArgument("geoid_undulation_m", "must be finite", value=geoid_undulation_m)
+    if frame is None:
+        frame = LocalFrame.at(0.5 * (lat[0] + lat[-1]), 0.5 * (lon[0] + lon[-1]), 0.0)
+    valid = np.isfinite(h)
+    ellipsoidal = np.where(valid, h + geoid_undulation_m, frame.h_m)
+    ecef = geodetic_to_ecef(lat[:, None], lon[None, :], ellipsoidal)
+    vertices = frame.to_local(ecef.reshape(-1, 3))
+    rows, cols = h.shape
+    u = (np.arange(cols) + 0.5) / cols
+    v = 1.0 - (np.arange(rows) + 0.5) / rows
+    uv = np.stack(np.broadcast_arrays(u[None, :], v[:, None]), axis=-1).reshape(-1, 2)
+    return TerrainMesh(vertices, grid_faces(valid), uv, lat, lon, h, frame, float(geoid_undulation_m))
+
+
+def centre_error(mesh: TerrainMesh, terrain) -> np.ndarray:
+    """|mesh - terrain| (m) at every meshed cell's centre, where the cut diagonal puts the mesh
+    at the mean of its NW and SE heights: how far a grid coarser than the terrain's posts
+    strays from it (on the posts' own grid, exactly the cell's |d| / 4). ``terrain``: anything
+    with ``heights(lat, lon)`` (terrain.terrain.Terrain, the terrain client)."""
+    h = mesh.heights_msl_m
+    lat_c = 0.5 * (mesh.lat[:-1] + mesh.lat[1:])
+    lon_c = 0.5 * (mesh.lon[:-1] + mesh.lon[1:])
+    along = 0.5 * (h[:-1, :-1] + h[1:, 1:])
+    cell = np.isfinite(h[:-1, :-1] + h[:-1, 1:] + h[1:, :-1] + h[1:, 1:])
+    i, j = np.nonzero(cell)
+    res = terrain.heights(lat_c[i], lon_c[j])
+    return np.abs(along[i, j] - np.asarray(res.height_msl_m, dtype=np.float64))
+
+
+def mesh_geodetic(mesh: TerrainMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lat, lon, h_msl) of every vertex back from its ENU position (the round trip tests use)."""
+    lat, lon, h = ecef_to_geodetic(mesh.frame.to_ecef(mesh.vertices))
+    return lat, lon, h - mesh.geoid_undulation_m
+
+
+def output_format(path) -> str:
+    """trimesh's file type for an output path, by suffix; InvalidArgument naming it otherwise."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in FORMATS:
+        raise InvalidArgument("output", f"must end in one of {', '.join(FORMATS)}", value=str(path))
+    return FORMATS[suffix]
+
+
+def to_trimesh(mesh: TerrainMesh, image=None, *, gltf_axes: bool = False):
+    """A trimesh.Trimesh of the mesh (unprocessed: vertex order kept), textured with ``image``
+    ((rows, cols, 3) uint8 on the mesh's grid, or None), in glTF axes or ENU."""
+    import trimesh
+    from PIL import Image
+
+    vertices = enu_to_gltf(mesh.vertices) if gltf_axes else mesh.vertices
+    visual = None
+    if image is not None:
+        img = np.asarray(image)
+        if img.shape[:2] != mesh.shape:
+            raise InvalidArgument("image", f"must be on the mesh's grid {mesh.shape}", value=list(img.shape))
+        visual = trimesh.visual.TextureVisuals(uv=mesh.uv, image=Image.fromarray(np.ascontiguousarray(img)))
+    return trimesh.Trimesh(vertices=vertices, faces=mesh.faces, visual=visual, process=False, validate=False)
+
+
+def vertex_colours(image) -> np.ndarray:
+    """(rows x cols, 4) uint8 RGBA of an image on the mesh's grid: one pixel a vertex."""
+    img = np.asarray(image, dtype=np.uint8)
+    rgba = np.concatenate([img.reshape(-1, 3), np.full((img.shape[0] * img.shape[1], 1), 255, np.uint8)], axis=1)
+    return rgba
+
+
+def write_mesh(mesh: TerrainMesh, path, image=None, *, name: str = "terrain", extras: dict | None = None) -> Path:
+    """Write the mesh to ``path`` (its suffix picks the format, :data:`FORMATS`): glTF with
+    ``image`` as its base colour texture, PLY with it as vertex colours, OBJ with a
+    material beside it, STL as geometry alone. ``extras`` (JSON-able) go into glTF's scene
+    extras with the frame. Returns the path."""
+    import trimesh
+
+    kind = output_format(path)
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if kind in ("glb", "gltf"):
+        scene = trimesh.Scene()
+        scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name=name, geom_name=name)
+        scene.metadata.update(scene_extras(mesh.frame, extras))
+        write_scene(scene, out)
+        return out
+    tm = to_trimesh(mesh, image if kind == "obj" else None)
+    if kind == "ply" and image is not None:
+        tm.visual = trimesh.visual.ColorVisuals(tm, vertex_colors=vertex_colours(image))
+    tm.export(out, file_type=kind)
+    return out
+
+
+def scene_extras(frame: LocalFrame, extras: dict | None = None) -> dict:
+    """What a glTF scene says about itself: its frame (origin, axes) and the caller's extras."""
+    out = {"sortie": {"frame": {**frame.as_dict(), "gltf_axes": "x east, y up, z south (-north)"}}}
+    if extras:
+        out["sortie"].update(extras)
+    return out
+
+
+def write_scene(scene, path) -> None:
+    """Write a trimesh.Scene as .glb (one binary file) or .gltf (JSON with the buffers embedded)."""
+    path = Path(path)
+    kind = output_format(path)
+    if kind == "glb":
+        path.write_bytes(scene.export(file_type="glb"))
+    elif kind == "gltf":
+        from trimesh.exchange.gltf import export_gltf
+
+        files = export_gltf(scene, embed_buffers=True)
+        path.write_bytes(files["model.gltf"])
+    else:
+        raise InvalidArgument("output", "a scene is written as .glb or .gltf", value=str(path))

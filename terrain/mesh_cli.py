@@ -1,0 +1,94 @@
+"""``sortie terrain mesh``: a lat/lon box of terrain as a textured triangle mesh (terrain/mesh.py).
+
+    sortie terrain mesh (--dem FILE... | --store PATH... | --procedural SEED)
+                        (--bbox LAT_MIN LON_MIN LAT_MAX LON_MAX | --cell CELL_ID)
+                        [--size COLSxROWS | --spacing-m M] [--time ISO8601 | --no-texture]
+                        [--geoid-undulation-m N] [--seed N] -o FILE.glb|.gltf|.obj|.ply|.stl
+
+One vertex at each pixel centre of the grid ``sortie terrain texture`` samples (the same
+--bbox/--cell and --size/--spacing-m rules), so the synthesized texture (land classes, light
+map and shadows for --time) lies one texel a vertex. glTF embeds it as the base colour, PLY
+takes it as vertex colours, OBJ writes it beside the file (material.mtl, material_0.png), STL
+is geometry alone. Without --time the sun stands at local mean noon at the box's centre on
+21 June 2026.
+
+Registered under ``sortie terrain`` by :func:`add_mesh_parser`; numpy, trimesh and the terrain
+are imported when the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from datetime import datetime, timedelta, timezone
+
+from sortie.errors import InvalidArgument
+
+
+def add_mesh_parser(commands) -> argparse.ArgumentParser:
+    """Add ``mesh`` to the sub-commands of ``sortie terrain`` (server/terrain_cli.py's ``commands``)."""
+    from server.terrain_cli import add_terrain_args
+    from terrain.texture_cli import add_grid_args
+
+    p = commands.add_parser(
+        "mesh", help="write a lat/lon box of terrain as a textured mesh (glTF, OBJ, PLY, STL)",
+        description="Sample the terrain on a regular lat/lon grid and write it as a triangle mesh in a "
+                    "local east-north-up frame at the box's centre (glTF: x east, y up, z south), "
+                    "textured with the synthesized land classes and light map of `sortie terrain "
+                    "texture`. At most 4,194,304 (2048 x 2048) vertices (terrain/mesh.py, MAX_VERTICES).")
+    add_terrain_args(p)
+    add_grid_args(p, "vertices", "at most 4,194,304 in all")
+    light = p.add_mutually_exclusive_group()
+    light.add_argument("--time", metavar="ISO8601", help="UTC instant of the texture's sun, e.g. 2026-06-21T12:00:00Z "
+                                                          "(default: local mean noon at the centre, 21 June 2026)")
+    light.add_argument("--no-texture", action="store_true", help="geometry alone (no texture, no colours)")
+    p.add_argument("--geoid-undulation-m", type=float, default=0.0, metavar="N",
+                   help="ellipsoidal height = MSL height + N, as the simulation world's (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed of the texture (default %(default)s)")
+    p.add_argument("-o", "--output", required=True, metavar="FILE",
+                   help="the mesh file; its suffix picks the format: .glb, .gltf, .obj, .ply or .stl")
+    p.set_defaults(func=mesh_command)
+    return p
+
+
+def local_noon(lon_deg: float) -> str:
+    """The UTC instant of local mean noon at a longitude on 21 June 2026, ISO 8601 ('Z')."""
+    when = datetime(2026, 6, 21, 12, tzinfo=timezone.utc) - timedelta(hours=lon_deg / 15.0)
+    return when.replace(microsecond=0).isoformat().replace("+00:00", "Z")
+
+
+def mesh_command(args) -> int:
+    from server.terrain_cli import build_terrain
+    import numpy as np
+
+    from terrain.mesh import MAX_VERTICES, build_mesh, centre_error, output_format, write_mesh
+    from terrain.texture_cli import box_of, make_texture, sample_heights, texture_request
+
+    output_format(args.output)
+    if not math.isfinite(args.geoid_undulation_m):
+        raise InvalidArgument("--geoid-undulation-m", "must be finite", value=args.geoid_undulation_m)
+    bbox = box_of(args)
+    centre_lon = 0.5 * (bbox[1] + bbox[3]) if len(bbox) == 4 and all(map(math.isfinite, bbox)) else 0.0
+    req = texture_request(bbox, args.size, args.spacing_m, args.time or local_noon(centre_lon))
+    if req.cols * req.rows > MAX_VERTICES:
+        field = "--size" if args.size is not None else "--spacing-m"
+        raise InvalidArgument(field, f"{req.cols}x{req.rows} = {req.cols * req.rows:,} vertices is over the limit "
+                                     f"of {MAX_VERTICES:,}", value=args.size or args.spacing_m)
+    terrain = build_terrain(args.dem, args.procedural, args.store)
+    sampled = sample_heights(terrain, req)
+    heights, lat, lon = sampled
+    image, extras = None, {"time_utc": None}
+    if not args.no_texture:
+        tex, summary = make_texture(terrain, req, seed=args.seed, sampled=sampled)
+        image = tex.image
+        extras = {"time_utc": summary["time_utc"], "sun": summary["sun"], "class_histogram": summary["class_histogram"]}
+    mesh = build_mesh(heights, lat, lon, geoid_undulation_m=args.geoid_undulation_m)
+    path = write_mesh(mesh, args.output, image, extras={"bbox": list(bbox), **extras})
+    f = mesh.frame
+    err = centre_error(mesh, terrain)
+    print(f"{path}: {req.cols}x{req.rows} vertices, {len(mesh.faces):,} triangles, "
+          f"{path.stat().st_size:,} bytes; origin {f.lat_deg:.6f}, {f.lon_deg:.6f} (WGS84, ellipsoid); "
+          + (f"off the terrain at the cells' centres by {np.sqrt(np.mean(err ** 2)):.2f} m RMS, "
+             f"{err.max():.2f} m at most" if err.size else "no cell with data")
+          + ("" if image is None else f"; textured for {extras['time_utc']}"))
+    return 0

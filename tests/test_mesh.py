@@ -1,0 +1,245 @@
+"""Terrain meshes (terrain/mesh.py) and `sortie terrain mesh` (terrain/mesh_cli.py).
+
+Bounds, and why they hold:
+
+- *At the posts.* A grid whose points are the Alps tile's posts gets the file's heights
+  (big-endian int16 read here with numpy, not through Sortie's reader) to 1e-6 m: bilinear
+  interpolation at a post returns the post, up to the rounding of the grid's latitudes
+  (1e-15 degrees, times a slope below 2: nanometres).
+- *Round trip.* ENU -> ECEF -> geodetic (Bowring, 3 rounds: terrain/geodesy.py) recovers each
+  vertex's latitude and longitude within 1e-9 degrees and its height within 1 mm.
+- *The files.* glTF stores float32 positions: within 2^-24 of |v| per coordinate, times 2
+  for the write and the axis swap (|v| <= 15 km here: under 2 mm).
+- *Cell centres.* On the posts' own grid the cut diagonal puts the mesh at (h_NW + h_SE) / 2
+  and the bilinear surface at the mean of the four corners: their difference is |d| / 4,
+  d = h_NW - h_NE - h_SW + h_SE, exactly (module docstring), so ``centre_error`` must equal it
+  to rounding.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from server.terrain_cli import build_terrain
+from sortie.errors import InvalidArgument
+from terrain.mesh import (LocalFrame, build_mesh, centre_error, enu_to_gltf, gltf_to_enu, grid_faces,
+                          mesh_geodetic, output_format, write_mesh)
+from terrain.mesh_cli import add_mesh_parser, local_noon
+
+trimesh = pytest.importorskip("trimesh")
+
+POSTS = 1201  # N47E009.hgt: 3 arc-second posts, 47-48 N, 9-10 E, row 0 north
+
+
+def _hgt_posts(path) -> np.ndarray:
+    return np.fromfile(path, dtype=">i2").reshape(POSTS, POSTS).astype(np.float64)
+
+
+def _post_grid(row0: int, col0: int, rows: int, cols: int):
+    """Latitudes (north to south) and longitudes of a window of the tile's posts."""
+    lat = 48.0 - (row0 + np.arange(rows)) / (POSTS - 1)
+    lon = 9.0 + (col0 + np.arange(cols)) / (POSTS - 1)
+    return lat, lon
+
+
+@pytest.fixture(scope="module")
+def alps(hgt_alps):
+    return build_terrain([hgt_alps])
+
+
+def test_grid_faces_wind_counter_clockwise_and_skip_cells_without_data():
+    valid = np.ones((3, 4), bool)
+    f = grid_faces(valid)
+    assert f.shape == (2 * 2 * 3, 3)
+    x, y = np.meshgrid(np.arange(4.0), -np.arange(3.0))  # column east, row 0 north
+    p = np.stack([x.ravel(), y.ravel()], -1)
+    a, b, c = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
+    area2 = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    assert np.all(area2 == 1.0)  # counter-clockwise seen from above, half a unit cell each
+    valid[1, 1] = False  # touches 4 cells: 2 remain
+    assert grid_faces(valid).shape == (2 * 2, 3)
+    assert not np.isin(1 * 4 + 1, grid_faces(valid))
+    assert grid_faces(np.ones((1, 5), bool)).shape == (0, 3)
+
+
+def test_axes_round_trip_and_handedness():
+    enu = np.array([[1.0, 2.0, 3.0], [-4.0, 5.0, -6.0]])
+    assert np.array_equal(gltf_to_enu(enu_to_gltf(enu)), enu)
+    e, n, u = enu_to_gltf(np.eye(3))
+    assert np.array_equal(e, [1, 0, 0]) and np.array_equal(u, [0, 1, 0]) and np.array_equal(n, [0, 0, -1])
+    assert np.linalg.det(np.stack([e, n, u])) == 1.0  # east x north = up stays right-handed
+
+
+def test_heights_at_the_posts_and_the_round_trip(hgt_alps, alps):
+    posts = _hgt_posts(hgt_alps)
+    row0, col0, rows, cols = 700, 400, 60, 80  # the Alpstein (Saentis), 47.2-47.3 N
+    lat, lon = _post_grid(row0, col0, rows, cols)
+    res = alps.heights(np.repeat(lat, cols), np.tile(lon, rows))
+    heights = res.height_msl_m.reshape(rows, cols)
+    truth = posts[row0:row0 + rows, col0:col0 + cols]
+    assert np.abs(heights - truth).max() <= 1e-6
+    mesh = build_mesh(heights, lat, lon, geoid_undulation_m=48.0)
+    assert mesh.faces.shape == (2 * (rows - 1) * (cols - 1), 3)
+    la, lo, h = mesh_geodetic(mesh)
+    assert np.abs(la - np.repeat(lat, cols)).max() < 1e-9
+    assert np.abs(lo - np.tile(lon, rows)).max() < 1e-9
+    assert np.abs(h - truth.ravel()).max() < 1e-3
+    # The vertices' normals point up: a height field has no overhangs.
+    v = mesh.vertices
+    normals = np.cross(v[mesh.faces[:, 1]] - v[mesh.faces[:, 0]], v[mesh.faces[:, 2]] - v[mesh.faces[:, 0]])
+    assert np.all(normals[:, 2] > 0)
+    # At the cells' centres: |d| / 4 exactly, the mesh's distance from the bilinear surface.
+    err = centre_error(mesh, alps)
+    d = np.abs(truth[:-1, :-1] - truth[:-1, 1:] - truth[1:, :-1] + truth[1:, 1:]).ravel() / 4.0
+    assert np.abs(err - d).max() < 1e-6
+    assert mesh.max_twist_m() == pytest.approx(d.max())
+    assert d.max() > 10.0  # rugged: the check has something to see
+
+
+def test_cells_without_data_make_no_triangles(alps):
+    lat = np.linspace(47.05, 46.95, 11)  # the tile's southern edge at 47 N: half the rows have no data
+    lon = np.linspace(9.3, 9.4, 12)
+    res = alps.heights(np.repeat(lat, lon.size), np.tile(lon, lat.size))
+    h = np.where(res.status == 3, np.nan, res.height_msl_m).reshape(lat.size, lon.size)
+    mesh = build_mesh(h, lat, lon)
+    covered = int(np.isfinite(h).all(axis=1).sum())
+    assert 0 < covered < lat.size
+    assert mesh.faces.shape == (2 * (covered - 1) * (lon.size - 1), 3)
+    assert np.isfinite(h.ravel()[mesh.faces]).all()
+
+
+def test_bad_input_names_the_field():
+    lat, lon = np.array([47.0, 46.9]), np.array([9.0, 9.1, 9.2])
+    with pytest.raises(InvalidArgument, match="heights_msl_m"):
+        build_mesh(np.zeros((3, 2)), lat, lon)
+    with pytest.raises(InvalidArgument, match=r"lat\[1\]"):
+        build_mesh(np.zeros((2, 3)), np.array([47.0, np.nan]), lon)
+    with pytest.raises(InvalidArgument, match=r"lon\[2\]"):
+        build_mesh(np.zeros((2, 3)), lat, np.array([9.0, 9.1, 600.0]))
+    with pytest.raises(InvalidArgument, match="geoid_undulation_m"):
+        build_mesh(np.zeros((2, 3)), lat, lon, geoid_undulation_m=np.inf)
+    with pytest.raises(InvalidArgument, match="lat_deg"):
+        LocalFrame.at(91.0, 0.0)
+    with pytest.raises(InvalidArgument, match="output"):
+        output_format("terrain.xyz")
+    assert output_format("A.GLB") == "glb"
+
+
+def _glb_json(data: bytes) -> dict:
+    """The JSON chunk of a GLB container (glTF 2.0 specification, "Binary glTF Layout")."""
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    assert magic == b"glTF" and version == 2 and length == len(data)
+    chunk_length, chunk_type = struct.unpack_from("<II", data, 12)
+    assert chunk_type == 0x4E4F534A  # "JSON"
+    return json.loads(data[20:20 + chunk_length])
+
+
+def test_glb_file(tmp_path, alps):
+    lat = np.linspace(47.30, 47.20, 41)
+    lon = np.linspace(9.25, 9.40, 53)
+    res = alps.heights(np.repeat(lat, lon.size), np.tile(lon, lat.size))
+    h = res.height_msl_m.reshape(lat.size, lon.size)
+    mesh = build_mesh(h, lat, lon)
+    rng = np.random.default_rng(5)
+    image = rng.integers(0, 256, (lat.size, lon.size, 3), dtype=np.uint8)
+    path = write_mesh(mesh, tmp_path / "t.glb", image, extras={"note": "test"})
+    data = path.read_bytes()
+    gltf = _glb_json(data)
+    assert gltf["asset"]["version"] == "2.0"
+    frame = gltf["scenes"][0]["extras"]["sortie"]["frame"]
+    assert frame["lat_deg"] == pytest.approx(47.25) and frame["lon_deg"] == pytest.approx(9.325)
+    assert gltf["scenes"][0]["extras"]["sortie"]["note"] == "test"
+    prim = gltf["meshes"][0]["primitives"][0]
+    pos = gltf["accessors"][prim["attributes"]["POSITION"]]
+    assert pos["count"] == lat.size * lon.size
+    # glTF's Y is up: the accessor's bounds hold the heights (float32) in y.
+    v_gltf = enu_to_gltf(mesh.vertices)
+    assert np.allclose(pos["min"], v_gltf.min(axis=0), atol=1e-2) and np.allclose(pos["max"], v_gltf.max(axis=0),
+                                                                                  atol=1e-2)
+    # Read back through trimesh (its own glTF reader): positions within float32 rounding.
+    scene = trimesh.load(tmp_path / "t.glb", force="scene")
+    tm = scene.geometry["terrain"]
+    back = gltf_to_enu(tm.vertices)
+    bound = 2.0 * 2.0 ** -24 * np.abs(mesh.vertices).max()
+    assert np.abs(back - mesh.vertices).max() <= bound
+    assert np.array_equal(tm.faces, mesh.faces)
+    # Each vertex samples its own pixel of the texture.
+    uv = tm.visual.uv
+    col = np.floor(uv[:, 0] * lon.size).astype(int)
+    row = np.floor((1.0 - uv[:, 1]) * lat.size).astype(int)
+    assert np.array_equal(row * lon.size + col, np.arange(lat.size * lon.size))
+    assert np.array_equal(np.asarray(tm.visual.material.baseColorTexture.convert("RGB")), image)
+
+
+def test_ply_obj_stl_files(tmp_path, alps):
+    lat = np.linspace(47.30, 47.25, 9)
+    lon = np.linspace(9.30, 9.36, 10)
+    h = alps.heights(np.repeat(lat, lon.size), np.tile(lon, lat.size)).height_msl_m.reshape(lat.size, lon.size)
+    mesh = build_mesh(h, lat, lon)
+    image = np.random.default_rng(1).integers(0, 256, (lat.size, lon.size, 3), dtype=np.uint8)
+    ply = trimesh.load(write_mesh(mesh, tmp_path / "t.ply", image), process=False)
+    assert np.abs(ply.vertices - mesh.vertices).max() <= 2.0 * 2.0 ** -24 * np.abs(mesh.vertices).max()
+    assert np.array_equal(ply.visual.vertex_colors[:, :3], image.reshape(-1, 3))
+    stl = trimesh.load(write_mesh(mesh, tmp_path / "t.stl"), process=False)
+    assert len(stl.faces) == len(mesh.faces)
+    write_mesh(mesh, tmp_path / "o" / "t.obj", image)
+    obj = trimesh.load(tmp_path / "o" / "t.obj", process=False)
+    assert len(obj.faces) == len(mesh.faces) and (tmp_path / "o" / "material.mtl").exists()
+    # ENU as it is in these formats: z is up, so the heights are the z range.
+    assert np.abs(stl.vertices[:, 2].max() - mesh.vertices[:, 2].max()) < 1e-2
+
+
+# --------------------------------------------------------------------------- CLI
+
+def _run(argv):
+    parser = argparse.ArgumentParser(prog="sortie")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_mesh_parser(sub.add_parser("terrain").add_subparsers(dest="terrain_command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_cli_end_to_end(tmp_path, hgt_alps, capsys):
+    argv = ["terrain", "mesh", "--dem", str(hgt_alps), "--bbox", "47.20", "9.25", "47.30", "9.40",
+            "--spacing-m", "150"]
+    assert _run(argv + ["-o", str(tmp_path / "a.glb")]) == 0
+    out = capsys.readouterr().out
+    assert "triangles" in out and "RMS" in out and "textured for 2026-06-21T11:22:42Z" in out
+    gltf = _glb_json((tmp_path / "a.glb").read_bytes())
+    assert gltf["images"] and gltf["scenes"][0]["extras"]["sortie"]["time_utc"] == "2026-06-21T11:22:42Z"
+    # The same command writes the same bytes.
+    assert _run(argv + ["-o", str(tmp_path / "b.glb")]) == 0
+    assert (tmp_path / "a.glb").read_bytes() == (tmp_path / "b.glb").read_bytes()
+    assert _run(argv + ["--no-texture", "-o", str(tmp_path / "c.glb")]) == 0
+    assert "images" not in _glb_json((tmp_path / "c.glb").read_bytes())
+
+
+def test_local_noon():
+    assert local_noon(0.0) == "2026-06-21T12:00:00Z"
+    assert local_noon(-90.0) == "2026-06-21T18:00:00Z"
+    assert local_noon(9.325) == "2026-06-21T11:22:42Z"
+
+
+@pytest.mark.parametrize("extra, field, text", [
+    (["--bbox", "47.3", "9.25", "47.2", "9.40"], "--bbox", "inverted"),
+    (["--size", "3000x2000"], "--size", "4,194,304"),
+    (["--spacing-m", "0"], "--spacing-m", "positive"),
+    (["--geoid-undulation-m", "nan"], "--geoid-undulation-m", "finite"),
+    (["--time", "noon"], "--time", "ISO 8601"),
+    (["-o", "x.dae"], "output", ".glb"),
+])
+def test_cli_rejects_bad_input(tmp_path, hgt_alps, extra, field, text):
+    opts = {"--bbox": ["47.20", "9.25", "47.30", "9.40"], "-o": [str(tmp_path / "m.glb")]}
+    opts[extra[0]] = extra[1:]
+    argv = ["terrain", "mesh", "--dem", str(hgt_alps)]
+    for k, v in opts.items():
+        argv += [k, *v]
+    with pytest.raises(InvalidArgument) as err:
+        _run(argv)
+    assert err.value.field == field and text in str(err.value)
+    assert not (tmp_path / "m.glb").exists()
