@@ -1,4 +1,5 @@
-"""``sortie export``: recordings into other tools' formats (``acmi``: Tacview, server/acmi.py)."""
+"""``sortie export``: recordings into other tools' formats (``acmi``: Tacview, server/acmi.py;
+``gltf``: a 3-D debrief scene of tracks, events and terrain, server/gltf.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ from server.acmi import check_rate, export_acmi, output_kind
 
 
 def add_parser(sub) -> None:
-    export = sub.add_parser("export", help="convert a recording for other tools: acmi (Tacview)",
+    export = sub.add_parser("export", help="convert a recording for other tools: acmi (Tacview), gltf (3-D scene)",
                             description="Convert a Sortie recording into another tool's format.")
     formats = export.add_subparsers(dest="export_format", metavar="FORMAT", required=True)
     acmi = formats.add_parser(
@@ -24,6 +25,30 @@ def add_parser(sub) -> None:
                            "1/HZ s (and the last tick); default: every recorded tick")
     acmi.set_defaults(func=acmi_command)
 
+    gltf = formats.add_parser(
+        "gltf", help="a 3-D debrief scene: tracks, events and the terrain under them (.glb or .gltf)",
+        description="Write a recording as a glTF 2.0 scene: every entity's track as a line strip coloured "
+                    "by coalition, the events as points, and the terrain under the tracks (plus a margin) "
+                    "as a mesh textured for the sortie's start time, in one local east-north-up frame "
+                    "(glTF axes: x east, y up, z south; the origin's WGS84 position in the scene's extras).")
+    gltf.add_argument("recording", metavar="FILE", help="the recording (a .sortie file written by sortie server)")
+    gltf.add_argument("-o", "--output", metavar="OUT", required=True,
+                      help="the scene to write: NAME.glb (one binary file) or NAME.gltf (JSON); replaced if it exists")
+    gltf.add_argument("--rate", metavar="HZ", type=float, default=None,
+                      help="track points per second of world time (default: every recorded tick)")
+    where = gltf.add_mutually_exclusive_group()
+    where.add_argument("--dem", nargs="+", metavar="FILE", help="the DEM files (default: the recorded ones)")
+    where.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service serving the recorded terrain")
+    where.add_argument("--no-terrain", action="store_true", help="tracks and events alone")
+    gltf.add_argument("--margin-m", type=float, default=2000.0, metavar="M",
+                      help="terrain around the tracks' box, metres (default %(default)s)")
+    size = gltf.add_mutually_exclusive_group()
+    size.add_argument("--size", metavar="COLSxROWS", help="terrain vertices across and down (default: 512 along the "
+                                                          "longer side)")
+    size.add_argument("--spacing-m", type=float, metavar="M", help="terrain vertex spacing, metres")
+    gltf.add_argument("--no-texture", action="store_true", help="the terrain untextured")
+    gltf.set_defaults(func=gltf_command)
+
 
 def acmi_command(args) -> int:
     from server.recording import Recording
@@ -34,4 +59,30 @@ def acmi_command(args) -> int:
         stats = export_acmi(r, args.output, rate)
     print(f"{stats.path}: {stats.objects} objects, {stats.frames} frames, {stats.events} events, "
           f"{stats.bytes_written} bytes ({stats.states} states in {stats.seconds:.2f} s)")
+    return 0
+
+
+def gltf_command(args) -> int:
+    from server.gltf import export_gltf
+    from server.recording import Recording
+    from terrain.mesh import output_format
+
+    output_format(args.output)
+    rate = check_rate(args.rate)
+    with Recording(args.recording) as r:
+        terrain = None
+        if not args.no_terrain:
+            from server.resim import recorded_terrain_spec
+            from server.sim_server import open_terrain_source
+
+            spec, notes = recorded_terrain_spec(r, args.dem, args.terrain)
+            for note in notes:
+                print(note)
+            terrain = open_terrain_source(**spec)
+        stats = export_gltf(r, args.output, terrain, rate_hz=rate, margin_m=args.margin_m, size=args.size,
+                            spacing_m=args.spacing_m, texture=not args.no_texture)
+    print(f"{stats.path}: {stats.tracks} tracks ({stats.track_points} points), {stats.events} events, "
+          + (f"terrain {stats.terrain_vertices:,} vertices off the terrain by {stats.terrain_centre_error_m_max:.2f} m "
+             "at most at the cells' centres, " if stats.terrain_vertices else "no terrain, ")
+          + f"{stats.bytes_written:,} bytes")
     return 0

@@ -196,5 +196,7 @@ def run(args) -> int:
     if "debrief" in summary:
         d = summary["debrief"]
         console.print(f"[bold green]recording[/] {d['recording']['file']}\n[bold green]Tacview export[/] "
-                      + ", ".join(d["exports"].values()))
+                      + ", ".join(v for k, v in d["exports"].items() if k.endswith(".acmi"))
+                      + (f"\n[bold green]3-D debrief scene (glTF)[/] {d['exports']['sortie.glb']}"
+                         if "sortie.glb" in d["exports"] else ""))
     return 0

@@ -1,5 +1,5 @@
 """The demo's debrief: the live exercise's recording replayed at 8x with a seek,
-re-simulated bit for bit, and exported to Tacview.
+re-simulated bit for bit, and exported to Tacview and as a glTF scene.
 
 The simulation server of sortie/demo_exercise.py records its sortie into
 ``out/sortie.sortie``; this step serves it with ``sortie replay`` (a real
@@ -7,7 +7,8 @@ process on loopback), watches it as an observer at 8x, seeks back to the
 middle and checks the dead-reckoned picture against the recorded states,
 re-simulates it from the scenario with its recorded inputs (on the same DEM
 in process; the recording was made over the terrain service), and exports
-it as ``.acmi`` and ``.zip.acmi``.
+it as ``.acmi`` and ``.zip.acmi``, and as ``sortie.glb`` (tracks, events and the
+terrain under them: server/gltf.py).
 """
 
 from __future__ import annotations
@@ -27,10 +28,12 @@ def run_debrief(recording: Path, out: Path, console) -> dict:
 
     from client.sim_client import SimClient
     from server.acmi import export_acmi
+    from server.gltf import export_gltf
     from server.process import ServiceProcess
     from server.recording import Recording
     from server.recording_cli import summary
     from server.resim import resimulate
+    from server.sim_server import open_terrain_source
 
     with Recording(recording) as rec:
         info = summary(rec)
@@ -77,6 +80,13 @@ def run_debrief(recording: Path, out: Path, console) -> dict:
         exports[name] = str(path)
         table.add_row(str(path), f"{path.stat().st_size:,}", f"{path.stat().st_size / info['size_bytes']:.2f}x")
     console.print(table)
+    # The 3-D debrief scene: tracks, events and the terrain under them (server/gltf.py).
+    path = out / "sortie.glb"
+    with Recording(recording) as rec:
+        scene = export_gltf(rec, path, open_terrain_source(dem=[DEM]))
+    exports["sortie.glb"] = str(path)
+    console.print(f"[bold]glTF debrief scene[/]: {path} ({scene.tracks} tracks, {scene.events} events, terrain "
+                  f"{scene.terrain_vertices:,} vertices, {scene.bytes_written:,} bytes)")
     result = {"recording": info, "replay": {"played_to_s": played_to, "seek_tick": tick,
                                             "seek_max_error_m": seek_error, "entities": int(ids.size)},
               "resim": report.as_dict(), "exports": exports}

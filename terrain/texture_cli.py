@@ -142,7 +142,8 @@ def check_bbox(bbox) -> tuple[float, float, float, float]:
     return lat_min, lon_min, lat_max, lon_max
 
 
-def grid_size(bbox, size: str | None, spacing_m: float | None) -> tuple[int, int]:
+def grid_size(bbox, size: str | None, spacing_m: float | None,
+              default_long_side: int = DEFAULT_LONG_SIDE_PX) -> tuple[int, int]:
     """(cols, rows) from --size, or --spacing-m, or the default; within MIN_SIDE_PX and MAX_PIXELS."""
     from terrain.texture import metre_spacing
 
@@ -161,7 +162,7 @@ def grid_size(bbox, size: str | None, spacing_m: float | None) -> tuple[int, int
         rows = max(MIN_SIDE_PX, round(height_m / spacing_m))
         field = "--spacing-m"
     else:
-        scale = DEFAULT_LONG_SIDE_PX / max(width_m, height_m)
+        scale = default_long_side / max(width_m, height_m)
         cols = max(MIN_SIDE_PX, round(width_m * scale))
         rows = max(MIN_SIDE_PX, round(height_m * scale))
         field = "--size"
@@ -174,11 +175,12 @@ def grid_size(bbox, size: str | None, spacing_m: float | None) -> tuple[int, int
     return cols, rows
 
 
-def texture_request(bbox, size: str | None, spacing_m: float | None, time_text: str) -> TextureRequest:
+def texture_request(bbox, size: str | None, spacing_m: float | None, time_text: str,
+                    default_long_side: int = DEFAULT_LONG_SIDE_PX) -> TextureRequest:
     """Validate the command's inputs; every failure is InvalidArgument naming the option and value."""
     box = check_bbox(bbox)
     when = parse_time(time_text)
-    cols, rows = grid_size(box, size, spacing_m)
+    cols, rows = grid_size(box, size, spacing_m, default_long_side)
     return TextureRequest(*box, cols=cols, rows=rows, when=when)
 
 

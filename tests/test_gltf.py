@@ -1,0 +1,211 @@
+"""The glTF debrief scene (server/gltf.py, `sortie export gltf`).
+
+Bounds: a track point leaves the recording as float64 ECEF and reaches the file as float32
+offsets from the scene's origin, within 2^-24 of the largest offset per coordinate, twice
+(the offset, then the write), so the comparison allows 2 x 2^-24 x max |offset| (under 3 mm
+for the 40 km of the alps world). A ground vehicle drives on the terrain (fdm/ground.py:
+terrain following from the wheel base), so its recorded ellipsoidal height minus the geoid
+undulation is the terrain's height within its ride height and the difference between the
+wheel-base fit and the one-point height (1.5 m here), which checks that the tracks and the
+terrain mesh share one frame and one datum.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import subprocess
+
+import numpy as np
+import pytest
+
+from server import recording_codec as codec
+from server.gltf import export_gltf, read_tracks, track_box
+from server.process import sortie_command
+from server.recording import Recording
+from sortie.errors import InvalidArgument
+from sortie.v1 import simulation_pb2 as pb
+from terrain.geodesy import ecef_to_geodetic
+from terrain.mesh import LocalFrame, enu_to_gltf, gltf_to_enu
+from test_acmi import info, record_alps, write_synthetic
+
+trimesh = pytest.importorskip("trimesh")
+
+
+def _glb(path) -> dict:
+    """The JSON chunk of a GLB file, parsed strictly (NaN is not JSON: RFC 8259 §6)."""
+    data = path.read_bytes()
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    assert (magic, version, length) == (b"glTF", 2, len(data))
+    n, kind = struct.unpack_from("<II", data, 12)
+    assert kind == 0x4E4F534A
+
+    def no_constants(name):
+        raise ValueError(f"{name} in glTF JSON")
+
+    return json.loads(data[20:20 + n], parse_constant=no_constants)
+
+
+@pytest.fixture(scope="module")
+def alps(tmp_path_factory):
+    """(recording, its glb with a 96x96 terrain) of the alps world."""
+    d = tmp_path_factory.mktemp("gltf")
+    rec = d / "alps.sortie"
+    record_alps(rec, 150)
+    out = d / "alps.glb"
+    from server.sim_server import open_terrain_source
+    from server.resim import recorded_terrain_spec
+
+    with Recording(rec) as r:
+        terrain = open_terrain_source(**recorded_terrain_spec(r)[0])
+        export_gltf(r, out, terrain, size="96x96")
+    return rec, out, terrain
+
+
+def _frame(gltf: dict) -> LocalFrame:
+    f = gltf["scenes"][0]["extras"]["sortie"]["frame"]
+    return LocalFrame.at(f["lat_deg"], f["lon_deg"], f["h_m"])
+
+
+def _kept(v: np.ndarray) -> np.ndarray:
+    """Rows that differ from the row before (the first always)."""
+    keep = np.ones(len(v), bool)
+    keep[1:] = np.any(v[1:] != v[:-1], axis=1)
+    return keep
+
+
+def _polyline(path) -> np.ndarray:
+    """A Path3D written as line segments (p0 p1, p1 p2, ...) back to its points."""
+    v = np.asarray(path.vertices)
+    return v[_kept(v)]
+
+
+def test_tracks_are_the_recorded_positions(alps):
+    rec, out, _ = alps
+    gltf = _glb(out)
+    frame = _frame(gltf)
+    scene = trimesh.load(out, force="scene")
+    with Recording(rec) as r:
+        names = {i: f"{e.name} #{i}" for i, e in r.entities.items()}
+        assert {n["name"] for n in gltf["nodes"]} >= {"terrain", "events", *names.values()}
+        steps = r.steps.vector()[codec.POS]
+        moving = 0
+        for entity_id, name in names.items():
+            truth = np.stack([r.frame(t).q[np.searchsorted(r.frame(t).ids, entity_id), codec.POS] * steps
+                              for t in range(r.first_tick, r.last_tick + 1)
+                              if entity_id in r.frame(t).ids])
+            stored = _polyline(scene.geometry[name])
+            # The file holds the float32 of each offset; ticks where that did not change (a
+            # parked tank) are one point of the polyline.
+            offsets = enu_to_gltf(frame.to_local(truth)).astype(np.float32)
+            keep = _kept(offsets)
+            assert np.array_equal(stored, offsets[keep]), name
+            bound = 2.0 * 2.0 ** -24 * np.abs(frame.to_local(truth)).max()
+            assert np.abs(frame.to_ecef(gltf_to_enu(stored)) - truth[keep]).max() <= bound, name
+            moving += int(keep.sum() > 2)
+            mesh_extras = next(m for m in gltf["meshes"] if m["name"] == name)["extras"]
+            e = r.entities[entity_id]
+            assert mesh_extras["entity_id"] == entity_id and mesh_extras["type"] == e.type
+            assert mesh_extras["coalition"] == (e.coalition or "neutral")
+        assert moving >= 6
+
+
+def test_ground_tracks_lie_on_the_terrain(alps):
+    rec, out, terrain = alps
+    frame = _frame(_glb(out))
+    scene = trimesh.load(out, force="scene")
+    with Recording(rec) as r:
+        undulation = r.header.geoid_undulation_m
+        ground = [e for e in r.entities.values() if e.kind == pb.ENTITY_KIND_GROUND]
+        assert ground
+        for e in ground:
+            lat, lon, h = ecef_to_geodetic(frame.to_ecef(gltf_to_enu(_polyline(scene.geometry[f"{e.name} #{e.entity_id}"]))))
+            above = h - undulation - terrain.heights(lat, lon).height_msl_m
+            assert np.abs(above).max() < 1.5, e.name
+    # The terrain mesh: its vertices at the terrain's heights plus the undulation.
+    tm = scene.geometry["terrain"]
+    lat, lon, h = ecef_to_geodetic(frame.to_ecef(gltf_to_enu(tm.vertices)))
+    assert np.abs(h - undulation - terrain.heights(lat, lon).height_msl_m).max() < 0.01
+    assert len(tm.faces) == 2 * 95 * 95
+
+
+def test_scene_extras_and_events(alps):
+    rec, out, _ = alps
+    extras = _glb(out)["scenes"][0]["extras"]["sortie"]
+    assert extras["frame"]["datum"] == "WGS84" and extras["geoid_undulation_m"] == 48.0
+    assert extras["terrain"]["grid"] == [96, 96] and extras["terrain"]["sun_time_utc"] == "2026-06-15T07:00:00Z"
+    kinds = [e["kind"] for e in extras["events"]]
+    assert "remove" in kinds and "join" not in kinds
+    placed = [e for e in extras["events"] if e["placed"]]
+    scene = trimesh.load(out, force="scene")
+    assert len(scene.geometry["events"].vertices) == len(placed)
+    box = extras["terrain_box"]
+    lat, lon, _ = ecef_to_geodetic(np.concatenate([p for t in read_tracks(Recording(rec)).values()
+                                                   for _, p in t.segments]))
+    assert box[0] < lat.min() and lat.max() < box[2] and box[1] < lon.min() and lon.max() < box[3]
+
+
+def test_breaks_rates_and_the_antimeridian(tmp_path):
+    def jumper(tick):  # across the antimeridian eastwards, absent from tick 40 to 59
+        return None if 40 <= tick < 60 else (-16.5, 179.99 + 0.0004 * tick, 1000.0, 0.0, 0.0, 90.0)
+
+    def parked(tick):
+        return (-16.4, -179.95, 0.0, 0.0, 0.0, 0.0)
+
+    rec = tmp_path / "s.sortie"
+    write_synthetic(rec, {1: (info(1, "jumper", pb.ENTITY_KIND_AIRCRAFT, "f16", "red"), jumper),
+                          2: (info(2, "parked", pb.ENTITY_KIND_GROUND, "m1"), parked)}, ticks=90)
+    with Recording(rec) as r:
+        tracks = read_tracks(r)
+        assert [len(t) for t, _ in tracks[1].segments] == [39, 31]  # ticks 1-39 and 60-90
+        assert [len(t) for t, _ in tracks[2].segments] == [90]
+        assert [len(t) for t, _ in read_tracks(r, 10.0)[1].segments] == [14, 11]  # tick 1, then every 3rd tick
+        lat_min, lon_min, lat_max, lon_max = track_box(tracks, 1000.0)
+        assert lon_min < 180.0 < lon_max and lon_max - lon_min < 0.1  # not the whole world
+        stats = export_gltf(r, tmp_path / "s.gltf")
+    assert stats.tracks == 2 and stats.terrain_vertices == 0
+    gltf = json.loads((tmp_path / "s.gltf").read_text())
+    assert gltf["asset"]["version"] == "2.0" and "terrain" not in {n["name"] for n in gltf["nodes"]}
+    red = next(m for m in gltf["meshes"] if m["name"] == "jumper #1")
+    colours = gltf["accessors"][red["primitives"][0]["attributes"]["COLOR_0"]]
+    assert colours["min"] == [235, 40, 40, 255] == colours["max"]
+
+
+def test_bad_input(alps, tmp_path):
+    rec, _, _ = alps
+    with Recording(rec) as r:
+        with pytest.raises(InvalidArgument, match="output"):
+            export_gltf(r, tmp_path / "x.obj")
+        with pytest.raises(InvalidArgument, match="margin_m"):
+            export_gltf(r, tmp_path / "x.glb", margin_m=-1.0)
+        with pytest.raises(InvalidArgument, match="rate"):
+            export_gltf(r, tmp_path / "x.glb", rate_hz=0.0)
+    empty = tmp_path / "empty.sortie"
+    write_synthetic(empty, {}, ticks=3)
+    with Recording(empty) as r, pytest.raises(InvalidArgument, match="recording"):
+        export_gltf(r, tmp_path / "x.glb")
+    assert not (tmp_path / "x.glb").exists()
+
+
+def test_command_line(alps, tmp_path):
+    rec, _, _ = alps
+    out = tmp_path / "cli.glb"
+    done = subprocess.run([*sortie_command(), "export", "gltf", str(rec), "-o", str(out), "--size", "32x32",
+                           "--rate", "5"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "12 tracks" in done.stdout and "terrain 1,024 vertices" in done.stdout
+    assert _glb(out)["scenes"][0]["extras"]["sortie"]["terrain"]["grid"] == [32, 32]
+    done = subprocess.run([*sortie_command(), "export", "gltf", str(rec), "-o", str(tmp_path / "x.glb"),
+                           "--spacing-m", "-3"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "--spacing-m" in done.stderr
+    assert not (tmp_path / "x.glb").exists()
+
+
+def test_header_without_terrain_files(tmp_path):
+    rec = tmp_path / "s.sortie"
+    write_synthetic(rec, {1: (None, lambda t: (47.3, 9.3, 2000.0, 0.0, 0.0, 0.0))}, ticks=5)
+    with Recording(rec) as r:
+        assert not r.header.terrain.files
+    done = subprocess.run([*sortie_command(), "export", "gltf", str(rec), "-o", str(tmp_path / "x.glb")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "terrain" in done.stderr
