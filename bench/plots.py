@@ -75,6 +75,23 @@ def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
         ax.set_ylabel("fraction of rays whose answer differs from the exact one")
         ax.set_title("Line of sight: speed against error")
         _save(fig, out_dir / "terrain_los_speed_vs_error.png", written)
+    if "mesh_size_vs_error" in series:
+        rows = series["mesh_size_vs_error"]
+        fig, ax = plt.subplots(figsize=(6.5, 4.5))
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        size = [row["bytes"] / 1e6 for row in rows]
+        for key, colour, label in (("centre_error_rms_m", "tab:blue", "RMS"), ("centre_error_max_m", "tab:orange",
+                                                                              "max")):
+            ax.plot(size, [row[key] for row in rows], "o-", color=colour, label=f"{label} |mesh - terrain|")
+        for row, x in zip(rows, size):
+            ax.annotate(f"{row['spacing_m']:.0f} m, {row['seconds'] * 1e3:.0f} ms", (x, row["centre_error_rms_m"]),
+                        fontsize=7, xytext=(4, -10), textcoords="offset points")
+        ax.set_xlabel("glTF file (MB, geometry only)")
+        ax.set_ylabel("error at the cells' centres (m)")
+        ax.set_title("Terrain meshes: size against error (labels: spacing, time to write)")
+        ax.legend(fontsize=7)
+        _save(fig, out_dir / "terrain_mesh_size_vs_error.png", written)
     return written
 
 

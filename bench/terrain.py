@@ -1,9 +1,11 @@
-"""``sortie bench terrain``: height, line-of-sight and gRPC speed against error.
+"""``sortie bench terrain``: height, line-of-sight, gRPC and mesh export speed against error.
 
 Same run, same points: every speed is paired with a baseline measured beside
 it (scipy's RegularGridInterpolator for heights, an independent dense-sampling
 reference for LOS, the in-process call for gRPC), so ratios survive a noisy
-shared machine. Single-threaded numba kernels: numbers are per core.
+shared machine. Single-threaded numba kernels: numbers are per core. Terrain
+meshes (``sortie terrain mesh``) are measured as file size and time against
+their error at the cells' centres, coarsening the grid from the DEM's posts.
 """
 
 from __future__ import annotations
@@ -29,6 +31,10 @@ LOS_REFERENCE_SAMPLES_PER_POST = 16
 # clearance is more than this from zero (issue #2).
 LOS_DISAGREEMENT_MARGIN_M = 0.01
 GRPC_BATCH_POINTS = 100_000
+# Terrain meshes: a box of this half-size (degrees of latitude) at the headline DEM's centre,
+# meshed at its post spacing times each factor (geometry only: the texture is another suite's).
+MESH_HALF_BOX_DEG = 0.1
+MESH_SPACING_FACTORS = (1, 2, 4, 8, 16)
 
 
 def dem_paths() -> list[Path]:
@@ -215,6 +221,50 @@ def bench_grpc(report: Report, raster, dem_path: Path, quick: bool, rng) -> None
                          grpc_server="separate process on loopback")
 
 
+def bench_mesh(report: Report, raster, quick: bool, tmp_dir: Path) -> None:
+    """Mesh a box of the DEM at its post spacing and coarser: time (sampling, mesh, glTF
+    written), bytes and |mesh - terrain| at the cells' centres (terrain.mesh.centre_error)."""
+    from terrain.geodesy import radii_of_curvature
+    from terrain.mesh import build_mesh, centre_error, write_mesh
+    from terrain.terrain import Terrain
+    from terrain.texture_cli import sample_heights, texture_request
+
+    terrain = Terrain([raster])
+    d = raster.describe()
+    lat_c = 0.5 * (d["lat_min"] + d["lat_max"])
+    lon_c = 0.5 * (d["lon_min"] + d["lon_max"])
+    m, n = radii_of_curvature(lat_c)
+    half = MESH_HALF_BOX_DEG / 2.0 if quick else MESH_HALF_BOX_DEG
+    half_lon = half * m / (n * math.cos(math.radians(lat_c)))  # a square box on the ground
+    box = (lat_c - half, lon_c - half_lon, lat_c + half, lon_c + half_lon)
+    post_m = float(np.sqrt(d["spacing_east_m"] * d["spacing_north_m"]))
+    rows_out = []
+    for factor in (MESH_SPACING_FACTORS[:3] if quick else MESH_SPACING_FACTORS):
+        req = texture_request(box, None, post_m * factor, "2026-06-21T12:00:00Z")
+        path = tmp_dir / f"mesh_{factor}.glb"
+
+        def build():
+            mesh = build_mesh(*sample_heights(terrain, req))
+            write_mesh(mesh, path)
+            return mesh
+
+        mesh = build()  # warm (numba, trimesh imports)
+        t = best_time(build, 1 if quick else 3)
+        err = centre_error(mesh, terrain)
+        rows_out.append({"spacing_m": post_m * factor, "factor": factor, "vertices": int(req.cols * req.rows),
+                         "triangles": int(len(mesh.faces)), "bytes": path.stat().st_size, "seconds": t,
+                         "mvertices_per_s": req.cols * req.rows / t / 1e6,
+                         "centre_error_rms_m": float(np.sqrt(np.mean(err ** 2))),
+                         "centre_error_max_m": float(err.max())})
+    head = rows_out[0]
+    report.metrics["mesh_mvertices_per_s"] = head["mvertices_per_s"]
+    report.metrics["mesh_centre_error_rms_m"] = head["centre_error_rms_m"]
+    report.metrics["mesh_centre_error_max_m"] = head["centre_error_max_m"]
+    report.metrics["mesh_bytes_per_vertex"] = head["bytes"] / head["vertices"]
+    report.params.update(mesh_box=list(box), mesh_post_spacing_m=post_m)
+    report.series["mesh_size_vs_error"] = rows_out
+
+
 def run(quick: bool) -> Report:
     from terrain.dem import read_dem
 
@@ -228,4 +278,8 @@ def run(quick: bool) -> Report:
     bench_heights(report, rasters, quick, rng)
     bench_los(report, head, quick, rng)
     bench_grpc(report, head, paths[head_stem], quick, rng)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="sortie-bench-mesh-") as tmp:
+        bench_mesh(report, head, quick, Path(tmp))
     return report
