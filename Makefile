@@ -10,12 +10,17 @@ SYS_STAMP := $(VENV)/.sysdeps
 # tshark (Wireshark's DIS dissector checks our PDUs); docker-compose (CI validates
 # docker-compose.yml with `docker-compose config`; there is no Docker engine here).
 SYS_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libglx-mesa0 tshark docker-compose
+# The Khronos glTF validator (npm), an independent check of the glTF files we write
+# (tests/test_gltf.py); skipped with a note where the machine has no npm.
+TOOLS := .tools
+TOOLS_STAMP := $(TOOLS)/.installed
+GLTF_VALIDATOR := gltf-validator@2.0.0-dev.3.10
 
 .PHONY: all bootstrap sysdeps demo test proto bench clean
 
 all: bootstrap
 
-bootstrap: $(STAMP) $(SYS_STAMP)
+bootstrap: $(STAMP) $(SYS_STAMP) $(TOOLS_STAMP)
 
 $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +41,13 @@ $(SYS_STAMP): Makefile | $(VENV)/bin/python
 	fi
 	touch $@
 
+$(TOOLS_STAMP): Makefile
+	@if command -v npm >/dev/null 2>&1; then \
+	  npm install --silent --no-audit --no-fund --prefix $(TOOLS) $(GLTF_VALIDATOR) && touch $@; \
+	else \
+	  echo "note: no npm here, so the Khronos glTF validator is not installed (its test skips)"; \
+	fi
+
 proto: $(STAMP)
 	$(BIN)/python -m sortie.protogen
 
@@ -49,4 +61,4 @@ bench: bootstrap
 	$(BIN)/sortie bench terrain --json docs/bench/terrain.json
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache out
+	rm -rf $(VENV) $(TOOLS) build *.egg-info .pytest_cache out

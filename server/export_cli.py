@@ -28,14 +28,17 @@ def add_parser(sub) -> None:
     gltf = formats.add_parser(
         "gltf", help="a 3-D debrief scene: tracks, events and the terrain under them (.glb or .gltf)",
         description="Write a recording as a glTF 2.0 scene: every entity's track as a line strip coloured "
-                    "by coalition, the events as points, and the terrain under the tracks (plus a margin) "
+                    "by coalition, a marker per entity animated along it (position and attitude; any glTF "
+                    "viewer plays the sortie back), the events as points, and the terrain under the tracks "
+                    "(plus a margin) "
                     "as a mesh textured for the sortie's start time, in one local east-north-up frame "
                     "(glTF axes: x east, y up, z south; the origin's WGS84 position in the scene's extras).")
     gltf.add_argument("recording", metavar="FILE", help="the recording (a .sortie file written by sortie server)")
     gltf.add_argument("-o", "--output", metavar="OUT", required=True,
                       help="the scene to write: NAME.glb (one binary file) or NAME.gltf (JSON); replaced if it exists")
     gltf.add_argument("--rate", metavar="HZ", type=float, default=None,
-                      help="track points per second of world time (default: every recorded tick)")
+                      help="track points and animation keys per second of world time (default: every "
+                           "recorded tick)")
     where = gltf.add_mutually_exclusive_group()
     where.add_argument("--dem", nargs="+", metavar="FILE", help="the DEM files (default: the recorded ones)")
     where.add_argument("--terrain", metavar="HOST:PORT", help="a terrain service serving the recorded terrain")

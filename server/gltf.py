@@ -8,7 +8,16 @@ Tacview replays tracks over its own terrain; a glTF scene takes the sortie into 
 - **one track per entity**: a line strip through its recorded positions (ECEF, float64 in
   the recording) at the export rate, broken where the entity was absent; its node and mesh
   carry the entity's id, name, kind, type and coalition in ``extras``, coloured by coalition;
-- **events** (crash, take-off, touchdown, ...) as points, listed in the scene's extras.
+- **events** (crash, take-off, touchdown, ...) as points, listed in the scene's extras;
+- **one marker per entity** (a dart coloured by coalition) animated along its track: the
+  scene's animation "sortie" keys its position and attitude at every exported tick (LINEAR:
+  a viewer's slerp between sign-continuous quaternions) and hides it (scale 0, STEP) where
+  it was absent, so any glTF viewer plays the sortie back. Animation time 0 is the first
+  recorded tick (world time in the animation's extras).
+
+trimesh writes the static scene; the markers and the animation are added to its GLB here
+(buffer views, accessors, nodes, one animation: glTF 2.0 specification, "Animations"). The
+files pass the Khronos glTF validator without error or warning (tests/test_gltf.py).
 
 Everything is in one local east-north-up frame at the terrain box's centre (glTF axes: x
 east, y up, z south), float32 offsets from it, so a sortie over a few hundred kilometres
@@ -19,9 +28,12 @@ heights plus the recording's geoid undulation, as they met in the world.
 
 from __future__ import annotations
 
+import base64
 import json
 import math
+import struct
 from dataclasses import dataclass, field
+from typing import NamedTuple
 from datetime import timedelta
 from pathlib import Path
 
@@ -37,39 +49,49 @@ from terrain.mesh import LocalFrame, enu_to_gltf, output_format, scene_extras
 DEFAULT_MARGIN_M = 2000.0  # terrain around the tracks' box
 DEFAULT_LONG_SIDE = 512  # terrain vertices along the box's longer side (about 12 MB of glTF)
 MAX_MARGIN_M = 200_000.0
+# Track points (each a polyline vertex twice and an animation key: about 56 bytes) one scene
+# holds: 5 M is about 280 MB. A longer sortie is exported at a lower --rate.
+MAX_TRACK_POINTS = 5_000_000
 # Track colours (RGBA) by coalition, as Tacview draws them.
 COALITION_RGBA = {"blue": (40, 110, 255, 255), "red": (235, 40, 40, 255), "neutral": (230, 230, 230, 255)}
 
 
+class Segment(NamedTuple):
+    """A stretch of an entity's track without a break: world times (k,), ECEF positions
+    (k, 3) and ECEF -> body quaternions (k, 4; w, x, y, z), as recorded."""
+
+    times: np.ndarray
+    ecef: np.ndarray
+    quat: np.ndarray
+
+
 @dataclass
 class Track:
-    """An entity's recorded positions at the export's ticks: ``segments`` of (times (k,),
-    ECEF (k, 3)) where it was present without a break."""
+    """An entity's recorded states at the export's ticks: ``segments`` where it was present
+    without a break."""
 
     entity_id: int
     segments: list = field(default_factory=list)
-    _times: list = field(default_factory=list)
-    _points: list = field(default_factory=list)
+    _parts: list = field(default_factory=list)
 
-    def extend(self, times: np.ndarray, points: np.ndarray, present: np.ndarray, continues: bool) -> None:
-        """Add the export ticks of a chunk (``present`` per tick); ``continues``: the entity
-        was present at the previous export tick."""
+    def extend(self, times: np.ndarray, rows: np.ndarray, present: np.ndarray, continues: bool) -> None:
+        """Add the export ticks of a chunk (``rows`` (t, 7): position and quaternion;
+        ``present`` per tick); ``continues``: the entity was present at the previous export tick."""
         if not continues:
             self._close()
-        breaks = np.flatnonzero(~present)
         start = 0
-        for b in [*breaks.tolist(), present.size]:
+        for b in [*np.flatnonzero(~present).tolist(), present.size]:
             if b > start:
-                self._times.append(times[start:b])
-                self._points.append(points[start:b])
+                self._parts.append((times[start:b], rows[start:b]))
             if b < present.size:
                 self._close()
             start = b + 1
 
     def _close(self) -> None:
-        if self._times:
-            self.segments.append((np.concatenate(self._times), np.concatenate(self._points)))
-        self._times, self._points = [], []
+        if self._parts:
+            rows = np.concatenate([r for _, r in self._parts])
+            self.segments.append(Segment(np.concatenate([t for t, _ in self._parts]), rows[:, :3], rows[:, 3:]))
+        self._parts = []
 
     def finish(self) -> "Track":
         self._close()
@@ -80,7 +102,8 @@ def read_tracks(recording, rate_hz: float | None = None) -> dict[int, Track]:
     """Every entity's track at ``rate_hz`` of world time (server.acmi.selected_ticks: the
     first tick of each 1/rate interval, and the first and last ticks; None: every tick)."""
     r = recording
-    steps = r.steps.vector()[codec.POS]
+    steps = r.steps.vector()
+    pose = np.r_[np.arange(16)[codec.POS], np.arange(16)[codec.QUAT]]  # position, quaternion columns
     tracks: dict[int, Track] = {}
     last_present: dict[int, bool] = {}
     for k in range(r.chunk_count):
@@ -90,12 +113,12 @@ def read_tracks(recording, rate_hz: float | None = None) -> dict[int, Track]:
         if sel.size == 0:
             continue
         times = ticks[sel] * r.dt
-        points = c.q[sel][:, :, codec.POS] * steps  # (t, e, 3) ECEF metres
+        rows = c.q[sel][:, :, pose] * steps[pose]  # (t, e, 7): ECEF metres, quaternion
         present = c.present[sel]
         held = set()
         for e, entity_id in enumerate(c.entity_ids.tolist()):
             t = tracks.setdefault(entity_id, Track(entity_id))
-            t.extend(times, points[:, e], present[:, e], last_present.get(entity_id, False))
+            t.extend(times, rows[:, e], present[:, e], last_present.get(entity_id, False))
             last_present[entity_id] = bool(present[-1, e])
             held.add(entity_id)
         for entity_id in last_present.keys() - held:  # not in this chunk at all: a break
@@ -107,7 +130,7 @@ def track_box(tracks: dict, margin_m: float) -> tuple[float, float, float, float
     """(lat_min, lon_min, lat_max, lon_max) around every track point, plus ``margin_m`` each way.
     Longitudes are unwrapped from the first point's (a box across the antimeridian keeps
     lon_max above 180, as ``sortie terrain texture`` takes it)."""
-    pts = [p for t in tracks.values() for _, p in t.segments]
+    pts = [seg.ecef for t in tracks.values() for seg in t.segments]
     if not pts:
         raise InvalidArgument("recording", "holds no entity positions to export")
     lat, lon, _ = ecef_to_geodetic(np.concatenate(pts))
@@ -146,6 +169,7 @@ class GltfStats:
     terrain_triangles: int
     terrain_centre_error_m_max: float | None
     bytes_written: int
+    markers: int = 0
 
 
 def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = None,
@@ -157,7 +181,7 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
     default :data:`DEFAULT_LONG_SIDE` vertices along the longer side)."""
     import trimesh
 
-    from terrain.mesh import build_mesh, centre_error, to_trimesh, write_scene
+    from terrain.mesh import build_mesh, centre_error, to_trimesh
     from terrain.texture_cli import make_texture, sample_heights, texture_request
 
     if output_format(out_path) not in ("glb", "gltf"):
@@ -167,6 +191,12 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
         raise InvalidArgument("margin_m", f"must be within [0, {MAX_MARGIN_M:g}] m", value=margin_m)
     r = recording
     tracks = read_tracks(r, rate_hz)
+    points = sum(len(seg.times) for t in tracks.values() for seg in t.segments)
+    if points > MAX_TRACK_POINTS:
+        per_s = points / max(r.duration_s, r.dt)
+        raise InvalidArgument("rate", f"{points:,} track points is over the limit of {MAX_TRACK_POINTS:,}: export at "
+                                      f"{MAX_TRACK_POINTS / per_s * (rate_hz or r.rate_hz):.3g} Hz or less",
+                              value=rate_hz)
     box = track_box(tracks, margin_m)
     frame = LocalFrame.at(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3]), 0.0)
     undulation = float(r.header.geoid_undulation_m)
@@ -200,15 +230,15 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
         info = r.entities.get(entity_id)
         meta = _entity_extras(info)
         name = f"{info.name if info is not None and info.name else 'entity'} #{entity_id}"
-        segments = [enu_to_gltf(frame.to_local(p)) for _, p in tracks[entity_id].segments]
+        segments = [enu_to_gltf(frame.to_local(seg.ecef)) for seg in tracks[entity_id].segments]
         lines = [s for s in segments if len(s) >= 2]
         if not lines:
             continue
         path = polylines(lines)
         rgba = COALITION_RGBA.get(meta.get("coalition", "neutral"), COALITION_RGBA["neutral"])
         path.colors = np.tile(np.array(rgba, np.uint8), (len(path.entities), 1))
-        times = tracks[entity_id].segments
-        path.metadata.update({**meta, "world_time_s": [float(times[0][0][0]), float(times[-1][0][-1])]})
+        segs = tracks[entity_id].segments
+        path.metadata.update({**meta, "world_time_s": [float(segs[0].times[0]), float(segs[-1].times[-1])]})
         scene.add_geometry(path, node_name=name, geom_name=name)
         stats.tracks += 1
         stats.track_points += sum(len(s) for s in lines)
@@ -228,11 +258,164 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
                          "detail": json.loads(e.detail_json) if e.detail_json else {}} for e in events]
     stats.events = len(events)
     scene.metadata.update(scene_extras(frame, extras))
+    gltf, binary = read_glb(scene.export(file_type="glb"))
+    stats.markers = add_markers(gltf, binary, tracks, r.entities, frame, r.first_time_s, r.dt)
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_scene(scene, out)
+    out.write_bytes(glb_bytes(gltf, binary) if output_format(out) == "glb" else gltf_bytes(gltf, binary))
     stats.bytes_written = out.stat().st_size
     return stats
+
+
+# -- the animated markers -------------------------------------------------------------------------
+
+# A dart in body axes (x forward, y right, z down), 1 m nose to tail, scaled per entity kind so it
+# is seen from kilometres away; every face wound counter-clockwise seen from outside.
+MARKER_VERTICES = np.array([[1.0, 0.0, 0.0], [-0.6, -0.5, 0.0], [-0.6, 0.5, 0.0], [-0.6, 0.0, -0.3]], np.float32)
+MARKER_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint16)
+MARKER_SCALE_M = {pb.ENTITY_KIND_AIRCRAFT: 60.0, pb.ENTITY_KIND_GROUND: 15.0}
+MARKER_SCALE_OTHER_M = 10.0
+# glTF component types and buffer view targets (glTF 2.0 specification, "Accessors", "Buffer Views").
+FLOAT, UNSIGNED_SHORT = 5126, 5123
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
+
+
+def read_glb(data: bytes) -> tuple[dict, bytearray]:
+    """(the JSON, the binary chunk) of a GLB container (glTF 2.0 specification, "Binary glTF
+    Layout": a 12-byte header, a JSON chunk, an optional BIN chunk, each 4-byte aligned)."""
+    magic, version, length = struct.unpack_from("<III", data, 0)
+    if magic != GLB_MAGIC or version != 2 or length != len(data):
+        raise ValueError("not a GLB 2.0 container")
+    n, kind = struct.unpack_from("<II", data, 12)
+    gltf = json.loads(data[20:20 + n])
+    binary = bytearray()
+    at = 20 + n
+    if at + 8 <= len(data):
+        m, kind = struct.unpack_from("<II", data, at)
+        if kind == GLB_BIN:
+            binary = bytearray(data[at + 8:at + 8 + m])
+    return gltf, binary
+
+
+def _padded(data: bytes, fill: bytes) -> bytes:
+    return data + fill * (-len(data) % 4)
+
+
+def glb_bytes(gltf: dict, binary: bytes) -> bytes:
+    """A GLB container of the JSON and the binary chunk."""
+    gltf["buffers"] = [{"byteLength": len(binary)}] if binary else []
+    text = _padded(json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode(), b" ")
+    chunks = struct.pack("<II", len(text), GLB_JSON) + text
+    if binary:
+        data = _padded(bytes(binary), b"\0")
+        chunks += struct.pack("<II", len(data), GLB_BIN) + data
+    return struct.pack("<III", GLB_MAGIC, 2, 12 + len(chunks)) + chunks
+
+
+def gltf_bytes(gltf: dict, binary: bytes) -> bytes:
+    """A .gltf file: the JSON with the binary chunk as a base64 data URI."""
+    gltf["buffers"] = [{"byteLength": len(binary),
+                        "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(binary)).decode()}]
+    return json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _accessor(gltf: dict, binary: bytearray, values: np.ndarray, kind: str, component: int = FLOAT,
+              target: int | None = None, bounds: bool = False) -> int:
+    """Append ``values`` (little-endian, 4-byte aligned) to the binary chunk as a buffer view
+    and an accessor of glTF type ``kind``; its index. ``bounds``: with min and max (required
+    for positions and animation inputs)."""
+    binary.extend(b"\0" * (-len(binary) % 4))
+    data = np.ascontiguousarray(values).astype(values.dtype.newbyteorder("<"), copy=False)
+    view = {"buffer": 0, "byteOffset": len(binary), "byteLength": data.nbytes}
+    if target is not None:
+        view["target"] = target
+    binary.extend(data.tobytes())
+    gltf.setdefault("bufferViews", []).append(view)
+    accessor = {"bufferView": len(gltf["bufferViews"]) - 1, "componentType": component,
+                "count": int(data.shape[0]), "type": kind}
+    if bounds:
+        flat = data.reshape(data.shape[0], -1)
+        accessor["min"] = flat.min(axis=0).tolist()
+        accessor["max"] = flat.max(axis=0).tolist()
+    gltf.setdefault("accessors", []).append(accessor)
+    return len(gltf["accessors"]) - 1
+
+
+def scene_rotations(quat_ecef2body: np.ndarray, frame: LocalFrame) -> np.ndarray:
+    """(k, 4) glTF node rotations (x, y, z, w) taking a marker in body axes (x forward, y
+    right, z down) into the scene's axes, sign-continuous along the track (so a viewer's
+    slerp between two keys turns the short way).
+
+    A recorded q_eb (w, x, y, z) takes body components to ECEF (server.acmi.attitude_deg:
+    q_eb = q_en q_nb); ECEF to ENU is the frame's basis; ENU to glTF is (e, u, -n)."""
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(quat_ecef2body, dtype=np.float64)
+    r_ecef_body = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # normalises the rounded quaternions
+    enu_to_gltf_m = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    out = Rotation.from_matrix(enu_to_gltf_m @ frame.basis @ r_ecef_body).as_quat()
+    flips = np.ones(len(out))
+    flips[1:] = np.where(np.einsum("ij,ij->i", out[1:], out[:-1]) < 0.0, -1.0, 1.0)
+    return out * np.cumprod(flips)[:, None]
+
+
+def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, frame: LocalFrame,
+                t0_s: float, dt_s: float) -> int:
+    """Add a marker (a dart, coloured by coalition) per track, animated along it: translation
+    and rotation keys (LINEAR) at its export ticks, scale keys (STEP) hiding it where it was
+    absent. Animation time 0 is world time ``t0_s``. Returns the markers added."""
+    pos = _accessor(gltf, binary, MARKER_VERTICES, "VEC3", target=ARRAY_BUFFER, bounds=True)
+    idx = _accessor(gltf, binary, MARKER_FACES.ravel(), "SCALAR", UNSIGNED_SHORT, ELEMENT_ARRAY_BUFFER)
+    mesh_of = {}
+    for coalition, rgba in COALITION_RGBA.items():
+        gltf.setdefault("materials", []).append({
+            "name": f"marker {coalition}", "pbrMetallicRoughness": {
+                "baseColorFactor": [c / 255.0 for c in rgba], "metallicFactor": 0.0, "roughnessFactor": 0.8}})
+        gltf.setdefault("meshes", []).append({"name": f"marker {coalition}", "primitives": [
+            {"attributes": {"POSITION": pos}, "indices": idx, "material": len(gltf["materials"]) - 1}]})
+        mesh_of[coalition] = len(gltf["meshes"]) - 1
+    samplers, channels, nodes = [], [], []
+    end = max((seg.times[-1] for t in tracks.values() for seg in t.segments), default=t0_s)
+    for entity_id in sorted(tracks):
+        segs = tracks[entity_id].segments
+        if not segs:
+            continue
+        info = entities.get(entity_id)
+        meta = _entity_extras(info)
+        times = (np.concatenate([s.times for s in segs]) - t0_s).astype(np.float32)
+        if np.any(np.diff(times) <= 0.0):
+            raise ValueError(f"entity {entity_id}: track times do not increase in float32")
+        where = enu_to_gltf(frame.to_local(np.concatenate([s.ecef for s in segs]))).astype(np.float32)
+        turn = scene_rotations(np.concatenate([s.quat for s in segs]), frame).astype(np.float32)
+        scale = MARKER_SCALE_M.get(info.kind if info is not None else None, MARKER_SCALE_OTHER_M)
+        # Shown from each segment's first tick, hidden half a tick after its last (unless the
+        # recording ends there), and hidden from time 0 if it appears later.
+        keys = [(0.0, 0.0)] if segs[0].times[0] > t0_s else []
+        for s in segs:
+            keys.append((s.times[0] - t0_s, scale))
+            if s.times[-1] < end:
+                keys.append((s.times[-1] - t0_s + 0.5 * dt_s, 0.0))
+        key_t = np.array([k[0] for k in keys], np.float32)
+        key_s = np.repeat(np.array([k[1] for k in keys], np.float32)[:, None], 3, axis=1)
+        node = len(gltf["nodes"])
+        gltf["nodes"].append({"name": f"{meta.get('name') or 'entity'} #{entity_id} marker",
+                              "mesh": mesh_of.get(meta.get("coalition"), mesh_of["neutral"]),
+                              "translation": where[0].tolist(), "rotation": turn[0].tolist(),
+                              "scale": key_s[0].tolist(), "extras": meta})
+        nodes.append(node)
+        t_acc = _accessor(gltf, binary, times, "SCALAR", bounds=True)
+        for path, values, kind, interpolation, inputs in (
+                ("translation", where, "VEC3", "LINEAR", t_acc), ("rotation", turn, "VEC4", "LINEAR", t_acc),
+                ("scale", key_s, "VEC3", "STEP", _accessor(gltf, binary, key_t, "SCALAR", bounds=True))):
+            samplers.append({"input": inputs, "output": _accessor(gltf, binary, values, kind),
+                             "interpolation": interpolation})
+            channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": path}})
+    if nodes:
+        gltf["scenes"][gltf.get("scene", 0)]["nodes"].extend(nodes)
+        gltf.setdefault("animations", []).append({"name": "sortie", "samplers": samplers, "channels": channels,
+                                                  "extras": {"time_zero_world_s": t0_s}})
+    return len(nodes)
 
 
 def _json_number(v: float) -> float | None:

@@ -141,7 +141,7 @@ def test_scene_extras_and_events(alps):
     assert len(scene.geometry["events"].vertices) == len(placed)
     box = extras["terrain_box"]
     lat, lon, _ = ecef_to_geodetic(np.concatenate([p for t in read_tracks(Recording(rec)).values()
-                                                   for _, p in t.segments]))
+                                                   for p in (seg.ecef for seg in t.segments)]))
     assert box[0] < lat.min() and lat.max() < box[2] and box[1] < lon.min() and lon.max() < box[3]
 
 
@@ -157,9 +157,9 @@ def test_breaks_rates_and_the_antimeridian(tmp_path):
                           2: (info(2, "parked", pb.ENTITY_KIND_GROUND, "m1"), parked)}, ticks=90)
     with Recording(rec) as r:
         tracks = read_tracks(r)
-        assert [len(t) for t, _ in tracks[1].segments] == [39, 31]  # ticks 1-39 and 60-90
-        assert [len(t) for t, _ in tracks[2].segments] == [90]
-        assert [len(t) for t, _ in read_tracks(r, 10.0)[1].segments] == [14, 11]  # tick 1, then every 3rd tick
+        assert [len(seg.times) for seg in tracks[1].segments] == [39, 31]  # ticks 1-39 and 60-90
+        assert [len(seg.times) for seg in tracks[2].segments] == [90]
+        assert [len(seg.times) for seg in read_tracks(r, 10.0)[1].segments] == [14, 11]  # tick 1, then every 3rd tick
         lat_min, lon_min, lat_max, lon_max = track_box(tracks, 1000.0)
         assert lon_min < 180.0 < lon_max and lon_max - lon_min < 0.1  # not the whole world
         stats = export_gltf(r, tmp_path / "s.gltf")
@@ -180,6 +180,12 @@ def test_bad_input(alps, tmp_path):
             export_gltf(r, tmp_path / "x.glb", margin_m=-1.0)
         with pytest.raises(InvalidArgument, match="rate"):
             export_gltf(r, tmp_path / "x.glb", rate_hz=0.0)
+    import server.gltf as gltf_module
+
+    with Recording(rec) as r, pytest.MonkeyPatch.context() as mp:
+        mp.setattr(gltf_module, "MAX_TRACK_POINTS", 100)
+        with pytest.raises(InvalidArgument, match=r"rate.*over the limit of 100: export at"):
+            export_gltf(r, tmp_path / "x.glb")
     empty = tmp_path / "empty.sortie"
     write_synthetic(empty, {}, ticks=3)
     with Recording(empty) as r, pytest.raises(InvalidArgument, match="recording"):
@@ -209,3 +215,136 @@ def test_header_without_terrain_files(tmp_path):
     done = subprocess.run([*sortie_command(), "export", "gltf", str(rec), "-o", str(tmp_path / "x.glb")],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "terrain" in done.stderr
+
+
+# -- the animated markers ---------------------------------------------------------------------------
+
+def _accessor(gltf: dict, binary: bytes, k: int) -> np.ndarray:
+    """Accessor k as an array (float32 / uint16, tightly packed as server/gltf.py writes them)."""
+    a = gltf["accessors"][k]
+    view = gltf["bufferViews"][a["bufferView"]]
+    dtype = {5126: "<f4", 5123: "<u2"}[a["componentType"]]
+    width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[a["type"]]
+    start = view.get("byteOffset", 0) + a.get("byteOffset", 0)
+    return np.frombuffer(binary, dtype, a["count"] * width, start).reshape(a["count"], width)
+
+
+def _rotation_matrices(q_xyzw: np.ndarray) -> np.ndarray:
+    x, y, z, w = (q_xyzw[:, i].astype(np.float64) for i in range(4))
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+
+
+def test_markers_follow_the_tracks_with_the_recorded_attitude(alps):
+    """Each marker's keys are its track's float32 offsets at world time - t0, and its rotation
+    takes body axes into the scene as the recorded attitude does: checked against Tacview's
+    Euler angles (server/acmi.attitude_deg), composed independently here as
+    R_ned<-body = Rz(yaw) Ry(pitch) Rx(roll), within float32 rounding (1e-5)."""
+    from server.acmi import attitude_deg
+    from server.gltf import read_glb
+
+    rec, out, _ = alps
+    gltf, binary = read_glb(out.read_bytes())
+    frame = _frame(gltf)
+    anim = gltf["animations"][0]
+    t0 = anim["extras"]["time_zero_world_s"]
+    by_node = {}
+    for ch in anim["channels"]:
+        by_node.setdefault(ch["target"]["node"], {})[ch["target"]["path"]] = anim["samplers"][ch["sampler"]]
+    gltf_of_enu = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+    enu_of_ned = np.array([[0, 1.0, 0], [1.0, 0, 0], [0, 0, -1.0]])
+    with Recording(rec) as r:
+        steps = r.steps.vector()
+        checked = 0
+        for node_k, node in enumerate(gltf["nodes"]):
+            if node_k not in by_node:
+                continue
+            entity_id = node["extras"]["entity_id"]
+            assert node["name"] == f"{r.entities[entity_id].name} #{entity_id} marker"
+            frames = [r.frame(t) for t in range(r.first_tick, r.last_tick + 1)]
+            states = np.stack([f.q[np.searchsorted(f.ids, entity_id)] * steps for f in frames if entity_id in f.ids])
+            times = np.array([f.time_s for f in frames if entity_id in f.ids])
+            ch = by_node[node_k]
+            assert np.array_equal(_accessor(gltf, binary, ch["translation"]["input"])[:, 0],
+                                  (times - t0).astype(np.float32))
+            where = _accessor(gltf, binary, ch["translation"]["output"])
+            assert np.array_equal(where, enu_to_gltf(frame.to_local(states[:, codec.POS])).astype(np.float32))
+            turn = _accessor(gltf, binary, ch["rotation"]["output"])
+            assert np.all(np.einsum("ij,ij->i", turn[1:], turn[:-1]) >= 0.0)  # the short way between keys
+            lat, lon, _ = ecef_to_geodetic(states[:, codec.POS])
+            roll, pitch, yaw = (np.radians(a) for a in attitude_deg(states[:, codec.QUAT], lat, lon))
+            cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+            ned_body = np.stack([np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+                                 np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+                                 np.stack([-sp, cp * sr, cp * cr], -1)], 1)
+            # ENU at the entity, then into the frame's ENU at the origin (the basis of each).
+            from terrain.geodesy import enu_basis
+
+            e, n, u = enu_basis(lat, lon)
+            ecef_enu_here = np.stack([e, n, u], axis=-1)  # columns: the local ENU axes in ECEF
+            expected = gltf_of_enu @ frame.basis @ ecef_enu_here @ enu_of_ned @ ned_body
+            assert np.abs(_rotation_matrices(turn) - expected).max() < 1e-5, node["name"]
+            scale = _accessor(gltf, binary, ch["scale"]["output"])
+            assert ch["scale"]["interpolation"] == "STEP" and np.all(scale[0] == node["scale"])
+            checked += 1
+        assert checked == len(r.entities)
+
+
+def test_markers_hide_while_absent(tmp_path):
+    from server.gltf import MARKER_SCALE_M, read_glb
+
+    def jumper(tick):
+        return None if 40 <= tick < 60 else (47.3, 9.3 + 0.0004 * tick, 1000.0, 0.0, 0.0, 90.0)
+
+    def late(tick):
+        return None if tick < 30 else (47.31, 9.3, 1200.0, 0.0, 5.0, 0.0)
+
+    rec = tmp_path / "s.sortie"
+    write_synthetic(rec, {1: (info(1, "jumper", pb.ENTITY_KIND_AIRCRAFT, "f16", "red"), jumper),
+                          2: (info(2, "late", pb.ENTITY_KIND_GROUND, "m1a2"), late)}, ticks=90)
+    with Recording(rec) as r:
+        export_gltf(r, tmp_path / "s.glb")
+        t0, dt = r.first_time_s, r.dt
+    gltf, binary = read_glb((tmp_path / "s.glb").read_bytes())
+    anim = gltf["animations"][0]
+    keys = {}
+    for ch in anim["channels"]:
+        if ch["target"]["path"] == "scale":
+            s = anim["samplers"][ch["sampler"]]
+            name = gltf["nodes"][ch["target"]["node"]]["name"]
+            keys[name] = (_accessor(gltf, binary, s["input"])[:, 0], _accessor(gltf, binary, s["output"])[:, 0])
+    air = MARKER_SCALE_M[pb.ENTITY_KIND_AIRCRAFT]
+    t, s = keys["jumper #1 marker"]
+    assert np.allclose(t, np.array([0.0, (39 - 1 + 0.5) * dt, (60 - 1) * dt], np.float32)) and list(s) == [air, 0, air]
+    t, s = keys["late #2 marker"]
+    assert np.allclose(t, [0.0, (30 - 1) * dt]) and list(s) == [0, MARKER_SCALE_M[pb.ENTITY_KIND_GROUND]]
+    assert t0 == dt
+
+
+def test_the_khronos_validator_finds_nothing(alps, tmp_path):
+    """The files pass the Khronos glTF validator (npm gltf-validator, installed by make bootstrap
+    into .tools/): no error and no warning."""
+    import shutil
+    from pathlib import Path
+
+    script = Path(__file__).with_name("gltf_validate.js")
+    if shutil.which("node") is None or not (script.parents[1] / ".tools" / "node_modules" / "gltf-validator").exists():
+        pytest.skip("the Khronos glTF validator is not installed (make bootstrap installs it where npm is)")
+    rec, glb, terrain = alps
+    with Recording(rec) as r:
+        export_gltf(r, tmp_path / "scene.gltf", terrain, size="16x16")
+    from terrain.mesh import build_mesh, write_mesh
+
+    lat, lon = np.linspace(47.3, 47.2, 12), np.linspace(9.2, 9.35, 13)
+    h = terrain.heights(np.repeat(lat, lon.size), np.tile(lon, lat.size)).height_msl_m.reshape(12, 13)
+    image = np.zeros((12, 13, 3), np.uint8)
+    write_mesh(build_mesh(h, lat, lon), tmp_path / "mesh.glb", image)
+    write_mesh(build_mesh(h, lat, lon), tmp_path / "mesh.gltf")
+    files = [glb, tmp_path / "scene.gltf", tmp_path / "mesh.glb", tmp_path / "mesh.gltf"]
+    done = subprocess.run(["node", str(script), *map(str, files)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    reports = [json.loads(line) for line in done.stdout.splitlines()]
+    assert len(reports) == len(files)
+    for rep in reports:
+        assert rep["errors"] == 0 and rep["warnings"] == 0, rep
