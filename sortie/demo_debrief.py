@@ -85,8 +85,8 @@ def run_debrief(recording: Path, out: Path, console) -> dict:
     with Recording(recording) as rec:
         scene = export_gltf(rec, path, open_terrain_source(dem=[DEM]))
     exports["sortie.glb"] = str(path)
-    console.print(f"[bold]glTF debrief scene[/]: {path} ({scene.tracks} tracks, {scene.markers} animated markers, {scene.events} events, "
-                  f"terrain {scene.terrain_vertices:,} vertices, {scene.bytes_written:,} bytes)")
+    console.print(f"[bold]glTF debrief scene[/]: {path} ({scene.tracks} tracks, {scene.markers} animated markers, "
+                  f"{scene.events} events, terrain {scene.terrain_vertices:,} vertices, {scene.bytes_written:,} bytes)")
     result = {"recording": info, "replay": {"played_to_s": played_to, "seek_tick": tick,
                                             "seek_max_error_m": seek_error, "entities": int(ids.size)},
               "resim": report.as_dict(), "exports": exports}

@@ -119,7 +119,8 @@ def test_ground_tracks_lie_on_the_terrain(alps):
         ground = [e for e in r.entities.values() if e.kind == pb.ENTITY_KIND_GROUND]
         assert ground
         for e in ground:
-            lat, lon, h = ecef_to_geodetic(frame.to_ecef(gltf_to_enu(_polyline(scene.geometry[f"{e.name} #{e.entity_id}"]))))
+            track = _polyline(scene.geometry[f"{e.name} #{e.entity_id}"])
+            lat, lon, h = ecef_to_geodetic(frame.to_ecef(gltf_to_enu(track)))
             above = h - undulation - terrain.heights(lat, lon).height_msl_m
             assert np.abs(above).max() < 1.5, e.name
     # The terrain mesh: its vertices at the terrain's heights plus the undulation.
