@@ -33,7 +33,9 @@ minutes, its every-tick ACMI export ~2.5, the whole run ~12.
   (server/acmi.py) of the same recording at every recorded tick;
   ``size_vs_acmi_zip_10hz``: against the export at 10 Hz (the two exports run
   at once, one in a subprocess: this machine has 2 cores);
-  ``export_acmi_states_per_s``: the every-tick export's speed.
+  ``export_acmi_states_per_s``: the every-tick export's speed;
+  ``export_gltf_1hz_points_per_s``: the glTF debrief scene's (server/gltf.py,
+  tracks and animated markers, no terrain) at 1 Hz, in track points a second.
 - ``record_overhead_ratio``: mean wall time of a world tick (bots' commands
   included: they are journaled) with a recorder attached / without, on the
   long run's scenario (aircraft workers as ``sortie server --aircraft-workers
@@ -90,6 +92,7 @@ AIRCRAFT_TYPES = (("f16", (150.0, 220.0), (3000.0, 5000.0), 12_000.0),) * 4 + (
 CONVOY_SPACING_M = 40.0
 M_PER_DEG_LAT = 111_200.0  # near enough for placing agents
 WORLD_RATE_HZ = 30
+GLTF_RATE_HZ = 1.0  # the glTF debrief scene's track points and animation keys a second
 
 
 def _toml(value) -> str:
@@ -494,7 +497,18 @@ def bench_size(report: Report, path: Path, made: dict, tmp: Path) -> None:
                          acmi_text_bytes=stats.text_bytes, acmi_states=stats.states, export_s=stats.seconds,
                          acmi_states_match_recorded=stats.states == made["entity_ticks"])
     report.series["bytes_per_entity_second"] = {k: v / entity_s for k, v in sizes.items()}
-    for p in (full, ten):
+    # The glTF debrief scene (tracks and animated markers, no terrain) at 1 Hz.
+    from server.gltf import export_gltf
+
+    scene = tmp / "rate_1hz.glb"
+    t0 = time.perf_counter()
+    with Recording(path) as rec:
+        g = export_gltf(rec, scene, rate_hz=GLTF_RATE_HZ)
+    seconds = time.perf_counter() - t0
+    report.metrics["export_gltf_1hz_points_per_s"] = g.track_points / seconds
+    report.params.update(gltf_1hz_bytes=g.bytes_written, gltf_1hz_points=g.track_points, gltf_1hz_s=seconds,
+                         gltf_1hz_markers=g.markers)
+    for p in (full, ten, scene):
         p.unlink(missing_ok=True)
 
 

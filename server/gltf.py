@@ -72,58 +72,46 @@ class Track:
 
     entity_id: int
     segments: list = field(default_factory=list)
-    _parts: list = field(default_factory=list)
-
-    def extend(self, times: np.ndarray, rows: np.ndarray, present: np.ndarray, continues: bool) -> None:
-        """Add the export ticks of a chunk (``rows`` (t, 7): position and quaternion;
-        ``present`` per tick); ``continues``: the entity was present at the previous export tick."""
-        if not continues:
-            self._close()
-        start = 0
-        for b in [*np.flatnonzero(~present).tolist(), present.size]:
-            if b > start:
-                self._parts.append((times[start:b], rows[start:b]))
-            if b < present.size:
-                self._close()
-            start = b + 1
-
-    def _close(self) -> None:
-        if self._parts:
-            rows = np.concatenate([r for _, r in self._parts])
-            self.segments.append(Segment(np.concatenate([t for t, _ in self._parts]), rows[:, :3], rows[:, 3:]))
-        self._parts = []
-
-    def finish(self) -> "Track":
-        self._close()
-        return self
 
 
 def read_tracks(recording, rate_hz: float | None = None) -> dict[int, Track]:
     """Every entity's track at ``rate_hz`` of world time (server.acmi.selected_ticks: the
-    first tick of each 1/rate interval, and the first and last ticks; None: every tick)."""
+    first tick of each 1/rate interval, and the first and last ticks; None: every tick).
+
+    Vectorised over the recording: each chunk's present (export tick, entity) pairs are
+    gathered flat, then grouped by entity (a stable sort keeps time order) and split where
+    an entity's export ticks are not consecutive (it was absent, or the chunks between did
+    not hold it)."""
     r = recording
     steps = r.steps.vector()
-    pose = np.r_[np.arange(16)[codec.POS], np.arange(16)[codec.QUAT]]  # position, quaternion columns
-    tracks: dict[int, Track] = {}
-    last_present: dict[int, bool] = {}
+    pose = np.r_[np.arange(codec.FIELDS)[codec.POS], np.arange(codec.FIELDS)[codec.QUAT]]
+    ids, slots, times, rows = [], [], [], []
+    exported = 0  # export ticks before this chunk's
     for k in range(r.chunk_count):
         c = r.chunk(k)
         ticks = c.first_tick + np.arange(c.ticks)
         sel = np.flatnonzero(selected_ticks(ticks, r.rate_hz, rate_hz, r.first_tick, r.last_tick))
         if sel.size == 0:
             continue
-        times = ticks[sel] * r.dt
-        rows = c.q[sel][:, :, pose] * steps[pose]  # (t, e, 7): ECEF metres, quaternion
-        present = c.present[sel]
-        held = set()
-        for e, entity_id in enumerate(c.entity_ids.tolist()):
-            t = tracks.setdefault(entity_id, Track(entity_id))
-            t.extend(times, rows[:, e], present[:, e], last_present.get(entity_id, False))
-            last_present[entity_id] = bool(present[-1, e])
-            held.add(entity_id)
-        for entity_id in last_present.keys() - held:  # not in this chunk at all: a break
-            last_present[entity_id] = False
-    return {i: t.finish() for i, t in tracks.items()}
+        t_k, e_k = np.nonzero(c.present[sel])  # row-major: time order within the chunk
+        ids.append(c.entity_ids[e_k])
+        slots.append(exported + t_k)
+        times.append(ticks[sel][t_k] * r.dt)
+        rows.append(c.q[sel[t_k], e_k][:, pose] * steps[pose])  # ECEF metres, quaternion
+        exported += sel.size
+    if not ids:
+        return {}
+    ids, slots, times, rows = (np.concatenate(a) for a in (ids, slots, times, rows))
+    if ids.size == 0:
+        return {}
+    order = np.argsort(ids, kind="stable")
+    ids, slots, times, rows = ids[order], slots[order], times[order], rows[order]
+    cut = np.flatnonzero((ids[1:] != ids[:-1]) | (slots[1:] != slots[:-1] + 1)) + 1
+    tracks: dict[int, Track] = {}
+    for a, b in zip(np.r_[0, cut].tolist(), np.r_[cut, ids.size].tolist()):
+        tracks.setdefault(int(ids[a]), Track(int(ids[a]))).segments.append(
+            Segment(times[a:b], rows[a:b, :3], rows[a:b, 3:]))
+    return tracks
 
 
 def track_box(tracks: dict, margin_m: float) -> tuple[float, float, float, float]:

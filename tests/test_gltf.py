@@ -153,18 +153,25 @@ def test_breaks_rates_and_the_antimeridian(tmp_path):
     def parked(tick):
         return (-16.4, -179.95, 0.0, 0.0, 0.0, 0.0)
 
+    def ghost(tick):  # absent from the whole second chunk (ticks 31-60): not in it at all
+        return None if 25 <= tick < 65 else (-16.45, 179.98, 500.0, 0.0, 0.0, 0.0)
+
     rec = tmp_path / "s.sortie"
     write_synthetic(rec, {1: (info(1, "jumper", pb.ENTITY_KIND_AIRCRAFT, "f16", "red"), jumper),
-                          2: (info(2, "parked", pb.ENTITY_KIND_GROUND, "m1"), parked)}, ticks=90)
+                          2: (info(2, "parked", pb.ENTITY_KIND_GROUND, "m1"), parked),
+                          3: (info(3, "ghost", pb.ENTITY_KIND_AIRCRAFT, "c172x"), ghost)}, ticks=90)
     with Recording(rec) as r:
+        assert 3 not in r.chunk(1).entity_ids
         tracks = read_tracks(r)
         assert [len(seg.times) for seg in tracks[1].segments] == [39, 31]  # ticks 1-39 and 60-90
         assert [len(seg.times) for seg in tracks[2].segments] == [90]
+        assert [seg.times[0] * 30.0 for seg in tracks[3].segments] == pytest.approx([1.0, 65.0])
+        assert [len(seg.times) for seg in tracks[3].segments] == [24, 26]
         assert [len(seg.times) for seg in read_tracks(r, 10.0)[1].segments] == [14, 11]  # tick 1, then every 3rd tick
         lat_min, lon_min, lat_max, lon_max = track_box(tracks, 1000.0)
         assert lon_min < 180.0 < lon_max and lon_max - lon_min < 0.1  # not the whole world
         stats = export_gltf(r, tmp_path / "s.gltf")
-    assert stats.tracks == 2 and stats.terrain_vertices == 0
+    assert stats.tracks == 3 and stats.terrain_vertices == 0
     gltf = json.loads((tmp_path / "s.gltf").read_text())
     assert gltf["asset"]["version"] == "2.0" and "terrain" not in {n["name"] for n in gltf["nodes"]}
     red = next(m for m in gltf["meshes"] if m["name"] == "jumper #1")
