@@ -28,10 +28,8 @@ heights plus the recording's geoid undulation, as they met in the world.
 
 from __future__ import annotations
 
-import base64
 import json
 import math
-import struct
 from dataclasses import dataclass, field
 from typing import NamedTuple
 from datetime import timedelta
@@ -44,7 +42,8 @@ from server.acmi import check_rate, selected_ticks
 from sortie.errors import InvalidArgument
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef, radii_of_curvature
-from terrain.mesh import LocalFrame, enu_to_gltf, output_format, scene_extras
+from terrain.mesh import (ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, UNSIGNED_SHORT, LocalFrame, append_accessor,
+                          enu_to_gltf, glb_bytes, gltf_bytes, output_format, read_glb, scene_extras)
 
 DEFAULT_MARGIN_M = 2000.0  # terrain around the tracks' box
 DEFAULT_LONG_SIDE = 512  # terrain vertices along the box's longer side (about 12 MB of glTF)
@@ -263,73 +262,6 @@ MARKER_VERTICES = np.array([[1.0, 0.0, 0.0], [-0.6, -0.5, 0.0], [-0.6, 0.5, 0.0]
 MARKER_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint16)
 MARKER_SCALE_M = {pb.ENTITY_KIND_AIRCRAFT: 60.0, pb.ENTITY_KIND_GROUND: 15.0}
 MARKER_SCALE_OTHER_M = 10.0
-# glTF component types and buffer view targets (glTF 2.0 specification, "Accessors", "Buffer Views").
-FLOAT, UNSIGNED_SHORT = 5126, 5123
-ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
-GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
-
-
-def read_glb(data: bytes) -> tuple[dict, bytearray]:
-    """(the JSON, the binary chunk) of a GLB container (glTF 2.0 specification, "Binary glTF
-    Layout": a 12-byte header, a JSON chunk, an optional BIN chunk, each 4-byte aligned)."""
-    magic, version, length = struct.unpack_from("<III", data, 0)
-    if magic != GLB_MAGIC or version != 2 or length != len(data):
-        raise ValueError("not a GLB 2.0 container")
-    n, kind = struct.unpack_from("<II", data, 12)
-    gltf = json.loads(data[20:20 + n])
-    binary = bytearray()
-    at = 20 + n
-    if at + 8 <= len(data):
-        m, kind = struct.unpack_from("<II", data, at)
-        if kind == GLB_BIN:
-            binary = bytearray(data[at + 8:at + 8 + m])
-    return gltf, binary
-
-
-def _padded(data: bytes, fill: bytes) -> bytes:
-    return data + fill * (-len(data) % 4)
-
-
-def glb_bytes(gltf: dict, binary: bytes) -> bytes:
-    """A GLB container of the JSON and the binary chunk."""
-    gltf["buffers"] = [{"byteLength": len(binary)}] if binary else []
-    text = _padded(json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode(), b" ")
-    chunks = struct.pack("<II", len(text), GLB_JSON) + text
-    if binary:
-        data = _padded(bytes(binary), b"\0")
-        chunks += struct.pack("<II", len(data), GLB_BIN) + data
-    return struct.pack("<III", GLB_MAGIC, 2, 12 + len(chunks)) + chunks
-
-
-def gltf_bytes(gltf: dict, binary: bytes) -> bytes:
-    """A .gltf file: the JSON with the binary chunk as a base64 data URI."""
-    gltf["buffers"] = [{"byteLength": len(binary),
-                        "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(binary)).decode()}]
-    return json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode()
-
-
-def _accessor(gltf: dict, binary: bytearray, values: np.ndarray, kind: str, component: int = FLOAT,
-              target: int | None = None, bounds: bool = False) -> int:
-    """Append ``values`` (little-endian, 4-byte aligned) to the binary chunk as a buffer view
-    and an accessor of glTF type ``kind``; its index. ``bounds``: with min and max (required
-    for positions and animation inputs)."""
-    binary.extend(b"\0" * (-len(binary) % 4))
-    data = np.ascontiguousarray(values).astype(values.dtype.newbyteorder("<"), copy=False)
-    view = {"buffer": 0, "byteOffset": len(binary), "byteLength": data.nbytes}
-    if target is not None:
-        view["target"] = target
-    binary.extend(data.tobytes())
-    gltf.setdefault("bufferViews", []).append(view)
-    accessor = {"bufferView": len(gltf["bufferViews"]) - 1, "componentType": component,
-                "count": int(data.shape[0]), "type": kind}
-    if bounds:
-        flat = data.reshape(data.shape[0], -1)
-        accessor["min"] = flat.min(axis=0).tolist()
-        accessor["max"] = flat.max(axis=0).tolist()
-    gltf.setdefault("accessors", []).append(accessor)
-    return len(gltf["accessors"]) - 1
-
-
 def scene_rotations(quat_ecef2body: np.ndarray, frame: LocalFrame) -> np.ndarray:
     """(k, 4) glTF node rotations (x, y, z, w) taking a marker in body axes (x forward, y
     right, z down) into the scene's axes, sign-continuous along the track (so a viewer's
@@ -353,8 +285,8 @@ def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, fra
     """Add a marker (a dart, coloured by coalition) per track, animated along it: translation
     and rotation keys (LINEAR) at its export ticks, scale keys (STEP) hiding it where it was
     absent. Animation time 0 is world time ``t0_s``. Returns the markers added."""
-    pos = _accessor(gltf, binary, MARKER_VERTICES, "VEC3", target=ARRAY_BUFFER, bounds=True)
-    idx = _accessor(gltf, binary, MARKER_FACES.ravel(), "SCALAR", UNSIGNED_SHORT, ELEMENT_ARRAY_BUFFER)
+    pos = append_accessor(gltf, binary, MARKER_VERTICES, "VEC3", target=ARRAY_BUFFER, bounds=True)
+    idx = append_accessor(gltf, binary, MARKER_FACES.ravel(), "SCALAR", UNSIGNED_SHORT, ELEMENT_ARRAY_BUFFER)
     mesh_of = {}
     for coalition, rgba in COALITION_RGBA.items():
         gltf.setdefault("materials", []).append({
@@ -373,7 +305,8 @@ def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, fra
         meta = _entity_extras(info)
         times = (np.concatenate([s.times for s in segs]) - t0_s).astype(np.float32)
         if np.any(np.diff(times) <= 0.0):
-            raise ValueError(f"entity {entity_id}: track times do not increase in float32")
+            raise InvalidArgument("rate", f"entity {entity_id}: its keys are closer in time than float32 seconds "
+                                          "resolve this far into the sortie; export at a lower rate", value=None)
         where = enu_to_gltf(frame.to_local(np.concatenate([s.ecef for s in segs]))).astype(np.float32)
         turn = scene_rotations(np.concatenate([s.quat for s in segs]), frame).astype(np.float32)
         scale = MARKER_SCALE_M.get(info.kind if info is not None else None, MARKER_SCALE_OTHER_M)
@@ -392,11 +325,11 @@ def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, fra
                               "translation": where[0].tolist(), "rotation": turn[0].tolist(),
                               "scale": key_s[0].tolist(), "extras": meta})
         nodes.append(node)
-        t_acc = _accessor(gltf, binary, times, "SCALAR", bounds=True)
+        t_acc = append_accessor(gltf, binary, times, "SCALAR", bounds=True)
         for path, values, kind, interpolation, inputs in (
                 ("translation", where, "VEC3", "LINEAR", t_acc), ("rotation", turn, "VEC4", "LINEAR", t_acc),
-                ("scale", key_s, "VEC3", "STEP", _accessor(gltf, binary, key_t, "SCALAR", bounds=True))):
-            samplers.append({"input": inputs, "output": _accessor(gltf, binary, values, kind),
+                ("scale", key_s, "VEC3", "STEP", append_accessor(gltf, binary, key_t, "SCALAR", bounds=True))):
+            samplers.append({"input": inputs, "output": append_accessor(gltf, binary, values, kind),
                              "interpolation": interpolation})
             channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": path}})
     if nodes:

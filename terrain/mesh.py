@@ -27,12 +27,15 @@ latitude, longitude and height go with the scene (glTF: the scene's ``extras``).
 
 from __future__ import annotations
 
+import base64
+import json
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from sortie.errors import InvalidArgument
+from sortie.errors import DataFormatError, InvalidArgument
 from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
 # The largest mesh one call builds: 4 Mi vertices (2048 x 2048), about 8 Mi triangles,
@@ -217,9 +220,8 @@ def to_trimesh(mesh: TerrainMesh, image=None, *, gltf_axes: bool = False):
 
 def vertex_colours(image) -> np.ndarray:
     """(rows x cols, 4) uint8 RGBA of an image on the mesh's grid: one pixel a vertex."""
-    img = np.asarray(image, dtype=np.uint8)
-    rgba = np.concatenate([img.reshape(-1, 3), np.full((img.shape[0] * img.shape[1], 1), 255, np.uint8)], axis=1)
-    return rgba
+    img = np.asarray(image, dtype=np.uint8).reshape(-1, 3)
+    return np.concatenate([img, np.full((img.shape[0], 1), 255, np.uint8)], axis=1)
 
 
 def write_mesh(mesh: TerrainMesh, path, image=None, *, name: str = "terrain", extras: dict | None = None) -> Path:
@@ -254,15 +256,83 @@ def scene_extras(frame: LocalFrame, extras: dict | None = None) -> dict:
 
 
 def write_scene(scene, path) -> None:
-    """Write a trimesh.Scene as .glb (one binary file) or .gltf (JSON with the buffers embedded)."""
+    """Write a trimesh.Scene as .glb (one binary file) or .gltf (JSON with the buffer embedded)."""
     path = Path(path)
     kind = output_format(path)
-    if kind == "glb":
-        path.write_bytes(scene.export(file_type="glb"))
-    elif kind == "gltf":
-        from trimesh.exchange.gltf import export_gltf
-
-        files = export_gltf(scene, embed_buffers=True)
-        path.write_bytes(files["model.gltf"])
-    else:
+    if kind not in ("glb", "gltf"):
         raise InvalidArgument("output", "a scene is written as .glb or .gltf", value=str(path))
+    gltf, binary = read_glb(scene.export(file_type="glb"))
+    path.write_bytes(glb_bytes(gltf, binary) if kind == "glb" else gltf_bytes(gltf, binary))
+
+
+# -- glTF containers ------------------------------------------------------------------------------
+# trimesh writes a scene as GLB; these read it back and write it as GLB or .gltf, and let a caller
+# add accessors (the debrief scene's animated markers: server/gltf.py).
+
+# glTF component types and buffer view targets (glTF 2.0 specification, "Accessors", "Buffer Views").
+FLOAT, UNSIGNED_SHORT = 5126, 5123
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
+
+
+def read_glb(data: bytes) -> tuple[dict, bytearray]:
+    """(the JSON, the binary chunk) of a GLB container (glTF 2.0 specification, "Binary glTF
+    Layout": a 12-byte header, a JSON chunk, an optional BIN chunk, each 4-byte aligned)."""
+    magic, version, length = struct.unpack_from("<III", data, 0)
+    if magic != GLB_MAGIC or version != 2 or length != len(data):
+        raise DataFormatError("not a GLB 2.0 container (glTF 2.0 binary)")
+    n, kind = struct.unpack_from("<II", data, 12)
+    gltf = json.loads(data[20:20 + n])
+    binary = bytearray()
+    at = 20 + n
+    if at + 8 <= len(data):
+        m, kind = struct.unpack_from("<II", data, at)
+        if kind == GLB_BIN:
+            binary = bytearray(data[at + 8:at + 8 + m])
+    return gltf, binary
+
+
+def _padded(data: bytes, fill: bytes) -> bytes:
+    return data + fill * (-len(data) % 4)
+
+
+def glb_bytes(gltf: dict, binary: bytes) -> bytes:
+    """A GLB container of the JSON and the binary chunk."""
+    gltf["buffers"] = [{"byteLength": len(binary)}] if binary else []
+    text = _padded(json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode(), b" ")
+    chunks = struct.pack("<II", len(text), GLB_JSON) + text
+    if binary:
+        data = _padded(bytes(binary), b"\0")
+        chunks += struct.pack("<II", len(data), GLB_BIN) + data
+    return struct.pack("<III", GLB_MAGIC, 2, 12 + len(chunks)) + chunks
+
+
+def gltf_bytes(gltf: dict, binary: bytes) -> bytes:
+    """A .gltf file: the JSON with the binary chunk as a base64 data URI."""
+    gltf["buffers"] = [{"byteLength": len(binary),
+                        "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(binary)).decode()}]
+    return json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode()
+
+
+def append_accessor(gltf: dict, binary: bytearray, values: np.ndarray, kind: str, component: int = FLOAT,
+              target: int | None = None, bounds: bool = False) -> int:
+    """Append ``values`` (little-endian, 4-byte aligned) to the binary chunk as a buffer view
+    and an accessor of glTF type ``kind``; its index. ``bounds``: with min and max (required
+    for positions and animation inputs)."""
+    binary.extend(b"\0" * (-len(binary) % 4))
+    data = np.ascontiguousarray(values).astype(values.dtype.newbyteorder("<"), copy=False)
+    view = {"buffer": 0, "byteOffset": len(binary), "byteLength": data.nbytes}
+    if target is not None:
+        view["target"] = target
+    binary.extend(data.tobytes())
+    gltf.setdefault("bufferViews", []).append(view)
+    accessor = {"bufferView": len(gltf["bufferViews"]) - 1, "componentType": component,
+                "count": int(data.shape[0]), "type": kind}
+    if bounds:
+        flat = data.reshape(data.shape[0], -1)
+        accessor["min"] = flat.min(axis=0).tolist()
+        accessor["max"] = flat.max(axis=0).tolist()
+    gltf.setdefault("accessors", []).append(accessor)
+    return len(gltf["accessors"]) - 1
+
+
