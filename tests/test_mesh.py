@@ -243,3 +243,51 @@ def test_cli_rejects_bad_input(tmp_path, hgt_alps, extra, field, text):
         _run(argv)
     assert err.value.field == field and text in str(err.value)
     assert not (tmp_path / "m.glb").exists()
+
+
+# --------------------------------------------------------------------------- hard cases
+
+def test_a_box_across_the_antimeridian_is_one_piece():
+    """Longitudes past 180 (as --bbox takes them) give a mesh with no seam: east grows
+    steadily across the columns, and no triangle edge is longer than the cell's diagonal."""
+    from terrain.procedural import ProceduralTerrain
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([ProceduralTerrain(seed=7)])
+    lat = np.linspace(-16.4, -16.6, 21)
+    lon = np.linspace(179.9, 180.1, 23)
+    h = terrain.heights(np.repeat(lat, lon.size), np.tile(lon, lat.size)).height_msl_m.reshape(lat.size, lon.size)
+    mesh = build_mesh(h, lat, lon)
+    east = mesh.vertices[:, 0].reshape(lat.size, lon.size)
+    assert np.all(np.diff(east, axis=1) > 0.0)
+    north = mesh.vertices[:, 1].reshape(lat.size, lon.size)
+    diagonal = np.hypot(np.diff(east, axis=1).max(), np.abs(np.diff(north, axis=0)).max())
+    v = mesh.vertices[mesh.faces][:, :, :2]
+    assert np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2).max() <= diagonal * 1.001
+    # Same ground, written west of the antimeridian: the same mesh to float64 rounding.
+    west = build_mesh(h, lat, lon - 360.0, frame=mesh.frame)
+    assert np.abs(west.vertices - mesh.vertices).max() < 1e-6
+
+
+def test_a_polar_cap():
+    """A box up to the pole: every vertex within the box's 0.5 degrees of the pole (55.8 km of
+    meridian arc), the pole row at one point, and the caps' triangles facing up."""
+    from terrain.procedural import ProceduralTerrain
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([ProceduralTerrain(seed=7)])
+    lat = np.linspace(90.0, 89.5, 11)
+    lon = np.linspace(-180.0, 180.0, 25)
+    h = terrain.heights(np.repeat(lat, lon.size), np.tile(lon, lat.size)).height_msl_m.reshape(lat.size, lon.size)
+    mesh = build_mesh(h, lat, lon, frame=LocalFrame.at(90.0, 0.0))
+    horizontal = np.hypot(mesh.vertices[:, 0], mesh.vertices[:, 1])
+    assert horizontal.max() < 55_900.0
+    pole = mesh.vertices[:lon.size]
+    assert np.ptp(pole[:, :2], axis=0).max() < 1e-6  # the pole row is one point (its heights may differ)
+    v = mesh.vertices[mesh.faces]
+    normals = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    area = np.linalg.norm(normals, axis=1)
+    real = area > 1e-6  # the pole row's cells are triangles with one edge of zero length
+    assert np.all(normals[real, 2] > 0.0)
+    la, lo, hh = mesh_geodetic(mesh)
+    assert np.abs(la - np.repeat(lat, lon.size)).max() < 1e-9
