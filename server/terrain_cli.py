@@ -44,6 +44,29 @@ def build_terrain(dem_paths, procedural_seed: int | None = None, store_paths=())
     return Terrain(sources)
 
 
+def add_terrain_source_args(parser: argparse.ArgumentParser) -> None:
+    """The terrain of a command that only asks heights: files (add_terrain_args) or a running
+    terrain service (--address), so an analyst needs no copy of the DEMs."""
+    add_terrain_args(parser)
+    parser.add_argument("--address", metavar="HOST:PORT",
+                        help="ask a running terrain service (sortie terrain serve) instead of loading files")
+
+
+def terrain_source(args):
+    """The terrain of :func:`add_terrain_source_args`: a TerrainClient of --address (ready), or
+    the files' Terrain."""
+    if args.address:
+        if args.dem or args.store or args.procedural is not None:
+            raise InvalidArgument("--address", "give a service address or terrain files, not both",
+                                  value=args.address)
+        from client.terrain_client import TerrainClient
+
+        client = TerrainClient(args.address)
+        client.wait_ready(10.0)
+        return client
+    return build_terrain(args.dem, args.procedural, args.store)
+
+
 def add_parser(sub) -> None:
     terrain = sub.add_parser("terrain", help="terrain query service and store: serve, info, query, import, texture, mesh",
                              description="Serve, describe or query the terrain query service.")

@@ -27,7 +27,7 @@ from sortie.errors import InvalidArgument
 
 def add_mesh_parser(commands) -> argparse.ArgumentParser:
     """Add ``mesh`` to the sub-commands of ``sortie terrain`` (server/terrain_cli.py's ``commands``)."""
-    from server.terrain_cli import add_terrain_args
+    from server.terrain_cli import add_terrain_source_args
     from terrain.texture_cli import add_grid_args
 
     p = commands.add_parser(
@@ -36,7 +36,7 @@ def add_mesh_parser(commands) -> argparse.ArgumentParser:
                     "local east-north-up frame at the box's centre (glTF: x east, y up, z south), "
                     "textured with the synthesized land classes and light map of `sortie terrain "
                     "texture`. At most 4,194,304 (2048 x 2048) vertices (terrain/mesh.py, MAX_VERTICES).")
-    add_terrain_args(p)
+    add_terrain_source_args(p)
     add_grid_args(p, "vertices", "at most 4,194,304 in all")
     light = p.add_mutually_exclusive_group()
     light.add_argument("--time", metavar="ISO8601", help="UTC instant of the texture's sun, e.g. 2026-06-21T12:00:00Z "
@@ -58,7 +58,7 @@ def local_noon(lon_deg: float) -> str:
 
 
 def mesh_command(args) -> int:
-    from server.terrain_cli import build_terrain
+    from server.terrain_cli import terrain_source
     import numpy as np
 
     from terrain.mesh import MAX_VERTICES, build_mesh, centre_error, output_format, write_mesh
@@ -74,7 +74,7 @@ def mesh_command(args) -> int:
         field = "--size" if args.size is not None else "--spacing-m"
         raise InvalidArgument(field, f"{req.cols}x{req.rows} = {req.cols * req.rows:,} vertices is over the limit "
                                      f"of {MAX_VERTICES:,}", value=args.size or args.spacing_m)
-    terrain = build_terrain(args.dem, args.procedural, args.store)
+    terrain = terrain_source(args)
     sampled = sample_heights(terrain, req)
     heights, lat, lon = sampled
     image, extras = None, {"time_utc": None}

@@ -64,9 +64,9 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
                     "textures, and a light map (sky exposure, sun, cast shadows) for the given UTC time. "
                     "Writes classes.png, slope.png, diffuse.png, lightmap.png, shadow.png, "
                     "composite.png and texture.json into DIR.")
-    from server.terrain_cli import add_terrain_args  # loaded by now: it registers this command
+    from server.terrain_cli import add_terrain_source_args  # loaded by now: it registers this command
 
-    add_terrain_args(p)
+    add_terrain_source_args(p)
     add_grid_args(p, "pixels", f"at most {MAX_PIXELS:,} in all")
     p.add_argument("--time", required=True, metavar="ISO8601",
                    help="UTC instant with its zone, e.g. 2026-06-21T12:00:00Z")
@@ -288,12 +288,12 @@ def write_texture(tex, summary: dict, out_dir) -> list:
 
 
 def texture_command(args) -> int:
-    from server.terrain_cli import build_terrain
+    from server.terrain_cli import terrain_source
 
     req = texture_request(box_of(args), args.size, args.spacing_m, args.time)
     if args.soft_px < 0:
         raise InvalidArgument("--soft-px", "must be 0 or more", value=args.soft_px)
-    terrain = build_terrain(args.dem, args.procedural, args.store)
+    terrain = terrain_source(args)
     tex, summary = make_texture(terrain, req, seed=args.seed, soft_px=args.soft_px,
                                 refraction=not args.no_refraction)
     write_texture(tex, summary, args.output)

@@ -291,3 +291,22 @@ def test_a_polar_cap():
     assert np.all(normals[real, 2] > 0.0)
     la, lo, hh = mesh_geodetic(mesh)
     assert np.abs(la - np.repeat(lat, lon.size)).max() < 1e-9
+
+
+def test_cli_over_a_terrain_service_writes_the_same_bytes(tmp_path, hgt_alps, alps):
+    """`--address` asks a running terrain service (real gRPC on loopback) instead of loading the
+    DEM: heights come over the wire bit for bit, so the files are identical."""
+    from server.terrain_service import create_server
+
+    server, port = create_server(alps, "127.0.0.1:0", max_workers=2)
+    server.start()
+    try:
+        box = ["--bbox", "47.20", "9.25", "47.30", "9.40", "--size", "80x60"]
+        assert _run(["terrain", "mesh", "--dem", str(hgt_alps), *box, "-o", str(tmp_path / "file.glb")]) == 0
+        assert _run(["terrain", "mesh", "--address", f"127.0.0.1:{port}", *box, "-o", str(tmp_path / "svc.glb")]) == 0
+        assert (tmp_path / "file.glb").read_bytes() == (tmp_path / "svc.glb").read_bytes()
+        with pytest.raises(InvalidArgument, match="not both"):
+            _run(["terrain", "mesh", "--address", f"127.0.0.1:{port}", "--dem", str(hgt_alps), *box,
+                  "-o", str(tmp_path / "x.glb")])
+    finally:
+        server.stop(0.5)
