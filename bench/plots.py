@@ -77,19 +77,23 @@ def plot_terrain(report: dict, out_dir: Path) -> list[Path]:
         _save(fig, out_dir / "terrain_los_speed_vs_error.png", written)
     if "mesh_size_vs_error" in series:
         rows = series["mesh_size_vs_error"]
-        fig, ax = plt.subplots(figsize=(6.5, 4.5))
+        fig, ax = plt.subplots(figsize=(7, 4.8))
         ax.set_xscale("log")
         ax.set_yscale("log")
-        size = [row["bytes"] / 1e6 for row in rows]
-        for key, colour, label in (("centre_error_rms_m", "tab:blue", "RMS"), ("centre_error_max_m", "tab:orange",
-                                                                              "max")):
-            ax.plot(size, [row[key] for row in rows], "o-", color=colour, label=f"{label} |mesh - terrain|")
-        for row, x in zip(rows, size):
-            ax.annotate(f"{row['spacing_m']:.0f} m, {row['seconds'] * 1e3:.0f} ms", (x, row["centre_error_rms_m"]),
-                        fontsize=7, xytext=(4, -10), textcoords="offset points")
+        for kind, colour, what in (("regular", "tab:orange", "stride"), ("adaptive", "tab:blue", "within")):
+            sel = [r for r in rows if r.get("kind") == kind]
+            if not sel:
+                continue
+            size = [r["bytes"] / 1e6 for r in sel]
+            ax.plot(size, [r["centre_error_max_m"] for r in sel], "o-", color=colour, label=f"{kind}: max")
+            ax.plot(size, [r["centre_error_rms_m"] for r in sel], "s--", color=colour, label=f"{kind}: RMS")
+            for r, x in zip(sel, size):
+                label = f"{r['setting']:g} m" if kind == "adaptive" else f"x{r['setting']}"
+                ax.annotate(label, (x, r["centre_error_max_m"]), fontsize=7, xytext=(3, 4), textcoords="offset points",
+                            color=colour)
         ax.set_xlabel("glTF file (MB, geometry only)")
-        ax.set_ylabel("error at the cells' centres (m)")
-        ax.set_title("Terrain meshes: size against error (labels: spacing, time to write)")
+        ax.set_ylabel("|mesh - terrain| at the sampled cells' centres (m)")
+        ax.set_title("Terrain meshes: size against error\n(regular: every k-th post; adaptive: RTIN within M m)")
         ax.legend(fontsize=7)
         _save(fig, out_dir / "terrain_mesh_size_vs_error.png", written)
     return written

@@ -32,9 +32,11 @@ LOS_REFERENCE_SAMPLES_PER_POST = 16
 LOS_DISAGREEMENT_MARGIN_M = 0.01
 GRPC_BATCH_POINTS = 100_000
 # Terrain meshes: a box of this half-size (degrees of latitude) at the headline DEM's centre,
-# meshed at its post spacing times each factor (geometry only: the texture is another suite's).
+# sampled at the DEM's post spacing or finer (geometry only, no texture).
 MESH_HALF_BOX_DEG = 0.1
-MESH_SPACING_FACTORS = (1, 2, 4, 8, 16)
+MESH_STRIDES = (1, 2, 4, 8, 16)  # regular meshes: every stride-th sampled post
+MESH_MAX_ERRORS_M = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)  # adaptive meshes (terrain/rtin.py)
+MESH_HEADLINE_ERROR_M = 5.0
 
 
 def dem_paths() -> list[Path]:
@@ -222,10 +224,13 @@ def bench_grpc(report: Report, raster, dem_path: Path, quick: bool, rng) -> None
 
 
 def bench_mesh(report: Report, raster, quick: bool, tmp_dir: Path) -> None:
-    """Mesh a box of the DEM at its post spacing and coarser: time (sampling, mesh, glTF
-    written), bytes and |mesh - terrain| at the cells' centres (terrain.mesh.centre_error)."""
-    from terrain.geodesy import radii_of_curvature
-    from terrain.mesh import build_mesh, centre_error, write_mesh
+    """Terrain meshes of a box of the DEM, size against error: the box is sampled once on a
+    (2^k + 1)^2 grid at least as fine as the DEM's posts; regular meshes of every stride-th
+    post of it and adaptive ones (terrain/rtin.py, within max_error of every sampled post) are
+    written as glTF, timed (mesh and file; best of 3) and measured by |mesh - terrain| at the
+    centres of the sampled grid's cells, the same points for every mesh."""
+    from terrain.mesh import TerrainMesh, build_adaptive_mesh, build_mesh, centre_error, grid_faces, write_mesh
+    from terrain.rtin import grid_size_for
     from terrain.terrain import Terrain
     from terrain.texture_cli import sample_heights, texture_request
 
@@ -233,35 +238,63 @@ def bench_mesh(report: Report, raster, quick: bool, tmp_dir: Path) -> None:
     d = raster.describe()
     lat_c = 0.5 * (d["lat_min"] + d["lat_max"])
     lon_c = 0.5 * (d["lon_min"] + d["lon_max"])
+    from terrain.geodesy import radii_of_curvature
+
     m, n = radii_of_curvature(lat_c)
     half = MESH_HALF_BOX_DEG / 2.0 if quick else MESH_HALF_BOX_DEG
     half_lon = half * m / (n * math.cos(math.radians(lat_c)))  # a square box on the ground
     box = (lat_c - half, lon_c - half_lon, lat_c + half, lon_c + half_lon)
     post_m = float(np.sqrt(d["spacing_east_m"] * d["spacing_north_m"]))
+    req = texture_request(box, None, post_m, "2026-06-21T12:00:00Z")
+    side = grid_size_for(max(req.cols, req.rows))
+    req = texture_request(box, f"{side}x{side}", None, "2026-06-21T12:00:00Z")
+    sampled = sample_heights(terrain, req)
+    fine = build_mesh(*sampled)
+    spacing_m = 2.0 * half * m * math.pi / 180.0 / side
+
+    def regular(stride: int) -> TerrainMesh:
+        """Every stride-th post of the sampled grid (the NW-SE cut), as faces of that grid."""
+        if stride == 1:
+            return fine
+        keep = np.arange(0, side, stride)
+        index = (keep[:, None] * side + keep[None, :]).ravel()
+        faces = index[grid_faces(np.isfinite(fine.heights_msl_m[np.ix_(keep, keep)]))]
+        used, local = np.unique(faces, return_inverse=True)
+        return TerrainMesh(fine.vertices[used], local.reshape(faces.shape), fine.uv[used], fine.lat, fine.lon,
+                           fine.heights_msl_m, fine.frame, 0.0, used)
+
+    strides, errors = ((1, 4), (1.0, MESH_HEADLINE_ERROR_M)) if quick else (MESH_STRIDES, MESH_MAX_ERRORS_M)
+    makers = [("regular", stride, lambda s=stride: regular(s)) for stride in strides]
+    makers += [("adaptive", e, lambda e=e: build_adaptive_mesh(*sampled, e)) for e in errors]
     rows_out = []
-    for factor in (MESH_SPACING_FACTORS[:3] if quick else MESH_SPACING_FACTORS):
-        req = texture_request(box, None, post_m * factor, "2026-06-21T12:00:00Z")
-        path = tmp_dir / f"mesh_{factor}.glb"
+    for kind, setting, make in makers:
+        path = tmp_dir / f"mesh_{kind}_{setting}.glb"
 
         def build():
-            mesh = build_mesh(*sample_heights(terrain, req))
+            mesh = make()
             write_mesh(mesh, path)
             return mesh
 
         mesh = build()  # warm (numba, trimesh imports)
         t = best_time(build, 1 if quick else 3)
         err = centre_error(mesh, terrain)
-        rows_out.append({"spacing_m": post_m * factor, "factor": factor, "vertices": int(req.cols * req.rows),
+        rows_out.append({"kind": kind, "setting": setting, "vertices": int(len(mesh.vertices)),
                          "triangles": int(len(mesh.faces)), "bytes": path.stat().st_size, "seconds": t,
-                         "mvertices_per_s": req.cols * req.rows / t / 1e6,
                          "centre_error_rms_m": float(np.sqrt(np.mean(err ** 2))),
                          "centre_error_max_m": float(err.max())})
-    head = rows_out[0]
-    report.metrics["mesh_mvertices_per_s"] = head["mvertices_per_s"]
-    report.metrics["mesh_centre_error_rms_m"] = head["centre_error_rms_m"]
-    report.metrics["mesh_centre_error_max_m"] = head["centre_error_max_m"]
-    report.metrics["mesh_bytes_per_vertex"] = head["bytes"] / head["vertices"]
-    report.params.update(mesh_box=list(box), mesh_post_spacing_m=post_m)
+    # Headlines: the full-resolution regular mesh, and the adaptive one within 5 m against it.
+    full = rows_out[0]
+    report.metrics["mesh_mvertices_per_s"] = full["vertices"] / full["seconds"] / 1e6
+    report.metrics["mesh_centre_error_rms_m"] = full["centre_error_rms_m"]
+    report.metrics["mesh_centre_error_max_m"] = full["centre_error_max_m"]
+    report.metrics["mesh_bytes_per_vertex"] = full["bytes"] / full["vertices"]
+    headline = next((r for r in rows_out if r["kind"] == "adaptive" and r["setting"] == MESH_HEADLINE_ERROR_M), None)
+    if headline is not None:
+        report.metrics["mesh_adaptive_5m_size_ratio"] = headline["bytes"] / full["bytes"]
+        report.metrics["mesh_adaptive_5m_centre_error_max_m"] = headline["centre_error_max_m"]
+        report.metrics["mesh_adaptive_5m_seconds"] = headline["seconds"]
+    report.params.update(mesh_box=list(box), mesh_post_spacing_m=post_m, mesh_grid_side=side,
+                         mesh_grid_spacing_m=spacing_m)
     report.series["mesh_size_vs_error"] = rows_out
 
 

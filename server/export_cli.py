@@ -49,6 +49,9 @@ def add_parser(sub) -> None:
     size.add_argument("--size", metavar="COLSxROWS", help="terrain vertices across and down (default: 512 along the "
                                                           "longer side)")
     size.add_argument("--spacing-m", type=float, metavar="M", help="terrain vertex spacing, metres")
+    gltf.add_argument("--max-error-m", type=float, metavar="M",
+                      help="an adaptive terrain mesh within M metres of every sampled post (far fewer triangles "
+                           "where the ground is smooth; terrain/rtin.py)")
     gltf.add_argument("--no-texture", action="store_true", help="the terrain untextured")
     gltf.set_defaults(func=gltf_command)
 
@@ -83,7 +86,7 @@ def gltf_command(args) -> int:
                 print(note)
             terrain = open_terrain_source(**spec)
         stats = export_gltf(r, args.output, terrain, rate_hz=rate, margin_m=args.margin_m, size=args.size,
-                            spacing_m=args.spacing_m, texture=not args.no_texture)
+                            spacing_m=args.spacing_m, texture=not args.no_texture, max_error_m=args.max_error_m)
     print(f"{stats.path}: {stats.tracks} tracks ({stats.track_points} points), {stats.events} events, "
           + (f"terrain {stats.terrain_vertices:,} vertices off the terrain by {stats.terrain_centre_error_m_max:.2f} m "
              "at most at the cells' centres, " if stats.terrain_vertices else "no terrain, ")

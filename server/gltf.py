@@ -161,14 +161,15 @@ class GltfStats:
 
 def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = None,
                 margin_m: float = DEFAULT_MARGIN_M, size: str | None = None, spacing_m: float | None = None,
-                texture: bool = True) -> GltfStats:
+                texture: bool = True, max_error_m: float | None = None) -> GltfStats:
     """Write ``recording`` (server.recording.Recording) as a glTF scene to ``out_path`` (.glb or
     .gltf): tracks, events and, when ``terrain`` (anything with ``heights(lat, lon)``) is
     given, the terrain under them (``size`` / ``spacing_m`` as ``sortie terrain mesh``;
-    default :data:`DEFAULT_LONG_SIDE` vertices along the longer side)."""
+    default :data:`DEFAULT_LONG_SIDE` vertices along the longer side; ``max_error_m``: an
+    adaptive mesh within that of every sampled post, terrain/rtin.py)."""
     import trimesh
 
-    from terrain.mesh import build_mesh, centre_error, to_trimesh
+    from terrain.mesh import build_adaptive_mesh, build_mesh, centre_error, to_trimesh
     from terrain.texture_cli import make_texture, sample_heights, texture_request
 
     if output_format(out_path) not in ("glb", "gltf"):
@@ -199,17 +200,25 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
         req = texture_request(box, size, spacing_m, when, default_long_side=DEFAULT_LONG_SIDE)
         from terrain.mesh import MAX_VERTICES
 
-        if req.cols * req.rows > MAX_VERTICES:
+        if max_error_m is not None:
+            from terrain.mesh_cli import adaptive_request
+
+            req = adaptive_request(req, max_error_m, "max_error_m", "size" if size else "spacing_m", size or spacing_m)
+        elif req.cols * req.rows > MAX_VERTICES:
             raise InvalidArgument("size" if size else "spacing_m", f"{req.cols}x{req.rows} terrain vertices is over "
                                   f"the limit of {MAX_VERTICES:,}", value=size or spacing_m)
         sampled = sample_heights(terrain, req)
-        mesh = build_mesh(*sampled, frame=frame, geoid_undulation_m=undulation)
+        if max_error_m is None:
+            mesh = build_mesh(*sampled, frame=frame, geoid_undulation_m=undulation)
+        else:
+            mesh = build_adaptive_mesh(*sampled, max_error_m, frame=frame, geoid_undulation_m=undulation)
         image = make_texture(terrain, req, sampled=sampled)[0].image if texture else None
         scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name="terrain", geom_name="terrain")
         err = centre_error(mesh, terrain)
         stats.terrain_vertices, stats.terrain_triangles = mesh.vertices.shape[0], mesh.faces.shape[0]
         stats.terrain_centre_error_m_max = float(err.max()) if err.size else None
-        extras["terrain"] = {"grid": [req.cols, req.rows], "sun_time_utc": when if texture else None,
+        extras["terrain"] = {"grid": [req.cols, req.rows], "max_error_m": max_error_m,
+                             "sun_time_utc": when if texture else None,
                              "centre_error_m": {"rms": float(np.sqrt(np.mean(err ** 2))) if err.size else None,
                                                 "max": stats.terrain_centre_error_m_max}}
 

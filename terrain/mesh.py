@@ -13,6 +13,10 @@ own surface (bilinear between posts: ``terrain.raster``), a triangle pair z = a 
 cell's centre, d = h_NW - h_NE - h_SW + h_SE, whichever diagonal is cut: the mesh is exact at
 its vertices and within a quarter of each cell's twist in between.
 
+**Adaptive meshes** (:func:`build_adaptive_mesh`): on a (2^k + 1)^2 grid, the right-triangulated
+irregular network of terrain/rtin.py keeps only the triangles an error bound at every grid post
+needs; its vertices are a subset of the grid's (``TerrainMesh.grid_index``).
+
 **The frame.** Vertices are float64 metres east, north and up (ENU) from an origin on the
 WGS84 ellipsoid (``terrain.geodesy``), so a mesh of a few hundred kilometres keeps
 millimetres in float32 files. Heights are MSL (the terrain's); a vertex's ellipsoidal height
@@ -33,6 +37,7 @@ import struct
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from sortie.errors import DataFormatError, InvalidArgument
@@ -111,10 +116,11 @@ def grid_faces(valid) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TerrainMesh:
-    """Vertices (rows x cols, 3) ENU float64 in ``frame``; ``faces`` (m, 3) int64; ``uv`` (rows x
-    cols, 2) at the grid points' pixel centres of a (rows, cols) image of the same grid
-    (OpenGL's convention, v up: trimesh flips it for glTF); the grid's ``lat`` (rows,) north
-    to south, ``lon`` (cols,) west to east and ``heights_msl_m`` (rows, cols; NaN: no data)."""
+    """Vertices (k, 3) ENU float64 in ``frame`` (a regular mesh: every grid point, k = rows x
+    cols); ``faces`` (m, 3) int64; ``uv`` (k, 2) at the vertices' pixel centres of a (rows, cols)
+    image of the grid (OpenGL's convention, v up: trimesh flips it for glTF); the grid's ``lat``
+    (rows,) north to south, ``lon`` (cols,) west to east and ``heights_msl_m`` (rows, cols; NaN:
+    no data)."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -124,10 +130,17 @@ class TerrainMesh:
     heights_msl_m: np.ndarray
     frame: LocalFrame
     geoid_undulation_m: float = 0.0
+    # Each vertex's grid point (row * cols + col); None: every grid point, in that order.
+    grid_index: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.heights_msl_m.shape
+
+    @property
+    def grid_faces(self) -> np.ndarray:
+        """The faces as grid points (row * cols + col)."""
+        return self.faces if self.grid_index is None else self.grid_index[self.faces]
 
     def max_twist_m(self) -> float:
         """The largest |d| / 4 over the meshed cells: the mesh's largest vertical distance
@@ -173,19 +186,57 @@ def build_mesh(heights_msl_m, lat, lon, *, frame: LocalFrame | None = None,
     return TerrainMesh(vertices, grid_faces(valid), uv, lat, lon, h, frame, float(geoid_undulation_m))
 
 
+def build_adaptive_mesh(heights_msl_m, lat, lon, max_error_m: float, *, frame: LocalFrame | None = None,
+                        geoid_undulation_m: float = 0.0) -> TerrainMesh:
+    """The right-triangulated irregular network (terrain/rtin.py) of a (2^k + 1) x (2^k + 1) grid
+    (as :func:`build_mesh` takes it): within ``max_error_m`` of every grid post (exactly), with
+    the vertices its triangles use (``grid_index`` says which grid points they are)."""
+    from terrain.rtin import rtin_faces
+
+    mesh = build_mesh(heights_msl_m, lat, lon, frame=frame, geoid_undulation_m=geoid_undulation_m)
+    faces = rtin_faces(mesh.heights_msl_m, max_error_m)
+    used, local = np.unique(faces, return_inverse=True)
+    return TerrainMesh(mesh.vertices[used], local.reshape(faces.shape), mesh.uv[used], mesh.lat, mesh.lon,
+                       mesh.heights_msl_m, mesh.frame, mesh.geoid_undulation_m, used)
+
+
 def centre_error(mesh: TerrainMesh, terrain) -> np.ndarray:
-    """|mesh - terrain| (m) at every meshed cell's centre, where the cut diagonal puts the mesh
-    at the mean of its NW and SE heights: how far a grid coarser than the terrain's posts
-    strays from it (on the posts' own grid, exactly the cell's |d| / 4). ``terrain``: anything
-    with ``heights(lat, lon)`` (terrain.terrain.Terrain, the terrain client)."""
+    """|mesh - terrain| (m) at the centre of every grid cell the mesh covers: how far the mesh
+    strays from the terrain between its vertices. A regular mesh's cut diagonal passes through
+    every centre, at the mean of the cell's NW and SE heights (on the posts' own grid, exactly
+    the cell's |d| / 4 off the bilinear surface); an adaptive one is interpolated in its
+    triangle. ``terrain``: anything with ``heights(lat, lon)`` (terrain.terrain.Terrain, the
+    terrain client)."""
     h = mesh.heights_msl_m
+    rows, cols = h.shape
+    at = np.full((max(rows - 1, 0), max(cols - 1, 0)), np.nan)
+    if at.size and len(mesh.faces):
+        _centres_kernel(np.ascontiguousarray(mesh.grid_faces, np.int64), np.ascontiguousarray(h), at)
+    i, j = np.nonzero(np.isfinite(at))
     lat_c = 0.5 * (mesh.lat[:-1] + mesh.lat[1:])
     lon_c = 0.5 * (mesh.lon[:-1] + mesh.lon[1:])
-    along = 0.5 * (h[:-1, :-1] + h[1:, 1:])
-    cell = np.isfinite(h[:-1, :-1] + h[:-1, 1:] + h[1:, :-1] + h[1:, 1:])
-    i, j = np.nonzero(cell)
     res = terrain.heights(lat_c[i], lon_c[j])
-    return np.abs(along[i, j] - np.asarray(res.height_msl_m, dtype=np.float64))
+    return np.abs(at[i, j] - np.asarray(res.height_msl_m, dtype=np.float64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _centres_kernel(faces, h, out):
+    """The faces' (grid points) surface at the cell centres (row + 1/2, col + 1/2) inside them."""
+    cols = h.shape[1]
+    for f in range(faces.shape[0]):
+        ya, xa = divmod(faces[f, 0], cols)
+        yb, xb = divmod(faces[f, 1], cols)
+        yc, xc = divmod(faces[f, 2], cols)
+        d = (xb - xa) * (yc - ya) - (yb - ya) * (xc - xa)
+        for y in range(min(ya, yb, yc), max(ya, yb, yc)):
+            py = y + 0.5
+            for x in range(min(xa, xb, xc), max(xa, xb, xc)):
+                px = x + 0.5
+                wa = ((xb - px) * (yc - py) - (yb - py) * (xc - px)) / d
+                wb = ((xc - px) * (ya - py) - (yc - py) * (xa - px)) / d
+                wc = 1.0 - wa - wb
+                if wa >= -1e-12 and wb >= -1e-12 and wc >= -1e-12:
+                    out[y, x] = wa * h[ya, xa] + wb * h[yb, xb] + wc * h[yc, xc]
 
 
 def mesh_geodetic(mesh: TerrainMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -242,7 +293,9 @@ def write_mesh(mesh: TerrainMesh, path, image=None, *, name: str = "terrain", ex
         return out
     tm = to_trimesh(mesh, image if kind == "obj" else None)
     if kind == "ply" and image is not None:
-        tm.visual = trimesh.visual.ColorVisuals(tm, vertex_colors=vertex_colours(image))
+        colours = vertex_colours(image)
+        tm.visual = trimesh.visual.ColorVisuals(
+            tm, vertex_colors=colours if mesh.grid_index is None else colours[mesh.grid_index])
     tm.export(out, file_type=kind)
     return out
 

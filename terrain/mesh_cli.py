@@ -3,7 +3,7 @@
     sortie terrain mesh (--dem FILE... | --store PATH... | --procedural SEED)
                         (--bbox LAT_MIN LON_MIN LAT_MAX LON_MAX | --cell CELL_ID)
                         [--size COLSxROWS | --spacing-m M] [--time ISO8601 | --no-texture]
-                        [--geoid-undulation-m N] [--seed N] -o FILE.glb|.gltf|.obj|.ply|.stl
+                        [--max-error-m M] [--geoid-undulation-m N] [--seed N] -o FILE.glb|.gltf|.obj|.ply|.stl
 
 One vertex at each pixel centre of the grid ``sortie terrain texture`` samples (the same
 --bbox/--cell and --size/--spacing-m rules), so the synthesized texture (land classes, light
@@ -19,10 +19,14 @@ are imported when the command runs.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from datetime import datetime, timedelta, timezone
 
 from sortie.errors import InvalidArgument
+
+# The largest grid an adaptive mesh samples: 2049 x 2049 posts (4.2 M, as MAX_VERTICES).
+MAX_RTIN_SIDE = 2049
 
 
 def add_mesh_parser(commands) -> argparse.ArgumentParser:
@@ -42,6 +46,10 @@ def add_mesh_parser(commands) -> argparse.ArgumentParser:
     light.add_argument("--time", metavar="ISO8601", help="UTC instant of the texture's sun, e.g. 2026-06-21T12:00:00Z "
                                                           "(default: local mean noon at the centre, 21 June 2026)")
     light.add_argument("--no-texture", action="store_true", help="geometry alone (no texture, no colours)")
+    p.add_argument("--max-error-m", type=float, metavar="M",
+                   help="an adaptive mesh (right-triangulated irregular network, terrain/rtin.py) within M "
+                        "metres of every sampled post: the grid becomes 2^k + 1 posts a side, at least --size "
+                        "or --spacing-m asks, and keeps only the triangles the bound needs")
     p.add_argument("--geoid-undulation-m", type=float, default=0.0, metavar="N",
                    help="ellipsoidal height = MSL height + N, as the simulation world's (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="noise seed of the texture (default %(default)s)")
@@ -49,6 +57,20 @@ def add_mesh_parser(commands) -> argparse.ArgumentParser:
                    help="the mesh file; its suffix picks the format: .glb, .gltf, .obj, .ply or .stl")
     p.set_defaults(func=mesh_command)
     return p
+
+
+def adaptive_request(req, max_error_m: float, error_field: str, size_field: str, size_value):
+    """The request of an adaptive mesh (terrain/rtin.py): the grid made 2^k + 1 posts a side, at
+    least as many as ``req`` asks either way; InvalidArgument naming the option at fault."""
+    from terrain.rtin import grid_size_for
+
+    if not (math.isfinite(max_error_m) and max_error_m >= 0.0):
+        raise InvalidArgument(error_field, "must be a finite number of metres, 0 or more", value=max_error_m)
+    side = grid_size_for(max(req.cols, req.rows))
+    if side > MAX_RTIN_SIDE:
+        raise InvalidArgument(size_field, f"an adaptive mesh samples {side} x {side} posts, over the limit of "
+                                          f"{MAX_RTIN_SIDE} a side", value=size_value)
+    return dataclasses.replace(req, cols=side, rows=side)
 
 
 def local_noon(lon_deg: float) -> str:
@@ -61,7 +83,7 @@ def mesh_command(args) -> int:
     from server.terrain_cli import terrain_source
     import numpy as np
 
-    from terrain.mesh import MAX_VERTICES, build_mesh, centre_error, output_format, write_mesh
+    from terrain.mesh import MAX_VERTICES, build_adaptive_mesh, build_mesh, centre_error, output_format, write_mesh
     from terrain.texture_cli import box_of, make_texture, sample_heights, texture_request
 
     output_format(args.output)
@@ -70,7 +92,10 @@ def mesh_command(args) -> int:
     bbox = box_of(args)
     centre_lon = 0.5 * (bbox[1] + bbox[3]) if len(bbox) == 4 and all(map(math.isfinite, bbox)) else 0.0
     req = texture_request(bbox, args.size, args.spacing_m, args.time or local_noon(centre_lon))
-    if req.cols * req.rows > MAX_VERTICES:
+    if args.max_error_m is not None:
+        req = adaptive_request(req, args.max_error_m, "--max-error-m", "--size" if args.size else "--spacing-m",
+                               args.size or args.spacing_m)
+    elif req.cols * req.rows > MAX_VERTICES:
         field = "--size" if args.size is not None else "--spacing-m"
         raise InvalidArgument(field, f"{req.cols}x{req.rows} = {req.cols * req.rows:,} vertices is over the limit "
                                      f"of {MAX_VERTICES:,}", value=args.size or args.spacing_m)
@@ -82,11 +107,14 @@ def mesh_command(args) -> int:
         tex, summary = make_texture(terrain, req, seed=args.seed, sampled=sampled)
         image = tex.image
         extras = {"time_utc": summary["time_utc"], "sun": summary["sun"], "class_histogram": summary["class_histogram"]}
-    mesh = build_mesh(heights, lat, lon, geoid_undulation_m=args.geoid_undulation_m)
+    if args.max_error_m is None:
+        mesh = build_mesh(heights, lat, lon, geoid_undulation_m=args.geoid_undulation_m)
+    else:
+        mesh = build_adaptive_mesh(heights, lat, lon, args.max_error_m, geoid_undulation_m=args.geoid_undulation_m)
     path = write_mesh(mesh, args.output, image, extras={"bbox": list(bbox), **extras})
     f = mesh.frame
     err = centre_error(mesh, terrain)
-    print(f"{path}: {req.cols}x{req.rows} vertices, {len(mesh.faces):,} triangles, "
+    print(f"{path}: {len(mesh.vertices):,} vertices of a {req.cols}x{req.rows} grid, {len(mesh.faces):,} triangles, "
           f"{path.stat().st_size:,} bytes; origin {f.lat_deg:.6f}, {f.lon_deg:.6f} (WGS84, ellipsoid); "
           + (f"off the terrain at the cells' centres by {np.sqrt(np.mean(err ** 2)):.2f} m RMS, "
              f"{err.max():.2f} m at most" if err.size else "no cell with data")

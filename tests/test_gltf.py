@@ -349,7 +349,9 @@ def test_the_khronos_validator_finds_nothing(alps, tmp_path):
     image = np.zeros((12, 13, 3), np.uint8)
     write_mesh(build_mesh(h, lat, lon), tmp_path / "mesh.glb", image)
     write_mesh(build_mesh(h, lat, lon), tmp_path / "mesh.gltf")
-    files = [glb, tmp_path / "scene.gltf", tmp_path / "mesh.glb", tmp_path / "mesh.gltf"]
+    with Recording(rec) as r:
+        export_gltf(r, tmp_path / "adaptive.glb", terrain, size="40x40", max_error_m=5.0)
+    files = [glb, tmp_path / "scene.gltf", tmp_path / "mesh.glb", tmp_path / "mesh.gltf", tmp_path / "adaptive.glb"]
     done = subprocess.run(["node", str(script), *map(str, files)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     reports = [json.loads(line) for line in done.stdout.splitlines()]

@@ -310,3 +310,59 @@ def test_cli_over_a_terrain_service_writes_the_same_bytes(tmp_path, hgt_alps, al
                   "-o", str(tmp_path / "x.glb")])
     finally:
         server.stop(0.5)
+
+
+# --------------------------------------------------------------------------- adaptive meshes
+
+def test_adaptive_mesh_on_the_posts(tmp_path, hgt_alps):
+    """An RTIN of a 129 x 129 window of the Alps' posts: its vertices are the regular mesh's at
+    their grid points, with their texels; every post is within the bound of it (terrain/rtin.py
+    and tests/test_rtin.py hold the bound; here the pieces fit together), and its faces are the
+    fewer."""
+    from terrain.mesh import build_adaptive_mesh
+
+    posts = _hgt_posts(hgt_alps)
+    lat, lon = _post_grid(700, 400, 129, 129)
+    h = posts[700:829, 400:529]
+    full = build_mesh(h, lat, lon)
+    mesh = build_adaptive_mesh(h, lat, lon, 5.0)
+    assert np.array_equal(mesh.vertices, full.vertices[mesh.grid_index])
+    assert np.array_equal(mesh.uv, full.uv[mesh.grid_index])
+    assert len(mesh.faces) < 0.6 * len(full.faces)
+    # The mesh at every post: interpolate each face over the posts it covers.
+    g = mesh.grid_faces
+    ya, xa = np.divmod(g[:, 0], 129)
+    yb, xb = np.divmod(g[:, 1], 129)
+    yc, xc = np.divmod(g[:, 2], 129)
+    worst = 0.0
+    for k in range(len(g)):
+        gy, gx = np.mgrid[min(ya[k], yb[k], yc[k]):max(ya[k], yb[k], yc[k]) + 1,
+                          min(xa[k], xb[k], xc[k]):max(xa[k], xb[k], xc[k]) + 1]
+        d = (xb[k] - xa[k]) * (yc[k] - ya[k]) - (yb[k] - ya[k]) * (xc[k] - xa[k])
+        wa = ((xb[k] - gx) * (yc[k] - gy) - (yb[k] - gy) * (xc[k] - gx)) / d
+        wb = ((xc[k] - gx) * (ya[k] - gy) - (yc[k] - gy) * (xa[k] - gx)) / d
+        inside = (wa >= 0) & (wb >= 0) & (wa + wb <= 1)
+        plane = wa * h[ya[k], xa[k]] + wb * h[yb[k], xb[k]] + (1 - wa - wb) * h[yc[k], xc[k]]
+        worst = max(worst, float(np.abs(h[gy, gx] - plane)[inside].max()))
+    assert worst <= 5.0
+    image = np.random.default_rng(3).integers(0, 256, (129, 129, 3), dtype=np.uint8)
+    ply = trimesh.load(write_mesh(mesh, tmp_path / "a.ply", image), process=False)
+    assert np.array_equal(ply.visual.vertex_colors[:, :3], image.reshape(-1, 3)[mesh.grid_index])
+    glb = trimesh.load(write_mesh(mesh, tmp_path / "a.glb", image), force="scene").geometry["terrain"]
+    assert np.array_equal(glb.faces, mesh.faces)
+
+
+def test_cli_adaptive(tmp_path, hgt_alps, capsys):
+    box = ["--bbox", "47.20", "9.25", "47.30", "9.40", "--spacing-m", "100"]
+    assert _run(["terrain", "mesh", "--dem", str(hgt_alps), *box, "--max-error-m", "5",
+                 "-o", str(tmp_path / "a.glb")]) == 0
+    out = capsys.readouterr().out
+    assert "of a 129x129 grid" in out  # 2^k + 1 posts a side, at least the 113 x 111 asked
+    with pytest.raises(InvalidArgument) as err:
+        _run(["terrain", "mesh", "--dem", str(hgt_alps), *box, "--max-error-m", "-1", "-o", str(tmp_path / "b.glb")])
+    assert err.value.field == "--max-error-m"
+    with pytest.raises(InvalidArgument) as err:
+        _run(["terrain", "mesh", "--dem", str(hgt_alps), "--bbox", "47.0", "9.0", "48.0", "10.0", "--spacing-m", "50",
+              "--max-error-m", "5", "-o", str(tmp_path / "b.glb")])
+    assert err.value.field == "--spacing-m" and "2049" in str(err.value)
+    assert not (tmp_path / "b.glb").exists()
