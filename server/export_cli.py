@@ -68,13 +68,28 @@ def acmi_command(args) -> int:
     return 0
 
 
+# export_gltf's parameters as the command's options, for its errors.
+GLTF_OPTIONS = {"rate": "--rate", "margin_m": "--margin-m", "size": "--size", "spacing_m": "--spacing-m",
+                "max_error_m": "--max-error-m", "output": "--output"}
+
+
 def gltf_command(args) -> int:
     from server.gltf import export_gltf
     from server.recording import Recording
+    from sortie.errors import InvalidArgument
     from terrain.mesh import output_format
 
     output_format(args.output)
-    rate = check_rate(args.rate)
+    try:
+        rate = check_rate(args.rate)
+    except InvalidArgument as e:
+        raise _as_option(e) from None
+    if args.no_terrain:
+        given = [o for o, v in (("--size", args.size), ("--spacing-m", args.spacing_m),
+                                ("--max-error-m", args.max_error_m), ("--no-texture", args.no_texture or None))
+                 if v is not None]
+        if given:
+            raise InvalidArgument("--no-terrain", f"leaves no terrain for {', '.join(given)} to shape")
     with Recording(args.recording) as r:
         terrain = None
         if not args.no_terrain:
@@ -85,10 +100,27 @@ def gltf_command(args) -> int:
             for note in notes:
                 print(note)
             terrain = open_terrain_source(**spec)
-        stats = export_gltf(r, args.output, terrain, rate_hz=rate, margin_m=args.margin_m, size=args.size,
-                            spacing_m=args.spacing_m, texture=not args.no_texture, max_error_m=args.max_error_m)
-    print(f"{stats.path}: {stats.tracks} tracks ({stats.track_points} points), {stats.events} events, "
-          + (f"terrain {stats.terrain_vertices:,} vertices off the terrain by {stats.terrain_centre_error_m_max:.2f} m "
-             "at most at the cells' centres, " if stats.terrain_vertices else "no terrain, ")
-          + f"{stats.bytes_written:,} bytes")
+        try:
+            stats = export_gltf(r, args.output, terrain, rate_hz=rate, margin_m=args.margin_m, size=args.size,
+                                spacing_m=args.spacing_m, texture=not args.no_texture, max_error_m=args.max_error_m)
+        except InvalidArgument as e:
+            raise _as_option(e) from None
+    if stats.terrain_vertices:
+        error = stats.terrain_centre_error_m_max
+        shown = "" if error is None else f" off the terrain by {error:.2f} m at most at the cells' centres"
+        terrain_text = f"terrain {stats.terrain_vertices:,} vertices{shown}, "
+    else:
+        terrain_text = "no terrain, " if terrain is None else \
+            "no terrain mesh (no grid cell with terrain data at its four corners: a finer --size?), "
+    print(f"{stats.path}: {stats.tracks} tracks ({stats.track_points} points), {stats.markers} animated markers, "
+          f"{stats.events} events, {terrain_text}{stats.bytes_written:,} bytes")
     return 0
+
+
+def _as_option(e):
+    """An InvalidArgument of export_gltf's parameter as the command's option."""
+    from sortie.errors import InvalidArgument
+
+    if e.field not in GLTF_OPTIONS:
+        return e
+    return InvalidArgument(GLTF_OPTIONS[e.field], e.message, e.index, e.value)

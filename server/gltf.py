@@ -20,8 +20,8 @@ trimesh writes the static scene; the markers and the animation are added to its 
 files pass the Khronos glTF validator without error or warning (tests/test_gltf.py).
 
 Everything is in one local east-north-up frame at the terrain box's centre (glTF axes: x
-east, y up, z south), float32 offsets from it, so a sortie over a few hundred kilometres
-keeps its tracks to the millimetre. The origin's WGS84 latitude, longitude and height are in
+east, y up, z south), float32 offsets from it (within 2^-24 of the distance: a millimetre at
+17 km, 8 mm at 130 km). The origin's WGS84 latitude, longitude and height are in
 the scene's ``extras.sortie.frame``. The tracks' ellipsoidal heights meet the mesh's MSL
 heights plus the recording's geoid undulation, as they met in the world.
 """
@@ -43,7 +43,8 @@ from sortie.errors import InvalidArgument
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef, radii_of_curvature
 from terrain.mesh import (ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, UNSIGNED_SHORT, LocalFrame, append_accessor,
-                          enu_to_gltf, glb_bytes, gltf_bytes, output_format, read_glb, scene_extras)
+                          enu_to_gltf, glb_bytes, gltf_bytes, output_format, read_glb, scene_extras,
+                          write_atomically)
 
 DEFAULT_MARGIN_M = 2000.0  # terrain around the tracks' box
 DEFAULT_LONG_SIDE = 512  # terrain vertices along the box's longer side (about 12 MB of glTF)
@@ -116,17 +117,24 @@ def read_tracks(recording, rate_hz: float | None = None) -> dict[int, Track]:
 def track_box(tracks: dict, margin_m: float) -> tuple[float, float, float, float]:
     """(lat_min, lon_min, lat_max, lon_max) around every track point, plus ``margin_m`` each way.
     Longitudes are unwrapped from the first point's (a box across the antimeridian keeps
-    lon_max above 180, as ``sortie terrain texture`` takes it)."""
+    lon_max above 180, as ``sortie terrain texture`` takes it); a box that reaches a pole
+    takes every longitude."""
     pts = [seg.ecef for t in tracks.values() for seg in t.segments]
     if not pts:
         raise InvalidArgument("recording", "holds no entity positions to export")
     lat, lon, _ = ecef_to_geodetic(np.concatenate(pts))
     lon = lon[0] + (lon - lon[0] + 180.0) % 360.0 - 180.0
-    m, n = radii_of_curvature(float(np.clip(np.abs(lat).max(), 0.0, 89.0)))
+    m, n = radii_of_curvature(float(np.abs(lat).max()))
     dlat = math.degrees(margin_m / m)
-    dlon = math.degrees(margin_m / (n * math.cos(math.radians(min(float(np.abs(lat).max()) + dlat, 89.0)))))
-    return (max(-90.0, float(lat.min()) - dlat), float(lon.min()) - dlon,
-            min(90.0, float(lat.max()) + dlat), float(lon.max()) + dlon)
+    lat_min, lat_max = max(-90.0, float(lat.min()) - dlat), min(90.0, float(lat.max()) + dlat)
+    # The margin's longitudes at the box's most poleward latitude; a box reaching a pole, or
+    # wider than half the world, takes every longitude (a polar cap).
+    edge = max(abs(lat_min), abs(lat_max))
+    if edge < 90.0 and float(lon.max() - lon.min()) < 180.0:
+        dlon = math.degrees(margin_m / (n * math.cos(math.radians(edge))))
+        if float(lon.max() - lon.min()) + 2.0 * dlon < 360.0:
+            return lat_min, float(lon.min()) - dlon, lat_max, float(lon.max()) + dlon
+    return lat_min, -180.0, lat_max, 180.0
 
 
 def polylines(lines: list):
@@ -181,9 +189,12 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
     tracks = read_tracks(r, rate_hz)
     points = sum(len(seg.times) for t in tracks.values() for seg in t.segments)
     if points > MAX_TRACK_POINTS:
-        per_s = points / max(r.duration_s, r.dt)
-        raise InvalidArgument("rate", f"{points:,} track points is over the limit of {MAX_TRACK_POINTS:,}: export at "
-                                      f"{MAX_TRACK_POINTS / per_s * (rate_hz or r.rate_hz):.3g} Hz or less",
+        # At f Hz a segment of s seconds keeps at most s f + 1 ticks, and its first and last.
+        segments = sum(len(t.segments) for t in tracks.values())
+        present_s = points / (rate_hz or r.rate_hz)
+        fits = math.floor(max(MAX_TRACK_POINTS - 3 * segments, 0) / present_s * 1000.0) / 1000.0
+        raise InvalidArgument("rate", f"{points:,} track points is over the limit of {MAX_TRACK_POINTS:,}: "
+                                      + (f"export at {fits:g} Hz or less" if fits > 0 else "too many entities"),
                               value=rate_hz)
     box = track_box(tracks, margin_m)
     frame = LocalFrame.at(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3]), 0.0)
@@ -205,22 +216,25 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
 
             req = adaptive_request(req, max_error_m, "max_error_m", "size" if size else "spacing_m", size or spacing_m)
         elif req.cols * req.rows > MAX_VERTICES:
-            raise InvalidArgument("size" if size else "spacing_m", f"{req.cols}x{req.rows} terrain vertices is over "
-                                  f"the limit of {MAX_VERTICES:,}", value=size or spacing_m)
+            raise InvalidArgument("size" if size else "spacing_m", f"{req.cols}x{req.rows} = {req.cols * req.rows:,} "
+                                  f"terrain vertices is over the limit of {MAX_VERTICES:,}", value=size or spacing_m)
         sampled = sample_heights(terrain, req)
         if max_error_m is None:
             mesh = build_mesh(*sampled, frame=frame, geoid_undulation_m=undulation)
         else:
             mesh = build_adaptive_mesh(*sampled, max_error_m, frame=frame, geoid_undulation_m=undulation)
         image = make_texture(terrain, req, sampled=sampled)[0].image if texture else None
-        scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name="terrain", geom_name="terrain")
-        err = centre_error(mesh, terrain)
-        stats.terrain_vertices, stats.terrain_triangles = mesh.vertices.shape[0], mesh.faces.shape[0]
-        stats.terrain_centre_error_m_max = float(err.max()) if err.size else None
-        extras["terrain"] = {"grid": [req.cols, req.rows], "max_error_m": max_error_m,
-                             "sun_time_utc": when if texture else None,
-                             "centre_error_m": {"rms": float(np.sqrt(np.mean(err ** 2))) if err.size else None,
-                                                "max": stats.terrain_centre_error_m_max}}
+        if len(mesh.faces):
+            scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name="terrain", geom_name="terrain")
+            err = centre_error(mesh, terrain)
+            stats.terrain_vertices, stats.terrain_triangles = mesh.vertices.shape[0], mesh.faces.shape[0]
+            stats.terrain_centre_error_m_max = float(err.max()) if err.size else None
+            extras["terrain"] = {"grid": [req.cols, req.rows], "max_error_m": max_error_m,
+                                 "sun_time_utc": when if texture else None,
+                                 "centre_error_m": {"rms": float(np.sqrt(np.mean(err ** 2))) if err.size else None,
+                                                    "max": stats.terrain_centre_error_m_max}}
+        else:
+            extras["terrain"] = {"left_out": "no grid cell has terrain data at its four corners"}
 
     for entity_id in sorted(tracks):
         info = r.entities.get(entity_id)
@@ -241,7 +255,8 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
 
     # Events where something happened to an entity (sessions joining and leaving are not placed).
     events = [ev.event for ev in r.events() if ev.event.kind not in ("join", "leave")]
-    placed = [e for e in events if all(map(math.isfinite, (e.lat_deg, e.lon_deg, e.alt_msl_m)))]
+    is_placed = [all(map(math.isfinite, (e.lat_deg, e.lon_deg, e.alt_msl_m))) for e in events]
+    placed = [e for e, p in zip(events, is_placed) if p]
     if placed:
         where = geodetic_to_ecef([e.lat_deg for e in placed], [e.lon_deg for e in placed],
                                  np.array([e.alt_msl_m for e in placed]) + undulation)
@@ -250,15 +265,19 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
         scene.add_geometry(cloud, node_name="events", geom_name="events")
     extras["events"] = [{"time_s": e.time_s, "kind": e.kind, "entity_id": int(e.entity_id),
                          "lat_deg": _json_number(e.lat_deg), "lon_deg": _json_number(e.lon_deg),
-                         "alt_msl_m": _json_number(e.alt_msl_m), "placed": e in placed,
-                         "detail": json.loads(e.detail_json) if e.detail_json else {}} for e in events]
+                         "alt_msl_m": _json_number(e.alt_msl_m), "placed": p,
+                         "detail": json.loads(e.detail_json) if e.detail_json else {}}
+                        for e, p in zip(events, is_placed)]
     stats.events = len(events)
     scene.metadata.update(scene_extras(frame, extras))
-    gltf, binary = read_glb(scene.export(file_type="glb"))
+    if scene.geometry:
+        gltf, binary = read_glb(scene.export(file_type="glb"))
+    else:  # no track of two points, no terrain, no placed event: the markers alone
+        gltf, binary = {"asset": {"version": "2.0", "generator": "sortie"}, "scene": 0,
+                        "scenes": [{"nodes": [], "extras": scene.metadata}], "nodes": []}, bytearray()
     stats.markers = add_markers(gltf, binary, tracks, r.entities, frame, r.first_time_s, r.dt)
     out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_bytes(glb_bytes(gltf, binary) if output_format(out) == "glb" else gltf_bytes(gltf, binary))
+    write_atomically(out, glb_bytes(gltf, binary) if output_format(out) == "glb" else gltf_bytes(gltf, binary))
     stats.bytes_written = out.stat().st_size
     return stats
 
@@ -271,6 +290,8 @@ MARKER_VERTICES = np.array([[1.0, 0.0, 0.0], [-0.6, -0.5, 0.0], [-0.6, 0.5, 0.0]
 MARKER_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint16)
 MARKER_SCALE_M = {pb.ENTITY_KIND_AIRCRAFT: 60.0, pb.ENTITY_KIND_GROUND: 15.0}
 MARKER_SCALE_OTHER_M = 10.0
+
+
 def scene_rotations(quat_ecef2body: np.ndarray, frame: LocalFrame) -> np.ndarray:
     """(k, 4) glTF node rotations (x, y, z, w) taking a marker in body axes (x forward, y
     right, z down) into the scene's axes, sign-continuous along the track (so a viewer's

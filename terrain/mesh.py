@@ -18,10 +18,11 @@ irregular network of terrain/rtin.py keeps only the triangles an error bound at 
 needs; its vertices are a subset of the grid's (``TerrainMesh.grid_index``).
 
 **The frame.** Vertices are float64 metres east, north and up (ENU) from an origin on the
-WGS84 ellipsoid (``terrain.geodesy``), so a mesh of a few hundred kilometres keeps
-millimetres in float32 files. Heights are MSL (the terrain's); a vertex's ellipsoidal height
-is the MSL height plus ``geoid_undulation_m``, the constant the simulation world uses
-(``server.world.World``), so a recorded track and the mesh meet where the world had them meet.
+WGS84 ellipsoid (``terrain.geodesy``); files hold float32 offsets from it, within 2^-24 of
+the distance (a millimetre at 17 km, 8 mm at 130 km). Heights are MSL (the terrain's); a
+vertex's ellipsoidal height is the MSL height plus ``geoid_undulation_m``, the constant the
+simulation world uses (``server.world.World``), so a recorded track and the mesh meet where the
+world had them meet.
 
 **Axes in the files.** glTF is Y up (glTF 2.0 specification, "Coordinate System and Units":
 right-handed, +Y up, metres), so .glb/.gltf files carry (x, y, z) = (east, up, -north). OBJ,
@@ -32,6 +33,7 @@ latitude, longitude and height go with the scene (glTF: the scene's ``extras``).
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import struct
 from dataclasses import dataclass
@@ -46,6 +48,8 @@ from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 # The largest mesh one call builds: 4 Mi vertices (2048 x 2048), about 8 Mi triangles,
 # some 150 MB as glTF; past that a viewer struggles and the grid should be coarser.
 MAX_VERTICES = 2048 * 2048
+# The geoid stays within about -107 and +86 m of WGS84 (EGM96; NGA); a larger undulation is a mistake.
+MAX_GEOID_UNDULATION_M = 200.0
 # Output formats by file suffix (trimesh's exporters).
 FORMATS = {".glb": "glb", ".gltf": "gltf", ".obj": "obj", ".ply": "ply", ".stl": "stl"}
 
@@ -171,8 +175,9 @@ def build_mesh(heights_msl_m, lat, lon, *, frame: LocalFrame | None = None,
         if bad.size:
             raise InvalidArgument(f"{name}[{bad[0]}]", f"must be finite and within +-{limit:g} degrees",
                                   value=float(a[bad[0]]))
-    if not np.isfinite(geoid_undulation_m):
-        raise InvalidArgument("geoid_undulation_m", "must be finite", value=geoid_undulation_m)
+    if not (np.isfinite(geoid_undulation_m) and abs(geoid_undulation_m) <= MAX_GEOID_UNDULATION_M):
+        raise InvalidArgument("geoid_undulation_m", f"must be within +-{MAX_GEOID_UNDULATION_M:g} m",
+                              value=geoid_undulation_m)
     if frame is None:
         frame = LocalFrame.at(0.5 * (lat[0] + lat[-1]), 0.5 * (lon[0] + lon[-1]), 0.0)
     valid = np.isfinite(h)
@@ -205,8 +210,8 @@ def centre_error(mesh: TerrainMesh, terrain) -> np.ndarray:
     strays from the terrain between its vertices. A regular mesh's cut diagonal passes through
     every centre, at the mean of the cell's NW and SE heights (on the posts' own grid, exactly
     the cell's |d| / 4 off the bilinear surface); an adaptive one is interpolated in its
-    triangle. ``terrain``: anything with ``heights(lat, lon)`` (terrain.terrain.Terrain, the
-    terrain client)."""
+    triangle. Centres where the terrain has no height are left out. ``terrain``: anything with
+    ``heights(lat, lon)`` (terrain.terrain.Terrain, the terrain client)."""
     h = mesh.heights_msl_m
     rows, cols = h.shape
     at = np.full((max(rows - 1, 0), max(cols - 1, 0)), np.nan)
@@ -215,8 +220,9 @@ def centre_error(mesh: TerrainMesh, terrain) -> np.ndarray:
     i, j = np.nonzero(np.isfinite(at))
     lat_c = 0.5 * (mesh.lat[:-1] + mesh.lat[1:])
     lon_c = 0.5 * (mesh.lon[:-1] + mesh.lon[1:])
-    res = terrain.heights(lat_c[i], lon_c[j])
-    return np.abs(at[i, j] - np.asarray(res.height_msl_m, dtype=np.float64))
+    truth = np.asarray(terrain.heights(lat_c[i], lon_c[j]).height_msl_m, dtype=np.float64)
+    err = np.abs(at[i, j] - truth)
+    return err[np.isfinite(err)]  # a centre in a hole of the terrain has no error to measure
 
 
 @numba.njit(cache=True, nogil=True)
@@ -284,7 +290,8 @@ def write_mesh(mesh: TerrainMesh, path, image=None, *, name: str = "terrain", ex
 
     kind = output_format(path)
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if len(mesh.faces) == 0:
+        raise InvalidArgument("mesh", "has no triangles: no terrain data under any of its cells")
     if kind in ("glb", "gltf"):
         scene = trimesh.Scene()
         scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name=name, geom_name=name)
@@ -296,8 +303,33 @@ def write_mesh(mesh: TerrainMesh, path, image=None, *, name: str = "terrain", ex
         colours = vertex_colours(image)
         tm.visual = trimesh.visual.ColorVisuals(
             tm, vertex_colors=colours if mesh.grid_index is None else colours[mesh.grid_index])
-    tm.export(out, file_type=kind)
+    if kind == "obj":  # its material and texture beside it, named after it: NAME.mtl, NAME.png
+        if image is not None:
+            tm.visual.material.name = out.stem
+        data = tm.export(file_type="obj", mtl_name=f"{out.stem}.mtl", return_texture=True)
+        text, files = data if isinstance(data, tuple) else (data, {})
+        for side, content in files.items():
+            write_atomically(out.parent / side, content)
+        write_atomically(out, text.encode() if isinstance(text, str) else text)
+        return out
+    write_atomically(out, tm.export(file_type=kind))
     return out
+
+
+def write_atomically(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through ``path.part`` and a rename, so that a reader never
+    sees half a file; the folder is made if missing (InvalidArgument naming the output where
+    it cannot be)."""
+    path = Path(path)
+    part = path.with_name(path.name + ".part")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        part.write_bytes(data)
+        part.replace(path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            part.unlink(missing_ok=True)
+        raise InvalidArgument("output", f"cannot be written: {exc.strerror or exc}", value=str(path)) from None
 
 
 def scene_extras(frame: LocalFrame, extras: dict | None = None) -> dict:
@@ -315,7 +347,7 @@ def write_scene(scene, path) -> None:
     if kind not in ("glb", "gltf"):
         raise InvalidArgument("output", "a scene is written as .glb or .gltf", value=str(path))
     gltf, binary = read_glb(scene.export(file_type="glb"))
-    path.write_bytes(glb_bytes(gltf, binary) if kind == "glb" else gltf_bytes(gltf, binary))
+    write_atomically(path, glb_bytes(gltf, binary) if kind == "glb" else gltf_bytes(gltf, binary))
 
 
 # -- glTF containers ------------------------------------------------------------------------------
@@ -351,7 +383,9 @@ def _padded(data: bytes, fill: bytes) -> bytes:
 
 def glb_bytes(gltf: dict, binary: bytes) -> bytes:
     """A GLB container of the JSON and the binary chunk."""
-    gltf["buffers"] = [{"byteLength": len(binary)}] if binary else []
+    gltf.pop("buffers", None)
+    if binary:  # an empty buffer is not valid glTF
+        gltf["buffers"] = [{"byteLength": len(binary)}]
     text = _padded(json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode(), b" ")
     chunks = struct.pack("<II", len(text), GLB_JSON) + text
     if binary:
@@ -362,8 +396,10 @@ def glb_bytes(gltf: dict, binary: bytes) -> bytes:
 
 def gltf_bytes(gltf: dict, binary: bytes) -> bytes:
     """A .gltf file: the JSON with the binary chunk as a base64 data URI."""
-    gltf["buffers"] = [{"byteLength": len(binary),
-                        "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(binary)).decode()}]
+    gltf.pop("buffers", None)
+    if binary:  # an empty buffer is not valid glTF
+        gltf["buffers"] = [{"byteLength": len(binary), "uri": "data:application/octet-stream;base64,"
+                            + base64.b64encode(bytes(binary)).decode()}]
     return json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode()
 
 

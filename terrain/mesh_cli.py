@@ -8,7 +8,7 @@
 One vertex at each pixel centre of the grid ``sortie terrain texture`` samples (the same
 --bbox/--cell and --size/--spacing-m rules), so the synthesized texture (land classes, light
 map and shadows for --time) lies one texel a vertex. glTF embeds it as the base colour, PLY
-takes it as vertex colours, OBJ writes it beside the file (material.mtl, material_0.png), STL
+takes it as vertex colours, OBJ writes it beside the file (NAME.mtl, NAME.png), STL
 is geometry alone. Without --time the sun stands at local mean noon at the box's centre on
 21 June 2026.
 
@@ -83,12 +83,14 @@ def mesh_command(args) -> int:
     from server.terrain_cli import terrain_source
     import numpy as np
 
-    from terrain.mesh import MAX_VERTICES, build_adaptive_mesh, build_mesh, centre_error, output_format, write_mesh
+    from terrain.mesh import (MAX_GEOID_UNDULATION_M, MAX_VERTICES, build_adaptive_mesh, build_mesh, centre_error,
+                              output_format, write_mesh)
     from terrain.texture_cli import box_of, make_texture, sample_heights, texture_request
 
     output_format(args.output)
-    if not math.isfinite(args.geoid_undulation_m):
-        raise InvalidArgument("--geoid-undulation-m", "must be finite", value=args.geoid_undulation_m)
+    if not (math.isfinite(args.geoid_undulation_m) and abs(args.geoid_undulation_m) <= MAX_GEOID_UNDULATION_M):
+        raise InvalidArgument("--geoid-undulation-m", f"must be within +-{MAX_GEOID_UNDULATION_M:g} m",
+                              value=args.geoid_undulation_m)
     bbox = box_of(args)
     centre_lon = 0.5 * (bbox[1] + bbox[3]) if len(bbox) == 4 and all(map(math.isfinite, bbox)) else 0.0
     req = texture_request(bbox, args.size, args.spacing_m, args.time or local_noon(centre_lon))
@@ -111,6 +113,9 @@ def mesh_command(args) -> int:
         mesh = build_mesh(heights, lat, lon, geoid_undulation_m=args.geoid_undulation_m)
     else:
         mesh = build_adaptive_mesh(heights, lat, lon, args.max_error_m, geoid_undulation_m=args.geoid_undulation_m)
+    if len(mesh.faces) == 0:
+        raise InvalidArgument("--bbox", "holds no terrain data: no cell has heights at its four corners",
+                              value=list(bbox))
     path = write_mesh(mesh, args.output, image, extras={"bbox": list(bbox), **extras})
     f = mesh.frame
     err = centre_error(mesh, terrain)

@@ -194,6 +194,13 @@ def test_bad_input(alps, tmp_path):
         mp.setattr(gltf_module, "MAX_TRACK_POINTS", 100)
         with pytest.raises(InvalidArgument, match=r"rate.*over the limit of 100: export at"):
             export_gltf(r, tmp_path / "x.glb")
+        # The rate it names fits the limit.
+        mp.setattr(gltf_module, "MAX_TRACK_POINTS", 1000)
+        with pytest.raises(InvalidArgument, match="export at") as err:
+            export_gltf(r, tmp_path / "x.glb")
+        fits = float(str(err.value).split("export at ")[1].split(" Hz")[0])
+        assert 900 < export_gltf(r, tmp_path / "ok.glb", rate_hz=fits).track_points <= 1000
+        assert 0.0 < fits < r.rate_hz
     empty = tmp_path / "empty.sortie"
     write_synthetic(empty, {}, ticks=3)
     with Recording(empty) as r, pytest.raises(InvalidArgument, match="recording"):
@@ -333,12 +340,6 @@ def test_markers_hide_while_absent(tmp_path):
 def test_the_khronos_validator_finds_nothing(alps, tmp_path):
     """The files pass the Khronos glTF validator (npm gltf-validator, installed by make bootstrap
     into .tools/): no error and no warning."""
-    import shutil
-    from pathlib import Path
-
-    script = Path(__file__).with_name("gltf_validate.js")
-    if shutil.which("node") is None or not (script.parents[1] / ".tools" / "node_modules" / "gltf-validator").exists():
-        pytest.skip("the Khronos glTF validator is not installed (make bootstrap installs it where npm is)")
     rec, glb, terrain = alps
     with Recording(rec) as r:
         export_gltf(r, tmp_path / "scene.gltf", terrain, size="16x16")
@@ -351,7 +352,65 @@ def test_the_khronos_validator_finds_nothing(alps, tmp_path):
     write_mesh(build_mesh(h, lat, lon), tmp_path / "mesh.gltf")
     with Recording(rec) as r:
         export_gltf(r, tmp_path / "adaptive.glb", terrain, size="40x40", max_error_m=5.0)
-    files = [glb, tmp_path / "scene.gltf", tmp_path / "mesh.glb", tmp_path / "mesh.gltf", tmp_path / "adaptive.glb"]
+    _validate([glb, tmp_path / "scene.gltf", tmp_path / "mesh.glb", tmp_path / "mesh.gltf",
+               tmp_path / "adaptive.glb"])
+
+
+def test_a_single_tick_and_ground_without_terrain(tmp_path, alps):
+    """A recording of one tick (no track has two points) is its markers alone; a sortie flown
+    where the DEM has no data gets no terrain node, and says so."""
+    from server.gltf import read_glb
+
+    one = tmp_path / "one.sortie"
+    write_synthetic(one, {1: (info(1, "solo", pb.ENTITY_KIND_AIRCRAFT, "f16"), lambda t: (47.3, 9.3, 900.0, 0, 0, 0))},
+                    ticks=1)
+    with Recording(one) as r:
+        stats = export_gltf(r, tmp_path / "one.glb")
+    assert stats.tracks == 0 and stats.markers == 1
+    gltf, _ = read_glb((tmp_path / "one.glb").read_bytes())
+    assert [n["name"] for n in gltf["nodes"]] == ["solo #1 marker"]
+    far = tmp_path / "far.sortie"  # 45 N: south of the Alps tile (47-48 N)
+    write_synthetic(far, {1: (None, lambda t: (45.0, 9.3 + 1e-4 * t, 900.0, 0, 0, 90.0))}, ticks=30)
+    with Recording(far) as r:
+        stats = export_gltf(r, tmp_path / "far.glb", alps[2], size="16x16")
+    gltf, _ = read_glb((tmp_path / "far.glb").read_bytes())
+    assert stats.terrain_vertices == 0 and "terrain" not in {n["name"] for n in gltf["nodes"]}
+    assert gltf["scenes"][0]["extras"]["sortie"]["terrain"]["left_out"].startswith("no grid cell")
+    pytest.importorskip("shutil")
+    _validate([tmp_path / "one.glb", tmp_path / "far.glb"])
+
+
+def test_a_track_round_the_pole_takes_every_longitude(tmp_path):
+    def circling(tick):  # 1.1 km from the pole, round it once in 90 ticks
+        return (89.99, -180.0 + 4.0 * tick, 3000.0, 0.0, 0.0, 90.0)
+
+    rec = tmp_path / "pole.sortie"
+    write_synthetic(rec, {1: (None, circling)}, ticks=90)
+    with Recording(rec) as r:
+        lat_min, lon_min, lat_max, lon_max = track_box(read_tracks(r), 2000.0)
+    assert (lon_min, lon_max, lat_max) == (-180.0, 180.0, 90.0)
+    assert lat_min == pytest.approx(89.99 - 2000.0 / 111_700.0, abs=2e-4)
+
+
+def test_command_line_names_its_options(alps, tmp_path):
+    rec, _, _ = alps
+    for extra, option in ((["--margin-m", "-1"], "--margin-m"), (["--rate", "0"], "--rate"),
+                          (["--no-terrain", "--size", "8x8"], "--no-terrain"),
+                          (["--max-error-m", "nan"], "--max-error-m")):
+        done = subprocess.run([*sortie_command(), "export", "gltf", str(rec), "-o", str(tmp_path / "x.glb"), *extra],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2 and f"error: {option}:" in done.stderr, (extra, done.stderr)
+    assert not (tmp_path / "x.glb").exists()
+
+
+def _validate(files) -> None:
+    """The Khronos glTF validator over ``files`` (skips where make bootstrap could not install it)."""
+    import shutil
+    from pathlib import Path
+
+    script = Path(__file__).with_name("gltf_validate.js")
+    if shutil.which("node") is None or not (script.parents[1] / ".tools" / "node_modules" / "gltf-validator").exists():
+        pytest.skip("the Khronos glTF validator is not installed (make bootstrap installs it where npm is)")
     done = subprocess.run(["node", str(script), *map(str, files)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     reports = [json.loads(line) for line in done.stdout.splitlines()]

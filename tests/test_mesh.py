@@ -123,6 +123,10 @@ def test_bad_input_names_the_field():
         build_mesh(np.zeros((2, 3)), lat, np.array([9.0, 9.1, 600.0]))
     with pytest.raises(InvalidArgument, match="geoid_undulation_m"):
         build_mesh(np.zeros((2, 3)), lat, lon, geoid_undulation_m=np.inf)
+    with pytest.raises(InvalidArgument, match="geoid_undulation_m"):
+        build_mesh(np.zeros((2, 3)), lat, lon, geoid_undulation_m=1e300)  # finite, and no geoid's
+    with pytest.raises(InvalidArgument, match="no triangles"):
+        write_mesh(build_mesh(np.full((2, 3), np.nan), lat, lon), "x.glb")
     with pytest.raises(InvalidArgument, match="lat_deg"):
         LocalFrame.at(91.0, 0.0)
     with pytest.raises(InvalidArgument, match="output"):
@@ -188,8 +192,14 @@ def test_ply_obj_stl_files(tmp_path, alps):
     stl = trimesh.load(write_mesh(mesh, tmp_path / "t.stl"), process=False)
     assert len(stl.faces) == len(mesh.faces)
     write_mesh(mesh, tmp_path / "o" / "t.obj", image)
+    write_mesh(mesh, tmp_path / "o" / "u.obj", image[::-1].copy())  # beside it: its own material and texture
     obj = trimesh.load(tmp_path / "o" / "t.obj", process=False)
-    assert len(obj.faces) == len(mesh.faces) and (tmp_path / "o" / "material.mtl").exists()
+    assert len(obj.faces) == len(mesh.faces)
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["t.mtl", "t.obj", "t.png", "u.mtl", "u.obj", "u.png"]
+    from PIL import Image
+
+    with Image.open(tmp_path / "o" / "t.png") as im:
+        assert np.array_equal(np.asarray(im.convert("RGB")), image)
     # ENU as it is in these formats: z is up, so the heights are the z range.
     assert np.abs(stl.vertices[:, 2].max() - mesh.vertices[:, 2].max()) < 1e-2
 
@@ -229,9 +239,12 @@ def test_local_noon():
     (["--bbox", "47.3", "9.25", "47.2", "9.40"], "--bbox", "inverted"),
     (["--size", "3000x2000"], "--size", "4,194,304"),
     (["--spacing-m", "0"], "--spacing-m", "positive"),
-    (["--geoid-undulation-m", "nan"], "--geoid-undulation-m", "finite"),
+    (["--geoid-undulation-m", "nan"], "--geoid-undulation-m", "within"),
     (["--time", "noon"], "--time", "ISO 8601"),
     (["-o", "x.dae"], "output", ".glb"),
+    (["--geoid-undulation-m", "1e300"], "--geoid-undulation-m", "200"),
+    (["--bbox", "45.0", "9.0", "46.0", "10.0"], "--bbox", "no terrain data"),
+    (["-o", "/proc/no/m.glb"], "output", "cannot be written"),
 ])
 def test_cli_rejects_bad_input(tmp_path, hgt_alps, extra, field, text):
     opts = {"--bbox": ["47.20", "9.25", "47.30", "9.40"], "-o": [str(tmp_path / "m.glb")]}
@@ -366,3 +379,21 @@ def test_cli_adaptive(tmp_path, hgt_alps, capsys):
               "--max-error-m", "5", "-o", str(tmp_path / "b.glb")])
     assert err.value.field == "--spacing-m" and "2049" in str(err.value)
     assert not (tmp_path / "b.glb").exists()
+
+
+def test_centre_error_leaves_out_holes_in_the_terrain(alps):
+    """A centre where the terrain has no height (here: the Alps with a hole cut round one
+    centre, a stand-in for a DEM's unfilled gap) is left out, not NaN."""
+    lat, lon = np.linspace(47.30, 47.25, 6), np.linspace(9.30, 9.36, 7)
+    h = alps.heights(np.repeat(lat, lon.size), np.tile(lon, lat.size)).height_msl_m.reshape(6, 7)
+    mesh = build_mesh(h, lat, lon)
+    hole = (0.5 * (lat[2] + lat[3]), 0.5 * (lon[3] + lon[4]))
+
+    class Holed:
+        def heights(self, la, lo):
+            res = alps.heights(la, lo)
+            res.height_msl_m[(np.abs(la - hole[0]) < 1e-9) & (np.abs(lo - hole[1]) < 1e-9)] = np.nan
+            return res
+
+    err = centre_error(mesh, Holed())
+    assert err.size == 5 * 6 - 1 and np.isfinite(err).all()
