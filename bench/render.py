@@ -578,6 +578,7 @@ def fly_path(ctx, terrain, lattice, cams: list, measured: list[int], default: Se
 
 
 def run(quick: bool = False) -> Report:
+    from client.render.clipmap_layer import PLAN_THREADS
     from client.render.gl import create_context
     from client.render.terrain_mesh import lattice_for
     from terrain.dem import read_dem
@@ -594,7 +595,8 @@ def run(quick: bool = False) -> Report:
     ctx = create_context()
     report = Report("render", quick, params={
         "size": [WIDTH, HEIGHT], "fov_x_deg": FOV_X_DEG, "gl_renderer": ctx.info.get("GL_RENDERER"),
-        "dt_s": DT_S, "speed_m_s": SPEED_M_S, "steps_per_path": steps, "measured_steps": measured,
+        "plan_threads": PLAN_THREADS, "dt_s": DT_S, "speed_m_s": SPEED_M_S, "steps_per_path": steps,
+        "measured_steps": measured,
         "paths": {d[0]: {"dem": d[1], "start_lat_lon": [d[2], d[3]], "heading_deg": d[4],
                          "altitudes": [list(a) for a in ALTITUDES if a[0] in altitudes[d[0]]]} for d in DEMS},
         "default_profile": {"name": DEFAULT_PROFILE, **default.layer_args()},

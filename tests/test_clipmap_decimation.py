@@ -839,3 +839,18 @@ def test_a_levels_write_log_and_the_blocks_it_leaves_unchanged():
     rows, other = same_blocks(blk, blk[[3, 1, 0]])
     assert sorted(zip(rows.tolist(), other.tolist())) == [(0, 2), (1, 1), (3, 0)]
     assert len(same_blocks(blk, np.array([[1 << 30, 0, (1 << 30) + 8, 8]]))[0]) == 0
+
+
+def test_plan_threads_from_the_environment(monkeypatch):
+    from client.render.clipmap_layer import PLAN_THREADS_DEFAULT_MAX, _plan_threads
+    from sortie.errors import InvalidArgument
+    from terrain.threads import cpu_count
+
+    monkeypatch.delenv("SORTIE_PLAN_THREADS", raising=False)
+    assert _plan_threads() == min(cpu_count(), PLAN_THREADS_DEFAULT_MAX)
+    monkeypatch.setenv("SORTIE_PLAN_THREADS", " 3 ")
+    assert _plan_threads() == 3
+    for bad in ("0", "-2", "two", "1.5"):
+        monkeypatch.setenv("SORTIE_PLAN_THREADS", bad)
+        with pytest.raises(InvalidArgument, match="SORTIE_PLAN_THREADS"):
+            _plan_threads()

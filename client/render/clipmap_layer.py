@@ -85,6 +85,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+import os
 import time
 from dataclasses import dataclass
 
@@ -1004,8 +1005,24 @@ BOX_PAD_RELATIVE = 1e-6
 
 # A moved level's blocks are measured (decimation errors, edge deviations, culling boxes) in
 # up to this many parts at once, each of at least PLAN_PART_MIN_BLOCKS blocks: the kernels
-# release the GIL, so the parts run on helper threads (terrain.threads).
-PLAN_THREADS = min(cpu_count(), 8)
+# release the GIL, so the parts run on helper threads (terrain.threads). At most 2 by default:
+# a move's kernels are a few milliseconds of work, and on a 16-core host more threads cost more
+# in hand-offs than they share (--quick render on an H200's host, move median / worst step:
+# 1 thread 8.1 / 13.9 ms, 2: 9.1-10.4 / 16-17, 8: 10.4-11.5 / 26-29; on this 2-core VM 2 threads
+# beat 1, 5.1 / 7.6-9.2 against 5.5-5.7 / 7.4-7.5). SORTIE_PLAN_THREADS (a positive integer) sets it.
+PLAN_THREADS_DEFAULT_MAX = 2
+
+
+def _plan_threads() -> int:
+    text = os.environ.get("SORTIE_PLAN_THREADS", "").strip()
+    if not text:
+        return min(cpu_count(), PLAN_THREADS_DEFAULT_MAX)
+    if not text.isdigit() or int(text) < 1:
+        raise InvalidArgument("SORTIE_PLAN_THREADS", "must be a positive integer", value=text)
+    return int(text)
+
+
+PLAN_THREADS = _plan_threads()
 PLAN_PART_MIN_BLOCKS = 64
 
 
