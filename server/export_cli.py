@@ -99,6 +99,13 @@ def gltf_command(args) -> int:
             spec, notes = recorded_terrain_spec(r, args.dem, args.terrain)
             for note in notes:
                 print(note)
+            if "dem" in spec and r.header.scenario_toml:  # the insets the world answered from, as resim does
+                from server.resim import recorded_scenario
+                from server.sim_server import inset_areas
+
+                scenario = recorded_scenario(r)
+                if scenario.terrain.insets and scenario.target_areas:
+                    spec["target_areas"] = inset_areas(scenario)
             terrain = open_terrain_source(**spec)
         try:
             stats = export_gltf(r, args.output, terrain, rate_hz=rate, margin_m=args.margin_m, size=args.size,
@@ -113,7 +120,7 @@ def gltf_command(args) -> int:
         terrain_text = "no terrain, " if terrain is None else \
             "no terrain mesh (no grid cell with terrain data at its four corners: a finer --size?), "
     print(f"{stats.path}: {stats.tracks} tracks ({stats.track_points} points), {stats.markers} animated markers, "
-          f"{stats.events} events, {terrain_text}{stats.bytes_written:,} bytes")
+          f"{stats.target_areas} target areas, {stats.events} events, {terrain_text}{stats.bytes_written:,} bytes")
     return 0
 
 

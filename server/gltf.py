@@ -8,6 +8,7 @@ Tacview replays tracks over its own terrain; a glTF scene takes the sortie into 
 - **one track per entity**: a line strip through its recorded positions (ECEF, float64 in
   the recording) at the export rate, broken where the entity was absent; its node and mesh
   carry the entity's id, name, kind, type and coalition in ``extras``, coloured by coalition;
+- **the scenario's target areas**, outlined in yellow a few metres above the terrain;
 - **events** (crash, take-off, touchdown, ...) as points, listed in the scene's extras;
 - **one marker per entity** (a dart coloured by coalition) animated along its track: the
   scene's animation "sortie" keys its position and attitude at every exported tick (LINEAR:
@@ -54,6 +55,11 @@ MAX_MARGIN_M = 200_000.0
 MAX_TRACK_POINTS = 5_000_000
 # Track colours (RGBA) by coalition, as Tacview draws them.
 COALITION_RGBA = {"blue": (40, 110, 255, 255), "red": (235, 40, 40, 255), "neutral": (230, 230, 230, 255)}
+# Target areas: outlined in yellow, TARGET_AREA_LIFT_M above the terrain, in pieces of at most
+# TARGET_AREA_STEP_M so that the outline follows the ground.
+TARGET_AREA_RGBA = (255, 200, 0, 255)
+TARGET_AREA_LIFT_M = 5.0
+TARGET_AREA_STEP_M = 50.0
 
 
 class Segment(NamedTuple):
@@ -165,6 +171,7 @@ class GltfStats:
     terrain_centre_error_m_max: float | None
     bytes_written: int
     markers: int = 0
+    target_areas: int = 0
 
 
 def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = None,
@@ -253,6 +260,19 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
         stats.tracks += 1
         stats.track_points += sum(len(s) for s in lines)
 
+    # The scenario's target areas, outlined on the ground.
+    for area in _target_areas(r):
+        outline = _outline(area.polygon, TARGET_AREA_STEP_M)
+        ground = np.zeros(len(outline))
+        if terrain is not None:
+            ground = np.nan_to_num(np.asarray(terrain.heights(outline[:, 0], outline[:, 1]).height_msl_m, float))
+        where = geodetic_to_ecef(outline[:, 0], outline[:, 1], ground + TARGET_AREA_LIFT_M + undulation)
+        path = polylines([enu_to_gltf(frame.to_local(where))])
+        path.colors = np.tile(np.array(TARGET_AREA_RGBA, np.uint8), (len(path.entities), 1))
+        path.metadata.update({"target_area": area.name, "detail_m": area.detail_m,
+                              "polygon_lat_lon_deg": [list(v) for v in area.polygon]})
+        scene.add_geometry(path, node_name=f"target area {area.name}", geom_name=f"target area {area.name}")
+        stats.target_areas += 1
     # Events where something happened to an entity (sessions joining and leaving are not placed).
     events = [ev.event for ev in r.events() if ev.event.kind not in ("join", "leave")]
     is_placed = [all(map(math.isfinite, (e.lat_deg, e.lon_deg, e.alt_msl_m))) for e in events]
@@ -367,6 +387,31 @@ def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, fra
         gltf.setdefault("animations", []).append({"name": "sortie", "samplers": samplers, "channels": channels,
                                                   "extras": {"time_zero_world_s": t0_s}})
     return len(nodes)
+
+
+def _target_areas(r) -> tuple:
+    """The recorded scenario's target areas (none where the header holds no scenario)."""
+    if not r.header.scenario_toml:
+        return ()
+    from server.resim import recorded_scenario
+
+    return recorded_scenario(r).target_areas
+
+
+def _outline(polygon, step_m: float) -> np.ndarray:
+    """(k, 2) (lat, lon) degrees round a polygon's (lat, lon) vertices and back to the first,
+    each edge cut into pieces of at most ``step_m`` (linear in degrees: a target area is a few
+    kilometres across)."""
+    v = np.asarray(polygon, dtype=np.float64)
+    closed = np.vstack([v, v[:1]])
+    m, n = radii_of_curvature(float(v[:, 0].mean()))
+    out = [closed[:1]]
+    for a, b in zip(closed[:-1], closed[1:]):
+        length = math.hypot(math.radians(b[0] - a[0]) * m, math.radians(b[1] - a[1]) * n * math.cos(math.radians(a[0])))
+        pieces = max(1, math.ceil(length / step_m))
+        t = np.arange(1, pieces + 1)[:, None] / pieces
+        out.append(a + t * (b - a))
+    return np.vstack(out)
 
 
 def _json_number(v: float) -> float | None:

@@ -417,3 +417,27 @@ def _validate(files) -> None:
     assert len(reports) == len(files)
     for rep in reports:
         assert rep["errors"] == 0 and rep["warnings"] == 0, rep
+
+
+def test_target_areas_are_outlined_on_the_ground(alps):
+    """Each of the scenario's target areas is a closed outline through its polygon's vertices,
+    TARGET_AREA_LIFT_M above the terrain all along (float32 offsets: within 1 cm here)."""
+    from server.gltf import TARGET_AREA_LIFT_M
+    from server.resim import recorded_scenario
+
+    rec, out, terrain = alps
+    frame = _frame(_glb(out))
+    scene = trimesh.load(out, force="scene")
+    with Recording(rec) as r:
+        areas = recorded_scenario(r).target_areas
+        undulation = r.header.geoid_undulation_m
+    assert areas
+    for area in areas:
+        points = _polyline(scene.geometry[f"target area {area.name}"])
+        lat, lon, h = ecef_to_geodetic(frame.to_ecef(gltf_to_enu(points)))
+        ground = terrain.heights(lat, lon).height_msl_m
+        assert np.abs(h - undulation - ground - TARGET_AREA_LIFT_M).max() < 0.01
+        corners = np.asarray(area.polygon)
+        for c in corners:  # every vertex of the polygon is on the outline
+            assert np.hypot(lat - c[0], lon - c[1]).min() < 1e-6
+        assert np.hypot(lat[0] - lat[-1], lon[0] - lon[-1]) < 1e-6  # closed
