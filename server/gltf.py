@@ -184,9 +184,6 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
     adaptive mesh within that of every sampled post, terrain/rtin.py)."""
     import trimesh
 
-    from terrain.mesh import build_adaptive_mesh, build_mesh, centre_error, to_trimesh
-    from terrain.texture_cli import make_texture, sample_heights, texture_request
-
     if output_format(out_path) not in ("glb", "gltf"):
         raise InvalidArgument("output", "a debrief scene is written as .glb or .gltf", value=str(out_path))
     rate_hz = check_rate(rate_hz)
@@ -214,35 +211,62 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
     stats = GltfStats(str(out_path), 0, 0, 0, 0, 0, None, 0)
 
     if terrain is not None:
-        when = _sun_time(r, frame.lon_deg)
-        req = texture_request(box, size, spacing_m, when, default_long_side=DEFAULT_LONG_SIDE)
-        from terrain.mesh import MAX_VERTICES
+        _add_terrain(scene, extras, stats, r, terrain, box, frame, size, spacing_m, texture, max_error_m)
+    _add_tracks(scene, stats, r, tracks, frame)
+    _add_target_areas(scene, stats, r, terrain, frame)
+    _add_events(scene, extras, stats, r, frame)
+    scene.metadata.update(scene_extras(frame, extras))
+    if scene.geometry:
+        gltf, binary = read_glb(scene.export(file_type="glb"))
+    else:  # no track of two points, no terrain, no placed event: the markers alone
+        gltf, binary = {"asset": {"version": "2.0", "generator": "sortie"}, "scene": 0,
+                        "scenes": [{"nodes": [], "extras": scene.metadata}], "nodes": []}, bytearray()
+    stats.markers = add_markers(gltf, binary, tracks, r.entities, frame, r.first_time_s, r.dt)
+    out = Path(out_path)
+    write_atomically(out, glb_bytes(gltf, binary) if output_format(out) == "glb" else gltf_bytes(gltf, binary))
+    stats.bytes_written = out.stat().st_size
+    return stats
 
-        if max_error_m is not None:
-            from terrain.mesh_cli import adaptive_request
 
-            req = adaptive_request(req, max_error_m, "max_error_m", "size" if size else "spacing_m", size or spacing_m)
-        elif req.cols * req.rows > MAX_VERTICES:
-            raise InvalidArgument("size" if size else "spacing_m", f"{req.cols}x{req.rows} = {req.cols * req.rows:,} "
-                                  f"terrain vertices is over the limit of {MAX_VERTICES:,}", value=size or spacing_m)
-        sampled = sample_heights(terrain, req)
-        if max_error_m is None:
-            mesh = build_mesh(*sampled, frame=frame, geoid_undulation_m=undulation)
-        else:
-            mesh = build_adaptive_mesh(*sampled, max_error_m, frame=frame, geoid_undulation_m=undulation)
-        image = make_texture(terrain, req, sampled=sampled)[0].image if texture else None
-        if len(mesh.faces):
-            scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name="terrain", geom_name="terrain")
-            err = centre_error(mesh, terrain)
-            stats.terrain_vertices, stats.terrain_triangles = mesh.vertices.shape[0], mesh.faces.shape[0]
-            stats.terrain_centre_error_m_max = float(err.max()) if err.size else None
-            extras["terrain"] = {"grid": [req.cols, req.rows], "max_error_m": max_error_m,
-                                 "sun_time_utc": when if texture else None,
-                                 "centre_error_m": {"rms": float(np.sqrt(np.mean(err ** 2))) if err.size else None,
-                                                    "max": stats.terrain_centre_error_m_max}}
-        else:
-            extras["terrain"] = {"left_out": "no grid cell has terrain data at its four corners"}
+def _add_terrain(scene, extras: dict, stats: GltfStats, r, terrain, box, frame: LocalFrame, size, spacing_m,
+                 texture: bool, max_error_m) -> None:
+    """The terrain node: the terrain under ``box`` as a mesh (regular, or adaptive within
+    ``max_error_m``), textured for the sortie's start; left out, and said so in the extras,
+    where no grid cell has data."""
+    from terrain.mesh import MAX_VERTICES, build_adaptive_mesh, build_mesh, centre_error, to_trimesh
+    from terrain.mesh_cli import adaptive_request
+    from terrain.texture_cli import make_texture, sample_heights, texture_request
 
+    undulation = float(r.header.geoid_undulation_m)
+    when = _sun_time(r, frame.lon_deg)
+    req = texture_request(box, size, spacing_m, when, default_long_side=DEFAULT_LONG_SIDE)
+    if max_error_m is not None:
+        req = adaptive_request(req, max_error_m, "max_error_m", "size" if size else "spacing_m", size or spacing_m)
+    elif req.cols * req.rows > MAX_VERTICES:
+        raise InvalidArgument("size" if size else "spacing_m", f"{req.cols}x{req.rows} = {req.cols * req.rows:,} "
+                              f"terrain vertices is over the limit of {MAX_VERTICES:,}", value=size or spacing_m)
+    sampled = sample_heights(terrain, req)
+    if max_error_m is None:
+        mesh = build_mesh(*sampled, frame=frame, geoid_undulation_m=undulation)
+    else:
+        mesh = build_adaptive_mesh(*sampled, max_error_m, frame=frame, geoid_undulation_m=undulation)
+    image = make_texture(terrain, req, sampled=sampled)[0].image if texture else None
+    if len(mesh.faces):
+        scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name="terrain", geom_name="terrain")
+        err = centre_error(mesh, terrain)
+        stats.terrain_vertices, stats.terrain_triangles = mesh.vertices.shape[0], mesh.faces.shape[0]
+        stats.terrain_centre_error_m_max = float(err.max()) if err.size else None
+        extras["terrain"] = {"grid": [req.cols, req.rows], "max_error_m": max_error_m,
+                             "sun_time_utc": when if texture else None,
+                             "centre_error_m": {"rms": float(np.sqrt(np.mean(err ** 2))) if err.size else None,
+                                                "max": stats.terrain_centre_error_m_max}}
+    else:
+        extras["terrain"] = {"left_out": "no grid cell has terrain data at its four corners"}
+
+
+def _add_tracks(scene, stats: GltfStats, r, tracks: dict, frame: LocalFrame) -> None:
+    """A node per entity with a track of two points or more: its line segments, coloured by
+    coalition, its identity in the mesh's extras."""
     for entity_id in sorted(tracks):
         info = r.entities.get(entity_id)
         meta = _entity_extras(info)
@@ -260,7 +284,11 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
         stats.tracks += 1
         stats.track_points += sum(len(s) for s in lines)
 
-    # The scenario's target areas, outlined on the ground.
+
+def _add_target_areas(scene, stats: GltfStats, r, terrain, frame: LocalFrame) -> None:
+    """A node per target area of the recorded scenario: its outline TARGET_AREA_LIFT_M above the
+    terrain (above MSL 0 without a terrain)."""
+    undulation = float(r.header.geoid_undulation_m)
     for area in _target_areas(r):
         outline = _outline(area.polygon, TARGET_AREA_STEP_M)
         ground = np.zeros(len(outline))
@@ -273,6 +301,14 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
                               "polygon_lat_lon_deg": [list(v) for v in area.polygon]})
         scene.add_geometry(path, node_name=f"target area {area.name}", geom_name=f"target area {area.name}")
         stats.target_areas += 1
+
+
+def _add_events(scene, extras: dict, stats: GltfStats, r, frame: LocalFrame) -> None:
+    """The events: a point each where it has a position (node "events"); all of them in the
+    scene's extras."""
+    import trimesh
+
+    undulation = float(r.header.geoid_undulation_m)
     # Events where something happened to an entity (sessions joining and leaving are not placed).
     events = [ev.event for ev in r.events() if ev.event.kind not in ("join", "leave")]
     is_placed = [all(map(math.isfinite, (e.lat_deg, e.lon_deg, e.alt_msl_m))) for e in events]
@@ -289,17 +325,6 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
                          "detail": json.loads(e.detail_json) if e.detail_json else {}}
                         for e, p in zip(events, is_placed)]
     stats.events = len(events)
-    scene.metadata.update(scene_extras(frame, extras))
-    if scene.geometry:
-        gltf, binary = read_glb(scene.export(file_type="glb"))
-    else:  # no track of two points, no terrain, no placed event: the markers alone
-        gltf, binary = {"asset": {"version": "2.0", "generator": "sortie"}, "scene": 0,
-                        "scenes": [{"nodes": [], "extras": scene.metadata}], "nodes": []}, bytearray()
-    stats.markers = add_markers(gltf, binary, tracks, r.entities, frame, r.first_time_s, r.dt)
-    out = Path(out_path)
-    write_atomically(out, glb_bytes(gltf, binary) if output_format(out) == "glb" else gltf_bytes(gltf, binary))
-    stats.bytes_written = out.stat().st_size
-    return stats
 
 
 # -- the animated markers -------------------------------------------------------------------------
