@@ -80,9 +80,9 @@ def local_noon(lon_deg: float) -> str:
 
 
 def mesh_command(args) -> int:
-    from server.terrain_cli import terrain_source
     import numpy as np
 
+    from server.terrain_cli import terrain_source
     from terrain.mesh import (MAX_GEOID_UNDULATION_M, MAX_VERTICES, build_adaptive_mesh, build_mesh, centre_error,
                               output_format, write_mesh)
     from terrain.texture_cli import box_of, make_texture, sample_heights, texture_request
@@ -114,9 +114,9 @@ def mesh_command(args) -> int:
     else:
         mesh = build_adaptive_mesh(heights, lat, lon, args.max_error_m, geoid_undulation_m=args.geoid_undulation_m)
     if len(mesh.faces) == 0:
-        raise InvalidArgument("--bbox", "holds no terrain data: no cell has heights at its four corners",
-                              value=list(bbox))
-    path = write_mesh(mesh, args.output, image, extras={"bbox": list(bbox), **extras})
+        raise InvalidArgument("--bbox" if args.cell is None else "--cell",
+                              "holds no terrain data: no cell has heights at its four corners", value=list(bbox))
+    path = write_mesh(mesh, args.output, image, extras={"bbox": list(bbox), "max_error_m": args.max_error_m, **extras})
     f = mesh.frame
     err = centre_error(mesh, terrain)
     print(f"{path}: {len(mesh.vertices):,} vertices of a {req.cols}x{req.rows} grid, {len(mesh.faces):,} triangles, "
