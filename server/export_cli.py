@@ -99,13 +99,10 @@ def gltf_command(args) -> int:
             spec, notes = recorded_terrain_spec(r, args.dem, args.terrain)
             for note in notes:
                 print(note)
-            if "dem" in spec and r.header.scenario_toml:  # the insets the world answered from, as resim does
-                from server.resim import recorded_scenario
-                from server.sim_server import inset_areas
+            if r.header.scenario_toml:  # the insets the world answered from, as resim opens them
+                from server.resim import recorded_scenario, with_insets
 
-                scenario = recorded_scenario(r)
-                if scenario.terrain.insets and scenario.target_areas:
-                    spec["target_areas"] = inset_areas(scenario)
+                with_insets(spec, recorded_scenario(r))
             terrain = open_terrain_source(**spec)
         try:
             stats = export_gltf(r, args.output, terrain, rate_hz=rate, margin_m=args.margin_m, size=args.size,

@@ -132,6 +132,16 @@ def recorded_terrain_spec(rec: Recording, dem=None, service: str | None = None) 
     return {"dem": paths}, []
 
 
+def with_insets(spec: dict, scenario) -> dict:
+    """``spec`` (open_terrain_source's arguments) answering from the scenario's target-area
+    insets where the world did: DEM files, and a scenario with ``insets`` and target areas."""
+    if "dem" in spec and scenario.terrain.insets and scenario.target_areas:
+        from server.sim_server import inset_areas
+
+        spec["target_areas"] = inset_areas(scenario)
+    return spec
+
+
 def terrain_matches(rec: Recording, spec: dict) -> tuple[bool, list]:
     """Whether the DEM files of ``spec`` are the recorded ones (by SHA-256)."""
     recorded = {f.sha256 for f in rec.header.terrain.files}
@@ -193,12 +203,11 @@ def apply_input(world, r) -> None:
 
 def build_recorded_world(rec: Recording, dem=None, service: str | None = None, workers: int = 0):
     """(world as the recording started, its scenario, terrain spec, notes)."""
-    from server.sim_server import aircraft_host, build_world, inset_areas, open_terrain_source
+    from server.sim_server import aircraft_host, build_world, open_terrain_source
 
     scenario = recorded_scenario(rec)
     spec, notes = recorded_terrain_spec(rec, dem, service)
-    if "dem" in spec and scenario.terrain.insets and scenario.target_areas:  # the same insets as recorded
-        spec["target_areas"] = inset_areas(scenario)
+    with_insets(spec, scenario)
     terrain = open_terrain_source(**spec)
     world = build_world(scenario, terrain, aircraft_host(scenario, terrain,
                                                          functools.partial(open_terrain_source, **spec), workers))
