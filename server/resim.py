@@ -122,14 +122,25 @@ def recorded_terrain_spec(rec: Recording, dem=None, service: str | None = None) 
     elif t.files:
         paths = [f.path for f in t.files]
     elif t.description.startswith("service:"):
+        served = service_dem_files(rec)
         raise NotFound(f"the recording's terrain was the service {t.description[8:]}; give --terrain ADDRESS of "
-                       f"one serving the same DEMs or --dem FILE... (recorded sources: {t.sources_json})")
+                       f"one serving the same DEMs or --dem FILE... (it served {', '.join(served) or 'no DEM file'})")
     else:
         raise DataFormatError(f"{rec.path.name}: the header names no terrain")
     for p in paths:
         if not Path(p).is_file():
             raise NotFound(f"terrain file {p!r} does not exist (give --dem FILE... with the recorded DEMs)")
     return {"dem": paths}, []
+
+
+def service_dem_files(rec: Recording) -> list[str]:
+    """The DEM files the recording's terrain service said it served (its recorded sources),
+    as it named them; [] if it named none or the record does not parse."""
+    try:
+        sources = json.loads(rec.header.terrain.sources_json or "[]")
+    except json.JSONDecodeError:
+        return []
+    return [str(x["source"]) for x in sources if isinstance(x, dict) and x.get("kind") == "dem" and x.get("source")]
 
 
 def with_insets(spec: dict, scenario) -> dict:

@@ -193,13 +193,14 @@ def record_alps(path, ticks: int = TICKS) -> None:
         world.close()
 
 
-def write_synthetic(path, tracks: dict, ticks: int, rate_hz: float = 30.0, events=()) -> None:
+def write_synthetic(path, tracks: dict, ticks: int, rate_hz: float = 30.0, events=(), terrain=None) -> None:
     """A recording of made-up entities: tracks {id: (EntityInfo or None for none,
     f(tick) -> (lat, lon, h_msl, roll, pitch, yaw) degrees / m, or None when absent)},
-    one chunk per second."""
+    one chunk per second; ``terrain``: the header's TerrainIdentity (default none)."""
     header = rpb.RecordingHeader(format_version=1, sortie_version="test", exercise_name="synthetic, made up",
                                  start_time="2026-01-02T03:04:05.250Z", world_rate_hz=rate_hz,
-                                 quantization=quantization_of(codec.DEFAULT_STEPS), geoid_undulation_m=10.0)
+                                 quantization=quantization_of(codec.DEFAULT_STEPS), geoid_undulation_m=10.0,
+                                 terrain=terrain)
     writer = RecordingWriter(path, header)
     per_chunk = int(rate_hz)
     for first in range(1, ticks + 1, per_chunk):

@@ -441,3 +441,26 @@ def test_target_areas_are_outlined_on_the_ground(alps):
         for c in corners:  # every vertex of the polygon is on the outline
             assert np.hypot(lat - c[0], lon - c[1]).min() < 1e-6
         assert np.hypot(lat[0] - lat[-1], lon[0] - lon[-1]) < 1e-6  # closed
+
+
+def test_a_recording_made_over_a_terrain_service(tmp_path, hgt_alps):
+    """The service is gone: the DEM files it said it served are used where they are found, with
+    a note; where they are not, the error lists them and names the options to give."""
+    from sortie.v1 import recording_pb2 as rpb
+
+    def identity(path):
+        return rpb.TerrainIdentity(description="service:127.0.0.1:1", sources_json=json.dumps(
+            [{"kind": "dem", "name": "N47E009", "source": str(path)}]))
+
+    track = {1: (None, lambda t: (47.3, 9.3 + 1e-4 * t, 900.0, 0.0, 0.0, 90.0))}
+    here, gone = tmp_path / "here.sortie", tmp_path / "gone.sortie"
+    write_synthetic(here, track, ticks=30, terrain=identity(hgt_alps))
+    write_synthetic(gone, track, ticks=30, terrain=identity(tmp_path / "missing.hgt"))
+    done = subprocess.run([*sortie_command(), "export", "gltf", str(here), "-o", str(tmp_path / "a.glb"),
+                           "--size", "16x16"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "not checked against the service" in done.stdout and "terrain 256 vertices" in done.stdout
+    done = subprocess.run([*sortie_command(), "export", "gltf", str(gone), "-o", str(tmp_path / "b.glb")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "missing.hgt" in done.stderr and "--terrain ADDRESS" in done.stderr
+    assert not (tmp_path / "b.glb").exists()
