@@ -329,12 +329,32 @@ def _add_events(scene, extras: dict, stats: GltfStats, r, frame: LocalFrame) -> 
 
 # -- the animated markers -------------------------------------------------------------------------
 
-# A dart in body axes (x forward, y right, z down), 1 m nose to tail, scaled per entity kind so it
-# is seen from kilometres away; every face wound counter-clockwise seen from outside.
-MARKER_VERTICES = np.array([[1.0, 0.0, 0.0], [-0.6, -0.5, 0.0], [-0.6, 0.5, 0.0], [-0.6, 0.0, -0.3]], np.float32)
-MARKER_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint16)
-MARKER_SCALE_M = {pb.ENTITY_KIND_AIRCRAFT: 60.0, pb.ENTITY_KIND_GROUND: 15.0}
-MARKER_SCALE_OTHER_M = 10.0
+# Marker shapes in body axes (x forward, y right, z down), about 1 m long, scaled per entity kind
+# so that they are seen from kilometres away: a dart for aircraft, a box for ground vehicles, a
+# pyramid for anything else; faces wound counter-clockwise seen from outside (_outward).
+
+
+def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The faces of a convex shape, each wound so that its normal points away from the centre."""
+    v = vertices.astype(np.float64)
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    out = np.einsum("ij,ij->i", np.cross(b - a, c - a), (a + b + c) / 3.0 - v.mean(axis=0)) > 0.0
+    return np.where(out[:, None], faces, faces[:, [0, 2, 1]]).astype(np.uint16)
+
+
+_BOX = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.3, 0.3) for z in (0.0, -0.35)], np.float32)
+MARKER_SHAPES = {
+    "dart": (np.array([[1.0, 0.0, 0.0], [-0.6, -0.5, 0.0], [-0.6, 0.5, 0.0], [-0.6, 0.0, -0.3]], np.float32),
+             np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])),
+    "box": (_BOX, np.array([[0, 1, 3], [0, 3, 2], [4, 5, 7], [4, 7, 6], [0, 1, 5], [0, 5, 4],
+                            [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 3, 7], [1, 7, 5]])),
+    "pyramid": (np.array([[0.5, 0.5, 0.0], [0.5, -0.5, 0.0], [-0.5, -0.5, 0.0], [-0.5, 0.5, 0.0], [0.0, 0.0, -1.0]],
+                         np.float32), np.array([[0, 1, 2], [0, 2, 3], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])),
+}
+MARKER_SHAPES = {k: (v, _outward(v, f)) for k, (v, f) in MARKER_SHAPES.items()}
+MARKER_OF_KIND = {pb.ENTITY_KIND_AIRCRAFT: ("dart", 60.0), pb.ENTITY_KIND_GROUND: ("box", 15.0)}
+MARKER_OTHER = ("pyramid", 10.0)
+MARKER_SCALE_M = {kind: scale for kind, (_, scale) in MARKER_OF_KIND.items()}
 
 
 def scene_rotations(quat_ecef2body: np.ndarray, frame: LocalFrame) -> np.ndarray:
@@ -357,19 +377,23 @@ def scene_rotations(quat_ecef2body: np.ndarray, frame: LocalFrame) -> np.ndarray
 
 def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, frame: LocalFrame,
                 t0_s: float, dt_s: float) -> int:
-    """Add a marker (a dart, coloured by coalition) per track, animated along it: translation
+    """Add a marker (MARKER_SHAPES by kind, coloured by coalition) per track, animated along it: translation
     and rotation keys (LINEAR) at its export ticks, scale keys (STEP) hiding it where it was
     absent. Animation time 0 is world time ``t0_s``. Returns the markers added."""
-    pos = append_accessor(gltf, binary, MARKER_VERTICES, "VEC3", target=ARRAY_BUFFER, bounds=True)
-    idx = append_accessor(gltf, binary, MARKER_FACES.ravel(), "SCALAR", UNSIGNED_SHORT, ELEMENT_ARRAY_BUFFER)
-    mesh_of = {}
+    material_of = {}
     for coalition, rgba in COALITION_RGBA.items():
         gltf.setdefault("materials", []).append({
             "name": f"marker {coalition}", "pbrMetallicRoughness": {
                 "baseColorFactor": [c / 255.0 for c in rgba], "metallicFactor": 0.0, "roughnessFactor": 0.8}})
-        gltf.setdefault("meshes", []).append({"name": f"marker {coalition}", "primitives": [
-            {"attributes": {"POSITION": pos}, "indices": idx, "material": len(gltf["materials"]) - 1}]})
-        mesh_of[coalition] = len(gltf["meshes"]) - 1
+        material_of[coalition] = len(gltf["materials"]) - 1
+    mesh_of = {}  # (shape, coalition) -> mesh: the shapes' accessors shared by their colours
+    for shape, (vertices, faces) in MARKER_SHAPES.items():
+        pos = append_accessor(gltf, binary, vertices, "VEC3", target=ARRAY_BUFFER, bounds=True)
+        idx = append_accessor(gltf, binary, faces.ravel(), "SCALAR", UNSIGNED_SHORT, ELEMENT_ARRAY_BUFFER)
+        for coalition, material in material_of.items():
+            gltf.setdefault("meshes", []).append({"name": f"marker {shape} {coalition}", "primitives": [
+                {"attributes": {"POSITION": pos}, "indices": idx, "material": material}]})
+            mesh_of[shape, coalition] = len(gltf["meshes"]) - 1
     samplers, channels, nodes = [], [], []
     end = max((seg.times[-1] for t in tracks.values() for seg in t.segments), default=t0_s)
     for entity_id in sorted(tracks):
@@ -384,7 +408,8 @@ def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, fra
                                           "resolve this far into the sortie; export at a lower rate", value=None)
         where = enu_to_gltf(frame.to_local(np.concatenate([s.ecef for s in segs]))).astype(np.float32)
         turn = scene_rotations(np.concatenate([s.quat for s in segs]), frame).astype(np.float32)
-        scale = MARKER_SCALE_M.get(info.kind if info is not None else None, MARKER_SCALE_OTHER_M)
+        shape, scale = MARKER_OF_KIND.get(info.kind if info is not None else None, MARKER_OTHER)
+        coalition = meta.get("coalition") if meta.get("coalition") in COALITION_RGBA else "neutral"
         # Shown from each segment's first tick, hidden half a tick after its last (unless the
         # recording ends there), and hidden from time 0 if it appears later.
         keys = [(0.0, 0.0)] if segs[0].times[0] > t0_s else []
@@ -396,7 +421,7 @@ def add_markers(gltf: dict, binary: bytearray, tracks: dict, entities: dict, fra
         key_s = np.repeat(np.array([k[1] for k in keys], np.float32)[:, None], 3, axis=1)
         node = len(gltf["nodes"])
         gltf["nodes"].append({"name": f"{meta.get('name') or 'entity'} #{entity_id} marker",
-                              "mesh": mesh_of.get(meta.get("coalition"), mesh_of["neutral"]),
+                              "mesh": mesh_of[shape, coalition],
                               "translation": where[0].tolist(), "rotation": turn[0].tolist(),
                               "scale": key_s[0].tolist(), "extras": meta})
         nodes.append(node)

@@ -464,3 +464,27 @@ def test_a_recording_made_over_a_terrain_service(tmp_path, hgt_alps):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "missing.hgt" in done.stderr and "--terrain ADDRESS" in done.stderr
     assert not (tmp_path / "b.glb").exists()
+
+
+def test_marker_shapes_are_closed_and_face_outwards(tmp_path):
+    """Each marker shape is a closed surface (every edge in two faces) whose faces wind
+    counter-clockwise seen from outside: its signed volume (divergence theorem,
+    sum a . (b x c) / 6) is positive. An aircraft gets the dart, a ground vehicle the box."""
+    from server.gltf import MARKER_SHAPES, read_glb
+
+    for name, (v, f) in MARKER_SHAPES.items():
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        assert np.all(counts == 2), name
+        a, b, c = (v[f[:, k]].astype(np.float64) for k in range(3))
+        assert np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0 > 0.0, name
+    rec = tmp_path / "s.sortie"
+    jet = info(1, "jet", pb.ENTITY_KIND_AIRCRAFT, "f16", "red")
+    tank = info(2, "tank", pb.ENTITY_KIND_GROUND, "m1a2")
+    write_synthetic(rec, {1: (jet, lambda t: (47.3, 9.3, 900.0, 0, 0, 0)),
+                          2: (tank, lambda t: (47.31, 9.3, 400.0, 0, 0, 0))}, ticks=5)
+    with Recording(rec) as r:
+        export_gltf(r, tmp_path / "s.glb")
+    gltf, _ = read_glb((tmp_path / "s.glb").read_bytes())
+    mesh_of = {n["name"]: gltf["meshes"][n["mesh"]]["name"] for n in gltf["nodes"] if n["name"].endswith("marker")}
+    assert mesh_of == {"jet #1 marker": "marker dart red", "tank #2 marker": "marker box blue"}
