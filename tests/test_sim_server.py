@@ -5,7 +5,6 @@ shutdown. Real JSBSim, real ground vehicles, the Alps DEM."""
 import math
 import signal
 import subprocess
-import sys
 import threading
 import time
 
