@@ -24,6 +24,7 @@ import struct
 
 import numpy as np
 import pytest
+import trimesh
 
 from server.terrain_cli import build_terrain
 from sortie.errors import InvalidArgument
@@ -31,7 +32,6 @@ from terrain.mesh import (LocalFrame, build_mesh, centre_error, enu_to_gltf, glt
                           mesh_geodetic, output_format, write_mesh)
 from terrain.mesh_cli import add_mesh_parser, local_noon
 
-trimesh = pytest.importorskip("trimesh")
 
 POSTS = 1201  # N47E009.hgt: 3 arc-second posts, 47-48 N, 9-10 E, row 0 north
 
