@@ -233,24 +233,15 @@ def _add_terrain(scene, extras: dict, stats: GltfStats, r, terrain, box, frame: 
     """The terrain node: the terrain under ``box`` as a mesh (regular, or adaptive within
     ``max_error_m``), textured for the sortie's start; left out, and said so in the extras,
     where no grid cell has data."""
-    from terrain.mesh import MAX_VERTICES, build_adaptive_mesh, build_mesh, centre_error, to_trimesh
-    from terrain.mesh_cli import adaptive_request
-    from terrain.texture_cli import make_texture, sample_heights, texture_request
+    from terrain.mesh import centre_error, to_trimesh
+    from terrain.mesh_cli import checked_request, sample_mesh
+    from terrain.texture_cli import texture_request
 
-    undulation = float(r.header.geoid_undulation_m)
     when = _sun_time(r, frame.lon_deg)
     req = texture_request(box, size, spacing_m, when, default_long_side=DEFAULT_LONG_SIDE)
-    if max_error_m is not None:
-        req = adaptive_request(req, max_error_m, "max_error_m", "size" if size else "spacing_m", size or spacing_m)
-    elif req.cols * req.rows > MAX_VERTICES:
-        raise InvalidArgument("size" if size else "spacing_m", f"{req.cols}x{req.rows} = {req.cols * req.rows:,} "
-                              f"terrain vertices is over the limit of {MAX_VERTICES:,}", value=size or spacing_m)
-    sampled = sample_heights(terrain, req)
-    if max_error_m is None:
-        mesh = build_mesh(*sampled, frame=frame, geoid_undulation_m=undulation)
-    else:
-        mesh = build_adaptive_mesh(*sampled, max_error_m, frame=frame, geoid_undulation_m=undulation)
-    image = make_texture(terrain, req, sampled=sampled)[0].image if texture else None
+    req = checked_request(req, max_error_m, "max_error_m", "size" if size else "spacing_m", size or spacing_m)
+    mesh, _, image = sample_mesh(terrain, req, max_error_m, frame=frame,
+                                 geoid_undulation_m=float(r.header.geoid_undulation_m), texture=texture)
     if len(mesh.faces):
         scene.add_geometry(to_trimesh(mesh, image, gltf_axes=True), node_name="terrain", geom_name="terrain")
         err = centre_error(mesh, terrain)

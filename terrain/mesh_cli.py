@@ -73,6 +73,39 @@ def adaptive_request(req, max_error_m: float, error_field: str, size_field: str,
     return dataclasses.replace(req, cols=side, rows=side)
 
 
+def checked_request(req, max_error_m: float | None, error_field: str, size_field: str, size_value):
+    """``req`` within the mesh limits: an adaptive mesh's grid (:func:`adaptive_request`), or a
+    regular one of at most terrain.mesh.MAX_VERTICES; InvalidArgument naming the option at fault."""
+    from terrain.mesh import MAX_VERTICES
+
+    if max_error_m is not None:
+        return adaptive_request(req, max_error_m, error_field, size_field, size_value)
+    if req.cols * req.rows > MAX_VERTICES:
+        raise InvalidArgument(size_field, f"{req.cols}x{req.rows} = {req.cols * req.rows:,} vertices is over the limit "
+                                          f"of {MAX_VERTICES:,}", value=size_value)
+    return req
+
+
+def sample_mesh(terrain, req, max_error_m: float | None = None, *, frame=None, geoid_undulation_m: float = 0.0,
+                texture: bool = True, seed: int = 0):
+    """(mesh, texture summary, image): the terrain sampled on ``req``'s grid, meshed (regular, or
+    adaptive within ``max_error_m``) and, with ``texture``, its synthesized texture (else None
+    and None)."""
+    from terrain.mesh import build_adaptive_mesh, build_mesh
+    from terrain.texture_cli import make_texture, sample_heights
+
+    sampled = sample_heights(terrain, req)
+    summary = image = None
+    if texture:
+        tex, summary = make_texture(terrain, req, seed=seed, sampled=sampled)
+        image = tex.image
+    if max_error_m is None:
+        mesh = build_mesh(*sampled, frame=frame, geoid_undulation_m=geoid_undulation_m)
+    else:
+        mesh = build_adaptive_mesh(*sampled, max_error_m, frame=frame, geoid_undulation_m=geoid_undulation_m)
+    return mesh, summary, image
+
+
 def local_noon(lon_deg: float) -> str:
     """The UTC instant of local mean noon at a longitude on 21 June 2026, ISO 8601 ('Z')."""
     when = datetime(2026, 6, 21, 12, tzinfo=timezone.utc) - timedelta(hours=lon_deg / 15.0)
@@ -83,9 +116,8 @@ def mesh_command(args) -> int:
     import numpy as np
 
     from server.terrain_cli import terrain_source
-    from terrain.mesh import (MAX_GEOID_UNDULATION_M, MAX_VERTICES, build_adaptive_mesh, build_mesh, centre_error,
-                              output_format, write_mesh)
-    from terrain.texture_cli import box_of, make_texture, sample_heights, texture_request
+    from terrain.mesh import MAX_GEOID_UNDULATION_M, centre_error, output_format, write_mesh
+    from terrain.texture_cli import box_of, texture_request
 
     output_format(args.output)
     if not (math.isfinite(args.geoid_undulation_m) and abs(args.geoid_undulation_m) <= MAX_GEOID_UNDULATION_M):
@@ -94,25 +126,13 @@ def mesh_command(args) -> int:
     bbox = box_of(args)
     centre_lon = 0.5 * (bbox[1] + bbox[3]) if len(bbox) == 4 and all(map(math.isfinite, bbox)) else 0.0
     req = texture_request(bbox, args.size, args.spacing_m, args.time or local_noon(centre_lon))
-    if args.max_error_m is not None:
-        req = adaptive_request(req, args.max_error_m, "--max-error-m", "--size" if args.size else "--spacing-m",
-                               args.size or args.spacing_m)
-    elif req.cols * req.rows > MAX_VERTICES:
-        field = "--size" if args.size is not None else "--spacing-m"
-        raise InvalidArgument(field, f"{req.cols}x{req.rows} = {req.cols * req.rows:,} vertices is over the limit "
-                                     f"of {MAX_VERTICES:,}", value=args.size or args.spacing_m)
+    req = checked_request(req, args.max_error_m, "--max-error-m", "--size" if args.size else "--spacing-m",
+                          args.size or args.spacing_m)
     terrain = terrain_source(args)
-    sampled = sample_heights(terrain, req)
-    heights, lat, lon = sampled
-    image, extras = None, {"time_utc": None}
-    if not args.no_texture:
-        tex, summary = make_texture(terrain, req, seed=args.seed, sampled=sampled)
-        image = tex.image
-        extras = {"time_utc": summary["time_utc"], "sun": summary["sun"], "class_histogram": summary["class_histogram"]}
-    if args.max_error_m is None:
-        mesh = build_mesh(heights, lat, lon, geoid_undulation_m=args.geoid_undulation_m)
-    else:
-        mesh = build_adaptive_mesh(heights, lat, lon, args.max_error_m, geoid_undulation_m=args.geoid_undulation_m)
+    mesh, summary, image = sample_mesh(terrain, req, args.max_error_m, geoid_undulation_m=args.geoid_undulation_m,
+                                       texture=not args.no_texture, seed=args.seed)
+    extras = {"time_utc": None} if summary is None else {
+        "time_utc": summary["time_utc"], "sun": summary["sun"], "class_histogram": summary["class_histogram"]}
     if len(mesh.faces) == 0:
         raise InvalidArgument("--bbox" if args.cell is None else "--cell",
                               "holds no terrain data: no cell has heights at its four corners", value=list(bbox))
