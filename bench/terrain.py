@@ -229,7 +229,8 @@ def bench_mesh(report: Report, raster, quick: bool, tmp_dir: Path) -> None:
     post of it and adaptive ones (terrain/rtin.py, within max_error of every sampled post) are
     written as glTF, timed (mesh and file; best of 3) and measured by |mesh - terrain| at the
     centres of the sampled grid's cells, the same points for every mesh."""
-    from terrain.mesh import TerrainMesh, build_adaptive_mesh, build_mesh, centre_error, grid_faces, write_mesh
+    from terrain.mesh import (TerrainMesh, build_adaptive_mesh, build_mesh, centre_error, grid_faces, with_grid_faces,
+                              write_mesh)
     from terrain.rtin import grid_size_for
     from terrain.terrain import Terrain
     from terrain.texture_cli import sample_heights, texture_request
@@ -258,10 +259,7 @@ def bench_mesh(report: Report, raster, quick: bool, tmp_dir: Path) -> None:
             return fine
         keep = np.arange(0, side, stride)
         index = (keep[:, None] * side + keep[None, :]).ravel()
-        faces = index[grid_faces(np.isfinite(fine.heights_msl_m[np.ix_(keep, keep)]))]
-        used, local = np.unique(faces, return_inverse=True)
-        return TerrainMesh(fine.vertices[used], local.reshape(faces.shape), fine.uv[used], fine.lat, fine.lon,
-                           fine.heights_msl_m, fine.frame, 0.0, used)
+        return with_grid_faces(fine, index[grid_faces(np.isfinite(fine.heights_msl_m[np.ix_(keep, keep)]))])
 
     strides, errors = ((1, 4), (1.0, MESH_HEADLINE_ERROR_M)) if quick else (MESH_STRIDES, MESH_MAX_ERRORS_M)
     makers = [("regular", stride, lambda s=stride: regular(s)) for stride in strides]

@@ -199,7 +199,12 @@ def build_adaptive_mesh(heights_msl_m, lat, lon, max_error_m: float, *, frame: L
     from terrain.rtin import rtin_faces
 
     mesh = build_mesh(heights_msl_m, lat, lon, frame=frame, geoid_undulation_m=geoid_undulation_m)
-    faces = rtin_faces(mesh.heights_msl_m, max_error_m)
+    return with_grid_faces(mesh, rtin_faces(mesh.heights_msl_m, max_error_m))
+
+
+def with_grid_faces(mesh: TerrainMesh, faces: np.ndarray) -> TerrainMesh:
+    """The regular ``mesh``'s grid with other triangles, ``faces`` (m, 3) of grid points (row *
+    cols + col): only the vertices they use are kept (``grid_index`` says which)."""
     used, local = np.unique(faces, return_inverse=True)
     return TerrainMesh(mesh.vertices[used], local.reshape(faces.shape), mesh.uv[used], mesh.lat, mesh.lon,
                        mesh.heights_msl_m, mesh.frame, mesh.geoid_undulation_m, used)
