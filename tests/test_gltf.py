@@ -13,7 +13,6 @@ terrain mesh share one frame and one datum.
 from __future__ import annotations
 
 import json
-import struct
 import subprocess
 
 import numpy as np
@@ -29,21 +28,13 @@ from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic
 from terrain.mesh import LocalFrame, enu_to_gltf, gltf_to_enu
 from test_acmi import info, record_alps, write_synthetic
+from test_mesh import _glb_json
 
 
 
 def _glb(path) -> dict:
-    """The JSON chunk of a GLB file, parsed strictly (NaN is not JSON: RFC 8259 §6)."""
-    data = path.read_bytes()
-    magic, version, length = struct.unpack_from("<4sII", data, 0)
-    assert (magic, version, length) == (b"glTF", 2, len(data))
-    n, kind = struct.unpack_from("<II", data, 12)
-    assert kind == 0x4E4F534A
-
-    def no_constants(name):
-        raise ValueError(f"{name} in glTF JSON")
-
-    return json.loads(data[20:20 + n], parse_constant=no_constants)
+    """The JSON chunk of a GLB file (tests/test_mesh.py's reader: strict, no NaN)."""
+    return _glb_json(path.read_bytes())
 
 
 @pytest.fixture(scope="module")

@@ -135,12 +135,17 @@ def test_bad_input_names_the_field():
 
 
 def _glb_json(data: bytes) -> dict:
-    """The JSON chunk of a GLB container (glTF 2.0 specification, "Binary glTF Layout")."""
+    """The JSON chunk of a GLB container (glTF 2.0 specification, "Binary glTF Layout"), parsed
+    strictly (NaN is not JSON: RFC 8259 §6)."""
     magic, version, length = struct.unpack_from("<4sII", data, 0)
     assert magic == b"glTF" and version == 2 and length == len(data)
     chunk_length, chunk_type = struct.unpack_from("<II", data, 12)
     assert chunk_type == 0x4E4F534A  # "JSON"
-    return json.loads(data[20:20 + chunk_length])
+
+    def no_constants(name):
+        raise ValueError(f"{name} in glTF JSON")
+
+    return json.loads(data[20:20 + chunk_length], parse_constant=no_constants)
 
 
 def test_glb_file(tmp_path, alps):
