@@ -123,7 +123,8 @@ def metadata_dict(msg: pb.GetMetadataResponse) -> dict:
     source, crs, lat_min, lon_min, lat_max, lon_max (degrees), rows, cols,
     spacing_east_m, spacing_north_m, vertical_datum, filled_posts, then the
     source's details as text], "height_reference": str, "limits": {Limits
-    field: int}, "server_version": str}.
+    field: int}, "server_version": str, "dem_files": [{"path", "size_bytes", "sha256"}
+    per DEM file the service read, in the order given]}.
     """
     sources = []
     for s in msg.sources:
@@ -135,6 +136,7 @@ def metadata_dict(msg: pb.GetMetadataResponse) -> dict:
         "height_reference": msg.height_reference,
         "limits": {fd.name: getattr(msg.limits, fd.name) for fd in msg.limits.DESCRIPTOR.fields},
         "server_version": msg.server_version,
+        "dem_files": [{"path": f.path, "size_bytes": f.size_bytes, "sha256": f.sha256} for f in msg.dem_files],
     }
 
 

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 from server.acmi import check_rate, export_acmi, output_kind
 
@@ -98,17 +97,7 @@ def gltf_command(args) -> int:
             from server.resim import recorded_terrain_spec
             from server.sim_server import open_terrain_source
 
-            dem = args.dem
-            if not dem and not args.terrain and not r.header.terrain.files:
-                # Recorded over a terrain service: the DEM files it served, where they are still found.
-                from server.resim import service_dem_files
-
-                served = service_dem_files(r)
-                if served and all(Path(p).is_file() for p in served):
-                    dem = served
-                    print(f"terrain: the DEM files the recording's terrain service served ({len(served)}), "
-                          "found here (not checked against the service)")
-            spec, notes = recorded_terrain_spec(r, dem, args.terrain)
+            spec, notes = recorded_terrain_spec(r, args.dem, args.terrain)
             for note in notes:
                 print(note)
             if r.header.scenario_toml:  # the insets the world answered from, as resim opens them

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from server import recording_codec as codec
+from terrain.dem import file_identity
 from server.recording import FORMAT_VERSION, RecordingWriter, quantization_of, steps_of
 from sortie.v1 import recording_pb2 as rpb
 from sortie.v1 import simulation_pb2 as pb
@@ -72,18 +73,13 @@ def _version(package: str) -> str:
         return "unknown"
 
 
-def file_identity(path) -> rpb.TerrainFile:
-    p = Path(path)
-    h = hashlib.sha256()
-    with open(p, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return rpb.TerrainFile(path=str(p.resolve()), size_bytes=p.stat().st_size, sha256=h.hexdigest())
-
-
 def terrain_identity(description: str, spec: dict, terrain) -> rpb.TerrainIdentity:
-    """What the terrain was: its files' hashes (in process) and its sources' description."""
-    files = [file_identity(p) for p in spec.get("dem", ())]
+    """What the terrain was: its DEM files' hashes (read in process, or as the terrain service
+    reports the files it read) and its sources' description."""
+    if "service" in spec:
+        files = [rpb.TerrainFile(**f) for f in terrain.metadata().get("dem_files", ())]
+    else:
+        files = [rpb.TerrainFile(**file_identity(p)) for p in spec.get("dem", ())]
     try:
         sources = terrain.describe()
     except Exception as exc:  # noqa: BLE001 - a terrain without describe() is still recordable

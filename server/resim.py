@@ -34,10 +34,11 @@ from pathlib import Path
 import numpy as np
 
 from server import recording_codec as codec
-from server.recorder import build_id, file_identity
-from server.recording import Recording
 from server.external import ExternalState
+from server.recorder import build_id
+from server.recording import Recording
 from sortie.errors import DataFormatError, InvalidArgument, NotFound
+from terrain.dem import file_identity
 
 FIELD_NAMES = (["ecef_x_m", "ecef_y_m", "ecef_z_m", "vel_x_mps", "vel_y_mps", "vel_z_mps", "acc_x_mps2",
                 "acc_y_mps2", "acc_z_mps2", "quat_w", "quat_x", "quat_y", "quat_z", "rate_p_rps", "rate_q_rps",
@@ -113,40 +114,90 @@ def recorded_scenario(rec: Recording):
 def recorded_terrain_spec(rec: Recording, dem=None, service: str | None = None) -> tuple[dict, list]:
     """(arguments of server.sim_server.open_terrain_source, notes): ``dem`` files or a
     ``service`` override the recording's terrain. DEM files are checked against the
-    recorded SHA-256 (a mismatch is a note and clears same_terrain)."""
+    recorded SHA-256 (a mismatch is a note and clears same_terrain).
+
+    A recording made over a terrain service is re-opened in process from the DEM files the
+    service said it read (their SHA-256 recorded since the service names them), with the
+    insets it served rebuilt from their recorded parameters: the service answers from that
+    same Terrain, so the answers are the same bits (see :func:`sources_match`)."""
     t = rec.header.terrain
     if service:
         return {"service": service}, [f"terrain: service {service} (recorded: {t.description})"]
     if dem:
-        paths = [str(p) for p in dem]
-    elif t.files:
-        paths = [f.path for f in t.files]
+        paths, spec, notes = [str(p) for p in dem], {}, []
     elif t.description.startswith("service:"):
-        served = service_dem_files(rec)
-        raise NotFound(f"the recording's terrain was the service {t.description[8:]}; give --terrain ADDRESS of "
-                       f"one serving the same DEMs or --dem FILE... (it served {', '.join(served) or 'no DEM file'})")
+        paths, spec, notes = served_terrain(rec)
+    elif t.files:
+        paths, spec, notes = [f.path for f in t.files], {}, []
     else:
         raise DataFormatError(f"{rec.path.name}: the header names no terrain")
     for p in paths:
         if not Path(p).is_file():
             raise NotFound(f"terrain file {p!r} does not exist (give --dem FILE... with the recorded DEMs)")
-    return {"dem": paths}, []
+    return {"dem": paths, **spec}, notes
+
+
+def recorded_sources(rec: Recording) -> list[dict]:
+    """The terrain's sources as recorded (Terrain.describe(), or the service's GetMetadata
+    sources, whose details are text); [] if none or the record does not parse."""
+    try:
+        sources = json.loads(rec.header.terrain.sources_json or "[]")
+    except json.JSONDecodeError:
+        return []
+    return [s for s in sources if isinstance(s, dict)] if isinstance(sources, list) else []
 
 
 def service_dem_files(rec: Recording) -> list[str]:
     """The DEM files the recording's terrain service said it served (its recorded sources),
     as it named them; [] if it named none or the record does not parse."""
+    return [str(x["source"]) for x in recorded_sources(rec) if x.get("kind") == "dem" and x.get("source")]
+
+
+def served_terrain(rec: Recording) -> tuple[list, dict, list]:
+    """(DEM paths, further open_terrain_source arguments, notes) rebuilding in process the
+    terrain a recording's service served: its DEM files and its insets."""
+    t = rec.header.terrain
+    address = t.description.removeprefix("service:")
+    sources = recorded_sources(rec)
+    other = sorted({str(s.get("kind")) for s in sources} - {"dem", "inset"})
+    if other:
+        raise NotFound(f"the recording's terrain was the service {address}, with {', '.join(other)} sources "
+                       "not rebuilt from files; give --terrain ADDRESS of one serving the same terrain")
+    if t.files:
+        paths = [f.path for f in t.files]
+        notes = [f"terrain: the {len(paths)} DEM files the recording's service {address} read "
+                 "(SHA-256 checked)"]
+    else:  # recorded before services named their files' hashes: the paths its sources gave
+        paths = service_dem_files(rec)
+        notes = [f"terrain: the {len(paths)} DEM files the recording's service {address} named "
+                 "(its recording keeps no hashes: not checked)"]
+    missing = [p for p in paths if not Path(p).is_file()]
+    if not paths or missing:
+        raise NotFound(f"the recording's terrain was the service {address}; its DEM files are not here "
+                       f"({', '.join(missing) or 'it named none'}): give --terrain ADDRESS of one serving the "
+                       "same DEMs or --dem FILE...")
+    areas = tuple(_inset_area(s) for s in sources if s.get("kind") == "inset")
+    if areas:
+        notes.append(f"terrain: the service's {len(areas)} insets rebuilt ({', '.join(a[0] for a in areas)})")
+        return paths, {"target_areas": areas}, notes
+    return paths, {}, notes
+
+
+def _inset_area(source: dict) -> tuple:
+    """(name, polygon, detail_m) of a recorded inset source, as terrain.inset.with_insets takes."""
+    polygon = source.get("polygon")
     try:
-        sources = json.loads(rec.header.terrain.sources_json or "[]")
-    except json.JSONDecodeError:
-        return []
-    return [str(x["source"]) for x in sources if isinstance(x, dict) and x.get("kind") == "dem" and x.get("source")]
+        polygon = json.loads(polygon) if isinstance(polygon, str) else polygon
+        return (str(source["area"]), tuple((float(a), float(b)) for a, b in polygon), float(source["detail_m"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataFormatError(f"the recorded inset {source.get('name')!r} does not parse: {exc}") from None
 
 
 def with_insets(spec: dict, scenario) -> dict:
     """``spec`` (open_terrain_source's arguments) answering from the scenario's target-area
-    insets where the world did: DEM files, and a scenario with ``insets`` and target areas."""
-    if "dem" in spec and scenario.terrain.insets and scenario.target_areas:
+    insets where the world did: DEM files, and a scenario with ``insets`` and target areas
+    (unless ``spec`` already has the insets a recorded service served)."""
+    if "dem" in spec and "target_areas" not in spec and scenario.terrain.insets and scenario.target_areas:
         from server.sim_server import inset_areas
 
         spec["target_areas"] = inset_areas(scenario)
@@ -160,10 +211,31 @@ def terrain_matches(rec: Recording, spec: dict) -> tuple[bool, list]:
         return True, ["terrain service: files not checked"]
     if not recorded:
         return True, ["recorded on a terrain service: files not checked against it"]
-    got = {file_identity(p).sha256 for p in spec["dem"]}
+    got = {file_identity(p)["sha256"] for p in spec["dem"]}
     if got == recorded:
         return True, []
     return False, ["terrain differs from the recording's (DEM SHA-256 mismatch)"]
+
+
+def sources_match(rec: Recording, terrain) -> tuple[bool, list]:
+    """Whether ``terrain`` describes itself as the recorded terrain did: every recorded
+    source's fields but its path (its name, bounds, posts, datum, and an inset's whole
+    parameters), compared as text since a service sends its sources' details as text."""
+    recorded = recorded_sources(rec)
+    if not recorded:
+        return True, []
+    try:
+        now = terrain.describe()
+    except Exception as exc:  # noqa: BLE001 - a terrain that cannot describe itself is checked no further
+        return True, [f"terrain sources not compared: {exc}"]
+    if len(now) != len(recorded):
+        return False, [f"terrain has {len(now)} sources, the recording's had {len(recorded)}"]
+    for i, (a, b) in enumerate(zip(recorded, now)):
+        for key, value in a.items():
+            if key != "source" and str(value) != str(b.get(key)):
+                return False, [f"terrain source {i} ({a.get('name')}) differs from the recording's in {key}: "
+                               f"{b.get(key)} here, {value} recorded"]
+    return True, []
 
 
 class RecordedInputs:
@@ -274,8 +346,11 @@ def resimulate(path, dem=None, service: str | None = None, workers: int = 0, unt
                                 "differ in the last bits")
         world, _, spec, notes = build_recorded_world(rec, dem, service, workers)
         report.notes += notes
-        report.same_terrain, notes = terrain_matches(rec, spec)
+        same_files, notes = terrain_matches(rec, spec)
         report.notes += notes
+        same_sources, notes = sources_match(rec, world.terrain)
+        report.notes += notes
+        report.same_terrain = same_files and same_sources
         last = rec.last_tick if until_s is None else rec.tick_at(until_s)
         inputs = RecordedInputs(rec)
         try:

@@ -138,7 +138,8 @@ def serve_command(args) -> int:
         areas = [a for path in args.insets for a in load_scenario(path).target_areas]
         terrain = with_insets(terrain, areas, INSET_SEED)
         print(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", flush=True)
-    server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers)
+    server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers,
+                                 dem_paths=args.dem)
     metrics = None
     if args.metrics_port is not None:
         from server.metrics import MetricsServer, terrain_metrics
@@ -165,7 +166,10 @@ def info_command(args) -> int:
         from client.terrain_client import metadata_dict
         from server.terrain_service import metadata_message
 
-        meta = metadata_dict(metadata_message(build_terrain(args.dem, args.procedural, args.store)))
+        from terrain.dem import file_identity
+
+        terrain = build_terrain(args.dem, args.procedural, args.store)
+        meta = metadata_dict(metadata_message(terrain, [file_identity(p) for p in args.dem]))
     print(json.dumps(meta, indent=2) if args.json else format_metadata(meta))
     return 0
 
@@ -184,6 +188,8 @@ def format_metadata(meta: dict) -> str:
         lines.append(f"  spacing: {s['spacing_east_m']:.1f} m east x {s['spacing_north_m']:.1f} m north")
         lines.append(f"  vertical datum: {s['vertical_datum']}; filled posts: {s['filled_posts']}")
         lines.extend(f"  {key}: {value}" for key, value in s.items() if key not in SOURCE_KEYS)
+    lines.extend(f"file: {f['path']} ({f['size_bytes']:,} bytes, sha256 {f['sha256'] or 'unknown'})"
+                 for f in meta.get("dem_files", ()))
     lines.append("limits: " + ", ".join(f"{key} {value:,}" for key, value in meta["limits"].items()))
     return "\n".join(lines)
 

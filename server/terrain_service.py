@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import threading
 from concurrent import futures
 
 import grpc
@@ -34,6 +35,7 @@ from server.grpc_common import (
 from sortie import __version__
 from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound, SortieError
 from sortie.v1 import terrain_pb2 as pb
+from terrain.dem import file_identity
 from terrain.profile import PROFILE_MAX_SAMPLES
 from terrain.raster import STATUS_OK
 
@@ -100,13 +102,15 @@ def source_message(description: dict) -> pb.TerrainSource:
     return msg
 
 
-def metadata_message(terrain) -> pb.GetMetadataResponse:
-    """The GetMetadata response for a Terrain: its sources, datum and this server's limits."""
+def metadata_message(terrain, dem_files=()) -> pb.GetMetadataResponse:
+    """The GetMetadata response for a Terrain: its sources, datum and this server's limits;
+    ``dem_files``: terrain.dem.file_identity dicts of the DEM files it was read from."""
     return pb.GetMetadataResponse(
         sources=[source_message(d) for d in terrain.describe()],
         height_reference=HEIGHT_REFERENCE,
         limits=limits_message(),
         server_version=__version__,
+        dem_files=[pb.DemFile(**f) for f in dem_files],
     )
 
 
@@ -128,6 +132,15 @@ def received_status(status: np.ndarray, n: int) -> np.ndarray:
     return status
 
 
+def _identity(path) -> dict:
+    """file_identity, or the path alone (no hash) for a file gone since the service read it."""
+    try:
+        return file_identity(path)
+    except (OSError, SortieError) as exc:
+        logger.warning("DEM file %s: %s; named without its hash", path, exc)
+        return {"path": str(path)}
+
+
 class TerrainServicer:
     """Converts decoded requests to Terrain calls and results to response arrays.
 
@@ -138,11 +151,18 @@ class TerrainServicer:
     streaming pass costs far less than missing on them point by point.
     """
 
-    def __init__(self, terrain):
+    def __init__(self, terrain, dem_paths=()):
         self.terrain = terrain
+        self._dem_paths = list(dem_paths)
+        self._metadata = None
+        self._metadata_lock = threading.Lock()
 
     def GetMetadata(self, request: pb.GetMetadataRequest) -> pb.GetMetadataResponse:
-        return metadata_message(self.terrain)
+        # Built at the first call, not at start: hashing a large DEM set takes seconds.
+        with self._metadata_lock:
+            if self._metadata is None:
+                self._metadata = metadata_message(self.terrain, [_identity(p) for p in self._dem_paths])
+            return self._metadata
 
     def GetHeights(self, request: dict) -> dict:
         check_batch(request, ("lat_deg", "lon_deg"), MAX_HEIGHT_POINTS)
@@ -311,9 +331,11 @@ def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None) -
     return handlers
 
 
-def create_server(terrain, address: str = "127.0.0.1:0",
-                  max_workers: int = DEFAULT_MAX_WORKERS) -> tuple[ManagedServer, int]:
-    """A terrain server bound to ``address`` ("host:port", port 0 for any free one).
+def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFAULT_MAX_WORKERS,
+                  dem_paths=()) -> tuple[ManagedServer, int]:
+    """A terrain server bound to ``address`` ("host:port", port 0 for any free one);
+    ``dem_paths``, the DEM files ``terrain`` was read from, are named with their SHA-256
+    in GetMetadata (a recording over the service keeps them).
 
     Returns the server, not yet started (call ``start()``), and the bound port;
     ``server.stats`` (grpc_common.CallStats) counts its calls.
@@ -326,7 +348,7 @@ def create_server(terrain, address: str = "127.0.0.1:0",
         maximum_concurrent_rpcs=ADMITTED_CALLS_PER_WORKER * max_workers,
     )
     stats = CallStats()
-    server.add_registered_method_handlers(SERVICE_NAME, method_handlers(TerrainServicer(terrain), stats))
+    server.add_registered_method_handlers(SERVICE_NAME, method_handlers(TerrainServicer(terrain, dem_paths), stats))
     managed = ManagedServer(server, (SERVICE_NAME,))
     managed.stats = stats
     try:

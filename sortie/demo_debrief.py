@@ -5,8 +5,9 @@ The simulation server of sortie/demo_exercise.py records its sortie into
 ``out/sortie.sortie``; this step serves it with ``sortie replay`` (a real
 process on loopback), watches it as an observer at 8x, seeks back to the
 middle and checks the dead-reckoned picture against the recorded states,
-re-simulates it from the scenario with its recorded inputs (on the same DEM
-in process; the recording was made over the terrain service), and exports
+re-simulates it from the scenario with its recorded inputs (in process, on the
+DEM files and insets the terrain service it was recorded over named, their
+SHA-256 checked: no service needed), and exports
 it as ``.acmi`` and ``.zip.acmi``, and as ``sortie.glb`` (tracks, events and the
 terrain under them: server/gltf.py).
 """
@@ -63,10 +64,14 @@ def run_debrief(recording: Path, out: Path, console) -> dict:
     console.print(f"replayed at 8x to t = {played_to:.1f} s, sought to t = {tick * rec.dt:.2f} s: the observer's "
                   f"picture of {ids.size} entities is within {seek_error * 1e3:.2f} mm of the recorded states")
 
-    report = resimulate(recording, dem=[DEM])
+    # The terrain service is gone: re-simulation opens the DEM files it named (SHA-256 checked)
+    # and rebuilds its insets, in process.
+    report = resimulate(recording)
     console.print(f"re-simulation: {report.ticks} ticks in {report.wall_s:.1f} s, "
                   f"{'[green]bit-exact[/]' if report.bit_exact else '[red]diverged[/]'} "
-                  f"(max position difference {report.max_abs_diff_m:.4f} m)"
+                  f"(max position difference {report.max_abs_diff_m:.4f} m; "
+                  f"{'the same' if report.same_terrain else '[red]other[/]'} terrain: "
+                  f"{'; '.join(n.removeprefix('terrain: ') for n in report.notes)})"
                   + (f"; first divergence {report.first_divergence}" if report.first_divergence else ""))
 
     table = Table(title="Tacview export")

@@ -22,6 +22,7 @@ queries touching them report STATUS_FILLED.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 import shutil
@@ -123,6 +124,18 @@ def read_dem(path, **kwargs) -> Raster:
 
 
 DEM_SUFFIXES = (".hgt", ".asc", ".tif", ".tiff", *RAW_SUFFIXES)
+
+
+def file_identity(path) -> dict:
+    """{"path": absolute path, "size_bytes": int, "sha256": hex} of a DEM file: what a
+    recording keeps of its terrain, and a terrain service tells its clients, so the same
+    bytes can be found and checked later."""
+    p = _existing(path).resolve()
+    h = hashlib.sha256()
+    with open(p, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return {"path": str(p), "size_bytes": p.stat().st_size, "sha256": h.hexdigest()}
 # Largest DEM read out of a .zip (its declared size; a 1" SRTM tile is 26 MB).
 MAX_ZIPPED_DEM_BYTES = 4 << 30
 

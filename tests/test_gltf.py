@@ -453,7 +453,7 @@ def test_a_recording_made_over_a_terrain_service(tmp_path, hgt_alps):
     done = subprocess.run([*sortie_command(), "export", "gltf", str(here), "-o", str(tmp_path / "a.glb"),
                            "--size", "16x16"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert "not checked against the service" in done.stdout and "terrain 256 vertices" in done.stdout
+    assert "keeps no hashes: not checked" in done.stdout and "terrain 256 vertices" in done.stdout
     done = subprocess.run([*sortie_command(), "export", "gltf", str(gone), "-o", str(tmp_path / "b.glb")],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "missing.hgt" in done.stderr and "--terrain ADDRESS" in done.stderr

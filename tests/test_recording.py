@@ -343,6 +343,56 @@ def test_resim_cli_reports_bit_exact(recorded, tmp_path):
     assert json.loads((tmp_path / "r.json").read_text())["bit_exact"] is True
 
 
+def test_a_sortie_recorded_over_a_terrain_service_resimulates_from_its_files(tmp_path, hgt_alps):
+    """A terrain service names the DEM files it read with their SHA-256 (GetMetadata); a
+    recording over it keeps them. With the service gone, re-simulation opens those files in
+    process, rebuilds the insets the service served from their recorded parameters, and is
+    bit-exact. Changed bytes in a file are a SHA-256 mismatch: same_terrain is False."""
+    import shutil
+
+    from client.terrain_client import TerrainClient
+    from server.process import ServiceProcess
+    from server.resim import resimulate
+    from server.scenario import load_scenario
+    from server.sim_server import build_world, open_terrain, terrain_spec
+    from terrain.dem import file_identity
+
+    dem = tmp_path / "N47E009.hgt"
+    shutil.copyfile(hgt_alps, dem)
+    path = tmp_path / "served.sortie"
+    scenario = load_scenario(SCENARIO)
+    assert scenario.target_areas
+    with ServiceProcess(["terrain", "serve", "--dem", str(dem), "--insets", str(SCENARIO)]) as service:
+        with TerrainClient(service.address) as client:
+            assert client.metadata()["dem_files"] == [file_identity(dem)]
+        terrain, desc, _ = open_terrain(scenario, service=service.address)
+        world = build_world(scenario, terrain)
+        rec = Recorder(path, recording_header(SCENARIO, scenario, world, desc,
+                                              terrain_spec(scenario, service=service.address), terrain), 1.0)
+        world.attach_recorder(rec)
+        try:
+            for _ in range(45):
+                world.tick()
+        finally:
+            rec.close()
+            world.close()
+    with Recording(path) as r:
+        assert r.header.terrain.description.startswith("service:")
+        assert [f.sha256 for f in r.header.terrain.files] == [file_identity(dem)["sha256"]]
+    report = resimulate(path)
+    assert report.ticks == 45 and report.bit_exact and report.same_terrain, report.as_dict()
+    notes = " ".join(report.notes)
+    assert "SHA-256 checked" in notes and f"{len(scenario.target_areas)} insets rebuilt" in notes
+    heights = np.fromfile(dem, ">i2")
+    heights[heights.size // 2] += 1
+    heights.tofile(dem)
+    report = resimulate(path, until_s=0.5)
+    assert not report.same_terrain and "DEM SHA-256 mismatch" in " ".join(report.notes)
+    dem.unlink()
+    with pytest.raises(NotFound, match="--terrain ADDRESS"):
+        resimulate(path)
+
+
 def test_take_over_starts_from_the_recorded_state_with_the_agent_free(recorded):
     from server.resim import take_over
 

@@ -86,16 +86,28 @@ class GetMetadataRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class GetMetadataResponse(_message.Message):
-    __slots__ = ("sources", "height_reference", "limits", "server_version")
+    __slots__ = ("sources", "height_reference", "limits", "server_version", "dem_files")
     SOURCES_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_REFERENCE_FIELD_NUMBER: _ClassVar[int]
     LIMITS_FIELD_NUMBER: _ClassVar[int]
     SERVER_VERSION_FIELD_NUMBER: _ClassVar[int]
+    DEM_FILES_FIELD_NUMBER: _ClassVar[int]
     sources: _containers.RepeatedCompositeFieldContainer[TerrainSource]
     height_reference: str
     limits: Limits
     server_version: str
-    def __init__(self, sources: _Optional[_Iterable[_Union[TerrainSource, _Mapping]]] = ..., height_reference: _Optional[str] = ..., limits: _Optional[_Union[Limits, _Mapping]] = ..., server_version: _Optional[str] = ...) -> None: ...
+    dem_files: _containers.RepeatedCompositeFieldContainer[DemFile]
+    def __init__(self, sources: _Optional[_Iterable[_Union[TerrainSource, _Mapping]]] = ..., height_reference: _Optional[str] = ..., limits: _Optional[_Union[Limits, _Mapping]] = ..., server_version: _Optional[str] = ..., dem_files: _Optional[_Iterable[_Union[DemFile, _Mapping]]] = ...) -> None: ...
+
+class DemFile(_message.Message):
+    __slots__ = ("path", "size_bytes", "sha256")
+    PATH_FIELD_NUMBER: _ClassVar[int]
+    SIZE_BYTES_FIELD_NUMBER: _ClassVar[int]
+    SHA256_FIELD_NUMBER: _ClassVar[int]
+    path: str
+    size_bytes: int
+    sha256: str
+    def __init__(self, path: _Optional[str] = ..., size_bytes: _Optional[int] = ..., sha256: _Optional[str] = ...) -> None: ...
 
 class TerrainSource(_message.Message):
     __slots__ = ("name", "kind", "source", "crs", "lat_min_deg", "lon_min_deg", "lat_max_deg", "lon_max_deg", "rows", "cols", "spacing_east_m", "spacing_north_m", "vertical_datum", "filled_posts", "details")
