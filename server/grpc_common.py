@@ -279,6 +279,28 @@ class CallStats:
             return {m: (n, s, dict(codes)) for m, (n, s, codes) in self._by_method.items()}
 
 
+class Malformed:
+    """A request whose bytes did not decode. gRPC maps an exception in a request
+    deserializer to INTERNAL ("Exception deserializing request!") and drops its message;
+    :func:`tolerant_decoder` hands this to the handler instead, which answers
+    INVALID_ARGUMENT with the decoder's reason."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+
+
+def tolerant_decoder(decode: Callable[[bytes], object]) -> Callable[[bytes], object]:
+    """``decode`` that returns :class:`Malformed` where it would raise."""
+
+    def deserialize(data: bytes):
+        try:
+            return decode(data)
+        except Exception as exc:  # noqa: BLE001 - DecodeError, struct and numpy errors alike
+            return Malformed(str(exc) or type(exc).__name__)
+
+    return deserialize
+
+
 def unary_handler(name: str, method: Callable, field_names: Mapping[str, str],
                   stats: CallStats | None = None) -> Callable:
     """Wrap ``method(request) -> response`` into a gRPC behaviour with the one error mapping.
@@ -293,6 +315,8 @@ def unary_handler(name: str, method: Callable, field_names: Mapping[str, str],
         t0 = time.perf_counter()
         code = None
         try:
+            if isinstance(request, Malformed):
+                raise InvalidArgument("request", f"does not decode as a {short} request: {request.reason}")
             return method(request)
         except SortieError as exc:
             logger.debug("%s rejected: %s", name, exc)

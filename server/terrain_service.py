@@ -30,6 +30,7 @@ from server.grpc_common import (
     PackedCodec,
     check_batch,
     server_options,
+    tolerant_decoder,
     unary_handler,
 )
 from sortie import __version__
@@ -221,9 +222,11 @@ class TerrainServicer:
             raise InvalidArgument("level", f"must be below the store's {store.levels} levels", value=request.level)
         lat, lon = check_latlon(np.array([request.lat_min_deg, request.lat_max_deg]),
                                 np.array([request.lon_min_deg, request.lon_max_deg]))
-        if not (lat[0] <= lat[1] and lon[0] <= lon[1]):
-            raise InvalidArgument("lat_min_deg", "the box is inverted (min above max)",
-                                  value=(float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1])))
+        if not lat[0] <= lat[1]:
+            raise InvalidArgument("lat_min_deg", "the box is inverted: above lat_max_deg", value=(float(lat[0]), float(lat[1])))
+        if not lon[0] <= lon[1]:
+            raise InvalidArgument("lon_min_deg", "the box is inverted: east of lon_max_deg (a box across the antimeridian takes "
+                                  "lon_max_deg above 180)", value=(float(lon[0]), float(lon[1])))
         dlat, dlon = store.spacing_deg(request.level)
         posts = ((lat[1] - lat[0]) / dlat + 2) * ((lon[1] - lon[0]) / dlon + 2)
         if posts > MAX_REGION_POSTS:
@@ -325,7 +328,7 @@ def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None) -
         _, request_deserializer, response_serializer, _ = serializers(rpc)
         handlers[rpc] = grpc.unary_unary_rpc_method_handler(
             unary_handler(f"{SERVICE_NAME}/{rpc}", getattr(servicer, rpc), field_names, stats),
-            request_deserializer=request_deserializer,
+            request_deserializer=tolerant_decoder(request_deserializer),
             response_serializer=response_serializer,
         )
     return handlers

@@ -56,6 +56,7 @@ def build_parser(modules=COMMAND_MODULES) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in modules:
         importlib.import_module(name).add_parser(sub)
+    config.bound_ports(parser)
     return parser
 
 

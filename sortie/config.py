@@ -50,6 +50,29 @@ def command_parsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ())
                 yield from command_parsers(sub, (*path, name))
 
 
+def port_number(text: str) -> int:
+    """An argparse type: a TCP/UDP port, 0 ..= 65535 (0: the system picks a free one).
+    Python's sockets and gRPC take any int and keep its low 16 bits, so a typo like 70000
+    would otherwise serve quietly on port 4464."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a port is an integer 0 ..= 65535, got {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0 ..= 65535, got {value}")
+    return value
+
+
+def bound_ports(parser: argparse.ArgumentParser) -> None:
+    """Every integer option named like a port (--port, --metrics-port) of every command
+    takes :func:`port_number`."""
+    for _, sub in command_parsers(parser):
+        for action in sub._actions:  # noqa: SLF001
+            if action.dest == "port" or action.dest.endswith("_port"):
+                if action.type is int:
+                    action.type = port_number
+
+
 def _options(parser: argparse.ArgumentParser) -> dict:
     """dest -> action of the long options a file or the environment may set."""
     return {a.dest: a for a in parser._actions  # noqa: SLF001
@@ -88,7 +111,8 @@ def _converted(action: argparse.Action, value, source: str):
                     item = action.type(item)
                 except (TypeError, ValueError, argparse.ArgumentTypeError) as exc:
                     why = {int: "must be an integer", float: "must be a number"}.get(action.type, str(exc))
-                    raise InvalidArgument(source, why or "has the wrong type", value=item) from None
+                    shown = None if isinstance(exc, argparse.ArgumentTypeError) else item  # its text shows it
+                    raise InvalidArgument(source, why or "has the wrong type", value=shown) from None
         if action.choices is not None and item not in action.choices:
             raise InvalidArgument(source, f"must be one of {', '.join(map(str, action.choices))}", value=item)
         out.append(item)

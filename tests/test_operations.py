@@ -45,13 +45,15 @@ def test_options_come_from_the_command_line_then_the_environment_then_the_file(t
 
 
 @pytest.mark.parametrize("environ, text, message", [
-    ({"SORTIE_SERVER_PORT": "x"}, None, "SORTIE_SERVER_PORT: must be an integer"),
+    ({"SORTIE_SERVER_PORT": "x"}, None, "SORTIE_SERVER_PORT: a port is an integer 0 ..= 65535, got 'x'"),
+    ({"SORTIE_SERVER_PORT": "70000"}, None, "SORTIE_SERVER_PORT: a port is 0 ..= 65535, got 70000"),
+    ({"SORTIE_SERVER_DURATION": "x"}, None, "SORTIE_SERVER_DURATION: must be a number"),
     ({"SORTIE_SERVER_CLOCK": "slow"}, None, "SORTIE_SERVER_CLOCK: must be one of"),
     ({"SORTIE_SERVER_NO_RECORD": "maybe"}, None, "SORTIE_SERVER_NO_RECORD: must be one of"),
     ({}, "[server]\nprot = 1\n", "server.prot: is not an option of sortie server"),
     ({}, "[sever]\nport = 1\n", "sever: is not an option of sortie"),
     ({}, '[server]\nport = "1"\n', None),  # a string is parsed like the command line's
-    ({}, "[server]\nport = 1.5\n", "server.port: must be an integer"),
+    ({}, "[server]\nport = 1.5\n", "server.port: a port is an integer 0 ..= 65535, got '1.5'"),
     ({}, "[server\n", "cannot be read"),
 ])
 def test_bad_configuration_names_where_it_came_from(tmp_path, environ, text, message):

@@ -7,6 +7,7 @@ numpy wire codec is byte-compatible with the generated classes, and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -159,6 +160,7 @@ def test_metadata(client, alps):
     assert source == local  # the same keys and values as the in-process Terrain
     assert (source["lat_min"], source["lon_min"], source["lat_max"], source["lon_max"]) == (47.0, 9.0, 48.0, 10.0)
     assert client.describe() == meta["sources"]
+    assert meta["dem_files"] == []  # this service was given a Terrain, not files
     assert "mean sea level" in meta["height_reference"]
     assert meta["limits"] == {
         "max_height_points": terrain_service.MAX_HEIGHT_POINTS,
@@ -303,7 +305,7 @@ def test_bad_heights_status_names_field_and_index(stub, lat, lon, code, message)
     assert info.value.details().startswith(message)
 
 
-@pytest.mark.parametrize("lat, lon, code, message", BAD_HEIGHT_REQUESTS)
+@pytest.mark.parametrize("lat, lon, code, message", BAD_HEIGHT_REQUESTS[:-1])  # empty: answered empty
 def test_client_raises_sortie_errors_with_server_message(client, lat, lon, code, message):
     with pytest.raises(InvalidArgument) as info:
         client.heights(lat, lon)
@@ -524,6 +526,38 @@ def test_codec_rejects_malformed_bytes(data):
         PackedCodec(pb.GetHeightsResponse).decode(data)
 
 
+@pytest.mark.parametrize("data, reason", [
+    (b"\x0a\x07" + bytes(7) + b"\x12\x08" + bytes(8), "lat_deg: packed double length 7 is not a multiple of 8"),
+    (b"\x0a\x10" + bytes(8), "lat_deg: truncated packed field"),
+    (b"\x0a", "truncated varint"),
+])
+def test_undecodable_request_bytes_are_invalid_argument_with_the_reason(address, client, data, reason):
+    """gRPC maps an exception in a request deserializer to INTERNAL and drops its message; the
+    service hands the decoder's reason to the caller as INVALID_ARGUMENT, and keeps serving."""
+    with grpc.insecure_channel(address) as channel:
+        raw = channel.unary_unary("/sortie.v1.TerrainService/GetHeights", request_serializer=lambda b: b,
+                                  response_deserializer=lambda b: b)
+        with pytest.raises(grpc.RpcError) as info:
+            raw(data, timeout=10)
+    assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert info.value.details() == f"request: does not decode as a GetHeights request: {reason}"
+    assert client.heights([47.5], [9.5]).status[0] == STATUS_OK
+
+
+def test_the_client_answers_like_the_in_process_terrain_on_edge_inputs(alps, client):
+    """Empty batches get empty results of the same dtypes without a call (the service refuses
+    them), and n_samples is checked as Terrain.profile checks it, before anything is sent."""
+    for name, args in (("heights", ([], [])), ("normals", ([], [])), ("line_of_sight", ([],) * 6),
+                       ("intersect", ([],) * 6)):
+        remote, local = getattr(client, name)(*args), getattr(alps, name)(*args)
+        for f in dataclasses.fields(local):
+            assert _same(getattr(remote, f.name), getattr(local, f.name)), (name, f.name)
+    for bad, message in ((2.7, "must be an integer"), (-1, "must be at least 2"), (True, "must be an integer")):
+        for terrain in (client, alps):
+            with pytest.raises(InvalidArgument, match=f"n_samples: {message}"):
+                terrain.profile(47.1, 9.1, 47.2, 9.2, bad)
+
+
 def test_codec_without_copy_decodes_read_only_views():
     """The server's request decoder: arrays are views of the message, not copies;
     decoding with copies (the client's responses) gives arrays of their own."""
@@ -561,8 +595,25 @@ def test_cli_query_and_info(address, alps, hgt_alps, capsys):
     assert cli.main(["terrain", "info", "--dem", str(hgt_alps)]) == 0
     local = capsys.readouterr().out
     assert "lat 47.000000 .. 48.000000 deg" in local and "1201 rows x 1201 cols" in local
+    assert f"file: {hgt_alps.resolve()} (2,884,802 bytes, sha256 " in local
     assert cli.main(["terrain", "info", "--address", address]) == 0
     assert "lat 47.000000 .. 48.000000 deg" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("port, message", [("70000", "a port is 0 ..= 65535, got 70000"),
+                                           ("-5", "a port is 0 ..= 65535, got -5"),
+                                           ("http", "a port is an integer 0 ..= 65535, got 'http'")])
+def test_ports_out_of_range_are_refused_by_every_command(port, message, capsys):
+    """Sockets keep a port's low 16 bits: 70000 would serve quietly on 4464. Every --port and
+    --metrics-port of every command takes 0 ..= 65535."""
+    for argv in (["terrain", "serve", "--procedural", "1", f"--port={port}"],
+                 ["terrain", "serve", "--procedural", "1", "--port", "0", f"--metrics-port={port}"],
+                 ["server", "--scenario", "x.toml", f"--port={port}"], ["replay", "x.sortie", f"--port={port}"],
+                 ["dis", "--server", "127.0.0.1:1", f"--port={port}"]):
+        with pytest.raises(SystemExit) as info:
+            cli.main(argv)
+        assert info.value.code == 2
+        assert message in capsys.readouterr().err, argv
 
 
 def test_cli_serve_needs_a_terrain(capsys):
