@@ -144,7 +144,7 @@ def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, re
             if heading is None:
                 stop.wait(0.1)
                 continue
-            heading = (heading + turn) % 360.0 if legs else heading
+            heading = _wrap360(heading + turn) if legs else heading
             targets = {"heading_deg": heading}
             if aircraft:
                 _, _, h = _geodetic(pos)
@@ -170,7 +170,14 @@ def _heading_deg(pos, quat) -> float:
     # q_ecef2body = q_ecef2ned * q_ned2body (server.dead_reckoning.ned_to_ecef_quat)
     q_ned2body = quat_multiply(quat_conjugate(ecef_to_ned_quat(lat[0], lon[0])), quat)
     w, x, y, z = np.asarray(q_ned2body, float).reshape(4)
-    return math.degrees(math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))) % 360.0
+    return _wrap360(math.degrees(math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))))
+
+
+def _wrap360(deg: float) -> float:
+    """deg in [0, 360), as the autopilot command takes it (``x % 360.0`` is 360.0 for a tiny
+    negative x)."""
+    deg = deg % 360.0
+    return 0.0 if deg >= 360.0 else deg
 
 
 def bot_command(args) -> int:

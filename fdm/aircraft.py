@@ -816,9 +816,28 @@ class Aircraft:
     def _record(self, events: list) -> list:
         if events:
             self.events.extend(events)
-            if self._detector.crashed:
+            if self._detector.crashed and not self.crashed:
                 self.crashed = True
+                self._come_to_rest()
         return events
+
+    # The state-out columns of motion: a wreck keeps its place and attitude, and these read 0
+    # (1 g for the load factor) from its crash on, so that receivers dead-reckoning it see it
+    # stay, and its sender's dead reckoning sends one last update, then heartbeats.
+    _MOTION_COLUMNS = tuple(RAW_COLUMNS[name] for name in (
+        "v_north_fps", "v_east_fps", "v_down_fps", "p_rps", "q_rps", "r_rps", "udot_fps2", "vdot_fps2",
+        "wdot_fps2", "vt_fps", "vc_kts", "alpha_rad", "beta_rad"))
+
+    def _come_to_rest(self) -> None:
+        """From a crash on, the state out is the wreck at rest where it came down (see
+        _MOTION_COLUMNS); a diverged state has its own frozen row (_end_diverged)."""
+        if "raw_values" in self.__dict__:  # already frozen
+            return
+        row = self.raw_values()
+        for k in self._MOTION_COLUMNS:
+            row[k] = 0.0
+        row[RAW_COLUMNS["nz_g"]] = 1.0
+        self.raw_values = row.copy  # shadows the method: the frozen row, a fresh list each call
 
     # A check step has two halves so that a host stepping many aircraft
     # (fdm.fleet.Fleet) can answer all their terrain queries in one batch:

@@ -656,7 +656,7 @@ class GroundVehicles:
         if bad.any():
             i = first_bad(bad)
             where = "outside the terrain" if (st[i] == STATUS_OUTSIDE).any() else "in the water (height <= sea level)"
-            raise InvalidArgument("lat", f"vehicle placed {where} (lon {self.lon[i]!r})", index=i,
+            raise InvalidArgument("lat", f"vehicle placed {where} (lon {float(self.lon[i])!r})", index=i,
                                   value=float(self.lat[i]))
         lengths = self.table[self.type_id, P_LEN]
         widths = self.table[self.type_id, P_WID]
@@ -722,6 +722,15 @@ class GroundVehicles:
         index into the given array. The model still applies its dynamic
         limits (turn radius, lateral acceleration, slope) to valid commands.
         """
+        idx, v, r = self.check_controls(speed_mps, yaw_rate_dps, index)
+        if v is not None:
+            self.speed_cmd_mps[idx] = v
+        if r is not None:
+            self.yaw_rate_cmd_dps[idx] = r
+
+    def check_controls(self, speed_mps=None, yaw_rate_dps=None, index=None):
+        """The checks of :meth:`set_controls`, applying nothing: (rows, speeds or None,
+        rates or None) as it would apply them; InvalidArgument as it would raise."""
         if index is None:
             idx = self._all
         else:
@@ -755,10 +764,7 @@ class GroundVehicles:
                 raise InvalidArgument("yaw_rate_dps", f"must be within +-{lim[i]:.3g} deg/s for vehicle "
                                       f"{int(idx[i])} ({self.types[self.type_id[idx[i]]].name})", index=i,
                                       value=float(r[i]))
-        if v is not None:
-            self.speed_cmd_mps[idx] = v
-        if r is not None:
-            self.yaw_rate_cmd_dps[idx] = r
+        return idx, v, r
 
     # -- level of detail --------------------------------------------------------
 

@@ -67,7 +67,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fdm.aircraft import Aircraft, InitialConditions
-from fdm.autopilot import Autopilot, WaypointFollower
+from fdm.autopilot import Autopilot, Targets, WaypointFollower
 from fdm.fleet import Fleet
 from fdm.state import RAW_WIDTH
 from sortie.errors import InvalidArgument, NotFound, SortieError
@@ -129,6 +129,7 @@ class LocalAircraftHost:
         self.fleet = Fleet(terrain)
         self._aircraft: dict[int, Aircraft] = {}  # entity id -> aircraft, in spawn order
         self._pilots: dict[int, object] = {}
+        self._scenario_pilots: dict[int, object] = {}  # WaypointFollower, Targets or None (see spawn)
         self._rows: dict[int, list] = {}  # entity id -> its raw row as of the last tick's end
         self._result = _empty_tick()
 
@@ -162,6 +163,9 @@ class LocalAircraftHost:
         self.fleet.add(ac)
         self._aircraft[entity_id] = ac
         self._pilots[entity_id] = pilot
+        # What a vanished pilot hands back to: the route follower, or the hold's targets as
+        # spawned (a client's autopilot commands replace the pilot's targets, not these).
+        self._scenario_pilots[entity_id] = pilot.targets if isinstance(pilot, Autopilot) else pilot
         return ac.name
 
     def spawn_many(self, specs: list) -> list:
@@ -180,6 +184,7 @@ class LocalAircraftHost:
         self.fleet.remove(self._get(entity_id))
         del self._aircraft[entity_id]
         del self._pilots[entity_id]
+        del self._scenario_pilots[entity_id]
         self._rows.pop(entity_id, None)
 
     def stick(self, entity_id: int, values: dict) -> None:
@@ -205,9 +210,20 @@ class LocalAircraftHost:
         pilot.set_targets(targets.get("heading_deg"), targets.get("alt_msl_m"), targets.get("speed_mps"))
 
     def hand_to_autopilot(self, entity_id: int) -> None:
-        """An aircraft left by its pilot holds its present heading, altitude and speed
-        (no change when it already has an autopilot or has crashed)."""
-        if self._pilots.get(entity_id) is None and not self._get(entity_id).crashed:
+        """An aircraft left by its pilot returns to its scenario autopilot: its route, from
+        the waypoint it was making for when the pilot took it, or its scenario hold; it holds
+        its present heading, altitude and speed when it had neither or its route is flown.
+        No change when it already has an autopilot or has crashed."""
+        ac = self._get(entity_id)
+        if self._pilots.get(entity_id) is not None or ac.crashed:
+            return
+        spawned = self._scenario_pilots.get(entity_id)
+        if isinstance(spawned, WaypointFollower) and not spawned.done:
+            self._pilots[entity_id] = WaypointFollower(ac, spawned.waypoints[spawned.active:], spawned.speed_mps,
+                                                       spawned.capture_radius_m)
+        elif isinstance(spawned, Targets):
+            self._pilots[entity_id] = Autopilot(ac, spawned)
+        else:
             self._hold_present(entity_id)
 
     def crash(self, entity_id: int, t: float, lat: float, lon: float, alt_m: float, reason: str) -> None:

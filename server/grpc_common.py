@@ -59,11 +59,28 @@ def channel_options() -> list[tuple[str, int]]:
     ]
 
 
+# HTTP/2 keepalive from servers: a PING on each connection with calls in flight every
+# KEEPALIVE_TIME_MS, and the connection closed when one is not answered within
+# KEEPALIVE_TIMEOUT_MS. A client process that is frozen (stopped, hung) or cut off without a
+# FIN keeps its TCP connection open, and its streams with it; without pings its session
+# would never count as vanished (gRPC's defaults send none from servers for two hours). The
+# ping timeout is gRPC's own option too (60 s by default, whatever the keepalive timeout),
+# and pings go on while no data is sent (by default gRPC stops after two).
+KEEPALIVE_TIME_MS = 5_000
+KEEPALIVE_TIMEOUT_MS = 5_000
+
+
 def server_options() -> list[tuple[str, int]]:
-    """Options for servers: channel_options, and no SO_REUSEPORT (gRPC sets it by
-    default on Linux, so a second server on a port in use would bind silently and
-    share the traffic instead of failing at start)."""
-    return channel_options() + [("grpc.so_reuseport", 0)]
+    """Options for servers: channel_options, keepalive pings (KEEPALIVE_TIME_MS), and no
+    SO_REUSEPORT (gRPC sets it by default on Linux, so a second server on a port in use
+    would bind silently and share the traffic instead of failing at start)."""
+    return channel_options() + [
+        ("grpc.so_reuseport", 0),
+        ("grpc.keepalive_time_ms", KEEPALIVE_TIME_MS),
+        ("grpc.keepalive_timeout_ms", KEEPALIVE_TIMEOUT_MS),
+        ("grpc.http2.ping_timeout_ms", KEEPALIVE_TIMEOUT_MS),
+        ("grpc.http2.max_pings_without_data", 0),
+    ]
 
 
 # --- wire codec ------------------------------------------------------------------------------

@@ -23,7 +23,8 @@ Schema (``*`` required; everything else has the default shown)::
     world_rate_hz = 30         integer, fdm_rate_hz must be a whole multiple of it (a world
                                tick is fdm_rate_hz / world_rate_hz FDM steps)
     network_rate_hz = 20       (0, world_rate_hz]; state streamed to clients
-    clock = "realtime"         "realtime" | "fast" | "paused" (starts frozen, resumes in real time)
+    clock = "realtime"         "realtime" | "fast" | "paused" (starts frozen; resumes in real time
+                               on SIGUSR1 to `sortie server`, SIGUSR2 pauses any clock)
     time_scale                 simulated seconds per wall second: 1.0 (and only 1.0) for
                                realtime and paused; for fast default 10.0, within (1, 1000]
     duration_s                 optional end of the exercise, (0, 7 days]; absent: until stopped

@@ -9,18 +9,23 @@ Every sortie is recorded by default, into ``recordings/<exercise>-<UTC time>.sor
 ``sortie resim``, ``sortie export acmi``).
 
 Runs until SIGTERM/SIGINT (graceful: NOT_SERVING, streams closed, in-flight
-calls get --grace-s) or until the scenario's (or --duration's) end.
+calls get --grace-s) or until the scenario's (or --duration's) end. SIGUSR1 runs
+the world clock (a "paused" exercise resumes in real time), SIGUSR2 pauses it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import math
 import os
 import re
+import signal
 import sys
 import time
 from pathlib import Path
 
 from server.grpc_common import DEFAULT_GRACE_S, wait_for_signal
+from server.scenario import DURATION_MAX_S, TIME_SCALE_MAX
 from server.sim_server import CLOCKS
 from sortie.errors import InvalidArgument
 
@@ -59,6 +64,28 @@ def add_parser(sub) -> None:
                    help="serve Prometheus metrics on http://HOST:N/metrics (tick time, sessions, entities, "
                         "bytes sent; see docs/DEPLOYMENT.md); 0 picks a free port")
     p.set_defaults(func=server_command)
+
+
+@contextlib.contextmanager
+def clock_signals(server, clock: str):
+    """While serving, SIGUSR1 runs the world clock (a "paused" exercise resumes in real time,
+    others in their own clock) and SIGUSR2 pauses it: an operator's control of the clock
+    (`kill -USR1 PID`), as the scenario's clock = "paused" promises."""
+    running = "realtime" if clock == "paused" else clock
+
+    def run(signum, frame):
+        server.set_clock(running)
+
+    def pause(signum, frame):
+        server.set_clock("paused")
+
+    previous = {signal.SIGUSR1: signal.signal(signal.SIGUSR1, run),
+                signal.SIGUSR2: signal.signal(signal.SIGUSR2, pause)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def aircraft_workers(value: str) -> int:
@@ -111,9 +138,13 @@ def server_command(args) -> int:
     config = server_config(scenario, desc)
     if args.clock:
         config.clock = args.clock
-    if args.time_scale:
+    if args.time_scale is not None:
+        if not (math.isfinite(args.time_scale) and 0.0 < args.time_scale <= TIME_SCALE_MAX):
+            raise InvalidArgument("time_scale", f"must be within (0, {TIME_SCALE_MAX:g}]", value=args.time_scale)
         config.time_scale = args.time_scale
     if args.duration is not None:
+        if not (math.isfinite(args.duration) and 0.0 < args.duration <= DURATION_MAX_S):
+            raise InvalidArgument("duration", f"must be within (0, {DURATION_MAX_S:g}] s", value=args.duration)
         config.duration_s = args.duration
     try:
         server = SimulationServer(world, config, f"{args.host}:{args.port}", recorder=recorder)
@@ -134,7 +165,8 @@ def server_command(args) -> int:
         print(f"metrics on http://{metrics.address}/metrics", flush=True)
     if recorder is not None:
         print(f"recording to {path}", flush=True)
-    wait_for_signal(server.finished)
+    with clock_signals(server, config.clock):
+        wait_for_signal(server.finished)
     server.stop(args.grace_s)
     world.close()
     if metrics is not None:

@@ -312,6 +312,7 @@ def build_world(scenario, terrain, host=None) -> World:
     its aircraft on ``host`` (see :func:`aircraft_host`; in process by default)."""
 
     ex = scenario.exercise
+    _check_ground_references(scenario, terrain)
     world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m, host)
     convoy_of = {m: c for c in scenario.convoys for m in c.members}
     done = set()
@@ -342,6 +343,29 @@ def build_world(scenario, terrain, host=None) -> World:
             raise ScenarioError(f"agents[{i}]", f"{a.name!r} ({a.type}) cannot start: {exc}") from exc
         done.add(a.name)
     return world
+
+
+def _check_ground_references(scenario, terrain) -> None:
+    """Agents placed by the ground under them need terrain data there: an aircraft on its
+    wheels or at an altitude above ground, a static without an altitude (ground vehicles
+    are checked by the vehicle model). ScenarioError naming the agent where there is none,
+    instead of a silent sea level."""
+    from terrain.raster import STATUS_OUTSIDE
+
+    needs = [(i, a) for i, a in enumerate(scenario.agents)
+             if (a.kind == "aircraft" and (a.on_ground or a.alt_ref == "agl"))
+             or (a.kind == "static" and a.alt_m is None)]
+    if not needs:
+        return
+    status = np.asarray(terrain.heights(np.array([a.lat_deg for _, a in needs], float),
+                                        np.array([a.lon_deg for _, a in needs], float)).status)
+    for (i, a), st in zip(needs, status):
+        if st == STATUS_OUTSIDE:
+            what = ("on the ground" if a.on_ground else "at an altitude above ground") if a.kind == "aircraft" \
+                else "on the ground (no alt_m)"
+            raise ScenarioError(f"agents[{i}]", f"{a.name!r} is placed {what} outside the terrain: no terrain data "
+                                                f"at ({a.lat_deg}, {a.lon_deg}); move it onto the terrain or give an "
+                                                f"altitude above mean sea level")
 
 
 def _aircraft_spec(a, on_vanish: str) -> dict:

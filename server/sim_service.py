@@ -100,7 +100,7 @@ class Sessions:
                 limit = self.params_of(None, "observer").aoi_radius_m
                 if not (math.isfinite(radius) and 0.0 < radius <= limit):
                     raise InvalidArgument("observer_radius_m", f"must be in (0, {limit:g}] m", value=radius)
-                s.observer_ecef = np.asarray(geodetic_to_ecef(lat, lon, 0.0), float).reshape(3)
+                s.observer_ecef = self._ground_point(lat, lon)
                 s.radius_m = float(radius)
             elif role == pb.ROLE_GATEWAY:  # sees everything: an infinite area of interest
                 s.observer_ecef = np.zeros(3)
@@ -113,6 +113,16 @@ class Sessions:
             self._by_token[token] = s
         self.world.emit("join", s.agent_id, client=name, role=pb.Role.Name(role))
         return s
+
+    def _ground_point(self, lat: float, lon: float) -> np.ndarray:
+        """ECEF of the ground at (lat, lon): an observer stands on the terrain (its MSL height
+        plus the world's geoid undulation; the sea where there is no terrain), so a radius
+        smaller than the terrain's height still holds what is around it."""
+        terrain = getattr(self.world, "terrain", None)  # a replay has none: mean sea level
+        h = math.nan if terrain is None else float(np.asarray(
+            terrain.heights(np.array([lat], float), np.array([lon], float)).height_msl_m)[0])
+        h = (0.0 if h != h else h) + self.world.geoid_undulation_m
+        return np.asarray(geodetic_to_ecef(lat, lon, h), float).reshape(3)
 
     def _pick_agent(self, role: int, agent_name: str):
         kinds = {pb.ROLE_PILOT: (AIRCRAFT,), pb.ROLE_DRIVER: (GROUND,), pb.ROLE_BOT: (AIRCRAFT, GROUND)}[role]

@@ -202,6 +202,7 @@ class World(EventLog):
         self._layout_cache = None
         self.ground: GroundVehicles | None = None
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
+        self._scenario_routes: dict[int, dict] = {}  # the route spec each ground agent spawned on
         self._followers = FollowerSet([])  # a RouteFollower/Convoy per route, rebuilt when vehicles go
         self._followed: set = set()  # entity ids on a route
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
@@ -320,8 +321,9 @@ class World(EventLog):
                 self._register(e)
                 out.append(e)
             if route is not None:
-                self.routes.append(({"route": [tuple(p) for p in route], "cruise_mps": cruise_mps,
-                                     "spacing_m": spacing_m}, [e.id for e in out]))
+                spec = {"route": [tuple(p) for p in route], "cruise_mps": cruise_mps, "spacing_m": spacing_m}
+                self.routes.append((spec, [e.id for e in out]))
+                self._scenario_routes.update((e.id, spec) for e in out)
                 self._rebuild_followers()
             for e, la, lo in zip(out, np.atleast_1d(lat), np.atleast_1d(lon)):
                 self._emit(WorldEvent(self.time_s, "spawn", e.id, float(la), float(lo), math.nan,
@@ -425,6 +427,7 @@ class World(EventLog):
                 self.ground.remove([e.ground_id])
                 self.routes = [(spec, [i for i in ids if i != entity_id]) for spec, ids in self.routes]
                 self.routes = [(spec, ids) for spec, ids in self.routes if ids]
+                self._scenario_routes.pop(entity_id, None)
                 self._rebuild_followers()
             self._emit(WorldEvent(self.time_s, "remove", entity_id, detail={"name": e.name, "reason": reason}))
 
@@ -473,6 +476,25 @@ class World(EventLog):
                 return
             if e.kind == AIRCRAFT:
                 self.air.hand_to_autopilot(entity_id)
+            elif e.kind == GROUND and not e.external_id:
+                self._resume_ground(e)
+
+    def _resume_ground(self, e: Entity) -> None:
+        """A ground vehicle left by its driver returns to its scenario route (alone: a convoy
+        does not wait for it), or holds its present heading at its present forward speed."""
+        if e.id in self._followed:  # its driver never took it off its route
+            return
+        self._ground_heading_hold.pop(e.id, None)
+        self._hold_version += 1
+        spec = self._scenario_routes.get(e.id)
+        if spec is not None:
+            self.routes.append((spec, [e.id]))
+            self._rebuild_followers()
+            return
+        i = self.ground.index_of([e.ground_id])[0]
+        speed = min(max(float(self.ground.speed_mps[i]), 0.0), float(self.ground.speed_limits_mps[1][i]))
+        self._ground_heading_hold[e.id] = {"heading_deg": float(self.ground.heading_deg[i]) % 360.0,
+                                           "speed_mps": speed}
 
     def command(self, entity_id: int, kind: str, values: dict) -> None:
         """Validate a command now (InvalidArgument naming the field; nothing kept) and
@@ -493,14 +515,7 @@ class World(EventLog):
         elif kind == "autopilot":
             if e.kind == STATIC:
                 raise InvalidArgument("autopilot", f"{e.name} is static")
-            for k, v in values.items():
-                if not (isinstance(v, (int, float)) and math.isfinite(v)):
-                    raise InvalidArgument(f"autopilot.{k}", "must be a finite number", value=v)
-            if values.get("speed_mps", 0.0) < 0.0 or (e.kind == AIRCRAFT and values.get("speed_mps", 1.0) <= 0.0):
-                raise InvalidArgument("autopilot.speed_mps", "must be > 0 for aircraft, >= 0 for ground vehicles",
-                                      value=values["speed_mps"])
-            if e.kind == GROUND and "alt_msl_m" in values:
-                raise InvalidArgument("autopilot.alt_msl_m", "ground vehicles have no altitude to hold")
+            self._check_autopilot(e, values)
         elif kind == "drive":
             if e.kind != GROUND:
                 raise InvalidArgument("drive", f"only ground vehicles take drive commands; {e.name} is "
@@ -509,11 +524,47 @@ class World(EventLog):
                 v = values.get(k, 0.0)
                 if not (isinstance(v, (int, float)) and math.isfinite(v)):
                     raise InvalidArgument(f"drive.{k}", "must be a finite number", value=v)
+            self._check_ground_command(e, "drive", values.get("speed_mps", 0.0), values.get("yaw_rate_dps", 0.0))
         else:
             raise InvalidArgument("command", 'must be "stick", "autopilot" or "drive"', value=kind)
         with self._lock:
             self._pending[entity_id] = (kind, values)
             self._journal("command", entity_id, command=kind, values=values)
+
+    def _check_autopilot(self, e: Entity, values: dict) -> None:
+        """An autopilot command's targets, within the scenario's own bounds for them
+        (server.scenario: heading [0, 360), altitude [ALT_MSL_MIN_M, ALT_MAX_M], speed
+        (0, SPEED_MAX_MPS]); a ground vehicle's speed within its type's (a value the
+        vehicle model refuses would otherwise stop the world at the next tick)."""
+        from server.scenario import ALT_MAX_M, ALT_MSL_MIN_M, SPEED_MAX_MPS
+
+        for k, v in values.items():
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise InvalidArgument(f"autopilot.{k}", "must be a finite number", value=v)
+        heading, alt, speed = values.get("heading_deg"), values.get("alt_msl_m"), values.get("speed_mps")
+        if heading is not None and not 0.0 <= heading < 360.0:
+            raise InvalidArgument("autopilot.heading_deg", "must be within [0, 360) degrees true", value=heading)
+        if speed is not None and (speed < 0.0 or (e.kind == AIRCRAFT and speed <= 0.0) or speed > SPEED_MAX_MPS):
+            raise InvalidArgument("autopilot.speed_mps", f"must be within (0, {SPEED_MAX_MPS:g}] m/s for aircraft, "
+                                  "[0, the type's top speed] for ground vehicles", value=speed)
+        if e.kind == GROUND:
+            if alt is not None:
+                raise InvalidArgument("autopilot.alt_msl_m", "ground vehicles have no altitude to hold")
+            if speed is not None:
+                self._check_ground_command(e, "autopilot", speed, None)
+        elif alt is not None and not ALT_MSL_MIN_M <= alt <= ALT_MAX_M:
+            raise InvalidArgument("autopilot.alt_msl_m", f"must be within [{ALT_MSL_MIN_M:g}, {ALT_MAX_M:g}] m MSL",
+                                  value=alt)
+
+    def _check_ground_command(self, e: Entity, command: str, speed_mps, yaw_rate_dps) -> None:
+        """The vehicle model's own checks of a speed/heading-rate command (its type's limits),
+        made now, with the command's field named; nothing is applied."""
+        with self._lock:
+            idx = self.ground.index_of([e.ground_id])
+            try:
+                self.ground.check_controls(speed_mps, yaw_rate_dps, index=idx)
+            except InvalidArgument as exc:
+                raise InvalidArgument(f"{command}.{exc.field}", exc.message, value=exc.value) from None
 
     def aircraft_controls(self, entity_id: int):
         """An aircraft's present controls (fdm.aircraft.Controls)."""
