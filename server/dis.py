@@ -602,6 +602,20 @@ def external_id(entity_id) -> str:
     return "dis:" + ".".join(str(int(x)) for x in entity_id)
 
 
+def unique_name(name: str, xid: str, taken) -> str:
+    """A world name for the DIS entity ``xid`` ("dis:<site>.<app>.<entity>") whose marking gives
+    ``name``, not in ``taken`` (the names of every other entity): DIS markings need not be
+    unique (many entities carry the same or none) while the world's names are. The marking
+    when free, else the marking and the entity id ("EXT1 900.1.2"), else the external id."""
+    for candidate in (name, f"{name} {xid.removeprefix('dis:')}", xid):
+        if candidate not in taken:
+            return candidate
+    n = 2
+    while f"{xid}#{n}" in taken:
+        n += 1
+    return f"{xid}#{n}"
+
+
 def sortie_state(pdu: EntityStatePdu) -> dict:
     """Keyword arguments of ``ExternalStream.update`` for a received PDU: name (the marking,
     or the external id when it has no printable text), kind, type, coalition and the state

@@ -23,7 +23,13 @@ In. PDUs of our exercise from other (site, application) pairs are decoded
 and each Entity State PDU is published into the exercise through the
 session's PublishExternal stream as the external entity "dis:<site>.<app>.<entity>"
 (name = marking, kind and type from the entity type, coalition from the force,
-world dead reckoning). A remote entity is removed when its PDU says
+world dead reckoning). DIS markings are not unique and world names are: a
+marking another entity already has becomes "<marking> <site>.<app>.<entity>"
+(dis.unique_name). The server ends a PublishExternal stream at the first
+update it refuses; the gateway then opens another, sends the update that met
+the ended stream again, and keeps tracking every remote entity it published
+(they stay in the world under the gateway's session), so one refused entity
+never costs another its update, timeout or removal. A remote entity is removed when its PDU says
 deactivated or after --remote-timeout-s (default 15 s: three missed 5 s
 heartbeats) without a PDU. Other PDU types, other exercises and our own PDUs
 are counted as ignored; malformed ones are counted and logged (at most one
@@ -140,6 +146,7 @@ class DisGateway:
         self._locals: dict[int, _Local] = {}
         self._refused: set[int] = set()
         self._remotes: dict[str, float] = {}  # external id -> wall time of its last PDU
+        self._names: dict[str, str] = {}  # external id -> its (unique) world name
         self._malformed_log = _Throttled()
         self._publish_log = _Throttled()
         self._client = None
@@ -346,17 +353,51 @@ class DisGateway:
         """Add, move (state) or remove (None) a remote entity on the PublishExternal stream."""
         if self._stream is None:
             return
-        try:
-            if state is None:
-                if self._remotes.pop(xid, None) is not None:
-                    self._stream.remove(xid)
-                return
-            self._stream.update(xid, **state)
+        if state is None:
+            self._names.pop(xid, None)
+            if self._remotes.pop(xid, None) is not None:
+                self._on_stream(xid, lambda stream: stream.remove(xid))
+            return
+        name = self._names.get(xid) or dis.unique_name(state["name"], xid, self._taken_names(xid))
+        self._names[xid] = name
+        if self._on_stream(xid, lambda stream: stream.update(xid, **{**state, "name": name})):
             self._remotes[xid] = time.monotonic()
-        except SortieError as exc:  # the server ended the stream: open another one
-            self._publish_log.warn("publishing %s: %s; reopening the stream", xid, exc)
-            self._remotes.clear()
-            self._stream = self._client.external()
+
+    def _on_stream(self, xid: str, call) -> bool:
+        """``call(stream)``; when the server has ended the stream (it refused an earlier update,
+        which its error names), open another and call again there. Whether it was sent."""
+        for _ in range(2):
+            try:
+                call(self._stream)
+                return True
+            except SortieError as exc:
+                self._publish_log.warn("the server ended the external stream (%s): reopened, %s sent again",
+                                       exc, xid)
+                self._reopen_stream()
+        return False
+
+    def _reopen_stream(self) -> None:
+        """A new PublishExternal stream. The remote entities in the world stay tracked (the world
+        keeps them under our session, so their updates, timeouts and removals go on); those it
+        does not show (the refused one, or one not shown yet) are forgotten until their next PDU
+        publishes them again, so that no removal of an entity the world lacks ends the stream."""
+        in_world = self._world_external_ids()
+        for xid in [x for x in self._remotes if x not in in_world]:
+            del self._remotes[xid]
+            self._names.pop(xid, None)
+        self._stream = self._client.external()
+
+    def _world_infos(self) -> list:
+        picture = self._picture
+        return list(picture.infos.values()) if picture is not None else []
+
+    def _world_external_ids(self) -> set:
+        return {info.external_id for info in self._world_infos() if info.external_id}
+
+    def _taken_names(self, xid: str) -> set:
+        """Every world name but ``xid``'s own: the entities the gateway sees and the names it gave."""
+        taken = {info.name for info in self._world_infos() if info.external_id != xid}
+        return taken | {n for x, n in self._names.items() if x != xid}
 
     # -- heartbeats and timeouts ----------------------------------------------------------------
 
@@ -386,6 +427,7 @@ class DisGateway:
         except SortieError as exc:
             log.info("closing the external stream: %s", exc)
         self._remotes.clear()
+        self._names.clear()
         self._stream = None
 
 

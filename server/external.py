@@ -18,6 +18,17 @@ from sortie.errors import InvalidArgument
 
 COALITIONS = ("blue", "red", "neutral")
 MAX_TEXT_CHARS = 64  # external ids, names and types
+# Plausibility bounds, far above anything that moves within 100 km of the surface, so that
+# no real entity is refused and garbage (a float32 1e30 from a DIS sender) never reaches the
+# world's dead reckoning and the recording:
+# - speed 20 km/s: Earth's escape velocity is 11.2 km/s; a ballistic missile re-enters at
+#   about 7 km/s, the fastest air-breathing flight (X-43A, 2004) was about 3.3 km/s.
+MAX_SPEED_MPS = 20_000.0
+# - acceleration 1e4 m/s^2 (about 1,000 g): ten times the ~100 g of the Sprint interceptor,
+#   the hardest-accelerating guided missile fielded; only a shell inside its gun barrel does more.
+MAX_ACCELERATION_MPS2 = 1.0e4
+# - body rate 1e5 rad/s: above a rifle bullet's spin (about 4,000 rev/s, 2.5e4 rad/s).
+MAX_BODY_RATE_RPS = 1.0e5
 
 
 @dataclass(frozen=True)
@@ -44,11 +55,23 @@ def _finite_vector(name: str, values, n: int) -> tuple:
     return tuple(v.tolist())
 
 
+def _bounded_vector(name: str, values, limit: float, unit: str) -> tuple:
+    """A finite 3-vector whose magnitude is at most ``limit`` (InvalidArgument naming it)."""
+    v = _finite_vector(name, values, 3)
+    magnitude = math.sqrt(sum(x * x for x in v))
+    if magnitude > limit:
+        raise InvalidArgument(name, f"magnitude {magnitude:.6g} {unit} is beyond the plausible {limit:g} {unit}",
+                              value=list(v))
+    return v
+
+
 def external_state(t0_s: float, ecef_m, vel_ecef_mps, acc_ecef_mps2, quat_ecef2body, body_rates_rps,
                    algorithm: int) -> ExternalState:
     """A validated :class:`ExternalState` (InvalidArgument naming the field): finite values,
     a position within 100 km of the WGS84 surface band (|r| in [6.25e6, 6.5e6] m), a
-    quaternion of norm 0.5-2 (normalised here), a DIS world-coordinate algorithm (1-5)."""
+    quaternion of norm 0.5-2 (normalised here), a DIS world-coordinate algorithm (1-5), and
+    magnitudes of velocity, acceleration and body rates within MAX_SPEED_MPS,
+    MAX_ACCELERATION_MPS2 and MAX_BODY_RATE_RPS."""
     pos = _finite_vector("state.ecef_m", ecef_m, 3)
     r = math.sqrt(sum(x * x for x in pos))
     if not 6.25e6 <= r <= 6.5e6:
@@ -59,7 +82,10 @@ def external_state(t0_s: float, ecef_m, vel_ecef_mps, acc_ecef_mps2, quat_ecef2b
     if not 0.5 <= norm <= 2.0:
         raise InvalidArgument("state.orientation_wxyz", "must be a unit quaternion", value=q.tolist())
     code = int(check_algorithms(int(algorithm), 1)[0])
-    return ExternalState(float(t0_s), pos, _finite_vector("state.velocity_ecef_mps", vel_ecef_mps, 3),
-                         _finite_vector("state.acceleration_ecef_mps2", acc_ecef_mps2, 3),
-                         tuple((q / norm).tolist()), _finite_vector("state.angular_velocity_body_rps",
-                                                                    body_rates_rps, 3), code)
+    return ExternalState(float(t0_s), pos,
+                         _bounded_vector("state.velocity_ecef_mps", vel_ecef_mps, MAX_SPEED_MPS, "m/s"),
+                         _bounded_vector("state.acceleration_ecef_mps2", acc_ecef_mps2, MAX_ACCELERATION_MPS2,
+                                         "m/s^2"),
+                         tuple((q / norm).tolist()),
+                         _bounded_vector("state.angular_velocity_body_rps", body_rates_rps, MAX_BODY_RATE_RPS,
+                                         "rad/s"), code)

@@ -277,8 +277,12 @@ def encode_chunk(c: _OpenChunk, steps: codec.Steps, rate_hz: float) -> tuple[rpb
             present[t, cols] = True
             states[t, cols] = m
         states = codec.fill_absent(states, present)
-    body = rpb.ChunkBody(entity_ids=ids.tolist(), states=codec.encode_states(states, steps, rate_hz),
-                         digests=digests, inputs=c.inputs, events=c.events)
+    coded, clamped = codec.encode_states_counted(states, steps, rate_hz)
+    if clamped:  # recorded at the limit, which readers flag (Recording.check); the recording goes on
+        logger.warning("%d recorded values of the chunk from tick %d are beyond the recordable range "
+                       "(%d quantisation steps) and were clamped to it", clamped,
+                       c.snapshots[0].tick, codec.QUANTUM_LIMIT)
+    body = rpb.ChunkBody(entity_ids=ids.tolist(), states=coded, digests=digests, inputs=c.inputs, events=c.events)
     if not present.all():
         body.present = np.packbits(present.reshape(-1)).tobytes()
     s0, s1 = (c.snapshots[0], c.snapshots[-1]) if t_count else (None, None)

@@ -25,7 +25,11 @@ file as corrupt at that offset.
 from __future__ import annotations
 
 import bisect
+import hashlib
+import math
+import os
 import struct
+import threading
 import zlib
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -35,7 +39,7 @@ import numpy as np
 import zstandard
 
 from server import recording_codec as codec
-from sortie.errors import DataFormatError, NotFound
+from sortie.errors import DataFormatError, InvalidArgument, NotFound
 from sortie.v1 import recording_pb2 as rpb
 
 FORMAT_VERSION = 1
@@ -134,6 +138,22 @@ class RecordingWriter:
 
 # -- reading --------------------------------------------------------------------------------------
 
+NO_FOOTER = "no footer (the recording was not closed): chunks found by walking the file"
+
+
+def scenario_problems(header: rpb.RecordingHeader) -> list[str]:
+    """What is wrong with the header's scenario: its text against the SHA-256 the recorder
+    stored with it (the header has no CRC of its own; the hash is its check). A header
+    without a stored hash is not checked."""
+    if not header.scenario_sha256:
+        return []
+    actual = hashlib.sha256(header.scenario_toml.encode("utf-8")).hexdigest()
+    if actual == header.scenario_sha256:
+        return []
+    return [f"scenario SHA-256 mismatch: the header's scenario text is damaged (stored "
+            f"{header.scenario_sha256[:16]}..., the text's {actual[:16]}...)"]
+
+
 @dataclass
 class Chunk:
     """One decoded chunk: ``q`` (ticks, entities, 16) quantised states, ``present``
@@ -175,6 +195,7 @@ class CheckReport:
     inputs: int
     problems: list = field(default_factory=list)  # what is wrong, with offsets
     readable_bytes: int = 0  # the file up to the end of the last good chunk (or the footer)
+    damaged_chunks: int = 0  # indexed chunks that do not decode (counted with decode only)
 
     @property
     def ok(self) -> bool:
@@ -202,7 +223,9 @@ class Recording:
 
     def _open(self) -> None:
         self.size = self.path.stat().st_size
+        self.problems: list[str] = []
         self.header = self._read_header()
+        self.problems += scenario_problems(self.header)
         if self.header.format_version != FORMAT_VERSION:
             raise DataFormatError(f"{self.path}: format version {self.header.format_version}; this build reads "
                                   f"version {FORMAT_VERSION}")
@@ -211,13 +234,15 @@ class Recording:
         if not self.rate_hz > 0:
             raise DataFormatError(f"{self.path}: header world_rate_hz must be > 0 (got {self.rate_hz})")
         self.dt = 1.0 / self.rate_hz
-        self.problems: list[str] = []
         self.index, self.recovered = self._read_footer(), False
         if self.index is None:
             self.index, self.recovered = self._walk(), True
+        if not self.index.ticks:
+            self.problems.append("no chunks: the recording holds no ticks (nothing replays)")
         self._first_ticks = list(self.index.chunk_first_tick)
         self.entities = {e.entity_id: e for e in self.index.entities}
         self._cache: OrderedDict[int, Chunk] = OrderedDict()
+        self._cache_lock = threading.Lock()  # the replay's clock and control threads both read chunks
         self._zstd = zstandard.ZstdDecompressor()
 
     def close(self) -> None:
@@ -232,8 +257,16 @@ class Recording:
     # -- structure ------------------------------------------------------------------------------
 
     def _read_at(self, offset: int, n: int) -> bytes:
-        self._f.seek(offset)
-        return self._f.read(n)
+        """n bytes at ``offset`` (fewer at the end of the file); pread: no shared file position,
+        so threads may read at once."""
+        out = []
+        while n > 0:
+            data = os.pread(self._f.fileno(), n, offset)
+            if not data:
+                break
+            out.append(data)
+            offset, n = offset + len(data), n - len(data)
+        return b"".join(out)
 
     def _read_header(self) -> rpb.RecordingHeader:
         start = self._read_at(0, 12)
@@ -251,10 +284,11 @@ class Recording:
 
     def _read_footer(self) -> rpb.RecordingIndex | None:
         if self.size < self._data_start + FRAME.size + 16:
+            self.problems.append(NO_FOOTER)
             return None
         tail = self._read_at(self.size - 16, 16)
         if tail[8:] != END_MAGIC:
-            self.problems.append("no footer (the recording was not closed): chunks found by walking the file")
+            self.problems.append(NO_FOOTER)
             return None
         (offset,) = struct.unpack("<Q", tail[:8])
         frame = self._read_at(offset, FRAME.size) if offset < self.size else b""
@@ -262,7 +296,12 @@ class Recording:
             magic, n, _, crc = FRAME.unpack(frame)
             data = self._read_at(offset + FRAME.size, n) if magic == INDEX_MAGIC and n <= MAX_HEAD_BYTES else b""
             if len(data) == n and zlib.crc32(data) == crc and offset + FRAME.size + n + 16 == self.size:
-                index = rpb.RecordingIndex.FromString(data)
+                try:
+                    index = rpb.RecordingIndex.FromString(data)
+                except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError: CRC-valid, not an index
+                    self.problems.append(f"damaged footer at offset {offset}: its index does not decode ({exc}); "
+                                         "chunks found by walking the file")
+                    return None
                 self._index_end = offset
                 return index
         self.problems.append(f"damaged footer at offset {offset}: chunks found by walking the file")
@@ -293,7 +332,13 @@ class Recording:
             if zlib.crc32(data) != crc:
                 self.problems.append(f"chunk at offset {offset} fails its CRC; {self.size - offset} bytes skipped")
                 break
-            _add_to_index(index, rpb.ChunkHead.FromString(data[:nh]), offset, entities)
+            try:
+                head = rpb.ChunkHead.FromString(data[:nh])
+            except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError: CRC-valid, not a chunk head
+                self.problems.append(f"chunk at offset {offset} has a head that does not decode ({exc}); "
+                                     f"{self.size - offset} bytes skipped")
+                break
+            _add_to_index(index, head, offset, entities)
             offset += FRAME.size + nh + nb
         self._index_end = offset
         index.entities.extend(entities[i] for i in sorted(entities))
@@ -362,9 +407,11 @@ class Recording:
 
     def chunk(self, k: int) -> Chunk:
         """The k-th chunk decoded (cached); DataFormatError naming its offset if damaged."""
-        if k in self._cache:
-            self._cache.move_to_end(k)
-            return self._cache[k]
+        with self._cache_lock:
+            c = self._cache.get(k)
+            if c is not None:
+                self._cache.move_to_end(k)
+                return c
         head, body = self.chunk_body(k)
         where = f"{self.path.name}: chunk {k} at offset {self.index.chunk_offset[k]}"
         try:
@@ -384,9 +431,10 @@ class Recording:
         except Exception as exc:  # noqa: BLE001 - numpy errors on malformed fields
             raise DataFormatError(f"{where}: cannot be decoded: {exc}") from None
         c = Chunk(head.first_tick, t_count, ids, present, q, digests, list(body.inputs), list(body.events))
-        self._cache[k] = c
-        if len(self._cache) > DECODED_CHUNK_CACHE:
-            self._cache.popitem(last=False)
+        with self._cache_lock:
+            self._cache[k] = c
+            if len(self._cache) > DECODED_CHUNK_CACHE:
+                self._cache.popitem(last=False)
         return c
 
     def chunk_of_tick(self, tick: int) -> int:
@@ -396,8 +444,14 @@ class Recording:
         return max(0, bisect.bisect_right(self._first_ticks, tick) - 1)
 
     def tick_at(self, time_s: float) -> int:
-        """The recorded tick at or just before world time ``time_s`` (clamped). World time
-        is exactly tick / world rate (server/world.py), so frames carry no time of their own."""
+        """The recorded tick at or just before world time ``time_s`` (clamped; +-inf are the
+        ends, NaN is an InvalidArgument). World time is exactly tick / world rate
+        (server/world.py), so frames carry no time of their own."""
+        time_s = float(time_s)
+        if math.isnan(time_s):
+            raise InvalidArgument("time_s", "must be a number", value=time_s)
+        if math.isinf(time_s):
+            return self.first_tick if time_s < 0 else self.last_tick
         tick = int(np.floor(time_s * self.rate_hz + 1e-6))
         return min(max(tick, self.first_tick), self.last_tick)
 
@@ -432,17 +486,31 @@ class Recording:
 
     # -- checking -------------------------------------------------------------------------------
 
+    def _range_problems(self, k: int, c: Chunk) -> list[str]:
+        """The k-th chunk's states recorded at the codec's limit (clamped when recorded)."""
+        bad = codec.out_of_range(c.q) & c.present[:, :, None]
+        if not bad.any():
+            return []
+        t, e, f = (int(x[0]) for x in np.nonzero(bad))
+        return [f"chunk {k} at offset {self.index.chunk_offset[k]}: {int(bad.sum())} state values beyond the "
+                f"recordable range (clamped to {codec.QUANTUM_LIMIT} steps when recorded), the first: entity "
+                f"{int(c.entity_ids[e])} field {f} at tick {c.first_tick + t}"]
+
     def check(self, decode: bool = True) -> CheckReport:
         """What the file holds and what is wrong with it; with ``decode`` every chunk is
         decoded (and its CRC checked), not only walked."""
-        problems = list(self.problems)
+        problems, damaged = list(self.problems), 0
         if decode:
             for k in range(self.chunk_count):
                 try:
-                    self.chunk(k)
+                    c = self.chunk(k)
                 except DataFormatError as exc:
-                    problems.append(str(exc))
+                    damaged += 1
+                    if f"offset {self.index.chunk_offset[k]}" not in " ".join(self.problems):  # not twice
+                        problems.append(str(exc))
+                    continue
+                problems += self._range_problems(k, c)
         end = getattr(self, "_index_end", self._data_start)
         return CheckReport(str(self.path), self.size, not self.recovered, self.chunk_count, self.index.ticks,
                            self.first_time_s, self.last_time_s, len(self.entities), self.index.event_count,
-                           self.index.input_count, problems, end)
+                           self.index.input_count, problems, end, damaged)

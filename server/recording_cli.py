@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections import Counter
 
@@ -61,14 +62,32 @@ def _open(path):
     return Recording(path)
 
 
+def finite_option(option: str, value: float | None) -> float | None:
+    """``value`` of a command-line ``option`` (None: not given), refused unless finite."""
+    if value is not None and not math.isfinite(value):
+        from sortie.errors import InvalidArgument
+
+        raise InvalidArgument(option, "must be a finite number of seconds", value=value)
+    return value
+
+
 def summary(rec) -> dict:
+    """What the recording holds; a chunk that does not read is left out and listed in
+    ``problems`` (with its offset), the others still counted."""
+    from sortie.errors import DataFormatError
+
     kinds = Counter({1: "aircraft", 2: "ground", 3: "static"}.get(e.kind, "?") for e in rec.entities.values())
-    events = Counter(r.event.kind for r in rec.events())
+    events, damaged = Counter(), []
     # Entity seconds from the chunk heads (entities x ticks of each chunk; an entity that
-    # comes or goes within a chunk counts for the whole chunk): nothing decompressed.
+    # comes or goes within a chunk counts for the whole chunk).
     entity_s = 0.0
     for k in range(rec.chunk_count):
-        head = rec.chunk_head(k)
+        try:
+            head, body = rec.chunk_body(k)
+        except DataFormatError as exc:
+            damaged.append(str(exc))
+            continue
+        events.update(r.event.kind for r in body.events)
         entity_s += head.entity_count * head.ticks * rec.dt
     h = rec.header
     return {"file": str(rec.path), "size_bytes": rec.size, "exercise": h.exercise_name, "start_time": h.start_time,
@@ -77,7 +96,7 @@ def summary(rec) -> dict:
             "entities": len(rec.entities), "entities_by_kind": dict(kinds), "events": rec.index.event_count,
             "events_by_kind": dict(events), "inputs": rec.index.input_count,
             "bytes_per_entity_second": rec.size / entity_s if entity_s else None,
-            "footer": not rec.recovered, "problems": list(rec.problems), "build_id": h.build_id,
+            "footer": not rec.recovered, "problems": list(rec.problems) + damaged, "build_id": h.build_id,
             "sortie_version": h.sortie_version, "jsbsim_version": h.jsbsim_version,
             "terrain": h.terrain.description}
 
@@ -98,6 +117,8 @@ def info_command(args) -> int:
           f"  terrain {s['terrain']}; build {s['build_id']} (sortie {s['sortie_version']}, "
           f"jsbsim {s['jsbsim_version']})\n"
           f"  footer {'yes' if s['footer'] else 'no (recovered by walking the chunks)'}")
+    for p in s["problems"]:
+        print(f"  problem: {p}")
     return 0
 
 
@@ -105,8 +126,9 @@ def check_command(args) -> int:
     with _open(args.file) as rec:
         report = rec.check(decode=True)
     print(f"{report.path}: {report.size_bytes:,} bytes, footer {'yes' if report.footer else 'no'}\n"
-          f"  {report.chunks} chunks replay: {report.ticks} ticks, world time {report.first_time_s:.2f} .. "
-          f"{report.last_time_s:.2f} s; {report.entities} entities, {report.events} events, "
+          f"  {report.chunks - report.damaged_chunks} of {report.chunks} chunks replay: {report.ticks} ticks, "
+          f"world time {report.first_time_s:.2f} .. {report.last_time_s:.2f} s; {report.entities} entities, "
+          f"{report.events} events, "
           f"{report.inputs} inputs\n  readable up to byte {report.readable_bytes:,}")
     for p in report.problems:
         print(f"  problem: {p}")
@@ -118,6 +140,8 @@ def resim_command(args) -> int:
     from server.resim import resimulate
     from server.sim_cli import aircraft_workers
 
+    finite_option("--until", args.until)
+    finite_option("--take-over", args.take_over)
     workers = aircraft_workers(args.aircraft_workers)
     if args.take_over is not None:
         return take_over_command(args, workers)
@@ -125,6 +149,12 @@ def resim_command(args) -> int:
         from sortie.errors import InvalidArgument
 
         raise InvalidArgument("agent", "only with --take-over", value=args.agent)
+    with _open(args.file) as rec:
+        if not rec.index.ticks:  # a server killed before its first chunk: no DIVERGED, nothing ran
+            print(f"{args.file}: nothing to compare: the recording holds no ticks")
+            for p in rec.problems:
+                print(f"  note: {p}")
+            return 1
     from rich.progress import Progress
 
     with Progress(transient=True) as bar:

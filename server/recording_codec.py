@@ -49,6 +49,14 @@ from sortie.errors import DataFormatError
 
 FIELDS = 16
 POS, VEL, ACC, QUAT, RATE = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 13), slice(13, 16)
+# The largest quantised magnitude recorded: 2^52 steps, the last power of two below which
+# float64 holds every integer (IEEE 754 binary64, 52-bit fraction), so x / step rounds to
+# the right integer, and far enough below int64's 2^63 that the residuals' sums and
+# differences (velocity x 2, acceleration x 3 with the default steps) cannot overflow.
+# At the default steps: 4.5e12 m, 4.5e12 m/s, 4.5e13 m/s^2. A state beyond it (NaN too) is
+# recorded as +-QUANTUM_LIMIT, which readers see as out of range (:func:`out_of_range`),
+# instead of int64 conversion's undefined wrap (INT64_MIN for 1e30 m on x86).
+QUANTUM_LIMIT = 1 << 52
 
 
 @dataclass(frozen=True)
@@ -119,8 +127,16 @@ def quantize(states: np.ndarray, steps: Steps = DEFAULT_STEPS) -> np.ndarray:
     """float64 (..., 16) -> int64 multiples of the steps: x times 1/step (exact for the
     default steps, whose inverses are integers; a multiply is half a divide's cost),
     rounded half to even; the coding kernel of :func:`encode_states` computes the same
-    IEEE expression."""
-    return np.rint(states * (1.0 / steps.vector())).astype(np.int64)
+    IEEE expression. Values beyond +-QUANTUM_LIMIT steps (and NaN, as +) are clamped to it."""
+    x = np.rint(states * (1.0 / steps.vector()))
+    x = np.where(np.isnan(x), float(QUANTUM_LIMIT), np.clip(x, -float(QUANTUM_LIMIT), float(QUANTUM_LIMIT)))
+    return x.astype(np.int64)
+
+
+def out_of_range(q: np.ndarray) -> np.ndarray:
+    """Where quantised states (..., 16) int64 sit at +-QUANTUM_LIMIT: the state was beyond what a
+    recording holds and was clamped (bool, the same shape)."""
+    return np.abs(q) >= QUANTUM_LIMIT
 
 
 def dequantize(q: np.ndarray, steps: Steps = DEFAULT_STEPS) -> np.ndarray:
@@ -231,24 +247,36 @@ def encode_states(states: np.ndarray, steps: Steps, rate_hz: float) -> bytes:
     compiled pass that releases the GIL: the recorder's thread codes a chunk while the
     clock thread runs (measured at 500 entities: the numpy path held the GIL for ~10 ms
     a chunk and made the clock's ticks ~10-25 % slower on two cores)."""
+    return encode_states_counted(states, steps, rate_hz)[0]
+
+
+def encode_states_counted(states: np.ndarray, steps: Steps, rate_hz: float) -> tuple[bytes, int]:
+    """(:func:`encode_states`'s bytes, how many values were clamped to +-QUANTUM_LIMIT steps)."""
     t_count, e_count = states.shape[0], states.shape[1]
     kp, ka = _factors(steps, rate_hz)
     q = np.empty((FIELDS, e_count, t_count), np.int64)
     out = np.empty(2 * FIELDS + 8 * FIELDS * e_count * t_count, np.uint8)
-    n = _encode_kernel(np.ascontiguousarray(states, np.float64), 1.0 / steps.vector(), kp, ka, q, out)
-    return out[:n].tobytes()
+    clamped = np.zeros(1, np.int64)
+    n = _encode_kernel(np.ascontiguousarray(states, np.float64), 1.0 / steps.vector(), kp, ka, q, out, clamped)
+    return out[:n].tobytes(), int(clamped[0])
 
 
 @numba.njit(cache=True, nogil=True)
-def _encode_kernel(states, inverse_steps, kp, ka, q, out):
-    """Quantise states (T, E, 16) into q (16, E, T), turn q into its residuals in place
-    (as :func:`residuals`: later ticks first, so each prediction reads quantised values),
-    then write :func:`encode`'s bytes to out; the number written."""
+def _encode_kernel(states, inverse_steps, kp, ka, q, out, clamped):
+    """Quantise states (T, E, 16) into q (16, E, T) (as :func:`quantize`, counting in
+    clamped[0] the values clamped), turn q into its residuals in place (as
+    :func:`residuals`: later ticks first, so each prediction reads quantised values), then
+    write :func:`encode`'s bytes to out; the number written."""
     t_count, e_count = states.shape[0], states.shape[1]
+    limit = np.float64(QUANTUM_LIMIT)
     for e in range(e_count):  # each series' ticks are adjacent in q: write them in order
         for t in range(t_count):
             for f in range(FIELDS):
-                q[f, e, t] = np.int64(np.rint(states[t, e, f] * inverse_steps[f]))
+                x = np.rint(states[t, e, f] * inverse_steps[f])
+                if not -limit <= x <= limit:
+                    x = -limit if x < -limit else limit  # NaN too: above
+                    clamped[0] += 1
+                q[f, e, t] = np.int64(x)
     for e in range(e_count):
         for t in range(t_count - 1, 0, -1):
             for f in range(3):  # position: from the trapezoid of the velocities

@@ -28,6 +28,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import sys
 import threading
 import time
 
@@ -39,7 +40,7 @@ from server.recording import Recording
 from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers, status_of
 from server.streaming import Publisher
 from server.world import Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
-from sortie.errors import InvalidArgument, PermissionDenied
+from sortie.errors import DataFormatError, InvalidArgument, PermissionDenied
 from sortie.v1 import recording_pb2 as rpb
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic
@@ -68,17 +69,29 @@ class ReplayWorld(EventLog):
         self.tick_count = rec.first_tick - 1
         self.time_s = self.tick_count * self.dt
         self.snapshot = _empty_snapshot(self.time_s, self.tick_count)
+        self.damaged: dict[int, str] = {}  # chunk -> why it does not read (each logged once)
+
+    def _damaged(self, k: int, exc: DataFormatError) -> None:
+        if k not in self.damaged:
+            self.damaged[k] = str(exc)
+            logger.warning("replay passes over a damaged chunk: %s", exc)
 
     def show(self, tick: int, events: bool) -> None:
         """Display recorded ``tick``; with ``events``, emit those recorded after the tick
-        shown before it, up to it."""
+        shown before it, up to it (a damaged chunk's events are lost, with a warning).
+        DataFormatError naming the chunk when ``tick``'s own chunk is damaged: nothing changes."""
         rec = self.rec
         f = rec.frame(tick)
         if events and f.tick > self.tick_count:
             # Events after tick k are kept with tick k + 1's chunk (server/recording.py).
             last_chunk = min(rec.chunk_of_tick(f.tick + 1) + 1, rec.chunk_count)
             for k in range(rec.chunk_of_tick(self.tick_count + 1), last_chunk):
-                for r in rec.chunk(k).events:
+                try:
+                    chunk = rec.chunk(k)
+                except DataFormatError as exc:
+                    self._damaged(k, exc)
+                    continue
+                for r in chunk.events:
                     if self.tick_count < r.tick <= f.tick:
                         e = r.event
                         self._append_event(WorldEvent(e.time_s, e.kind, e.entity_id, e.lat_deg, e.lon_deg, e.alt_msl_m,
@@ -141,6 +154,8 @@ class ReplayServer:
         from server.resim import recorded_scenario
         from server.sim_server import ServerConfig, server_config
 
+        if start_s is not None and math.isnan(start_s):
+            raise InvalidArgument("start_s", "must be a number of seconds", value=start_s)
         self.rec = Recording(path)
         try:
             self.config = server_config(recorded_scenario(self.rec), self.rec.header.terrain.description)
@@ -161,6 +176,7 @@ class ReplayServer:
         self._stop = threading.Event()
         self._kick = threading.Event()  # wakes the clock thread after a control
         self.finished = threading.Event()
+        self.error: BaseException | None = None  # what stopped the clock thread, if anything did
         self._thread = threading.Thread(target=self._run, name="replay-clock", daemon=True)
         servicer = functools.partial(SimulationServicer, self.sessions, self.world_info)
         self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
@@ -215,18 +231,29 @@ class ReplayServer:
             elif which == "seek_time_s":
                 if not math.isfinite(msg.seek_time_s):
                     raise InvalidArgument("seek_time_s", "must be a finite number", value=msg.seek_time_s)
-                self._position_s, self._seeked = self._clamp(msg.seek_time_s), True
+                position_s = self._clamp(msg.seek_time_s)
+                self._check_readable(self.rec.tick_at(position_s))
+                self._position_s, self._seeked = position_s, True
             else:
                 n = msg.step_ticks
                 if not 0 < abs(n) <= MAX_STEP_TICKS:
                     raise InvalidArgument("step_ticks", f"must be non-zero, at most {MAX_STEP_TICKS} either way",
                                           value=n)
-                self.playing = False
                 tick = min(max(self.rec.tick_at(self._position_s) + n, self.rec.first_tick), self.rec.last_tick)
+                self._check_readable(tick)
+                self.playing = False
                 self._position_s = tick * self.rec.dt
                 self._seeked = n < 0
             self._wake_clock()
         return self.status()
+
+    def _check_readable(self, tick: int) -> None:
+        """DataFormatError (FAILED_PRECONDITION, naming the chunk) when ``tick``'s chunk is damaged:
+        a seek or step there is refused and the replay stays where it was."""
+        try:
+            self.rec.chunk(self.rec.chunk_of_tick(tick))
+        except DataFormatError as exc:
+            raise DataFormatError(f"cannot show tick {tick} (t = {tick * self.rec.dt:.3f} s): {exc}") from None
 
     def _wake_clock(self) -> None:
         self._last_wall = time.monotonic()
@@ -282,9 +309,26 @@ class ReplayServer:
                 session.reset_visible()
                 session.queue.resnapshot()
         if tick != self.world.tick_count or seeked:
-            self.world.show(tick, events=not seeked)
+            try:
+                self.world.show(tick, events=not seeked)
+            except DataFormatError as exc:
+                self._pass_damaged(tick, exc)
         self.publisher.publish(self.world.snapshot, self.world.infos, self.sessions.watching(),
                                self.speed if self.playing else 0.0)
+
+    def _pass_damaged(self, tick: int, exc: DataFormatError) -> None:
+        """Playback reached ``tick`` in a damaged chunk: go on from the next chunk (the clients'
+        picture starts over there, as after a seek); paused, or with no chunk after it, stay on
+        the picture shown."""
+        k = self.rec.chunk_of_tick(tick)
+        self.world._damaged(k, exc)
+        with self._lock:
+            if self.playing and k + 1 < self.rec.chunk_count:
+                self._position_s = max(self._position_s, self.rec.index.chunk_first_tick[k + 1] * self.rec.dt)
+                self._seeked = True
+                self._kick.set()
+            elif self.playing:
+                self.playing = False
 
     def _run(self) -> None:
         period = 1.0 / self.config.network_rate_hz
@@ -297,7 +341,8 @@ class ReplayServer:
                     next_expire = time.monotonic() + 1.0
                 self._kick.wait(period)
                 self._kick.clear()
-        except Exception:  # noqa: BLE001 - the clock thread must say why it died
+        except Exception as exc:  # noqa: BLE001 - the clock thread must say why it died
+            self.error = exc
             logger.exception("replay clock stopped by an error")
         finally:
             self.finished.set()
@@ -320,11 +365,18 @@ def add_parser(sub) -> None:
 
 
 def replay_command(args) -> int:
+    """Serve until SIGTERM/SIGINT (exit 0), or until the replay clock dies (exit 1: a dead
+    replay is not served)."""
+    if args.start is not None and math.isnan(args.start):
+        raise InvalidArgument("--start", "must be a number of seconds", value=args.start)
     server = ReplayServer(args.file, f"{args.host}:{args.port}", args.speed, not args.paused, args.start)
     server.start()
     r = server.rec
     print(f"sortie replay of {r.path.name} ({r.first_time_s:.1f} .. {r.last_time_s:.1f} s, {len(r.entities)} "
           f"entities) listening on {server.address}", flush=True)
-    wait_for_signal()
+    wait_for_signal(server.finished)
     server.stop()
+    if server.error is not None:
+        print(f"sortie replay: error: the replay clock stopped: {server.error}", file=sys.stderr, flush=True)
+        return 1
     return 0

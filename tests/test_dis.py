@@ -686,3 +686,47 @@ def test_gateway_notices_the_server_going_away(server):
         gw.stop()  # no exception with the server gone, and no long wait
         assert time.monotonic() - t < 5.0
         peer.close()
+
+
+def test_unique_name_keeps_a_free_marking_and_suffixes_a_taken_one():
+    assert dis.unique_name("EXT1", "dis:900.1.2", {"viper1"}) == "EXT1"
+    assert dis.unique_name("EXT1", "dis:900.1.2", {"EXT1"}) == "EXT1 900.1.2"
+    assert dis.unique_name("EXT1", "dis:900.1.2", {"EXT1", "EXT1 900.1.2"}) == "dis:900.1.2"
+    assert dis.unique_name("EXT1", "dis:900.1.2", {"EXT1", "EXT1 900.1.2", "dis:900.1.2"}) == "dis:900.1.2#2"
+
+
+def test_one_refused_dis_entity_never_costs_the_others(server, monkeypatch):
+    """Two DIS entities with one marking both join (unique names). Then the world refuses one
+    (its entity limit, set low here): the server ends the gateway's stream, and still the next
+    entity's update arrives, and every published entity is removed or timed out."""
+    from client.sim_client import SimClient
+    from server import world as world_module
+
+    peer = dis_socket()
+    port = peer.getsockname()[1]
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sender.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+    send = lambda data: sender.sendto(data, (LOOPBACK_BROADCAST, port))  # noqa: E731
+    with DisGateway(server.address, port=port, exercise=9, site=5, application=81, remote_timeout_s=60.0) as gw, \
+            SimClient(server.address) as obs:
+        obs.join("obs", "observer", observer=(47.3, 9.4, 50_000.0))
+        seen = obs.watch()
+        external = lambda p: {i.external_id: i.name for i in p.infos.values() if i.external_id}  # noqa: E731
+        send(remote_pdu(11, marking="SAME"))
+        assert seen.wait_for(lambda p: len(external(p)) == 1, 10.0)
+        send(remote_pdu(12, marking="SAME"))
+        assert seen.wait_for(lambda p: len(external(p)) == 2, 10.0), external(seen)
+        assert external(seen) == {"dis:900.1.11": "SAME", "dis:900.1.12": "SAME 900.1.12"}
+        monkeypatch.setattr(world_module, "MAX_ENTITIES", len(server.world.entities))
+        send(remote_pdu(13, marking="EXT13"))  # refused: the world is full; the stream ends
+        time.sleep(1.0)
+        send(remote_pdu(11, deactivated=True))  # meets the ended stream: sent again on a new one
+        assert seen.wait_for(lambda p: "dis:900.1.11" not in external(p), 10.0), external(seen)
+        send(remote_pdu(14, marking="EXT14"))
+        assert seen.wait_for(lambda p: "dis:900.1.14" in external(p), 10.0), external(seen)
+        assert "dis:900.1.13" not in external(seen)
+        gw.remote_timeout_s = 1.0  # silent now: every entity the gateway published goes
+        assert seen.wait_for(lambda p: not external(p), 10.0), external(seen)
+        assert gw.remote_entities == 0
+    sender.close()
+    peer.close()

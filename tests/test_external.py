@@ -199,3 +199,34 @@ def test_external_inputs_are_journaled_and_resimulate_bit_exact(alps, tmp_path):
     assert any(s.ids.size == 2 for s in live) and live[-1].ids.size == 1
     lat, lon, h = ecef_to_geodetic(live[10].ecef_m[1])
     assert abs(lat - 47.3) < 0.01 and abs(h - 3000.0) < 5.0
+
+
+def test_implausible_velocity_acceleration_and_rates_are_refused_naming_the_field():
+    from server.external import MAX_ACCELERATION_MPS2, MAX_BODY_RATE_RPS, MAX_SPEED_MPS
+
+    pos, vel, q = east_flyer()
+    for args, field in [((pos, (1e30, 0, 0), (0, 0, 0), q, (0, 0, 0)), "state.velocity_ecef_mps"),
+                        ((pos, (0, 0, MAX_SPEED_MPS * 1.001), (0, 0, 0), q, (0, 0, 0)), "state.velocity_ecef_mps"),
+                        ((pos, vel, (0, -2e4, 0), q, (0, 0, 0)), "state.acceleration_ecef_mps2"),
+                        ((pos, vel, (0, 0, 0), q, (2e5, 0, 0)), "state.angular_velocity_body_rps")]:
+        with pytest.raises(InvalidArgument, match=f"^{field}: magnitude .* beyond the plausible"):
+            external_state(0.0, *args, 2)
+    # The limits themselves pass: a re-entering warhead's speed, 1,000 g, a bullet's spin.
+    s = external_state(0.0, pos, (MAX_SPEED_MPS, 0, 0), (0, MAX_ACCELERATION_MPS2, 0), q,
+                       (MAX_BODY_RATE_RPS, 0, 0), 2)
+    assert s.vel_ecef_mps[0] == MAX_SPEED_MPS
+
+
+def test_a_gateway_sending_an_absurd_velocity_is_refused_and_the_server_serves_on(server):
+    pos, vel, q = east_flyer()
+    with SimClient(server.address) as gw:
+        gw.join("gw-huge", "gateway")
+        stream = gw.external()
+        stream.update("huge", ecef_m=pos, vel_ecef_mps=(1e30, 0, 0), quat_wxyz=q, name="huge", kind="ground",
+                      type="hmmwv")
+        with pytest.raises(InvalidArgument, match=r"state.velocity_ecef_mps: magnitude 1e\+30 m/s"):
+            stream.close()
+        assert all(e.name != "huge" for e in server.world.entities.values())
+        with gw.external() as again:  # the session and the server go on
+            again.update("fine", ecef_m=pos, vel_ecef_mps=vel, quat_wxyz=q, name="fine", kind="ground", type="hmmwv")
+        assert any(e.name == "fine" for e in server.world.entities.values())
