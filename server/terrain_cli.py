@@ -120,7 +120,8 @@ def _positive_int(text: str) -> int:
 
 def add_terrain_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dem", nargs="+", default=[], metavar="FILE",
-                        help="DEM files (.hgt, .asc, .tif, .raw, or a .zip holding one), highest priority first")
+                        help="DEM files (.hgt, .asc, .tif, or a .zip holding one), highest priority first "
+                             "(raw 16-bit posts need their georeference: the Python API, terrain.dem.read_raw16)")
     parser.add_argument("--store", nargs="+", default=[], metavar="PATH",
                         help="terrain stores (sortie terrain import), under the DEMs")
     parser.add_argument("--procedural", type=int, metavar="SEED",

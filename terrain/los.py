@@ -55,7 +55,9 @@ Coverage
 --------
 Status OUTSIDE when the segment leaves the raster's posts, or enters a cell
 with a NaN post, before any hit (a segment that starts outside is OUTSIDE at
-once); FILLED when the walk passed over a block holding a filled-void post
+once; :func:`line_of_sight` traces such a ray from its other end as well, so
+a ray blocked on the raster before it leaves is blocked whichever end is
+outside); FILLED when the walk passed over a block holding a filled-void post
 (conservative: at whatever pyramid level it cleared that block); else OK.
 A raster spanning a full turn of longitude is walked periodically; any other
 raster ends at its first and last column (an antimeridian-crossing raster is
@@ -536,8 +538,11 @@ def line_of_sight(raster: Raster, a_lat, a_lon, a_h, b_lat, b_lon, b_h):
     Arguments as :func:`intersect_segments`. Contacts within
     ENDPOINT_TOLERANCE_M of either endpoint are ignored. Returns, in the
     field order of terrain.terrain.LosResult: visible (n,) bool (False when
-    OUTSIDE) and status (n,) uint8 STATUS_*. Symmetric by construction: each
-    pair is traced from the endpoint whose ECEF (x, y, z) sorts first.
+    OUTSIDE) and status (n,) uint8 STATUS_*. A ray that leaves the raster is
+    blocked (status OK or FILLED, not OUTSIDE) when it meets the surface on a
+    covered part that either endpoint reaches before leaving. Symmetric by
+    construction: each pair is traced from the endpoint whose ECEF (x, y, z)
+    sorts first, and a ray that leaves from the other one as well.
     """
     a_lat, a_lon, a_h, b_lat, b_lon, b_h = check_segments(a_lat, a_lon, a_h, b_lat, b_lon, b_h)
     a = geodetic_to_ecef(a_lat, a_lon, a_h)
@@ -550,6 +555,16 @@ def line_of_sight(raster: Raster, a_lat, a_lon, a_h, b_lat, b_lon, b_h):
     with np.errstate(divide="ignore"):
         s_lo = np.minimum(ENDPOINT_TOLERANCE_M / length, 0.5)
     s, _, _, status = trace_segments(raster, a, b, s_lo, 1.0 - s_lo)
+    # A ray that leaves the raster may be blocked on its covered part behind the endpoint it
+    # was traced from (that endpoint outside, or a hole between): trace those from the other
+    # end too. A contact found before leaving is a definite answer, as intersect_segments
+    # reports it; the rest stay OUTSIDE for the next source.
+    out = np.flatnonzero(status == STATUS_OUTSIDE)
+    if out.size:
+        s_back, _, _, status_back = trace_segments(raster, b[out], a[out], s_lo[out], 1.0 - s_lo[out])
+        blocked = ~np.isnan(s_back)
+        s[out[blocked]] = 1.0 - s_back[blocked]
+        status[out[blocked]] = status_back[blocked]
     # A segment no longer than twice the tolerance has no interior left to block it.
     visible = (np.isnan(s) | (length <= 2.0 * ENDPOINT_TOLERANCE_M)) & (status != STATUS_OUTSIDE)
     return visible, status

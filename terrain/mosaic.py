@@ -13,8 +13,17 @@ one wins, and ``meta`` records how much they disagreed. A raster joins a merge
 only if that cannot hand one of its posts priority over an earlier raster
 outside the merge (that is, no such raster lies between them in the input
 order and overlaps the merged box); otherwise it stays a separate entry.
-Aligned rasters that do not touch stay separate too, so two distant tiles
-never cost a bounding box of NaN.
+Aligned rasters that do not share an edge (distant tiles, or tiles meeting
+only at a corner) stay separate too, so they never cost a bounding box of
+NaN; so does a raster whose merge would exceed ``MOSAIC_MAX_POSTS`` (a 4 x 4
+block of SRTM1 tiles loads as several merged blocks, each continuous inside).
+Separate rasters that share edge posts (SRTM) stay continuous across them.
+
+Filled voids of a member are not data here: where another member has
+measured posts they win, whatever the order, and the posts no member
+measured are gaps, filled afresh by the rule below from all the measured
+posts around them (a hole in one SRTM tile is answered by the DEM listed
+after it, the usual "fill SRTM's holes from X").
 
 Gaps: posts of the merged box that no raster covers. A gap region enclosed by
 data (not touching the box's outer edge) is filled by the harmonic rule of
@@ -33,10 +42,9 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.ndimage
 
 from sortie.errors import LimitExceeded
-from terrain.dem import fill_voids, read_dem
+from terrain.dem import enclosed_voids, fill_voids, read_dem
 from terrain.raster import CRS_GEOGRAPHIC, Georef, Raster, grid_bounds
 
 log = logging.getLogger(__name__)
@@ -113,7 +121,7 @@ def _can_merge(rasters: list[Raster], groups: list[list[int]], members: list[int
     if not all(aligned(chosen[0], r) for r in chosen[1:]):
         return False
     placement = place(chosen)
-    if not _connected(chosen, placement):
+    if placement.shape[0] * placement.shape[1] > MOSAIC_MAX_POSTS or not _connected(chosen, placement):
         return False
     box = grid_bounds(placement.georef, placement.shape)
     first = members[0]
@@ -192,17 +200,29 @@ def _east_of(x: float, start: float, dx: float) -> float:
 
 
 def _connected(members: list[Raster], placement: Placement) -> bool:
-    """True when the members' post boxes, grown by one post, link them all."""
+    """True when the members' post boxes link them all through shared edges: two boxes link
+    when they overlap or abut (one post apart) along one axis and share at least one cell
+    side (two posts) along the other. Boxes meeting only at a corner do not link: merging
+    them would buy a bounding box of NaN for one cell of continuity."""
     boxes = [(r, c, r + m.shape[0] - 1, c + m.shape[1] - 1) for (r, c), m in zip(placement.offsets, members)]
     reached = {0}
     frontier = [0]
     while frontier:
         a = boxes[frontier.pop()]
         for k, b in enumerate(boxes):
-            if k not in reached and a[0] <= b[2] + 1 and b[0] <= a[2] + 1 and a[1] <= b[3] + 1 and b[1] <= a[3] + 1:
+            if k not in reached and _share_edge(a, b):
                 reached.add(k)
                 frontier.append(k)
     return len(reached) == len(boxes)
+
+
+def _share_edge(a, b) -> bool:
+    """Whether post boxes (row0, col0, row1, col1), inclusive, share an edge (see _connected)."""
+    touch_rows = a[0] <= b[2] + 1 and b[0] <= a[2] + 1
+    touch_cols = a[1] <= b[3] + 1 and b[1] <= a[3] + 1
+    side_rows = min(a[2], b[2]) - max(a[0], b[0]) >= 1
+    side_cols = min(a[3], b[3]) - max(a[1], b[1]) >= 1
+    return (touch_rows and side_cols) or (touch_cols and side_rows)
 
 
 def _boxes_intersect(a, b) -> bool:
@@ -223,7 +243,6 @@ def _composite(members: list[Raster]) -> Raster:
         raise LimitExceeded(f"mosaic of {', '.join(m.name for m in members)} (posts)", ny * nx, MOSAIC_MAX_POSTS)
     dtype = np.float32 if all(m.heights.dtype == np.float32 for m in members) else np.float64
     heights = np.full((ny, nx), np.nan, dtype)
-    filled = np.zeros((ny, nx), bool)
     overlap_posts = 0
     disagreeing = 0
     max_diff = 0.0
@@ -231,7 +250,9 @@ def _composite(members: list[Raster]) -> Raster:
         window = (slice(r, r + m.shape[0]), slice(c, c + m.shape[1]))
         target = heights[window]
         src = m.heights
-        has = ~np.isnan(src)
+        # A member's filled voids are not data: measured posts of any member win over
+        # them, and what no member measured is filled afresh below.
+        has = ~np.isnan(src) if m.filled is None else ~np.isnan(src) & (m.filled == 0)
         both = has & ~np.isnan(target)
         if both.any():
             diff = np.abs(target[both].astype(np.float64) - src[both])
@@ -240,13 +261,11 @@ def _composite(members: list[Raster]) -> Raster:
             max_diff = max(max_diff, float(diff.max()))
         take = has & np.isnan(target)
         target[take] = src[take]
-        if m.filled is not None:
-            filled[window][take] = m.filled[take].astype(bool)
     gaps = np.isnan(heights)
-    enclosed = _enclosed(gaps)
+    enclosed = enclosed_voids(gaps)
     if enclosed.any():
         heights[enclosed] = fill_voids(heights, enclosed)
-        filled |= enclosed
+    filled = enclosed
     meta = {
         "format": "mosaic",
         "members": [{"name": m.name, "source": m.source, "row": r, "col": c, "shape": m.shape}
@@ -264,11 +283,3 @@ def _composite(members: list[Raster]) -> Raster:
                   vertical_datum=members[0].vertical_datum, filled=filled,
                   source="; ".join(m.source for m in members), meta=meta)
 
-
-def _enclosed(gaps: np.ndarray) -> np.ndarray:
-    """(ny, nx) bool: gap posts whose 4-connected region does not touch the outer edge."""
-    labels, n = scipy.ndimage.label(gaps)
-    if n == 0:
-        return np.zeros(gaps.shape, bool)
-    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    return gaps & ~np.isin(labels, edge)

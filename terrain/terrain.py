@@ -2,7 +2,9 @@
 
 Sources are tried in order; each point is answered by the first source that
 covers it (real DEMs first, procedural terrain last, so a procedural world
-fills everything the DEMs leave). A source is anything with the methods of
+fills everything the DEMs leave). A point a source covers only with a filled
+void (STATUS_FILLED) is answered by the first later source that has it
+measured (STATUS_OK), if any; synthetic sources (procedural) do not count. A source is anything with the methods of
 :class:`terrain.raster.Raster` used here: ``heights_into``, ``gradient_into``,
 ``raster_for`` and ``describe`` (and optionally ``warm_cache``).
 
@@ -17,12 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from terrain.raster import STATUS_OUTSIDE, Raster
+from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster
 from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
 
 
 # Least margin around the endpoints' box when a source builds a raster for rays.
 RAY_BOX_PAD_DEG = 0.01
+# Source kinds (describe()["kind"]) whose heights are made up, not measured: a
+# filled void of a DEM is not handed to them.
+SYNTHETIC_KINDS = ("procedural",)
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,7 @@ class Terrain:
         if not self.sources:
             raise ValueError("a Terrain needs at least one source")
         self._one = threading.local()  # height_at's and heights_of's buffers, per thread
+        self._measured = None  # _measured_sources, found on first need
         # A single source with a scalar path of its own (Raster.height_at) answers height_at.
         self._scalar = getattr(self.sources[0], "height_at", None) if len(self.sources) == 1 else None
 
@@ -126,7 +132,32 @@ class Terrain:
                 source.heights_into(lat[idx], lon[idx], sub_h, sub_status)
                 out_h[idx] = sub_h
                 status[idx] = sub_status
+        self._prefer_measured(lat, lon, out_h, status)
         return HeightResult(out_h, status)
+
+    def _prefer_measured(self, lat, lon, out_h, status) -> None:
+        """Answer points a source gave as FILLED (a filled void: a guess) by the first source
+        that has them measured (status OK) instead, if any; synthetic sources (procedural)
+        measure nothing and are not asked. Only filled points pay for this."""
+        idx = np.flatnonzero(status == STATUS_FILLED)
+        if idx.size == 0 or len(self.sources) == 1:
+            return
+        for source in self._measured_sources():
+            sub_h = np.full(idx.size, np.nan)
+            sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
+            source.heights_into(lat[idx], lon[idx], sub_h, sub_status)
+            ok = sub_status == STATUS_OK
+            out_h[idx[ok]] = sub_h[ok]
+            status[idx[ok]] = STATUS_OK
+            idx = idx[~ok]
+            if idx.size == 0:
+                return
+
+    def _measured_sources(self) -> list:
+        """The sources holding measured data: every one but the synthetic (procedural) ones."""
+        if self._measured is None:
+            self._measured = [s for s in self.sources if s.describe().get("kind") not in SYNTHETIC_KINDS]
+        return self._measured
 
     def _unanswered(self, status):
         """(indices, source) for each source in priority order, indices being the
@@ -205,7 +236,8 @@ class Terrain:
         status = np.full(shape, STATUS_OUTSIDE, np.uint8)
         if lat_rows.size and lon_cols.size and hasattr(self.sources[0], method):
             getattr(self.sources[0], method)(lat_rows, lon_cols, *outs, status)
-            left = np.flatnonzero(status.ravel() == STATUS_OUTSIDE)
+            # FILLED points too: the per-point query lets a measured lower source answer them.
+            left = np.flatnonzero((status.ravel() == STATUS_OUTSIDE) | (status.ravel() == STATUS_FILLED))
             if left.size == 0 or len(self.sources) == 1:
                 return outs, status
         else:

@@ -5,6 +5,8 @@ Raster.heights_into (the bilinear kernel), ray points from
 terrain.geodesy (ECEF <-> geodetic), and dense walks sample the segment.
 """
 
+import math
+
 import numpy as np
 import pytest
 from geographiclib.geodesic import Geodesic
@@ -454,3 +456,52 @@ def test_bad_input_names_the_field(alps):
         intersect_segments(alps, [47.5, np.nan], [9.5, 9.5], [1000, 1000], [47.5, 47.5], [9.6, 9.6], [1, 1])
     with pytest.raises(InvalidArgument, match="b_h"):
         line_of_sight(alps, [47.5], [9.5], [1000], [47.5], [9.6], [np.inf])
+
+
+# ----------------------------------------------------------------------------- DEM over procedural
+
+@pytest.fixture(scope="module")
+def alps_over_procedural(alps):
+    from terrain.procedural import ProceduralTerrain
+    from terrain.terrain import Terrain
+
+    return Terrain([alps, ProceduralTerrain(seed=3)])
+
+
+def test_los_blocked_inside_the_dem_before_the_ray_leaves_it(alps_over_procedural):
+    """The acceptance report's repro: from inside N47E009 to 4 km north of it, the ray passes
+    ~84 m below the DEM surface 7 km from a. Blocked, as intersect says (a DEM hit 42 m from
+    a), whichever endpoint is given first."""
+    t = alps_over_procedural
+    a = (47.91228, 9.42954, 654.4)
+    b = (48.03527, 9.40888, 532.3)
+    for p, q in ((a, b), (b, a)):
+        res = t.line_of_sight(*[[v] for v in p + q])
+        assert not res.visible[0] and res.status[0] == STATUS_OK
+    hit = t.intersect(*[[v] for v in a + b])
+    assert hit.hit[0] and 40.0 < hit.distance_m[0] < 45.0  # the report's 42.07 m, in the DEM
+    assert t.heights([47.9725], [9.4194]).height_msl_m[0] > 640.0  # the ridge the ray passes under
+
+
+@settings(max_examples=80, deadline=None)
+@given(lat_a=st.floats(47.90, 47.999), lon_a=st.floats(9.05, 9.95), north_km=st.floats(0.2, 12.0),
+       east_km=st.floats(-6.0, 6.0), up_a=st.floats(2.0, 300.0), up_b=st.floats(2.0, 300.0))
+def test_los_agrees_with_intersect_across_the_dem_edge(alps_over_procedural, lat_a, lon_a, north_km, east_km,
+                                                       up_a, up_b):
+    """Rays from inside the DEM to points north of it (inside or beyond its north edge at 48N),
+    both endpoints above the terrain the stack answers there: line of sight is blocked exactly
+    when intersect's first contact comes before the last ENDPOINT_TOLERANCE_M of the segment,
+    whichever endpoint is given first; never OUTSIDE (the procedural world covers the rest)."""
+    t = alps_over_procedural
+    lat_b = lat_a + north_km / 111.2
+    lon_b = lon_a + east_km / (111.2 * math.cos(math.radians(lat_a)))
+    ground = t.heights([lat_a, lat_b], [lon_a, lon_b]).height_msl_m
+    a = (lat_a, lon_a, ground[0] + up_a)
+    b = (lat_b, lon_b, ground[1] + up_b)
+    hit = t.intersect(*[[v] for v in a + b])
+    length = np.linalg.norm(geodetic_to_ecef([b[0]], [b[1]], [b[2]]) - geodetic_to_ecef([a[0]], [a[1]], [a[2]]))
+    blocked = bool(hit.hit[0] and hit.distance_m[0] < length - ENDPOINT_TOLERANCE_M)
+    for p, q in ((a, b), (b, a)):
+        res = t.line_of_sight(*[[v] for v in p + q])
+        assert res.status[0] != STATUS_OUTSIDE
+        assert (not res.visible[0]) == blocked, (p, q, hit.distance_m[0], length)

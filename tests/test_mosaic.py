@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sortie.errors import LimitExceeded
 from terrain.dem import read_geotiff, read_hgt, read_raw16
 from terrain.mosaic import load_sources, mosaic
 from terrain.raster import (
@@ -269,10 +268,117 @@ def test_antimeridian_tiles_merge_across_180(tmp_path):
         assert np.all(np.abs(h_a - h_b) <= step * 2 * e * (n - 1) + 1e-9)  # 1e-9 m: rounding
 
 
-def test_absurd_mosaic_is_refused():
-    """Two thin strips that touch span 70000 x 70000 posts: refused before allocating."""
+def test_merge_over_the_post_limit_keeps_rasters_separate():
+    """Two thin strips that touch would span 70000 x 70000 posts: kept apart, nothing allocated."""
     dx = 1e-3
     strip_ew = Raster(np.zeros((2, 70_000), np.float32), Georef(CRS_GEOGRAPHIC, 0.0, 0.0, dx, dx), name="ew")
     strip_ns = Raster(np.zeros((70_000, 2), np.float32), Georef(CRS_GEOGRAPHIC, 0.0, 0.0, dx, dx), name="ns")
-    with pytest.raises(LimitExceeded, match="mosaic of ew, ns"):
-        mosaic([strip_ew, strip_ns])
+    out = mosaic([strip_ew, strip_ns])
+    assert len(out) == 2 and out[0] is strip_ew and out[1] is strip_ns
+    h, status = query(out, [0.0005, 69.0], [69.0, 0.0005])
+    assert list(status) == [STATUS_OK, STATUS_OK] and list(h) == [0.0, 0.0]
+
+
+def test_tiles_touching_at_a_corner_stay_separate(tmp_path):
+    """Four SRTM1 tiles on a diagonal (the report's repro: 207 M posts of bounding box) load as
+    four rasters; each answers its own posts exactly."""
+    n = 3601
+    paths = []
+    for k in range(4):
+        path = tmp_path / f"N{40 + k:02d}E{10 + k:03d}.hgt"
+        np.full((n, n), 300 + k, ">i2").tofile(path)
+        paths.append(path)
+    sources = load_sources(paths)
+    assert [s.shape for s in sources] == [(n, n)] * 4
+    h, status = query(sources, [40.5, 41.5, 42.5, 43.5, 41.0], [10.5, 11.5, 12.5, 13.5, 11.0])
+    assert list(h) == [300.0, 301.0, 302.0, 303.0, 300.0]  # the shared corner: the first tile wins
+    assert np.all(status == STATUS_OK)
+
+
+def test_edge_sharing_tiles_merge_but_a_corner_neighbour_does_not(alps_corner):
+    """A and B share an edge, C touches B only at a corner: A+B merge, C stays apart."""
+    a = piece(alps_corner, 0, 80, 0, 80)
+    b = piece(alps_corner, 0, 80, 80, 160)
+    c = piece(alps_corner, 80, 160, 160, 240)
+    out = mosaic([a, b, c])
+    assert len(out) == 2 and out[1] is c
+    np.testing.assert_array_equal(out[0].heights, alps_corner.heights[0:81, 0:161])
+
+
+def _write_south_up_hgt(path, south_up):
+    south_up[::-1].astype(">i2").tofile(path)
+    return path
+
+
+def test_filled_void_yields_to_a_lower_priority_measured_post(tmp_path):
+    """The report's repro: an SRTM tile with a hole listed before a complete DEM of the same area.
+    The merged raster takes the second file's measured posts in the hole (status OK, exact), and
+    the overlap statistics count only measured posts."""
+    n = 121
+    i, j = np.mgrid[0:n, 0:n]
+    real = (1000 + 50 * np.sin(i / 5) * np.cos(j / 7) + 3 * i).astype(np.int16)  # row 0 south
+    holed = real.copy()
+    holed[40:80, 40:80] = -32768
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a = _write_south_up_hgt(tmp_path / "a" / "N47E009.hgt", holed)
+    b = _write_south_up_hgt(tmp_path / "b" / "N47E009.hgt", real)
+    (m,) = load_sources([a, b])
+    np.testing.assert_array_equal(m.heights, real)  # exact: int16 posts in float32
+    assert m.filled is None
+    assert m.meta["overlap_posts"] == n * n - 40 * 40 and m.meta["overlap_disagreeing_posts"] == 0
+    h, status = query(m, [47.5], [9.5])
+    assert h[0] == real[60, 60] and status[0] == STATUS_OK
+
+
+def test_hole_no_member_measured_is_filled_from_all_members(tmp_path):
+    """Both members hold the same hole; the merged raster fills it once from the measured posts
+    around it: within their range (maximum principle) and marked filled."""
+    n = 121
+    i, j = np.mgrid[0:n, 0:n]
+    real = (800 + 2 * i + j).astype(np.int16)
+    holed = real.copy()
+    holed[50:60, 50:60] = -32768
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a = _write_south_up_hgt(tmp_path / "a" / "N47E009.hgt", holed)
+    b_posts = holed.copy()
+    b_posts[:, 100:] += 7  # disagrees away from the hole: a wins there
+    b = _write_south_up_hgt(tmp_path / "b" / "N47E009.hgt", b_posts)
+    (m,) = load_sources([a, b])
+    hole = np.zeros((n, n), bool)
+    hole[50:60, 50:60] = True
+    np.testing.assert_array_equal(m.filled.astype(bool), hole)
+    ring = real[49:61, 49:61]
+    assert ring.min() <= m.heights[hole].min() and m.heights[hole].max() <= ring.max()
+
+
+def test_terrain_answers_a_filled_point_from_a_lower_source_that_measured_it(tmp_path):
+    """A tile with a hole, then a finer DEM (not mergeable: another grid) over part of the hole,
+    then the procedural world. In the hole the finer DEM answers where it has data (OK, its own
+    bilinear value exactly); elsewhere in the hole the tile's fill answers (FILLED), not the
+    procedural world, which measures nothing; outside the hole the tile (OK). The lattice query
+    agrees bit for bit."""
+    from terrain.procedural import ProceduralTerrain
+
+    n = 121
+    i, j = np.mgrid[0:n, 0:n]
+    real = (1000 + 50 * np.sin(i / 5) * np.cos(j / 7) + 3 * i).astype(np.int16)
+    holed = real.copy()
+    holed[40:80, 40:80] = -32768
+    tile = read_hgt(_write_south_up_hgt(tmp_path / "N47E009.hgt", holed))
+    fine_h = np.full((41, 41), 1234.5, np.float32)
+    fine = Raster(fine_h, Georef(CRS_GEOGRAPHIC, 9.45, 47.45, 0.1 / 40, 0.1 / 40), name="fine")  # 9.45..9.55
+    t = Terrain([tile, fine, ProceduralTerrain(seed=3)])
+    lat = np.array([47.5, 47.5, 47.62, 47.2])
+    lon = np.array([9.5, 9.6, 9.45, 9.2])  # hole & fine; hole only; hole only; outside the hole
+    res = t.heights(lat, lon)
+    assert list(res.status) == [STATUS_OK, STATUS_FILLED, STATUS_FILLED, STATUS_OK]
+    assert res.height_msl_m[0] == 1234.5
+    alone = Terrain([tile]).heights(lat, lon).height_msl_m
+    np.testing.assert_array_equal(res.height_msl_m[1:], alone[1:])
+    grid = t.height_grid(np.array([47.5, 47.2]), np.array([9.5, 9.6]))
+    by_points = t.heights(np.repeat([47.5, 47.2], 2), np.tile([9.5, 9.6], 2))
+    np.testing.assert_array_equal(grid.height_msl_m.ravel(), by_points.height_msl_m)
+    np.testing.assert_array_equal(grid.status.ravel(), by_points.status)
+    assert grid.status[0, 0] == STATUS_OK
