@@ -54,7 +54,8 @@ def add_parser(sub) -> None:
                                    "(EGL; Mesa llvmpipe without a GPU).")
     _terrain_args(r, required=True)
     r.add_argument("--camera", required=True, metavar="LAT,LON,ALT,HEADING,PITCH[,ROLL]",
-                   help="degrees, metres MSL, degrees (heading true, pitch nose up, roll right wing down)")
+                   help="degrees, metres MSL, degrees (heading true, pitch nose up, roll right wing down); "
+                        "a southern latitude as is, e.g. --camera -33.9,151.2,2000,0,-10")
     r.add_argument("--out", required=True, type=Path, help="PNG to write")
     _view_args(r)
     r.set_defaults(func=render_command)

@@ -233,7 +233,7 @@ class TerrainServicer:
             raise LimitExceeded("region_posts", int(posts), MAX_REGION_POSTS)
         raster = store.raster(request.level, float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1]))
         if raster is None:
-            raise NotFound("no region of the store holds the box's centre")
+            raise NotFound(f"no region of the store overlaps the box at level {request.level}")
         return height_grid(store, raster, request.level, 0, request.encoding)
 
 

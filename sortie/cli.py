@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 
 from sortie import __version__, config
@@ -70,7 +71,33 @@ def _pre_parse(argv) -> argparse.Namespace:
     return pre.parse_known_args(argv)[0]
 
 
+# A value of comma-separated numbers whose first is negative ("-33.9,151.2,2000,0,-10").
+_NEGATIVE_LIST = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,[-+]?[\d.eE+-]*)+$")
+
+
+def bind_negative_values(argv: list[str]) -> list[str]:
+    """``--camera -33.9,151.2,...`` -> ``--camera=-33.9,151.2,...``.
+
+    argparse takes a word starting with '-' that is not a plain number for an option, so a
+    pose-like value (comma-separated numbers, here a southern latitude or a western longitude
+    first) would leave its option "expected one argument". Bound with '=', it is the
+    option's value. Only such words after a long option are rewritten, before any ``--``: a
+    command line that parsed before parses the same."""
+    out: list[str] = []
+    for i, word in enumerate(argv):
+        prev = out[-1] if out else ""
+        if "--" in argv[:i]:
+            out.extend(argv[i:])
+            break
+        if prev.startswith("--") and "=" not in prev and _NEGATIVE_LIST.match(word):
+            out[-1] = f"{prev}={word}"
+        else:
+            out.append(word)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = bind_negative_values(sys.argv[1:] if argv is None else list(argv))
     pre = _pre_parse(argv)
     light = LIGHT_COMMANDS.get(pre.command)
     parser = build_parser((light,) if light else COMMAND_MODULES)

@@ -105,15 +105,12 @@ class TerrainStore:
     instance (and its cache) per store.
     """
 
-    def __init__(self, path, cache_tiles: int = DEFAULT_CACHE_TILES):
+    def __init__(self, path, cache_tiles: int = DEFAULT_CACHE_TILES, manifest: dict | None = None):
+        """manifest: the importer's own, of the regions written so far (read while it runs);
+        otherwise ``store.json``, refused while its import is unfinished."""
         self.path = Path(path)
         manifest_path = self.path / MANIFEST
-        if not manifest_path.is_file():
-            raise NotFound(f"terrain store {self.path}: no {MANIFEST} (not a store, or its import did not finish)")
-        try:
-            m = json.loads(manifest_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise DataFormatError(f"{manifest_path}: {e}") from None
+        m = manifest if manifest is not None else read_manifest(self.path)
         if m.get("format") != FORMAT_NAME:
             raise DataFormatError(f"{manifest_path}: format {m.get('format')!r} is not {FORMAT_NAME!r}")
         if m.get("version") != FORMAT_VERSION:
@@ -199,15 +196,21 @@ class TerrainStore:
 
     def raster(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float,
                region: Region | None = None) -> Raster | None:
-        """The posts of a level covering a box as a :class:`Raster` (row 0 south),
-        clipped to the region holding the box's centre; None when no region does."""
+        """The posts of a level covering a box as a :class:`Raster` (row 0 south), clipped
+        to one region's rectangle: the region holding the box's centre, else the one whose
+        rectangle overlaps the box most; None when no region's rectangle at this level
+        overlaps it."""
         r_top, c_left = self.fractional_post(level, lat_max, lon_min)
         r_bot, _ = self.fractional_post(level, lat_min, lon_min)
         span = (lon_max - lon_min) / self.spacing_deg(level)[1]
         if region is None:
             region = self.region_of(level, (r_top + r_bot) / 2, c_left + span / 2)
+        if region is None:
+            region = self._most_overlapping(level, r_top, r_bot, c_left, span)
             if region is None:
                 return None
+        if level >= len(region.rects):
+            return None
         rect = region.rects[level]
         c_left = _unwrap_col(c_left, rect, self.cols_per_turn(level))
         row_a = max(int(math.floor(r_top)), rect.row0)
@@ -218,8 +221,38 @@ class TerrainStore:
             return None
         return self._block_raster(region, level, row_a, row_b, col_a, col_b)
 
-    def _block_raster(self, region: Region, level: int, row_a, row_b, col_a, col_b) -> Raster:
-        heights, classes = self.decode(region, level, row_a, row_b, col_a, col_b)
+    def _most_overlapping(self, level: int, r_top: float, r_bot: float, c_left: float, span: float):
+        """The region whose rectangle at a level shares the most posts with a box of
+        fractional rows [r_top, r_bot] and columns [c_left, c_left + span]; None if none does."""
+        best, best_posts = None, 0
+        for region in self.regions:
+            if level >= len(region.rects):
+                continue
+            rect = region.rects[level]
+            rows = min(math.floor(r_bot) + 1, rect.row1) - max(math.ceil(r_top), rect.row0)
+            per_turn = self.cols_per_turn(level)
+            c0 = _unwrap_col(c_left, rect, per_turn)
+            cols = 0
+            for start in (c0 - per_turn, c0):  # the box may start before the rectangle and run into it
+                cols = max(cols, min(math.floor(start + span) + 1, rect.col1) - max(math.ceil(start), rect.col0))
+            posts = max(rows, 0) * max(cols, 0)
+            if posts > best_posts:
+                best, best_posts = region, posts
+        return best
+
+    def _block_raster(self, region: Region, level: int, row_a, row_b, col_a, col_b,
+                      pad_to: tuple[int, int] | None = None) -> Raster:
+        """Posts [row_a, row_b) x [col_a, col_b) of a level as a Raster (row 0 south); with
+        pad_to (rows, cols), the grid is that size from (row_a, col_a), NaN (outside) past
+        the region's rectangle."""
+        r1, c1 = (row_b, col_b) if pad_to is None else (row_a + pad_to[0], col_a + pad_to[1])
+        rect = region.rects[level]
+        heights = np.full((r1 - row_a, c1 - col_a), np.nan)
+        classes = np.zeros(heights.shape, np.uint8)
+        rb, cb = min(r1, rect.row1), min(c1, rect.col1)
+        heights[:rb - row_a, :cb - col_a], classes[:rb - row_a, :cb - col_a] = self.decode(
+            region, level, row_a, rb, col_a, cb)
+        row_b, col_b = r1, c1
         heights = heights[::-1].copy()
         classes = classes[::-1]
         heights[classes == CLASS_OUTSIDE] = np.nan
@@ -253,9 +286,9 @@ class TerrainStore:
 
     def tile_raster(self, region: Region, level: int, tile_row: int, tile_col: int) -> Raster:
         """One tile with its east and south edge posts (T + 1)^2, as a Raster: every
-        point of the cell interpolates inside it. Cached with the tiles."""
+        point of the cell interpolates inside it. Edge posts past the region's rectangle
+        (its south and east boundary) are NaN, outside. Cached with the tiles."""
         T = self.tile
-        rect = region.rects[level]
         key = ("raster", region.index, level, tile_row, tile_col)
         with self._lock:
             hit = self._class_cache.get(key)
@@ -263,8 +296,7 @@ class TerrainStore:
                 self._class_cache.move_to_end(key)
                 return hit
             r0, c0 = tile_row * T, tile_col * T
-            raster = self._block_raster(region, level, max(r0, rect.row0), min(r0 + T + 1, rect.row1),
-                                        max(c0, rect.col0), min(c0 + T + 1, rect.col1))
+            raster = self._block_raster(region, level, r0, r0 + T + 1, c0, c0 + T + 1, pad_to=(T + 1, T + 1))
             self._remember(key, raster)
             return raster
 
@@ -420,6 +452,26 @@ class TerrainStore:
             self._index.clear()
 
 
+def read_manifest(path) -> dict:
+    """A store's ``store.json``: NotFound without one; DataFormatError when it is not JSON, or
+    when its import did not finish (no summary: manifests of an interrupted import of before
+    the manifest was written once, at the end)."""
+    manifest_path = Path(path) / MANIFEST
+    if not manifest_path.is_file():
+        raise NotFound(f"terrain store {path}: no {MANIFEST} (not a store, or its import did not finish: "
+                       f"run the same sortie terrain import again to resume it)")
+    try:
+        m = json.loads(manifest_path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise DataFormatError(f"{manifest_path}: {e}") from None
+    if not isinstance(m, dict):
+        raise DataFormatError(f"{manifest_path}: not a JSON object")
+    if m.get("format") == FORMAT_NAME and m.get("summary") is None:
+        raise DataFormatError(f"{manifest_path}: unfinished import (the manifest has no summary); run the same "
+                              f"sortie terrain import again to resume it")
+    return m
+
+
 def _unwrap_col(col: float, rect: LevelRect, per_turn: int) -> float:
     """A column index moved by whole turns to lie at or after the rectangle's first column."""
     if col < rect.col0:
@@ -527,10 +579,15 @@ class StoreSource:
     grouping or copies."""
 
     def __init__(self, store: TerrainStore, level: int = 0):
+        """level: any of the store's levels; regions whose pyramid stops below it (small
+        regions have fewer levels) answer OUTSIDE (an empty rectangle)."""
+        if not 0 <= level < store.levels:
+            raise InvalidArgument("level", f"must be a level of the store (0..{store.levels - 1})", value=level)
         self.store = store
         self.level = level
         self._rects = np.array([[r.rects[level].row0, r.rects[level].row1, r.rects[level].col0,
-                                 r.rects[level].col1] for r in store.regions], np.int64).reshape(-1, 4)
+                                 r.rects[level].col1] if level < len(r.rects) else [0, 0, 0, 0]
+                                for r in store.regions], np.int64).reshape(-1, 4)
 
     def _groups(self, lat, lon):
         """(block raster, point indices or None for all of them) for the points inside

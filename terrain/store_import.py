@@ -13,8 +13,12 @@ shapes the residuals: outside posts answer "outside"); code the pyramid
 
 Resumable: sampling is the slow step for large imports, and is done in bands
 of tile rows saved under ``STORE/.import/``; an interrupted import re-run with
-the same arguments reuses the bands it finished (the band files carry a key of
-the arguments) and skips regions whose level files are complete.
+the same arguments and the same source files reuses the bands it finished (the
+band files carry a key of the arguments and of the files' contents). The
+manifest is written once, when every region is coded: an interrupted import
+leaves no ``store.json`` (an earlier store's is removed before its level files
+are overwritten), so nothing opens it as complete. A finished import removes
+``.import``.
 """
 
 from __future__ import annotations
@@ -22,20 +26,28 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from sortie.errors import InvalidArgument
+from sortie.errors import DataFormatError, InvalidArgument
 from terrain import heightcodec, store as st
 from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster
 from terrain.terrain import Terrain
 
 BAND_TILES = 4  # tile rows sampled per resumable band
-MAX_REGION_POSTS = 400_000_000  # level-0 posts one region may hold (3.2 GB of int64 while coding)
+MAX_REGION_POSTS = 400_000_000  # level-0 posts one region may hold, whatever the memory
+# Peak memory of an import per level-0 post of its largest region, with a margin: measured
+# (ru_maxrss of one SRTM tile imported at 6.4 M, 25 M and 102 M posts: 0.43, 1.07 and 3.31 GB,
+# slopes of 31-33 bytes a post; docs/STORE.md): float64 heights, then int64 units, the codec's
+# padded levels and decoded copies.
+IMPORT_BYTES_PER_POST = 40
 SAMPLE_CHUNK = 1 << 20  # points per Terrain.heights call
+WORK_DIR = ".import"  # resumable bands, removed when the import finishes
 
 
 @dataclass
@@ -73,12 +85,12 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
     t_start = time.perf_counter()
     if not paths:
         raise InvalidArgument("files", "give at least one DEM file")
-    if not lossless and not (math.isfinite(step_m) and step_m >= unit_m):
-        raise InvalidArgument("step", f"must be a number of metres >= the unit {unit_m} m", value=step_m)
+    step_units = _step_units(step_m, lossless, unit_m)
     if add_detail not in (None, "fractal", "cellular"):
         raise InvalidArgument("add_detail", "must be 'fractal' or 'cellular'", value=add_detail)
-    step_units = 1 if lossless else max(1, int(round(step_m / unit_m)))
     rasters = load_sources(paths)
+    for r in rasters:
+        _check_height_range(r, unit_m)
     # Default lattice: no coarser than any source along either axis (store posts are
     # 4/3 as wide in degrees of longitude as they are tall in latitude).
     finest = min(min(_lat_spacing_deg(r), 0.75 * _lon_spacing_deg(r)) for r in rasters)
@@ -86,20 +98,24 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
     dlat, dlon = st.lattice_spacing_deg(depth, tile)
     sources = _with_detail(rasters, add_detail, detail_seed, dlat) if add_detail else rasters
     terrain = Terrain(sources)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    key = hashlib.sha256(json.dumps([[str(Path(p).resolve()) for p in paths], depth, tile, unit_m,
-                                     add_detail, detail_seed]).encode()).hexdigest()[:16]
     groups = _regions(rasters, dlat, dlon, tile)
+    out = _output_dir(Path(out))
+    key = _import_key(paths, depth, tile, unit_m, add_detail, detail_seed)
+    _drop_stale_bands(out / WORK_DIR, key)
     regions, totals = [], {"posts": 0, "measured": 0, "filled": 0, "qmax": 0.0, "qsq": 0.0, "smax": 0.0,
                            "ssq": 0.0, "sn": 0}
     progress_bar = _Progress(progress, sum(_region_posts(g) for g in groups))
     for index, (row0, col0, rows, cols, members) in enumerate(groups):
+        edges = [(sources[m], rasters[m].bounds) for m in members]
         heights, classes = _sample_region(terrain, out, key, index, row0, col0, rows, cols, dlat, dlon, tile,
-                                          [rasters[m] for m in members], progress_bar)
-        units = np.round(heights / unit_m).astype(np.int64)
+                                          [rasters[m] for m in members], edges, progress_bar)
+        units = _to_units(heights, unit_m, [rasters[m] for m in members])
+        del heights
         rects, blobs = heightcodec.encode_pyramid(units, row0, col0, tile, step_units, depth + 1)
         class_levels = _class_pyramid(classes, row0, col0, rects)
+        if index == 0:
+            # The level files below overwrite an earlier store's: its manifest no longer describes them.
+            (out / st.MANIFEST).unlink(missing_ok=True)
         region_dir = out / f"region-{index:03d}"
         region_dir.mkdir(exist_ok=True)
         for level, rect in enumerate(rects):
@@ -111,21 +127,21 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
                                         tj * tile - rect.col0:(tj + 1) * tile - rect.col0]
                 tiles[(ti, tj)] = (blob, st.code_classes(c))
             st.write_level_file(region_dir / f"level-{level:02d}.tiles", level, tiles)
-        lat_top, lon_west = 90.0 - row0 * dlat, col0 * dlon - 180.0
+        del blobs, class_levels
         regions.append({"index": index, "rects": [[r.row0, r.col0, r.rows, r.cols] for r in rects],
-                        "bounds": [lat_top - (rows - 1) * dlat, lon_west, lat_top, lon_west + (cols - 1) * dlon],
+                        "bounds": _data_bounds(classes, row0, col0, dlat, dlon),
                         "sources": [str(rasters[m].source) for m in members]})
-        _write_manifest(out, name, tile, depth, unit_m, step_units, rasters, regions, None)
-        # Errors: the decoded store against the sampled lattice and against the source posts.
-        store = st.TerrainStore(out)
-        decoded, _ = store.decode(store.regions[index], 0, row0, row0 + rows, col0, col0 + cols)
-        inside = classes != st.CLASS_OUTSIDE
-        qerr = np.abs(decoded - units * unit_m)[inside]
-        totals["qmax"] = max(totals["qmax"], float(qerr.max(initial=0.0)))
-        totals["qsq"] += float(np.sum(qerr ** 2))
-        totals["posts"] += int(inside.sum())
-        totals["measured"] += int((classes == st.CLASS_MEASURED).sum())
-        totals["filled"] += int((classes == st.CLASS_FILLED).sum())
+        # Errors: the decoded store against the sampled lattice and against the source posts, read
+        # through the regions written so far (the manifest itself is written once, at the end).
+        store = st.TerrainStore(out, manifest=_manifest(out, name, tile, depth, unit_m, step_units, rasters,
+                                                        regions, None))
+        qmax, qsq = _quantisation_error(store, store.regions[index], units, classes, row0, col0, unit_m)
+        totals["qmax"] = max(totals["qmax"], qmax)
+        totals["qsq"] += qsq
+        totals["posts"] += int(np.count_nonzero(classes != st.CLASS_OUTSIDE))
+        totals["measured"] += int(np.count_nonzero(classes == st.CLASS_MEASURED))
+        totals["filled"] += int(np.count_nonzero(classes == st.CLASS_FILLED))
+        del units, classes
         src = _error_vs_sources(st.StoreSource(store), [rasters[m] for m in members])
         totals["smax"] = max(totals["smax"], src[0])
         totals["ssq"] += src[1]
@@ -143,9 +159,108 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
         max_error_vs_source_m=totals["smax"], rms_error_vs_source_m=math.sqrt(totals["ssq"] / max(totals["sn"], 1)),
         seconds=seconds, samples_per_s=sum(_region_posts(g) for g in groups) / seconds,
         bounds=[r["bounds"] for r in regions])
-    _write_manifest(out, name, tile, depth, unit_m, step_units, rasters, regions, summary.to_json())
+    _write_manifest(out, _manifest(out, name, tile, depth, unit_m, step_units, rasters, regions,
+                                   summary.to_json()))
+    shutil.rmtree(out / WORK_DIR, ignore_errors=True)
     progress_bar.close()
     return summary
+
+
+def _step_units(step_m: float, lossless: bool, unit_m: float) -> int:
+    """The quantisation step in units, checked against the codec's range (InvalidArgument naming step)."""
+    if lossless:
+        return 1
+    top_m = heightcodec.MAX_ABS_UNITS * unit_m
+    if not (math.isfinite(step_m) and unit_m <= step_m <= top_m):
+        raise InvalidArgument("step", f"must be a number of metres from the unit {unit_m} m up to {top_m:,.0f} m "
+                              f"(2^29 units, the codec's range)", value=step_m)
+    return max(1, int(round(step_m / unit_m)))
+
+
+def _check_height_range(r: Raster, unit_m: float) -> None:
+    """DataFormatError naming the file, the height and where it is, for a DEM post beyond
+    the codec's range (2^29 units: +-5,368 km at 1 cm): a damaged or mis-scaled file."""
+    h = np.asarray(r.heights)
+    top_m = heightcodec.MAX_ABS_UNITS * unit_m
+    with np.errstate(invalid="ignore"):
+        beyond = np.abs(h) > top_m
+    if not beyond.any():
+        return
+    i, j = (int(v) for v in np.argwhere(beyond)[0])
+    lat, lon = _post_latlon(r, np.array([i]), np.array([j]))
+    raise DataFormatError(f"{r.source}: height {float(h[i, j]):g} m at post ({i}, {j}) (lat {float(lat[0]):.6f}, "
+                          f"lon {float(lon[0]):.6f}) is beyond the store's range of +-{top_m:,.0f} m "
+                          f"({int(beyond.sum())} such posts); is the file damaged or in other units?")
+
+
+def _output_dir(out: Path) -> Path:
+    """The store directory, created (InvalidArgument naming output and the path when it cannot be)."""
+    if out.exists() and not out.is_dir():
+        raise InvalidArgument("output", f"{out} exists and is not a directory", value=str(out))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise InvalidArgument("output", f"cannot write the store directory {out}: {e.strerror or e}",
+                              value=str(out)) from None
+    return out
+
+
+def _import_key(paths, depth, tile, unit_m, add_detail, detail_seed) -> str:
+    """The key of resumable bands: the arguments and each source file's path and SHA-256
+    (a file replaced or corrected at the same path invalidates its bands)."""
+    files = []
+    for p in paths:
+        p = Path(p).resolve()
+        with open(p, "rb") as f:
+            files.append([str(p), hashlib.file_digest(f, "sha256").hexdigest()])
+    return hashlib.sha256(json.dumps([files, depth, tile, unit_m, add_detail, detail_seed]).encode()).hexdigest()[:16]
+
+
+def _drop_stale_bands(work: Path, key: str) -> None:
+    """Remove the bands of other imports (other arguments, or files since changed)."""
+    if work.is_dir():
+        for p in work.iterdir():
+            if not p.name.startswith(key + "-"):
+                p.unlink(missing_ok=True)
+
+
+def _to_units(heights: np.ndarray, unit_m: float, members) -> np.ndarray:
+    """Heights (m) to integer units, in place; DataFormatError naming the sources when synthetic
+    detail pushed a post beyond the codec's range."""
+    np.divide(heights, unit_m, out=heights)
+    np.round(heights, out=heights)
+    top = max(float(heights.max(initial=0.0)), -float(heights.min(initial=0.0)))
+    if top > heightcodec.MAX_ABS_UNITS:
+        raise DataFormatError(f"{'; '.join(str(r.source) for r in members)}: a resampled height of "
+                              f"{top * unit_m:g} m is beyond the store's range of "
+                              f"+-{heightcodec.MAX_ABS_UNITS * unit_m:,.0f} m")
+    return heights.astype(np.int64)
+
+
+def _data_bounds(classes: np.ndarray, row0: int, col0: int, dlat: float, dlon: float) -> list[float]:
+    """[lat_min, lon_min, lat_max, lon_max] of the region's posts that hold data (lon_max may
+    pass 180 for a region across the antimeridian)."""
+    rows = np.flatnonzero((classes != st.CLASS_OUTSIDE).any(axis=1))
+    cols = np.flatnonzero((classes != st.CLASS_OUTSIDE).any(axis=0))
+    lat_top, lon_west = 90.0 - (row0 + rows[0]) * dlat, (col0 + cols[0]) * dlon - 180.0
+    return [90.0 - (row0 + rows[-1]) * dlat, lon_west, lat_top, (col0 + cols[-1]) * dlon - 180.0]
+
+
+def _quantisation_error(store, region, units, classes, row0, col0, unit_m) -> tuple[float, float]:
+    """(max, sum of squares) of decoded - imported heights (m) over the posts with data, band by band."""
+    rows, cols = units.shape
+    worst, sq = 0.0, 0.0
+    step = BAND_TILES * store.tile
+    for b0 in range(0, rows, step):
+        b1 = min(rows, b0 + step)
+        decoded, _ = store.decode(region, 0, row0 + b0, row0 + b1, col0, col0 + cols)
+        err = np.abs(decoded - units[b0:b1] * unit_m)[classes[b0:b1] != st.CLASS_OUTSIDE]
+        worst = max(worst, float(err.max(initial=0.0)))
+        sq += float(np.sum(err ** 2))
+    return worst, sq
 
 
 def _lat_spacing_deg(r: Raster) -> float:
@@ -246,13 +361,39 @@ def _regions(rasters, dlat, dlon, tile):
             if merged:
                 break
     out = []
+    limit, why = region_post_limit()
     for g in groups:
         row0, col0, row1, col1 = _group_box(boxes, g)
-        if (row1 - row0) * (col1 - col0) > MAX_REGION_POSTS:
+        if (row1 - row0) * (col1 - col0) > limit:
             raise InvalidArgument("resolution", f"a region of {row1 - row0} x {col1 - col0} posts exceeds the "
-                                  f"limit of {MAX_REGION_POSTS} posts; import a coarser resolution or fewer files")
+                                  f"limit of {limit:,} posts ({why}); import a coarser resolution or fewer files")
         out.append((row0, col0, row1 - row0, col1 - col0, sorted(g)))
     return out
+
+
+def region_post_limit() -> tuple[int, str]:
+    """(the most level-0 posts one region may hold, why): MAX_REGION_POSTS, or fewer where the
+    memory available now (Linux MemAvailable, else the physical memory) would not hold
+    IMPORT_BYTES_PER_POST a post."""
+    available = _available_memory_bytes()
+    if available is None or available // IMPORT_BYTES_PER_POST >= MAX_REGION_POSTS:
+        return MAX_REGION_POSTS, "the store's limit"
+    return int(available // IMPORT_BYTES_PER_POST), (f"{available / 2**30:.1f} GiB of memory available at "
+                                                     f"{IMPORT_BYTES_PER_POST} bytes a post while importing")
+
+
+def _available_memory_bytes() -> int | None:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
 
 
 def _group_box(boxes, members):
@@ -265,9 +406,11 @@ def _region_posts(group) -> int:
 
 
 def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, cols, dlat, dlon, tile,
-                   members, progress_bar):
-    """Heights (m) and classes of a region's level-0 posts, band by band (resumable)."""
-    work = out / ".import"
+                   members, edges, progress_bar):
+    """Heights (m) and classes of a region's level-0 posts, band by band (resumable).
+
+    edges: (source, its bounds) of the region's members, priority order (see _edge_samples)."""
+    work = out / WORK_DIR
     work.mkdir(exist_ok=True)
     heights = np.empty((rows, cols), np.float64)
     classes = np.empty((rows, cols), np.uint8)
@@ -281,7 +424,7 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
             with np.load(path) as z:
                 heights[b0:b1], classes[b0:b1] = z["h"], z["c"]
         else:
-            h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, factor)
+            h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, factor, edges)
             heights[b0:b1], classes[b0:b1] = h, c
             tmp = path.with_name(path.name + ".tmp.npz")
             np.savez(tmp, h=h, c=c)
@@ -293,14 +436,17 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
     if outside.any():
         import scipy.ndimage
 
-        _, (ri, ci) = scipy.ndimage.distance_transform_edt(outside, return_indices=True)
-        heights = heights[ri, ci]
+        ri, ci = scipy.ndimage.distance_transform_edt(outside, return_distances=False, return_indices=True)
+        heights[outside] = heights[ri[outside], ci[outside]]
     return heights, classes
 
 
-def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factor):
+def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factor, edges=()):
     """Posts of rows [r_a, r_b): the mean of factor^2 bilinear samples spread over
-    each post's cell (factor 1: the bilinear value at the post)."""
+    each post's cell (factor 1: the bilinear value at the post). A post with no sample
+    on the data but within one spacing of a source's edge takes the source's height at
+    the nearest point of its edge (:func:`_edge_samples`), so that the store answers
+    all the way to the sources' edges."""
     rows = np.arange(r_a, r_b, dtype=np.float64)
     cs = np.arange(col0, col0 + cols, dtype=np.float64)
     offsets = (np.arange(factor) - (factor - 1) / 2.0) / factor
@@ -322,9 +468,47 @@ def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factor):
             acc[ok] += h[ok]
             n_ok += ok
             filled |= s == STATUS_FILLED
+    empty = n_ok == 0
+    if edges and empty.any():
+        i, j = np.nonzero(empty)
+        h, s = _edge_samples(edges, 90.0 - rows[i] * dlat, (cs[j] * dlon) % 360.0 - 180.0, dlat, dlon)
+        ok = s != STATUS_OUTSIDE
+        acc[i[ok], j[ok]] = h[ok]
+        n_ok[i[ok], j[ok]] = 1
+        filled[i[ok], j[ok]] = s[ok] == STATUS_FILLED
     classes = np.where(n_ok == 0, st.CLASS_OUTSIDE, np.where(filled, st.CLASS_FILLED, st.CLASS_MEASURED))
     heights = np.where(n_ok > 0, acc / np.maximum(n_ok, 1), 0.0)
     return heights, classes.astype(np.uint8)
+
+
+def _edge_samples(edges, lat, lon, dlat, dlon):
+    """(heights m, statuses) of points (lat, lon degrees, (n,)) less than one store spacing
+    (dlat, dlon) outside a source's box, answered by that source at the nearest point of
+    its box (the first source in priority order that answers); OUTSIDE for the rest.
+
+    The store's lattice is not aligned with the sources: without this, the store posts just
+    beyond a source's edge would be outside, and so would every bilinear cell between the
+    edge and the first post inside it."""
+    h = np.full(lat.size, np.nan)
+    s = np.full(lat.size, STATUS_OUTSIDE, np.uint8)
+    for source, (lat0, lon0, lat1, lon1) in edges:
+        todo = np.flatnonzero(s == STATUS_OUTSIDE)
+        la = np.clip(lat[todo], lat0, lat1)
+        # Longitudes east of the box's west edge, modulo a turn (boxes may cross 180°).
+        east = (lon[todo] - lon0) % 360.0
+        width = lon1 - lon0
+        past = east - width  # beyond the east edge
+        before = 360.0 - east  # short of the west edge
+        lo = np.where(east <= width, east, np.where(past <= before, width, 0.0)) + lon0
+        off_lon = np.where(east <= width, 0.0, np.minimum(past, before))
+        near = np.flatnonzero((np.abs(la - lat[todo]) < dlat) & (off_lon < dlon))
+        if near.size == 0:
+            continue
+        hh = np.full(near.size, np.nan)
+        ss = np.full(near.size, STATUS_OUTSIDE, np.uint8)
+        source.heights_into(la[near], (lo[near] + 180.0) % 360.0 - 180.0, hh, ss)
+        h[todo[near]], s[todo[near]] = hh, ss
+    return h, s
 
 
 def _class_pyramid(classes, row0, col0, rects):
@@ -375,8 +559,9 @@ def _post_latlon(r: Raster, rows, cols):
     return web_mercator_inverse(x, y)
 
 
-def _write_manifest(out: Path, name, tile, depth, unit_m, step_units, rasters, regions, summary) -> None:
-    manifest = {
+def _manifest(out: Path, name, tile, depth, unit_m, step_units, rasters, regions, summary) -> dict:
+    """The manifest (docs/STORE.md); summary None while the import is running (never written so)."""
+    return {
         "format": st.FORMAT_NAME, "version": st.FORMAT_VERSION, "name": name or out.name,
         "tile": tile, "depth": depth, "unit_m": unit_m, "step_units": step_units,
         "lossless": step_units == 1, "vertical_datum": rasters[0].vertical_datum,
@@ -386,6 +571,9 @@ def _write_manifest(out: Path, name, tile, depth, unit_m, step_units, rasters, r
         "sources": [{"path": str(r.source), "name": r.name} for r in rasters],
         "summary": summary,
     }
+
+
+def _write_manifest(out: Path, manifest: dict) -> None:
     tmp = out / (st.MANIFEST + ".tmp")
     tmp.write_text(json.dumps(manifest, indent=1) + "\n")
     tmp.replace(out / st.MANIFEST)
@@ -399,8 +587,8 @@ class _Progress:
         if enabled:
             from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-            self._p = Progress(TextColumn("importing"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} posts"),
-                               TimeRemainingColumn())
+            self._p = Progress(TextColumn("importing"), BarColumn(),
+                               TextColumn("{task.completed:,}/{task.total:,} posts"), TimeRemainingColumn())
             self._task = self._p.add_task("import", total=total)
             self._p.start()
 

@@ -352,6 +352,35 @@ def test_sortie_render_writes_a_png_of_the_right_size(hgt_alps, tmp_path):
         assert img.size == (200, 120) and img.mode == "RGB"
 
 
+def test_sortie_render_takes_a_negative_latitude_without_equals(tmp_path):
+    """--camera -33.9,151.2,... (a southern latitude, written as the help shows it) is the
+    option's value, not taken for an option."""
+    from PIL import Image
+
+    lines = ["ncols 41", "nrows 41", "xllcenter 151.0", "yllcenter -34.0", "cellsize 0.005", "NODATA_value -9999"]
+    lines += [" ".join(str(200 + 10 * ((i + j) % 7)) for j in range(41)) for i in range(41)]
+    dem = tmp_path / "sydney.asc"
+    dem.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "south.png"
+    run = subprocess.run([sys.executable, "-m", "sortie.cli", "render", "--dem", str(dem), "--camera",
+                          "-33.95,151.1,1500,0,-10", "--out", str(out), "--size", "160x90", "--window-km", "3",
+                          "--horizon-km", "0"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    with Image.open(out) as img:
+        assert img.size == (160, 90)
+
+
+def test_negative_values_bind_to_their_long_option():
+    from sortie.cli import bind_negative_values
+
+    assert bind_negative_values(["render", "--camera", "-33.9,151.2,2000,0,-10", "--size", "9x9"]) == \
+        ["render", "--camera=-33.9,151.2,2000,0,-10", "--size", "9x9"]
+    unchanged = [["render", "--camera", "47,9,2000,0,-10"], ["x", "--", "--camera", "-1,2"], ["x", "-n", "-1,2"],
+                 ["x", "--a", "-1"], ["x", "--a=b", "-1,2"]]
+    for argv in unchanged:
+        assert bind_negative_values(argv) == argv
+
+
 def test_sortie_render_pixel_error_sets_the_decimation(hgt_alps, tmp_path):
     """--pixel-error overrides the profile's decimation: 0 draws every post, a larger bound fewer
     triangles; a negative one is refused naming the flag."""

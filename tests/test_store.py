@@ -209,8 +209,18 @@ def test_store_posts_are_the_bilinear_source_at_the_lattice(canyon_store):
     # Half a step (0.25 m) plus half the 1 cm unit the heights are rounded to.
     assert np.abs(got[ok] - want.height_msl_m[ok]).max() <= store.max_error_m + 1e-6
     assert store.max_error_m == pytest.approx(0.255)
-    # Posts the source does not cover are outside.
-    assert np.all(classes[rows - rect.row0, cols - rect.col0][want.status == STATUS_OUTSIDE] == CLASS_OUTSIDE)
+    # Posts the source does not cover are outside, except within one post spacing of its box,
+    # where they hold its height at the nearest point of the box (the store answers up to the edge).
+    dem_lat0, dem_lon0, dem_lat1, dem_lon1 = read_dem(CANYON).bounds
+    near_lat, near_lon = np.clip(lat, dem_lat0, dem_lat1), np.clip(lon, dem_lon0, dem_lon1)
+    beyond = (np.abs(near_lat - lat) >= dlat) | (np.abs(near_lon - lon) >= dlon)
+    off = want.status == STATUS_OUTSIDE
+    assert np.all(classes[rows - rect.row0, cols - rect.col0][off & beyond] == CLASS_OUTSIDE)
+    edge = Terrain([read_dem(CANYON)]).heights(near_lat, near_lon)
+    at_edge = off & ~beyond & (edge.status == STATUS_OK)
+    assert at_edge.sum() > 3
+    assert np.all(classes[rows - rect.row0, cols - rect.col0][at_edge] == CLASS_MEASURED)
+    assert np.abs(got[at_edge] - edge.height_msl_m[at_edge]).max() <= store.max_error_m + 1e-6
 
 
 def test_tiles_are_quadtree_cells(canyon_store):
@@ -227,9 +237,9 @@ def test_tiles_are_quadtree_cells(canyon_store):
         rows, cols = raster.shape
         assert g.y0 + (rows - 1) * g.dy == pytest.approx(lat_max, abs=1e-9)
         assert g.x0 == pytest.approx(lon_min, abs=1e-9)
-        if rows == store.tile + 1:
-            assert g.y0 == pytest.approx(lat_min, abs=1e-9)
-            assert g.x0 + (cols - 1) * g.dx == pytest.approx(lon_max, abs=1e-9)
+        assert (rows, cols) == (store.tile + 1, store.tile + 1)
+        assert g.y0 == pytest.approx(lat_min, abs=1e-9)
+        assert g.x0 + (cols - 1) * g.dx == pytest.approx(lon_max, abs=1e-9)
 
 
 def test_store_source_answers_like_the_dem(canyon_store):
@@ -355,21 +365,99 @@ def _first_tile(store):
     return r.row0, r.row0 + 4, r.col0, r.col0 + 4
 
 
-def test_import_is_resumable_and_deterministic(tmp_path):
+def test_import_is_deterministic_and_removes_its_scratch(tmp_path):
+    import_dems([CANYON], tmp_path / "a", step_m=1.0)
+    import_dems([CANYON], tmp_path / "b", step_m=1.0)
+    first = {p.name: p.read_bytes() for p in (tmp_path / "a" / "region-000").glob("*.tiles")}
+    assert first == {p.name: p.read_bytes() for p in (tmp_path / "b" / "region-000").glob("*.tiles")}
+    assert not (tmp_path / "a" / ".import").exists()
+
+
+def _killed_import(paths, out: Path) -> None:
+    """``sortie terrain import`` in a child process, killed (SIGKILL) as soon as it has written
+    its first region's level-0 file, while the second region is still being sampled."""
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "sortie.cli", "terrain", "import", *map(str, paths), "-o", str(out),
+                             "--no-progress"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    first = out / "region-000" / "level-00.tiles"
+    earlier = first.stat().st_ino if first.exists() else None  # an earlier store's file (replaced, not rewritten)
+    deadline = time.monotonic() + 300
+    try:
+        while not first.exists() or first.stat().st_ino == earlier:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline
+            time.sleep(0.005)
+    finally:
+        proc.kill()
+        proc.wait()
+        proc.stderr.close()
+    assert not (out / "region-001").exists()  # killed mid-way: the second region was not written
+
+
+def _two_regions(tmp_path):
+    """A small DEM far from the Alps tile: two regions, the small one first."""
+    return _smooth_asc(tmp_path / "small.asc", 10.0, 20.0, 11, 1.0 / 60.0), ALPS
+
+
+def test_killed_import_leaves_no_store_and_resumes_from_its_bands(tmp_path):
+    small, alps = _two_regions(tmp_path)
     out = tmp_path / "s"
-    import_dems([CANYON], out, step_m=1.0)
-    bands = sorted((out / ".import").glob("*.npz"))
-    assert bands
-    first = {p.name: p.read_bytes() for p in (out / "region-000").glob("*.tiles")}
-    stamps = {p: p.stat().st_mtime_ns for p in bands}
-    # An interrupted import: the levels and the manifest are gone, the bands remain.
-    for p in (out / "region-000").glob("*.tiles"):
-        p.unlink()
-    (out / "store.json").unlink()
-    import_dems([CANYON], out, step_m=1.0)
-    assert {p: p.stat().st_mtime_ns for p in bands} == stamps  # reused, not resampled
-    again = {p.name: p.read_bytes() for p in (out / "region-000").glob("*.tiles")}
-    assert again == first
+    import_dems([small], out)  # an earlier, finished store in the same directory
+    _killed_import([small, alps], out)
+    with pytest.raises(NotFound, match="did not finish"):
+        TerrainStore(out)
+    bands = sorted((out / ".import").glob("*-r000-*.npz"))
+    assert len(bands) == 1  # the small region is one band
+    # The resumed import reads the finished bands: shift the band's heights to see that it does.
+    with np.load(bands[0]) as z:
+        h, c = z["h"], z["c"]
+    np.savez(bands[0], h=h + 100.0, c=c)
+    summary = import_dems([small, alps], out)
+    assert summary.regions == 2 and not (out / ".import").exists()
+    t = Terrain([StoreSource(TerrainStore(out))])
+    dem = Terrain([read_dem(small)])
+    lat, lon = np.array([10.05, 10.1, 47.5]), np.array([20.05, 20.1, 9.5])
+    got, want = t.heights(lat, lon), dem.heights(lat[:2], lon[:2])
+    assert np.all(got.status == STATUS_OK)
+    assert np.abs(got.height_msl_m[:2] - want.height_msl_m - 100.0).max() < 1.0
+
+
+def test_unfinished_manifests_of_earlier_imports_are_refused(tmp_path, canyon_store):
+    """Before the manifest was written once at the end, an interrupted import left one without
+    its summary after each region: such a store is refused, naming what to do."""
+    out, _ = canyon_store
+    m = json.loads((out / "store.json").read_text())
+    m["summary"] = None
+    (tmp_path / "store.json").write_text(json.dumps(m))
+    with pytest.raises(DataFormatError, match="unfinished import.*again to resume"):
+        TerrainStore(tmp_path)
+
+
+def _replace_heights(path: Path, value: int) -> None:
+    """Every post of an ESRI ASCII grid set to value, the header kept (same path, new bytes)."""
+    lines = path.read_text().splitlines()
+    n = int(lines[0].split()[1])
+    path.write_text("\n".join(lines[:6] + [" ".join([str(value)] * n)] * (len(lines) - 6)) + "\n")
+
+
+def test_reimport_after_a_dem_changed_takes_its_new_heights(tmp_path):
+    """The bands of an import are keyed on the files' contents: a DEM corrected at the same path
+    is sampled again, after a finished import and after an interrupted one."""
+    small, alps = _two_regions(tmp_path)
+    out = tmp_path / "s"
+    import_dems([small], out)
+    _replace_heights(small, 999)
+    import_dems([small], out)
+    t = Terrain([StoreSource(TerrainStore(out))])
+    assert t.heights(np.array([10.1]), np.array([20.1])).height_msl_m[0] == pytest.approx(999.0, abs=0.01)
+    _killed_import([small, alps], out)
+    assert list((out / ".import").glob("*-r000-*.npz"))
+    _replace_heights(small, 250)
+    import_dems([small, alps], out)
+    t = Terrain([StoreSource(TerrainStore(out))])
+    h = t.heights(np.array([10.05, 10.1, 10.15]), np.array([20.05, 20.1, 20.15])).height_msl_m
+    assert np.abs(h - 250.0).max() <= 0.01
 
 
 def test_import_rejects_bad_arguments(tmp_path):
@@ -381,6 +469,144 @@ def test_import_rejects_bad_arguments(tmp_path):
         import_dems([CANYON], tmp_path / "x", resolution_arcsec=-1.0)
     with pytest.raises(NotFound):
         import_dems([tmp_path / "missing.hgt"], tmp_path / "x")
+
+
+def test_import_errors_name_the_option_file_and_value(tmp_path):
+    """Past the codec's range (2^29 units: +-5,368,709 m) and unwritable outputs: one clear
+    error naming the option or file and the value, never a traceback."""
+    for step in (6_000_000.0, 1e30):
+        with pytest.raises(InvalidArgument, match=r"step: .*5,368,709 m"):
+            import_dems([CANYON], tmp_path / "x", step_m=step)
+    huge = _smooth_asc(tmp_path / "huge.asc", 32.0, 40.0, 50, 0.01)
+    lines = huge.read_text().splitlines()
+    row = lines[10].split()
+    row[5] = "10000000000"
+    lines[10] = " ".join(row)
+    huge.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFormatError, match=r"huge\.asc: height 1e\+10 m .*beyond the store's range"):
+        import_dems([huge], tmp_path / "x")
+    a_file = tmp_path / "afile"
+    a_file.write_text("not a directory")
+    for bad in (a_file, a_file / "st", Path("/proc/st")):
+        with pytest.raises(InvalidArgument, match=f"output: .*{bad}"):
+            import_dems([CANYON], bad)
+    run = subprocess.run([sys.executable, "-m", "sortie.cli", "terrain", "import", str(CANYON), "-o",
+                          str(a_file / "st"), "--no-progress"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2 and "Traceback" not in run.stderr and "output:" in run.stderr
+
+
+_PEAK_RSS = """
+import resource, sys
+from terrain.store_import import import_dems
+s = import_dems([sys.argv[1]], sys.argv[2], resolution_arcsec=float(sys.argv[3]))
+print(s.posts, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+"""
+
+
+@pytest.mark.slow
+def test_import_memory_per_post_is_within_the_figure_the_limit_assumes(tmp_path):
+    """The region limit assumes IMPORT_BYTES_PER_POST of peak memory a post: the slope of peak
+    RSS between imports of 6 M and 25 M posts (each in its own process) stays within it."""
+    from terrain.store_import import IMPORT_BYTES_PER_POST, MAX_REGION_POSTS, region_post_limit
+
+    figures = []
+    for res in (2.4, 1.2):
+        run = subprocess.run([sys.executable, "-c", _PEAK_RSS, str(ALPS), str(tmp_path / f"s{res}"), str(res)],
+                             capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr
+        figures.append([int(v) for v in run.stdout.split()])
+    (p0, m0), (p1, m1) = figures
+    assert p1 > 3 * p0
+    assert (m1 - m0) / (p1 - p0) <= IMPORT_BYTES_PER_POST
+    limit, _ = region_post_limit()
+    assert 0 < limit <= MAX_REGION_POSTS
+
+
+def _two_pyramid_heights_store(tmp_path):
+    """Two far-apart regions, a 10' one (few levels) and a 2-degree one (more levels)."""
+    small = _smooth_asc(tmp_path / "small.asc", 10.0, 20.0, 11, 1.0 / 60.0)
+    big = _smooth_asc(tmp_path / "big.asc", 30.0, 40.0, 121, 1.0 / 60.0)
+    out = tmp_path / "two"
+    import_dems([small, big], out, resolution_arcsec=5.0)
+    return TerrainStore(out)
+
+
+def test_regions_of_fewer_levels_answer_outside_at_the_levels_they_lack(tmp_path):
+    store = _two_pyramid_heights_store(tmp_path)
+    short, tall = (len(r.rects) for r in store.regions)
+    assert short < tall == store.levels
+    lat, lon = np.array([10.08, 31.0]), np.array([20.08, 41.0])
+    for level in range(store.levels):
+        got = Terrain([StoreSource(store, level)]).heights(lat, lon)
+        assert got.status[1] == STATUS_OK
+        assert got.status[0] == (STATUS_OK if level < short else STATUS_OUTSIDE), level
+        # GetRegion at the level: the short region holds nothing there.
+        assert (store.raster(level, 10.02, 20.02, 10.15, 20.15) is None) == (level >= short)
+    with pytest.raises(InvalidArgument, match="level"):
+        StoreSource(store, store.levels)
+
+
+def test_region_box_whose_centre_misses_every_region_gets_the_overlapping_one(tmp_path):
+    """GetRegion / TerrainStore.raster: a box that overlaps a region's data but whose centre lies
+    outside every region answers that region's posts inside the box; None only when no region's
+    rectangle overlaps the box."""
+    store = _two_pyramid_heights_store(tmp_path)
+    tall = store.regions[1]
+    b = tall.bounds
+    for level in (0, store.levels - 1):
+        r = store.raster(level, b[0] + 1.0, b[1] + 1.0, b[2] + 5.0, b[3] + 5.0)
+        assert r is not None and r.meta["region"] == 1
+        lat0, lon0, lat1, lon1 = r.bounds
+        assert lat0 <= b[0] + 1.0 + store.spacing_deg(level)[0] and lon0 <= b[1] + 1.0 + store.spacing_deg(level)[1]
+        assert np.isfinite(r.heights).sum() > 4
+    # A box holding the whole region, its centre far from it.
+    assert store.raster(store.levels - 1, b[0] - 0.1, b[1] - 0.1, b[2] + 20.0, b[3] + 20.0).meta["region"] == 1
+    assert store.raster(0, -60.0, -60.0, -50.0, -50.0) is None
+
+
+def test_tiles_on_region_boundaries_have_their_edge_posts_as_nan(canyon_store):
+    """GetTile's documented (T + 1)^2 posts, also on a region's south and east boundary."""
+    out, _ = canyon_store
+    store = TerrainStore(out)
+    region = store.regions[0]
+    T = store.tile
+    for level, rect in enumerate(region.rects):
+        ti, tj = (rect.row1 - 1) // T, (rect.col1 - 1) // T  # the south-east tile
+        raster = store.tile_raster(region, level, ti, tj)
+        assert raster.shape == (T + 1, T + 1)
+        lat_min, lon_min, _, lon_max = quadtree.bounds(quadtree.cell_id(store.depth - level, ti, tj))
+        assert raster.bounds[0] == pytest.approx(lat_min, abs=1e-9)
+        assert raster.bounds[3] == pytest.approx(lon_max, abs=1e-9)
+        h = np.asarray(raster.heights)
+        assert np.isnan(h[0]).all() and np.isnan(h[:, -1]).all()  # row 0 is south
+
+
+def test_store_answers_at_every_edge_post_of_the_dem(tmp_path):
+    """The store's lattice is not aligned with a DEM: its posts just beyond the DEM's edges hold
+    the edge's heights, so the store answers wherever the DEM does, within resampling of a
+    smooth surface (0.5 m) plus quantisation; the manifest's bounds are those of the posts
+    with data, at most one post spacing beyond the DEM's."""
+    src = _smooth_asc(tmp_path / "edge.asc", 10.0, 20.0, 61, 1.0 / 60.0)
+    out = tmp_path / "store"
+    import_dems([src], out, resolution_arcsec=30.0)
+    store = TerrainStore(out)
+    dem = read_dem(src)
+    ny, nx = dem.shape
+    rows = np.concatenate([np.zeros(nx), np.full(nx, ny - 1), np.arange(ny), np.arange(ny)]).astype(int)
+    cols = np.concatenate([np.arange(nx), np.arange(nx), np.zeros(ny), np.full(ny, nx - 1)]).astype(int)
+    x, y = dem.georef.post_xy(rows, cols)
+    got = Terrain([StoreSource(store)]).heights(y, x)
+    want = Terrain([dem]).heights(y, x)
+    assert np.all(want.status == STATUS_OK)
+    assert np.all(got.status == STATUS_OK)
+    assert np.abs(got.height_msl_m - want.height_msl_m).max() <= 0.5 + store.max_error_m
+    lat0, lon0, lat1, lon1 = store.regions[0].bounds
+    d0, d1, d2, d3 = dem.bounds
+    assert d0 - store.dlat < lat0 <= d0 and d1 - store.dlon < lon0 <= d1
+    assert d2 <= lat1 < d2 + store.dlat and d3 <= lon1 < d3 + store.dlon
+    # Beyond one spacing: outside.
+    far = Terrain([StoreSource(store)]).heights(np.array([d0 - 1.5 * store.dlat]), np.array([(d1 + d3) / 2]))
+    assert far.status[0] == STATUS_OUTSIDE
 
 
 def _small_asc(path: Path, posts: int = 100) -> Path:
