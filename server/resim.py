@@ -155,14 +155,16 @@ def service_dem_files(rec: Recording) -> list[str]:
 
 def served_terrain(rec: Recording) -> tuple[list, dict, list]:
     """(DEM paths, further open_terrain_source arguments, notes) rebuilding in process the
-    terrain a recording's service served: its DEM files and its insets."""
+    terrain a recording's service served: its DEM files, terrain stores and procedural world
+    (in the order `sortie terrain serve` stacks them) and its insets."""
     t = rec.header.terrain
     address = t.description.removeprefix("service:")
     sources = recorded_sources(rec)
-    other = sorted({str(s.get("kind")) for s in sources} - {"dem", "inset"})
+    kinds = [str(s.get("kind")) for s in sources]
+    other = sorted(set(kinds) - {"dem", "inset", "store", "procedural"})
     if other:
         raise NotFound(f"the recording's terrain was the service {address}, with {', '.join(other)} sources "
-                       "not rebuilt from files; give --terrain ADDRESS of one serving the same terrain")
+                       "not rebuilt in process; give --terrain ADDRESS of one serving the same terrain")
     if t.files:
         paths = [f.path for f in t.files]
         notes = [f"terrain: the {len(paths)} DEM files the recording's service {address} read "
@@ -170,17 +172,29 @@ def served_terrain(rec: Recording) -> tuple[list, dict, list]:
     else:  # recorded before services named their files' hashes: the paths its sources gave
         paths = service_dem_files(rec)
         notes = [f"terrain: the {len(paths)} DEM files the recording's service {address} named "
-                 "(its recording keeps no hashes: not checked)"]
-    missing = [p for p in paths if not Path(p).is_file()]
-    if not paths or missing:
-        raise NotFound(f"the recording's terrain was the service {address}; its DEM files are not here "
-                       f"({', '.join(missing) or 'it named none'}): give --terrain ADDRESS of one serving the "
-                       "same DEMs or --dem FILE...")
+                 "(its recording keeps no hashes: not checked)"] if paths else []
+    stores = [str(s.get("source")) for s in sources if s.get("kind") == "store"]
+    missing = [p for p in paths if not Path(p).is_file()] + [p for p in stores if not Path(p).is_dir()]
+    if missing or ("dem" in kinds and not paths):
+        raise NotFound(f"the recording's terrain was the service {address}; its files are not here "
+                       f"({', '.join(missing) or 'it named no DEM file'}): give --terrain ADDRESS of one "
+                       "serving the same terrain or --dem FILE...")
+    spec: dict = {}
+    if stores:
+        spec["store"] = stores
+        notes.append(f"terrain: the service's {len(stores)} terrain stores, checked by their description")
+    procedural = [s for s in sources if s.get("kind") == "procedural"]
+    if procedural:
+        try:
+            spec["procedural"] = int(procedural[0]["seed"])
+        except (KeyError, TypeError, ValueError):
+            raise DataFormatError(f"{rec.path.name}: the recorded procedural source names no seed") from None
+        notes.append(f"terrain: the service's procedural world, seed {spec['procedural']}")
     areas = tuple(_inset_area(s) for s in sources if s.get("kind") == "inset")
     if areas:
         notes.append(f"terrain: the service's {len(areas)} insets rebuilt ({', '.join(a[0] for a in areas)})")
-        return paths, {"target_areas": areas}, notes
-    return paths, {}, notes
+    spec["target_areas"] = areas  # the service's, none included: not the scenario's (with_insets)
+    return paths, spec, notes
 
 
 def _inset_area(source: dict) -> tuple:
@@ -218,9 +232,10 @@ def terrain_matches(rec: Recording, spec: dict) -> tuple[bool, list]:
 
 
 def sources_match(rec: Recording, terrain) -> tuple[bool, list]:
-    """Whether ``terrain`` describes itself as the recorded terrain did: every recorded
-    source's fields but its path (its name, bounds, posts, datum, and an inset's whole
-    parameters), compared as text since a service sends its sources' details as text."""
+    """Whether ``terrain`` describes itself as the recorded terrain did: every field both
+    descriptions have but the path (name, bounds, posts, datum, a store's levels and step, a
+    procedural world's parameters, an inset's whole parameters), compared as text since a
+    service sends its sources' details as text."""
     recorded = recorded_sources(rec)
     if not recorded:
         return True, []
@@ -231,8 +246,8 @@ def sources_match(rec: Recording, terrain) -> tuple[bool, list]:
     if len(now) != len(recorded):
         return False, [f"terrain has {len(now)} sources, the recording's had {len(recorded)}"]
     for i, (a, b) in enumerate(zip(recorded, now)):
-        for key, value in a.items():
-            if key != "source" and str(value) != str(b.get(key)):
+        for key, value in a.items():  # keys both have (a service's sources carry every proto field)
+            if key != "source" and key in b and str(value) != str(b[key]):
                 return False, [f"terrain source {i} ({a.get('name')}) differs from the recording's in {key}: "
                                f"{b.get(key)} here, {value} recorded"]
     return True, []

@@ -246,10 +246,13 @@ def _dr_thresholds(p) -> Thresholds:
     return Thresholds(p.dr_position_m, math.radians(p.dr_orientation_deg), p.heartbeat_s, code)
 
 
-def open_terrain_source(dem=None, service: str | None = None, target_areas=()):
+def open_terrain_source(dem=None, service: str | None = None, target_areas=(), store=(),
+                        procedural: int | None = None):
     """The terrain of DEM files (in process) or a client of a terrain service; with
     ``target_areas`` ((name, polygon, detail_m) tuples) the DEM terrain answers inside them
-    from their insets (terrain/inset.py; a service serves its own).
+    from their insets (terrain/inset.py; a service serves its own). ``store`` paths and a
+    ``procedural`` seed add sources under the DEMs, in the order `sortie terrain serve`
+    stacks them (what re-simulating a sortie recorded over such a service rebuilds).
 
     Module-level and picklable as ``functools.partial``, so an aircraft worker
     process opens the same terrain (server.aircraft_host)."""
@@ -259,10 +262,9 @@ def open_terrain_source(dem=None, service: str | None = None, target_areas=()):
         client = TerrainClient(service)
         client.wait_ready(10.0)
         return client
-    from terrain.mosaic import load_sources
-    from terrain.terrain import Terrain
+    from server.terrain_cli import build_terrain
 
-    terrain = Terrain(load_sources([str(p) for p in dem]))
+    terrain = build_terrain([str(p) for p in dem or ()], procedural, [str(p) for p in store])
     if target_areas:
         from terrain.inset import INSET_SEED, with_insets
 

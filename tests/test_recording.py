@@ -343,6 +343,32 @@ def test_resim_cli_reports_bit_exact(recorded, tmp_path):
     assert json.loads((tmp_path / "r.json").read_text())["bit_exact"] is True
 
 
+def record_over_service(path, serve_args: list, ticks: int = 45):
+    """Record the alps scenario for ``ticks`` over a `sortie terrain serve` of ``serve_args``,
+    then stop the service; its GetMetadata dem_files."""
+    from client.terrain_client import TerrainClient
+    from server.process import ServiceProcess
+    from server.scenario import load_scenario
+    from server.sim_server import build_world, open_terrain, terrain_spec
+
+    scenario = load_scenario(SCENARIO)
+    with ServiceProcess(["terrain", "serve", *serve_args]) as service:
+        with TerrainClient(service.address) as client:
+            dem_files = client.metadata()["dem_files"]
+        terrain, desc, _ = open_terrain(scenario, service=service.address)
+        world = build_world(scenario, terrain)
+        rec = Recorder(path, recording_header(SCENARIO, scenario, world, desc,
+                                              terrain_spec(scenario, service=service.address), terrain), 1.0)
+        world.attach_recorder(rec)
+        try:
+            for _ in range(ticks):
+                world.tick()
+        finally:
+            rec.close()
+            world.close()
+    return dem_files
+
+
 def test_a_sortie_recorded_over_a_terrain_service_resimulates_from_its_files(tmp_path, hgt_alps):
     """A terrain service names the DEM files it read with their SHA-256 (GetMetadata); a
     recording over it keeps them. With the service gone, re-simulation opens those files in
@@ -350,39 +376,23 @@ def test_a_sortie_recorded_over_a_terrain_service_resimulates_from_its_files(tmp
     bit-exact. Changed bytes in a file are a SHA-256 mismatch: same_terrain is False."""
     import shutil
 
-    from client.terrain_client import TerrainClient
-    from server.process import ServiceProcess
     from server.resim import resimulate
     from server.scenario import load_scenario
-    from server.sim_server import build_world, open_terrain, terrain_spec
     from terrain.dem import file_identity
 
     dem = tmp_path / "N47E009.hgt"
     shutil.copyfile(hgt_alps, dem)
     path = tmp_path / "served.sortie"
-    scenario = load_scenario(SCENARIO)
-    assert scenario.target_areas
-    with ServiceProcess(["terrain", "serve", "--dem", str(dem), "--insets", str(SCENARIO)]) as service:
-        with TerrainClient(service.address) as client:
-            assert client.metadata()["dem_files"] == [file_identity(dem)]
-        terrain, desc, _ = open_terrain(scenario, service=service.address)
-        world = build_world(scenario, terrain)
-        rec = Recorder(path, recording_header(SCENARIO, scenario, world, desc,
-                                              terrain_spec(scenario, service=service.address), terrain), 1.0)
-        world.attach_recorder(rec)
-        try:
-            for _ in range(45):
-                world.tick()
-        finally:
-            rec.close()
-            world.close()
+    areas = load_scenario(SCENARIO).target_areas
+    assert areas
+    assert record_over_service(path, ["--dem", str(dem), "--insets", str(SCENARIO)]) == [file_identity(dem)]
     with Recording(path) as r:
         assert r.header.terrain.description.startswith("service:")
         assert [f.sha256 for f in r.header.terrain.files] == [file_identity(dem)["sha256"]]
     report = resimulate(path)
     assert report.ticks == 45 and report.bit_exact and report.same_terrain, report.as_dict()
     notes = " ".join(report.notes)
-    assert "SHA-256 checked" in notes and f"{len(scenario.target_areas)} insets rebuilt" in notes
+    assert "SHA-256 checked" in notes and f"{len(areas)} insets rebuilt" in notes
     heights = np.fromfile(dem, ">i2")
     heights[heights.size // 2] += 1
     heights.tofile(dem)
@@ -391,6 +401,29 @@ def test_a_sortie_recorded_over_a_terrain_service_resimulates_from_its_files(tmp
     dem.unlink()
     with pytest.raises(NotFound, match="--terrain ADDRESS"):
         resimulate(path)
+
+
+def test_a_sortie_over_a_service_of_a_store_and_a_procedural_world_resimulates_without_it(tmp_path, hgt_alps):
+    """The same for a service of a terrain store over a procedural world: both rebuilt in
+    process from the recorded sources (the store's path, the world's seed), every recorded
+    field of their descriptions checked; no insets (the scenario's are not the service's)."""
+    from server.resim import resimulate
+    from terrain.store_import import import_dems
+
+    store = tmp_path / "alps-store"
+    import_dems([hgt_alps], store, progress=False)
+    path = tmp_path / "served.sortie"
+    assert record_over_service(path, ["--store", str(store), "--procedural", "5"], ticks=30) == []
+    report = resimulate(path)
+    assert report.ticks == 30 and report.bit_exact and report.same_terrain, report.as_dict()
+    notes = " ".join(report.notes)
+    assert "1 terrain stores" in notes and "procedural world, seed 5" in notes and "insets" not in notes
+    from server.resim import sources_match
+    from server.terrain_cli import build_terrain
+
+    with Recording(path) as r:  # another seed is another terrain, and says where
+        same, why = sources_match(r, build_terrain([], 6, [str(store)]))
+    assert not same and "differs from the recording's in seed: 6 here, 5 recorded" in why[0]
 
 
 def test_take_over_starts_from_the_recorded_state_with_the_agent_free(recorded):
