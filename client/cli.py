@@ -120,6 +120,16 @@ def client_command(args) -> int:
 
 def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list,
          stop: threading.Event) -> None:
+    """One bot's thread: its result line in ``results`` whatever happens (a server that goes
+    away mid-run is a line, not a traceback)."""
+    try:
+        _fly_bot(address, k, profile, leg_s, duration_s, results, stop)
+    except Exception as exc:  # noqa: BLE001 - reported per bot; the other bots go on
+        results.append((k, None, f"stopped: {exc}"))
+
+
+def _fly_bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list,
+             stop: threading.Event) -> None:
     from client.sim_client import SimClient
 
     turn = 90.0 if profile == "patrol" else 180.0

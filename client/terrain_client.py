@@ -84,7 +84,8 @@ class ServiceError(SortieError):
 
 
 _INVALID = re.compile(r"^(?P<field>[A-Za-z_][\w.]*)(?:\[(?P<index>\d+)\])?: (?P<message>.*)$", re.S)
-_LIMIT = re.compile(r"^(?P<field>[A-Za-z_][\w.]*): (?P<size>\d+) exceeds the limit of (?P<limit>\d+)$")
+_LIMIT = re.compile(r"^(?P<field>[A-Za-z_][\w.]*): (?P<size>\d+) exceeds the limit of (?P<limit>\d+)"
+                    r"(?: \((?P<why>.*)\))?$", re.S)
 
 
 def error_from_rpc(error: grpc.RpcError) -> SortieError:
@@ -99,7 +100,7 @@ def error_from_rpc(error: grpc.RpcError) -> SortieError:
     if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
         m = _LIMIT.match(details)
         if m:
-            return LimitExceeded(m["field"], int(m["size"]), int(m["limit"]))
+            return LimitExceeded(m["field"], int(m["size"]), int(m["limit"]), m["why"] or "")
     if code == grpc.StatusCode.NOT_FOUND:
         return NotFound(details)
     if code == grpc.StatusCode.UNAUTHENTICATED:

@@ -231,7 +231,7 @@ def validate_controls(values: dict) -> dict:
     out = {}
     for name, v in values.items():
         if name == "gear_down":
-            if v not in (True, False, 0, 1) or isinstance(v, float) and not v.is_integer():
+            if not isinstance(v, (bool, int, float, np.bool_, np.integer, np.floating)) or v not in (0, 1):
                 raise InvalidArgument(name, "must be a bool", value=v)
             out[name] = bool(v)
             continue
@@ -239,7 +239,10 @@ def validate_controls(values: dict) -> dict:
             raise InvalidArgument(name, f"unknown control; known: {', '.join(CONTROL_NAMES)}", value=v)
         if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
             raise InvalidArgument(name, "must be a number", value=v)
-        v = float(v)
+        try:
+            v = float(v)
+        except OverflowError:  # an int beyond any float
+            raise InvalidArgument(name, "must be finite (an integer beyond any float)") from None
         lo, hi = CONTROL_RANGES[name]
         if not math.isfinite(v):
             raise InvalidArgument(name, "must be finite", value=v)
@@ -327,6 +330,11 @@ class Aircraft:
         while True:
             fdm = jsbsim.FGFDMExec(catalog.root_dir().as_posix())
             fdm.set_debug_level(0)
+            # A model's <input port="..."/> (the catalog's 737 declares 5137) would open JSBSim's
+            # telnet property server on every interface at the first run: anyone reaching the
+            # port could set any property of a hosted aircraft, past sessions, tokens and the
+            # recording. The host drives its aircraft through this API alone.
+            fdm.disable_input()
             if not fdm.load_model(self.name):
                 raise SortieError(f"JSBSim could not load aircraft {self.name!r}")
             fdm.disable_output()  # models may declare CSV outputs (c172x: JSBout172B.csv); the host records
@@ -930,7 +938,9 @@ class Aircraft:
             if c_min < -self.max_penetration_m:
                 events += self._detector.terrain_crash(t, lat, lon, alt_m, -c_min)
             events += self._detector.update(t, lat, lon, alt_m, self._get_wow() > 0.5, struct_hit,
-                                            self._get_vd() * FT_M, self._get_nz())
+                                            self._get_vd() * FT_M, self._get_nz(),
+                                            math.hypot(self._get_vn(), self._get_ve()) * FT_M if struct_hit
+                                            else math.inf)
         else:
             self._terrain_ft = self._terrain_cg_ft
             self._set_terrain_ft(self._terrain_ft)

@@ -127,6 +127,7 @@ def replay_script(script: str = "c172_elevator_doublet.xml", seconds: float | No
         raise NotFound(f"script {script!r} is not in {base / 'scripts'}")
     ref = jsbsim.FGFDMExec(base.as_posix())
     ref.set_debug_level(0)
+    ref.disable_input()  # no network input a script's model may declare (fdm.aircraft: the 737's telnet port)
     ref.load_script(f"scripts/{script}")
     ref.disable_output()
     ref.run_ic()

@@ -65,6 +65,10 @@ WAIT_MIN_FRAC = 0.3
 # Segments searched before and after a vehicle's last segment when projecting.
 SEARCH_BEHIND = 1
 SEARCH_AHEAD = 3
+# Candidate closest points within this distance (m) of the closest count as equally close:
+# where legs overlap (an out-and-back A -> B -> A) the two legs' distances differ only by
+# rounding, and the leg whose direction agrees with the vehicle's heading is taken.
+PROJECT_TIE_M = 0.5
 
 
 @numba.njit(cache=True, nogil=True)
@@ -77,10 +81,15 @@ def _local(lat0, lon0, lat, lon, m, n_cos):
 
 
 @numba.njit(cache=True, nogil=True)
-def _project_kernel(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, lat, lon, hint, out_s, out_x, out_seg):
+def _project_kernel(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, lat, lon, hint, heading_deg, out_s, out_x,
+                    out_seg):
     """Closest point of the route for each (lat, lon): arc length, signed cross-track, segment.
 
-    hint[j] < 0 searches every segment, else the window around hint[j].
+    hint[j] < 0 searches every segment, else the window around hint[j]. Among points within
+    PROJECT_TIE_M of the closest (overlapping legs), one on the hint's segment or later is
+    taken before one on an earlier segment (a vehicle never goes back a leg it overlaps),
+    then the one on the segment most aligned with heading_deg[j] (compass degrees; NaN: no
+    preference, the first).
     Cross-track is positive to the right of the route's direction.
     """
     nseg = seg_len.shape[0]
@@ -91,21 +100,43 @@ def _project_kernel(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, lat, lon, hint,
             k0 = max(0, hint[j] - SEARCH_BEHIND)
             k1 = min(nseg, hint[j] + SEARCH_AHEAD + 1)
         best = math.inf
-        for k in range(k0, k1):
+        for k in range(k0, k1):  # the closest distance
+            d2 = _segment_d2(r_lat, r_lon, seg_m, seg_ncos, seg_len, k, lat[j], lon[j])
+            best = min(best, d2)
+        bound = (math.sqrt(best) + PROJECT_TIE_M) ** 2
+        hn, he = math.cos(math.radians(heading_deg[j])), math.sin(math.radians(heading_deg[j]))
+        align = -math.inf
+        for k in range(k0, k1):  # the best aligned of the (nearly) closest
+            d2 = _segment_d2(r_lat, r_lon, seg_m, seg_ncos, seg_len, k, lat[j], lon[j])
+            if d2 > bound:
+                continue
             en, ee = _local(r_lat[k], r_lon[k], r_lat[k + 1], r_lon[k + 1], seg_m[k], seg_ncos[k])
-            pn, pe = _local(r_lat[k], r_lon[k], lat[j], lon[j], seg_m[k], seg_ncos[k])
             ln = seg_len[k]
-            t = (pn * en + pe * ee) / (ln * ln)
-            t = min(max(t, 0.0), 1.0)
-            dn = pn - t * en
-            de = pe - t * ee
-            d2 = dn * dn + de * de
-            if d2 < best:
-                best = d2
+            a = (hn * en + he * ee) / ln
+            if not a == a:  # no heading: the first candidate
+                a = 0.0
+            if hint[j] >= 0 and k >= hint[j]:  # never back onto an earlier leg it overlaps
+                a += 10.0
+            if a > align:
+                align = a
+                pn, pe = _local(r_lat[k], r_lon[k], lat[j], lon[j], seg_m[k], seg_ncos[k])
+                t = min(max((pn * en + pe * ee) / (ln * ln), 0.0), 1.0)
                 out_s[j] = cum[k] + t * ln
                 # Right of the direction (en, ee) is (-ee, en) in (north, east).
                 out_x[j] = (pe * en - pn * ee) / ln
                 out_seg[j] = k
+
+
+@numba.njit(cache=True, nogil=True)
+def _segment_d2(r_lat, r_lon, seg_m, seg_ncos, seg_len, k, lat, lon):
+    """Squared distance (m^2) from (lat, lon) to segment k, in the segment's local frame."""
+    en, ee = _local(r_lat[k], r_lon[k], r_lat[k + 1], r_lon[k + 1], seg_m[k], seg_ncos[k])
+    pn, pe = _local(r_lat[k], r_lon[k], lat, lon, seg_m[k], seg_ncos[k])
+    ln = seg_len[k]
+    t = min(max((pn * en + pe * ee) / (ln * ln), 0.0), 1.0)
+    dn = pn - t * en
+    de = pe - t * ee
+    return dn * dn + de * de
 
 
 @numba.njit(cache=True, nogil=True)
@@ -130,7 +161,8 @@ def pursue(v: GroundVehicles, idx: np.ndarray, g_lat, g_lon, speed_cmd):
     """(speed_cmd, yaw_rate_cmd_dps) of pure pursuit (Coulter 1992: curvature 2 sin(alpha) / L
     towards the goal point at distance L) for vehicles ``idx`` of ``v`` towards goal points
     (g_lat, g_lon); a tracked vehicle whose goal lies more than PIVOT_ALPHA_DEG off its
-    heading stops (speed 0) and pivots at its yaw-rate limit."""
+    heading stops (speed 0) and pivots at its yaw-rate limit, a wheeled one whose goal lies
+    behind it turns at its limit."""
     speed = v.speed_mps[idx]
     lat = v.lat[idx]
     m, n = radii_of_curvature(lat)
@@ -144,7 +176,11 @@ def pursue(v: GroundVehicles, idx: np.ndarray, g_lat, g_lon, speed_cmd):
     tracked = v.table[v.type_id[idx], P_KIND] == TRACKED
     lim = v.yaw_rate_limit_dps[idx]
     pivot = tracked & (np.abs(alpha) > math.radians(PIVOT_ALPHA_DEG))
-    yaw = np.where(pivot, np.sign(alpha) * lim, yaw)
+    # A goal behind a wheeled vehicle (the far end of an out-and-back route): 2 sin(alpha) / L
+    # falls to 0 as alpha nears 180 deg and it would drive on away; it turns at its limit
+    # towards the goal's side instead (the model's lateral-acceleration limit sets the radius).
+    behind = ~tracked & (np.abs(alpha) > 0.5 * np.pi)
+    yaw = np.where(pivot | behind, np.where(alpha < 0.0, -lim, lim), yaw)
     speed_cmd = np.where(pivot, 0.0, speed_cmd)
     return speed_cmd, np.clip(yaw, -lim, lim)
 
@@ -196,22 +232,24 @@ class Route:
         heading = np.degrees(np.arctan2(self.seg_de[k], self.seg_dn[k])) % 360.0
         return lat, lon, heading
 
-    def project(self, lat, lon, hint=None):
+    def project(self, lat, lon, hint=None, heading_deg=None):
         """(s, cross_track_m, segment) of each point's closest route point.
 
         hint: (n,) int64 segments from the last call (-1: search all); the
         search looks a few segments around it, which keeps a vehicle on its own
-        leg where the route passes near itself.
+        leg where the route passes near itself. heading_deg: (n,) the vehicles'
+        headings, which choose between legs that overlap (None: the first leg).
         """
         lat = np.ascontiguousarray(lat, dtype=np.float64)
         lon = np.ascontiguousarray(lon, dtype=np.float64)
         n = lat.size
         hint = np.full(n, -1, np.int64) if hint is None else np.ascontiguousarray(hint, dtype=np.int64)
+        heading = np.full(n, np.nan) if heading_deg is None else np.ascontiguousarray(heading_deg, dtype=np.float64)
         s = np.zeros(n)
         x = np.zeros(n)
         seg = np.zeros(n, np.int64)
-        _project_kernel(self.lat, self.lon, self.seg_m, self.seg_ncos, self.seg_len, self.cum, lat, lon, hint, s, x,
-                        seg)
+        _project_kernel(self.lat, self.lon, self.seg_m, self.seg_ncos, self.seg_len, self.cum, lat, lon, hint,
+                        heading, s, x, seg)
         return s, x, seg
 
     def corner_speed_ceiling(self, s, lookahead_m, lat_accel_mps2, brake_mps2):
@@ -264,7 +302,8 @@ class RouteFollower:
     def locate(self) -> None:
         """Project the vehicles onto the route (arc length s and cross-track)."""
         v = self.vehicles
-        self.s, self.cross_track_m, self._hint = self.route.project(v.lat[self.index], v.lon[self.index], self._hint)
+        self.s, self.cross_track_m, self._hint = self.route.project(v.lat[self.index], v.lon[self.index], self._hint,
+                                                                    v.heading_deg[self.index])
 
     def _lookahead(self) -> np.ndarray:
         return np.clip(LOOKAHEAD_GAIN_S * np.abs(self.vehicles.speed_mps[self.index]), LOOKAHEAD_MIN_M,
@@ -358,13 +397,14 @@ class Convoy(RouteFollower):
 # -- every follower of a world at once ---------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
-def _project_all(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, p0, g0, v0, lat, lon, hint, out_s, out_x, out_seg):
+def _project_all(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, p0, g0, v0, lat, lon, hint, heading_deg, out_s, out_x,
+                 out_seg):
     """Route.project of each follower's vehicles (rows v0[f]:v0[f + 1]) on its route (points
     from p0[f], segments from g0[f] of the concatenated arrays): the same kernel on slices."""
     for f in range(v0.shape[0] - 1):
         a, b, p, q, g, h = v0[f], v0[f + 1], p0[f], p0[f + 1], g0[f], g0[f + 1]
         _project_kernel(r_lat[p:q], r_lon[p:q], seg_m[g:h], seg_ncos[g:h], seg_len[g:h], cum[p:q], lat[a:b],
-                        lon[a:b], hint[a:b], out_s[a:b], out_x[a:b], out_seg[a:b])
+                        lon[a:b], hint[a:b], heading_deg[a:b], out_s[a:b], out_x[a:b], out_seg[a:b])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -447,7 +487,7 @@ class FollowerSet:
         hint = np.concatenate([f._hint for f in fs])
         s, x, seg = np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
         _project_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_len"], r["cum"], self._p0, self._g0,
-                     self._v0, v.lat[idx], v.lon[idx], hint, s, x, seg)
+                     self._v0, v.lat[idx], v.lon[idx], hint, v.heading_deg[idx], s, x, seg)
         for f, a, b in zip(fs, self._v0[:-1].tolist(), self._v0[1:].tolist()):
             f.s, f.cross_track_m, f._hint = s[a:b], x[a:b], seg[a:b]
         speed = v.speed_mps[idx]

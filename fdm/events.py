@@ -17,8 +17,12 @@ Crash limits come per aircraft class (:data:`LIMITS`):
   (14 CFR 25.337). A crash is an excursion beyond the ultimate load sustained
   for ``g_hold_s`` (a one-step spike of the numerical acceleration is not a
   structural failure).
-- Any STRUCTURE contact (wing tip, tail skid, radome touching the ground) is
-  a crash: those points are not meant to carry load.
+- A STRUCTURE contact (wing tip, tail skid, radome touching the ground) is a
+  crash when it comes at more than STRUCTURE_REST_SPEED_MPS over the ground or
+  sinking faster than the class's touchdown limit: those points are not meant
+  to carry load at speed. Below both it is the aircraft coming to rest on them,
+  as a glider settles on a wing tip once it stops (JSBSim's gliders declare
+  wing-tip contacts for that), or a tail skid at walking pace.
 """
 
 from __future__ import annotations
@@ -32,6 +36,9 @@ OUT_OF_FUEL = "out_of_fuel"
 EVENT_KINDS = (TOUCHDOWN, TAKEOFF, CRASH, OUT_OF_FUEL)
 
 FT_S = 0.3048
+# Ground speed (m/s) up to which a structure contact is coming to rest, not a crash: a
+# walking pace, below a glider's end of ground run, where a wing drops onto its tip.
+STRUCTURE_REST_SPEED_MPS = 3.0
 
 
 @dataclass(frozen=True)
@@ -81,8 +88,10 @@ class EventDetector:
         self._clear_since = None
         self._g_since = None
 
-    def update(self, t, lat, lon, alt, wow, structure_contact, sink_rate_mps, nz_g) -> list:
-        """Events of this step (a list, usually empty). Units: s, deg, m, m/s (down +), g."""
+    def update(self, t, lat, lon, alt, wow, structure_contact, sink_rate_mps, nz_g,
+               ground_speed_mps: float = float("inf")) -> list:
+        """Events of this step (a list, usually empty). Units: s, deg, m, m/s (down +), g;
+        ``ground_speed_mps`` tells a structure contact at rest from a crash (unknown: a crash)."""
         events = []
         if self.crashed:
             return events
@@ -105,8 +114,10 @@ class EventDetector:
                 elif t - self._clear_since >= self.takeoff_clear_s:
                     self.airborne = True
                     events.append(Event(TAKEOFF, self._clear_since, lat, lon, alt))
-        if structure_contact and not self.crashed:
-            events.append(self._crash(t, lat, lon, alt, "structure contact"))
+        if structure_contact and not self.crashed and (ground_speed_mps > STRUCTURE_REST_SPEED_MPS
+                                                       or sink_rate_mps > self.limits.sink_rate_mps):
+            events.append(self._crash(t, lat, lon, alt, "structure contact", ground_speed_mps=ground_speed_mps,
+                                      sink_rate_mps=sink_rate_mps))
         if not self.crashed:
             if nz_g > self.limits.nz_max_g or nz_g < self.limits.nz_min_g:
                 if self._g_since is None:

@@ -45,8 +45,11 @@ One sub-step of one vehicle
    world's water is; inland lakes are not detected), when the gradient in the
    travel direction exceeds the type's maximum gradient up or down (a cliff is
    a gradient beyond any type's limit), or when the side slope exceeds its
-   limit. A limit only stops a move that makes it worse, so a vehicle placed
-   on a steep slope can still drive off it. ``blocked`` says why.
+   limit. Uphill beyond the maximum gradient is always stopped, whatever the
+   gradient the vehicle stood on (a vehicle placed on a steep face does not
+   climb it); downhill and side slope beyond their limits stop only a move that
+   makes them worse, so a vehicle placed on a steep slope can still drive off
+   it, down or across. ``blocked`` says why.
 
 No tunnelling at any step size
 ------------------------------
@@ -102,6 +105,12 @@ from terrain.validate import as_1d_f64, check_finite, check_latlon, first_bad
 
 # Sea level: a contact point at or below this height (m MSL) is in the water.
 WATER_LEVEL_MSL_M = 0.0
+# How much steeper (rise per metre) a move down a slope the vehicle already stands beyond
+# its limit on may find the ground before it counts as making it worse: the gradient
+# under the wheel base varies by a few thousandths from one pose to the next over float32
+# posts, and a vehicle driving off a steep face must not be stopped by that noise. A vehicle
+# within its limits gets none: any move beyond them stops it.
+SLOPE_WORSE_TOLERANCE = 0.02
 # A sub-step moves at most this fraction of the contact length (see module doc).
 SUBSTEP_MAX_LENGTH_FRAC = 0.5
 # ... and turns at most this far.
@@ -407,9 +416,10 @@ def _resolve_kernel(idx, type_id, table, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts
             a = sig * gp
             a0 = sig * pitch_grad[j]
             gmax = table[t, P_GRAD]
-            if (a > gmax and a > a0) or (a < -gmax and a < a0):
+            side = table[t, P_SIDE]
+            if a > gmax or (a < -gmax and (a0 >= -gmax or a < a0 - SLOPE_WORSE_TOLERANCE)):
                 code = BLOCKED_SLOPE
-            elif abs(gr) > table[t, P_SIDE] and abs(gr) > abs(roll_grad[j]):
+            elif abs(gr) > side and abs(gr) > abs(roll_grad[j]):
                 code = BLOCKED_SIDE_SLOPE
         blocked[j] = code
         if code != FREE:

@@ -141,7 +141,9 @@ class Sessions:
         for e in fit:
             if e.owner is None:
                 return e
-        raise LimitExceeded(f"{pb.Role.Name(role)[5:].lower()}_agents", len(fit) + 1, len(fit))
+        what = {pb.ROLE_PILOT: "aircraft", pb.ROLE_DRIVER: "ground vehicle"}.get(role, "aircraft or ground vehicle")
+        raise LimitExceeded(f"{pb.Role.Name(role)[5:].lower()}_agents", len(fit) + 1, len(fit),
+                            f"no free agent: every controllable {what} of the scenario is taken")
 
     def get(self, token: str) -> Session:
         with self._lock:

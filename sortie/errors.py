@@ -33,14 +33,15 @@ class InvalidArgument(SortieError, ValueError):
 class LimitExceeded(SortieError):
     """A request is larger than a documented limit (batch size, rate, queue length)."""
 
-    def __init__(self, field: str, size: int, limit: int):
-        super().__init__(f"{field}: {size} exceeds the limit of {limit}")
+    def __init__(self, field: str, size: int, limit: int, why: str = ""):
+        super().__init__(f"{field}: {size} exceeds the limit of {limit}" + (f" ({why})" if why else ""))
         self.field = field
         self.size = size
         self.limit = limit
+        self.why = why
 
     def __reduce__(self):
-        return type(self), (self.field, self.size, self.limit)
+        return type(self), (self.field, self.size, self.limit, self.why)
 
 
 class DataFormatError(SortieError):

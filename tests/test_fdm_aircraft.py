@@ -12,7 +12,8 @@ import pytest
 
 from fdm import catalog
 from fdm.autopilot import Autopilot, Targets
-from fdm.aircraft import MAX_REFRESH_S, Aircraft, Controls, FlatTerrain, InitialConditions, TrimFailed
+from fdm.aircraft import (MAX_REFRESH_S, Aircraft, Controls, FlatTerrain, InitialConditions, TrimFailed,
+                          validate_controls)
 from fdm.events import CRASH, OUT_OF_FUEL, TAKEOFF, TOUCHDOWN
 from fdm.state import FT_M, RAW_WIDTH, AircraftState, euler_to_quaternion
 from sortie.errors import InvalidArgument, NotFound
@@ -399,3 +400,43 @@ def test_cli_fly_summary():
     assert 240.0 < summary["distance_m"] < 260.0 and abs(summary["end"]["alt_msl_m"] - 1500.0) < 5.0
     with pytest.raises(InvalidArgument, match="seconds"):
         fly("c172x", InitialConditions(47.3, 9.5, 1500.0, speed_mps=50.0), float("nan"))
+
+
+# -- acceptance probing --------------------------------------------------------------------------
+
+def test_a_model_declaring_a_network_input_opens_no_port():
+    """The catalog's 737 declares <input port="5137"/>, JSBSim's telnet property server on every
+    interface: anyone reaching it could set any property of a hosted aircraft. The host
+    disables JSBSim's inputs, so after load, trim and steps nothing listens there."""
+    import socket
+
+    xml = (catalog.root_dir() / "aircraft" / "737" / "737.xml").read_text()
+    assert 'port="5137"' in xml.replace("'", '"')  # the hazard is real in this catalog
+    ac = Aircraft("737", FlatTerrain(), InitialConditions(47.5, 9.5, 3000.0, heading_deg=90.0, speed_mps=150.0))
+    ac.advance(12)
+    with socket.socket() as s:
+        assert s.connect_ex(("127.0.0.1", 5137)) != 0
+
+
+def test_hostile_control_values_are_invalid_arguments():
+    for values, field in (({"pitch": 10 ** 400}, "pitch"), ({"gear_down": np.array([1, 0])}, "gear_down"),
+                          ({"gear_down": 0.5}, "gear_down"), ({"gear_down": "yes"}, "gear_down")):
+        with pytest.raises(InvalidArgument, match=f"^{field}"):
+            validate_controls(values)
+    assert validate_controls({"gear_down": np.True_, "pitch": np.float32(0.5)}) == {"gear_down": True, "pitch": 0.5}
+
+
+def test_structure_contact_is_a_crash_at_speed_not_at_rest():
+    """A glider parked on the ground settles on a wing tip (a STRUCTURE contact) and stays
+    parked; the detector still calls a structure contact at speed, or sinking past the
+    touchdown limit, a crash."""
+    from fdm.events import LIMITS, STRUCTURE_REST_SPEED_MPS, EventDetector
+
+    glider = Aircraft("sgs233", FlatTerrain(), InitialConditions(47.3, 9.6, 0.0, on_ground=True))
+    glider.advance(int(15.0 / glider.dt))
+    assert not glider.crashed and not [e for e in glider.events if e.kind == CRASH]
+    for speed, sink, crash in ((1.0, 0.2, False), (STRUCTURE_REST_SPEED_MPS + 0.5, 0.2, True),
+                               (0.5, LIMITS["light"].sink_rate_mps + 0.5, True)):
+        d = EventDetector(LIMITS["light"], on_ground=True)
+        events = d.update(1.0, 47.0, 9.0, 400.0, True, True, sink, 1.0, speed)
+        assert bool([e for e in events if e.kind == CRASH]) == crash, (speed, sink)

@@ -249,3 +249,33 @@ def test_a_follower_set_gives_every_followers_own_commands_bit_for_bit(alps):
     other = GroundVehicles(alps, [47.3], [9.5], [0.0], ["hmmwv"])
     with pytest.raises(InvalidArgument, match="same GroundVehicles"):
         FollowerSet([each[0], RouteFollower(other, each[0].route, [0], 5.0)])
+
+
+def test_an_out_and_back_route_is_driven_out_and_back():
+    """A -> B -> A, 500 m each way, its legs on one line: the vehicle turns at B and drives back
+    to A (it orbited B before: its closest point flipped between the legs by rounding, and a
+    goal right behind it gave pure pursuit no curvature). Within 2 m of the route throughout,
+    and s never runs backwards by more than the turn's clamp at B."""
+    from fdm.convoy import Route, RouteFollower
+    from terrain.raster import STATUS_OK
+    from terrain.terrain import HeightResult
+
+    class Flat:
+        def heights(self, lat, lon):
+            lat = np.asarray(lat, float)
+            return HeightResult(np.full(lat.shape, 100.0), np.full(lat.shape, STATUS_OK, np.uint8))
+
+    east = 111_132.0 * math.cos(math.radians(45.0))  # metres a degree of longitude, ~0.3 %
+    route = Route([45.0, 45.0, 45.0], [7.0, 7.0 + 500.0 / east, 7.0])
+    for vehicle in ("hmmwv", "m1a2"):
+        gv = GroundVehicles(Flat(), [45.0], [7.0 + 1.0 / east], [90.0], vehicle)
+        follower = RouteFollower(gv, route, [0], 10.0)
+        far, s_max = 0.0, 0.0
+        for _ in range(3000):
+            follower.update()
+            gv.step(0.05)
+            far = max(far, abs(follower.cross_track_m[0]))
+            s_max = max(s_max, follower.s[0])
+        assert s_max > route.length_m - 20.0 and follower.s[0] > route.length_m - 20.0, vehicle
+        assert abs(gv.lon[0] - 7.0) * east < 20.0, vehicle  # back at A
+        assert far < 25.0, vehicle  # the turn at B, within its turning circle

@@ -489,3 +489,21 @@ def test_sub_step_contacts_match_exact_placement(alps, lat0):
     metres = np.radians(1.0) * 6.4e6
     assert np.abs(pts_lat - exact_lat).max() * metres < 1e-6
     assert np.abs(pts_lon - exact_lon).max() * metres * math.cos(math.radians(lat0)) < 1e-6
+
+
+@pytest.mark.parametrize("gradient", [1.0, 3.0])
+def test_a_vehicle_placed_on_a_face_too_steep_does_not_climb_it_but_can_drive_off(gradient):
+    """Placed on a 100 % (45 deg) or 300 % (72 deg) face, full speed uphill: it stays put,
+    blocked by the slope (it climbed 60-150 m in a minute before); reversing downhill, away
+    from the face's steepness, it drives."""
+    for type_ in ("m1a2", "hmmwv"):
+        g = GroundVehicles(_ramp(gradient), [47.0 + 200 * 0.00005], [9.0015], [0.0], type_)
+        h0 = g.height_msl_m[0]
+        g.set_controls(g.speed_limits_mps[1], [0.0])
+        for _ in range(100):
+            g.step(0.1)
+        assert g.height_msl_m[0] - h0 < 0.01 and g.blocked[0] == BLOCKED_SLOPE, type_
+        g.set_controls(-g.speed_limits_mps[0], [0.0])  # reverse: downhill
+        for _ in range(50):
+            g.step(0.1)
+        assert g.height_msl_m[0] < h0 - 1.0, type_

@@ -279,3 +279,27 @@ def test_a_frozen_client_is_found_dead_by_keepalive_and_its_agent_freed(tmp_path
         frozen.wait()
         server.stop(0.5)
         world.close()
+
+
+def test_bots_whose_server_dies_each_say_so_and_exit_non_zero(tmp_path):
+    """No raw thread tracebacks: a line per bot, exit 1. And more bots than agents are told
+    that every controllable agent is taken."""
+    path = scenario_file(tmp_path, AGENTS)  # three controllable agents
+    server = ServiceProcess(["server", "--scenario", path, "--aircraft-workers", "0", "--no-record"],
+                            log=tmp_path / "server.log")
+    server.__enter__()
+    try:
+        bots = subprocess.Popen([*sortie_command(), "bot", "--server", server.address, "--count", "4",
+                                 "--duration", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(10.0)  # the bots join and fly a first leg
+    finally:
+        server.proc.kill()
+        server.stop()
+    out, err = bots.communicate(timeout=60)
+    assert bots.returncode == 1
+    assert "Traceback" not in err, err
+    lines = sorted(line for line in out.splitlines() if line.startswith("bot-"))
+    assert len(lines) == 4, out
+    assert sum(": stopped: " in line for line in lines) == 3, out
+    assert sum("every controllable aircraft or ground vehicle of the scenario is taken" in line
+               for line in lines) == 1, out
