@@ -57,8 +57,8 @@ RUN apt-get update \
 
 RUN groupadd --system sortie \
     && useradd --system --gid sortie --create-home --home-dir /home/sortie --shell /usr/sbin/nologin sortie \
-    && mkdir -p /recordings /opt/sortie \
-    && chown sortie:sortie /recordings
+    && mkdir -p /recordings /frames /opt/sortie \
+    && chown sortie:sortie /recordings /frames
 
 COPY --from=builder /opt/venv /opt/venv
 COPY data/ /opt/sortie/data/
@@ -74,9 +74,9 @@ ENV PATH=/opt/venv/bin:$PATH \
 
 USER sortie
 WORKDIR /home/sortie
-# Recordings outlive the container (named volume in docker-compose.yml). Declared after
+# Recordings and rendered frames outlive the container (named volumes in docker-compose.yml). Declared after
 # the chown above, so a new volume starts owned by the sortie user.
-VOLUME ["/recordings"]
+VOLUME ["/recordings", "/frames"]
 # Conventional ports: simulation server, terrain service, replay, Tacview, DIS (UDP),
 # Prometheus metrics of the server and of the terrain service.
 EXPOSE 50051 50061 50071 42674 3000/udp 9100 9101

@@ -22,7 +22,14 @@ all: bootstrap
 
 bootstrap: $(STAMP) $(SYS_STAMP) $(TOOLS_STAMP)
 
+# Debian's python3 comes without venv/ensurepip (the python3-venv package): installed first
+# where it is missing, before the environment is made.
 $(VENV)/bin/python:
+	@if ! $(PYTHON) -c 'import ensurepip, venv' >/dev/null 2>&1; then \
+	  echo "installing python3-venv (this python has no venv/ensurepip)"; \
+	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq python3-venv python3-pip >/dev/null; \
+	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 

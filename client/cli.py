@@ -14,6 +14,7 @@ their altitude by +-300 m each leg.
 from __future__ import annotations
 
 import math
+import sys
 import signal
 import threading
 import time
@@ -102,8 +103,10 @@ def client_command(args) -> int:
               f"{observe[2] / 1000:.0f} km", flush=True)
         picture = sim.watch()
         end = _until(args.duration)
-        while time.monotonic() < end and not stop.is_set():
-            stop.wait(min(args.every, max(end - time.monotonic(), 0.0)))
+        while time.monotonic() < end and not stop.is_set() and picture.alive:
+            picture.wait_for(lambda p: stop.is_set(), min(args.every, max(end - time.monotonic(), 0.0)))
+            if not picture.alive:
+                break
             ids, pos, _ = picture.state()
             print(f"t = {picture.now_s():7.1f} s  {len(ids)} entities  ({picture.updates} updates, "
                   f"{picture.states_received} states, {picture.bytes} bytes)", flush=True)
@@ -114,8 +117,27 @@ def client_command(args) -> int:
                     name = info.name if info else str(i)
                     kind = info.type if info else ""
                     print(f"  {name:14s} {kind:10s} {lat[k]:9.5f} {lon[k]:9.5f} {h[k]:8.1f} m (ellipsoid)", flush=True)
-        sim.leave()
-    return 0
+        return stream_end(sim, picture)
+
+
+def stream_end(sim, picture) -> int:
+    """Leave the server if it is still there; the exit code: 0 for a stop asked of this
+    client or an exercise the server ended, 1 for a server gone (the stream broke), each
+    with a line that says so. A picture is no longer extrapolated past the stream's end."""
+    from sortie.errors import SortieError
+
+    if picture.alive:  # stopped here (duration, signal)
+        try:
+            sim.leave()
+        except SortieError:
+            pass
+        return 0
+    if picture.error is None:
+        print(f"the server ended the exercise at world time {picture.time_s:.1f} s", flush=True)
+        return 0
+    print(f"the server went away at world time {picture.time_s:.1f} s: {picture.error}", file=sys.stderr,
+          flush=True)
+    return 1
 
 
 def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list,

@@ -331,7 +331,9 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
                 frames, stats, wall = _frames(args, picture, target, r, out, stop, undulation)
         finally:
             _close(terrain)
-        sim.leave()
+        from client.cli import stream_end
+
+        code = stream_end(sim, picture)
     summary = {
         "server": args.server, "follow": info.name, "entity_id": int(target),
         "kind": KIND_NAMES.get(int(info.kind), str(info.kind)), "camera": ",".join(_views(args)),
@@ -350,7 +352,7 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"{len(frames)} frames in {out}, summary {out / 'summary.json'}", flush=True)
-    return 0 if frames else 1
+    return code if frames else 1
 
 
 VIEWS = ("cockpit", "chase")
@@ -381,6 +383,8 @@ def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Eve
     t_start = next_due = time.monotonic()
     for k in range(args.frames):
         if stop.is_set():
+            break
+        if not picture.alive:  # no frame of a world that is no longer streamed (stream_end says why)
             break
         t = picture.now_s()
         try:

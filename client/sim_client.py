@@ -26,7 +26,7 @@ import time
 import grpc
 import numpy as np
 
-from client.terrain_client import error_from_rpc
+from client.terrain_client import ServiceError, error_from_rpc
 from server.dead_reckoning import Extrapolator
 from server.grpc_common import channel_options
 from sortie.errors import InvalidArgument
@@ -63,7 +63,12 @@ class SimClient:
         self.channel.close()
 
     def wait_ready(self, timeout_s: float = 10.0) -> None:
-        grpc.channel_ready_future(self.channel).result(timeout=timeout_s)
+        """Block until the channel is connected; ServiceError(UNAVAILABLE) after timeout_s."""
+        try:
+            grpc.channel_ready_future(self.channel).result(timeout=timeout_s)
+        except grpc.FutureTimeoutError:
+            raise ServiceError(grpc.StatusCode.UNAVAILABLE,
+                               f"no simulation server at {self.address} within {timeout_s:g} s") from None
 
     def _call(self, fn, request):
         try:

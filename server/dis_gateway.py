@@ -56,6 +56,7 @@ import dataclasses
 import datetime as dt
 import logging
 import socket
+import sys
 import threading
 import time
 
@@ -483,8 +484,16 @@ def dis_command(args) -> int:
     try:
         wait_for_signal(gateway.finished)
     finally:
+        picture = gateway._picture  # noqa: SLF001 - why it finished, before stop() lets it go
+        ended = gateway.finished.is_set()
         gateway.stop()
     s = gateway.stats()
     print(f"sortie dis: stopped; {s['pdus_sent']} PDUs sent, {s['pdus_received']} received "
           f"({s['pdus_ignored']} ignored, {s['pdus_malformed']} malformed)", flush=True)
+    if ended and picture is not None and picture.error is not None:  # as sortie tacview: 1 when the server went
+        print(f"sortie dis: the simulation server at {args.server} went away: {picture.error}", file=sys.stderr,
+              flush=True)
+        return 1
+    if ended:
+        print(f"sortie dis: the simulation server at {args.server} ended the exercise", flush=True)
     return 0

@@ -467,7 +467,10 @@ class AioManagedServer:
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc_server)
         reflection.enable_server_reflection((*(name for name, _ in services), health.SERVICE_NAME,
                                              reflection.SERVICE_NAME), self.grpc_server)
-        return self.grpc_server.add_insecure_port(address)
+        try:
+            return self.grpc_server.add_insecure_port(address)
+        except RuntimeError as exc:  # in use, or no such interface: a start-up error, one line
+            raise SortieError(f"cannot listen on {address}: {exc}") from None
 
     async def _start(self) -> None:
         await self.grpc_server.start()

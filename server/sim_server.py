@@ -128,11 +128,8 @@ class SimulationServer:
         self.started_monotonic = time.monotonic()
         servicer = functools.partial(SimulationServicer, self.sessions, self.world_info,
                                      stream_stats=self.stream_stats)
-        try:
-            self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
-                                         max_rpcs=max_workers)
-        except RuntimeError as exc:
-            raise SortieError(f"cannot listen on {address}: {exc}") from exc
+        self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
+                                     max_rpcs=max_workers)  # SortieError when it cannot listen
         self.port = self.grpc.port
         self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"
         self.finished = threading.Event()  # set when the clock thread ends (duration reached, or an error)

@@ -93,7 +93,6 @@ import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import grpc
 import numpy as np
 
 from server.acmi import (FILE_HEADER, T_DECIMALS, attitude_deg, escape, event_line, iso_utc, object_lines,
@@ -426,11 +425,7 @@ class TacviewTelemetry:
 
         self._sim = SimClient(self.server_address)
         try:
-            try:
-                self._sim.wait_ready(START_TIMEOUT_S)
-            except grpc.FutureTimeoutError:
-                raise SortieError(f"no simulation server at {self.server_address} "
-                                  f"within {START_TIMEOUT_S:g} s") from None
+            self._sim.wait_ready(START_TIMEOUT_S)  # a SortieError naming the address when none answers
             self._sim.join(self.session_name, "gateway")
             self.world = self._sim.world()
             self._picture = self._sim.watch(listener=self._on_update)

@@ -107,10 +107,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sortie: configuration error: {exc}", file=sys.stderr)
         return 2
     args = parser.parse_args(argv)
+    config.settle_exclusive(parser, args, argv)
     configure(logging.WARNING - 10 * min(args.verbose, 2), args.log_format)
     try:
         return int(args.func(args) or 0)
     except SortieError as exc:
+        print(f"sortie {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a path that cannot be written or read, a socket refused: one line (-v: the traceback)
+        if args.verbose:
+            raise
         print(f"sortie {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -91,6 +91,14 @@ def _converted(action: argparse.Action, value, source: str):
             raise InvalidArgument(source, f"must be one of {'/'.join(TRUE_WORDS)} or {'/'.join(FALSE_WORDS)}",
                                   value=value)
         return flag if isinstance(action, argparse._StoreTrueAction) else not flag  # noqa: SLF001
+    if isinstance(action, argparse._CountAction):  # noqa: SLF001 - -v/-vv: a count, 0 or more
+        try:
+            count = int(value) if not isinstance(value, (bool, float)) else None
+        except ValueError:
+            count = None
+        if count is None or count < 0:
+            raise InvalidArgument(source, "must be a count, 0 or more", value=value)
+        return count
     many = action.nargs in ("+", "*") or isinstance(action.nargs, int) and action.nargs > 1
     if many:
         items = shlex.split(value) if isinstance(value, str) else list(value) if isinstance(value, list) else [value]
@@ -185,5 +193,39 @@ def apply(parser: argparse.ArgumentParser, config_path: str | None = None, envir
                 if key is None:
                     continue
                 value = _converted(action, table[key], f"{config_path}: {'.'.join(path)}.{key}")
+            if not hasattr(action, "sortie_builtin_default"):
+                action.sortie_builtin_default = action.default
             action.default = value
             action.required = False
+
+
+def settle_exclusive(parser: argparse.ArgumentParser, args: argparse.Namespace, argv: list[str]) -> None:
+    """The command line wins within a group of alternatives too (``--dem`` over a
+    ``SORTIE_SERVER_TERRAIN`` from the environment): where the command line gives one
+    member of a mutually exclusive group, the others lose what the environment or the
+    config file set, back to their built-in defaults."""
+    for sub in _active_parsers(parser, argv):
+        for group in sub._mutually_exclusive_groups:  # noqa: SLF001 - argparse keeps no public list
+            given = [a for a in group._group_actions if _on_command_line(a, argv)]  # noqa: SLF001
+            if not given:
+                continue
+            for a in group._group_actions:  # noqa: SLF001
+                if a not in given and hasattr(a, "sortie_builtin_default"):
+                    setattr(args, a.dest, a.sortie_builtin_default)
+
+
+def _on_command_line(action: argparse.Action, argv: list[str]) -> bool:
+    return any(word == o or word.startswith(o + "=") for o in action.option_strings for word in argv
+               if o.startswith("--"))
+
+
+def _active_parsers(parser: argparse.ArgumentParser, argv: list[str]) -> list:
+    """The parser and the sub-command parsers ``argv`` names, outermost first."""
+    out, rest = [parser], list(argv)
+    while True:
+        subs = [a for a in out[-1]._actions if isinstance(a, argparse._SubParsersAction)]  # noqa: SLF001
+        k = next((i for i, w in enumerate(rest) if subs and w in subs[0].choices), None)
+        if k is None:
+            return out
+        out.append(subs[0].choices[rest[k]])
+        rest = rest[k + 1:]

@@ -191,7 +191,7 @@ def run(args) -> int:
                   "and the logs of every process: terrain-service.log, simulation-server.log, bots.log, "
                   "dis-gateway.log, tacview.log, replay.log; canyon/ (the render client over the Grand "
                   "Canyon: flight frames, flight.gif, the tank's view); store.json and texture/ (the terrain "
-                  "store in ../store, served and streamed to a thin client; synthesised land classes, light "
+                  "store in store/, served and streamed to a thin client; synthesised land classes, light "
                   "map and composite)")
     if "debrief" in summary:
         d = summary["debrief"]

@@ -1,7 +1,7 @@
 """The demo's terrain store: import the DEMs once, serve the store, stream it to a
 thin client, synthesise textures from it.
 
-* ``sortie terrain import`` builds ``out/store`` from the demo's DEMs with a
+* ``sortie terrain import`` builds ``OUT/store`` (``out/demo/store``) from the demo's DEMs with a
   progress bar on the first run (later runs find it finished and reuse it;
   an interrupted one resumes).
 * ``sortie terrain serve --store`` serves it as its own process; a thin
@@ -97,7 +97,7 @@ def stream_to_thin_client(store_address: str, dem_address: str, console) -> dict
 def run_store(dems: list[Path], dem_address: str, out: Path, console) -> dict:
     from server.process import ServiceProcess
 
-    store = out.parent / "store"
+    store = out / "store"  # inside --out, reused by the next demo into the same folder
     summary = build_store(dems, store, console)
     console.print(f"store: {summary['regions']} regions, {summary['levels']} levels, {summary['posts']:,} posts in "
                   f"{summary['stored_bytes'] / 1e6:.1f} MB ({summary['ratio_vs_int16']:.1f}:1 against int16), "

@@ -26,7 +26,28 @@ def parse(argv, environ=None, config_text=None, tmp_path=None):
         path = tmp_path / "sortie.toml"
         path.write_text(config_text)
     config.apply(parser, str(path) if path else None, environ or {})
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    config.settle_exclusive(parser, args, argv)
+    return args
+
+
+def test_the_command_line_wins_within_a_group_of_alternatives_too(tmp_path):
+    """--dem on the command line over a terrain service from the environment, --record over
+    no-record from the config file; the environment's choice stands where the command
+    line names none of the group."""
+    env = {"SORTIE_SERVER_TERRAIN": "127.0.0.1:1"}
+    args = parse(["server", "--scenario", "s", "--port", "0", "--dem", "a.hgt", "--record", "r.sortie"], env,
+                 "[server]\nno-record = true\n", tmp_path)
+    assert (args.terrain, args.dem, args.no_record, args.record) == (None, ["a.hgt"], False, "r.sortie")
+    args = parse(["server", "--scenario", "s", "--port", "0"], env, "[server]\nno-record = true\n", tmp_path)
+    assert (args.terrain, args.dem, args.no_record) == ("127.0.0.1:1", None, True)
+
+
+@pytest.mark.parametrize("environ, text", [({"SORTIE_VERBOSE": "2"}, None), ({}, "verbose = 2\n")])
+def test_verbose_comes_from_the_environment_or_the_file_as_a_count(tmp_path, environ, text):
+    assert parse(["terrain", "info", "--dem", "x.hgt"], environ, text, tmp_path).verbose == 2
+    with pytest.raises(InvalidArgument, match="must be a count, 0 or more"):
+        parse(["terrain", "info", "--dem", "x.hgt"], {"SORTIE_VERBOSE": "-1"})
 
 
 def test_options_come_from_the_command_line_then_the_environment_then_the_file(tmp_path):
@@ -87,6 +108,40 @@ def test_start_up_errors_are_clear_and_exit_non_zero(hgt_alps, tmp_path):
         r = run_sortie("server", "--scenario", SCENARIO, "--dem", str(hgt_alps), "--port", str(svc.port),
                        "--no-record", "--aircraft-workers", "0")
         assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{svc.port}" in r.stderr
+        rec = tmp_path / "short.sortie"
+        r = run_sortie("server", "--scenario", SCENARIO, "--dem", str(hgt_alps), "--port", "0", "--record", str(rec),
+                       "--aircraft-workers", "0", "--clock", "fast", "--duration", "1", timeout=120)
+        assert r.returncode == 0, r.stderr
+        r = run_sortie("replay", str(rec), "--port", str(svc.port))
+        assert r.returncode == 2 and f"cannot listen on 127.0.0.1:{svc.port}" in r.stderr
+        assert "Traceback" not in r.stderr
+    # A path that cannot be written: one line naming it, not a traceback.
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    r = run_sortie("server", "--scenario", SCENARIO, "--dem", str(hgt_alps), "--port", "0", "--aircraft-workers", "0",
+                   "--record-dir", str(blocker / "recordings"), "--duration", "1")
+    assert r.returncode == 2 and "a-file" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_clients_tell_an_exercise_that_ended_from_a_server_gone(hgt_alps, tmp_path):
+    """sortie client stops with the stream: exit 0 and a line when the server ends the
+    exercise, exit 1 and a line when the server goes away; no picture extrapolated past it."""
+    args = ["server", "--scenario", SCENARIO, "--dem", str(hgt_alps), "--no-record", "--aircraft-workers", "0"]
+    with ServiceProcess([*args, "--duration", "4"]) as server:
+        t0 = time.monotonic()
+        r = run_sortie("client", "--server", server.address, "--duration", "60", "--every", "1", timeout=90)
+        assert r.returncode == 0 and "the server ended the exercise at world time" in r.stdout, r.stdout + r.stderr
+        assert time.monotonic() - t0 < 30.0
+        times = [float(m) for m in re.findall(r"^t = +([\d.]+) s", r.stdout, re.M)]
+        assert times and max(times) < 4.0 + 1.5
+    with ServiceProcess(args) as server:
+        client = subprocess.Popen([*sortie_command(), "client", "--server", server.address, "--duration", "60",
+                                   "--every", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(6.0)
+        server.proc.kill()
+        out, err = client.communicate(timeout=60)
+    assert client.returncode == 1 and "the server went away at world time" in err, out + err
+    assert "Traceback" not in err
 
 
 def scrape(url: str) -> dict:
