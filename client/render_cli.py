@@ -225,6 +225,10 @@ def render_command(args) -> int:
                                   fov_x_deg=args.fov_deg)
     terrain, desc = open_terrain(args.dem, args.terrain, store=args.store)
     try:
+        ground = float(np.asarray(terrain.heights(np.array([lat]), np.array([lon])).height_msl_m)[0])
+        if alt < ground:  # a frame from inside the terrain shows nothing meaningful
+            raise InvalidArgument("--camera", f"altitude {alt:g} m MSL is below the terrain there "
+                                              f"({ground:.1f} m MSL at {lat:g}, {lon:g})", value=args.camera)
         with _renderer(args, terrain, undulation) as r:
             image = r.render(camera)
             s = r.stats

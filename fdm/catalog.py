@@ -64,6 +64,23 @@ def resolve(name: str, root: str | None = None) -> str:
     raise NotFound(f"aircraft {name!r} is not in the JSBSim catalog ({len(names)} aircraft){hint}")
 
 
+@lru_cache(maxsize=256)
+def is_rotorcraft(name: str, root: str | None = None) -> bool:
+    """Whether a catalog model flies on rotors (a JSBSim <rotor> thruster, in its own folder
+    or among the engine files its thrusters name): the catalog's ah1s; False for a name the
+    catalog does not hold."""
+    base = Path(root) if root else root_dir()
+    try:
+        folder = base / "aircraft" / resolve(name, root)
+    except NotFound:
+        return False
+    texts = [f.read_text(errors="replace") for f in folder.rglob("*.xml")]
+    thrusters = {m for t in texts for m in re.findall(r'<thruster\s+file="([^"]+)"', t)}
+    texts += [(base / "engine" / f"{t}.xml").read_text(errors="replace") for t in thrusters
+              if (base / "engine" / f"{t}.xml").is_file()]
+    return any(re.search(r"<rotor\b", t) for t in texts)
+
+
 def aircraft_class(name: str) -> str:
     """'light', 'fighter' or 'transport' (unknown models count as 'light')."""
     return CLASS_OF.get(name, "light")

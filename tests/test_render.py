@@ -430,3 +430,23 @@ def test_sortie_view_follows_a_ground_vehicle(alps, hgt_alps, tmp_path):
         frame = np.asarray(img.convert("RGB")).astype(int)
     r, g, b = frame[40, 80]  # the chase camera looks at the tank's reference point: the hull is just above
     assert r > 2 * max(g, b), frame[40, 80]
+
+
+def test_a_camera_below_the_terrain_is_refused_by_name(hgt_alps, tmp_path):
+    """The Säntis massif (~2,300 m) under a camera at 100 m MSL: a clear error, no frame."""
+    out = tmp_path / "below.png"
+    run = subprocess.run([sys.executable, "-m", "sortie.cli", "render", "--dem", str(hgt_alps), "--camera",
+                          "47.25,9.34,100,0,0", "--out", str(out), "--size", "64x48"], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 2 and "--camera: altitude 100 m MSL is below the terrain there" in run.stderr
+    assert not out.exists()
+
+
+def test_the_catalogs_helicopter_gets_the_helicopter_profile():
+    """The ah1s flies on JSBSim rotors; its name holds none of the helicopter words."""
+    from client.render.profiles import profile_for
+    from fdm.catalog import is_rotorcraft, list_aircraft
+
+    assert "ah1s" in [n for n in list_aircraft() if is_rotorcraft(n)] and not is_rotorcraft("f16")
+    assert profile_for("aircraft", "ah1s").name == "helicopter"
+    assert profile_for("aircraft", "f16").name == "fast_jet" and profile_for("aircraft", "uh60").name == "helicopter"

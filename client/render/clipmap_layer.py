@@ -1315,10 +1315,16 @@ class ClipmapLayer:
 
     @property
     def fog_range_m(self) -> float:
+        """Half the coarsest level's extent, less two posts, along its shorter side: a level
+        is n x n posts of the lattice, so east-west it spans cos(latitude) of its north-south
+        metres, and at high latitudes the terrain would end inside the fog there."""
         if self.clipmap is None:
             return 1e5
         k = len(self.clipmap.levels) - 1
-        return (0.5 * (self.clipmap.n - 1) - 2.0) * self.clipmap.spacing_m(k)
+        dlat, dlon = self.clipmap.spacing_deg(k)
+        lat = getattr(self, "_focus", (0.0, 0.0))[0]
+        east_m = math.radians(dlon) * 6_371_000.0 * math.cos(math.radians(min(abs(lat), 89.999)))
+        return (0.5 * (self.clipmap.n - 1) - 2.0) * min(self.clipmap.spacing_m(k), east_m)
 
     @property
     def solid_bounds(self) -> tuple | None:

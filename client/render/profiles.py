@@ -85,7 +85,11 @@ def profile_for(kind: str, type_name: str = "") -> LodProfile:
     """The profile of an agent of ``kind`` ("aircraft", "ground", "static", "observer") and type."""
     if kind == "aircraft":
         t = type_name.lower()
-        return PROFILES["helicopter" if any(w in t for w in HELICOPTER_WORDS) else "fast_jet"]
+        if any(w in t for w in HELICOPTER_WORDS):
+            return PROFILES["helicopter"]
+        from fdm.catalog import is_rotorcraft  # a JSBSim model with rotors (the catalog's ah1s)
+
+        return PROFILES["helicopter" if type_name and is_rotorcraft(type_name) else "fast_jet"]
     if kind == "ground":
         return PROFILES["ground_vehicle"]
     return PROFILES["observer"]
