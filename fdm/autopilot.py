@@ -15,8 +15,11 @@ normalised pilot controls (:class:`fdm.aircraft.Controls`), like a pilot would:
 This is the classic successive-loop-closure structure (Beard & McLain, *Small
 Unmanned Aircraft*, 2012, ch. 6: the inner attitude loops are closed first and
 the outer loops are slower by a factor of 5-10). Gains are per aircraft class
-(:data:`GAINS`), tuned by step responses on the c172x (light) and the f16
-(fighter, whose fly-by-wire FCS turns stick into g and roll-rate demands).
+(:data:`GAINS`), tuned by step responses on the c172x (light), the f16
+(fighter, whose fly-by-wire FCS turns stick into g and roll-rate demands) and
+the MD11, B747 and 787-8 (transport). Heavy jets add washed-out angle-of-attack
+feedback to the pitch loop and a stall protection: beyond ``max_alpha_rad`` the
+stick only moves forward. The f16 rolls into turns at a limited bank rate.
 """
 
 from __future__ import annotations
@@ -49,6 +52,15 @@ class Gains:
     kp_speed: float  # throttle per m/s of speed error
     ki_speed: float  # throttle per m
     k_beta: float  # yaw pedal per rad of sideslip
+    # Pitch stiffness: pitch stick per rad of angle of attack above its washed-out (low-passed)
+    # value, and the low-pass time constant; 0 leaves the flight-path loop as it is.
+    k_alpha: float = 0.0
+    alpha_washout_s: float = 4.0
+    # Stall protection: above this angle of attack the pitch stick moves no further aft.
+    max_alpha_rad: float = math.inf
+    # Bank command slew limit, rad/s: a heading step rolls in at this rate rather than at full
+    # stick (the f16 answers a full roll stick with a load-factor dip below -1 g).
+    max_bank_rate_rad_s: float = math.inf
 
 
 GAINS = {
@@ -56,17 +68,34 @@ GAINS = {
                    k_alt=0.003, max_climb_rad=math.radians(6),
                    max_descent_rad=math.radians(-6), kp_pitch=3.0, ki_pitch=1.0, kd_pitch_rate=0.8,
                    kp_speed=0.08, ki_speed=0.01, k_beta=1.0),
+    # Re-tuned here on the f16 at 200 m/s, 3000 m by a grid over k_alt, kp/ki/kd_pitch on a
+    # combined +200 m, +30 deg step (overshoot 5 m, within 5 m after 24 s, 0.4..2.4 g).
     "fighter": Gains(max_bank_rad=math.radians(45), k_heading=3.0, kp_bank=1.5, kd_roll_rate=0.2, ki_bank=0.2,
-                     k_alt=0.002, max_climb_rad=math.radians(10),
-                     max_descent_rad=math.radians(-10), kp_pitch=2.0, ki_pitch=0.8, kd_pitch_rate=0.4,
-                     kp_speed=0.05, ki_speed=0.01, k_beta=0.5),
+                     k_alt=0.001, max_climb_rad=math.radians(10),
+                     max_descent_rad=math.radians(-10), kp_pitch=3.0, ki_pitch=0.3, kd_pitch_rate=0.8,
+                     kp_speed=0.05, ki_speed=0.01, k_beta=0.5, max_bank_rate_rad_s=0.4),
+    # Heavy jets without a stability augmentation system: the MD11's short period is slow, so
+    # the flight-path loop needs a stiff pitch loop (high proportional and pitch-rate gains and
+    # washed-out alpha feedback) and a slower altitude loop (k_alt * 150 m/s: a 6.7 s time
+    # constant). Tuned here by step responses (+-300 m, +30 deg, holds of 240 s) on the MD11,
+    # B747 and 787-8 at 140-150 m/s and 3000 m; the stall limit lies below the MD11's lift peak
+    # (CL max at alpha 0.23 rad, 13.2 deg, in its aero tables).
+    "transport": Gains(max_bank_rad=math.radians(25), k_heading=1.2, kp_bank=2.0, kd_roll_rate=0.3, ki_bank=0.3,
+                       k_alt=0.001, max_climb_rad=math.radians(5),
+                       max_descent_rad=math.radians(-5), kp_pitch=8.0, ki_pitch=0.3, kd_pitch_rate=8.0,
+                       kp_speed=0.08, ki_speed=0.01, k_beta=1.0, k_alpha=3.0, alpha_washout_s=4.0,
+                       max_alpha_rad=math.radians(10)),
 }
-GAINS["transport"] = GAINS["light"]
 
 # Raw row columns read each update, looked up once.
 _TIME, _LAT, _LON, _ALT = _C["time_s"], _C["lat_rad"], _C["lon_rad"], _C["alt_ft"]
 _VN, _VE, _VD, _VT = _C["v_north_fps"], _C["v_east_fps"], _C["v_down_fps"], _C["vt_fps"]
 _PHI, _PSI, _P, _Q, _BETA = _C["phi_rad"], _C["psi_rad"], _C["p_rps"], _C["q_rps"], _C["beta_rad"]
+_ALPHA = _C["alpha_rad"]
+
+# Stall protection: pitch stick per second, per rad of angle of attack beyond max_alpha_rad,
+# by which the stick is walked forward (tuned here: 1 deg beyond moves it 0.035 a second).
+_STALL_PUSH_PER_RAD_S = 2.0
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:
@@ -112,6 +141,8 @@ class Autopilot:
         self._i_pitch = 0.0
         self._i_bank = 0.0
         self._i_speed = aircraft.controls.throttle
+        self._alpha_lp = None  # low-passed angle of attack, rad (set on the first update)
+        self._bank_cmd = None  # slew-limited bank command, rad
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
         for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
@@ -138,6 +169,10 @@ class Autopilot:
         if tg.heading_deg is not None:
             err = wrap_pi(math.radians(tg.heading_deg) - psi)
             bank_cmd = _clamp(g.k_heading * err, -g.max_bank_rad, g.max_bank_rad)
+            if g.max_bank_rate_rad_s < math.inf:
+                last = phi if self._bank_cmd is None else self._bank_cmd
+                step = g.max_bank_rate_rad_s * dt
+                bank_cmd = self._bank_cmd = _clamp(bank_cmd, last - step, last + step)
             e = bank_cmd - phi
             u = g.kp_bank * e + self._i_bank - g.kd_roll_rate * p
             if -1.0 < u < 1.0:
@@ -152,7 +187,16 @@ class Autopilot:
                                g.max_climb_rad)
             e = gamma_cmd - gamma
             u = g.kp_pitch * e + self._i_pitch - g.kd_pitch_rate * q
-            if -1.0 < u < 1.0:  # anti-windup: integrate only while not saturated
+            alpha = r[_ALPHA]
+            if g.k_alpha:
+                if self._alpha_lp is None:
+                    self._alpha_lp = alpha
+                self._alpha_lp += (alpha - self._alpha_lp) * min(dt / g.alpha_washout_s, 1.0)
+                u -= g.k_alpha * (alpha - self._alpha_lp)
+            stalling = alpha > g.max_alpha_rad
+            if stalling:  # no further aft than now: forward, faster the deeper into the stall
+                u = min(u, ac.controls.pitch - _STALL_PUSH_PER_RAD_S * (alpha - g.max_alpha_rad) * dt)
+            if -1.0 < u < 1.0 and not (stalling and e > 0.0):  # anti-windup: not while saturated
                 self._i_pitch = _clamp(self._i_pitch + g.ki_pitch * e * dt, -1.0, 1.0)
             pitch = _clamp(u, -1.0, 1.0)
         if tg.speed_mps is not None:
