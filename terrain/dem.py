@@ -673,6 +673,9 @@ def read_raw16(path, rows: int, cols: int, lat0: float, lon0: float, dlat: float
 # Void regions up to this many posts are solved directly (sparse LU, SuperLU);
 # larger ones by multigrid-preconditioned conjugate gradients (_fill_iterative).
 FILL_DIRECT_MAX_POSTS = 40_000
+# Small regions are solved together, in batches of at least this many posts (each region's
+# equations are independent: the batch bounds the direct solver's memory, whatever the count).
+FILL_DIRECT_BATCH_POSTS = 200_000
 # Largest void region filled: the interior of a 3601 x 3601 SRTM1 tile
 # (3599**2 posts; the iterative solve needs about 130 bytes a post of the
 # region's box, 1.7 GB here). A larger one is refused by name, not swapped.
@@ -719,18 +722,27 @@ def fill_voids(heights: np.ndarray, voids: np.ndarray) -> np.ndarray:
     labels, n_regions = scipy.ndimage.label(voids)  # 4-connected by default
     sizes = np.bincount(labels.ravel(), minlength=n_regions + 1)
     small = np.zeros(voids.shape, bool)
+    small_posts = 0
+    h_all = None
     for k, box in enumerate(scipy.ndimage.find_objects(labels), start=1):
         if sizes[k] > FILL_MAX_POSTS:
             raise LimitExceeded("void region (posts)", int(sizes[k]), FILL_MAX_POSTS)
         if sizes[k] <= FILL_DIRECT_MAX_POSTS:
             small[box] |= labels[box] == k
+            small_posts += int(sizes[k])
+            if small_posts >= FILL_DIRECT_BATCH_POSTS:  # many small holes: solved in batches, memory bounded
+                h_all = np.where(voids, np.nan, heights).astype(np.float64) if h_all is None else h_all
+                out[small] = _fill_direct(h_all, small)
+                small[:] = False
+                small_posts = 0
             continue
         grown = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in box)
         region = labels[grown] == k
         h = np.where(voids[grown], np.nan, heights[grown]).astype(np.float64)
         out[grown][region] = _fill_iterative(h, region)
     if small.any():
-        out[small] = _fill_direct(np.where(voids, np.nan, heights).astype(np.float64), small)
+        h_all = np.where(voids, np.nan, heights).astype(np.float64) if h_all is None else h_all
+        out[small] = _fill_direct(h_all, small)
     return out[voids]
 
 

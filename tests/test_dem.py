@@ -946,3 +946,19 @@ def test_global_cell_registered_raster_wraps_across_its_seam(tmp_path):
     assert los.visible[0] and los.status[0] == STATUS_OK
     hit = t.intersect([0.5], [179.9], [1500.0], [0.5], [-179.9], [1000.0])
     assert hit.hit[0] and hit.status[0] == STATUS_OK
+
+
+def test_many_small_voids_are_filled_in_batches_with_the_same_values(monkeypatch):
+    """Small void regions are solved together in batches (bounded memory, whatever their
+    count); each region's equations are its own, so any batching gives the same values."""
+    import terrain.dem as dem
+
+    rng = np.random.default_rng(3)
+    h = rng.normal(500.0, 50.0, (200, 200))
+    voids = np.zeros(h.shape, bool)
+    for i in range(5, 195, 12):
+        for j in range(5, 195, 12):
+            voids[i:i + 6, j:j + 6] = True  # 256 holes of 36 posts
+    whole = dem.fill_voids(h, voids)
+    monkeypatch.setattr(dem, "FILL_DIRECT_BATCH_POSTS", 500)  # ~14 holes a batch
+    assert np.allclose(dem.fill_voids(h, voids), whole, rtol=0.0, atol=1e-9)
