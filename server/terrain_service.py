@@ -223,10 +223,11 @@ class TerrainServicer:
         lat, lon = check_latlon(np.array([request.lat_min_deg, request.lat_max_deg]),
                                 np.array([request.lon_min_deg, request.lon_max_deg]))
         if not lat[0] <= lat[1]:
-            raise InvalidArgument("lat_min_deg", "the box is inverted: above lat_max_deg", value=(float(lat[0]), float(lat[1])))
+            raise InvalidArgument("lat_min_deg", "the box is inverted: above lat_max_deg",
+                                  value=(float(lat[0]), float(lat[1])))
         if not lon[0] <= lon[1]:
-            raise InvalidArgument("lon_min_deg", "the box is inverted: east of lon_max_deg (a box across the antimeridian takes "
-                                  "lon_max_deg above 180)", value=(float(lon[0]), float(lon[1])))
+            raise InvalidArgument("lon_min_deg", "the box is inverted: east of lon_max_deg (a box across the "
+                                  "antimeridian takes lon_max_deg above 180)", value=(float(lon[0]), float(lon[1])))
         dlat, dlon = store.spacing_deg(request.level)
         posts = ((lat[1] - lat[0]) / dlat + 2) * ((lon[1] - lon[0]) / dlon + 2)
         if posts > MAX_REGION_POSTS:

@@ -231,7 +231,8 @@ def test_bad_duration_and_time_scale_overrides_are_refused(tmp_path, option, val
     'kind = "static"\ntype = "radar"',
 ])
 def test_agents_placed_by_the_ground_outside_the_terrain_are_refused(tmp_path, agent):
-    path = scenario_file(tmp_path, f'[[agents]]\nname = "lost"\ncoalition = "red"\nlat_deg = 50.0\nlon_deg = 9.5\n{agent}\n')
+    path = scenario_file(tmp_path, '[[agents]]\nname = "lost"\ncoalition = "red"\nlat_deg = 50.0\nlon_deg = 9.5\n'
+                         + agent + "\n")
     scenario = load_scenario(path)
     with pytest.raises(ScenarioError, match=r"agents\[0\]: 'lost' is placed .* outside the terrain"):
         build_world(scenario, open_terrain(scenario)[0])
