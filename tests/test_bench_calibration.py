@@ -31,3 +31,21 @@ def test_probes_are_positive_and_land_in_the_report_before_and_after():
                               "host_python_ns_after": 2 * before["host_python_ns"],
                               "host_random_read_ns_before": before["host_random_read_ns"],
                               "host_random_read_ns_after": 2 * before["host_random_read_ns"]}
+
+
+def test_an_unwritable_json_path_is_refused_before_the_run(tmp_path):
+    """sortie bench checks --json and --plots first: a suite can run for minutes, and its
+    figures were lost to a traceback at the end."""
+    import subprocess
+    import time
+
+    from server.process import sortie_command
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for option, value in (("--json", blocker / "x.json"), ("--plots", blocker / "plots")):
+        t0 = time.monotonic()
+        r = subprocess.run([*sortie_command(), "bench", "store", option, str(value)], capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == 2 and f"{option}: cannot be written" in r.stderr, r.stderr
+        assert time.monotonic() - t0 < 30.0  # refused at once, not after the suite
