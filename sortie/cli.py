@@ -112,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except SortieError as exc:
-        print(f"sortie {args.command}: error: {exc}", file=sys.stderr)
+        source = config.source_of(parser, argv, exc.field) if getattr(exc, "field", None) else None
+        print(f"sortie {args.command}: error: {exc}" + (f" (set by {source})" if source else ""), file=sys.stderr)
         return 2
     except OSError as exc:  # a path that cannot be written or read, a socket refused: one line (-v: the traceback)
         if args.verbose:

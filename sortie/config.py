@@ -197,6 +197,19 @@ def apply(parser: argparse.ArgumentParser, config_path: str | None = None, envir
                 action.sortie_builtin_default = action.default
             action.default = value
             action.required = False
+            action.sortie_source = name if name in environ else f"{config_path}: {'.'.join(path)}.{key}"
+
+
+def source_of(parser: argparse.ArgumentParser, argv: list[str], field: str) -> str | None:
+    """Where option ``field`` (its dest, or its --name) got its value when not from the command
+    line: the environment variable or the config file's key; None otherwise. A value a command
+    checks after parsing is then named by its source, as argparse's own checks name it."""
+    name = field.lstrip("-").replace("-", "_")
+    for sub in _active_parsers(parser, argv):
+        for action in sub._actions:  # noqa: SLF001
+            if action.dest == name and getattr(action, "sortie_source", None) and not _on_command_line(action, argv):
+                return action.sortie_source
+    return None
 
 
 def settle_exclusive(parser: argparse.ArgumentParser, args: argparse.Namespace, argv: list[str]) -> None:

@@ -284,3 +284,20 @@ def test_health_loads_alone_and_reads_its_own_configuration(tmp_path, capsys):
     assert not {"server.sim_cli", "server.terrain_cli"} & (set(sys.modules) - before)
     path.write_text("[health]\ntimeout_z = 0.5\n")  # its own table is still checked
     assert main(["--config", str(path), "health", f"127.0.0.1:{port}"]) == 2
+
+
+def test_a_bad_value_checked_after_parsing_names_where_it_came_from(tmp_path):
+    """--aircraft-workers is checked by the command, not argparse: from the environment or a
+    config file the error says which, as argparse's own checks do; from the command line, not."""
+    import os
+
+    env = dict(os.environ, SORTIE_SERVER_AIRCRAFT_WORKERS="many")
+    r = subprocess.run([*sortie_command(), "server", "--scenario", SCENARIO, "--port", "0", "--no-record"],
+                       capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 2 and r.stderr.rstrip().endswith("(set by SORTIE_SERVER_AIRCRAFT_WORKERS)"), r.stderr
+    conf = tmp_path / "c.toml"
+    conf.write_text('[server]\naircraft-workers = "many"\n')
+    r = run_sortie("--config", str(conf), "server", "--scenario", SCENARIO, "--port", "0", "--no-record")
+    assert r.returncode == 2 and "(set by" in r.stderr and "c.toml: server.aircraft-workers" in r.stderr, r.stderr
+    r = run_sortie("server", "--scenario", SCENARIO, "--port", "0", "--no-record", "--aircraft-workers", "many")
+    assert r.returncode == 2 and "set by" not in r.stderr
