@@ -138,9 +138,12 @@ class Terrain:
     def _prefer_measured(self, lat, lon, out_h, status) -> None:
         """Answer points a source gave as FILLED (a filled void: a guess) by the first source
         that has them measured (status OK) instead, if any; synthetic sources (procedural)
-        measure nothing and are not asked. Only filled points pay for this."""
+        measure nothing and are not asked. A terrain of one measured source pays nothing; others
+        one pass over the statuses, and the filled points their queries."""
+        if len(self.sources) == 1 or len(self._measured_sources()) < 2:
+            return
         idx = np.flatnonzero(status == STATUS_FILLED)
-        if idx.size == 0 or len(self.sources) == 1:
+        if idx.size == 0:
             return
         for source in self._measured_sources():
             sub_h = np.full(idx.size, np.nan)

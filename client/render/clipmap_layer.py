@@ -1322,7 +1322,7 @@ class ClipmapLayer:
             return 1e5
         k = len(self.clipmap.levels) - 1
         dlat, dlon = self.clipmap.spacing_deg(k)
-        lat = getattr(self, "_focus", (0.0, 0.0))[0]
+        lat = self._focus[0]
         east_m = math.radians(dlon) * 6_371_000.0 * math.cos(math.radians(min(abs(lat), 89.999)))
         return (0.5 * (self.clipmap.n - 1) - 2.0) * min(self.clipmap.spacing_m(k), east_m)
 
