@@ -8,6 +8,7 @@ element is ``<fdm_config>`` (JSBSim's model file); that is exactly what
 from __future__ import annotations
 
 import difflib
+import math
 import re
 from functools import lru_cache
 from pathlib import Path
@@ -280,3 +281,71 @@ def trim_hint(name: str, alt_m: float) -> str:
     if name in TRIM_SPEEDS_SURVEYED:
         return f"{name} trims at {_ranges(TRIM_SPEEDS_SURVEYED[name])} m/s {where}; {scan}"
     return f"try another speed or altitude; {scan}"
+
+
+# Length units of JSBSim's configuration files (JSBSim Reference Manual, "Units"; an
+# element without a unit attribute takes the manual's default: IN for <location>, FT for
+# <wingspan>, <htailarm>, <vtailarm>). Exact conversions (NIST SP 811, B.8).
+_TO_M = {"IN": 0.0254, "FT": 0.3048, "M": 1.0, "CM": 0.01, "MM": 0.001}
+# A body radius for a model whose file gives no size at all (no wingspan, no locations).
+DEFAULT_BODY_RADIUS_M = 10.0
+
+
+def _length_m(element, default_unit: str) -> float | None:
+    try:
+        return float(element.text) * _TO_M[element.get("unit", default_unit).upper()]
+    except (TypeError, ValueError, KeyError):
+        return None
+
+
+def _location_m(element) -> tuple | None:
+    unit = _TO_M.get(element.get("unit", "IN").upper())
+    try:
+        return None if unit is None else tuple(float(element.findtext(a, "0")) * unit for a in "xyz")
+    except ValueError:
+        return None
+
+
+@lru_cache(maxsize=256)
+def body_radius_m(name: str, root: str | None = None) -> float:
+    """Radius of a sphere about the CG that holds the aircraft, for collisions between
+    agents (server/collisions.py), from the model file: the largest of half the wingspan,
+    the horizontal and vertical tail arms (CG to the tail's aerodynamic centre) and the
+    distance from the CG to every point the file locates (gear and structure contacts,
+    point masses, tanks, engines, thrusters, the eye point and the aerodynamic reference
+    point). JSBSim files give no overall length, so this bounds the airframe from below
+    where the file locates nothing near the nose or tail. DEFAULT_BODY_RADIUS_M for a name
+    the catalog does not hold or a file that gives no size."""
+    import xml.etree.ElementTree as ET
+
+    base = Path(root) if root else root_dir()
+    try:
+        folder = base / "aircraft" / resolve(name, root)
+        tree = ET.parse(folder / f"{folder.name}.xml").getroot()
+    except (NotFound, OSError, ET.ParseError):
+        return DEFAULT_BODY_RADIUS_M
+    parts = [tree]
+    for section in tree:  # sections kept in files of their own: <ground_reactions file="..."/>
+        ref = section.get("file")
+        for path in (folder / ref, folder / f"{ref}.xml", folder / "Systems" / f"{ref}.xml") if ref else ():
+            if path.is_file():
+                try:
+                    parts.append(ET.parse(path).getroot())
+                except ET.ParseError:
+                    pass
+                break
+    sizes = []
+    for tag, factor in (("wingspan", 0.5), ("htailarm", 1.0), ("vtailarm", 1.0)):
+        el = tree.find(f"metrics/{tag}")
+        value = _length_m(el, "FT") if el is not None else None
+        if value is not None and math.isfinite(value):
+            sizes.append(abs(value) * factor)
+    cg = next((_location_m(el) for el in tree.iter("location") if el.get("name") == "CG"), None)
+    if cg is not None:
+        for part in parts:
+            for el in part.iter("location"):
+                p = _location_m(el)
+                if p is not None and el.get("name") != "CG":
+                    sizes.append(math.dist(p, cg))
+    sizes = [s for s in sizes if math.isfinite(s)]
+    return max(sizes) if sizes and max(sizes) > 0 else DEFAULT_BODY_RADIUS_M

@@ -134,8 +134,9 @@ BLOCKED_SIDE_SLOPE = 1
 BLOCKED_SLOPE = 2
 BLOCKED_WATER = 3
 BLOCKED_OUTSIDE = 4
+BLOCKED_COLLISION = 5  # ran into another entity (set by the world: server/collisions.py)
 BLOCKED_NAMES = {FREE: "free", BLOCKED_SIDE_SLOPE: "side_slope", BLOCKED_SLOPE: "slope",
-                 BLOCKED_WATER: "water", BLOCKED_OUTSIDE: "outside"}
+                 BLOCKED_WATER: "water", BLOCKED_OUTSIDE: "outside", BLOCKED_COLLISION: "collision"}
 
 # Largest step the model accepts: a long step is sub-stepped, but beyond this
 # it is a unit mix-up (ms for s), not a simulation.
@@ -737,6 +738,14 @@ class GroundVehicles:
             self.speed_cmd_mps[idx] = v
         if r is not None:
             self.yaw_rate_cmd_dps[idx] = r
+
+    def stop(self, index, reason: int = BLOCKED_COLLISION) -> None:
+        """Stop the vehicles in ``index`` where they stand (speed 0, ``blocked`` = ``reason``),
+        as a blocked move stops them; their commands stay, so they drive on from rest at
+        the next step (a collision between vehicles: server/collisions.py)."""
+        idx = np.asarray(index, np.int64).reshape(-1)
+        self.speed_mps[idx] = 0.0
+        self.blocked[idx] = reason
 
     def check_controls(self, speed_mps=None, yaw_rate_dps=None, index=None):
         """The checks of :meth:`set_controls`, applying nothing: (rows, speeds or None,

@@ -231,6 +231,10 @@ def event_line(event, object_hex: str | None, name: str) -> str | None:
         text = f"{name} touched down"
     elif event.kind == "out_of_fuel":
         text = f"{name} is out of fuel"
+    elif event.kind == "collision":
+        speed = detail.get("relative_speed_mps")
+        text = f"{name} collided with {detail.get('other_name', 'another entity')}" + (
+            f" at {speed:.1f} m/s" if isinstance(speed, (int, float)) else "")
     elif event.kind in ("join", "leave", "vanished"):
         verb = {"join": "joined", "leave": "left", "vanished": "vanished from"}[event.kind]
         role = f" as {detail['role'].lower()}" if detail.get("role") and event.kind == "join" else ""

@@ -13,7 +13,9 @@ One world tick (``1 / world_rate_hz`` s, 30 Hz by default) does, in order:
    vehicle by one tick through one :class:`fdm.ground.GroundVehicles` (one
    batched query per sub-step);
 4. test the airborne aircraft's paths over the tick against the terrain
-   (one batched segment intersection);
+   (one batched segment intersection), and every moving entity's path against
+   every other entity's (server/collisions.py: a "collision" event for each of
+   the two; an aircraft in one crashes, a ground vehicle stops);
 5. publish an immutable :class:`Snapshot` of every live entity's kinematic
    state (ECEF position, velocity and acceleration, orientation ECEF -> body,
    body rates) for the network side to read without locks.
@@ -59,6 +61,7 @@ from fdm.convoy import Convoy, FollowerSet, Route, RouteFollower
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
 from server.aircraft_host import LocalAircraftHost
+from server.collisions import new_contacts
 from server.dead_reckoning import extrapolate, ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
@@ -71,6 +74,15 @@ MAX_ENTITIES = 10_000
 # Events kept for late readers of the events stream (a ring; readers that fall
 # further behind lose the oldest).
 EVENT_BACKLOG = 10_000
+# Bounding radii (m) of what the world knows no size of: static entities (a scenario's
+# "sam_site", "radar": a vehicle-sized site) and external entities, by kind (a fighter's
+# half length; a main battle tank's half diagonal). Aircraft take their model's
+# (fdm.catalog.body_radius_m), ground vehicles their type's box.
+STATIC_RADIUS_M = 10.0
+EXTERNAL_RADIUS_M = {1: 8.0, 2: 4.5, 3: STATIC_RADIUS_M}
+# An aircraft that touches another entity at this relative speed or more crashes; on the
+# ground below it (a taxiing wing tip brushing a parked vehicle) it is reported, not crashed.
+AIRCRAFT_CRASH_SPEED_MPS = 2.0
 
 
 @dataclass(frozen=True)
@@ -200,6 +212,8 @@ class World(EventLog):
         self._air_in_flight = False  # a tick of the aircraft host begun and not yet ended
         self._layout_version = 0  # bumped when an entity comes or goes
         self._layout_cache = None
+        self._shape_cache = None  # (layout version, ids sorted, radius, half length, half width, fixed)
+        self._shapes_of = None  # (ids, _shapes(ids)) of the last call
         self.ground: GroundVehicles | None = None
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
         self._scenario_routes: dict[int, dict] = {}  # the route spec each ground agent spawned on
@@ -635,6 +649,7 @@ class World(EventLog):
                 events.append(self._lose(entity_id))
             snapshot = self._take_snapshot()
             events += self._terrain_collisions(self.snapshot, snapshot)
+            events += self._agent_collisions(self.snapshot, snapshot)
             for ev in events:
                 self._emit(ev)
             self.snapshot = snapshot
@@ -684,6 +699,106 @@ class World(EventLog):
             self.air.crash(e.id, self.time_s, *hit, reason)  # the aircraft stops before the next tick
             e.crashed = True
             events.append(WorldEvent(self.time_s, "crash", e.id, *hit, {"reason": reason}))
+        return events
+
+    def _shapes(self, ids: np.ndarray) -> tuple:
+        """(bounding radius, half length, half width, fixed) of each entity in ``ids`` --
+        metres, half length 0 for a sphere (everything but a ground vehicle of this
+        world's), fixed for this world's static entities -- then the rows of ``ids`` that
+        are this world's ground vehicles and their rows in ``self.ground``; cached until
+        an entity comes or goes or ``ids`` change."""
+        if self._shape_cache is None or self._shape_cache[0] != self._layout_version:
+            from fdm.catalog import body_radius_m
+            from fdm.vehicle_types import VEHICLE_TYPES
+
+            order = sorted(self.entities)
+            radius, half_l, half_w = np.zeros(len(order)), np.zeros(len(order)), np.zeros(len(order))
+            fixed = np.zeros(len(order), bool)
+            for k, i in enumerate(order):
+                e = self.entities[i]
+                if e.external_id:
+                    radius[k] = EXTERNAL_RADIUS_M.get(e.kind, STATIC_RADIUS_M)
+                elif e.kind == AIRCRAFT:
+                    radius[k] = body_radius_m(e.type)
+                elif e.kind == GROUND and e.type in VEHICLE_TYPES:
+                    t = VEHICLE_TYPES[e.type]
+                    half_l[k], half_w[k] = 0.5 * t.length_m, 0.5 * t.width_m
+                    radius[k] = math.hypot(half_l[k], half_w[k])
+                else:
+                    radius[k] = STATIC_RADIUS_M
+                    fixed[k] = e.kind == STATIC
+            self._shape_cache = (self._layout_version, np.array(order, np.int64), radius, half_l, half_w, fixed)
+            self._shapes_of = None
+        if self._shapes_of is not None and np.array_equal(self._shapes_of[0], ids):
+            return self._shapes_of[1]
+        _, known, radius, half_l, half_w, fixed = self._shape_cache
+        k, found = rows_of(known, ids)
+        gnd_ids, gnd_idx, _ = self._layout()
+        rows, is_gnd = rows_of(ids, gnd_ids)
+        shapes = (np.where(found, radius[k], STATIC_RADIUS_M), np.where(found, half_l[k], 0.0),
+                  np.where(found, half_w[k], 0.0), found & fixed[k], rows[is_gnd], gnd_idx[is_gnd])
+        self._shapes_of = (ids.copy(), shapes)
+        return shapes
+
+    def _agent_collisions(self, before: Snapshot, after: Snapshot) -> list[WorldEvent]:
+        """Entities that came into contact with each other over the last tick
+        (server/collisions.py): a "collision" event for each of the two, where it was at
+        the moment they touched, naming the other and their relative speed. An aircraft
+        in one crashes (on the ground, only at AIRCRAFT_CRASH_SPEED_MPS or more); a
+        ground vehicle of this world's stops where it stands. Entities new this tick are
+        not tested (they have no path yet)."""
+        if before.ids.size == 0 or after.ids.size < 2:
+            return []
+        if np.array_equal(before.ids, after.ids):  # the usual tick: the same entities in the same order
+            ka = kb = np.arange(after.ids.size)
+        else:
+            kb, here = rows_of(before.ids, after.ids)
+            if np.count_nonzero(here) < 2:
+                return []
+            ka = np.flatnonzero(here)
+            kb = kb[here]
+        ids = after.ids[ka]
+        radius, half_l, half_w, fixed, gnd_rows, gnd_idx = self._shapes(ids)
+        heading = np.zeros(ids.size)
+        if gnd_rows.size:
+            heading[gnd_rows] = self.ground.heading_deg[gnd_idx]
+        moving = ~fixed
+        air = self._air_tick
+        wrecks = [] if air is None else [i for i in air.ids.tolist() if getattr(self.entities.get(i), "crashed", 0)]
+        if wrecks:
+            rows, found = rows_of(ids, np.array(wrecks, np.int64))
+            moving[rows[found]] = False
+        ci, cj, t, dist = new_contacts(before.ecef_m[kb], after.ecef_m[ka], radius, heading_deg=heading,
+                                       half_length_m=half_l, half_width_m=half_w, moves=moving,
+                                       lat_deg=after.lat_deg[ka], lon_deg=after.lon_deg[ka])
+        events, crashes, stops = [], [], []
+        for i, j, frac, d in zip(ci.tolist(), cj.tolist(), t.tolist(), dist.tolist()):
+            a, b = self.entities.get(int(ids[i])), self.entities.get(int(ids[j]))
+            if a is None or b is None:
+                continue
+            rel = float(np.linalg.norm(after.vel_ecef_mps[ka[j]] - after.vel_ecef_mps[ka[i]]))
+            for me, other, row in ((a, b, i), (b, a, j)):
+                p = before.ecef_m[kb[row]] + frac * (after.ecef_m[ka[row]] - before.ecef_m[kb[row]])
+                lat, lon, h = (float(x) for x in ecef_to_geodetic(p))
+                events.append(WorldEvent(self.time_s, "collision", me.id, lat, lon, h - self.geoid_undulation_m,
+                                         {"other_id": other.id, "other_name": other.name,
+                                          "other_kind": KIND_NAMES.get(other.kind, "unknown"),
+                                          "relative_speed_mps": round(rel, 3), "distance_m": round(d, 3)}))
+                if me.external_id:
+                    continue  # its own simulation decides what happens to it
+                if me.kind == AIRCRAFT and not me.crashed and (not me.on_ground or rel >= AIRCRAFT_CRASH_SPEED_MPS):
+                    crashes.append((me, other, (lat, lon, h - self.geoid_undulation_m)))
+                elif me.kind == GROUND:
+                    stops.append(me.ground_id)
+        for me, other, hit in crashes:
+            if me.crashed:
+                continue
+            reason = f"collision with {other.name}"
+            self.air.crash(me.id, self.time_s, *hit, reason)
+            me.crashed = True
+            events.append(WorldEvent(self.time_s, "crash", me.id, *hit, {"reason": reason}))
+        if stops:
+            self.ground.stop(self.ground.index_of(stops))
         return events
 
     def _hold_ground_headings(self) -> None:

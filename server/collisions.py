@@ -1,0 +1,193 @@
+"""Collisions between agents: which pairs of entities came into contact during a world tick.
+
+Every entity moving over a tick is a straight ECEF segment from its position in the
+previous snapshot to its position in this one (the same path the terrain collision test
+uses). Two entities collide in a tick when they were apart at its start and touch during
+it; pairs already touching at the start are an ongoing contact, not a new collision, so a
+collision is reported once however long the two stay together.
+
+Shapes:
+
+- **Ground vehicles** are boxes: length x width of their type (fdm.vehicle_types) on the
+  local horizontal, along their heading. Two boxes touch when they overlap on the tangent
+  plane (the separating-axis test on the four edge directions: Gottschalk, Lin and Manocha,
+  "OBBTree", SIGGRAPH 1996, sec. 4, in two dimensions) and their centres are within the
+  sum of their bounding radii vertically. Boxes are tested at the start and the end of
+  the tick: a ground vehicle moves at most about 1 m a tick (30 m/s at 30 Hz), less than
+  any type's width, so two boxes cannot pass through each other between the two tests.
+- **Everything else** (aircraft, static entities, external entities, and a ground vehicle
+  against any of them) is a sphere about its reference point, tested continuously: the
+  least distance between two points moving linearly over the tick (r(t) = r0 + t dr,
+  t in [0, 1], least at t = -r0.dr / |dr|^2 clamped; Ericson, *Real-Time Collision
+  Detection*, 2005, sec. 5.9.2), so an aircraft closing at 600 m/s (20 m a tick at 30 Hz)
+  cannot pass through another between snapshots.
+
+Broad phase: sort and sweep (Baraff, *Dynamic Simulation of Non-Penetrating Rigid Bodies*,
+1992, ch. 7) on the axis along which the entities spread most, with each entity's swept
+box (its segment's bounding box, grown by its radius); only pairs whose boxes overlap on
+all three axes reach the exact test. One compiled pass: ~2000 ground vehicles and a few
+hundred aircraft take well under a millisecond.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# The most contacts one pass returns before it is run again with room for more.
+INITIAL_CAPACITY_PER_ENTITY = 2
+
+
+@numba.njit(cache=True, nogil=True)
+def _box_overlap(dx, dy, ci, si, li, wi, cj, sj, lj, wj):
+    """Whether two rectangles on a plane overlap: centres ``dx, dy`` apart (j - i, east and
+    north metres), headings as cos/sin (``ci, si``: unit vector along the length, east and
+    north components), half lengths ``l`` and half widths ``w`` (separating-axis test)."""
+    # Each box's two axes: along (c, s) and across (s, -c) (the east/north plane's normal
+    # to the heading). A separating axis among the four exists iff the boxes are apart.
+    axes = ((ci, si), (si, -ci), (cj, sj), (sj, -cj))
+    for k in range(4):
+        ax, ay = axes[k]
+        dist = abs(dx * ax + dy * ay)
+        ri = li * abs(ci * ax + si * ay) + wi * abs(si * ax - ci * ay)
+        rj = lj * abs(cj * ax + sj * ay) + wj * abs(sj * ax - cj * ay)
+        if dist > ri + rj:
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half_w, moves, out_i, out_j, out_t,
+                     out_d):
+    """New contacts among n entities (see the module docstring), as rows (out_i, out_j,
+    out_t, out_d): the two entities' indices (i < j), the fraction of the tick at which they
+    first touch (spheres: the smaller root of |r(t)| = r_i + r_j; boxes: 1) and the least
+    distance between their reference points. Returns the count, or minus the count needed
+    when the outputs are too small. ``moves`` says which entities can move (pairs of two
+    that cannot are skipped)."""
+    n = p0.shape[0]
+    # The sweep's axis: the one along which the paths' midpoints spread most.
+    best, axis = -1.0, 0
+    for ax in range(3):
+        m = 0.0
+        for i in range(n):
+            m += p0[i, ax] + p1[i, ax]
+        m /= 2.0 * n
+        v = 0.0
+        for i in range(n):
+            c = 0.5 * (p0[i, ax] + p1[i, ax]) - m
+            v += c * c
+        if v > best:
+            best, axis = v, ax
+    lo = np.empty(n)
+    hi = np.empty(n)
+    for i in range(n):
+        a, b = p0[i, axis], p1[i, axis]
+        lo[i] = min(a, b) - radius[i]
+        hi[i] = max(a, b) + radius[i]
+    order = np.argsort(lo)
+    count = 0
+    cap = out_i.shape[0]
+    for oi in range(n):
+        i = order[oi]
+        for oj in range(oi + 1, n):
+            j = order[oj]
+            if lo[j] > hi[i]:
+                break
+            if not (moves[i] or moves[j]):
+                continue
+            rs = radius[i] + radius[j]
+            apart = False
+            for ax in range(3):  # swept boxes on the other axes
+                if (min(p0[i, ax], p1[i, ax]) - radius[i] > max(p0[j, ax], p1[j, ax]) + radius[j]
+                        or min(p0[j, ax], p1[j, ax]) - radius[j] > max(p0[i, ax], p1[i, ax]) + radius[i]):
+                    apart = True
+                    break
+            if apart:
+                continue
+            r0x, r0y, r0z = p0[j, 0] - p0[i, 0], p0[j, 1] - p0[i, 1], p0[j, 2] - p0[i, 2]
+            r1x, r1y, r1z = p1[j, 0] - p1[i, 0], p1[j, 1] - p1[i, 1], p1[j, 2] - p1[i, 2]
+            d0 = math.sqrt(r0x * r0x + r0y * r0y + r0z * r0z)
+            d1 = math.sqrt(r1x * r1x + r1y * r1y + r1z * r1z)
+            if half_l[i] > 0.0 and half_l[j] > 0.0:  # two boxes: overlap at the end, apart at the start
+                if d1 >= rs:
+                    continue
+                # i's local east, north and up (ECEF unit vectors at its geodetic position).
+                sp, cp = math.sin(math.radians(lat_deg[i])), math.cos(math.radians(lat_deg[i]))
+                sl, cl = math.sin(math.radians(lon_deg[i])), math.cos(math.radians(lon_deg[i]))
+                ex, ey = -sl, cl
+                nx, ny, nz = -sp * cl, -sp * sl, cp
+                ux, uy, uz = cp * cl, cp * sl, sp
+                ci, si = math.sin(heading_rad[i]), math.cos(heading_rad[i])  # heading from north, clockwise
+                cj, sj = math.sin(heading_rad[j]), math.cos(heading_rad[j])
+                if (abs(r1x * ux + r1y * uy + r1z * uz) >= rs
+                        or not _box_overlap(r1x * ex + r1y * ey, r1x * nx + r1y * ny + r1z * nz, ci, si, half_l[i],
+                                            half_w[i], cj, sj, half_l[j], half_w[j])):
+                    continue
+                if (abs(r0x * ux + r0y * uy + r0z * uz) < rs
+                        and _box_overlap(r0x * ex + r0y * ey, r0x * nx + r0y * ny + r0z * nz, ci, si, half_l[i],
+                                         half_w[i], cj, sj, half_l[j], half_w[j])):
+                    continue  # touching already: an ongoing contact
+                t, d = 1.0, d1
+            else:  # spheres, continuously
+                if d0 < rs:
+                    continue  # touching already
+                drx, dry, drz = r1x - r0x, r1y - r0y, r1z - r0z
+                dd = drx * drx + dry * dry + drz * drz
+                b = r0x * drx + r0y * dry + r0z * drz
+                t = 0.0 if dd == 0.0 else min(max(-b / dd, 0.0), 1.0)
+                mx, my, mz = r0x + t * drx, r0y + t * dry, r0z + t * drz
+                d = math.sqrt(mx * mx + my * my + mz * mz)
+                if d >= rs:
+                    continue
+                # When they first touch: the smaller root of |r0 + t dr| = rs (t <= the least's).
+                disc = b * b - dd * (d0 * d0 - rs * rs)
+                t = min(max((-b - math.sqrt(max(disc, 0.0))) / dd, 0.0), 1.0)
+            if count < cap:
+                out_i[count] = min(i, j)
+                out_j[count] = max(i, j)
+                out_t[count] = t
+                out_d[count] = d
+            count += 1
+    return count if count <= cap else -count
+
+
+def new_contacts(p0, p1, radius, *, heading_deg=None, half_length_m=None, half_width_m=None, moves=None,
+                 lat_deg=None, lon_deg=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of entities that came into contact over one tick (the module docstring's rules).
+
+    ``p0``, ``p1``: (n, 3) ECEF positions at the tick's start and end, metres; ``radius``
+    (n,): bounding radii, metres. Boxes (ground vehicles): ``half_length_m`` > 0 with
+    ``half_width_m`` and ``heading_deg`` (degrees from true north), and the entities'
+    ``lat_deg``/``lon_deg`` at the end (their local horizontal); ``half_length_m`` 0 for a
+    sphere. ``moves`` (n,) bool: entities that can move (default all; two that cannot are
+    never tested). Returns (i, j, t, distance): index pairs with i < j, sorted; the fraction
+    of the tick at which they first touched; their reference points' least distance."""
+    p0 = np.ascontiguousarray(p0, np.float64).reshape(-1, 3)
+    p1 = np.ascontiguousarray(p1, np.float64).reshape(-1, 3)
+    n = p0.shape[0]
+    if n < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+
+    def column(values, dtype=np.float64):
+        return np.zeros(n, dtype) if values is None else np.ascontiguousarray(
+            np.broadcast_to(np.asarray(values, dtype), (n,)))
+
+    half_l = column(half_length_m)
+    if np.any(half_l > 0) and (lat_deg is None or lon_deg is None):
+        raise ValueError("boxes need lat_deg and lon_deg (their local horizontal)")
+    moves = np.ones(n, bool) if moves is None else column(moves, bool)
+    cap = max(16, INITIAL_CAPACITY_PER_ENTITY * n)
+    args = (p0, p1, column(radius), column(lat_deg), column(lon_deg), np.radians(column(heading_deg)), half_l,
+            column(half_width_m), moves)
+    while True:
+        out_i, out_j = np.empty(cap, np.int64), np.empty(cap, np.int64)
+        out_t, out_d = np.empty(cap), np.empty(cap)
+        k = _contacts_kernel(*args, out_i, out_j, out_t, out_d)
+        if k >= 0:
+            break
+        cap = -k
+    key = np.lexsort((out_j[:k], out_i[:k]))
+    return out_i[:k][key], out_j[:k][key], out_t[:k][key], out_d[:k][key]
