@@ -105,6 +105,19 @@ COALITION_OF_FORCE = {v: k for k, v in FORCE_OF_COALITION.items()}
 # SISO-REF-010 platform appearance records (land, air, surface, ...): bit 23 "State",
 # 0 active, 1 deactivated. A deactivated ESPDU is the entity's last (its removal).
 APPEARANCE_DEACTIVATED = 1 << 23
+# The same records' bits 3-4, "Damage": 0 no damage, 1 slight, 2 moderate, 3 destroyed.
+APPEARANCE_DAMAGE_SHIFT = 3
+APPEARANCE_DESTROYED = 3 << APPEARANCE_DAMAGE_SHIFT
+
+# The Collision PDU (IEEE 1278.1-2012 §7.2.3; SISO-REF-010 PDU Type 4, Entity
+# Information/Interaction family): the header, issuing and colliding Entity IDs, the Event
+# ID (site, application, event number), the collision type (SISO-REF-010 UID 65:
+# 0 inelastic, 1 elastic) and a padding byte, the issuing entity's velocity (world
+# coordinates, m/s, 3 x float32), its mass (kg, float32) and the collision's location in
+# its own entity coordinates (m, 3 x float32): 60 bytes.
+PDU_TYPE_COLLISION = 4
+COLLISION_BYTES = 60
+COLLISION_INELASTIC, COLLISION_ELASTIC = 0, 1
 
 # SISO-REF-010 "Dead Reckoning Algorithm" (UID 44) = IEEE 1278.1-2012 Annex E numbering.
 DR_OTHER, DR_STATIC, DR_FPW, DR_RPW, DR_RVW, DR_FVW, DR_FPB, DR_RPB, DR_RVB, DR_FVB = range(10)
@@ -124,6 +137,7 @@ GIMBAL_LOCK_COS = 1e-7
 
 _HEADER = struct.Struct(">BBBBIHBB")
 _BODY = struct.Struct(">HHHBB" "BBHBBBB" "BBHBBBB" "3f" "3d" "3f" "I" "B15s" "3f" "3f" "B11s" "I")
+_COLLISION = struct.Struct(">HHH" "HHH" "HHH" "BB" "3f" "f" "3f")
 _RECORD = struct.Struct(">B15s")
 _ARTICULATED = struct.Struct(">BHIf4x")  # the 15 bytes after the record type, §6.2.94.2
 
@@ -369,6 +383,57 @@ def encode_pdu(pdu: EntityStatePdu) -> bytes:
                       _uint("marking_charset", pdu.marking_charset, 8), _marking_bytes(pdu.marking),
                       _uint("capabilities", pdu.capabilities, 32))
     return head + body + b"".join(_record_bytes(k, r) for k, r in enumerate(records))
+
+
+@dataclass(frozen=True)
+class CollisionPdu:
+    """Every field of a Collision PDU (§7.2.3): issued by ``issuing_entity_id`` about its
+    collision with ``colliding_entity_id`` ((0, 0, 0) for terrain or an unknown entity)."""
+
+    exercise_id: int
+    issuing_entity_id: tuple[int, int, int]
+    colliding_entity_id: tuple[int, int, int]
+    event_id: tuple[int, int, int]  # (site, application, event number)
+    collision_type: int = COLLISION_INELASTIC
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the issuing entity's, ECEF m/s
+    mass_kg: float = 0.0  # the issuing entity's (0: not known)
+    location: tuple[float, float, float] = (0.0, 0.0, 0.0)  # entity coordinates, m
+    timestamp: int = 0
+    protocol_version: int = PROTOCOL_VERSION_2012
+
+
+def encode_collision_pdu(pdu: CollisionPdu) -> bytes:
+    """The wire bytes of a Collision PDU; InvalidArgument names a field out of its range."""
+    version = pdu.protocol_version
+    if version not in SUPPORTED_VERSIONS:
+        raise InvalidArgument("protocol_version", f"must be one of {SUPPORTED_VERSIONS}", value=version)
+    head = _HEADER.pack(version, _uint("exercise_id", pdu.exercise_id, 8), PDU_TYPE_COLLISION,
+                        FAMILY_ENTITY_INFORMATION, _uint("timestamp", pdu.timestamp, 32), COLLISION_BYTES, 0, 0)
+    ids = []
+    for name, value, parts in (("issuing_entity_id", pdu.issuing_entity_id, ("site", "application", "entity")),
+                               ("colliding_entity_id", pdu.colliding_entity_id, ("site", "application", "entity")),
+                               ("event_id", pdu.event_id, ("site", "application", "event_number"))):
+        if len(value) != 3:
+            raise InvalidArgument(name, f"must be ({', '.join(parts)})", value=value)
+        ids += [_uint(f"{name}.{n}", x, 16) for n, x in zip(parts, value)]
+    mass = _floats("mass_kg", (pdu.mass_kg,), 1)
+    return head + _COLLISION.pack(*ids, _uint("collision_type", pdu.collision_type, 8), 0,
+                                  *_floats("velocity", pdu.velocity), *mass, *_floats("location", pdu.location))
+
+
+def decode_collision_pdu(data: bytes) -> CollisionPdu:
+    """A Collision PDU from its bytes; DataFormatError names what does not fit."""
+    data = bytes(data)
+    header = decode_header(data)
+    if header.pdu_type != PDU_TYPE_COLLISION:
+        raise _fail("pdu_type", f"{header.pdu_type} is not a Collision PDU ({PDU_TYPE_COLLISION})")
+    if header.length != len(data) or len(data) < COLLISION_BYTES:
+        raise _fail("length", f"says {header.length} bytes, the data has {len(data)}; a Collision PDU has "
+                              f"{COLLISION_BYTES}")
+    v = _COLLISION.unpack_from(data, HEADER_BYTES)
+    return CollisionPdu(exercise_id=header.exercise_id, issuing_entity_id=v[0:3], colliding_entity_id=v[3:6],
+                        event_id=v[6:9], collision_type=v[9], velocity=v[11:14], mass_kg=v[14], location=v[15:18],
+                        timestamp=header.timestamp, protocol_version=header.protocol_version)
 
 
 def _marking_bytes(marking) -> bytes:

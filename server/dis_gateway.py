@@ -17,7 +17,12 @@ bit; so does every entity when the gateway stops. If the server sends
 nothing about an entity for --heartbeat-s wall seconds (a paused or slowed
 clock), its last PDU is sent again, so DIS receivers do not time it out.
 Entities that came from outside (``EntityInfo.external_id`` set, e.g. from
-this very gateway) are never sent back out.
+this very gateway) are never sent back out. The gateway also reads the
+server's events: an entity that crashes is sent at once, and from then on,
+with the appearance's damage "destroyed"; each collision event of an entity
+it speaks for is issued as a Collision PDU (IEEE 1278.1-2012 §7.2.3) naming
+the other entity (a DIS entity by its own id), so every DIS simulation hears
+of the collision from the owner of each entity in it, as the standard has it.
 
 In. PDUs of our exercise from other (site, application) pairs are decoded
 and each Entity State PDU is published into the exercise through the
@@ -54,11 +59,14 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import json
 import logging
 import socket
 import sys
 import threading
 import time
+
+import grpc
 
 from server import dis
 from server.external import external_state
@@ -110,6 +118,7 @@ class _Local:
     pdu: dis.EntityStatePdu | None = None
     wire: bytes = b""
     sent_wall_s: float = 0.0
+    appearance: int = 0  # what every PDU of it carries (dis.APPEARANCE_DESTROYED once it crashed)
 
 
 def _check(name: str, value, lo: float, hi: float, integer: bool = False):
@@ -156,6 +165,8 @@ class DisGateway:
         self._sock: socket.socket | None = None
         self._threads: list[threading.Thread] = []
         self._hour_offset_s = 0.0
+        self._events_call = None
+        self._event_number = 0  # the last Collision PDU's event number
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -177,8 +188,10 @@ class DisGateway:
         self._client.join(self.client_name, "gateway")
         self._hour_offset_s = seconds_past_hour(self._client.world_info.start_time)
         self._stream = self._client.external()
+        self._events_call = self._client.stub.WatchEvents(pb.WatchEventsRequest(session_token=self._client.token))
         self._threads = [threading.Thread(target=self._receive_loop, name="dis-receive", daemon=True),
-                         threading.Thread(target=self._housekeeping_loop, name="dis-heartbeat", daemon=True)]
+                         threading.Thread(target=self._housekeeping_loop, name="dis-heartbeat", daemon=True),
+                         threading.Thread(target=self._events_loop, name="dis-events", daemon=True)]
         for t in self._threads:
             t.start()
         self._picture = self._client.watch(listener=self._on_update)
@@ -187,6 +200,8 @@ class DisGateway:
     def stop(self) -> None:
         """Deactivate our entities on DIS, remove the remote ones from the exercise, leave."""
         self._stop.set()
+        if self._events_call is not None:
+            self._events_call.cancel()
         for t in self._threads:
             t.join(timeout=5.0)
         if self._picture is not None:
@@ -278,7 +293,7 @@ class DisGateway:
                 ecef_m=(state.ecef_x_m, state.ecef_y_m, state.ecef_z_m), vel_ecef_mps=state.velocity_ecef_mps,
                 acc_ecef_mps2=state.acceleration_ecef_mps2, quat_wxyz=state.orientation_wxyz,
                 body_rates_rps=state.angular_velocity_body_rps, algorithm=state.dead_reckoning,
-                timestamp=dis.dis_timestamp(seconds, absolute=False))
+                timestamp=dis.dis_timestamp(seconds, absolute=False), appearance=local.appearance)
             wire = dis.encode_pdu(pdu)
         except (InvalidArgument, ValueError) as exc:
             self._publish_log.warn("entity %d (%s) not sent: %s", entity_id, local.name, exc)
@@ -303,6 +318,75 @@ class DisGateway:
         local.pdu = dataclasses.replace(local.pdu, appearance=local.pdu.appearance | dis.APPEARANCE_DEACTIVATED)
         local.wire = dis.encode_pdu(local.pdu)
         self._send(local)
+
+    def _events_loop(self) -> None:
+        """The server's events (the events stream's thread): a crash marks the entity
+        destroyed on DIS, a collision is issued as a Collision PDU."""
+        try:
+            for event in self._events_call:
+                if event.kind in ("crash", "collision"):
+                    with self._lock:
+                        if self._stop.is_set():
+                            return
+                        if event.kind == "crash":
+                            self._destroyed(event.entity_id)
+                        else:
+                            self._send_collision(event)
+        except grpc.RpcError as exc:
+            if exc.code() != grpc.StatusCode.CANCELLED:
+                log.warning("the server's events stream ended: %s", exc.details())
+
+    def _destroyed(self, entity_id: int) -> None:
+        """A local entity crashed: its PDUs from now on carry the appearance's damage
+        "destroyed" (SISO-REF-010), the first one at once."""
+        local = self._locals.get(entity_id)
+        if local is None:
+            return
+        local.appearance |= dis.APPEARANCE_DESTROYED
+        if local.pdu is not None:
+            local.pdu = dataclasses.replace(local.pdu, appearance=local.pdu.appearance | dis.APPEARANCE_DESTROYED)
+            local.wire = dis.encode_pdu(local.pdu)
+            self._send(local)
+
+    def _dis_id(self, entity_id: int) -> tuple[int, int, int]:
+        """The DIS Entity ID of a world entity: a DIS entity's own (its external id), ours for
+        one we speak for or could, (0, 0, 0) (no entity) for anything else."""
+        info = next((i for i in self._world_infos() if i.entity_id == entity_id), None)
+        if info is not None and info.external_id.startswith("dis:"):
+            try:
+                site, app, number = (int(x) for x in info.external_id[4:].split("."))
+                return site, app, number
+            except ValueError:
+                return 0, 0, 0
+        if info is not None and info.external_id:
+            return 0, 0, 0
+        return (self.site, self.application, entity_id) if 0 < entity_id <= MAX_ENTITY_NUMBER else (0, 0, 0)
+
+    def _send_collision(self, event: pb.WorldEvent) -> None:
+        """A Collision PDU issued by the local entity of a collision event (the other one's
+        event issues its own, as every DIS simulation issues one per entity it owns). The
+        velocity is the one its last Entity State PDU carried; the mass and the contact
+        point on the entity are not modelled (0 and its origin)."""
+        local = self._locals.get(event.entity_id)
+        if local is None:
+            return
+        try:
+            other = int(json.loads(event.detail_json or "{}").get("other_id", 0))
+        except (ValueError, TypeError, AttributeError):
+            other = 0
+        self._event_number = self._event_number % 65535 + 1
+        pdu = dis.CollisionPdu(
+            exercise_id=self.exercise, issuing_entity_id=(self.site, self.application, event.entity_id),
+            colliding_entity_id=self._dis_id(other), event_id=(self.site, self.application, self._event_number),
+            collision_type=dis.COLLISION_INELASTIC,
+            velocity=local.pdu.linear_velocity if local.pdu is not None else (0.0, 0.0, 0.0),
+            timestamp=dis.dis_timestamp(self._hour_offset_s + event.time_s, absolute=False))
+        try:
+            self._sock.sendto(dis.encode_collision_pdu(pdu), (self.host, self.port))
+        except (OSError, InvalidArgument) as exc:
+            self._publish_log.warn("collision of entity %d not sent: %s", event.entity_id, exc)
+            return
+        self.pdus_sent += 1
 
     # -- in: DIS -> Sortie ----------------------------------------------------------------------
 

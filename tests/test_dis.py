@@ -730,3 +730,81 @@ def test_one_refused_dis_entity_never_costs_the_others(server, monkeypatch):
         assert gw.remote_entities == 0
     sender.close()
     peer.close()
+
+
+def test_collision_pdu_layout_and_round_trip():
+    """The Collision PDU as IEEE 1278.1-2012 §7.2.3 lays it out: 60 bytes, type 4, family 1;
+    the issuing, colliding and event ids at bytes 12, 18 and 24, the type at 30, velocity
+    at 32, mass at 44, location at 48; decoding gives back what was encoded (float32)."""
+    pdu = dis.CollisionPdu(exercise_id=3, issuing_entity_id=(1, 2, 3), colliding_entity_id=(4, 5, 6),
+                           event_id=(1, 2, 77), collision_type=dis.COLLISION_INELASTIC,
+                           velocity=(250.0, -1.5, 0.25), mass_kg=12000.0, location=(1.0, 2.0, -0.5), timestamp=1234)
+    wire = dis.encode_collision_pdu(pdu)
+    assert len(wire) == dis.COLLISION_BYTES == 60
+    assert wire[2] == dis.PDU_TYPE_COLLISION and wire[3] == 1 and int.from_bytes(wire[8:10], "big") == 60
+    assert struct.unpack(">9H", wire[12:30]) == (1, 2, 3, 4, 5, 6, 1, 2, 77)
+    assert wire[30] == 0 and wire[31] == 0
+    assert struct.unpack(">3f", wire[32:44]) == (250.0, -1.5, 0.25)
+    assert struct.unpack(">f", wire[44:48]) == (12000.0,)
+    assert struct.unpack(">3f", wire[48:60]) == (1.0, 2.0, -0.5)
+    assert dis.decode_collision_pdu(wire) == pdu
+    assert isinstance(dis.decode_pdu(wire), dis.OtherPdu)  # the entity-state decoder leaves it alone
+    with pytest.raises(InvalidArgument, match="colliding_entity_id.entity"):
+        dis.encode_collision_pdu(dataclasses.replace(pdu, colliding_entity_id=(4, 5, 70000)))
+    with pytest.raises(DataFormatError, match="length"):
+        dis.decode_collision_pdu(wire[:-4])
+
+
+def test_gateway_issues_collision_pdus_and_marks_the_wrecks_destroyed(alps):
+    """Two f16s head-on 2 km apart at 250 m/s each: after the world's collision, the
+    gateway sends one Collision PDU issued by each, naming the other, with the velocity of
+    its last Entity State PDU, and from then on both wrecks' Entity State PDUs carry the
+    appearance's damage "destroyed" (before: none)."""
+    from fdm.aircraft import InitialConditions
+    from server.sim_server import ServerConfig, SimulationServer
+    from server.world import World
+
+    w = World(alps)
+    east_deg = 1000.0 / (111_200.0 * math.cos(math.radians(47.3)))
+    a = w.spawn_aircraft("a", "f16", InitialConditions(47.3, 9.3 - east_deg, 4000.0, heading_deg=90.0,
+                                                         speed_mps=250.0))
+    b = w.spawn_aircraft("b", "f16", InitialConditions(47.3, 9.3 + east_deg, 4000.0, heading_deg=270.0,
+                                                         speed_mps=250.0))
+    srv = SimulationServer(w, ServerConfig(clock="realtime"))
+    peer = dis_socket()
+    srv.start()
+    try:
+        with DisGateway(srv.address, port=peer.getsockname()[1], site=5, application=82):
+            states = receive(peer, 3.0, until=lambda ps: {p.entity_id[2] for p in ps} >= {a.id, b.id})
+            assert {p.entity_id[2] for p in states} >= {a.id, b.id}
+            assert all(not p.appearance & dis.APPEARANCE_DESTROYED for p in states)
+            collisions, after = [], []
+            deadline = time.monotonic() + 15.0
+            while time.monotonic() < deadline and not (len(collisions) >= 2 and after):
+                try:
+                    data = peer.recv(65536)
+                except socket.timeout:
+                    continue
+                for d in dis.split_datagram(data):
+                    if d[2] == dis.PDU_TYPE_COLLISION:
+                        collisions.append(dis.decode_collision_pdu(d))
+                    elif collisions:
+                        p = dis.decode_pdu(d)
+                        if isinstance(p, dis.EntityStatePdu):
+                            after.append(p)
+            pairs = {(c.issuing_entity_id, c.colliding_entity_id) for c in collisions}
+            assert pairs == {((5, 82, a.id), (5, 82, b.id)), ((5, 82, b.id), (5, 82, a.id))}
+            assert len({c.event_id for c in collisions}) == 2
+            assert all(c.event_id[:2] == (5, 82) for c in collisions)
+            for c in collisions:
+                assert 200.0 < math.hypot(*c.velocity) < 300.0
+            deadline = time.monotonic() + 5.0
+            while {p.entity_id[2] for p in after} < {a.id, b.id} and time.monotonic() < deadline:
+                after += receive(peer, 0.5)
+            assert {p.entity_id[2] for p in after} >= {a.id, b.id}
+            last = {p.entity_id[2]: p for p in after}
+            for i in (a.id, b.id):
+                assert last[i].appearance & dis.APPEARANCE_DESTROYED == dis.APPEARANCE_DESTROYED
+    finally:
+        peer.close()
+        srv.stop(0.5)
