@@ -106,7 +106,7 @@ _TANK_WORDS = {"tank", "mbt"}
 _ARMOR_WORDS = {"armor", "armour", "armored", "armoured", "apc", "ifv"}
 _AIR_DEFENCE_WORDS = {"sam", "aaa", "flak", "manpads", "airdefense", "airdefence"}
 
-EVENT_KINDS = {"crash": "Destroyed", "takeoff": "TakenOff", "touchdown": "Landed"}
+EVENT_KINDS = {"crash": "Destroyed", "destroyed": "Destroyed", "takeoff": "TakenOff", "touchdown": "Landed"}
 NO_EVENT = {"spawn", "remove"}  # these are object lines and removals
 
 
@@ -225,6 +225,8 @@ def event_line(event, object_hex: str | None, name: str) -> str | None:
         detail = {}
     if event.kind == "crash":
         text = f"{name} crashed" + (f": {detail['reason']}" if detail.get("reason") else "")
+    elif event.kind == "destroyed":
+        text = f"{name} destroyed" + (f": {detail['reason']}" if detail.get("reason") else "")
     elif event.kind == "takeoff":
         text = f"{name} took off"
     elif event.kind == "touchdown":

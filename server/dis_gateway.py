@@ -18,8 +18,8 @@ nothing about an entity for --heartbeat-s wall seconds (a paused or slowed
 clock), its last PDU is sent again, so DIS receivers do not time it out.
 Entities that came from outside (``EntityInfo.external_id`` set, e.g. from
 this very gateway) are never sent back out. The gateway also reads the
-server's events: an entity that crashes is sent at once, and from then on,
-with the appearance's damage "destroyed"; each collision event of an entity
+server's events: an entity that crashes or is destroyed is sent at once, and
+from then on, with the appearance's damage "destroyed"; each collision event of an entity
 it speaks for is issued as a Collision PDU (IEEE 1278.1-2012 §7.2.3) naming
 the other entity (a DIS entity by its own id), so every DIS simulation hears
 of the collision from the owner of each entity in it, as the standard has it.
@@ -320,15 +320,15 @@ class DisGateway:
         self._send(local)
 
     def _events_loop(self) -> None:
-        """The server's events (the events stream's thread): a crash marks the entity
-        destroyed on DIS, a collision is issued as a Collision PDU."""
+        """The server's events (the events stream's thread): a crash or a destruction marks
+        the entity destroyed on DIS, a collision is issued as a Collision PDU."""
         try:
             for event in self._events_call:
-                if event.kind in ("crash", "collision"):
+                if event.kind in ("crash", "destroyed", "collision"):
                     with self._lock:
                         if self._stop.is_set():
                             return
-                        if event.kind == "crash":
+                        if event.kind != "collision":
                             self._destroyed(event.entity_id)
                         else:
                             self._send_collision(event)
@@ -337,7 +337,7 @@ class DisGateway:
                 log.warning("the server's events stream ended: %s", exc.details())
 
     def _destroyed(self, entity_id: int) -> None:
-        """A local entity crashed: its PDUs from now on carry the appearance's damage
+        """A local entity crashed or was destroyed: its PDUs from now on carry the appearance's damage
         "destroyed" (SISO-REF-010), the first one at once."""
         local = self._locals.get(entity_id)
         if local is None:

@@ -83,6 +83,10 @@ EXTERNAL_RADIUS_M = {1: 8.0, 2: 4.5, 3: STATIC_RADIUS_M}
 # An aircraft that touches another entity at this relative speed or more crashes; on the
 # ground below it (a taxiing wing tip brushing a parked vehicle) it is reported, not crashed.
 AIRCRAFT_CRASH_SPEED_MPS = 2.0
+# A ground vehicle or static entity in a collision at this relative speed or more is
+# destroyed (72 km/h: an aircraft flying into it, two vehicles meeting head-on at speed);
+# below it a ground vehicle stops and drives on, a static one is unharmed.
+DESTROY_SPEED_MPS = 20.0
 
 
 @dataclass(frozen=True)
@@ -114,6 +118,7 @@ class Entity:
     controllable: bool = False
     owner: str | None = None  # session token of the client in control
     crashed: bool = False
+    destroyed: bool = False  # a ground vehicle or static entity destroyed in a collision
     on_ground: bool = False
     ground_id: int | None = None
     static_lat_lon_alt: tuple = ()
@@ -214,6 +219,7 @@ class World(EventLog):
         self._layout_cache = None
         self._shape_cache = None  # (layout version, ids sorted, radius, half length, half width, fixed)
         self._shapes_of = None  # (ids, _shapes(ids)) of the last call
+        self._destroyed_ground: list[int] = []  # ground vehicles destroyed in collisions (they no longer move)
         self.ground: GroundVehicles | None = None
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
         self._scenario_routes: dict[int, dict] = {}  # the route spec each ground agent spawned on
@@ -432,6 +438,8 @@ class World(EventLog):
             self._pending.pop(entity_id, None)
             self._ground_heading_hold.pop(entity_id, None)
             self._hold_version += 1
+            if entity_id in self._destroyed_ground:
+                self._destroyed_ground.remove(entity_id)
             if e.external_id:
                 self._external.pop(entity_id, None)
                 self._external_ids.pop(e.external_id, None)
@@ -470,6 +478,8 @@ class World(EventLog):
                 raise NotFound(f"entity {entity_id} does not exist")
             if not e.controllable or e.owner is not None:
                 raise InvalidArgument("agent", "is not free to control", value=e.name)
+            if e.destroyed:
+                raise InvalidArgument("agent", "is destroyed", value=e.name)
             e.owner = owner
             self._journal("claim", entity_id, client=client)
             return e
@@ -490,7 +500,7 @@ class World(EventLog):
                 return
             if e.kind == AIRCRAFT:
                 self.air.hand_to_autopilot(entity_id)
-            elif e.kind == GROUND and not e.external_id:
+            elif e.kind == GROUND and not e.external_id and not e.destroyed:
                 self._resume_ground(e)
 
     def _resume_ground(self, e: Entity) -> None:
@@ -521,6 +531,8 @@ class World(EventLog):
         e = self.entities.get(entity_id)
         if e is None:
             raise NotFound(f"entity {entity_id} does not exist")
+        if e.destroyed:
+            raise InvalidArgument("command", f"{e.name} is destroyed", value=kind)
         if kind == "stick":
             if e.kind != AIRCRAFT:
                 raise InvalidArgument("stick", f"only aircraft take stick controls; {e.name} is "
@@ -765,6 +777,7 @@ class World(EventLog):
         moving = ~fixed
         air = self._air_tick
         wrecks = [] if air is None else [i for i in air.ids.tolist() if getattr(self.entities.get(i), "crashed", 0)]
+        wrecks += self._destroyed_ground
         if wrecks:
             rows, found = rows_of(ids, np.array(wrecks, np.int64))
             moving[rows[found]] = False
@@ -788,18 +801,41 @@ class World(EventLog):
                     continue  # its own simulation decides what happens to it
                 if me.kind == AIRCRAFT and not me.crashed and (not me.on_ground or rel >= AIRCRAFT_CRASH_SPEED_MPS):
                     crashes.append((me, other, (lat, lon, h - self.geoid_undulation_m)))
+                elif me.kind in (GROUND, STATIC) and not me.destroyed and rel >= DESTROY_SPEED_MPS:
+                    crashes.append((me, other, (lat, lon, h - self.geoid_undulation_m)))
                 elif me.kind == GROUND:
                     stops.append(me.ground_id)
         for me, other, hit in crashes:
-            if me.crashed:
-                continue
             reason = f"collision with {other.name}"
-            self.air.crash(me.id, self.time_s, *hit, reason)
-            me.crashed = True
-            events.append(WorldEvent(self.time_s, "crash", me.id, *hit, {"reason": reason}))
+            if me.kind == AIRCRAFT and not me.crashed:
+                self.air.crash(me.id, self.time_s, *hit, reason)
+                me.crashed = True
+                events.append(WorldEvent(self.time_s, "crash", me.id, *hit, {"reason": reason}))
+            elif me.kind != AIRCRAFT and not me.destroyed:
+                self._destroy(me)
+                events.append(WorldEvent(self.time_s, "destroyed", me.id, *hit, {"reason": reason}))
         if stops:
             self.ground.stop(self.ground.index_of(stops))
         return events
+
+    def _destroy(self, e: Entity) -> None:
+        """A ground vehicle or static entity destroyed: it stays where it is as a wreck; a
+        vehicle leaves its route or hold and stops for good (its commands are refused)."""
+        e.destroyed = True
+        if e.kind != GROUND:
+            return
+        if e.id in self._followed:
+            self.routes = [(spec, [i for i in ids if i != e.id]) for spec, ids in self.routes]
+            self.routes = [(spec, ids) for spec, ids in self.routes if ids]
+            self._rebuild_followers()
+        self._scenario_routes.pop(e.id, None)
+        if self._ground_heading_hold.pop(e.id, None) is not None:
+            self._hold_version += 1
+        self._pending.pop(e.id, None)
+        idx = self.ground.index_of([e.ground_id])
+        self.ground.set_controls(0.0, 0.0, index=idx)
+        self.ground.stop(idx)
+        self._destroyed_ground.append(e.id)
 
     def _hold_ground_headings(self) -> None:
         if not self._ground_heading_hold:

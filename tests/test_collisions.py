@@ -288,3 +288,47 @@ def test_acmi_names_both_sides_of_a_collision():
     ev = pb.WorldEvent(time_s=6.0, kind="collision", entity_id=1, detail_json=json.dumps(
         {"other_id": 2, "other_name": "b", "other_kind": "aircraft", "relative_speed_mps": 500.04, "distance_m": 3.0}))
     assert event_line(ev, "a1", "a") == "0,Event=Message|a1|a collided with b at 500.0 m/s"
+    ev = pb.WorldEvent(time_s=6.0, kind="destroyed", entity_id=3, detail_json=json.dumps(
+        {"reason": "collision with jet"}))
+    assert event_line(ev, "c3", "site") == "0,Event=Destroyed|c3|site destroyed: collision with jet"
+
+
+def test_fast_collisions_destroy_vehicles_and_sites():
+    """Two trucks 300 m apart head-on at 14 m/s each (28 m/s relative once at speed, above the
+    20 m/s that destroys):
+    both destroyed, stopped for good, their commands refused naming the wreck. An f16 flown
+    level into a static site: the aircraft crashes, the site is destroyed. A truck driven
+    into another site at 8 m/s (below the bound) leaves it unharmed (test above)."""
+    from server.world import DESTROY_SPEED_MPS
+    from sortie.errors import InvalidArgument
+
+    world = World(FlatTerrain(400.0))
+    try:
+        east_deg = 150.0 / (111_200.0 * math.cos(math.radians(LAT0)))
+        a, b = world.spawn_ground(["a", "b"], "m1083", [LAT0, LAT0], [LON0 - east_deg, LON0 + east_deg],
+                                  [90.0, 270.0], controllable=True)
+        site = world.spawn_static("site", "radar", LAT0 + 0.02, LON0, 1000.0)
+        jet = world.spawn_aircraft("jet", "f16", InitialConditions(LAT0 + 0.02, LON0 - 2 * 1500.0 / (
+            111_200.0 * math.cos(math.radians(LAT0))), 1000.0, heading_deg=90.0, speed_mps=250.0))
+        for e in (a, b):
+            world.command(e.id, "drive", {"speed_mps": 14.0, "yaw_rate_dps": 0.0})
+        events = _run(world, 600)  # 20 s
+        for me, other in ((a, b), (b, a)):
+            hit = _collisions(events, me.id)
+            assert len(hit) == 1 and hit[0].detail["relative_speed_mps"] >= DESTROY_SPEED_MPS
+            assert [e.detail["reason"] for e in events if e.kind == "destroyed" and e.entity_id == me.id] == [
+                f"collision with {other.name}"]
+            assert world.entities[me.id].destroyed
+            with pytest.raises(InvalidArgument, match="destroyed"):
+                world.command(me.id, "drive", {"speed_mps": 5.0, "yaw_rate_dps": 0.0})
+        idx = world.ground.index_of([a.ground_id, b.ground_id])
+        at = world.ground.lat[idx].copy(), world.ground.lon[idx].copy()
+        _run(world, 60)
+        assert np.array_equal(world.ground.lat[idx], at[0]) and np.array_equal(world.ground.lon[idx], at[1])
+        assert np.all(world.ground.speed_mps[idx] == 0.0)
+        assert [e.detail["other_name"] for e in _collisions(events, site.id)] == ["jet"]
+        assert [e.kind for e in events if e.entity_id == site.id and e.kind in ("destroyed", "crash")] == ["destroyed"]
+        assert [e.detail["reason"] for e in events if e.entity_id == jet.id and e.kind == "crash"] == [
+            "collision with site"]
+    finally:
+        world.close()
