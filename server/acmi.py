@@ -66,7 +66,7 @@ import os
 import re
 import time
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numba
@@ -418,6 +418,7 @@ class ExportStats:
     removals: int
     events: int
     seconds: float
+    skipped: list = field(default_factory=list)  # the damaged chunks left out, each problem named
 
     @property
     def states_per_s(self) -> float:
@@ -534,8 +535,8 @@ def _write(r, stream, rate: float | None) -> ExportStats:
     """Write the whole ACMI text of recording ``r`` to the binary ``stream``."""
     out = _AcmiText(r, rate)
     stream.write(out.header())
-    for k in range(r.chunk_count):
-        stream.write(out.chunk(r.chunk(k)))
+    for _, c in r.readable_chunks(out.stats.skipped):
+        stream.write(out.chunk(c))
     stream.write(out.finish())
     return out.stats
 

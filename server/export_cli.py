@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import sys
 
 from server.acmi import check_rate, export_acmi, output_kind
 
@@ -66,6 +67,14 @@ def acmi_command(args) -> int:
         stats = export_acmi(r, args.output, rate)
     print(f"{stats.path}: {stats.objects} objects, {stats.frames} frames, {stats.events} events, "
           f"{stats.bytes_written} bytes ({stats.states} states in {stats.seconds:.2f} s)")
+    return _report_skipped(stats.skipped)
+
+
+def _report_skipped(skipped: list) -> int:
+    """Say on stderr which damaged chunks an export left out (the file is written without
+    their ticks and events, as a player skips a damaged stretch of a video); exit status 0."""
+    for problem in skipped:
+        print(f"sortie export: left out: {problem}", file=sys.stderr)
     return 0
 
 
@@ -119,7 +128,7 @@ def gltf_command(args) -> int:
             "no terrain mesh (no grid cell with terrain data at its four corners: a finer --size?), "
     print(f"{stats.path}: {stats.tracks} tracks ({stats.track_points} points), {stats.markers} animated markers, "
           f"{stats.target_areas} target areas, {stats.events} events, {terrain_text}{stats.bytes_written:,} bytes")
-    return 0
+    return _report_skipped(stats.skipped)
 
 
 def _as_option(e):

@@ -80,9 +80,10 @@ class Track:
     segments: list = field(default_factory=list)
 
 
-def read_tracks(recording, rate_hz: float | None = None) -> dict[int, Track]:
+def read_tracks(recording, rate_hz: float | None = None, skipped: list | None = None) -> dict[int, Track]:
     """Every entity's track at ``rate_hz`` of world time (server.acmi.selected_ticks: the
     first tick of each 1/rate interval, and the first and last ticks; None: every tick).
+    A chunk that does not read is left out (its problem appended to ``skipped``).
 
     Vectorised over the recording: each chunk's present (export tick, entity) pairs are
     gathered flat, then grouped by entity (a stable sort keeps time order) and split where
@@ -93,8 +94,7 @@ def read_tracks(recording, rate_hz: float | None = None) -> dict[int, Track]:
     pose = np.r_[np.arange(codec.FIELDS)[codec.POS], np.arange(codec.FIELDS)[codec.QUAT]]
     ids, slots, times, rows = [], [], [], []
     exported = 0  # export ticks before this chunk's
-    for k in range(r.chunk_count):
-        c = r.chunk(k)
+    for _, c in r.readable_chunks([] if skipped is None else skipped):
         ticks = c.first_tick + np.arange(c.ticks)
         sel = np.flatnonzero(selected_ticks(ticks, r.rate_hz, rate_hz, r.first_tick, r.last_tick))
         if sel.size == 0:
@@ -172,6 +172,7 @@ class GltfStats:
     bytes_written: int
     markers: int = 0
     target_areas: int = 0
+    skipped: list = field(default_factory=list)  # the damaged chunks left out, each problem named
 
 
 def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = None,
@@ -190,7 +191,8 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
     if not (math.isfinite(margin_m) and 0.0 <= margin_m <= MAX_MARGIN_M):
         raise InvalidArgument("margin_m", f"must be within [0, {MAX_MARGIN_M:g}] m", value=margin_m)
     r = recording
-    tracks = read_tracks(r, rate_hz)
+    skipped: list = []
+    tracks = read_tracks(r, rate_hz, skipped)
     points = sum(len(seg.times) for t in tracks.values() for seg in t.segments)
     if points > MAX_TRACK_POINTS:
         # At f Hz a segment of s seconds keeps at most s f + 1 ticks, and its first and last.
@@ -208,7 +210,7 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
                     "start_time": r.header.start_time, "world_time_s": [r.first_time_s, r.last_time_s],
                     "terrain_box": list(box), "geoid_undulation_m": undulation,
                     "heights": "ellipsoidal in the frame; terrain MSL + geoid_undulation_m"}
-    stats = GltfStats(str(out_path), 0, 0, 0, 0, 0, None, 0)
+    stats = GltfStats(str(out_path), 0, 0, 0, 0, 0, None, 0, skipped=skipped)
 
     if terrain is not None:
         _add_terrain(scene, extras, stats, r, terrain, box, frame, size, spacing_m, texture, max_error_m)
@@ -301,7 +303,9 @@ def _add_events(scene, extras: dict, stats: GltfStats, r, frame: LocalFrame) -> 
 
     undulation = float(r.header.geoid_undulation_m)
     # Events where something happened to an entity (sessions joining and leaving are not placed).
-    events = [ev.event for ev in r.events() if ev.event.kind not in ("join", "leave")]
+    skipped: list = []
+    events = [ev.event for ev in r.events(skipped) if ev.event.kind not in ("join", "leave")]
+    stats.skipped += [s for s in skipped if s not in stats.skipped]
     is_placed = [all(map(math.isfinite, (e.lat_deg, e.lon_deg, e.alt_msl_m))) for e in events]
     placed = [e for e, p in zip(events, is_placed) if p]
     if placed:

@@ -89,9 +89,13 @@ def terrain_identity(description: str, spec: dict, terrain) -> rpb.TerrainIdenti
 
 
 def recording_header(scenario_path, scenario, world, terrain_desc: str, terrain_spec: dict, terrain,
-                     chunk_s: float = DEFAULT_CHUNK_S, steps: codec.Steps = codec.DEFAULT_STEPS
+                     chunk_s: float = DEFAULT_CHUNK_S, steps: codec.Steps = codec.DEFAULT_STEPS,
+                     scenario_text: str | None = None, terrain_id: rpb.TerrainIdentity | None = None
                      ) -> rpb.RecordingHeader:
-    text = Path(scenario_path).read_text(encoding="utf-8")
+    """The header of a sortie of ``scenario`` (read from ``scenario_path``, unless its
+    ``scenario_text`` is given) on ``terrain`` (described by ``terrain_id`` when given: a
+    take-over's, as its recording had it)."""
+    text = Path(scenario_path).read_text(encoding="utf-8") if scenario_text is None else scenario_text
     ex = scenario.exercise
     return rpb.RecordingHeader(
         format_version=FORMAT_VERSION, sortie_version=_version("sortie"), jsbsim_version=_version("jsbsim"),
@@ -99,7 +103,8 @@ def recording_header(scenario_path, scenario, world, terrain_desc: str, terrain_
         world_rate_hz=1.0 / world.dt, fdm_rate_hz=1.0 / world.fdm_dt, scenario_toml=text,
         scenario_path=str(Path(scenario_path).resolve()),
         scenario_sha256=hashlib.sha256(text.encode("utf-8")).hexdigest(),
-        terrain=terrain_identity(terrain_desc, terrain_spec, terrain), created_unix_s=time.time(),
+        terrain=terrain_id if terrain_id is not None else terrain_identity(terrain_desc, terrain_spec, terrain),
+        created_unix_s=time.time(),
         quantization=quantization_of(steps), chunk_s=chunk_s, geoid_undulation_m=world.geoid_undulation_m)
 
 
@@ -120,7 +125,7 @@ def input_record(tick: int, kind: str, entity_id: int, fields: dict) -> rpb.Inpu
         r.vanished = bool(fields.get("vanished", False))
     elif kind == "remove":
         r.reason = fields.get("reason", "")
-    elif kind == "external":
+    elif kind in ("external", "take_over"):
         r.values_json = json.dumps(fields, sort_keys=True)  # floats as repr: exact
     return r
 

@@ -5,6 +5,7 @@ docs/RECORDING.md the whole description)::
 
     "SORTREC1" | u32 n | RecordingHeader (n bytes)
     chunk*:  "CHNK" | u32 head | u32 body | u32 crc32(head bytes + body bytes) | ChunkHead | zstd(ChunkBody)
+             ChunkHead's last 5 bytes: its head_crc32 field, crc32(the two lengths + the head before it)
     footer:  "INDX" | u32 n | u32 0 | u32 crc32(index) | RecordingIndex | u64 offset of "INDX" | "SORTEND1"
 
 A chunk holds up to ``chunk_s`` world seconds of consecutive ticks: the
@@ -14,8 +15,25 @@ states, and the inputs and events of its span. The writer flushes each chunk
 as it closes; the footer is written on a clean close. Reading uses the
 footer's index; a file without one (the server was killed) is indexed by
 walking the chunk frames (their heads are uncompressed), and everything up to
-the last whole chunk replays. Seeking is a bisection in the index and the
-decoding of one chunk.
+the last whole chunk replays.
+
+Damage. A chunk's own CRC covers its head and body; the head also ends with a
+CRC of its own (over the frame's lengths and the head), so a chunk whose body
+is damaged keeps a trusted head: its tick span, the entities it introduced,
+its counts and where the next chunk starts. The walk goes on past a chunk
+that does not check: it trusts the frame's lengths when the next frame
+checks, and otherwise scans for the next chunk magic whose frame checks. What
+lies between two whole chunks is indexed as one lost chunk spanning the ticks
+between them (reading it is a DataFormatError naming its offset); its inputs
+and events are lost. States need nothing from other chunks (each chunk starts
+from absolute values); entity descriptions are in the head of the chunk that
+first holds them, repeated in the next RECENT_CHUNKS heads (recent_entities),
+so a lost head loses none; an entity that no readable head describes (older
+files) reads with an empty description, listed in :attr:`Recording.undescribed`.
+Recordings written before the head CRC and the repeats read as before: their
+heads are trusted through the chunk's CRC alone.
+
+Seeking is a bisection in the index and the decoding of one chunk.
 
 Limits: a header or chunk head of at most 64 MiB, a chunk body of at most
 1 GiB (the writer refuses more); a reader meeting larger claims reports the
@@ -28,10 +46,11 @@ import bisect
 import hashlib
 import math
 import os
+import re
 import struct
 import threading
 import zlib
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +60,7 @@ import zstandard
 from server import recording_codec as codec
 from sortie.errors import DataFormatError, InvalidArgument, NotFound
 from sortie.v1 import recording_pb2 as rpb
+from sortie.v1 import simulation_pb2 as pb
 
 FORMAT_VERSION = 1
 MAGIC = b"SORTREC1"
@@ -48,6 +68,11 @@ END_MAGIC = b"SORTEND1"
 CHUNK_MAGIC = b"CHNK"
 INDEX_MAGIC = b"INDX"
 FRAME = struct.Struct("<4sIII")  # magic, head length, body length, crc32
+HEAD_CRC_TAG = (15 << 3) | 5  # ChunkHead.head_crc32: field 15, fixed32, appended last
+HEAD_CRC = struct.Struct("<BI")  # its 5 bytes: the tag, the CRC
+# Chunk heads after the one that introduced an entity that describe it again (recent_entities).
+RECENT_CHUNKS = 4
+SCAN_BLOCK = 1 << 20  # bytes read at a time when looking for the next chunk after a damaged one
 MAX_HEAD_BYTES = 64 << 20
 MAX_BODY_BYTES = 1 << 30
 # zstd level 1: measured on 500 entities' chunks, 1.0 ms and 116 kB against level 2's 1.15 ms and
@@ -80,8 +105,26 @@ def _add_to_index(index: rpb.RecordingIndex, head: rpb.ChunkHead, offset: int, e
     index.ticks += head.ticks
     index.event_count += head.event_count
     index.input_count += head.input_count
+    for e in head.recent_entities:
+        entities.setdefault(e.entity_id, e)
     for e in head.new_entities:
         entities[e.entity_id] = e
+
+
+def sealed_head(head_bytes: bytes, body_length: int) -> bytes:
+    """A serialised ChunkHead with its head_crc32 field appended (see :func:`head_checks`)."""
+    nh = len(head_bytes) + HEAD_CRC.size
+    crc = zlib.crc32(head_bytes, zlib.crc32(struct.pack("<II", nh, body_length)))
+    return head_bytes + HEAD_CRC.pack(HEAD_CRC_TAG, crc)
+
+
+def head_checks(lengths: bytes, head_bytes: bytes) -> bool:
+    """Whether a chunk head (its bytes, after the frame's 8 bytes of ``lengths``) ends with a
+    head_crc32 that matches: then its fields and the lengths are as written."""
+    if len(head_bytes) < HEAD_CRC.size:
+        return False
+    tag, crc = HEAD_CRC.unpack(head_bytes[-HEAD_CRC.size:])
+    return tag == HEAD_CRC_TAG and zlib.crc32(head_bytes[:-HEAD_CRC.size], zlib.crc32(lengths)) == crc
 
 
 # -- writing --------------------------------------------------------------------------------------
@@ -101,14 +144,22 @@ class RecordingWriter:
         self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
         self.index = rpb.RecordingIndex()
         self._entities: dict[int, object] = {}
+        self._recent: deque = deque(maxlen=RECENT_CHUNKS)  # the last chunks' new entities
         self.bytes_written = self._f.tell()
         self.closed = False
 
     def write_chunk(self, head: rpb.ChunkHead, body: rpb.ChunkBody) -> None:
-        head_b = head.SerializeToString()
+        """Append a chunk; ``head`` gets the recent chunks' new entities (recent_entities) and
+        its own CRC (head_crc32, appended to its bytes)."""
+        head.ClearField("recent_entities")
+        head.ClearField("head_crc32")
+        for entities in self._recent:
+            head.recent_entities.extend(entities)
         body_b = self._zstd.compress(body.SerializeToString())
+        head_b = sealed_head(head.SerializeToString(), len(body_b))
         if len(head_b) > MAX_HEAD_BYTES or len(body_b) > MAX_BODY_BYTES:
             raise DataFormatError(f"chunk of {len(head_b)} + {len(body_b)} bytes is over the format's limits")
+        self._recent.append(list(head.new_entities))
         offset = self._f.tell()
         crc = zlib.crc32(body_b, zlib.crc32(head_b))
         self._f.write(FRAME.pack(CHUNK_MAGIC, len(head_b), len(body_b), crc) + head_b + body_b)
@@ -195,7 +246,9 @@ class CheckReport:
     inputs: int
     problems: list = field(default_factory=list)  # what is wrong, with offsets
     readable_bytes: int = 0  # the file up to the end of the last good chunk (or the footer)
-    damaged_chunks: int = 0  # indexed chunks that do not decode (counted with decode only)
+    damaged_chunks: int = 0  # indexed chunks that do not decode (lost ones only, without decode)
+    replays: list = field(default_factory=list)  # (first, last) world times of the stretches that replay
+    lost_ticks: int = 0  # ticks of the recording's span in chunks that do not read
 
     @property
     def ok(self) -> bool:
@@ -208,6 +261,9 @@ class Recording:
     ``Recording(path)`` raises NotFound for a missing file and DataFormatError
     for one that is not a recording or whose header is damaged; a missing or
     damaged footer is not an error (the file is walked; :attr:`recovered` says so).
+    :attr:`lost`: the chunks the walk found damaged (index -> what is lost);
+    :attr:`undescribed`: entities no readable chunk head describes (id -> why; their
+    :attr:`entities` entry is empty but for the id).
     """
 
     def __init__(self, path):
@@ -224,6 +280,8 @@ class Recording:
     def _open(self) -> None:
         self.size = self.path.stat().st_size
         self.problems: list[str] = []
+        self.lost: dict[int, str] = {}
+        self.undescribed: dict[int, str] = {}
         self.header = self._read_header()
         self.problems += scenario_problems(self.header)
         if self.header.format_version != FORMAT_VERSION:
@@ -244,6 +302,8 @@ class Recording:
         self._cache: OrderedDict[int, Chunk] = OrderedDict()
         self._cache_lock = threading.Lock()  # the replay's clock and control threads both read chunks
         self._zstd = zstandard.ZstdDecompressor()
+        if self.lost:
+            self._describe_lost()
 
     def close(self) -> None:
         self._f.close()
@@ -307,42 +367,148 @@ class Recording:
         self.problems.append(f"damaged footer at offset {offset}: chunks found by walking the file")
         return None
 
+    def _probe(self, offset: int):
+        """The chunk at ``offset``: (its head, the offset after it) when it is whole and its head
+        can be trusted (the head's own CRC checks, or the chunk's); else why not (text)."""
+        frame = self._read_at(offset, FRAME.size)
+        if len(frame) < FRAME.size:
+            return f"cut short ({len(frame)} of {FRAME.size} frame bytes)"
+        magic, nh, nb, crc = FRAME.unpack(frame)
+        if magic != CHUNK_MAGIC:
+            return "is no chunk frame (no CHNK magic)"
+        if nh > MAX_HEAD_BYTES or nb > MAX_BODY_BYTES:
+            return f"has a bad frame ({nh} + {nb} bytes claimed, over the format's limits)"
+        end = offset + FRAME.size + nh + nb
+        if end > self.size:
+            return f"cut short ({self.size - offset - FRAME.size} of {nh + nb} bytes)"
+        head_b = self._read_at(offset + FRAME.size, nh)
+        if not head_checks(frame[4:12], head_b):
+            if zlib.crc32(self._read_at(offset + FRAME.size + nh, nb), zlib.crc32(head_b)) != crc:
+                return "fails its CRC"
+        try:
+            return rpb.ChunkHead.FromString(head_b), end
+        except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError: CRC-valid, not a chunk head
+            return f"has a head that does not decode ({exc})"
+
+    def _resync(self, offset: int):
+        """Where the walk goes on after the damaged chunk at ``offset``: (offset, _probe's answer)
+        of the next whole chunk, or (None, None) when none follows. After it by its frame's
+        lengths when a whole chunk starts there; else the first chunk magic after ``offset``
+        whose chunk checks (the lengths were damaged too)."""
+        frame = self._read_at(offset, FRAME.size)
+        if len(frame) == FRAME.size:
+            magic, nh, nb, _ = FRAME.unpack(frame)
+            end = offset + FRAME.size + nh + nb
+            if magic == CHUNK_MAGIC and nh <= MAX_HEAD_BYTES and nb <= MAX_BODY_BYTES and end <= self.size:
+                if end == self.size or self._read_at(end, len(INDEX_MAGIC)) == INDEX_MAGIC:
+                    return None, None  # the last chunk, or the one before the footer
+                got = self._probe(end)
+                if not isinstance(got, str):
+                    return end, got
+        pos = offset + 1
+        while pos < self.size:
+            block = self._read_at(pos, SCAN_BLOCK + len(CHUNK_MAGIC) - 1)
+            i = block.find(CHUNK_MAGIC)
+            while i >= 0:
+                got = self._probe(pos + i)
+                if not isinstance(got, str):
+                    return pos + i, got
+                i = block.find(CHUNK_MAGIC, i + 1)
+            pos += SCAN_BLOCK
+        return None, None
+
     def _walk(self) -> rpb.RecordingIndex:
-        """Index the chunks by their frames: stops at the first frame that is cut short or
-        fails its CRC (what follows cannot be trusted), and says so in :attr:`problems`."""
-        index = rpb.RecordingIndex()
-        entities = {}
-        offset = self._data_start
-        while offset < self.size:
-            frame = self._read_at(offset, FRAME.size)
-            if len(frame) < FRAME.size:
-                self.problems.append(f"{self.size - offset} bytes cut short at offset {offset} (a partial chunk)")
-                break
-            magic, nh, nb, crc = FRAME.unpack(frame)
-            if magic == INDEX_MAGIC:
-                break
-            if magic != CHUNK_MAGIC or nh > MAX_HEAD_BYTES or nb > MAX_BODY_BYTES:
-                self.problems.append(f"no chunk at offset {offset} (bad frame); {self.size - offset} bytes skipped")
-                break
-            data = self._read_at(offset + FRAME.size, nh + nb)
-            if len(data) < nh + nb:
-                self.problems.append(f"chunk at offset {offset} cut short ({len(data)} of {nh + nb} bytes): "
-                                     "a partial chunk")
-                break
-            if zlib.crc32(data) != crc:
-                self.problems.append(f"chunk at offset {offset} fails its CRC; {self.size - offset} bytes skipped")
-                break
-            try:
-                head = rpb.ChunkHead.FromString(data[:nh])
-            except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError: CRC-valid, not a chunk head
-                self.problems.append(f"chunk at offset {offset} has a head that does not decode ({exc}); "
-                                     f"{self.size - offset} bytes skipped")
-                break
-            _add_to_index(index, head, offset, entities)
-            offset += FRAME.size + nh + nb
+        """Index the chunks by their frames. A chunk that does not check is skipped (see
+        :meth:`_resync`); what lies between two whole chunks is indexed as one lost chunk over
+        the ticks between them (:attr:`lost`); what follows the last whole chunk is a problem
+        only. Everything wrong is said in :attr:`problems`, with its offset."""
+        found: list = []  # (offset, head) of whole chunks; (offset, why, next offset) of damaged stretches
+        offset, got = self._data_start, None
         self._index_end = offset
+        while offset < self.size:
+            if self._read_at(offset, len(INDEX_MAGIC)) == INDEX_MAGIC:
+                break
+            got = self._probe(offset) if got is None else got
+            if not isinstance(got, str):
+                head, end = got
+                found.append((offset, head))
+                offset, got, self._index_end = end, None, end
+                continue
+            nxt, got_next = self._resync(offset)
+            found.append((offset, got, nxt))
+            if nxt is None:
+                break
+            offset, got = nxt, got_next
+        index = rpb.RecordingIndex()
+        entities: dict = {}
+        for i, item in enumerate(found):
+            if len(item) == 2:
+                _add_to_index(index, item[1], item[0], entities)
+            else:
+                before = found[i - 1][1] if i > 0 else None
+                after = found[i + 1][1] if i + 1 < len(found) else None
+                self._add_lost(index, item, before, after)
         index.entities.extend(entities[i] for i in sorted(entities))
         return index
+
+    def _add_lost(self, index: rpb.RecordingIndex, item: tuple, before, after) -> None:
+        """A damaged stretch of the walk (offset, why, next offset) between the heads ``before``
+        and ``after`` (None: none): indexed as a lost chunk when a whole chunk follows it."""
+        offset, why, nxt = item
+        if after is None:
+            tail = ": a partial chunk" if why.startswith("cut short") else (
+                f"; {self.size - offset} bytes skipped (no whole chunk after it)")
+            self.problems.append(f"chunk at offset {offset} {why}{tail}")
+            return
+        if why.startswith("cut short"):  # a whole chunk after it: the frame's lengths are what is wrong
+            why = "has damaged frame lengths (they claim more bytes than the file has)"
+        k = len(index.chunk_first_tick)
+        first = before.first_tick + before.ticks if before is not None else after.first_tick
+        ticks = max(0, after.first_tick - first)
+        if before is None:
+            span = f"the ticks before tick {first} (t = {first * self.dt:.2f} s) are lost"
+        elif ticks:
+            span = (f"ticks {first}..{first + ticks - 1} (t = {first * self.dt:.2f} .. "
+                    f"{(first + ticks - 1) * self.dt:.2f} s) are lost")
+        else:
+            span = "no tick is lost"
+        self.lost[k] = (f"chunk {k} at offset {offset} {why}: {span}, and the inputs and events recorded with "
+                        f"them; {nxt - offset} bytes skipped to the next whole chunk, at offset {nxt}")
+        self.problems.append(self.lost[k])
+        if ticks and not index.ticks:
+            index.first_time_s = first * self.dt
+        index.chunk_first_tick.append(first)
+        index.chunk_offset.append(offset)
+        index.chunk_time_s.append(first * self.dt)
+        index.ticks += ticks
+
+    def _describe_lost(self) -> None:
+        """The entities a lost chunk may have been the first to hold: those of the next chunk
+        that reads that no readable head describes get an empty description (their id only),
+        listed in :attr:`undescribed` and :attr:`problems`. (Entities never come back once gone,
+        so an entity first held by a lost chunk is in the next chunk or nowhere after it.)"""
+        for k in sorted(self.lost):
+            ids: list = []
+            for j in range(k + 1, self.chunk_count):
+                if j in self.lost:
+                    continue
+                try:
+                    ids = self.chunk_body(j)[1].entity_ids
+                    break
+                except DataFormatError:
+                    continue
+            new = [int(i) for i in ids if int(i) not in self.entities]
+            if not new:
+                continue
+            where = f"chunk {k} at offset {self.index.chunk_offset[k]}"
+            for i in new:
+                self.undescribed[i] = f"first held by the lost {where}"
+                self.entities[i] = pb.EntityInfo(entity_id=i)
+            shown = ", ".join(map(str, new[:10])) + (f" and {len(new) - 10} more" if len(new) > 10 else "")
+            self.problems.append(f"{where} was the first to hold {len(new)} "
+                                 f"{'entity' if len(new) == 1 else 'entities'} that no chunk that reads describes "
+                                 f"(ids {shown}): their states read, their name, kind, type and coalition are "
+                                 "unknown")
 
     # -- contents -------------------------------------------------------------------------------
 
@@ -375,6 +541,8 @@ class Recording:
         checked (not the CRC when ``head_only``: then only the head is read)."""
         if not 0 <= k < self.chunk_count:
             raise NotFound(f"chunk {k} (the recording has {self.chunk_count})")
+        if k in self.lost:
+            raise DataFormatError(f"{self.path.name}: {self.lost[k]}")
         offset = self.index.chunk_offset[k]
         where = f"{self.path.name}: chunk {k} at offset {offset}"
         frame = self._read_at(offset, FRAME.size)
@@ -384,9 +552,65 @@ class Recording:
         if magic != CHUNK_MAGIC or nh > MAX_HEAD_BYTES or nb > MAX_BODY_BYTES:
             raise DataFormatError(f"{where}: no chunk frame there")
         data = self._read_at(offset + FRAME.size, nh if head_only else nh + nb)
-        if len(data) < (nh if head_only else nh + nb) or (not head_only and zlib.crc32(data) != crc):
-            raise DataFormatError(f"{where}: damaged (CRC mismatch or cut short)")
+        if len(data) < (nh if head_only else nh + nb):
+            raise DataFormatError(f"{where}: damaged (cut short)")
+        if not head_only and zlib.crc32(data) != crc:
+            raise DataFormatError(f"{where}: damaged ({self._what_is_lost(k, frame, data[:nh])})")
         return data, nh, where
+
+    def _what_is_lost(self, k: int, frame: bytes, head_b: bytes) -> str:
+        """What a chunk that fails its CRC loses: with a head that checks, its ticks, inputs and
+        events (its body is what is damaged)."""
+        if not head_checks(frame[4:12], head_b):
+            return "CRC mismatch"
+        try:
+            head = rpb.ChunkHead.FromString(head_b)
+        except Exception:  # noqa: BLE001 - as good as no head
+            return "CRC mismatch"
+        first, last = self.chunk_ticks(k)
+        span = f"ticks {first}..{last} (t = {first * self.dt:.2f} .. {last * self.dt:.2f} s)" if last >= first \
+            else "no tick"
+        return (f"CRC mismatch in its body; its head checks: {span}, {head.input_count} inputs and "
+                f"{head.event_count} events lost")
+
+    def trusted_head(self, k: int) -> rpb.ChunkHead | None:
+        """The k-th chunk's head when it can be trusted (its own CRC checks, or the whole
+        chunk's), even if its body is damaged; None for a lost chunk, or a damaged chunk
+        whose head has no CRC of its own (recordings from before it)."""
+        if k in self.lost:
+            return None
+        got = self._probe(self.index.chunk_offset[k])
+        return None if isinstance(got, str) else got[0]
+
+    def chunk_ticks(self, k: int) -> tuple[int, int]:
+        """(first, last) tick of the k-th chunk's span (last < first: none)."""
+        first = self._first_ticks[k]
+        last = self._first_ticks[k + 1] - 1 if k + 1 < self.chunk_count else self.last_tick
+        return first, max(first - 1, last)
+
+    def inputs_after_tick(self, k: int) -> int:
+        """The earliest tick after which the inputs kept with the k-th chunk may have been done
+        (-1: from the start, for a lost chunk before the first whole one): a re-simulation that
+        runs past it needs them."""
+        return -1 if k == 0 and k in self.lost else self._first_ticks[k] - 1
+
+    def spans(self, unreadable=()) -> list[tuple[int, int]]:
+        """The stretches of consecutive ticks (first, last) in chunks neither lost nor in
+        ``unreadable`` (indices of chunks that do not decode)."""
+        out: list[list[int]] = []
+        for k in range(self.chunk_count):
+            first, last = self.chunk_ticks(k)
+            if last < first or k in self.lost or k in unreadable:
+                continue
+            if out and out[-1][1] + 1 == first:
+                out[-1][1] = last
+            else:
+                out.append([first, last])
+        return [(a, b) for a, b in out]
+
+    def mentions(self, offset: int) -> bool:
+        """Whether :attr:`problems` already names the chunk at ``offset``."""
+        return re.search(rf"offset {offset}(?!\d)", "\n".join(self.problems)) is not None
 
     def chunk_head(self, k: int) -> rpb.ChunkHead:
         """The k-th chunk's head, read alone (nothing decompressed)."""
@@ -479,10 +703,31 @@ class Recording:
         for k in range(self.chunk_count):
             yield from self.chunk_body(k)[1].inputs
 
-    def events(self):
-        """Every EventRecord, in the order they were emitted."""
+    def events(self, skipped: list | None = None):
+        """Every EventRecord, in the order they were emitted. With ``skipped`` (a list), the
+        events of a chunk that does not read are left out and its problem appended to it;
+        without, such a chunk raises DataFormatError."""
         for k in range(self.chunk_count):
-            yield from self.chunk_body(k)[1].events
+            try:
+                body = self.chunk_body(k)[1]
+            except DataFormatError as exc:
+                if skipped is None:
+                    raise
+                skipped.append(str(exc))
+                continue
+            yield from body.events
+
+    def readable_chunks(self, skipped: list):
+        """(k, Chunk) of every chunk that reads, in order; a lost or damaged one is left out and
+        its problem appended to ``skipped``: what the exports read, so a damaged chunk costs
+        an export its own ticks only."""
+        for k in range(self.chunk_count):
+            try:
+                c = self.chunk(k)
+            except DataFormatError as exc:
+                skipped.append(str(exc))
+                continue
+            yield k, c
 
     # -- checking -------------------------------------------------------------------------------
 
@@ -499,18 +744,21 @@ class Recording:
     def check(self, decode: bool = True) -> CheckReport:
         """What the file holds and what is wrong with it; with ``decode`` every chunk is
         decoded (and its CRC checked), not only walked."""
-        problems, damaged = list(self.problems), 0
+        problems, unreadable = list(self.problems), set(self.lost)
         if decode:
             for k in range(self.chunk_count):
                 try:
                     c = self.chunk(k)
                 except DataFormatError as exc:
-                    damaged += 1
-                    if f"offset {self.index.chunk_offset[k]}" not in " ".join(self.problems):  # not twice
+                    unreadable.add(k)
+                    if not self.mentions(self.index.chunk_offset[k]):  # not twice
                         problems.append(str(exc))
                     continue
                 problems += self._range_problems(k, c)
         end = getattr(self, "_index_end", self._data_start)
+        spans = self.spans(unreadable)
+        replays = [(a * self.dt, b * self.dt) for a, b in spans]
+        lost_ticks = self.index.ticks - sum(b - a + 1 for a, b in spans)
         return CheckReport(str(self.path), self.size, not self.recovered, self.chunk_count, self.index.ticks,
                            self.first_time_s, self.last_time_s, len(self.entities), self.index.event_count,
-                           self.index.input_count, problems, end, damaged)
+                           self.index.input_count, problems, end, len(unreadable), replays, lost_ticks)

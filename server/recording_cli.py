@@ -4,6 +4,7 @@
     sortie recording check FILE            # exit 1 when anything is wrong (what is readable is listed)
     sortie resim FILE [--dem FILE... | --terrain HOST:PORT] [--until S] [--json OUT]
     sortie resim FILE --take-over S --agent NAME --port N   # live from instant S, NAME free to claim
+                 [--record FILE | --record-dir DIR | --no-record]  # recorded as sortie server records
     sortie replay FILE --port N [--speed X] [--paused]
 """
 
@@ -49,6 +50,9 @@ def add_parser(sub) -> None:
     r.add_argument("--agent", metavar="NAME", help="with --take-over: the agent a client takes")
     r.add_argument("--port", type=int, default=0, help="with --take-over: TCP port (0: a free one)")
     r.add_argument("--host", default="127.0.0.1", help="with --take-over: interface (default %(default)s)")
+    from server.sim_cli import add_recording_options
+
+    add_recording_options(r, only="with --take-over: ")  # a take-over is a sortie: recorded as `sortie server`'s
     r.set_defaults(func=resim_command)
 
     from server.replay import add_parser as add_replay
@@ -77,7 +81,7 @@ def summary(rec) -> dict:
     from sortie.errors import DataFormatError
 
     kinds = Counter({1: "aircraft", 2: "ground", 3: "static"}.get(e.kind, "?") for e in rec.entities.values())
-    events, damaged = Counter(), []
+    events, damaged, unreadable = Counter(), [], set()
     # Entity seconds from the chunk heads (entities x ticks of each chunk; an entity that
     # comes or goes within a chunk counts for the whole chunk).
     entity_s = 0.0
@@ -85,7 +89,9 @@ def summary(rec) -> dict:
         try:
             head, body = rec.chunk_body(k)
         except DataFormatError as exc:
-            damaged.append(str(exc))
+            unreadable.add(k)
+            if not rec.mentions(rec.index.chunk_offset[k]):  # a chunk the walk lost is a problem already
+                damaged.append(str(exc))
             continue
         events.update(r.event.kind for r in body.events)
         entity_s += head.entity_count * head.ticks * rec.dt
@@ -97,6 +103,8 @@ def summary(rec) -> dict:
             "events_by_kind": dict(events), "inputs": rec.index.input_count,
             "bytes_per_entity_second": rec.size / entity_s if entity_s else None,
             "footer": not rec.recovered, "problems": list(rec.problems) + damaged, "build_id": h.build_id,
+            "replays_s": [[a * rec.dt, b * rec.dt] for a, b in rec.spans(unreadable)],
+            "damaged_chunks": [{"chunk": k, "offset": rec.index.chunk_offset[k]} for k in sorted(unreadable)],
             "sortie_version": h.sortie_version, "jsbsim_version": h.jsbsim_version,
             "terrain": h.terrain.description}
 
@@ -117,6 +125,9 @@ def info_command(args) -> int:
           f"  terrain {s['terrain']}; build {s['build_id']} (sortie {s['sortie_version']}, "
           f"jsbsim {s['jsbsim_version']})\n"
           f"  footer {'yes' if s['footer'] else 'no (recovered by walking the chunks)'}")
+    if s["damaged_chunks"]:
+        print(f"  replays {_spans(s['replays_s'])}; damaged: "
+              + ", ".join(f"chunk {d['chunk']} at offset {d['offset']}" for d in s["damaged_chunks"]))
     for p in s["problems"]:
         print(f"  problem: {p}")
     return 0
@@ -130,10 +141,17 @@ def check_command(args) -> int:
           f"world time {report.first_time_s:.2f} .. {report.last_time_s:.2f} s; {report.entities} entities, "
           f"{report.events} events, "
           f"{report.inputs} inputs\n  readable up to byte {report.readable_bytes:,}")
+    if report.damaged_chunks:
+        lost = f"; {report.lost_ticks} ticks lost" if report.lost_ticks else ""
+        print(f"  replays {_spans(report.replays)}{lost}")
     for p in report.problems:
         print(f"  problem: {p}")
     print("  OK" if report.ok else f"  {len(report.problems)} problem(s)")
     return 0 if report.ok else 1
+
+
+def _spans(spans) -> str:
+    return ", ".join(f"{a:.2f} .. {b:.2f} s" for a, b in spans) or "nothing"
 
 
 def resim_command(args) -> int:
@@ -145,10 +163,11 @@ def resim_command(args) -> int:
     workers = aircraft_workers(args.aircraft_workers)
     if args.take_over is not None:
         return take_over_command(args, workers)
-    if args.agent:
+    if args.agent or args.record:
         from sortie.errors import InvalidArgument
 
-        raise InvalidArgument("agent", "only with --take-over", value=args.agent)
+        option = "agent" if args.agent else "record"
+        raise InvalidArgument(option, "only with --take-over", value=getattr(args, option))
     with _open(args.file) as rec:
         if not rec.index.ticks:  # a server killed before its first chunk: no DIVERGED, nothing ran
             print(f"{args.file}: nothing to compare: the recording holds no ticks")
@@ -164,7 +183,9 @@ def resim_command(args) -> int:
     d = report.as_dict()
     print(f"{report.recording}: {report.ticks} ticks compared in {report.wall_s:.1f} s: "
           f"{'bit-exact' if report.bit_exact else 'DIVERGED'} ({report.bit_exact_ticks} bit-exact ticks), "
-          f"max position difference {report.max_abs_diff_m:.4f} m")
+          f"max position difference {report.max_abs_diff_m:.4f} m"
+          + (f"; {report.ticks_not_compared} ticks of damaged chunks not compared" if report.ticks_not_compared
+             else ""))
     if report.first_divergence:
         print(f"  first divergence: {report.first_divergence}")
     for n in report.notes:
@@ -177,20 +198,46 @@ def resim_command(args) -> int:
 
 def take_over_command(args, workers: int) -> int:
     from server.grpc_common import wait_for_signal
-    from server.resim import take_over
+    from server.resim import take_over, take_over_header
+    from server.sim_cli import open_recorder
     from server.sim_server import SimulationServer, server_config
     from sortie.errors import InvalidArgument
 
     if not args.agent:
         raise InvalidArgument("agent", "--take-over needs --agent NAME")
-    world, inputs, scenario = take_over(args.file, args.take_over, args.agent, args.dem, args.terrain, workers)
+    recording = {}
+
+    def record(rec, world, scenario, spec):  # recorded as `sortie server` records, from the world's start
+        recorder, path = open_recorder(args, f"{scenario.exercise.name} take-over", lambda: take_over_header(
+            rec, scenario, world, spec, bool(args.dem or args.terrain)))
+        recording.update(recorder=recorder, path=path)
+        return recorder
+
+    world, inputs, scenario = take_over(args.file, args.take_over, args.agent, args.dem, args.terrain, workers,
+                                        recorder=record)
+    recorder = recording.get("recorder")
     config = server_config(scenario, "take-over:" + str(args.file))
     config.clock = "realtime"
-    server = SimulationServer(world, config, f"{args.host}:{args.port}", before_tick=inputs.apply)
+    try:
+        server = SimulationServer(world, config, f"{args.host}:{args.port}", before_tick=inputs.apply)
+    except BaseException:
+        world.close()
+        if recorder is not None:
+            recorder.close()
+        raise
     server.start()
     print(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}", flush=True)
+    if recorder is not None:
+        print(f"recording to {recording['path']}", flush=True)
+    for lost in inputs.lost:
+        print(f"note: the others' recorded inputs are incomplete: {lost}", file=sys.stderr, flush=True)
     wait_for_signal(server.finished)
     server.stop()
+    if recorder is not None:
+        recorder.close()
     world.close()
     print(f"take-over stopped at world time {world.time_s:.1f} s", file=sys.stderr, flush=True)
+    if recorder is not None:
+        state = f"failed: {recorder.error}" if recorder.error else f"{recorder.bytes_written:,} bytes"
+        print(f"recording {recording['path']}: {state}", file=sys.stderr, flush=True)
     return 0

@@ -39,7 +39,7 @@ from server.grpc_common import AioManagedServer, wait_for_signal
 from server.recording import Recording
 from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers, status_of
 from server.streaming import Publisher
-from server.world import Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
+from server.world import KIND_NAMES, STATIC, Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
 from sortie.errors import DataFormatError, InvalidArgument, PermissionDenied
 from sortie.v1 import recording_pb2 as rpb
 from sortie.v1 import simulation_pb2 as pb
@@ -63,9 +63,9 @@ class ReplayWorld(EventLog):
         self.rec = rec
         self.dt = rec.dt
         self.geoid_undulation_m = rec.header.geoid_undulation_m
-        self.entities = {i: Entity(i, e.name, e.kind, e.type, e.coalition) for i, e in rec.entities.items()}
-        self.infos = {i: (i, e.name, e.kind, e.type, e.coalition) + ((e.external_id,) if e.external_id else ())
-                      for i, e in rec.entities.items()}
+        described = {i: _described(i, e) for i, e in rec.entities.items()}
+        self.entities = {i: Entity(i, *d[1:5]) for i, d in described.items()}
+        self.infos = described
         self.tick_count = rec.first_tick - 1
         self.time_s = self.tick_count * self.dt
         self.snapshot = _empty_snapshot(self.time_s, self.tick_count)
@@ -82,6 +82,10 @@ class ReplayWorld(EventLog):
         DataFormatError naming the chunk when ``tick``'s own chunk is damaged: nothing changes."""
         rec = self.rec
         f = rec.frame(tick)
+        unknown = set(f.ids.tolist()) - self.infos.keys()
+        if unknown:  # described by no chunk that reads (Recording.undescribed); new dicts: others read these
+            self.infos = {**self.infos, **{i: _described(i, None) for i in unknown}}
+            self.entities = {**self.entities, **{i: Entity(*self.infos[i][:5]) for i in unknown}}
         if events and f.tick > self.tick_count:
             # Events after tick k are kept with tick k + 1's chunk (server/recording.py).
             last_chunk = min(rec.chunk_of_tick(f.tick + 1) + 1, rec.chunk_count)
@@ -124,6 +128,15 @@ class ReplayWorld(EventLog):
 
     def emit(self, kind: str, entity_id: int = 0, **detail) -> None:
         self._append_event(WorldEvent(self.time_s, kind, entity_id, detail=detail))
+
+
+def _described(i: int, e) -> tuple:
+    """The info tuple (server.world.World.infos) of entity ``i`` as recorded (``e``: its
+    EntityInfo, or None). One the recording does not describe (first held by a lost chunk,
+    server/recording.py) shows as a static object named after its id."""
+    if e is None or e.kind not in KIND_NAMES:
+        return (i, e.name if e is not None and e.name else f"entity {i}", STATIC, "undescribed", "neutral")
+    return (i, e.name, e.kind, e.type, e.coalition) + ((e.external_id,) if e.external_id else ())
 
 
 def _detail(text: str) -> dict:

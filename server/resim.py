@@ -18,7 +18,14 @@ Take-over ("My Controls!" in FlightGear): re-simulate to tick k, then run the
 world live (server.sim_server.SimulationServer) with the chosen agent free
 for a client to claim (on its autopilot until one does) while every other
 agent keeps receiving its recorded inputs after the same ticks
-(:class:`RecordedInputs` as the server's ``before_tick``).
+(:class:`RecordedInputs` as the server's ``before_tick``). The take-over is
+a sortie like any other and is recorded from its world's start (the
+re-simulated ticks, then the live ones); making the agent claimable is an
+input of its own ("take_over"), so its recording re-simulates too.
+
+A damaged chunk (server/recording.py) loses its ticks' states, which are not
+compared, and its inputs: a re-simulation that would need them is refused
+(it could not be bit-exact), naming the chunk and how far one can go.
 """
 
 from __future__ import annotations
@@ -74,6 +81,7 @@ class ResimReport:
     same_terrain: bool = True
     notes: list = field(default_factory=list)
     wall_s: float = 0.0
+    ticks_not_compared: int = 0  # in chunks that do not read (damaged): their states are lost
 
     @property
     def bit_exact(self) -> bool:
@@ -81,7 +89,7 @@ class ResimReport:
 
     def as_dict(self) -> dict:
         d = {k: getattr(self, k) for k in ("recording", "ticks", "bit_exact_ticks", "max_abs_diff_m", "same_build",
-                                           "same_terrain", "notes", "wall_s")}
+                                           "same_terrain", "notes", "wall_s", "ticks_not_compared")}
         d["bit_exact"] = self.bit_exact
         d["first_divergence"] = str(self.first_divergence) if self.first_divergence else None
         return d
@@ -256,14 +264,39 @@ def sources_match(rec: Recording, terrain) -> tuple[bool, list]:
 class RecordedInputs:
     """The recording's inputs by tick; :meth:`apply` makes those done after a tick.
 
-    ``skip`` ids get none from tick ``skip_from_tick`` on (a taken-over agent)."""
+    ``skip`` ids get none from tick ``skip_from_tick`` on (a taken-over agent). The inputs
+    of a chunk that does not read are lost: a DataFormatError when a run to tick ``until``
+    (None: the recording's end) needs them, else listed in :attr:`lost`. A damaged chunk
+    whose head checks and counts no input loses none."""
 
-    def __init__(self, rec: Recording, skip=(), skip_from_tick: int = 0):
+    def __init__(self, rec: Recording, skip=(), skip_from_tick: int = 0, until: int | None = None):
         self.by_tick: dict[int, list] = defaultdict(list)
         self.skip = set(skip)
-        for r in rec.inputs():
-            if r.entity_id not in self.skip or r.tick < skip_from_tick:
-                self.by_tick[r.tick].append(r)
+        self.lost: list[str] = []
+        for k in range(rec.chunk_count):
+            try:
+                records = rec.chunk_body(k)[1].inputs
+            except DataFormatError as exc:
+                self._lost(rec, k, exc, until)
+                continue
+            for r in records:
+                if r.entity_id not in self.skip or r.tick < skip_from_tick:
+                    self.by_tick[r.tick].append(r)
+
+    def _lost(self, rec: Recording, k: int, exc: DataFormatError, until: int | None) -> None:
+        head = rec.trusted_head(k)
+        if head is not None and head.input_count == 0:
+            return
+        count = "an unknown number of" if head is None else str(head.input_count)
+        after = rec.inputs_after_tick(k)
+        if until is None or after < until:
+            if after < 0:
+                raise DataFormatError(f"cannot re-simulate: {exc}; {count} inputs from the recording's start are "
+                                      "lost with it, so no re-simulation can be bit-exact")
+            raise DataFormatError(f"cannot re-simulate past t = {after * rec.dt:.3f} s (tick {after}): {exc}; "
+                                  f"{count} inputs done after that tick are lost with it, so a re-simulation past "
+                                  f"it cannot be bit-exact (--until {after * rec.dt:.3f} stops there)")
+        self.lost.append(f"{count} inputs after tick {after} lost: {exc}")
 
     def apply(self, world, tick: int | None = None) -> int:
         """Make the inputs recorded after tick ``tick`` (default: the world's tick count); how many."""
@@ -282,6 +315,11 @@ def apply_input(world, r) -> None:
         world.release(r.entity_id, vanished=r.vanished)
     elif r.kind == "remove":
         world.remove(r.entity_id, r.reason)
+    elif r.kind == "take_over":
+        v = json.loads(r.values_json)
+        e = world.entities.get(r.entity_id)
+        if e is not None:
+            e.controllable, e.on_vanish = bool(v["controllable"]), str(v["on_vanish"])
     elif r.kind == "external":
         v = json.loads(r.values_json)
         # The journal holds the state as validated (quaternion normalised): taken as is, since
@@ -348,6 +386,21 @@ def _compare(rec: Recording, report: ResimReport, tick: int, ids: np.ndarray, st
                                                  "quantisation step (digest mismatch)", "entities", 0, 0)
 
 
+def _compare_readable(rec: Recording, report: ResimReport, tick: int, state, unreadable: dict) -> None:
+    """:func:`_compare` where the recording has the tick's states; a tick of a chunk that does
+    not read is counted in ``ticks_not_compared`` (and its chunk noted once)."""
+    k = rec.chunk_of_tick(tick)
+    if k not in unreadable:
+        try:
+            _compare(rec, report, tick, *state)
+            return
+        except DataFormatError as exc:
+            unreadable[k] = str(exc)
+            first, last = rec.chunk_ticks(k)
+            report.notes.append(f"ticks {first}..{last} not compared (their states are lost): {exc}")
+    report.ticks_not_compared += 1
+
+
 def resimulate(path, dem=None, service: str | None = None, workers: int = 0, until_s: float | None = None,
                progress=None) -> ResimReport:
     """Re-run the recording at ``path`` and compare every tick (see the module docstring)."""
@@ -367,13 +420,14 @@ def resimulate(path, dem=None, service: str | None = None, workers: int = 0, unt
         report.notes += notes
         report.same_terrain = same_files and same_sources
         last = rec.last_tick if until_s is None else rec.tick_at(until_s)
-        inputs = RecordedInputs(rec)
+        unreadable: dict[int, str] = {}
         try:
+            inputs = RecordedInputs(rec, until=last)
             while world.tick_count < last:
                 inputs.apply(world)
                 world.tick()
                 if world.tick_count >= rec.first_tick:
-                    _compare(rec, report, world.tick_count, *codec.state_matrix(world.snapshot))
+                    _compare_readable(rec, report, world.tick_count, codec.state_matrix(world.snapshot), unreadable)
                 if progress is not None:
                     progress(world.tick_count, last)
         finally:
@@ -382,28 +436,65 @@ def resimulate(path, dem=None, service: str | None = None, workers: int = 0, unt
     return report
 
 
-def take_over(path, at_s: float, agent: str, dem=None, service: str | None = None, workers: int = 0):
+def take_over(path, at_s: float, agent: str, dem=None, service: str | None = None, workers: int = 0,
+              recorder=None):
     """(world re-simulated to ``at_s`` with ``agent`` free to claim, RecordedInputs for the
-    others, scenario): what ``sortie resim --take-over`` serves live."""
+    others, scenario): what ``sortie resim --take-over`` serves live.
+
+    ``recorder(rec, world, scenario, terrain_spec)``: a server.recorder.Recorder (or None)
+    to record the sortie with, attached to the world before it is re-simulated (so its
+    recording holds the whole sortie); closed here if the take-over fails."""
     rec = Recording(path)
+    world = attached = None
     try:
-        world, scenario, _, _ = build_recorded_world(rec, dem, service, workers)
+        world, scenario, spec, _ = build_recorded_world(rec, dem, service, workers)
         target = next((e for e in world.entities.values() if e.name == agent), None)
         if target is None:
             names = sorted(e.name for e in world.entities.values())
             raise InvalidArgument("agent", f"no agent of this name in the recording (agents: {', '.join(names)})",
                                   value=agent)
         last = rec.tick_at(at_s)
-        inputs = RecordedInputs(rec, skip=[target.id], skip_from_tick=last)
+        inputs = RecordedInputs(rec, skip=[target.id], skip_from_tick=last, until=last)
+        try:  # known before re-simulating (and recording) when the recorded instant reads
+            gone = target.id not in rec.frame(last).ids
+        except DataFormatError:
+            gone = False
+        if gone:
+            raise InvalidArgument("agent", f"is gone by t = {at_s} s", value=agent)
+        if recorder is not None:
+            attached = recorder(rec, world, scenario, spec)
+            if attached is not None:
+                world.attach_recorder(attached)
         while world.tick_count < last:
             inputs.apply(world)
             world.tick()
         if target.id not in world.entities:
             raise InvalidArgument("agent", f"is gone by t = {at_s} s", value=agent)
+        if world.recorder is not None:  # an input: a re-simulation of this sortie makes it too
+            world.recorder.on_input(world.tick_count, "take_over", target.id,
+                                    {"controllable": True, "on_vanish": "autopilot"})
         target.controllable = True
         target.on_vanish = "autopilot"
         if target.owner is not None:  # the recorded client lets go; the agent flies on its autopilot
             world.release(target.id)
         return world, inputs, scenario
+    except BaseException:
+        if world is not None:
+            world.close()
+        if attached is not None:
+            attached.close()
+        raise
     finally:
         rec.close()
+
+
+def take_over_header(rec: Recording, scenario, world, spec: dict, terrain_given: bool):
+    """The RecordingHeader of a take-over of ``rec``: the recorded scenario text and, unless
+    the terrain was given (--dem, --terrain), the recorded terrain's identity (the take-over's
+    world re-opened that terrain, so a re-simulation of it does as that of ``rec`` does)."""
+    from server.recorder import recording_header
+
+    h = rec.header
+    desc = f"service:{spec['service']}" if "service" in spec else "dem:" + ",".join(spec.get("dem", ()))
+    return recording_header(h.scenario_path, scenario, world, desc, spec, world.terrain, scenario_text=h.scenario_toml,
+                            terrain_id=None if terrain_given else h.terrain)

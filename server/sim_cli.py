@@ -2,11 +2,13 @@
 
     sortie server --scenario FILE [--dem FILE... | --terrain HOST:PORT] --port N [--host H]
                   [--clock realtime|fast|paused] [--time-scale X] [--duration S]
-                  [--aircraft-workers N|auto] [--aircraft-worker-nice N] [--record FILE | --record-dir DIR | --no-record]
+                  [--aircraft-workers N|auto] [--aircraft-worker-nice N]
+                  [--record FILE | --record-dir DIR | --no-record] [--record-chunk-s S]
 
 Every sortie is recorded by default, into ``recordings/<exercise>-<UTC time>.sortie``
 (server/recorder.py; read it with ``sortie recording``, ``sortie replay``,
-``sortie resim``, ``sortie export acmi``).
+``sortie resim``, ``sortie export acmi``); a take-over (``sortie resim --take-over``)
+too, with the same options (:func:`add_recording_options`).
 
 Runs until SIGTERM/SIGINT (graceful: NOT_SERVING, streams closed, in-flight
 calls get --grace-s) or until the scenario's (or --duration's) end. SIGUSR1 runs
@@ -51,13 +53,7 @@ def add_parser(sub) -> None:
                    help="how much lower the aircraft workers' CPU priority is than the server's, 0-19 "
                         "(default: server.aircraft_host.WORKER_NICE, 3); higher lowers stream latency "
                         "on a busy machine but lets other processes stall the physics")
-    rec = p.add_mutually_exclusive_group()
-    rec.add_argument("--record", metavar="FILE", help="record the sortie into FILE (a new file)")
-    rec.add_argument("--record-dir", metavar="DIR", default="recordings",
-                     help="record into DIR/<exercise>-<UTC time>.sortie (default %(default)s)")
-    rec.add_argument("--no-record", action="store_true", help="do not record the sortie")
-    p.add_argument("--record-chunk-s", type=float, default=1.0, metavar="S",
-                   help="world seconds per recording chunk: what a killed server may lose (default %(default)s)")
+    add_recording_options(p)
     p.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
                    help="seconds in-flight calls get on shutdown (default %(default)s)")
     p.add_argument("--metrics-port", type=int, metavar="N",
@@ -103,8 +99,22 @@ def aircraft_workers(value: str) -> int:
     return n
 
 
+def add_recording_options(p, only: str = "") -> None:
+    """The options saying where a sortie is recorded (every sortie is, by default): ``sortie
+    server``'s, and ``sortie resim --take-over``'s (``only``: "with --take-over: ")."""
+    rec = p.add_mutually_exclusive_group()
+    rec.add_argument("--record", metavar="FILE", help=f"{only}record the sortie into FILE (a new file)")
+    rec.add_argument("--record-dir", metavar="DIR", default="recordings",
+                     help=f"{only}record into DIR/<exercise>-<UTC time>.sortie (default %(default)s)")
+    rec.add_argument("--no-record", action="store_true", help=f"{only}do not record the sortie")
+    p.add_argument("--record-chunk-s", type=float, default=1.0, metavar="S",
+                   help=f"{only}world seconds per recording chunk: what a killed server may lose "
+                        "(default %(default)s)")
+
+
 def recording_path(args, exercise_name: str) -> Path | None:
-    """Where ``sortie server`` records (None: --no-record)."""
+    """Where a sortie is recorded by the options of :func:`add_recording_options` (None:
+    --no-record)."""
     if args.no_record:
         return None
     if args.record:
@@ -114,8 +124,24 @@ def recording_path(args, exercise_name: str) -> Path | None:
     return Path(args.record_dir) / f"{slug}-{stamp}.sortie"
 
 
+def open_recorder(args, exercise_name: str, header):
+    """(Recorder, path) of the options of :func:`add_recording_options`, or (None, None) with
+    --no-record: --record-chunk-s checked and an existing file refused before ``header()``
+    (the RecordingHeader) is made."""
+    from server.recorder import Recorder
+
+    path = recording_path(args, exercise_name)
+    if path is None:
+        return None, None
+    if not (math.isfinite(args.record_chunk_s) and args.record_chunk_s > 0):
+        raise InvalidArgument("record_chunk_s", "must be a finite number > 0", value=args.record_chunk_s)
+    if path.exists():
+        raise InvalidArgument("record", "the file exists (recordings are never overwritten)", value=str(path))
+    return Recorder(path, header(), args.record_chunk_s), path
+
+
 def server_command(args) -> int:
-    from server.recorder import Recorder, recording_header
+    from server.recorder import recording_header
     from server.scenario import load_scenario
     from server.sim_server import (SimulationServer, aircraft_host, build_world, open_terrain, server_config,
                                    terrain_spec)
@@ -125,16 +151,8 @@ def server_command(args) -> int:
     terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
     world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers,
                                                          args.aircraft_worker_nice))
-    recorder = None
-    path = recording_path(args, scenario.exercise.name)
-    if path is not None:
-        if not args.record_chunk_s > 0:
-            raise InvalidArgument("record_chunk_s", "must be > 0", value=args.record_chunk_s)
-        if path.exists():
-            raise InvalidArgument("record", "the file exists (recordings are never overwritten)", value=str(path))
-        header = recording_header(args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain),
-                                  terrain)
-        recorder = Recorder(path, header, args.record_chunk_s)
+    recorder, path = open_recorder(args, scenario.exercise.name, lambda: recording_header(
+        args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain), terrain))
     config = server_config(scenario, desc)
     if args.clock:
         config.clock = args.clock

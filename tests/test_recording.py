@@ -548,7 +548,8 @@ def test_take_over_cli_serves_live_with_the_agent_free_to_drive(recorded, tmp_pa
     from server.process import ServiceProcess
 
     path, states, _ = recorded
-    with ServiceProcess(["resim", str(path), "--take-over", "3", "--agent", "tank1"], log=tmp_path / "t.log") as p, \
+    with ServiceProcess(["resim", str(path), "--take-over", "3", "--agent", "tank1", "--no-record"],
+                        log=tmp_path / "t.log") as p, \
             SimClient(p.address) as driver:
         agent = driver.join("new-driver", "driver", agent_name="tank1")
         assert driver.world().time_s >= 3.0

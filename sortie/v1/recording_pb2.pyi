@@ -106,7 +106,7 @@ class EventRecord(_message.Message):
     def __init__(self, tick: _Optional[int] = ..., event: _Optional[_Union[_simulation_pb2.WorldEvent, _Mapping]] = ...) -> None: ...
 
 class ChunkHead(_message.Message):
-    __slots__ = ("first_tick", "ticks", "first_time_s", "last_time_s", "new_entities", "entity_count", "event_count", "input_count")
+    __slots__ = ("first_tick", "ticks", "first_time_s", "last_time_s", "new_entities", "entity_count", "event_count", "input_count", "recent_entities", "head_crc32")
     FIRST_TICK_FIELD_NUMBER: _ClassVar[int]
     TICKS_FIELD_NUMBER: _ClassVar[int]
     FIRST_TIME_S_FIELD_NUMBER: _ClassVar[int]
@@ -115,6 +115,8 @@ class ChunkHead(_message.Message):
     ENTITY_COUNT_FIELD_NUMBER: _ClassVar[int]
     EVENT_COUNT_FIELD_NUMBER: _ClassVar[int]
     INPUT_COUNT_FIELD_NUMBER: _ClassVar[int]
+    RECENT_ENTITIES_FIELD_NUMBER: _ClassVar[int]
+    HEAD_CRC32_FIELD_NUMBER: _ClassVar[int]
     first_tick: int
     ticks: int
     first_time_s: float
@@ -123,7 +125,9 @@ class ChunkHead(_message.Message):
     entity_count: int
     event_count: int
     input_count: int
-    def __init__(self, first_tick: _Optional[int] = ..., ticks: _Optional[int] = ..., first_time_s: _Optional[float] = ..., last_time_s: _Optional[float] = ..., new_entities: _Optional[_Iterable[_Union[_simulation_pb2.EntityInfo, _Mapping]]] = ..., entity_count: _Optional[int] = ..., event_count: _Optional[int] = ..., input_count: _Optional[int] = ...) -> None: ...
+    recent_entities: _containers.RepeatedCompositeFieldContainer[_simulation_pb2.EntityInfo]
+    head_crc32: int
+    def __init__(self, first_tick: _Optional[int] = ..., ticks: _Optional[int] = ..., first_time_s: _Optional[float] = ..., last_time_s: _Optional[float] = ..., new_entities: _Optional[_Iterable[_Union[_simulation_pb2.EntityInfo, _Mapping]]] = ..., entity_count: _Optional[int] = ..., event_count: _Optional[int] = ..., input_count: _Optional[int] = ..., recent_entities: _Optional[_Iterable[_Union[_simulation_pb2.EntityInfo, _Mapping]]] = ..., head_crc32: _Optional[int] = ...) -> None: ...
 
 class ChunkBody(_message.Message):
     __slots__ = ("entity_ids", "present", "states", "digests", "inputs", "events")
