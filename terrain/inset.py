@@ -86,19 +86,26 @@ terrain below the inset: c(s) = D smoothstep(a, a + B, s), with
 * D = A + CUTOUT_MARGIN_M (``cutout_depth_max_m``) and the detail's band B:
   for a level at most as coarse as the DEM (a <= a0) c(s) >= A w(s) + 2 m
   w(s) everywhere, so the clipmap stays under the deepest trough the detail
-  can dig and shows nowhere through the inset; a coarser level (far from the
-  viewer) may show through in the strip a0 < s < a + B, as a patch of the
-  same terrain without detail, not a hole. Deeper would buy nothing (the
-  inset hides it all); shallower lets the clipmap show through the troughs.
+  can dig; a coarser level (far from the viewer, or near it after a jump
+  while the finer levels catch up) is cut less or not at all (level 3 of the
+  Alps tile, 741 m posts, not over a 1.6 km wide area), so the cut alone
+  would let it show through the troughs in the strip a0 < s < a + B. Deeper
+  would buy nothing (the inset hides it all); shallower lets the clipmap show
+  through the troughs.
   The ramp is a smoothstep (§3.3.1: "smooth the borders of the cut out area
   ... to prevent sharp edges"); its steepest slope is 1.5 D / B. B = 200 m
   spans two 3" posts, so a clipmap level as fine as the DEM resolves the
   ramp, and keeps that slope at 0.52 for the test area's D = 70 m.
 
-Where both are drawn, inside the polygon, the clipmap is at or below the
-inset; outside, only the clipmap is, at the terrain's height; within a0 of
-the border both are the same surface (the DEM), so whichever wins the depth
-test, the picture is the same and no seam shows.
+What no cut of posts can do, the renderer does per fragment
+(client/render/clipmap_layer.py "Insets"): :meth:`InsetSource.coverage_mask`
+is the polygon as a texture of signed distances less a margin e (< a0); a
+clipmap fragment where it is > 0 lies surely inside and is pushed far behind
+the inset, at every level. Within e of the border, and outside where the
+inset's last triangles reach, both are drawn and both are the same surface
+(the DEM): the inset is drawn a hair nearer (client/render/geomipmap.py), so
+a tie goes to it, and it is shaded as the clipmap, so whichever wins no seam
+shows.
 
 Limits: at most ``INSET_MAX_POSTS`` (4096^2, 128 MiB of float64 heights)
 posts per inset; ``detail_m`` within [0.25, 100] m as in server/scenario.py.
@@ -130,6 +137,9 @@ STATS_MARGIN_POSTS = 32  # DEM posts around the area's box whose pyramid residua
 MAX_POLYGON_VERTICES = 1000  # as server/scenario.py
 ALIGNMENT_TOLERANCE_POSTS = 1e-6  # as terrain/detail.py: an origin this close to a multiple is aligned
 DETAIL_TABLE_MAX = float(np.abs(noise_table()).max())  # max |g| of the Gaussian table (4.3)
+COVERAGE_MASK_MAX_TEXELS = 512  # a side of InsetSource.coverage_mask's grid, at most
+COVERAGE_MASK_MARGIN_TEXELS = math.sqrt(2.0) + 1.0 / 16.0  # e = this x the texel + COVERAGE_MASK_MARGIN_M
+COVERAGE_MASK_MARGIN_M = 2.0
 
 
 def smoothstep(edge0: float, edge1: float, x) -> np.ndarray:
@@ -559,6 +569,29 @@ class InsetSource(Raster):
             out[cand] = self.cutout_depth_max_m * smoothstep(a, a + self.border_band_m, s)
         return out
 
+    def coverage_mask(self, max_texels: int = COVERAGE_MASK_MAX_TEXELS) -> CoverageMask:
+        """The polygon as a grid a renderer tests fragments against (:class:`CoverageMask`):
+        s - e at texel centres, s the signed distance (m, positive inside), e the margin that
+        makes a bilinear sample > 0 only where the point is surely inside. Square texels of
+        at least the inset's post spacing, at most ``max_texels`` a side, 4 texels of margin
+        around the polygon's box (so clamping to the edge reads "outside")."""
+        if not (isinstance(max_texels, int) and max_texels >= 16):
+            raise InvalidArgument("max_texels", "must be an integer >= 16", value=max_texels)
+        x_min, x_max, y_min, y_max = self._box
+        pad = 4
+        texel = max(min(self.spacing_m), (x_max - x_min) / (max_texels - 2 * pad - 1),
+                    (y_max - y_min) / (max_texels - 2 * pad - 1))
+        nx = min(max_texels, int(math.ceil((x_max - x_min) / texel)) + 2 * pad + 1)
+        ny = min(max_texels, int(math.ceil((y_max - y_min) / texel)) + 2 * pad + 1)
+        x0, y0 = x_min - pad * texel, y_min - pad * texel
+        margin = texel * COVERAGE_MASK_MARGIN_TEXELS + COVERAGE_MASK_MARGIN_M
+        clamp = margin + 2.0 * texel  # beyond this only the sign matters (CoverageMask)
+        sd = np.zeros((ny, nx))
+        _signed_distance_grid_kernel(x0, texel, nx, y0, texel, ny, self.plane.x, self.plane.y, clamp, sd)
+        values = (sd - margin).astype(np.float32)
+        values.flags.writeable = False
+        return CoverageMask(values, x0, y0, texel, margin)
+
     def describe(self) -> dict:
         """The Raster's description with kind "inset" and the inset's parameters."""
         d = super().describe()
@@ -577,6 +610,31 @@ class InsetSource(Raster):
             "refine_rows_cols": list(self.refine),
         })
         return d
+
+
+@dataclass(frozen=True)
+class CoverageMask:
+    """An inset's polygon as a texture (InsetSource.coverage_mask): ``values`` (ny, nx) float32
+    metres at texel centres (x0 + c texel, y0 + r texel) of the polygon's plane
+    (:class:`PolygonPlane`), each the signed distance to the border less ``margin_m``, clamped
+    to +-(margin + 2 texels) beyond the border's neighbourhood.
+
+    Why a bilinear sample v > 0 means the point is inside (s > 0): s is 1-Lipschitz, so s at
+    each of the sample's four texel centres is within a texel diagonal t sqrt(2) of s at the
+    point, and so is their convex combination; the margin e = t (sqrt(2) + 1/16) + 2 m
+    (``COVERAGE_MASK_MARGIN_*``) covers that, 8-bit filter weights (1/256 texel) and where a
+    renderer's fragment lies (its lattice position interpolated across a flat triangle: about
+    2 m off the point's own on a 6 km clipmap cell at 47 N, from the second derivatives of
+    (lat, lon) -> ECEF). Clamping keeps it: from above, a lowered corner only lowers the
+    sample; from below, a corner raised to -(e + 2t) is still < e. So v > 0 only where s > 0,
+    and v > 0 wherever s > e + t sqrt(2).
+    """
+
+    values: np.ndarray
+    x0: float
+    y0: float
+    texel_m: float
+    margin_m: float
 
 
 CELL_OUTSIDE, CELL_BORDER, CELL_INSIDE = 0, 1, 2

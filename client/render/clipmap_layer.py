@@ -61,6 +61,31 @@ pieces, and one vertex shader that displaces a small grid block per instance
   origin - renderer origin) in local ENU and rotates the offset by the
   renderer's ENU basis: a vertex's error relative to the camera scales with
   its level's extent, not with the distance to any global origin.
+- **Insets** (thesis §3.3.1; terrain/inset.py, client/render/geomipmap.py). Under a
+  target area's polygon the geomipmap inset is the terrain; the clipmap there is
+  only a backstop. Its posts are lowered by the inset's cut-out, but a level can
+  lower only posts at least a cell diagonal inside the polygon (so no triangle
+  dents the ground outside), which leaves coarse levels over a small area, and
+  every level along the border, at the DEM's height or above the inset's
+  troughs. So blocks whose posts' (lat, lon) box meets an inset's polygon box
+  are drawn by a variant (``#define INSETS``) that samples each inset's
+  coverage mask (terrain/inset.py CoverageMask, one layer a polygon of an R32F
+  texture array) at the fragment's lattice position (``v_lattice``: neither
+  morph moves a vertex off its post's (lat, lon), so the position is exact, and
+  the mask's coordinates are linear in it, :func:`inset_map`); a fragment surely
+  inside (mask > 0) writes its depth 2^20 times farther (INSET_BACKSTOP_DEPTH_SCALE).
+  It loses the depth test to the inset, at every level and however deep the
+  inset's troughs, and to whatever the inset lets the viewer see past it, yet
+  fills a pixel nothing else covers (as the continuous clipmap did). A per-
+  fragment test, not a discard: discarding would open a crack wherever the
+  clipmap at the border stands above the inset. Writing gl_FragDepth costs
+  those blocks the early depth test (declared ``depth_less``, which a GPU may
+  use; llvmpipe does not), so only blocks near an inset pay it. Within the mask's
+  margin of the border (e <= 10 m at 512 texels over a 3 km area; always less
+  than a0, where the inset's detail starts) both surfaces are the DEM: the
+  inset is drawn 6e-5 of its distance nearer (geomipmap.INSET_DEPTH_SCALE), so
+  a tie goes to it and the clipmap wins only where its own triangles stand
+  above the DEM's bilinear surface, and both shade alike (DETAIL_GLSL).
 
 Shading: the reference terrain's colour and lighting
 (terrain_mesh.TERRAIN_COLOUR_GLSL), with the normal from the normal maps,
@@ -115,6 +140,11 @@ DETAIL_STRENGTH = 0.3  # 0: no detail; the masks' weight scale
 # A border triangle's fragments lie 1e-5 of their distance behind its provoking vertex
 # (reversed-Z: depth near/d), so where a level's own surface is drawn too it wins.
 BORDER_DEPTH_SCALE = 1.0 - 1e-5
+# A fragment under a target area's inset (terrain/inset.py CoverageMask) lies 2^20 times farther
+# than it is (reversed-Z: depth near/d): it loses the depth test to the inset, and to anything
+# the inset's own surface lets the viewer see past its troughs, yet still fills a pixel nothing
+# else covers.
+INSET_BACKSTOP_DEPTH_SCALE = 2.0 ** -20
 CLASS_COLOURS_F32 = (np.asarray(CLASS_COLOURS_RGB, np.float32) / 255.0).tobytes()  # the u_class_colour uniform
 
 # a mod m in [0, m) for any int a and m > 0, in integers only. GLSL's % is defined for
@@ -160,6 +190,9 @@ VARYING out vec3 v_up;
 VARYING out vec3 v_ecef_mod;
 #ifdef BORDER
 flat out float v_depth;          // the provoking vertex's window depth
+#endif
+#ifdef INSETS
+VARYING out vec2 v_lattice;      // the post's lattice index relative to u_base (the inset masks' coordinates)
 #endif
 uniform vec3 u_origin_mod;       // renderer origin ECEF modulo the detail tile, metres
 
@@ -218,6 +251,12 @@ void main() {
         v_height = mix(v_height, in_mw.x * h0 + in_mw.y * h1 + in_mw.z * h2, in_morph);
     }
     v_alpha = alpha;
+#ifdef INSETS
+    // Neither morph moves a vertex off its post's (lat, lon): an odd post's coarse target is the
+    // mean of posts on either side of it, a decimated post's a barycentric mean (in_mw) of posts
+    // around it, and both are linear in the lattice index.
+    v_lattice = vec2(g);
+#endif
     // Normal-map coordinates: the fine map has 2 texels a post, the coarse map 1 (its half-posts).
     int n2 = 2 * u_n;
     vec2 hf = vec2(float(2 * g.y + pmod(2 * u_base.y, n2)), float(2 * g.x + pmod(2 * u_base.x, n2)));
@@ -234,13 +273,42 @@ void main() {
 }
 """ % {"E2": E2_COMPLEMENT_INV, "PMOD": GLSL_PMOD}
 
-FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + TERRAIN_COLOUR_GLSL + """
+# The detail textures (thesis §3.2.3, module docstring) on a lit colour: shared by every layer drawn
+# beside the clipmap (client/render/geomipmap.py's insets), so their surfaces shade alike.
+# ne: the unit normal in ECEF axes; ecef_mod: the point's ECEF position modulo DETAIL_TILE_M.
+DETAIL_GLSL = """
+uniform sampler2D u_detail;      // four tileable noise patterns, mean 1/2
+uniform float u_detail_strength;
+const vec3 PERIODS = vec3%(PERIODS)s;
+
+vec4 planar(vec3 p, vec3 w, float period) {  // three planar projections along the ECEF axes
+    return w.x * texture(u_detail, p.yz / period) + w.y * texture(u_detail, p.zx / period)
+         + w.z * texture(u_detail, p.xy / period);
+}
+
+vec3 detailed(vec3 c, vec3 ne, float cos_slope, float height, vec3 ecef_mod) {
+    if (u_detail_strength > 0.0 && height > 0.0) {
+        vec3 w = ne * ne;
+        w *= w;  // |ne|^4, without pow (three exp2/log2 a fragment on llvmpipe)
+        w /= (w.x + w.y + w.z);
+        float rock = smoothstep(ROCK_COS_START, ROCK_COS_FULL, cos_slope);
+        float snow = smoothstep(0.8 * HIGH_M, HIGH_M, height) * (1.0 - rock);
+        float grass = (1.0 - smoothstep(0.5 * MID_M, MID_M, height)) * (1.0 - rock);
+        vec4 masks = u_detail_strength * vec4(grass, rock, snow, 0.5);  // the last: every surface, lightly
+        for (int k = 0; k < 3; k++) {
+            vec4 f = 1.0 - masks + 2.0 * masks * planar(ecef_mod, w, PERIODS[k]);
+            c *= f.x * f.y * f.z * f.w;  // C_n = C_(n-1) (1 - M + 2 M Cd) per mask (thesis §3.2.3)
+        }
+    }
+    return c;
+}
+""" % {"PERIODS": str(DETAIL_PERIODS_M)}
+
+FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + TERRAIN_COLOUR_GLSL + DETAIL_GLSL + """
 uniform sampler2D u_nfine;
 uniform sampler2D u_ncoarse;
-uniform sampler2D u_detail;      // four tileable noise patterns, mean 1/2
 uniform mat3 u_rot;
 uniform int u_has_coarse;
-uniform float u_detail_strength;
 #ifdef CLASSES
 uniform vec3 u_class_colour[%(N_CLASSES)d];  // land classes in the normal maps' fourth channel (terrain/texture.py)
 #endif
@@ -255,7 +323,27 @@ VARYING in vec3 v_ecef_mod;
 flat in float v_depth;
 #endif
 out vec4 out_colour;
-const vec3 PERIODS = vec3%(PERIODS)s;
+
+#ifdef INSETS
+// Each inset's polygon (terrain/inset.py CoverageMask: signed distance less a margin, metres) in
+// one layer; per level draw the insets near its blocks, each with its texture coordinates as
+// linear functions of v_lattice: u = map.x * v_lattice.y + map.y, v = map.z * v_lattice.x + map.w.
+uniform sampler2DArray u_inset_mask;
+uniform int u_inset_count;
+uniform int u_inset_layer[INSETS];
+uniform vec4 u_inset_map[INSETS];
+VARYING in vec2 v_lattice;
+
+bool under_inset() {
+    float s = -1.0;
+    for (int i = 0; i < u_inset_count; i++) {
+        vec4 m = u_inset_map[i];
+        vec2 uv = vec2(m.x * v_lattice.y + m.y, m.z * v_lattice.x + m.w);
+        s = max(s, texture(u_inset_mask, vec3(uv, float(u_inset_layer[i]))).r);
+    }
+    return s > 0.0;
+}
+#endif
 
 #ifdef CLASSES
 %(PMOD)s
@@ -275,11 +363,6 @@ vec3 class_colour(sampler2D t, vec2 uv) {
 }
 #endif
 
-vec4 planar(vec3 p, vec3 w, float period) {  // three planar projections along the ECEF axes
-    return w.x * texture(u_detail, p.yz / period) + w.y * texture(u_detail, p.zx / period)
-         + w.z * texture(u_detail, p.xy / period);
-}
-
 void main() {
     vec3 ne = texture(u_nfine, v_nuv_fine).xyz;
     if (u_has_coarse != 0) ne = mix(ne, texture(u_ncoarse, v_nuv_coarse).xyz, v_alpha);
@@ -297,28 +380,25 @@ void main() {
         c = fogged(lambert(base, n), v_world);
     }
 #endif
-    if (u_detail_strength > 0.0 && v_height > 0.0) {
-        vec3 w = ne * ne;
-        w *= w;  // |ne|^4, without pow (three exp2/log2 a fragment on llvmpipe)
-        w /= (w.x + w.y + w.z);
-        float rock = smoothstep(ROCK_COS_START, ROCK_COS_FULL, cos_slope);
-        float snow = smoothstep(0.8 * HIGH_M, HIGH_M, v_height) * (1.0 - rock);
-        float grass = (1.0 - smoothstep(0.5 * MID_M, MID_M, v_height)) * (1.0 - rock);
-        vec4 masks = u_detail_strength * vec4(grass, rock, snow, 0.5);  // the last: every surface, lightly
-        for (int k = 0; k < 3; k++) {
-            vec4 f = 1.0 - masks + 2.0 * masks * planar(v_ecef_mod, w, PERIODS[k]);
-            c *= f.x * f.y * f.z * f.w;  // C_n = C_(n-1) (1 - M + 2 M Cd) per mask (thesis §3.2.3)
-        }
-    }
-    out_colour = vec4(c, 1.0);
+    out_colour = vec4(detailed(c, ne, cos_slope, v_height, v_ecef_mod), 1.0);
 #ifdef BORDER
-    gl_FragDepth = v_depth * BORDER_DEPTH_SCALE;
+    float depth = v_depth * BORDER_DEPTH_SCALE;
+#else
+    float depth = gl_FragCoord.z;
+#endif
+#ifdef INSETS
+    // Under an inset's polygon the clipmap is only a backstop: pushed far behind, it shows where
+    // nothing else is drawn (module docstring, "Insets").
+    if (under_inset()) depth *= INSET_BACKSTOP_DEPTH_SCALE;
+#endif
+#if defined(BORDER) || defined(INSETS)
+    gl_FragDepth = depth;
 #endif
 }
-""" % {"PERIODS": str(DETAIL_PERIODS_M), "N_CLASSES": N_CLASSES, "PMOD": GLSL_PMOD}
+""" % {"N_CLASSES": N_CLASSES, "PMOD": GLSL_PMOD}
 
 
-def shader_variant(source: str, border: bool, classes: bool = False) -> str:
+def shader_variant(source: str, border: bool, classes: bool = False, insets: int = 0) -> str:
     """The clipmap's shader source for the level draws, or (border) for the zero-area border
     triangles: their varyings flat (the provoking vertex's, the border's odd post) and their
     depth that vertex's, a hair farther (BORDER_DEPTH_SCALE). A zero-area triangle's plane
@@ -327,10 +407,19 @@ def shader_variant(source: str, border: bool, classes: bool = False) -> str:
 
     ``classes``: with the land-class base colour (``#define CLASSES``). A feature is left out
     of the source, not switched off by a uniform: llvmpipe runs both sides of every branch
-    under execution masks, so the unused class code cost 14-20 ms a 960 x 540 frame."""
+    under execution masks, so the unused class code cost 14-20 ms a 960 x 540 frame.
+
+    ``insets``: the number of target-area insets the layer was made with; > 0 compiles in the
+    test that pushes a fragment under an inset's polygon far behind (``#define INSETS``). It
+    writes gl_FragDepth, which costs the early depth test: only blocks near an inset are drawn
+    with it (ClipmapLayer.plan)."""
     head, rest = source.split("\n", 1)
     defines = ("#define BORDER\n#define VARYING flat\n#define BORDER_DEPTH_SCALE %r\n" % BORDER_DEPTH_SCALE
                if border else "#define VARYING\n") + ("#define CLASSES\n" if classes else "")
+    if insets:
+        defines += "#define INSETS %d\n#define INSET_BACKSTOP_DEPTH_SCALE %r\n" % (insets, INSET_BACKSTOP_DEPTH_SCALE)
+        if not border and "gl_FragDepth" in rest:
+            defines += "#extension GL_ARB_conservative_depth : enable\nlayout(depth_less) out float gl_FragDepth;\n"
     return head + "\n" + defines + rest
 
 
@@ -352,6 +441,113 @@ def detail_texture(size: int = DETAIL_TEXTURE_SIZE, seed: int = 7) -> np.ndarray
         acc = (acc - acc.min()) / (np.ptp(acc) or 1.0)
         out[..., ch] = 16 + 224 * acc
     return out.astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=1)
+def _detail_texture_bytes() -> bytes:
+    return detail_texture().tobytes()
+
+
+def detail_texture_object(ctx):
+    """The detail texture on ``ctx`` (current): repeating, mipmapped (distant tiles average out).
+    Every layer that shades with DETAIL_GLSL binds one."""
+    tex = ctx.texture((DETAIL_TEXTURE_SIZE, DETAIL_TEXTURE_SIZE), 4, _detail_texture_bytes())
+    tex.repeat_x = tex.repeat_y = True
+    tex.build_mipmaps()
+    return tex
+
+
+# The insets' polygons as one texture array (terrain/inset.py CoverageMask), this many bytes at
+# most: with many target areas each mask gets fewer texels (and a wider margin).
+INSET_MASK_BUDGET_BYTES = 64 << 20
+INSET_MASK_UNIT = 5  # texture unit of the masks (0-4: the levels' storage and the detail texture)
+
+
+@dataclass(frozen=True)
+class InsetMask:
+    """Where an inset's mask lies in the layer's texture array, and its polygon's plane:
+    layer; x0, y0, texel_m (CoverageMask); size (width, height) of the array's layers;
+    lat_ref, lon_ref, k_x, k_y (terrain/inset.py PolygonPlane); box: (lat_min, lat_max, lon_min,
+    lon_max) of the polygon, longitudes unwrapped about lon_ref."""
+
+    layer: int
+    x0: float
+    y0: float
+    texel_m: float
+    size: tuple
+    lat_ref: float
+    lon_ref: float
+    k_x: float
+    k_y: float
+    box: tuple
+
+
+def _inset_masks(ctx, insets) -> tuple[list, object, np.ndarray]:
+    """([InsetMask], the R32F texture array (bilinear, clamped to its edges), (N, 4) boxes
+    (lat_min, lat_max, lon_min, lon_max)) of ``insets``; every layer the size of the largest."""
+    import moderngl
+
+    # 512 texels a side, more where the polygon is so large that its surely-inside distance
+    # (CoverageMask: e + t sqrt(2)) would pass a0, where the inset's detail starts; fewer when
+    # the budget says so.
+    from terrain.inset import COVERAGE_MASK_MARGIN_M, COVERAGE_MASK_MARGIN_TEXELS
+
+    need = 16
+    for inset in insets:
+        texel = (inset.detail_offset_m - COVERAGE_MASK_MARGIN_M) / (COVERAGE_MASK_MARGIN_TEXELS + math.sqrt(2.0))
+        extent = max(np.ptp(inset.plane.x), np.ptp(inset.plane.y))
+        need = max(need, int(math.ceil(extent / max(texel, 1.0))) + 9)
+    side = int(max(16, min(max(512, need), 2048, math.isqrt(INSET_MASK_BUDGET_BYTES // (4 * len(insets))))))
+    masks = [inset.coverage_mask(side) for inset in insets]
+    h = max(m.values.shape[0] for m in masks)
+    w = max(m.values.shape[1] for m in masks)
+    data = np.full((len(insets), h, w), np.float32(-1.0e6))  # padding: far outside
+    out, boxes = [], []
+    for k, (inset, m) in enumerate(zip(insets, masks)):
+        data[k, :m.values.shape[0], :m.values.shape[1]] = m.values
+        p = inset.plane
+        lon_un = p.lon_ref + p.x / p.k_x
+        box = (float(inset.polygon[:, 0].min()), float(inset.polygon[:, 0].max()), float(lon_un.min()),
+               float(lon_un.max()))
+        boxes.append(box)
+        out.append(InsetMask(k, m.x0, m.y0, m.texel_m, (w, h), p.lat_ref, p.lon_ref, p.k_x, p.k_y, box))
+    tex = ctx.texture_array((w, h, len(insets)), 1, data.tobytes(), dtype="f4")
+    tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+    tex.repeat_x = tex.repeat_y = False
+    return out, tex, np.array(boxes, np.float64).reshape(-1, 4)
+
+
+def blocks_near_insets(blk: np.ndarray, boxes: np.ndarray, lat0: float, lon0: float, dlat: float,
+                       dlon: float) -> np.ndarray:
+    """(m, N) bool: block (i0, j0, i1, j1) (lattice posts of spacing dlat, dlon from lat0, lon0)
+    overlaps inset box (lat_min, lat_max, lon_min, lon_max). A block's fragments lie within its
+    posts' (lat, lon) box: the vertex morphs keep each post's (lat, lon)."""
+    if len(blk) == 0 or len(boxes) == 0:
+        return np.zeros((len(blk), len(boxes)), bool)
+    b = blk.astype(np.float64)
+    lat_a, lat_b = lat0 + b[:, 0, None] * dlat, lat0 + b[:, 2, None] * dlat
+    lon_c = lon0 + 0.5 * (b[:, 1, None] + b[:, 3, None]) * dlon
+    half = 0.5 * (b[:, 3, None] - b[:, 1, None]) * dlon
+    box_c, box_half = 0.5 * (boxes[:, 2] + boxes[:, 3]), 0.5 * (boxes[:, 3] - boxes[:, 2])
+    d_lon = np.abs((lon_c - box_c + 180.0) % 360.0 - 180.0)
+    return (lat_a <= boxes[:, 1]) & (lat_b >= boxes[:, 0]) & (d_lon <= half + box_half)
+
+
+def inset_map(m: InsetMask, lat0: float, lon0: float, dlat: float, dlon: float, half_span_deg: float) -> tuple:
+    """(a_u, c_u, a_v, c_v): mask texture coordinates u = a_u j + c_u, v = a_v i + c_v of the
+    post (i, j) of a lattice of spacing (dlat, dlon) from (lat0, lon0) (a level's drawn region
+    from its first post), in float64; the shader's are float32. The longitude is unwrapped about
+    the region's middle (half_span_deg east of lon0), so the part of the region near the polygon
+    maps right wherever the antimeridian falls."""
+    w, h = m.size
+    mid = ((lon0 + half_span_deg - m.lon_ref + 180.0) % 360.0) - 180.0
+    x_first = (mid - half_span_deg) * m.k_x
+    y_first = (lat0 - m.lat_ref) * m.k_y
+    a_u = dlon * m.k_x / (m.texel_m * w)
+    c_u = ((x_first - m.x0) / m.texel_m + 0.5) / w
+    a_v = dlat * m.k_y / (m.texel_m * h)
+    c_v = ((y_first - m.y0) / m.texel_m + 0.5) / h
+    return a_u, c_u, a_v, c_v
 
 
 def height_alpha(height_above_ground_m: float, extent_m: float) -> float:
@@ -630,7 +826,9 @@ def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
     """(m, len(DECIMATION_STRIDES)) metres: for each block (m, 4) of a level and each stride, the
     largest distance between the level's full surface over the block and what
     :func:`decimated_grid` draws (exact: over the vertices of the two meshes' overlay,
-    :func:`overlay_rows`). A block a ring's edge cuts short is measured as the clamp draws it."""
+    :func:`overlay_rows`). A block a ring's edge cuts short is measured as the clamp draws it.
+    Infinite for a block whose posts straddle sea level (:func:`straddles_sea_level`: it keeps
+    every post), when the level holds heights (``texel``; ``pos_ecef`` alone: distances only)."""
     out = np.empty((len(blk), len(DECIMATION_STRIDES)))
     if len(blk) == 0:
         return out
@@ -643,6 +841,37 @@ def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
         for s_i, s in enumerate(DECIMATION_STRIDES):
             _overlay_errors(level.pos_ecef, sub, n, BLOCK, *_overlay(s, h, w), errs, s_i)
         out[sel] = errs
+    if getattr(level, "texel", None) is not None:
+        out[straddles_sea_level(blk, level, n)] = np.inf
+    return out
+
+
+def straddles_sea_level(blk: np.ndarray, level, n: int) -> np.ndarray:
+    """(m,) bool: block (m, 4)'s posts hold heights both at or below 0 m MSL and above. Such a
+    block is never decimated (:func:`decimation_errors` counts its errors infinite): colour tells land
+    from water by the interpolated height's sign (terrain_mesh TERRAIN_COLOUR_GLSL), and a
+    coarser mesh there moves the coastline by up to the stride's span whatever its vertical
+    error (the Kattegat's skerries, 0-20 m high, merged into kilometres of land at 2 px).
+    Elsewhere every post of a block, and so every convex combination of them a coarser mesh or
+    its morph draws, has one sign: decimation never turns land into water or back."""
+    if len(blk) == 0:
+        return np.zeros(0, bool)
+    return _straddles_kernel(level.texel, np.ascontiguousarray(blk, dtype=np.int64), n)
+
+
+@numba.njit(cache=True, nogil=True)
+def _straddles_kernel(texel, blk, n):
+    """(m,) bool: block b's posts (its heights MSL, texel[..., 3]) hold both h <= 0 and h > 0."""
+    out = np.zeros(blk.shape[0], np.bool_)
+    for b in range(blk.shape[0]):
+        wet = dry = False
+        for i in range(blk[b, 0], blk[b, 2] + 1):
+            for j in range(blk[b, 1], blk[b, 3] + 1):
+                if texel[i % n, j % n, 3] <= 0.0:
+                    wet = True
+                else:
+                    dry = True
+        out[b] = wet and dry
     return out
 
 
@@ -1185,6 +1414,8 @@ class LevelDraw:
     morph: np.ndarray | None = None  # (m,) each block's morph towards its next stride (block_strides)
     variants: np.ndarray | None = None  # (m,) each block's mesh, an index into VARIANTS; None: all 0 (stride 1)
     border: tuple | None = None  # (rows, columns) border-triangle segments to draw (with the coarser level); None: all
+    near_insets: np.ndarray | None = None  # (m,) bool: the block may lie under an inset (drawn by the inset variant)
+    insets: tuple = ()  # the insets (indices into ClipmapLayer.insets) near any of the level's blocks
 
 
 class ClipmapLayer:
@@ -1222,10 +1453,18 @@ class ClipmapLayer:
         self.focus_lat_lon = focus_lat_lon  # None: the camera's position
         self.insets = list(insets)  # terrain.inset.InsetSource: the clipmap is lowered beneath them
         self._land_classes = bool(land_classes)  # base colour from terrain/texture.py's land classes
+        n_insets = len(self.insets)
         self.program, self._border_program = (
-            ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, border),
-                        fragment_shader=shader_variant(FRAGMENT_SHADER, border, self._land_classes))
+            ctx.program(vertex_shader=shader_variant(VERTEX_SHADER, border, insets=n_insets if border else 0),
+                        fragment_shader=shader_variant(FRAGMENT_SHADER, border, self._land_classes,
+                                                       n_insets if border else 0))
             for border in (False, True))
+        # Blocks near an inset are drawn by a variant that tests each fragment against the insets'
+        # polygons (module docstring, "Insets"); the border program always does (it writes its
+        # depth anyway).
+        self._inset_program = None if not n_insets else ctx.program(
+            vertex_shader=shader_variant(VERTEX_SHADER, False, insets=n_insets),
+            fragment_shader=shader_variant(FRAGMENT_SHADER, False, self._land_classes, n_insets))
         # Every block mesh (VARIANTS: a stride and its edges' strides) in one index buffer, over
         # one vertex buffer that holds the block grid once a stride, each copy with its posts'
         # morph targets towards the next coarser stride. A level is one multi-draw
@@ -1241,11 +1480,14 @@ class ClipmapLayer:
         self._block_ibo = ctx.buffer(np.concatenate(meshes).astype(np.uint32).tobytes())
         self._inst = ctx.buffer(reserve=16 * 1024)
         self._indirect = ctx.buffer(reserve=20 * len(VARIANTS))
-        self._block_vao = ctx.vertex_array(
-            self.program, [(self._grid_vbo, "2i", "in_cell"),
-                           (self._targets_vbo, "2i 2i 2i 3f", "in_m0", "in_m1", "in_m2", "in_mw"),
-                           (self._inst, "4i 1f/i", "in_block", "in_morph")],
-            index_buffer=self._block_ibo, index_element_size=4)
+        self._block_vao, self._inset_block_vao = (None if prog is None else ctx.vertex_array(
+            prog, [(self._grid_vbo, "2i", "in_cell"),
+                   (self._targets_vbo, "2i 2i 2i 3f", "in_m0", "in_m1", "in_m2", "in_mw"),
+                   (self._inst, "4i 1f/i", "in_block", "in_morph")],
+            index_buffer=self._block_ibo, index_element_size=4) for prog in (self.program, self._inset_program))
+        self._inset_masks = self._inset_boxes = None
+        if n_insets:
+            self._inset_masks, self._inset_mask_texture, self._inset_boxes = _inset_masks(ctx, self.insets)
         # Zero-area triangles along each level's outer border (GPU Gems 2 ch. 2): (even, even, odd)
         # posts of a border row or column, which the morph puts on the coarser level's edge; drawn,
         # they fill the float32 slivers of the T-junctions there. The odd post is the provoking
@@ -1264,9 +1506,7 @@ class ClipmapLayer:
         self.border_triangles = True  # False: draw without them (to compare)
         self._tex: list = []  # per level: (texel texture, normal texture)
         self.detail_strength = DETAIL_STRENGTH
-        self._detail = ctx.texture((DETAIL_TEXTURE_SIZE, DETAIL_TEXTURE_SIZE), 4, detail_texture().tobytes())
-        self._detail.repeat_x = self._detail.repeat_y = True
-        self._detail.build_mipmaps()
+        self._detail = detail_texture_object(ctx)
         self.draws: list[LevelDraw] = []
         # level -> (key, ...) of its ring: (blocks, neighbours, triangles a stride); (decimation
         # errors, edge deviations) when pixel_error is set; (lo, hi) culling boxes. See plan().
@@ -1466,7 +1706,14 @@ class ClipmapLayer:
                                 counts[np.arange(len(blk)), _STRIDE_COLUMN[strides]])
                 strides, morph, variants = strides[seen], morph[seen], variants[seen]
                 triangles = int(tris[seen].sum())
-            out.append(LevelDraw(k, regions[k], alpha_h, blk[seen], cells, strides, triangles, morph, variants, border))
+            near, listed = None, ()
+            if self._inset_boxes is not None:
+                dlat, dlon = c.spacing_deg(k)
+                over = blocks_near_insets(blk[seen], self._inset_boxes, c.lattice.lat0, c.lattice.lon0, dlat, dlon)
+                near = over.any(axis=1)
+                listed = tuple(int(i) for i in np.flatnonzero(over.any(axis=0)))
+            out.append(LevelDraw(k, regions[k], alpha_h, blk[seen], cells, strides, triangles, morph, variants, border,
+                                 near, listed))
         return out
 
     def level_uniforms(self, d: LevelDraw, coarse: bool) -> dict:
@@ -1490,7 +1737,25 @@ class ClipmapLayer:
         }
         if coarse:
             out["u_off_coarse"] = o.to_local(c.levels[d.k + 1].origin_ecef).astype("f4").tobytes()
+        if self._inset_masks is not None:
+            out.update(self.inset_uniforms(d))
         return out
+
+    def inset_uniforms(self, d: LevelDraw) -> dict:
+        """The inset variant's uniforms for drawing ``d``: the insets near its blocks, each with
+        the linear map from the lattice index (relative to the region's first post) to its mask's
+        texture coordinates (:func:`inset_map`)."""
+        c, r, n = self.clipmap, d.region, len(self._inset_masks)
+        dlat, dlon = c.spacing_deg(d.k)
+        lat0, lon0 = c.latlon(d.k, r.i0, r.j0)
+        maps = np.zeros((n, 4), np.float32)
+        layers = np.zeros(n, np.int32)
+        for slot, i in enumerate(d.insets):
+            maps[slot] = inset_map(self._inset_masks[i], float(lat0), float(lon0), dlat, dlon,
+                                   0.5 * (r.j1 - r.j0) * dlon)
+            layers[slot] = self._inset_masks[i].layer
+        return {"u_inset_count": len(d.insets), "u_inset_map": maps.tobytes(), "u_inset_layer": layers.tobytes(),
+                "u_inset_mask": INSET_MASK_UNIT}
 
     @staticmethod
     def set_uniforms(program, values: dict) -> None:
@@ -1510,13 +1775,15 @@ class ClipmapLayer:
         t0 = time.perf_counter()
         self.draws = self.plan(frame)
         self.plan_ms = (time.perf_counter() - t0) * 1e3
-        p, bp = self.program, self._border_program
-        for prog in (p, bp):
+        p, bp, ip = self.program, self._border_program, self._inset_program
+        for prog in (p, bp) if ip is None else (p, bp, ip):
             frame.write_common(prog)
             prog["u_detail_strength"].value = float(self.detail_strength)
             if self._land_classes:
                 prog["u_class_colour"].write(CLASS_COLOURS_F32)
         self._detail.use(4)
+        if ip is not None:
+            self._inset_mask_texture.use(INSET_MASK_UNIT)
         self.ctx.enable(moderngl.CULL_FACE)
         self.triangles = self.vertices = 0
         drawn = {x.k for x in self.draws}
@@ -1526,6 +1793,9 @@ class ClipmapLayer:
             coarse = d.k + 1 in drawn
             uniforms = self.level_uniforms(d, coarse)
             self.set_uniforms(p, uniforms)
+            near = None if d.near_insets is None or not d.near_insets.any() else d.near_insets
+            if near is not None:
+                self.set_uniforms(ip, uniforms)
             self._tex[d.k][0].use(0)
             self._tex[d.k][1].use(2)
             if coarse:
@@ -1537,13 +1807,23 @@ class ClipmapLayer:
             if d.morph is not None:
                 records["morph"] = d.morph
             variants = np.zeros(len(d.blocks), np.int64) if d.variants is None else d.variants
-            by_mesh = np.argsort(variants, kind="stable")
-            used, first, count = np.unique(variants[by_mesh], return_index=True, return_counts=True)
-            commands = np.stack([self._index_count[used], count, self._first_index[used], np.zeros_like(used),
-                                 first], -1).astype(np.uint32)  # (count, instances, first index, base vertex, base instance)
+            # One command a mesh in use, the blocks near an inset's after the others' (their own
+            # program): (count, instances, first index, base vertex, base instance).
+            group = np.zeros(len(d.blocks), np.int64) if near is None else near.astype(np.int64)
+            key = group * len(VARIANTS) + variants
+            by_mesh = np.argsort(key, kind="stable")
+            used, first, count = np.unique(key[by_mesh], return_index=True, return_counts=True)
+            mesh = used % len(VARIANTS)
+            commands = np.stack([self._index_count[mesh], count, self._first_index[mesh], np.zeros_like(used),
+                                 first], -1).astype(np.uint32)
             _write_instances(self._inst, records[by_mesh])
             _write_instances(self._indirect, commands)
-            self._block_vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(commands))
+            plain = int(np.count_nonzero(used < len(VARIANTS)))
+            if plain:
+                self._block_vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=plain)
+            if plain < len(commands):
+                self._inset_block_vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(commands) - plain,
+                                                      first=plain)
             self.triangles += d.triangles
             self.vertices += len(d.blocks) * (BLOCK + 1) ** 2
             if coarse and self.border_triangles:
@@ -1565,8 +1845,11 @@ class ClipmapLayer:
             nm.release()
         for obj in (self._block_vao, self._grid_vbo, self._targets_vbo, self._block_ibo, self._inst, self._indirect,
                     *self._border_vaos,
-                    *self._border_vbos, self._border_ibo, self._border_inst, self.program, self._border_program):
-            obj.release()
+                    *self._border_vbos, self._border_ibo, self._border_inst, self.program, self._border_program,
+                    self._inset_block_vao, self._inset_program,
+                    None if self._inset_masks is None else self._inset_mask_texture):
+            if obj is not None:
+                obj.release()
         self._tex = []
 
 

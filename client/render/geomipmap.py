@@ -57,11 +57,30 @@ Geometry: posts placed in ECEF from (lat, lon, h + N) (N the scenario's geoid
 undulation), uploaded as float32 ENU offsets of the renderer's float64 origin
 (client/render/camera.py), re-uploaded on a rebase; normals are central
 differences of the full-resolution ECEF post grid (one per post at every
-level: coarse patches keep fine shading, a per-vertex normal map), shaded by
-terrain_mesh's shaders (client/render/shading.py: sun, tint, rock, fog).
+level: coarse patches keep fine shading, a per-vertex normal map).
 Frustum culling by each patch's bounding box. One VBO per layer (one block of
 (n + 1)^2 vertices per patch), one index buffer rebuilt only when the levels
 or the visible set change, one draw call.
+
+Meeting the clipmap (client/render/clipmap_layer.py "Insets"). Shading: the
+clipmap's (terrain_mesh's colour and lighting, client/render/shading.py's sun
+and fog, then clipmap_layer.DETAIL_GLSL's detail textures at the same ECEF
+texture coordinates, and with ``land_classes`` each post's land-class colour,
+classified as the clipmap classifies its normal texels), so where the two draw
+the same ground (the DEM along the polygon's border, where the inset has no
+detail) they have the same colour; the Renderer gives the inset its terrain
+layer's detail strength (0 beside the reference mesh, which has none). Depth:
+the vertex shader scales the window depth by INSET_DEPTH_SCALE = 1 + 2^-14, so
+the inset lies 6.1e-5 of its distance nearer than it is: a relative bias, as
+float32 reversed-Z depth resolves relative distances (1.2e-7 d, client/render/
+gl.py), so it wins every tie with the clipmap at every distance by 500 times
+the depth buffer's resolution (6 cm at 1 km, 6 m at 100 km), and it keeps the
+early depth test (no gl_FragDepth; glPolygonOffset's units for a float depth
+buffer depend on the primitive's largest depth exponent, OpenGL 4.5 §14.6.5,
+and its slope factor on the implementation). Ground within 6e-5 d of the
+inset along the ray (an entity's wheels) may be hidden: 1 cm at 1 km seen 10
+degrees down. Inside the polygon the clipmap's fragments are pushed far behind
+the inset (the clipmap's side of the same fix).
 """
 
 from __future__ import annotations
@@ -75,9 +94,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from client.render.camera import Camera, LocalOrigin
+from client.render.clipmap_layer import DETAIL_GLSL, DETAIL_STRENGTH, DETAIL_TILE_M, detail_texture_object
 from client.render.gl import check_gl_error
-from client.render.shading import Frame
-from client.render.terrain_mesh import TERRAIN_FRAGMENT_SHADER, TERRAIN_VERTEX_SHADER, interleave
+from client.render.shading import GLSL_COMMON, Frame
+from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, interleave
 from sortie.errors import InvalidArgument, LimitExceeded
 from terrain.geodesy import enu_basis, geodetic_to_ecef
 
@@ -90,6 +110,77 @@ MIN_RADIUS_OF_CURVATURE_M = 6_335_439.0  # WGS84 meridian radius at the equator 
 N_SIDE, E_SIDE, S_SIDE, W_SIDE = 0, 1, 2, 3
 SIDE_NAMES = ("north", "east", "south", "west")
 _MAX_STITCH_ROUNDS = 64
+# The inset is drawn 2^-14 (6.1e-5) of its distance nearer than it is (reversed-Z: window depth
+# near/d, scaled in the vertex shader, so the early depth test stays). Where the inset and the
+# clipmap are the same surface (the DEM, along the polygon's border) the inset wins the depth test
+# instead of a tie: 500 times float32 depth's 1.2e-7 d resolution, 6 cm at 1 km. Module docstring.
+INSET_DEPTH_SCALE = 1.0 + 2.0 ** -14
+
+INSET_VERTEX_SHADER = "#version 330 core\n" + GLSL_COMMON + """
+uniform mat3 u_rot;            // ECEF axes -> local ENU
+uniform vec3 u_origin_mod;     // renderer origin ECEF modulo the detail tile, metres
+in vec3 in_position;           // local ENU metres (float32 offsets from the origin)
+in vec3 in_normal;             // local ENU unit vector
+in float in_height;            // metres MSL
+in float in_cos_slope;
+out vec3 v_world;
+out vec3 v_normal;
+out float v_height;
+out float v_cos_slope;
+out vec3 v_ecef_mod;
+#ifdef CLASSES
+in vec3 in_class;              // the post's land-class colour (terrain/texture.py)
+out vec3 v_class;
+#endif
+void main() {
+    v_world = in_position;
+    v_normal = in_normal;
+    v_height = in_height;
+    v_cos_slope = in_cos_slope;
+    v_ecef_mod = u_origin_mod + transpose(u_rot) * in_position;
+#ifdef CLASSES
+    v_class = in_class;
+#endif
+    gl_Position = u_projection * (u_view * vec4(in_position, 1.0));
+    gl_Position.z *= INSET_DEPTH_SCALE;
+}
+"""
+
+# The clipmap's shading (client/render/clipmap_layer.py FRAGMENT_SHADER) with per-post normals and
+# land classes: the same colour, lighting, fog and detail textures at the same point.
+INSET_FRAGMENT_SHADER = "#version 330 core\n" + GLSL_COMMON + TERRAIN_COLOUR_GLSL + DETAIL_GLSL + """
+uniform mat3 u_rot;
+in vec3 v_world;
+in vec3 v_normal;
+in float v_height;
+in float v_cos_slope;
+in vec3 v_ecef_mod;
+#ifdef CLASSES
+in vec3 v_class;
+#endif
+out vec4 out_colour;
+void main() {
+    vec3 n = normalize(v_normal);
+    vec3 c = terrain_colour(v_world, n, v_height, v_cos_slope);
+#ifdef CLASSES
+    if (v_height > 0.0) c = fogged(lambert(v_class, n), v_world);
+#endif
+#ifdef DETAIL
+    c = detailed(c, transpose(u_rot) * n, v_cos_slope, v_height, v_ecef_mod);
+#endif
+    out_colour = vec4(c, 1.0);
+}
+"""
+
+
+def inset_shader(source: str, detail: bool, classes: bool) -> str:
+    """A variant of INSET_VERTEX_SHADER / INSET_FRAGMENT_SHADER: with the detail textures, with
+    the land-class base colour (compiled in or out, as the clipmap's, client/render/clipmap_layer.py
+    shader_variant)."""
+    head, rest = source.split("\n", 1)
+    defines = "#define INSET_DEPTH_SCALE %r\n" % INSET_DEPTH_SCALE
+    defines += ("#define DETAIL\n" if detail else "") + ("#define CLASSES\n" if classes else "")
+    return head + "\n" + defines + rest
 
 
 # -- patch templates (pure) ----------------------------------------------------------------------
@@ -243,11 +334,13 @@ class GeomipmapInset:
     renderer's LocalOrigin; geoid_undulation_m: N (ellipsoid height = MSL + N); tau_px: the
     projected error allowed; patch_posts: 2^k + 1, 3..65; stitch: False leaves the cracks
     between levels open (for tests); frustum_cull: skip patches outside the view.
+    detail_strength, land_classes: shade as the terrain layer beside it does (the clipmap's
+    detail textures, 0 for none; its land-class base colour), so the two meet without a seam.
     """
 
     def __init__(self, ctx, inset_source, origin: LocalOrigin, *, geoid_undulation_m: float = 0.0,
                  tau_px: float = DEFAULT_TAU_PX, patch_posts: int = DEFAULT_PATCH_POSTS, stitch: bool = True,
-                 frustum_cull: bool = True):
+                 frustum_cull: bool = True, detail_strength: float = DETAIL_STRENGTH, land_classes: bool = False):
         n = patch_posts - 1
         if not (isinstance(patch_posts, int) and 2 <= n <= 64 and n & (n - 1) == 0):
             raise InvalidArgument("patch_posts", "must be 2^k + 1 posts, 3..65", value=patch_posts)
@@ -255,6 +348,8 @@ class GeomipmapInset:
             raise InvalidArgument("tau_px", "must be finite and > 0", value=tau_px)
         if not (math.isfinite(geoid_undulation_m) and abs(geoid_undulation_m) <= 120.0):
             raise InvalidArgument("geoid_undulation_m", "must be within [-120, 120] m", value=geoid_undulation_m)
+        if not (math.isfinite(detail_strength) and 0.0 <= detail_strength <= 1.0):
+            raise InvalidArgument("detail_strength", "must be within [0, 1]", value=detail_strength)
         rows, cols = inset_source.shape
         if (rows - 1) % n or (cols - 1) % n:
             raise InvalidArgument("patch_posts", f"must tile the inset's {rows} x {cols} posts", value=patch_posts)
@@ -267,12 +362,20 @@ class GeomipmapInset:
         self.levels = int(math.log2(n)) + 1  # 0 .. log2(n)
         self.stitch = bool(stitch)
         self.frustum_cull = bool(frustum_cull)
+        self.detail_strength = float(detail_strength)  # the u_detail_strength uniform, set every frame
+        self.land_classes = bool(land_classes)
         self.stats = GeomipmapStats()
         self.selection: Selection | None = None
         t0 = time.perf_counter()
         self._build_cpu()
         self.build_ms = (time.perf_counter() - t0) * 1e3
-        self.program = ctx.program(vertex_shader=TERRAIN_VERTEX_SHADER, fragment_shader=TERRAIN_FRAGMENT_SHADER)
+        detail = self.detail_strength > 0.0
+        self.program = ctx.program(vertex_shader=inset_shader(INSET_VERTEX_SHADER, detail, self.land_classes),
+                                   fragment_shader=inset_shader(INSET_FRAGMENT_SHADER, detail, self.land_classes))
+        self._detail = detail_texture_object(ctx) if detail else None
+        self._class_vbo = None
+        if self.land_classes:
+            self._class_vbo = ctx.buffer(self._class_colours().astype("f4").tobytes())
         self._vbo = self._ibo = self._vao = None
         self._ibo_bytes = 0
         self._generation = None
@@ -525,9 +628,10 @@ class GeomipmapInset:
                     obj.release()
             self._ibo_bytes = max(len(data), 2 * self._ibo_bytes, 4096)
             self._ibo = self.ctx.buffer(reserve=self._ibo_bytes)
-            self._vao = self.ctx.vertex_array(
-                self.program, [(self._vbo, "3f 3f 1f 1f", "in_position", "in_normal", "in_height", "in_cos_slope")],
-                index_buffer=self._ibo, index_element_size=4)
+            content = [(self._vbo, "3f 3f 1f 1f", "in_position", "in_normal", "in_height", "in_cos_slope")]
+            if self._class_vbo is not None:
+                content.append((self._class_vbo, "3f", "in_class"))
+            self._vao = self.ctx.vertex_array(self.program, content, index_buffer=self._ibo, index_element_size=4)
         if data:
             self._ibo.write(data)
         self._index_count = indices.size
@@ -560,12 +664,81 @@ class GeomipmapInset:
         if self._index_count == 0:
             return
         frame.write_common(self.program)
+        values = {"u_rot": self.origin.basis.T.astype("f4").tobytes(),
+                  "u_origin_mod": np.mod(self.origin.ecef, DETAIL_TILE_M).astype("f4").tobytes()}
+        for name, value in values.items():
+            member = self.program.get(name, None)
+            if member is not None:
+                member.write(value)
+        if self._detail is not None:
+            self.program["u_detail_strength"].value = self.detail_strength
+            self.program["u_detail"].value = 0
+            self._detail.use(0)
         self.ctx.enable(moderngl.CULL_FACE)
         self._vao.render(moderngl.TRIANGLES, vertices=self._index_count)
         self.ctx.disable(moderngl.CULL_FACE)
 
+    def _class_colours(self) -> np.ndarray:
+        """(vertices, 3) float64 0-1 land-class colour of each vertex's post: terrain.texture's
+        class_map of the inset's posts, as the clipmap classifies its normal texels
+        (client/render/clipmap.py classes_of: the height, the slope, band noise placed by world
+        position), over the whole lattice (beaches look along rows and columns). The slope is
+        the DEM's (:meth:`_dem_slope_deg`), not the synthetic detail's: the classes' slope bins
+        (12, 25, 38 degrees) are for real landforms, and the detail's metre-scale slopes would
+        turn a flat field into a mottle of grass, forest and rock where the clipmap beside it,
+        classifying at its own posts, draws farmland."""
+        from terrain.texture import CLASS_COLOURS_RGB, class_map
+
+        inset = self.inset
+        rows, cols = inset.shape
+        g = inset.georef
+        r, c = self.vertex_lattice_index(np.arange(self.positions_ecef.shape[0])).T
+        slope = self._dem_slope_deg()
+        if slope is None:  # not aligned with the DEM: the inset's own normals
+            cos_slope = np.ones((rows, cols))
+            cos_slope[r, c] = self.cos_slope
+            slope = np.degrees(np.arccos(np.clip(cos_slope, -1.0, 1.0)))
+        lat = g.y0 + np.arange(rows) * g.dy
+        lon = g.x0 + np.arange(cols) * g.dx
+        north = np.radians(lat)[:, None] * 6_371_000.0
+        east = np.radians(lon)[None, :] * 6_371_000.0 * np.cos(np.radians(lat))[:, None]
+        east, north = np.broadcast_arrays(east, north)
+        spacing_e, spacing_n = inset.spacing_m
+        classes = class_map(np.asarray(inset.heights, np.float64), slope, spacing_e, spacing_n, lat[:, None],
+                            noise_en_m=(east, north))
+        return np.asarray(CLASS_COLOURS_RGB, np.float64)[classes[r, c]] / 255.0
+
+    def _dem_slope_deg(self) -> np.ndarray | None:
+        """(rows, cols) slope (degrees) of the DEM beneath at every inset post, or None when the
+        lattice is not the DEM's refined (terrain/inset.py). The detail is 0 at the DEM's posts,
+        so the inset's posts there are the DEM's; their central differences (as the clipmap's
+        normals, from the terrain's gradient) are interpolated bilinearly to every post."""
+        inset = self.inset
+        base, (ky, kx) = inset.base, inset.refine
+        sy, sx = 1 << ky, 1 << kx
+        g = inset.georef
+        if not base.exact or (sy == 1 and sx == 1):
+            return None
+        r0 = -round((g.y0 - base.lat0) / g.dy) % sy  # the first inset row on a DEM row
+        c0 = -round((g.x0 - base.lon0) / g.dx) % sx
+        h = np.asarray(inset.heights, np.float64)[r0::sy, c0::sx]
+        if min(h.shape) < 2:
+            return None
+        spacing_e, spacing_n = inset.spacing_m
+        dn, de = np.gradient(h, spacing_n * sy, spacing_e * sx)
+        slope = np.degrees(np.arctan(np.hypot(de, dn)))
+        rows, cols = inset.shape
+
+        def along(a, first, step, size, axis):
+            f = np.clip((np.arange(size) - first) / step, 0.0, a.shape[axis] - 1.0)
+            i = np.minimum(f.astype(np.intp), a.shape[axis] - 2)
+            t = np.expand_dims(f - i, 1 - axis)
+            return np.take(a, i, axis=axis) * (1.0 - t) + np.take(a, i + 1, axis=axis) * t
+
+        return along(along(slope, r0, sy, rows, 0), c0, sx, cols, 1)
+
     def release(self) -> None:
-        for obj in (self._vao, self._ibo, self._vbo, self.program):
+        for obj in (self._vao, self._ibo, self._vbo, self.program, self._detail, self._class_vbo):
             if obj is not None:
                 obj.release()
-        self._vao = self._ibo = self._vbo = self.program = None
+        self._vao = self._ibo = self._vbo = self.program = self._detail = self._class_vbo = None

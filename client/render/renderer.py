@@ -291,8 +291,12 @@ class Renderer:
                     self.terrain_layer = None
                 from client.render.geomipmap import GeomipmapInset
 
-                self.inset_layers = [GeomipmapInset(self.ctx, s, self.origin, geoid_undulation_m=geoid_undulation_m)
-                                     for s in insets]
+                # Shaded as the terrain layer beside them (the clipmap's detail textures and land
+                # classes; none for the reference mesh), so the two meet without a seam.
+                shading = {"detail_strength": float(getattr(self.terrain_layer, "detail_strength", 0.0)),
+                           "land_classes": bool(getattr(self.terrain_layer, "land_classes", False))}
+                self.inset_layers = [GeomipmapInset(self.ctx, s, self.origin, geoid_undulation_m=geoid_undulation_m,
+                                                    **shading) for s in insets]
                 self.sea_layer = SeaShellLayer(self.ctx, self.origin, geoid_undulation_m) if self.sea else None
                 self.entity_layer = EntityLayer(self.ctx)
                 self._sky_program = self.ctx.program(vertex_shader=SKY_VERTEX_SHADER,
