@@ -45,6 +45,8 @@ of interest at random points) streaming at 20 Hz from separate processes
   machine; ``latency_floor_loaded_*`` the same beside one busy process per
   core at the workers' priority, busy FLOOR_DUTY of each tick.
 - dead reckoning: bench/dr.py (``dr_*`` metrics and the bandwidth plot).
+- collisions between agents: bench/collisions.py (``collision_*``: one tick's test of
+  2350 entities against an all-pairs reference).
 """
 
 from __future__ import annotations
@@ -331,6 +333,7 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
 
 
 def run(quick: bool) -> Report:
+    from bench.collisions import run_collisions
     from bench.dr import run_dr
     from bench.fdm import alps_terrain
 
@@ -338,4 +341,5 @@ def run(quick: bool) -> Report:
     terrain = alps_terrain()
     bench_capacity(report, terrain, quick)
     run_dr(report, quick)
+    run_collisions(report, quick)
     return report
