@@ -285,12 +285,14 @@ def read_asc(path) -> Raster:
     sidecar ``.prj`` (the WKT GDAL and ArcGIS write beside the grid) is read
     when present: a projected CRS, or a geographic one on another datum than
     WGS 84 (or those read as it, see GEOGRAPHIC_AS_WGS84), is refused by name
-    instead of read as degrees.
+    instead of read as degrees. A leading UTF-8 byte order mark (what Windows tools such
+    as Notepad write) is skipped, in the grid and in its ``.prj``.
     """
     path = _existing(path)
     prj = _asc_sidecar_crs(path)
+    data = path.read_bytes()
     try:
-        text = path.read_text(encoding="ascii")
+        text = data[len(UTF8_BOM):].decode("ascii") if data.startswith(UTF8_BOM) else data.decode("ascii")
     except UnicodeDecodeError as e:
         raise DataFormatError(f"{path}: not an ASCII grid ({e})") from None
     header, body = _split_asc(path, text)
@@ -331,7 +333,9 @@ def _asc_sidecar_crs(path: Path) -> str | None:
         prj = path.with_suffix(".PRJ")
         if not prj.is_file():
             return None
-    text = prj.read_text(encoding="utf-8", errors="replace").strip()
+    # utf-8-sig: a leading byte order mark would otherwise hide the WKT keyword from the match
+    # below, and a projected CRS would then be read as degrees.
+    text = prj.read_text(encoding="utf-8-sig", errors="replace").strip()
     head = re.match(r"\s*(\w+)\s*\[\s*\"([^\"]*)\"", text)
     if head is not None:  # WKT (GDAL, ArcGIS)
         kind, name = head.group(1).upper(), head.group(2)
@@ -355,6 +359,9 @@ def _asc_sidecar_crs(path: Path) -> str | None:
                               "and ETRS89")
     return name
 
+
+# The UTF-8 byte order mark (U+FEFF encoded), which Windows editors put at the start of text files.
+UTF8_BOM = b"\xef\xbb\xbf"
 
 ASC_HEADER_KEYS = ("ncols", "nrows", "xllcorner", "xllcenter", "yllcorner", "yllcenter",
                    "cellsize", "dx", "dy", "nodata_value")
