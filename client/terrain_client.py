@@ -396,7 +396,9 @@ class TerrainClient:
 
     def get_region(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float,
                    compressed: bool = True) -> HeightGrid:
-        """The store's posts of one level covering a box (degrees); compressed as for get_tile."""
+        """The store's posts of one level covering a box (degrees), merged from every store region
+        holding part of it (class 0, NaN, where none does); a box across the antimeridian takes
+        lon_max above 180. compressed as for get_tile."""
         return HeightGrid.from_message(self._call("GetRegion", pb.GetRegionRequest(
             level=int(level), lat_min_deg=lat_min, lon_min_deg=lon_min, lat_max_deg=lat_max, lon_max_deg=lon_max,
             encoding=_encoding(compressed))))

@@ -196,49 +196,52 @@ class TerrainStore:
 
     def raster(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float,
                region: Region | None = None) -> Raster | None:
-        """The posts of a level covering a box as a :class:`Raster` (row 0 south), clipped
-        to one region's rectangle: the region holding the box's centre, else the one whose
-        rectangle overlaps the box most; None when no region's rectangle at this level
-        overlaps it."""
+        """The posts of a level covering a box as a :class:`Raster` (row 0 south), merged from
+        every region whose rectangle at this level overlaps the box (only ``region``'s when
+        given): posts no region holds are NaN, outside, so a box over two regions reads both
+        (GetRegion, rays through a :class:`StoreSource`). The grid is the box's posts cropped
+        to the part of the box the rectangles reach; None when no rectangle overlaps it.
+        A box with lon_max above 180 runs east across the antimeridian."""
         r_top, c_left = self.fractional_post(level, lat_max, lon_min)
         r_bot, _ = self.fractional_post(level, lat_min, lon_min)
         span = (lon_max - lon_min) / self.spacing_deg(level)[1]
-        if region is None:
-            region = self.region_of(level, (r_top + r_bot) / 2, c_left + span / 2)
-        if region is None:
-            region = self._most_overlapping(level, r_top, r_bot, c_left, span)
-            if region is None:
-                return None
-        if level >= len(region.rects):
-            return None
-        rect = region.rects[level]
-        c_left = _unwrap_col(c_left, rect, self.cols_per_turn(level))
-        row_a = max(int(math.floor(r_top)), rect.row0)
-        row_b = min(int(math.floor(r_bot)) + 2, rect.row1)
-        col_a = max(int(math.floor(c_left)), rect.col0)
-        col_b = min(int(math.floor(c_left + span)) + 2, rect.col1)
-        if row_b - row_a < 2 or col_b - col_a < 2:
-            return None
-        return self._block_raster(region, level, row_a, row_b, col_a, col_b)
-
-    def _most_overlapping(self, level: int, r_top: float, r_bot: float, c_left: float, span: float):
-        """The region whose rectangle at a level shares the most posts with a box of
-        fractional rows [r_top, r_bot] and columns [c_left, c_left + span]; None if none does."""
-        best, best_posts = None, 0
-        for region in self.regions:
-            if level >= len(region.rects):
+        # The posts of the cells holding the box: rows from the north, columns unwrapped east of c_left's.
+        row_a, row_b = int(math.floor(r_top)), int(math.floor(r_bot)) + 2
+        col_a, col_b = int(math.floor(c_left)), int(math.floor(c_left + span)) + 2
+        per_turn = self.cols_per_turn(level)
+        parts = []  # (region, rows [ra, rb), box columns [ca, cb), the region's columns = box's - shift)
+        for reg in (self.regions if region is None else [region]):
+            if level >= len(reg.rects):
+                continue  # this region's pyramid stops below the level
+            rect = reg.rects[level]
+            ra, rb = max(row_a, rect.row0), min(row_b, rect.row1)
+            if rb <= ra:
                 continue
-            rect = region.rects[level]
-            rows = min(math.floor(r_bot) + 1, rect.row1) - max(math.ceil(r_top), rect.row0)
-            per_turn = self.cols_per_turn(level)
-            c0 = _unwrap_col(c_left, rect, per_turn)
-            cols = 0
-            for start in (c0 - per_turn, c0):  # the box may start before the rectangle and run into it
-                cols = max(cols, min(math.floor(start + span) + 1, rect.col1) - max(math.ceil(start), rect.col0))
-            posts = max(rows, 0) * max(cols, 0)
-            if posts > best_posts:
-                best, best_posts = region, posts
-        return best
+            # The rectangle's copies whole turns apart that meet the box's columns (one, unless the
+            # box spans more than a turn less the rectangle's width).
+            for m in range((col_a - rect.col1) // per_turn + 1, -(-(col_b - rect.col0) // per_turn)):
+                ca, cb = max(col_a, rect.col0 + m * per_turn), min(col_b, rect.col1 + m * per_turn)
+                if cb > ca:
+                    parts.append((reg, ra, rb, ca, cb, m * per_turn))
+        if not parts:
+            return None
+        ga, gb = min(p[1] for p in parts), max(p[2] for p in parts)
+        gc, gd = min(p[3] for p in parts), max(p[4] for p in parts)
+        if gb - ga < 2 or gd - gc < 2:
+            return None
+        heights = np.full((gb - ga, gd - gc), np.nan)
+        classes = np.zeros(heights.shape, np.uint8)
+        for reg, ra, rb, ca, cb, shift in parts:
+            h, cl = self.decode(reg, level, ra, rb, ca - shift, cb - shift)
+            dst_h = heights[ra - ga:rb - ga, ca - gc:cb - gc]
+            dst_c = classes[ra - ga:rb - ga, ca - gc:cb - gc]
+            # Rectangles do not overlap; if they did, the first region's data would win.
+            take = (dst_c == CLASS_OUTSIDE) & (cl != CLASS_OUTSIDE)
+            dst_h[take] = h[take]
+            dst_c[take] = cl[take]
+        regions = tuple(dict.fromkeys(p[0].index for p in parts))
+        return self._grid_raster(heights, classes, level, gb, gc,
+                                 {"region": regions[0] if len(regions) == 1 else None, "regions": regions})
 
     def _block_raster(self, region: Region, level: int, row_a, row_b, col_a, col_b,
                       pad_to: tuple[int, int] | None = None) -> Raster:
@@ -252,7 +255,11 @@ class TerrainStore:
         rb, cb = min(r1, rect.row1), min(c1, rect.col1)
         heights[:rb - row_a, :cb - col_a], classes[:rb - row_a, :cb - col_a] = self.decode(
             region, level, row_a, rb, col_a, cb)
-        row_b, col_b = r1, c1
+        return self._grid_raster(heights, classes, level, r1, col_a, {"region": region.index})
+
+    def _grid_raster(self, heights, classes, level: int, row_b: int, col_a: int, meta: dict) -> Raster:
+        """Decoded posts (rows north to south, the last at lattice row row_b - 1, columns from
+        col_a) as a Raster (row 0 south): NaN where the class is outside, filled flags."""
         heights = heights[::-1].copy()
         classes = classes[::-1]
         heights[classes == CLASS_OUTSIDE] = np.nan
@@ -264,7 +271,7 @@ class TerrainStore:
         return Raster(heights.astype(np.float32), georef, name=f"{self.name}:L{level}",
                       vertical_datum=self.manifest.get("vertical_datum", "EGM96"),
                       filled=filled if filled.any() else None, source=str(self.path),
-                      meta={"store_level": level, "region": region.index})
+                      meta={"store_level": level, **meta})
 
     def cell_raster(self, cell_id: int) -> tuple[int, Raster]:
         """(level, tile raster) of a quad-tree cell: the cell at depth d is the tile of level

@@ -146,7 +146,11 @@ class TerrainServiceServicer:
 
     def GetRegion(self, request, context):
         """Unary. The store's posts of one level covering a box (a clipmap level's
-        region query). At most Limits.max_region_posts posts (4,194,304 by default).
+        region query), merged from every store region that holds part of it: posts
+        no region holds are class 0 (outside). At most Limits.max_region_posts
+        posts (4,194,304 by default). INVALID_ARGUMENT for an inverted box (one
+        across the antimeridian takes lon_max_deg above 180); NOT_FOUND when no
+        region holds any of it.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
