@@ -70,8 +70,8 @@ and segment intersection trace the whole lattice (an InsetSource is a
 :class:`terrain.raster.Raster`, so :class:`terrain.terrain.Terrain` traces each
 ray on it and passes the rays that leave it on): outside the polygon, and
 up to a0 - c inside it, the lattice's surface is the DEM's own (w = 0 there).
-A ray that leaves the lattice is answered by the next source as a whole,
-which ignores the inset's detail (at most A off) on its way.
+A ray that leaves the lattice goes on over the next sources from where it
+leaves (terrain.los.stack_trace), so the inset's detail counts on its way in.
 
 The clipmap's cut-out
 ---------------------

@@ -63,6 +63,20 @@ A raster spanning a full turn of longitude is walked periodically; any other
 raster ends at its first and last column (an antimeridian-crossing raster is
 one range of columns: longitudes are unwrapped along the ray). A geographic
 raster whose first or last row lies on a pole keeps tracks over the pole.
+
+Stacks of sources
+-----------------
+:func:`stack_trace` and :func:`stack_line_of_sight` meet the surface of an
+ordered stack of rasters (a terrain.terrain.Terrain's sources): at each point
+that of the first raster covering it. Each raster's covered intervals along a
+segment (:func:`segment_coverage`) come from the same pieces, track and block
+walk as the exact trace (the walk's stepping is shared: :func:`_walk_start`,
+:func:`_enter`, :func:`_block`, :func:`_next_cell`); the stretches left to
+each raster are traced in order by :func:`trace_segments` until the first
+contact. Where a segment passes onto a raster whose surface is above it, the
+contact is at that raster's edge (the step between the surfaces is a wall); a
+stretch no raster covers (longer than STACK_GAP_TOLERANCE_M) before any
+contact makes the segment OUTSIDE.
 """
 
 from __future__ import annotations
@@ -286,6 +300,84 @@ def _cell_root(h00, h01, h10, h11, poly, u, w, i, j, stack):
     return _first_root(g0, g1, g2, g3, g4, stack)
 
 
+# The block walk over the min/max pyramid, shared by _walk (first contact) and _cover_walk (the
+# covered stretches, for stack_trace): each step takes the block of level k holding cell (i, j)
+# (_enter, _block), finds where the track leaves it, and either descends a level into the block or
+# moves on to the cell the track enters next (_next_cell) and climbs one level. The track's pieces
+# are shared likewise by _trace_kernel and _cover_kernel (_segment, _track_at, _next_piece,
+# _fit_piece).
+#
+# Helpers marked inline="always" are inlined at numba IR level, so the hot kernels compile as if
+# the helpers were written out in them; none takes an array, as an array argument of an inlined
+# helper costs a reference count update per call. Those that take arrays (_segment, _fit_piece)
+# are plain njit functions, which LLVM inlines.
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _walk_start(r0, r1, r2, c0, c1, c2, ua, ub, ncy, ncx):
+    """(sr, sc, i, j) of the monotone stretch [ua, ub] of the track (row r0 + r1 u + r2 u**2, column
+    c0 + c1 u + c2 u**2): the signs of its row and column steps and its first cell (the cell ahead on a
+    boundary; _OUT_OF_RANGE for a coordinate that is not finite)."""
+    dr = _quad(r0, r1, r2, ub) - _quad(r0, r1, r2, ua)
+    dc = _quad(c0, c1, c2, ub) - _quad(c0, c1, c2, ua)
+    sr = 1 if dr > 0.0 else (-1 if dr < 0.0 else 0)
+    sc = 1 if dc > 0.0 else (-1 if dc < 0.0 else 0)
+    return sr, sc, _cell_of(_quad(r0, r1, r2, ua), sr, ncy), _cell_of(_quad(c0, c1, c2, ua), sc, ncx)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _enter(i, j, sr, periodic, poles, ncy, ncx):
+    """(on, i, sr, jw) on entering cell (i, j): on is False when the cell is off the raster; a row
+    past a pole row (poles as for :func:`_walk`) is held in the polar cells (no crossing out through
+    a pole); jw is the column wrapped into the raster (periodic) or j itself."""
+    if i < 0 and poles & 1 and i != _OUT_OF_RANGE:
+        i, sr = 0, max(sr, 0)
+    if i >= ncy and poles & 2:
+        i, sr = ncy - 1, min(sr, 0)
+    if i < 0 or i >= ncy:
+        return False, i, sr, j
+    if periodic:
+        if j == _OUT_OF_RANGE:
+            return False, i, sr, j
+        return True, i, sr, j % ncx
+    if j < 0 or j >= ncx:
+        return False, i, sr, j
+    return True, i, sr, j
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _block(r0, r1, r2, c0, c1, c2, i, j, jw, k, sr, sc, u, ub, ncy, ncx):
+    """The level-k block holding cell (i, j) (jw: j wrapped), and where the track leaves it.
+
+    Returns (bi, bj, rlo, rhi, clo, chi, u_r, u_c, u_e): the block's index in its level, the rows
+    [rlo, rhi) and (unwrapped, as j) columns [clo, chi) it spans, the parameters in [u, ub] where the
+    track crosses its last row or column boundary ahead (inf: none, or not moving that way) and
+    u_e = min(u_r, u_c, ub), where the step ends.
+    """
+    bi, bj = i >> k, jw >> k
+    rlo, rhi = bi << k, min((bi + 1) << k, ncy)
+    clo, chi = (bj << k) + (j - jw), min((bj + 1) << k, ncx) + (j - jw)
+    u_r = math.inf if sr == 0 else _cross(r0, r1, r2, float(rhi if sr > 0 else rlo), u, ub)
+    u_c = math.inf if sc == 0 else _cross(c0, c1, c2, float(chi if sc > 0 else clo), u, ub)
+    return bi, bj, rlo, rhi, clo, chi, u_r, u_c, min(u_r, u_c, ub)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _next_cell(r0, r1, r2, c0, c1, c2, sr, sc, rlo, rhi, clo, chi, u_r, u_c, u_e, ncy, ncx):
+    """(i, j): the cell the track enters at u_e on leaving the block (values of :func:`_block`):
+    past the row or column boundary it crosses there, else (rounding) the cell of its position,
+    kept within the block."""
+    if u_r <= u_e:
+        i = rhi if sr > 0 else rlo - 1
+    else:
+        i = min(max(_cell_of(_quad(r0, r1, r2, u_e), sr, ncy), rlo), rhi - 1)
+    if u_c <= u_e:
+        j = chi if sc > 0 else clo - 1
+    else:
+        j = min(max(_cell_of(_quad(c0, c1, c2, u_e), sc, ncx), clo), chi - 1)
+    return i, j
+
+
 @numba.njit(cache=True, nogil=True)
 def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua, ub, stack, out):
     """Walk the cells of one monotone stretch [ua, ub] of a piece.
@@ -303,37 +395,17 @@ def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua,
     ncy, ncx = ny - 1, nx - 1
     r0, r1, r2, c0, c1, c2, p0, p1, p2 = poly[0], poly[1], poly[2], poly[3], poly[4], poly[5], \
         poly[6], poly[7], poly[8]
-    dr = _quad(r0, r1, r2, ub) - _quad(r0, r1, r2, ua)
-    dc = _quad(c0, c1, c2, ub) - _quad(c0, c1, c2, ua)
-    sr = 1 if dr > 0.0 else (-1 if dr < 0.0 else 0)
-    sc = 1 if dc > 0.0 else (-1 if dc < 0.0 else 0)
-    i = _cell_of(_quad(r0, r1, r2, ua), sr, ncy)
-    j = _cell_of(_quad(c0, c1, c2, ua), sc, ncx)
+    sr, sc, i, j = _walk_start(r0, r1, r2, c0, c1, c2, ua, ub, ncy, ncx)
     has_fill = pfill.shape[0] > 0
     top = pshape.shape[0] - 1
     k = min(int(out[4]) + 1, top)
     u = ua
     while True:
-        if i < 0 and poles & 1 and i != _OUT_OF_RANGE:
-            i, sr = 0, max(sr, 0)  # no crossing out through a pole
-        if i >= ncy and poles & 2:
-            i, sr = ncy - 1, min(sr, 0)
-        if i < 0 or i >= ncy:
+        on, i, sr, jw = _enter(i, j, sr, periodic, poles, ncy, ncx)
+        if not on:
             return _WALK_OUTSIDE
-        if periodic:
-            if j == _OUT_OF_RANGE:
-                return _WALK_OUTSIDE
-            jw = j % ncx
-        else:
-            if j < 0 or j >= ncx:
-                return _WALK_OUTSIDE
-            jw = j
-        bi, bj = i >> k, jw >> k
-        rlo, rhi = bi << k, min((bi + 1) << k, ncy)
-        clo, chi = (bj << k) + (j - jw), min((bj + 1) << k, ncx) + (j - jw)
-        u_r = math.inf if sr == 0 else _cross(r0, r1, r2, float(rhi if sr > 0 else rlo), u, ub)
-        u_c = math.inf if sc == 0 else _cross(c0, c1, c2, float(chi if sc > 0 else clo), u, ub)
-        u_e = min(u_r, u_c, ub)
+        bi, bj, rlo, rhi, clo, chi, u_r, u_c, u_e = _block(r0, r1, r2, c0, c1, c2, i, j, jw, k, sr, sc, u, ub,
+                                                           ncy, ncx)
         if k > 0:
             block = poff[k] + bi * pshape[k, 1] + bj
             if not (_min_quad(p0, p1, p2, u, u_e) > pmax[block]):
@@ -362,14 +434,7 @@ def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua,
         if u_e >= ub:
             out[4] = k
             return _WALK_ON
-        if u_r <= u_e:
-            i = rhi if sr > 0 else rlo - 1
-        else:
-            i = min(max(_cell_of(_quad(r0, r1, r2, u_e), sr, ncy), rlo), rhi - 1)
-        if u_c <= u_e:
-            j = chi if sc > 0 else clo - 1
-        else:
-            j = min(max(_cell_of(_quad(c0, c1, c2, u_e), sc, ncx), clo), chi - 1)
+        i, j = _next_cell(r0, r1, r2, c0, c1, c2, sr, sc, rlo, rhi, clo, chi, u_r, u_c, u_e, ncy, ncx)
         u = u_e
         k = min(k + 1, top)
 
@@ -388,6 +453,63 @@ def _unwrap(c, ref, turn_cols):
 
 
 @numba.njit(cache=True, nogil=True)
+def _segment(a_ecef, b_ecef, n):
+    """(ax, ay, az, vx, vy, vz, length, ux, uy) of segment n: its start a, v = b - a, |v| and v's x and
+    y over |v| (0 for a segment of zero length)."""
+    ax, ay, az = a_ecef[n, 0], a_ecef[n, 1], a_ecef[n, 2]
+    vx, vy, vz = b_ecef[n, 0] - ax, b_ecef[n, 1] - ay, b_ecef[n, 2] - az
+    length = math.sqrt(vx * vx + vy * vy + vz * vz)
+    ux, uy = (vx / length, vy / length) if length > 0.0 else (0.0, 0.0)
+    return ax, ay, az, vx, vy, vz, length, ux, uy
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _track_at(seg, s, crs, x0, y0, dx, dy):
+    """(row, col, h): the raster's fractional index and the height of the point a + s v of
+    seg = :func:`_segment`'s values (exact geodetic position)."""
+    lat, lon, h = _geodetic(seg[0] + s * seg[3], seg[1] + s * seg[4], seg[2] + s * seg[5])
+    r, c = fractional_index(lat, lon, crs, x0, y0, dx, dy)
+    return r, c, h
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _next_piece(seg, sa, s_end, ca, crs, x0, y0, dx, dy, turn_cols, rho_coef):
+    """The piece of the track from s = sa (column ca there) to sb, a piece_length_m on or s_end if
+    nearer: (sb, rm, cm, hm, rb, cb, hb), the exact positions (:func:`_track_at`) at its middle and
+    end, columns unwrapped along the ray; :func:`_fit_piece` fits them."""
+    sb = s_end
+    if seg[6] > 0.0:
+        step = piece_length_m(seg[0] + sa * seg[3], seg[1] + sa * seg[4], seg[7], seg[8], rho_coef) / seg[6]
+        sb = min(sa + step, sb)
+    rm, cm, hm = _track_at(seg, 0.5 * (sa + sb), crs, x0, y0, dx, dy)
+    rb, cb, hb = _track_at(seg, sb, crs, x0, y0, dx, dy)
+    cm = _unwrap(cm, ca, turn_cols)
+    cb = _unwrap(cb, cm, turn_cols)
+    return sb, rm, cm, hm, rb, cb, hb
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_piece(ra, rm, rb, ca, cm, cb, ha, hm, hb, poly, cuts):
+    """A piece's row, column and height quadratics in u in [0, 1], through its start, middle and end,
+    into poly[0:9], and the ends of its stretches monotone in both row and column (split where
+    either turns) into cuts[0:n_cuts + 1], in order, the last 1. Returns n_cuts."""
+    _fit(ra, rm, rb, poly, 0)
+    _fit(ca, cm, cb, poly, 3)
+    _fit(ha, hm, hb, poly, 6)
+    n_cuts = 0
+    for at in (0, 3):
+        if poly[at + 2] != 0.0:
+            turn = -poly[at + 1] / (2.0 * poly[at + 2])
+            if 0.0 < turn < 1.0:
+                cuts[n_cuts] = turn
+                n_cuts += 1
+    if n_cuts == 2 and cuts[1] < cuts[0]:
+        cuts[0], cuts[1] = cuts[1], cuts[0]
+    cuts[n_cuts] = 1.0
+    return n_cuts
+
+
+@numba.njit(cache=True, nogil=True)
 def _trace_kernel(heights, filled, pmax, pfill, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn_cols,
                   a_ecef, b_ecef, s_lo, s_hi, rho_coef, out_s, out_dcol, out_drow, out_status):
     """First contact parameter s in [s_lo, s_hi] (NaN: none) of each segment a + s (b - a).
@@ -401,43 +523,16 @@ def _trace_kernel(heights, filled, pmax, pfill, poff, pshape, crs, x0, y0, dx, d
     stack = np.zeros((_STACK_DEPTH, 7))
     out = np.zeros(5)
     for n in range(a_ecef.shape[0]):
-        ax, ay, az = a_ecef[n, 0], a_ecef[n, 1], a_ecef[n, 2]
-        vx, vy, vz = b_ecef[n, 0] - ax, b_ecef[n, 1] - ay, b_ecef[n, 2] - az
-        length = math.sqrt(vx * vx + vy * vy + vz * vz)
-        ux, uy = (vx / length, vy / length) if length > 0.0 else (0.0, 0.0)
+        seg = _segment(a_ecef, b_ecef, n)
         out_s[n] = math.nan
         out[3] = 0.0
         out[4] = pshape.shape[0] - 1
         sa = s_lo[n]
-        lat, lon, ha = _geodetic(ax + sa * vx, ay + sa * vy, az + sa * vz)
-        ra, ca = fractional_index(lat, lon, crs, x0, y0, dx, dy)
+        ra, ca, ha = _track_at(seg, sa, crs, x0, y0, dx, dy)
         code = _WALK_ON
         while code == _WALK_ON:
-            sb = s_hi[n]
-            if length > 0.0:
-                step = piece_length_m(ax + sa * vx, ay + sa * vy, ux, uy, rho_coef) / length
-                sb = min(sa + step, sb)
-            sm = 0.5 * (sa + sb)
-            lat, lon, hm = _geodetic(ax + sm * vx, ay + sm * vy, az + sm * vz)
-            rm, cm = fractional_index(lat, lon, crs, x0, y0, dx, dy)
-            lat, lon, hb = _geodetic(ax + sb * vx, ay + sb * vy, az + sb * vz)
-            rb, cb = fractional_index(lat, lon, crs, x0, y0, dx, dy)
-            cm = _unwrap(cm, ca, turn_cols)
-            cb = _unwrap(cb, cm, turn_cols)
-            _fit(ra, rm, rb, poly, 0)
-            _fit(ca, cm, cb, poly, 3)
-            _fit(ha, hm, hb, poly, 6)
-            # Split where row or column turns, so each stretch is monotone in both.
-            n_cuts = 0
-            for at in (0, 3):
-                if poly[at + 2] != 0.0:
-                    turn = -poly[at + 1] / (2.0 * poly[at + 2])
-                    if 0.0 < turn < 1.0:
-                        cuts[n_cuts] = turn
-                        n_cuts += 1
-            if n_cuts == 2 and cuts[1] < cuts[0]:
-                cuts[0], cuts[1] = cuts[1], cuts[0]
-            cuts[n_cuts] = 1.0
+            sb, rm, cm, hm, rb, cb, hb = _next_piece(seg, sa, s_hi[n], ca, crs, x0, y0, dx, dy, turn_cols, rho_coef)
+            n_cuts = _fit_piece(ra, rm, rb, ca, cm, cb, ha, hm, hb, poly, cuts)
             u0 = 0.0
             for c in range(n_cuts + 1):
                 code = _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, u0, cuts[c],
@@ -468,6 +563,18 @@ def check_segments(a_lat, a_lon, a_h, b_lat, b_lon, b_h):
     return a_lat, a_lon, a_h, b_lat, b_lon, b_h
 
 
+def _walk_params(raster: Raster) -> tuple[bool, int, float]:
+    """(periodic, poles, columns per turn) of a raster as :func:`trace_segments` walks it."""
+    g = raster.georef
+    turn = 360.0 if g.crs == CRS_GEOGRAPHIC else TWO_PI_A_M
+    periodic = abs((raster.shape[1] - 1) * g.dx - turn) <= 1.0e-9 * turn
+    poles = 0
+    if g.crs == CRS_GEOGRAPHIC:
+        lat_top = g.y0 + (raster.shape[0] - 1) * g.dy
+        poles = int(abs(g.y0 + 90.0) <= 1.0e-9) | 2 * int(abs(lat_top - 90.0) <= 1.0e-9)
+    return periodic, poles, turn / g.dx
+
+
 def trace_segments(raster: Raster, a_ecef: np.ndarray, b_ecef: np.ndarray, s_lo: np.ndarray, s_hi: np.ndarray):
     """First contact of each ECEF segment a + s (b - a), s in [s_lo, s_hi], with the surface.
 
@@ -485,13 +592,7 @@ def trace_segments(raster: Raster, a_ecef: np.ndarray, b_ecef: np.ndarray, s_lo:
     s_lo = np.ascontiguousarray(np.broadcast_to(s_lo, (n,)), dtype=np.float64)
     s_hi = np.ascontiguousarray(np.broadcast_to(s_hi, (n,)), dtype=np.float64)
     g = raster.georef
-    turn = 360.0 if g.crs == CRS_GEOGRAPHIC else TWO_PI_A_M
-    nx = raster.shape[1]
-    periodic = abs((nx - 1) * g.dx - turn) <= 1.0e-9 * turn
-    poles = 0
-    if g.crs == CRS_GEOGRAPHIC:
-        lat_top = g.y0 + (raster.shape[0] - 1) * g.dy
-        poles = int(abs(g.y0 + 90.0) <= 1.0e-9) | 2 * int(abs(lat_top - 90.0) <= 1.0e-9)
+    periodic, poles, turn_cols = _walk_params(raster)
     pyr = raster.pyramid
     s = np.zeros(n)
     dcol = np.full(n, np.nan)
@@ -499,7 +600,7 @@ def trace_segments(raster: Raster, a_ecef: np.ndarray, b_ecef: np.ndarray, s_lo:
     status = np.zeros(n, np.uint8)
     filled = raster.filled if raster.filled is not None else _NO_FILLED
     _trace_kernel(raster.heights, filled, pyr.max_flat, pyr.filled_flat, pyr.offsets, pyr.shapes,
-                  g.crs, g.x0, g.y0, g.dx, g.dy, periodic, poles, turn / g.dx, a_ecef, b_ecef, s_lo, s_hi,
+                  g.crs, g.x0, g.y0, g.dx, g.dy, periodic, poles, turn_cols, a_ecef, b_ecef, s_lo, s_hi,
                   PIECE_RHO_COEF, s, dcol, drow, status)
     return s, dcol, drow, status
 
@@ -547,6 +648,19 @@ def line_of_sight(raster: Raster, a_lat, a_lon, a_h, b_lat, b_lon, b_h):
     a_lat, a_lon, a_h, b_lat, b_lon, b_h = check_segments(a_lat, a_lon, a_h, b_lat, b_lon, b_h)
     a = geodetic_to_ecef(a_lat, a_lon, a_h)
     b = geodetic_to_ecef(b_lat, b_lon, b_h)
+
+    def trace(a, b, s_lo, s_hi):
+        s, _, _, status = trace_segments(raster, a, b, s_lo, s_hi)
+        return s, status
+
+    return _both_ways(trace, a, b)
+
+
+def _both_ways(trace, a, b):
+    """(visible, status) of the ECEF segments a -> b ((n, 3), both changed) for a first-contact
+    trace(a, b, s_lo, s_hi) -> (s (NaN: none), status): as :func:`line_of_sight` answers. Each pair
+    is traced from the endpoint whose ECEF (x, y, z) sorts first (a and b are swapped in place to
+    that order), and a ray that leaves the covered surface from the other end as well."""
     d = b - a
     first_diff = np.argmax(d != 0.0, axis=1)
     swap = d[np.arange(d.shape[0]), first_diff] < 0.0
@@ -554,14 +668,14 @@ def line_of_sight(raster: Raster, a_lat, a_lon, a_h, b_lat, b_lon, b_h):
     length = np.linalg.norm(d, axis=1)
     with np.errstate(divide="ignore"):
         s_lo = np.minimum(ENDPOINT_TOLERANCE_M / length, 0.5)
-    s, _, _, status = trace_segments(raster, a, b, s_lo, 1.0 - s_lo)
-    # A ray that leaves the raster may be blocked on its covered part behind the endpoint it
+    s, status = trace(a, b, s_lo, 1.0 - s_lo)
+    # A ray that leaves the surface may be blocked on its covered part behind the endpoint it
     # was traced from (that endpoint outside, or a hole between): trace those from the other
     # end too. A contact found before leaving is a definite answer, as intersect_segments
-    # reports it; the rest stay OUTSIDE for the next source.
+    # reports it; the rest stay OUTSIDE (for the next source, on one raster).
     out = np.flatnonzero(status == STATUS_OUTSIDE)
     if out.size:
-        s_back, _, _, status_back = trace_segments(raster, b[out], a[out], s_lo[out], 1.0 - s_lo[out])
+        s_back, status_back = trace(b[out], a[out], s_lo[out], 1.0 - s_lo[out])
         blocked = ~np.isnan(s_back)
         s[out[blocked]] = 1.0 - s_back[blocked]
         status[out[blocked]] = status_back[blocked]
@@ -604,3 +718,402 @@ def dense_los_reference(raster: Raster, a_lat, a_lon, a_h, b_lat, b_lon, b_h, sa
         with np.errstate(invalid="ignore"):
             np.minimum.at(clearance, ray, h - terrain_h)  # NaN (outside) propagates
     return clearance > 0.0, clearance
+
+
+# --------------------------------------------------------------------------- segments over a stack of sources
+#
+# The stack's surface along a segment is, at each point, the surface of the first source covering
+# it, as terrain.terrain.Terrain.heights answers. stack_trace finds the first contact with it: every
+# source's raster gives the parameter intervals of the segment it covers (the cells of four finite
+# posts the segment's track crosses, walked as _walk walks them: the same pieces and quadratic track,
+# _next_piece and _fit_piece, and the same block walk over the same cells, _walk_start, _enter,
+# _block, _next_cell); a sweep keeps each stretch for the first source covering it; the stretches
+# are traced in order along the segment by trace_segments, each on its source's raster, until a
+# contact.
+
+# A stretch no source covers shorter than this (m) is no gap: where two rasters meet, the ends of
+# their coverage come from two quadratic models of the track (each within MODEL_ERROR_M, 1 um, of
+# it) and may leave a sliver between them.
+STACK_GAP_TOLERANCE_M = 1.0e-4
+# First step (m) by which a stretch's ends are moved inwards until its raster covers them exactly
+# (trace_segments starts and ends a trace at the exact position; the interval came from the model).
+STACK_NUDGE_M = 1.0e-9
+# Parameter distance within which a covered interval continues the previous one (pieces meet at
+# the same parameter; the product u (sb - sa) only rounds).
+_TOUCH = 1.0e-12
+
+
+@numba.njit(cache=True, nogil=True)
+def _clip_monotone(p0, p1, p2, ua, ub, lo, hi):
+    """[u0, u1] within [ua, ub] where lo <= p(u) <= hi, p = p0 + p1 u + p2 u^2 monotone on
+    [ua, ub] (a stretch of the piecewise-quadratic track); u0 > u1 when empty."""
+    pa, pb = _quad(p0, p1, p2, ua), _quad(p0, p1, p2, ub)
+    if pa <= pb:
+        if pb < lo or pa > hi:
+            return 1.0, 0.0
+        u0 = ua if pa >= lo else _cross(p0, p1, p2, lo, ua, ub)
+        u1 = ub if pb <= hi else _cross(p0, p1, p2, hi, ua, ub)
+    else:
+        if pa < lo or pb > hi:
+            return 1.0, 0.0
+        u0 = ua if pa <= hi else _cross(p0, p1, p2, hi, ua, ub)
+        u1 = ub if pb >= lo else _cross(p0, p1, p2, lo, ua, ub)
+    return u0, u1
+
+
+@numba.njit(cache=True, nogil=True)
+def _emit(s0, s1, ray, first, count, out_ray, out_s0, out_s1):
+    """Add [s0, s1] to the ray's intervals out_*[first:count], merged into the last one when it
+    continues it; the new count, or -1 when the arrays are full."""
+    if count > first and s0 <= out_s1[count - 1] + _TOUCH:
+        if s1 > out_s1[count - 1]:
+            out_s1[count - 1] = s1
+        return count
+    if count >= out_ray.shape[0]:
+        return -1
+    out_ray[count], out_s0[count], out_s1[count] = ray, s0, s1
+    return count + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _cover_walk(pmax, poff, pshape, periodic, poles, poly, shift, u0, u1, sa, sb, ray, first, count,
+                out_ray, out_s0, out_s1):
+    """Emit (as parameters s = sa + u (sb - sa)) the parts of [u0, u1] over cells of four finite
+    posts. [u0, u1] is a monotone stretch of a piece clipped to the raster's rows and (columns less
+    ``shift``, a whole number of turns) its columns. The walk is :func:`_walk`'s (the same block
+    steps on the min/max pyramid): a block whose maximum is finite holds no hole and is passed
+    whole (a cell with a NaN post has maximum +inf, terrain.pyramid)."""
+    ncy, ncx = pshape[0, 0], pshape[0, 1]
+    r0, r1, r2 = poly[0], poly[1], poly[2]
+    c0, c1, c2 = poly[3] - shift, poly[4], poly[5]
+    sr, sc, i, j = _walk_start(r0, r1, r2, c0, c1, c2, u0, u1, ncy, ncx)
+    if i == _OUT_OF_RANGE or j == _OUT_OF_RANGE:
+        return count
+    i = min(max(i, 0), ncy - 1)  # clipped already: only rounding puts the start a cell out
+    if not periodic:
+        j = min(max(j, 0), ncx - 1)
+    top = pshape.shape[0] - 1
+    k = top
+    u = u0
+    while True:
+        on, i, sr, jw = _enter(i, j, sr, periodic, poles, ncy, ncx)
+        if not on:
+            return count
+        bi, bj, rlo, rhi, clo, chi, u_r, u_c, u_e = _block(r0, r1, r2, c0, c1, c2, i, j, jw, k, sr, sc, u, u1,
+                                                           ncy, ncx)
+        covered = pmax[poff[k] + bi * pshape[k, 1] + bj] < math.inf
+        if not covered and k > 0:
+            k -= 1
+            continue
+        if covered:
+            count = _emit(sa + u * (sb - sa), sa + u_e * (sb - sa), ray, first, count, out_ray, out_s0, out_s1)
+            if count < 0:
+                return count
+        if u_e >= u1:
+            return count
+        i, j = _next_cell(r0, r1, r2, c0, c1, c2, sr, sc, rlo, rhi, clo, chi, u_r, u_c, u_e, ncy, ncx)
+        u = u_e
+        k = min(k + 1, top)
+
+
+@numba.njit(cache=True, nogil=True)
+def _cover_stretch(pmax, poff, pshape, periodic, poles, turn_cols, poly, ua, ub, sa, sb, ray, first, count,
+                   out_ray, out_s0, out_s1):
+    """:func:`_cover_walk` over the parts of the monotone stretch [ua, ub] inside the raster's rows
+    (beyond a pole row too, when the raster reaches the pole) and columns: every copy of the
+    column range a whole turn apart that the stretch meets, in order along it (a raster not
+    spanning the globe ends at its first and last column, as in :func:`_walk`)."""
+    ncy, ncx = pshape[0, 0], pshape[0, 1]
+    u0, u1 = _clip_monotone(poly[0], poly[1], poly[2], ua, ub, -math.inf if poles & 1 else 0.0,
+                            math.inf if poles & 2 else float(ncy))
+    if not u0 <= u1:
+        return count
+    if periodic:
+        return _cover_walk(pmax, poff, pshape, periodic, poles, poly, 0.0, u0, u1, sa, sb, ray, first, count,
+                           out_ray, out_s0, out_s1)
+    c_a, c_b = _quad(poly[3], poly[4], poly[5], ua), _quad(poly[3], poly[4], poly[5], ub)
+    lo, hi = min(c_a, c_b), max(c_a, c_b)
+    if not (abs(lo) < 1.0e12 and abs(hi) < 1.0e12):
+        return count
+    m_lo, m_hi = math.ceil((lo - ncx) / turn_cols), math.floor(hi / turn_cols)
+    for t in range(int(m_hi - m_lo) + 1):
+        m = m_lo + t if c_b >= c_a else m_hi - t
+        shift = m * turn_cols
+        v0, v1 = _clip_monotone(poly[3] - shift, poly[4], poly[5], ua, ub, 0.0, float(ncx))
+        v0, v1 = max(v0, u0), min(v1, u1)
+        if v0 <= v1:
+            count = _cover_walk(pmax, poff, pshape, periodic, poles, poly, shift, v0, v1, sa, sb, ray, first,
+                                count, out_ray, out_s0, out_s1)
+            if count < 0:
+                return count
+    return count
+
+
+@numba.njit(cache=True, nogil=True)
+def _cover_kernel(pmax, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn_cols, a_ecef, b_ecef, s_lo, s_hi,
+                  rho_coef, first_ray, out_ray, out_s0, out_s1):
+    """The parameter intervals of each segment a + s (b - a), s in [s_lo, s_hi], over the raster's
+    covered cells, in order, from segment first_ray on: (count written, next segment). The
+    track is :func:`_trace_kernel`'s (the pieces and monotone stretches of :func:`_next_piece` and
+    :func:`_fit_piece`). When the arrays fill up the next segment is below n and none of its
+    intervals are written: call again from it with larger ones."""
+    poly = np.zeros(9)
+    cuts = np.zeros(4)
+    count = 0
+    for n in range(first_ray, a_ecef.shape[0]):
+        first = count
+        seg = _segment(a_ecef, b_ecef, n)
+        sa = s_lo[n]
+        ra, ca, ha = _track_at(seg, sa, crs, x0, y0, dx, dy)
+        while True:
+            sb, rm, cm, hm, rb, cb, hb = _next_piece(seg, sa, s_hi[n], ca, crs, x0, y0, dx, dy, turn_cols, rho_coef)
+            n_cuts = _fit_piece(ra, rm, rb, ca, cm, cb, ha, hm, hb, poly, cuts)
+            u0 = 0.0
+            for c in range(n_cuts + 1):
+                count = _cover_stretch(pmax, poff, pshape, periodic, poles, turn_cols, poly, u0, cuts[c], sa, sb,
+                                       n, first, count, out_ray, out_s0, out_s1)
+                if count < 0:
+                    return first, n
+                u0 = cuts[c]
+            if sb >= s_hi[n]:
+                break
+            sa, ra, ca, ha = sb, rb, cb, hb
+    return count, a_ecef.shape[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _covered_at(heights, crs, x0, y0, dx, dy, periodic, x, y, z):
+    """Whether the ECEF point lies in a cell of four finite posts whichever way a walk leaves it
+    (:func:`_walk` takes the cell ahead on a boundary): on a row or column line both cells beside
+    it that the raster has must be covered, and one at least."""
+    lat, lon, _ = _geodetic(x, y, z)
+    r, c = fractional_index(lat, lon, crs, x0, y0, dx, dy)
+    if not (abs(r) < 1.0e12 and abs(c) < 1.0e12):
+        return False
+    ny, nx = heights.shape
+    i1, j1 = int(math.floor(r)), int(math.floor(c))
+    i0 = i1 - 1 if r == i1 else i1
+    j0 = j1 - 1 if c == j1 else j1
+    i0, i1 = max(i0, 0), min(i1, ny - 2)
+    if not periodic:
+        j0, j1 = max(j0, 0), min(j1, nx - 2)
+    if i0 > i1 or j0 > j1:
+        return False
+    for i in range(i0, i1 + 1):
+        for jj in range(j0, j1 + 1):
+            j = jj % (nx - 1) if periodic else jj
+            s = (np.float64(heights[i, j]) + np.float64(heights[i, j + 1]) + np.float64(heights[i + 1, j])
+                 + np.float64(heights[i + 1, j + 1]))
+            if s != s:
+                return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _inner_bounds(heights, crs, x0, y0, dx, dy, periodic, a_ecef, b_ecef, p0, p1, nudge_m, out0, out1):
+    """Each stretch [p0, p1] of a segment a + s (b - a) with its ends moved inwards, by nudge_m
+    doubling, until the raster covers them exactly (:func:`_covered_at`), so that
+    :func:`trace_segments` starts and ends the stretch on the raster; NaN when no point up to the
+    stretch's middle is covered (a sliver along a hole's rim)."""
+    for n in range(p0.shape[0]):
+        ax, ay, az, vx, vy, vz, length, _, _ = _segment(a_ecef, b_ecef, n)
+        step = nudge_m / length if length > 0.0 else 0.0
+        lo, hi = p0[n], p1[n]
+        mid = 0.5 * (lo + hi)
+        out0[n] = math.nan
+        out1[n] = math.nan
+        s, d = lo, step
+        while True:
+            if _covered_at(heights, crs, x0, y0, dx, dy, periodic, ax + s * vx, ay + s * vy, az + s * vz):
+                out0[n] = s
+                break
+            if s >= mid or d == 0.0:
+                break
+            s, d = min(lo + d, mid), 2.0 * d
+        s, d = hi, step
+        while True:
+            if _covered_at(heights, crs, x0, y0, dx, dy, periodic, ax + s * vx, ay + s * vy, az + s * vz):
+                out1[n] = s
+                break
+            if s <= mid or d == 0.0:
+                break
+            s, d = max(hi - d, mid), 2.0 * d
+
+
+@numba.njit(cache=True, nogil=True)
+def _stack_parts(iv_ray, iv_src, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out_ray, out_src, out_p0, out_p1):
+    """Cut each segment's [s_lo, s_hi] into stretches of one source: the first (lowest index)
+    source whose interval holds the stretch, -1 where none does; a -1 stretch shorter than gap_m
+    metres is dropped (the stretches on either side meet there). iv_*: every source's covered
+    intervals, grouped by segment in segment order. Returns the count written (in order along
+    each segment); a segment of zero extent gets one stretch, the source holding its point."""
+    count = 0
+    g = 0
+    for ray in range(s_lo.shape[0]):
+        start = g
+        while g < iv_ray.shape[0] and iv_ray[g] == ray:
+            g += 1
+        lo, hi = s_lo[ray], s_hi[ray]
+        if not hi > lo:
+            top = -1
+            for t in range(start, g):
+                if iv_s0[t] <= lo <= iv_s1[t] and (top < 0 or iv_src[t] < top):
+                    top = iv_src[t]
+            out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, top, lo, lo
+            count += 1
+            continue
+        pts = np.empty(2 * (g - start) + 2)
+        pts[0], pts[1] = lo, hi
+        for t in range(start, g):
+            pts[2 + 2 * (t - start)] = min(max(iv_s0[t], lo), hi)
+            pts[3 + 2 * (t - start)] = min(max(iv_s1[t], lo), hi)
+        pts.sort()
+        first = count
+        for q in range(pts.shape[0] - 1):
+            x0, x1 = pts[q], pts[q + 1]
+            if not x1 > x0:
+                continue
+            mid = 0.5 * (x0 + x1)
+            top = -1
+            for t in range(start, g):
+                if iv_s0[t] <= mid <= iv_s1[t] and (top < 0 or iv_src[t] < top):
+                    top = iv_src[t]
+            if top < 0 and (x1 - x0) * length[ray] < gap_m:
+                continue
+            if count > first and out_src[count - 1] == top and out_p1[count - 1] == x0:
+                out_p1[count - 1] = x1
+            else:
+                out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, top, x0, x1
+                count += 1
+        if count == first:  # a sliver of a segment that no source covers: keep it a gap
+            out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, -1, lo, hi
+            count += 1
+    return count
+
+
+def segment_coverage(raster: Raster, a_ecef, b_ecef, s_lo, s_hi):
+    """Where segments run over a raster: (segment index, s0, s1) (m,) arrays of the parameter
+    intervals of each a + s (b - a), s in [s_lo, s_hi], over cells of four finite posts, grouped
+    by segment in order and along each segment. The track and the cells are those of
+    :func:`trace_segments`: a trace started inside an interval leaves the raster at its end, to
+    within the track model's error (MODEL_ERROR_M)."""
+    g = raster.georef
+    periodic, poles, turn_cols = _walk_params(raster)
+    pyr = raster.pyramid
+    whole = _whole_segments(raster, a_ecef, b_ecef)
+    walk = np.flatnonzero(~whole)
+    a_walk, b_walk = np.ascontiguousarray(a_ecef[walk]), np.ascontiguousarray(b_ecef[walk])
+    n = walk.size
+    cap = max(64, 4 * n)
+    parts, first = [], 0
+    while first < n:
+        out = np.empty(cap, np.int64), np.empty(cap), np.empty(cap)
+        count, first = _cover_kernel(pyr.max_flat, pyr.offsets, pyr.shapes, g.crs, g.x0, g.y0, g.dx, g.dy, periodic,
+                                     poles, turn_cols, a_walk, b_walk, s_lo[walk], s_hi[walk], PIECE_RHO_COEF, first,
+                                     *out)
+        parts.append((walk[out[0][:count]], out[1][:count], out[2][:count]))
+        cap *= 2
+    inside = np.flatnonzero(whole)
+    parts.append((inside, s_lo[inside], s_hi[inside]))
+    ray, s0, s1 = (np.concatenate(p) for p in zip(*parts))
+    order = np.argsort(ray, kind="stable")  # each segment's intervals stay in order along it
+    return ray[order], s0[order], s1[order]
+
+
+def _whole_segments(raster: Raster, a_ecef, b_ecef) -> np.ndarray:
+    """(n,) bool: segments a raster without holes covers whole, no walk needed (the procedural
+    world's raster for the segments' box). A geographic raster covers a segment whose endpoints
+    lie inside its bounds by more than the chord's poleward bulge (terrain.terrain.ray_bulge_deg,
+    per segment): the track's longitude is monotone between the endpoints' (the chord's projection
+    on the equatorial plane is a straight line), its latitude within the endpoints' and the bulge."""
+    n = a_ecef.shape[0]
+    if raster.georef.crs != CRS_GEOGRAPHIC or not np.isfinite(raster.pyramid.max_flat[-1]) or n == 0:
+        return np.zeros(n, bool)
+    lat_a, lon_a, _ = ecef_to_geodetic(a_ecef)
+    lat_b, lon_b, _ = ecef_to_geodetic(b_ecef)
+    lat0, lon0, lat1, lon1 = raster.bounds
+    d_rad = np.radians(np.hypot(lat_b - lat_a, (lon_b - lon_a + 180.0) % 360.0 - 180.0))
+    tan_phi = np.tan(np.radians(np.minimum(np.maximum(np.abs(lat_a), np.abs(lat_b)), 89.0)))
+    margin = np.degrees(d_rad * d_rad * tan_phi / 8.0) + 1.0e-9
+    wa = (lon_a - lon0) % 360.0
+    wb = wa + (lon_b - lon_a + 180.0) % 360.0 - 180.0
+    return ((np.minimum(lat_a, lat_b) - margin > lat0) & (np.maximum(lat_a, lat_b) + margin < lat1)
+            & (np.minimum(wa, wb) > 1.0e-9) & (np.maximum(wa, wb) < lon1 - lon0 - 1.0e-9))
+
+
+def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi):
+    """First contact of each segment a + s (b - a), s in [s_lo, s_hi], with the surface of a stack
+    of rasters (priority order; None: a source with nothing here): at each point the first
+    raster covering it. Returns (s (NaN: none), d h / d col and d h / d row at the contact (its
+    raster's index units), status, index of the contact's raster).
+
+    Each raster's covered intervals (:func:`segment_coverage`) are cut into stretches of one
+    source each (:func:`_stack_parts`), which are traced in order along the segment by
+    :func:`trace_segments` (exact against each bilinear surface) until the first contact:
+    where a segment passes from a source onto a higher one under its surface, that is the
+    stretch's start (the step between the two surfaces is a wall). Status OUTSIDE when a
+    stretch no source covers (longer than STACK_GAP_TOLERANCE_M) comes first, else FILLED when a
+    traced stretch passed over a filled void, else OK. Each stretch is traced from and to
+    points its raster covers exactly (:func:`_inner_bounds`): the parts are exact to within
+    about a micrometre of the sources' edges.
+    """
+    n = a_ecef.shape[0]
+    length = np.linalg.norm(b_ecef - a_ecef, axis=1)
+    ivs = []
+    for k, raster in enumerate(rasters):
+        if raster is not None:
+            ray, s0, s1 = segment_coverage(raster, a_ecef, b_ecef, s_lo, s_hi)
+            ivs.append((ray, np.full(ray.size, k, np.int64), s0, s1))
+    iv = [np.concatenate(x) for x in zip(*ivs)] if ivs else [np.zeros(0, np.int64)] * 2 + [np.zeros(0)] * 2
+    order = np.argsort(iv[0], kind="stable")
+    cap = 2 * iv[0].size + 2 * n
+    parts = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap)
+    m = _stack_parts(*(x[order] for x in iv), s_lo, s_hi, length, STACK_GAP_TOLERANCE_M, *parts)
+    p_ray, p_src, p_0, p_1 = (x[:m] for x in parts)
+    rank = np.arange(m) - np.searchsorted(p_ray, p_ray)  # parts come in order along each segment
+    s, dcol, drow = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    status = np.full(n, STATUS_OUTSIDE, np.uint8)
+    which = np.full(n, -1, np.int64)
+    done, filled = np.zeros(n, bool), np.zeros(n, bool)
+    for j in range(int(rank.max(initial=-1)) + 1):
+        sel = np.flatnonzero(rank == j)
+        sel = sel[~done[p_ray[sel]]]
+        done[p_ray[sel[p_src[sel] < 0]]] = True  # a gap before any contact: OUTSIDE
+        for k in np.unique(p_src[sel]):
+            if k < 0:
+                continue
+            part = sel[p_src[sel] == k]
+            ray = p_ray[part]
+            raster = rasters[k]
+            g = raster.georef
+            lo, hi = np.empty(part.size), np.empty(part.size)
+            _inner_bounds(raster.heights, g.crs, g.x0, g.y0, g.dx, g.dy, _walk_params(raster)[0], a_ecef[ray],
+                          b_ecef[ray], p_0[part], p_1[part], STACK_NUDGE_M, lo, hi)
+            ok = ~np.isnan(lo) & ~np.isnan(hi) & (lo <= hi)
+            ray = ray[ok]
+            got_s, got_dc, got_dr, got_st = trace_segments(raster, a_ecef[ray], b_ecef[ray], lo[ok], hi[ok])
+            filled[ray[got_st == STATUS_FILLED]] = True  # an OUTSIDE (an end off by rounding) adds nothing
+            hit = ~np.isnan(got_s)
+            r = ray[hit]
+            s[r], dcol[r], drow[r], which[r] = got_s[hit], got_dc[hit], got_dr[hit], k
+            done[r] = True
+            status[r] = np.where(filled[r], STATUS_FILLED, STATUS_OK)
+    gap = done & np.isnan(s)
+    through = ~done
+    status[through] = np.where(filled[through], STATUS_FILLED, STATUS_OK)
+    status[gap] = STATUS_OUTSIDE
+    return s, dcol, drow, status, which
+
+
+def stack_line_of_sight(rasters, a_ecef, b_ecef):
+    """Whether each ECEF segment a -> b ((n, 3) float64 metres; swapped in place, per segment, to the
+    order traced) clears the surface of a stack of rasters (as :func:`stack_trace`): (visible,
+    status) as :func:`line_of_sight` gives them on one raster, contacts within ENDPOINT_TOLERANCE_M
+    of either endpoint ignored; OUTSIDE (not visible) when a stretch no raster covers comes before
+    any contact from either end."""
+
+    def trace(a, b, s_lo, s_hi):
+        s, _, _, status, _ = stack_trace(rasters, a, b, s_lo, s_hi)
+        return s, status
+
+    return _both_ways(trace, a_ecef, b_ecef)

@@ -114,6 +114,14 @@ def _cell(v, n):
     return i, v - i
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _weighted_corners(i, fy, j, fx):
+    """(i0, i1, j0, j1): the rows and columns of cell (i, j)'s corners at fractions (fy, fx),
+    a corner of zero weight replaced by its neighbour across the cell (so it is not read)."""
+    return (i + 1 if fy == 1.0 else i), (i if fy == 0.0 else i + 1), (j + 1 if fx == 1.0 else j), \
+        (j if fx == 0.0 else j + 1)
+
+
 @numba.njit(cache=True, nogil=True)
 def _bilinear_value(heights, filled, has_filled, r, c):
     """(height, status) of one point at fractional index (r, c), the careful way: edges,
@@ -125,10 +133,7 @@ def _bilinear_value(heights, filled, has_filled, r, c):
     j, fx = _cell(c, nx)
     # Corners of zero weight are not read, so a post beside a hole or a
     # filled void keeps its own value and status.
-    j0 = j + 1 if fx == 1.0 else j
-    j1 = j if fx == 0.0 else j + 1
-    i0 = i + 1 if fy == 1.0 else i
-    i1 = i if fy == 0.0 else i + 1
+    i0, i1, j0, j1 = _weighted_corners(i, fy, j, fx)
     h00 = np.float64(heights[i0, j0])
     h01 = np.float64(heights[i0, j1])
     h10 = np.float64(heights[i1, j0])
@@ -271,11 +276,30 @@ def bilinear_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_h, out_sta
 
 
 @numba.njit(cache=True, nogil=True)
-def gradient_into(heights, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, out_status):
+def _filled_status(filled, r, c):
+    """STATUS_FILLED when a post of non-zero weight at fractional index (r, c) (inside the grid)
+    is a filled void, else STATUS_OK: the status :func:`_bilinear_value` gives a point it covers,
+    so a slope and a height at one point carry the same status."""
+    if filled.shape[0] == 0:
+        return STATUS_OK
+    ny, nx = filled.shape
+    i, fy = _cell(r, ny)
+    j, fx = _cell(c, nx)
+    i0, i1, j0, j1 = _weighted_corners(i, fy, j, fx)
+    if filled[i0, j0] | filled[i0, j1] | filled[i1, j0] | filled[i1, j1]:
+        return STATUS_FILLED
+    return STATUS_OK
+
+
+@numba.njit(cache=True, nogil=True)
+def gradient_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, out_status):
     """Partial derivatives of the bilinear surface in index units (m per post).
 
     On a cell edge the cell to the north-east is used (the last cell at the
-    far edges), matching bilinear_into's choice.
+    far edges), matching bilinear_into's choice. filled as for :func:`bilinear_into`;
+    the status is the one bilinear_into gives the point (FILLED where a post of
+    non-zero weight is a filled void), so :class:`terrain.terrain.Terrain` can
+    answer a filled point's slope from a measured source, as it does its height.
     """
     for k in range(lat.shape[0]):
         if out_status[k] != STATUS_OUTSIDE:
@@ -285,7 +309,7 @@ def gradient_into(heights, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, ou
         if found:
             out_dcol[k] = dcol
             out_drow[k] = drow
-            out_status[k] = STATUS_OK
+            out_status[k] = _filled_status(filled, r, c)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -336,11 +360,11 @@ def _gradient_value(heights, r, c):
 
 
 @numba.njit(cache=True, nogil=True)
-def gradient_grid_into(heights, lat_rows, lon_cols, crs, x0, y0, dx, dy, mx_rows, my_rows, out_de, out_dn,
-                       out_status):
+def gradient_grid_into(heights, filled, lat_rows, lon_cols, crs, x0, y0, dx, dy, mx_rows, my_rows, out_de,
+                       out_dn, out_status):
     """Raster.gradient_into over the lattice lat_rows x lon_cols, with each row's metres per
     column and per row step (mx_rows, my_rows: :func:`metres_per_index` of lat_rows) given:
-    the same slopes, bit for bit, for the points still OUTSIDE."""
+    the same slopes and statuses, bit for bit, for the points still OUTSIDE."""
     rr, cc = _grid_indices(lat_rows, lon_cols, crs, x0, y0, dx, dy)
     for i in range(rr.shape[0]):
         for j in range(cc.shape[0]):
@@ -349,7 +373,7 @@ def gradient_grid_into(heights, lat_rows, lon_cols, crs, x0, y0, dx, dy, mx_rows
                 if found:
                     out_de[i, j] = dcol / mx_rows[i]
                     out_dn[i, j] = drow / my_rows[i]
-                    out_status[i, j] = STATUS_OK
+                    out_status[i, j] = _filled_status(filled, rr[i], cc[j])
 
 
 def grid_bounds(georef: Georef, shape: tuple[int, int]) -> tuple[float, float, float, float]:
@@ -472,13 +496,14 @@ class Raster:
         return bilinear_one(self.heights, self._filled_arg, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy)
 
     def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
-        """Surface slope dh/d(east metre), dh/d(north metre) for points still OUTSIDE."""
+        """Surface slope dh/d(east metre), dh/d(north metre) for points still OUTSIDE; status
+        as :meth:`heights_into` gives it (FILLED on a filled void)."""
         g = self.georef
         todo = out_status == STATUS_OUTSIDE
         dcol = np.zeros(lat.shape[0])
         drow = np.zeros(lat.shape[0])
         st = out_status.copy()
-        gradient_into(self.heights, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, dcol, drow, st)
+        gradient_into(self.heights, self._filled_arg, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, dcol, drow, st)
         hit = todo & (st != STATUS_OUTSIDE)
         if hit.any():
             mx, my = metres_per_index(g.crs, g.dx, g.dy, lat[hit])
@@ -497,7 +522,7 @@ class Raster:
         """:meth:`gradient_into` over the lattice lat_rows x lon_cols (outputs (rows, cols))."""
         g = self.georef
         mx, my = metres_per_index(g.crs, g.dx, g.dy, lat_rows)
-        gradient_grid_into(self.heights, lat_rows, lon_cols, g.crs, g.x0, g.y0, g.dx, g.dy,
+        gradient_grid_into(self.heights, self._filled_arg, lat_rows, lon_cols, g.crs, g.x0, g.y0, g.dx, g.dy,
                            np.ascontiguousarray(mx, np.float64), np.ascontiguousarray(my, np.float64),
                            out_de, out_dn, out_status)
 

@@ -4,9 +4,13 @@ Sources are tried in order; each point is answered by the first source that
 covers it (real DEMs first, procedural terrain last, so a procedural world
 fills everything the DEMs leave). A point a source covers only with a filled
 void (STATUS_FILLED) is answered by the first later source that has it
-measured (STATUS_OK), if any; synthetic sources (procedural) do not count. A source is anything with the methods of
-:class:`terrain.raster.Raster` used here: ``heights_into``, ``gradient_into``,
-``raster_for`` and ``describe`` (and optionally ``warm_cache``).
+measured (STATUS_OK), if any; synthetic sources (procedural) do not count.
+Normals and slopes follow the same rule, from the source the height comes from.
+Segments (intersect, line of sight) meet the same surface: at every point that
+of the first source covering it (:func:`terrain.los.stack_trace`). A source is
+anything with the methods of :class:`terrain.raster.Raster` used here:
+``heights_into``, ``gradient_into``, ``raster_for`` and ``describe`` (and
+optionally ``warm_cache``).
 
 All heights are metres above mean sea level (the sources' vertical datum,
 EGM96 for SRTM); argument order is always (lat, lon) in degrees.
@@ -14,12 +18,14 @@ EGM96 for SRTM); argument order is always (lat, lon) in degrees.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster
+from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster, metres_per_index
 from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
 
 
@@ -132,29 +138,31 @@ class Terrain:
                 source.heights_into(lat[idx], lon[idx], sub_h, sub_status)
                 out_h[idx] = sub_h
                 status[idx] = sub_status
-        self._prefer_measured(lat, lon, out_h, status)
+        for _, idx, sub_h in self._measured_instead(lat, lon, status):
+            out_h[idx] = sub_h
+            status[idx] = STATUS_OK
         return HeightResult(out_h, status)
 
-    def _prefer_measured(self, lat, lon, out_h, status) -> None:
-        """Answer points a source gave as FILLED (a filled void: a guess) by the first source
-        that has them measured (status OK) instead, if any; synthetic sources (procedural)
-        measure nothing and are not asked. A terrain of one measured source pays nothing; others
-        one pass over the statuses, and the filled points their queries."""
+    def _measured_instead(self, lat, lon, status):
+        """Yield (source, indices, their heights there) for the points answered FILLED (a filled
+        void: a guess) that a measured source has with status OK: each point by the first such
+        source, in priority order; synthetic sources (procedural) measure nothing and are not
+        asked. This is the one place the rule lives, so heights, slopes and their lattice forms
+        take a point from the same source. A terrain of one measured source pays nothing; others
+        one pass over the statuses, and the filled points their height queries."""
         if len(self.sources) == 1 or len(self._measured_sources()) < 2:
             return
         idx = np.flatnonzero(status == STATUS_FILLED)
-        if idx.size == 0:
-            return
         for source in self._measured_sources():
+            if idx.size == 0:
+                return
             sub_h = np.full(idx.size, np.nan)
             sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
             source.heights_into(lat[idx], lon[idx], sub_h, sub_status)
             ok = sub_status == STATUS_OK
-            out_h[idx[ok]] = sub_h[ok]
-            status[idx[ok]] = STATUS_OK
+            if ok.any():
+                yield source, idx[ok], sub_h[ok]
             idx = idx[~ok]
-            if idx.size == 0:
-                return
 
     def _measured_sources(self) -> list:
         """The sources holding measured data: every one but the synthetic (procedural) ones."""
@@ -204,6 +212,16 @@ class Terrain:
                 sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
                 source.gradient_into(lat[idx], lon[idx], sub_de, sub_dn, sub_status)
                 de[idx], dn[idx], status[idx] = sub_de, sub_dn, sub_status
+        # A filled point's slope comes from the source its height comes from (heights' rule,
+        # decided on heights). That source's slope is missing only on a post at the rim of one
+        # of its holes (the slope's cell has a NaN corner, the height reads the post alone):
+        # there the filled answer stays.
+        for source, idx, _ in self._measured_instead(lat, lon, status):
+            sub_de, sub_dn = np.full(idx.size, np.nan), np.full(idx.size, np.nan)
+            sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
+            source.gradient_into(lat[idx], lon[idx], sub_de, sub_dn, sub_status)
+            got = sub_status != STATUS_OUTSIDE
+            de[idx[got]], dn[idx[got]], status[idx[got]] = sub_de[got], sub_dn[got], sub_status[got]
         return de, dn, status
 
     def height_grid(self, lat_rows, lon_cols) -> HeightResult:
@@ -239,9 +257,15 @@ class Terrain:
         status = np.full(shape, STATUS_OUTSIDE, np.uint8)
         if lat_rows.size and lon_cols.size and hasattr(self.sources[0], method):
             getattr(self.sources[0], method)(lat_rows, lon_cols, *outs, status)
-            # FILLED points too: the per-point query lets a measured lower source answer them.
-            left = np.flatnonzero((status.ravel() == STATUS_OUTSIDE) | (status.ravel() == STATUS_FILLED))
-            if left.size == 0 or len(self.sources) == 1:
+            if len(self.sources) == 1:
+                return outs, status
+            # FILLED points too, where a second measured source may have them: the per-point
+            # query lets it answer them (heights and slopes alike, see _measured_instead).
+            left = status.ravel() == STATUS_OUTSIDE
+            if len(self._measured_sources()) >= 2:
+                left |= status.ravel() == STATUS_FILLED
+            left = np.flatnonzero(left)
+            if left.size == 0:
                 return outs, status
         else:
             left = np.arange(status.size)
@@ -265,64 +289,111 @@ class Terrain:
     def intersect(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> SegmentResult:
         """First contact of each straight (ECEF) segment a -> b with the surface.
 
-        Arrays (n,) float64: (lat, lon) degrees, heights metres MSL. Each
-        segment is answered by the first source that holds it until its hit
-        (or its whole length); a segment no source holds is OUTSIDE.
+        Arrays (n,) float64: (lat, lon) degrees, heights metres MSL. The surface is, at every
+        point, that of the first source covering it (as :meth:`heights` answers; see
+        :func:`terrain.los.stack_trace`), so a -> b and b -> a meet the same surface wherever the
+        segment crosses from one source into another. A segment that reaches a stretch no source
+        covers before any hit is OUTSIDE.
         """
-        from terrain.los import check_segments, intersect_segments
+        from terrain.los import check_segments
 
         rays = check_segments(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl)
+        a = geodetic_to_ecef(rays[0], rays[1], rays[2])
+        b = geodetic_to_ecef(rays[3], rays[4], rays[5])
         n = rays[0].size
-        out = SegmentResult(np.zeros(n, bool), *(np.full(n, np.nan) for _ in range(4)),
-                            np.full((n, 3), np.nan), np.full(n, STATUS_OUTSIDE, np.uint8))
-        for raster, todo in self._rasters_for(rays, out.status):
-            got = SegmentResult(*intersect_segments(raster, *(r[todo] for r in rays)))
-            for name in SegmentResult.__dataclass_fields__:
-                getattr(out, name)[todo] = getattr(got, name)
-        return out
+        s, dcol, drow, status, which, rasters = self._trace(rays, a, b, np.zeros(n), np.ones(n))
+        hit = ~np.isnan(s)
+        lat, lon, h = ecef_to_geodetic(a + s[:, None] * (b - a))
+        normal = np.full((n, 3), np.nan)
+        for k in np.unique(which[hit]):
+            sel = np.flatnonzero(hit & (which == k))
+            g = rasters[k].georef
+            m_col, m_row = metres_per_index(g.crs, g.dx, g.dy, lat[sel])
+            nk = np.stack([-dcol[sel] / m_col, -drow[sel] / m_row, np.ones(sel.size)], axis=-1)
+            normal[sel] = nk / np.linalg.norm(nk, axis=-1, keepdims=True)
+        return SegmentResult(hit, s * np.linalg.norm(b - a, axis=1), lat, lon, h, normal, status)
 
     def line_of_sight(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> LosResult:
         """Whether each straight (ECEF) segment a -> b clears the surface.
 
-        Arrays as :meth:`intersect`. Contacts within 1 mm of an endpoint do not
-        block (a point on the ground can see); symmetric in a and b.
+        Arrays as :meth:`intersect`, and the same surface. Contacts within 1 mm of an endpoint
+        do not block (a point on the ground can see); symmetric in a and b: each segment is
+        traced from the endpoint whose ECEF (x, y, z) sorts first, and one that reaches a
+        stretch no source covers before any contact from the other as well (blocked when
+        either meets the surface first, else OUTSIDE).
         """
-        from terrain.los import check_segments, line_of_sight
+        from terrain.los import check_segments, line_of_sight, stack_line_of_sight
 
         rays = check_segments(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl)
         n = rays[0].size
-        out = LosResult(np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8))
-        for raster, todo in self._rasters_for(rays, out.status):
-            visible, status = line_of_sight(raster, *(r[todo] for r in rays))
-            out.visible[todo] = visible
-            out.status[todo] = status
-        return out
+        first = self._first_raster(rays, np.arange(n))
+        if first is not None:
+            visible, status = line_of_sight(first, *rays)
+        else:
+            visible, status = np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8)
+        todo = np.flatnonzero(status == STATUS_OUTSIDE)
+        if len(self.sources) == 1 or todo.size == 0:
+            return LosResult(visible, status)
+        # Off the first source: the stack of every source's surface, as line_of_sight does on one.
+        a = geodetic_to_ecef(rays[0][todo], rays[1][todo], rays[2][todo])
+        b = geodetic_to_ecef(rays[3][todo], rays[4][todo], rays[5][todo])
+        rasters = [first] + self._ray_rasters(rays, todo, from_source=1)
+        visible[todo], status[todo] = stack_line_of_sight(rasters, a, b)
+        return LosResult(visible, status)
 
-    def _rasters_for(self, rays, status):
-        """Yield (raster, index array) per source for the rays still OUTSIDE.
+    def _trace(self, rays, a, b, s_lo, s_hi):
+        """First contact s in [s_lo, s_hi] of each segment a + s (b - a) with the stack's surface:
+        (s (NaN: none), d h / d col and d h / d row there, status, the hitting raster's index in
+        ``rasters``, rasters). The first source traces every segment on its own (its kernel
+        marks those that leave it); only those go through :func:`terrain.los.stack_trace`, so a
+        terrain whose segments stay on its first source pays nothing more."""
+        from terrain.los import stack_trace, trace_segments
 
-        A Raster source traces every pending ray itself (its kernel marks the
-        ones that leave it); other sources hand out a raster covering the
-        pending rays' bounding box. ``status`` is updated by the caller between
-        yields, which is what moves unanswered rays on to the next source.
-        """
+        n = a.shape[0]
+        first = self._first_raster(rays, np.arange(n))
+        which = np.zeros(n, np.int64)
+        if first is not None:
+            s, dcol, drow, status = trace_segments(first, a, b, s_lo, s_hi)
+        else:
+            s, dcol, drow = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+            status = np.full(n, STATUS_OUTSIDE, np.uint8)
+        todo = np.flatnonzero(status == STATUS_OUTSIDE)
+        if len(self.sources) == 1 or todo.size == 0:
+            return s, dcol, drow, status, which, [first]
+        rasters = [first] + self._ray_rasters(rays, todo, from_source=1)
+        s[todo], dcol[todo], drow[todo], status[todo], which[todo] = stack_trace(
+            rasters, a[todo], b[todo], s_lo[todo], s_hi[todo])
+        return s, dcol, drow, status, which, rasters
+
+    def _first_raster(self, rays, idx):
+        """The first source's raster for the segments idx: the source itself if it is a Raster."""
+        if isinstance(self.sources[0], Raster):
+            return self.sources[0]
+        return self._ray_rasters(rays, idx, from_source=0, upto=1)[0]
+
+    def _ray_rasters(self, rays, idx, from_source: int, upto: int | None = None) -> list:
+        """One raster per source (from_source up to ``upto``) for the segments idx: a Raster
+        source itself, any other the raster it hands out for the segments' bounding box (None
+        where it has none)."""
         a_lat, a_lon, _, b_lat, b_lon, _ = rays
-        for source in self.sources:
-            todo = np.flatnonzero(status == STATUS_OUTSIDE)
-            if todo.size == 0:
-                return
-            if isinstance(source, Raster):
-                yield source, todo
+        out = []
+        for source in self.sources[from_source:upto]:
+            if isinstance(source, Raster) or idx.size == 0:
+                out.append(source if isinstance(source, Raster) else None)
                 continue
-            lats = np.concatenate([a_lat[todo], b_lat[todo]])
-            # Unroll b's longitude next to a's so a box never spans the long way round.
-            b_lon_near = a_lon[todo] + (b_lon[todo] - a_lon[todo] + 180.0) % 360.0 - 180.0
-            lons = np.concatenate([a_lon[todo], b_lon_near])
-            pad = RAY_BOX_PAD_DEG + ray_bulge_deg(np.abs(lats).max(), a_lat[todo], a_lon[todo],
-                                                  b_lat[todo], b_lon_near)
-            raster = source.raster_for(lats.min() - pad, lons.min() - pad, lats.max() + pad, lons.max() + pad)
-            if raster is not None:
-                yield raster, todo
+            lats = np.concatenate([a_lat[idx], b_lat[idx]])
+            # Unroll every a's longitude next to the first one's, and b's next to its a's, so that
+            # a box never spans the long way round (segments on both sides of the antimeridian).
+            a_lon_near = a_lon[idx[0]] + (a_lon[idx] - a_lon[idx[0]] + 180.0) % 360.0 - 180.0
+            b_lon_near = a_lon_near + (b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0
+            lons = np.concatenate([a_lon_near, b_lon_near])
+            pad = RAY_BOX_PAD_DEG + ray_bulge_deg(np.abs(lats).max(), a_lat[idx], a_lon_near, b_lat[idx],
+                                                  b_lon_near)
+            west = lons.min() - pad
+            turns = 360.0 * math.floor((west + 180.0) / 360.0)  # west in [-180, 180); east may pass 180
+            out.append(source.raster_for(max(lats.min() - pad, -90.0), west - turns, min(lats.max() + pad, 90.0),
+                                         lons.max() + pad - turns))
+        return out
 
     def describe(self) -> list[dict]:
         """One dict per source: name, kind, bounds, resolution, vertical datum."""

@@ -1,0 +1,302 @@
+"""Segments over a stack of sources meet the stack's surface: at every point the first source covering
+it, as heights answer. intersect(a, b) and intersect(b, a) agree on whether they hit wherever the
+segment crosses from one source onto another (a DEM's edge over the procedural world, a fine DEM over a
+coarse one, across the antimeridian); line of sight stays symmetric and consistent with intersect,
+also where part of a segment lies over no source at all.
+
+Oracles never use the composite trace: surfaces come from Terrain.heights, ray points from
+terrain.geodesy, the DEM edge crossing from the plane of a meridian."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from terrain.los import ENDPOINT_TOLERANCE_M, MODEL_ERROR_M, intersect_segments, line_of_sight
+from terrain.procedural import ProceduralTerrain
+from terrain.raster import CRS_GEOGRAPHIC, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
+from terrain.terrain import Terrain
+
+# A hit is on the surface of the source covering its point to within the track model's error times
+# the slope (< 5 here) plus rounding; 1 mm is a wide margin (as tests/test_los.py).
+ON_SURFACE_M = 1.0e-3
+# Where a segment passes onto a source whose surface is above it, the contact is the step between the
+# two surfaces (a wall) at the edge: its distance is exact to the track model's error, the nudge of
+# the stretch's start (1e-9 m, doubled at most a few times) and rounding.
+WALL_DISTANCE_M = 1.0e-5
+# Dense samples before the first contact are above the surface to within the model's error times
+# the slope.
+BEFORE_HIT_M = 5.0e-5
+SAMPLE_M = 2.0
+
+
+def _rough(lat0, lon0, n, d, base, seed, amp=80.0):
+    """A smooth random surface (sums of sines) of n x n posts d degrees apart."""
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[0:n, 0:n] * d
+    h = np.full((n, n), base)
+    for _ in range(6):
+        k = rng.uniform(20.0, 300.0, 2)
+        h += amp / 6 * np.sin(k[0] * rr + rng.uniform(0, 6)) * np.cos(k[1] * cc + rng.uniform(0, 6))
+    return Raster(h.astype(np.float32), Georef(CRS_GEOGRAPHIC, lon0, lat0, d, d), name=f"rough{seed}")
+
+
+@pytest.fixture(scope="module")
+def fine_over_coarse():
+    """A 1" DEM (0.1 degree, its surface some 60 m above the other's) over a 3" one (0.2 degree)."""
+    fine = _rough(47.05, 9.05, 361, 1.0 / 3600.0, 560.0, 1)
+    coarse = _rough(47.0, 9.0, 241, 1.0 / 1200.0, 500.0, 2)
+    return Terrain([fine, coarse])
+
+
+@pytest.fixture(scope="module")
+def alps_over_procedural(hgt_alps):
+    from terrain.dem import read_dem
+
+    return Terrain([read_dem(hgt_alps), ProceduralTerrain(seed=3)])
+
+
+def _ecef(lat, lon, h):
+    return geodetic_to_ecef(np.asarray(lat, float), np.asarray(lon, float), np.asarray(h, float))
+
+
+def _check_first_contact(t: Terrain, a, b, res, k):
+    """Ray k's contact (if any) lies on the stack's surface, or on a wall where the stack's surface
+    steps; no dense sample of the segment before it is below the stack's surface."""
+    pa, pb = _ecef(a[0][k], a[1][k], a[2][k]), _ecef(b[0][k], b[1][k], b[2][k])
+    length = float(np.linalg.norm(pb - pa))
+    end = res.distance_m[k] if res.hit[k] else length
+    s = np.arange(0.0, end, SAMPLE_M) / length
+    if s.size:
+        lat, lon, h = ecef_to_geodetic(pa + s[:, None] * (pb - pa))
+        ground = t.heights(lat, lon).height_msl_m
+        assert np.nanmin(h - ground) >= -BEFORE_HIT_M, k
+    if res.hit[k]:
+        on = t.heights([res.lat_deg[k]], [res.lon_deg[k]]).height_msl_m[0]
+        if abs(res.height_msl_m[k] - on) >= ON_SURFACE_M:  # then a wall: just past it, the ray is underground
+            s_past = (res.distance_m[k] + 1e-3) / length
+            lat, lon, h = ecef_to_geodetic((pa + s_past * (pb - pa))[None])
+            assert h[0] < t.heights(lat, lon).height_msl_m[0], k
+
+
+def _assert_symmetric_and_consistent(t: Terrain, a, b, gaps: bool):
+    """intersect both ways, line of sight both ways, and the relations between them."""
+    fwd = t.intersect(*a, *b)
+    back = t.intersect(*b, *a)
+    ab = t.line_of_sight(*a, *b)
+    ba = t.line_of_sight(*b, *a)
+    np.testing.assert_array_equal(ab.visible, ba.visible)
+    np.testing.assert_array_equal(ab.status, ba.status)
+    length = np.linalg.norm(_ecef(*b) - _ecef(*a), axis=1)
+
+    def inner(r):  # a contact strictly between the ends, as line of sight counts them
+        return r.hit & (r.distance_m > ENDPOINT_TOLERANCE_M) & (r.distance_m < length - ENDPOINT_TOLERANCE_M)
+
+    if not gaps:  # the stack covers every segment: both ways meet the same surface
+        np.testing.assert_array_equal(fwd.hit, back.hit)
+        assert (fwd.status != STATUS_OUTSIDE).all() and (ab.status != STATUS_OUTSIDE).all()
+        np.testing.assert_array_equal(~ab.visible, inner(fwd))
+    else:  # from either end up to the first stretch no source covers
+        np.testing.assert_array_equal(~ab.visible & (ab.status != STATUS_OUTSIDE), inner(fwd) | inner(back))
+        nothing = ~fwd.hit & ~back.hit & (fwd.status == STATUS_OUTSIDE)
+        np.testing.assert_array_equal(ab.status == STATUS_OUTSIDE, nothing)
+    return fwd, back, ab
+
+
+def _segments_across(t, rng, n, lat_rng, lon_rng, reach_deg, up_m=(2.0, 150.0), within=None):
+    """n segments from random points of a box to random points within reach_deg (and the box
+    ``within``, (lat_min, lon_min, lat_max, lon_max), if given), both ends up_m above the stack's
+    surface (points over no source: above 0 m)."""
+    lat_a, lon_a = rng.uniform(*lat_rng, n), rng.uniform(*lon_rng, n)
+    lat_b = lat_a + rng.uniform(-reach_deg, reach_deg, n)
+    lon_b = lon_a + rng.uniform(-reach_deg, reach_deg, n) / math.cos(math.radians(lat_a.mean()))
+    if within is not None:
+        lat_b, lon_b = np.clip(lat_b, within[0], within[2]), np.clip(lon_b, within[1], within[3])
+    ga = np.nan_to_num(t.heights(lat_a, lon_a).height_msl_m)
+    gb = np.nan_to_num(t.heights(lat_b, lon_b).height_msl_m)
+    return (lat_a, lon_a, ga + rng.uniform(*up_m, n)), (lat_b, lon_b, gb + rng.uniform(*up_m, n))
+
+
+# ---------------------------------------------------------------------------------- closed form
+
+def test_a_segment_onto_a_higher_source_hits_its_edge_either_way():
+    """A flat DEM at 500 m (priority) over a flat world at 0 m. A horizontal-ish chord at 300 m from
+    west of the DEM to east of it passes under its surface: coming from either side, the first
+    contact is the DEM's edge on that side (the meridian plane of its first or last column), not
+    nothing; at 600 m it clears both ways. The old code traced a segment that starts off the first
+    source on the next source alone, and missed the DEM."""
+    dem = Raster(np.full((61, 61), 500.0, np.float32), Georef(CRS_GEOGRAPHIC, 9.5, 47.5, 1 / 600, 1 / 600))
+    world = Raster(np.zeros((121, 241), np.float32), Georef(CRS_GEOGRAPHIC, 9.0, 47.0, 1 / 100, 1 / 100))
+    t = Terrain([dem, world])
+    lat = 47.55
+    a, b = ([lat], [9.45], [300.0]), ([lat], [9.65], [300.0])
+    pa, pb = _ecef(*a), _ecef(*b)
+    for p, q, edge_lon in ((pa, pb, 9.5), (pb, pa, 9.6)):
+        normal = np.array([-math.sin(math.radians(edge_lon)), math.cos(math.radians(edge_lon)), 0.0])
+        s_edge = -(normal @ p[0]) / (normal @ (q[0] - p[0]))
+        lat_p, lon_p, h_p = ecef_to_geodetic(p)
+        lat_q, lon_q, h_q = ecef_to_geodetic(q)
+        res = t.intersect(lat_p, lon_p, h_p, lat_q, lon_q, h_q)
+        assert res.hit[0] and res.status[0] == STATUS_OK
+        assert abs(res.distance_m[0] - s_edge * np.linalg.norm(q - p)) < WALL_DISTANCE_M
+        assert abs(res.lon_deg[0] - edge_lon) < 1e-9 and 250.0 < res.height_msl_m[0] < 500.0
+    assert not t.line_of_sight(*a, *b).visible[0]
+    over = ([lat], [9.45], [600.0]), ([lat], [9.65], [600.0])
+    for p, q in (over, over[::-1]):
+        res = t.intersect(*p, *q)
+        assert not res.hit[0] and res.status[0] == STATUS_OK
+        assert t.line_of_sight(*p, *q).visible[0]
+
+
+def test_one_source_and_segments_that_stay_on_the_first_are_answered_as_before(hgt_alps):
+    """The first source traces every segment; only those that leave it meet the stack: answers of
+    a one-DEM terrain are terrain.los's own, bit for bit, and so are those of a DEM over the
+    procedural world for segments inside the DEM."""
+    from terrain.dem import read_dem
+
+    alps = read_dem(hgt_alps)
+    rng = np.random.default_rng(7)
+    a, b = _segments_across(Terrain([alps]), rng, 300, (47.2, 47.8), (9.2, 9.8), 0.1)
+    want = intersect_segments(alps, *a, *b)
+    for t in (Terrain([alps]), Terrain([alps, ProceduralTerrain(seed=3)])):
+        got = t.intersect(*a, *b)
+        for g, w in zip((got.hit, got.distance_m, got.lat_deg, got.lon_deg, got.height_msl_m, got.normal_enu,
+                         got.status), want):
+            np.testing.assert_array_equal(g, w)
+        los = t.line_of_sight(*a, *b)
+        ref = line_of_sight(alps, *a, *b)
+        np.testing.assert_array_equal(los.visible, ref[0])
+        np.testing.assert_array_equal(los.status, ref[1])
+    assert want[0].any() and (~want[0]).any()
+
+
+# ---------------------------------------------------------------------------------- batches
+
+def test_fine_dem_over_a_coarse_one(fine_over_coarse):
+    """Segments inside, outside and across the fine DEM's edge: both ways hit or both miss, every
+    contact is on the stack's surface or its wall, no sample before it is underground; line of
+    sight agrees with intersect."""
+    t = fine_over_coarse
+    a, b = _segments_across(t, np.random.default_rng(11), 400, (47.03, 47.17), (9.03, 9.17), 0.06,
+                            within=(47.01, 9.01, 47.19, 9.19))
+    fwd, back, _ = _assert_symmetric_and_consistent(t, a, b, gaps=False)
+    assert 50 < fwd.hit.sum() < 350
+    for res, p, q in ((fwd, a, b), (back, b, a)):
+        for k in range(0, 400, 4):
+            _check_first_contact(t, p, q, res, k)
+
+
+def test_dem_edge_over_the_procedural_world(alps_over_procedural):
+    """Segments across the Alps tile's north and east edges (47-48 N, 9-10 E) over the procedural
+    world."""
+    t = alps_over_procedural
+    rng = np.random.default_rng(12)
+    north = _segments_across(t, rng, 200, (47.95, 48.05), (9.2, 9.8), 0.08)
+    east = _segments_across(t, rng, 200, (47.2, 47.8), (9.95, 10.05), 0.08)
+    for a, b in (north, east):
+        fwd, back, _ = _assert_symmetric_and_consistent(t, a, b, gaps=False)
+        assert fwd.hit.any() and (~fwd.hit).any()
+        for k in range(0, 200, 5):
+            _check_first_contact(t, a, b, fwd, k)
+            _check_first_contact(t, b, a, back, k)
+
+
+def test_dem_edge_over_no_source(hgt_alps):
+    """The Alps tile alone: a segment's stretch beyond its edge is covered by nothing. intersect
+    stops there (OUTSIDE) unless it hit first; line of sight is blocked when a contact is found
+    from either end before that stretch, OUTSIDE when none is, and symmetric."""
+    from terrain.dem import read_dem
+
+    t = Terrain([read_dem(hgt_alps)])
+    a, b = _segments_across(t, np.random.default_rng(13), 400, (47.95, 48.05), (9.2, 9.8), 0.08)
+    fwd, back, ab = _assert_symmetric_and_consistent(t, a, b, gaps=True)
+    assert (ab.status == STATUS_OUTSIDE).any() and (~ab.visible & (ab.status == STATUS_OK)).any()
+
+
+def test_across_the_antimeridian_onto_the_procedural_world():
+    """A DEM straddling 180 E (179.5 .. 180.5) over the procedural world: segments across its
+    edges and across the antimeridian inside it."""
+    dem = _rough(47.0, 179.5, 121, 1 / 120, 300.0, 3, amp=200.0)
+    t = Terrain([dem, ProceduralTerrain(seed=5)])
+    rng = np.random.default_rng(14)
+    a, b = _segments_across(t, rng, 300, (47.1, 47.9), (179.3, 180.7), 0.1)
+    a = (a[0], (a[1] + 180.0) % 360.0 - 180.0, a[2])
+    b = (b[0], (b[1] + 180.0) % 360.0 - 180.0, b[2])
+    assert (np.sign(a[1]) != np.sign(b[1])).sum() > 10
+    fwd, back, _ = _assert_symmetric_and_consistent(t, a, b, gaps=False)
+    assert fwd.hit.any() and (~fwd.hit).any()
+    for k in range(0, 300, 6):
+        _check_first_contact(t, a, b, fwd, k)
+
+
+def test_holes_in_the_first_source_and_a_web_mercator_dem(tif_grand_canyon):
+    """The fine DEM with a hole (NaN posts: a DEM clipped around a lake) over the coarse one: the
+    coarse surface answers in the hole, for segments as for heights. And a Web Mercator GeoTIFF
+    (its rows nonlinear in latitude) over the procedural world, segments across its edges."""
+    from terrain.dem import read_dem
+
+    fine = _rough(47.05, 9.05, 361, 1.0 / 3600.0, 560.0, 1)
+    h = np.array(fine.heights)
+    h[120:240, 150:200] = np.nan
+    holed = Terrain([Raster(h, fine.georef, name="holed"), _rough(47.0, 9.0, 241, 1.0 / 1200.0, 500.0, 2)])
+    a, b = _segments_across(holed, np.random.default_rng(15), 300, (47.07, 47.13), (9.07, 9.13), 0.04,
+                            within=(47.01, 9.01, 47.19, 9.19))
+    fwd, back, _ = _assert_symmetric_and_consistent(holed, a, b, gaps=False)
+    for k in range(0, 300, 5):
+        _check_first_contact(holed, a, b, fwd, k)
+    canyon = read_dem(tif_grand_canyon)
+    t = Terrain([canyon, ProceduralTerrain(seed=6)])
+    lat0, lon0, lat1, lon1 = canyon.bounds
+    a, b = _segments_across(t, np.random.default_rng(16), 200, (lat0 - 0.02, lat0 + 0.02), (lon0 + 0.05, lon1 - 0.05),
+                            0.05, up_m=(2.0, 400.0))
+    fwd, back, _ = _assert_symmetric_and_consistent(t, a, b, gaps=False)
+    assert fwd.hit.any() and (~fwd.hit).any()
+    for k in range(0, 200, 5):
+        _check_first_contact(t, a, b, fwd, k)
+
+
+# ---------------------------------------------------------------------------------- hypothesis
+
+_END = st.tuples(st.floats(47.90, 48.10), st.floats(9.05, 9.95), st.floats(2.0, 300.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(a=_END, b=_END)
+def test_edge_over_procedural_symmetric(alps_over_procedural, a, b):
+    """Both ends anywhere near the Alps tile's north edge (either side of it), above the stack."""
+    t = alps_over_procedural
+    ground = t.heights([a[0], b[0]], [a[1], b[1]]).height_msl_m
+    pa, pb = ([a[0]], [a[1]], [ground[0] + a[2]]), ([b[0]], [b[1]], [ground[1] + b[2]])
+    fwd, back, _ = _assert_symmetric_and_consistent(t, pa, pb, gaps=False)
+    _check_first_contact(t, pa, pb, fwd, 0)
+    _check_first_contact(t, pb, pa, back, 0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(a=_END, b=_END)
+def test_edge_over_nothing_consistent(hgt_alps, a, b):
+    """The same ends over the Alps tile alone (nothing beyond 48 N)."""
+    from terrain.dem import read_dem
+
+    t = _alone(hgt_alps, read_dem)
+    ground = np.nan_to_num(t.heights([a[0], b[0]], [a[1], b[1]]).height_msl_m)
+    pa, pb = ([a[0]], [a[1]], [ground[0] + a[2]]), ([b[0]], [b[1]], [ground[1] + b[2]])
+    _assert_symmetric_and_consistent(t, pa, pb, gaps=True)
+
+
+_ALONE = {}
+
+
+def _alone(path, read):
+    if path not in _ALONE:
+        _ALONE[path] = Terrain([read(path)])
+    return _ALONE[path]
+
+
+def test_model_error_bound_is_what_the_wall_tolerance_assumes():
+    assert MODEL_ERROR_M <= 1.0e-6 < WALL_DISTANCE_M
