@@ -66,6 +66,9 @@ DEFAULT_CACHE_TILES = 512
 # groups per batch); at most CACHE_BLOCKS of them are kept (4 MiB each at T = 256).
 BLOCK_TILES = 4
 CACHE_BLOCKS = 64
+# The most posts StoreSource.raster_for merges from several regions for a batch of rays (16 M:
+# 128 MiB of float64 while merging); beyond, the rays get the region holding most of their box.
+RAY_RASTER_MAX_POSTS = 1 << 24
 
 
 def lattice_spacing_deg(depth: int, tile: int = DEFAULT_TILE) -> tuple[float, float]:
@@ -195,13 +198,15 @@ class TerrainStore:
         return heights, classes
 
     def raster(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float,
-               region: Region | None = None) -> Raster | None:
+               region: Region | None = None, max_posts: int | None = None) -> Raster | None:
         """The posts of a level covering a box as a :class:`Raster` (row 0 south), merged from
         every region whose rectangle at this level overlaps the box (only ``region``'s when
         given): posts no region holds are NaN, outside, so a box over two regions reads both
         (GetRegion, rays through a :class:`StoreSource`). The grid is the box's posts cropped
         to the part of the box the rectangles reach; None when no rectangle overlaps it.
-        A box with lon_max above 180 runs east across the antimeridian."""
+        A box with lon_max above 180 runs east across the antimeridian. With ``max_posts``, a
+        merged grid larger than that (regions far apart, or a box wider than a turn) gives way to
+        the one overlapping rectangle that shares most posts with the box, as large as it is."""
         r_top, c_left = self.fractional_post(level, lat_max, lon_min)
         r_bot, _ = self.fractional_post(level, lat_min, lon_min)
         span = (lon_max - lon_min) / self.spacing_deg(level)[1]
@@ -225,6 +230,9 @@ class TerrainStore:
                     parts.append((reg, ra, rb, ca, cb, m * per_turn))
         if not parts:
             return None
+        if max_posts is not None and (max(p[2] for p in parts) - min(p[1] for p in parts)) * (
+                max(p[4] for p in parts) - min(p[3] for p in parts)) > max_posts:
+            parts = [max(parts, key=lambda p: (p[2] - p[1]) * (p[4] - p[3]))]
         ga, gb = min(p[1] for p in parts), max(p[2] for p in parts)
         gc, gd = min(p[3] for p in parts), max(p[4] for p in parts)
         if gb - ga < 2 or gd - gc < 2:
@@ -649,7 +657,9 @@ class StoreSource:
         self._by_block(lat, lon, (out_de, out_dn, out_status), Raster.gradient_into)
 
     def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> Raster | None:
-        return self.store.raster(self.level, lat_min, lon_min, lat_max, lon_max)
+        """The store's posts over a box of rays (terrain.terrain.Terrain), merged from every region
+        holding part of it up to RAY_RASTER_MAX_POSTS, else from the one holding most of it."""
+        return self.store.raster(self.level, lat_min, lon_min, lat_max, lon_max, max_posts=RAY_RASTER_MAX_POSTS)
 
     def describe(self) -> dict:
         s = self.store

@@ -132,3 +132,22 @@ def test_errors_name_what_is_wrong(client):
     with pytest.raises(NotFound, match="no region"):
         client.get_region(0, 10.1, 21.0, 10.4, 22.0)
     assert client.get_region(0, 10.1, 177.3, 10.4, 182.7).heights.shape[1] > 2  # as the error says
+
+
+def test_rays_over_far_apart_regions_get_a_bounded_raster(store):
+    """A batch of rays whose box spans the globe (a fuzzer's) must not merge the regions into
+    one grid of the whole span (it took 15 GiB once): beyond max_posts the raster is the
+    region holding most of the box, as big as that region's rectangle; below it, merged."""
+    level = 0
+    box = (9.9, 19.9, 10.8, 24.1)
+    merged = store.raster(level, *box)
+    assert merged.meta["regions"] == (0, 1)
+    capped = store.raster(level, *box, max_posts=merged.heights.size - 1)
+    assert len(capped.meta["regions"]) == 1 and capped.heights.size < merged.heights.size
+    alone = [store.raster(level, *box, region=store.regions[k]) for k in (0, 1)]
+    assert np.isfinite(capped.heights).sum() == max(np.isfinite(r.heights).sum() for r in alone)
+    # A ray batch around the world, through a StoreSource: bounded by RAY_RASTER_MAX_POSTS.
+    from terrain.store import RAY_RASTER_MAX_POSTS
+
+    world = StoreSource(store, level).raster_for(-60.0, -180.0, 60.0, 540.0)
+    assert world is not None and world.heights.size <= RAY_RASTER_MAX_POSTS
