@@ -739,11 +739,30 @@ class GroundVehicles:
         if r is not None:
             self.yaw_rate_cmd_dps[idx] = r
 
-    def stop(self, index, reason: int = BLOCKED_COLLISION) -> None:
-        """Stop the vehicles in ``index`` where they stand (speed 0, ``blocked`` = ``reason``),
-        as a blocked move stops them; their commands stay, so they drive on from rest at
-        the next step (a collision between vehicles: server/collisions.py)."""
+    def stop(self, index, reason: int = BLOCKED_COLLISION, lat=None, lon=None) -> None:
+        """Stop the vehicles in ``index`` (speed 0, ``blocked`` = ``reason``), as a blocked move
+        stops them; their commands stay, so they drive on from rest at the next step (a
+        collision between vehicles: server/collisions.py). With ``lat``/``lon`` (degrees, one
+        each), each is first put back there -- a point of the path it drove this step, where
+        it hit something -- with height, pitch and roll from the terrain there; one the
+        terrain does not hold there (or water) stays where it is."""
         idx = np.asarray(index, np.int64).reshape(-1)
+        if lat is not None and idx.size:
+            lat = np.asarray(lat, np.float64).reshape(-1).copy()
+            lon = np.asarray(lon, np.float64).reshape(-1).copy()
+            m = idx.size
+            pts_lat, pts_lon = np.empty(m * N_CONTACTS), np.empty(m * N_CONTACTS)
+            _place_kernel(lat, lon, self.heading_deg[idx].copy(), self.type_id[idx].copy(), self.table, pts_lat,
+                          pts_lon)
+            res = self.terrain.heights(pts_lat, pts_lon)
+            h = np.asarray(res.height_msl_m).reshape(m, N_CONTACTS)
+            st = np.asarray(res.status).reshape(m, N_CONTACTS)
+            ok = ~(st == STATUS_OUTSIDE).any(axis=1) & (h > self.water_level_msl_m).all(axis=1)
+            j = idx[ok]
+            self.lat[j], self.lon[j] = lat[ok], lon[ok]
+            self.height_msl_m[j] = h[ok, 0]
+            self.pitch_grad[j] = (h[ok, 1] - h[ok, 2]) / self.table[self.type_id[j], P_LEN]
+            self.roll_grad[j] = (h[ok, 4] - h[ok, 3]) / self.table[self.type_id[j], P_WID]
         self.speed_mps[idx] = 0.0
         self.blocked[idx] = reason
 

@@ -12,9 +12,12 @@ Shapes:
   local horizontal, along their heading. Two boxes touch when they overlap on the tangent
   plane (the separating-axis test on the four edge directions: Gottschalk, Lin and Manocha,
   "OBBTree", SIGGRAPH 1996, sec. 4, in two dimensions) and their centres are within the
-  sum of their bounding radii vertically. Boxes are tested at the start and the end of
-  the tick: a ground vehicle moves at most about 1 m a tick (30 m/s at 30 Hz), less than
-  any type's width, so two boxes cannot pass through each other between the two tests.
+  sum of their bounding radii vertically. Boxes are tested at the start of the tick and
+  then at every half of the narrower one's width of relative travel up to its end (their
+  headings the end's): at 30 Hz two vehicles close by at most about 2 m a tick, so the end
+  alone is tested; at a low world rate (1 Hz: up to 60 m) more instants are, so two boxes
+  cannot pass through each other between two tests unless one only grazes the other's
+  corner by less than that.
 - **Everything else** (aircraft, static entities, external entities, and a ground vehicle
   against any of them) is a sphere about its reference point, tested continuously: the
   least distance between two points moving linearly over the tick (r(t) = r0 + t dr,
@@ -63,8 +66,9 @@ def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half
                      out_d):
     """New contacts among n entities (see the module docstring), as rows (out_i, out_j,
     out_t, out_d): the two entities' indices (i < j), the fraction of the tick at which they
-    first touch (spheres: the smaller root of |r(t)| = r_i + r_j; boxes: 1) and the least
-    distance between their reference points. Returns the count, or minus the count needed
+    first touch (spheres: the smaller root of |r(t)| = r_i + r_j; boxes: the first instant
+    tested that overlaps) and their reference points' distance then (spheres: the least over
+    the tick). Returns the count, or minus the count needed
     when the outputs are too small. ``moves`` says which entities can move (pairs of two
     that cannot are skipped)."""
     n = p0.shape[0]
@@ -110,10 +114,14 @@ def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half
             r0x, r0y, r0z = p0[j, 0] - p0[i, 0], p0[j, 1] - p0[i, 1], p0[j, 2] - p0[i, 2]
             r1x, r1y, r1z = p1[j, 0] - p1[i, 0], p1[j, 1] - p1[i, 1], p1[j, 2] - p1[i, 2]
             d0 = math.sqrt(r0x * r0x + r0y * r0y + r0z * r0z)
-            d1 = math.sqrt(r1x * r1x + r1y * r1y + r1z * r1z)
-            if half_l[i] > 0.0 and half_l[j] > 0.0:  # two boxes: overlap at the end, apart at the start
-                if d1 >= rs:
-                    continue
+            drx, dry, drz = r1x - r0x, r1y - r0y, r1z - r0z
+            dd = drx * drx + dry * dry + drz * drz
+            b = r0x * drx + r0y * dry + r0z * drz
+            if half_l[i] > 0.0 and half_l[j] > 0.0:  # two boxes: apart at the start, overlapping later
+                tl = 0.0 if dd == 0.0 else min(max(-b / dd, 0.0), 1.0)
+                mx, my, mz = r0x + tl * drx, r0y + tl * dry, r0z + tl * drz
+                if mx * mx + my * my + mz * mz >= rs * rs:
+                    continue  # their bounding circles never meet in the tick
                 # i's local east, north and up (ECEF unit vectors at its geodetic position).
                 sp, cp = math.sin(math.radians(lat_deg[i])), math.cos(math.radians(lat_deg[i]))
                 sl, cl = math.sin(math.radians(lon_deg[i])), math.cos(math.radians(lon_deg[i]))
@@ -122,21 +130,26 @@ def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half
                 ux, uy, uz = cp * cl, cp * sl, sp
                 ci, si = math.sin(heading_rad[i]), math.cos(heading_rad[i])  # heading from north, clockwise
                 cj, sj = math.sin(heading_rad[j]), math.cos(heading_rad[j])
-                if (abs(r1x * ux + r1y * uy + r1z * uz) >= rs
-                        or not _box_overlap(r1x * ex + r1y * ey, r1x * nx + r1y * ny + r1z * nz, ci, si, half_l[i],
-                                            half_w[i], cj, sj, half_l[j], half_w[j])):
-                    continue
-                if (abs(r0x * ux + r0y * uy + r0z * uz) < rs
-                        and _box_overlap(r0x * ex + r0y * ey, r0x * nx + r0y * ny + r0z * nz, ci, si, half_l[i],
-                                         half_w[i], cj, sj, half_l[j], half_w[j])):
-                    continue  # touching already: an ongoing contact
-                t, d = 1.0, d1
+                # Sampled at the start, then every half of the narrower box's width of relative
+                # travel to the end: at 30 Hz one sample (the end), at low world rates more, so
+                # two boxes cannot pass through each other between samples.
+                samples = max(1, int(math.ceil(math.sqrt(dd) / min(half_w[i], half_w[j]))))
+                t = -1.0
+                for k in range(samples + 1):
+                    tk = k / samples
+                    rx, ry, rz = r0x + tk * drx, r0y + tk * dry, r0z + tk * drz
+                    if (abs(rx * ux + ry * uy + rz * uz) < rs
+                            and _box_overlap(rx * ex + ry * ey, rx * nx + ry * ny + rz * nz, ci, si, half_l[i],
+                                             half_w[i], cj, sj, half_l[j], half_w[j])):
+                        t = tk
+                        break
+                if t <= 0.0:
+                    continue  # never touching, or touching already at the start: an ongoing contact
+                mx, my, mz = r0x + t * drx, r0y + t * dry, r0z + t * drz
+                d = math.sqrt(mx * mx + my * my + mz * mz)
             else:  # spheres, continuously
                 if d0 < rs:
                     continue  # touching already
-                drx, dry, drz = r1x - r0x, r1y - r0y, r1z - r0z
-                dd = drx * drx + dry * dry + drz * drz
-                b = r0x * drx + r0y * dry + r0z * drz
                 t = 0.0 if dd == 0.0 else min(max(-b / dd, 0.0), 1.0)
                 mx, my, mz = r0x + t * drx, r0y + t * dry, r0z + t * drz
                 d = math.sqrt(mx * mx + my * my + mz * mz)
@@ -164,7 +177,8 @@ def new_contacts(p0, p1, radius, *, heading_deg=None, half_length_m=None, half_w
     ``lat_deg``/``lon_deg`` at the end (their local horizontal); ``half_length_m`` 0 for a
     sphere. ``moves`` (n,) bool: entities that can move (default all; two that cannot are
     never tested). Returns (i, j, t, distance): index pairs with i < j, sorted; the fraction
-    of the tick at which they first touched; their reference points' least distance."""
+    of the tick at which they first touched; their reference points' distance (see the
+    kernel)."""
     p0 = np.ascontiguousarray(p0, np.float64).reshape(-1, 3)
     p1 = np.ascontiguousarray(p1, np.float64).reshape(-1, 3)
     n = p0.shape[0]

@@ -167,6 +167,7 @@ class DisGateway:
         self._hour_offset_s = 0.0
         self._events_call = None
         self._event_number = 0  # the last Collision PDU's event number
+        self._wrecks: set[int] = set()  # entities the events said crashed or were destroyed
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -280,7 +281,9 @@ class DisGateway:
                 log.warning("entity %d (%s) not sent on DIS: its id is above the largest DIS entity number %d",
                             info.entity_id, info.name, MAX_ENTITY_NUMBER)
             return False
-        self._locals[info.entity_id] = _Local(KINDS.get(info.kind, "static"), info.type, info.coalition, info.name)
+        wreck = info.destroyed or info.entity_id in self._wrecks
+        self._locals[info.entity_id] = _Local(KINDS.get(info.kind, "static"), info.type, info.coalition, info.name,
+                                              appearance=dis.APPEARANCE_DESTROYED if wreck else 0)
         return True
 
     def _send_state(self, entity_id: int, state: pb.EntityState) -> None:
@@ -339,6 +342,7 @@ class DisGateway:
     def _destroyed(self, entity_id: int) -> None:
         """A local entity crashed or was destroyed: its PDUs from now on carry the appearance's damage
         "destroyed" (SISO-REF-010), the first one at once."""
+        self._wrecks.add(entity_id)  # for when it enters later (the events stream may run ahead)
         local = self._locals.get(entity_id)
         if local is None:
             return

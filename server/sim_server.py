@@ -188,7 +188,7 @@ class SimulationServer:
         try:
             while not self._stop.is_set():
                 if self._clock == "paused":  # watchers learn the clock stopped; newcomers get their snapshot
-                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), 0.0)
+                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), 0.0, world.wrecks)
                     self._resume.clear()
                     self._resume.wait(0.1)
                     wall_next = time.monotonic()
@@ -198,7 +198,8 @@ class SimulationServer:
                     self.before_tick(world)
                 world.tick()
                 if world.time_s + 1e-9 >= next_net:
-                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), cfg.time_scale)
+                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), cfg.time_scale,
+                                           world.wrecks)
                     next_net += net_dt
                 self.tick_ms.append((time.perf_counter() - t0) * 1e3)
                 if len(self.tick_ms) > 100_000:

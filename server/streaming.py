@@ -180,14 +180,14 @@ def encode_states(ids, t, pos, vel, acc, quat, omega, algorithm) -> list[bytes]:
                                                  np.asarray(algorithm).tolist())]
 
 
-def encode_info(info: tuple) -> bytes:
-    """EntityInfo fields 1-5 and 7 (id, name, kind, type, coalition[, external_id]) of an
-    info tuple (server.world.World.infos); the state (field 6) is appended per update by
-    :func:`encode_watch_update` (field order does not matter on the wire)."""
+def encode_info(info: tuple, destroyed: bool = False) -> bytes:
+    """EntityInfo fields 1-5, 7 and 8 (id, name, kind, type, coalition[, external_id], and
+    whether it is a wreck) of an info tuple (server.world.World.infos); the state (field 6) is
+    appended per update by :func:`encode_watch_update` (field order does not matter on the wire)."""
     from sortie.v1 import simulation_pb2 as pb
 
     return pb.EntityInfo(entity_id=info[0], name=info[1], kind=info[2], type=info[3], coalition=info[4],
-                         external_id=info[5] if len(info) > 5 else "").SerializeToString()
+                         external_id=info[5] if len(info) > 5 else "", destroyed=destroyed).SerializeToString()
 
 
 def encode_watch_update(p: Pending) -> bytes:
@@ -287,10 +287,11 @@ class Publisher:
                 gone[s_k] = np.setdiff1d(s.visible_ids, ids).tolist()
         return prev, gone
 
-    def publish(self, snap, infos: dict, sessions: list, time_scale: float = 1.0) -> None:
+    def publish(self, snap, infos: dict, sessions: list, time_scale: float = 1.0, wrecks=frozenset()) -> None:
         """Decide and queue the updates of ``snap`` for ``sessions``; ``time_scale``: world
         seconds per wall second now (0: paused), sent with every update and to every
-        session when it changes."""
+        session when it changes; ``wrecks``: the ids of entities crashed or destroyed (their
+        EntityInfo says so when they enter a view)."""
         n = snap.ids.size
         rescaled = time_scale != self._time_scale
         self._time_scale = time_scale
@@ -339,7 +340,8 @@ class Publisher:
             last = self.reckoner.last_sent(snap.ids[new_k])
             sent = encode_states(snap.ids[new_k], last["t0"], last["pos"], last["vel"], last["acc"], last["quat"],
                                  last["omega"], last["algorithm"])
-            enter_of = {k: (encode_info(infos[int(snap.ids[k])]), b) for k, b in zip(new_k.tolist(), sent)}
+            enter_of = {k: (encode_info(infos[int(snap.ids[k])], int(snap.ids[k]) in wrecks), b)
+                        for k, b in zip(new_k.tolist(), sent)}
 
         ids_list = snap.ids.tolist()
         idx_list = idx.tolist()

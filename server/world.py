@@ -234,6 +234,9 @@ class World(EventLog):
         # id -> (id, name, kind, type, coalition); replaced, never mutated, so readers on
         # other threads always see a whole dict.
         self.infos: dict[int, tuple] = {}
+        # Ids of the entities crashed (aircraft) or destroyed (ground, static); replaced, never
+        # mutated, like infos (what the streams tell a view an entity entering it is).
+        self.wrecks: frozenset = frozenset()
         self.time_s = 0.0
         self.tick_count = 0
         EventLog.__init__(self)
@@ -435,6 +438,7 @@ class World(EventLog):
                 raise NotFound(f"entity {entity_id} does not exist")
             self._layout_version += 1
             self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
+            self.wrecks = self.wrecks - {entity_id}
             self._pending.pop(entity_id, None)
             self._ground_heading_hold.pop(entity_id, None)
             self._hold_version += 1
@@ -664,6 +668,9 @@ class World(EventLog):
             events += self._agent_collisions(self.snapshot, snapshot)
             for ev in events:
                 self._emit(ev)
+            down = {ev.entity_id for ev in events if ev.kind in ("crash", "destroyed")}
+            if down:
+                self.wrecks = self.wrecks | down
             self.snapshot = snapshot
             if self.recorder is not None:
                 self.recorder.on_tick(snapshot, self.infos)
@@ -804,7 +811,7 @@ class World(EventLog):
                 elif me.kind in (GROUND, STATIC) and not me.destroyed and rel >= DESTROY_SPEED_MPS:
                     crashes.append((me, other, (lat, lon, h - self.geoid_undulation_m)))
                 elif me.kind == GROUND:
-                    stops.append(me.ground_id)
+                    stops.append((me.ground_id, lat, lon))
         for me, other, hit in crashes:
             reason = f"collision with {other.name}"
             if me.kind == AIRCRAFT and not me.crashed:
@@ -812,15 +819,18 @@ class World(EventLog):
                 me.crashed = True
                 events.append(WorldEvent(self.time_s, "crash", me.id, *hit, {"reason": reason}))
             elif me.kind != AIRCRAFT and not me.destroyed:
-                self._destroy(me)
+                self._destroy(me, hit[:2])
                 events.append(WorldEvent(self.time_s, "destroyed", me.id, *hit, {"reason": reason}))
         if stops:
-            self.ground.stop(self.ground.index_of(stops))
+            gid, lat, lon = zip(*stops)
+            # Where each was when it met the other (on its path this tick), not past it.
+            self.ground.stop(self.ground.index_of(list(gid)), lat=lat, lon=lon)
         return events
 
-    def _destroy(self, e: Entity) -> None:
-        """A ground vehicle or static entity destroyed: it stays where it is as a wreck; a
-        vehicle leaves its route or hold and stops for good (its commands are refused)."""
+    def _destroy(self, e: Entity, where: tuple) -> None:
+        """A ground vehicle or static entity destroyed: it stays as a wreck; a vehicle where it
+        was hit (``where``: lat, lon on its path this tick) leaves its route or hold and stops
+        for good (its commands are refused)."""
         e.destroyed = True
         if e.kind != GROUND:
             return
@@ -834,7 +844,7 @@ class World(EventLog):
         self._pending.pop(e.id, None)
         idx = self.ground.index_of([e.ground_id])
         self.ground.set_controls(0.0, 0.0, index=idx)
-        self.ground.stop(idx)
+        self.ground.stop(idx, lat=[where[0]], lon=[where[1]])
         self._destroyed_ground.append(e.id)
 
     def _hold_ground_headings(self) -> None:

@@ -759,7 +759,7 @@ def test_gateway_issues_collision_pdus_and_marks_the_wrecks_destroyed(alps):
     """Two f16s head-on 2 km apart at 250 m/s each: after the world's collision, the
     gateway sends one Collision PDU issued by each, naming the other, with the velocity of
     its last Entity State PDU, and from then on both wrecks' Entity State PDUs carry the
-    appearance's damage "destroyed" (before: none)."""
+    appearance's damage "destroyed" (before: none); so do a gateway's that joins later."""
     from fdm.aircraft import InitialConditions
     from server.sim_server import ServerConfig, SimulationServer
     from server.world import World
@@ -805,6 +805,12 @@ def test_gateway_issues_collision_pdus_and_marks_the_wrecks_destroyed(alps):
             last = {p.entity_id[2]: p for p in after}
             for i in (a.id, b.id):
                 assert last[i].appearance & dis.APPEARANCE_DESTROYED == dis.APPEARANCE_DESTROYED
+        # A gateway that joins after the crash sends the wrecks destroyed from its first PDU.
+        with DisGateway(srv.address, port=peer.getsockname()[1], site=6, application=83):
+            late = [p for p in receive(peer, 5.0, until=lambda ps: {p.entity_id for p in ps} >= {
+                (6, 83, a.id), (6, 83, b.id)}) if p.entity_id[:2] == (6, 83)]
+            assert {p.entity_id[2] for p in late} >= {a.id, b.id}
+            assert all(p.appearance & dis.APPEARANCE_DESTROYED == dis.APPEARANCE_DESTROYED for p in late)
     finally:
         peer.close()
         srv.stop(0.5)

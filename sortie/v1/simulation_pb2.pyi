@@ -173,7 +173,7 @@ class EntityState(_message.Message):
     def __init__(self, entity_id: _Optional[int] = ..., time_s: _Optional[float] = ..., ecef_x_m: _Optional[float] = ..., ecef_y_m: _Optional[float] = ..., ecef_z_m: _Optional[float] = ..., velocity_ecef_mps: _Optional[_Iterable[float]] = ..., acceleration_ecef_mps2: _Optional[_Iterable[float]] = ..., orientation_wxyz: _Optional[_Iterable[float]] = ..., angular_velocity_body_rps: _Optional[_Iterable[float]] = ..., dead_reckoning: _Optional[_Union[DeadReckoningAlgorithm, str]] = ...) -> None: ...
 
 class EntityInfo(_message.Message):
-    __slots__ = ("entity_id", "name", "kind", "type", "coalition", "state", "external_id")
+    __slots__ = ("entity_id", "name", "kind", "type", "coalition", "state", "external_id", "destroyed")
     ENTITY_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
@@ -181,6 +181,7 @@ class EntityInfo(_message.Message):
     COALITION_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     EXTERNAL_ID_FIELD_NUMBER: _ClassVar[int]
+    DESTROYED_FIELD_NUMBER: _ClassVar[int]
     entity_id: int
     name: str
     kind: EntityKind
@@ -188,7 +189,8 @@ class EntityInfo(_message.Message):
     coalition: str
     state: EntityState
     external_id: str
-    def __init__(self, entity_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ..., external_id: _Optional[str] = ...) -> None: ...
+    destroyed: bool
+    def __init__(self, entity_id: _Optional[int] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ..., external_id: _Optional[str] = ..., destroyed: _Optional[bool] = ...) -> None: ...
 
 class WatchUpdate(_message.Message):
     __slots__ = ("time_s", "snapshot", "entered", "left", "states", "time_scale")
