@@ -194,8 +194,15 @@ def new_contacts(p0, p1, radius, *, heading_deg=None, half_length_m=None, half_w
         raise ValueError("boxes need lat_deg and lon_deg (their local horizontal)")
     moves = np.ones(n, bool) if moves is None else column(moves, bool)
     cap = max(16, INITIAL_CAPACITY_PER_ENTITY * n)
-    args = (p0, p1, column(radius), column(lat_deg), column(lon_deg), np.radians(column(heading_deg)), half_l,
-            column(half_width_m), moves)
+    args = [p0, p1, column(radius), column(lat_deg), column(lon_deg), np.radians(column(heading_deg)), half_l,
+            column(half_width_m), moves]
+    finite = np.isfinite(p0).all(axis=1) & np.isfinite(p1).all(axis=1) & np.isfinite(args[2])
+    if not finite.all():  # an entity with no position is in no contact (it would compare false)
+        keep = np.flatnonzero(finite)
+        i, j, t, d = new_contacts(p0[keep], p1[keep], args[2][keep], heading_deg=np.degrees(args[5][keep]),
+                                  half_length_m=half_l[keep], half_width_m=args[7][keep], moves=moves[keep],
+                                  lat_deg=args[3][keep], lon_deg=args[4][keep])
+        return keep[i], keep[j], t, d
     while True:
         out_i, out_j = np.empty(cap, np.int64), np.empty(cap, np.int64)
         out_t, out_d = np.empty(cap), np.empty(cap)

@@ -367,3 +367,15 @@ def test_fast_vehicles_at_a_low_world_rate_do_not_pass_through(world_rate_hz):
             assert east_m[0] < east_m[1], half_gap_m  # a (from the west) still west of b
         finally:
             world.close()
+
+
+def test_an_entity_without_a_position_is_in_no_contact():
+    """A NaN position (nothing the world publishes, but the kernel must not compare it into
+    a contact): the other pairs are found as without it, with their own indices."""
+    p = geodetic_to_ecef(np.array([LAT0] * 3), np.array([LON0] * 3), np.array([1000.0] * 3))
+    east = _enu_basis(LAT0, LON0)[0]
+    p1 = np.stack([p[0], p[1] + 8.0 * east, p[2]])
+    p0 = np.stack([p[0], p[1] + 30.0 * east, p[2]])
+    p0[0] = p1[0] = np.nan
+    i, j, _, d = new_contacts(p0, p1, [5.0, 5.0, 5.0])
+    assert (i.tolist(), j.tolist()) == ([1], [2]) and np.isfinite(d).all()
