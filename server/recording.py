@@ -22,11 +22,15 @@ CRC of its own (over the frame's lengths and the head), so a chunk whose body
 is damaged keeps a trusted head: its tick span, the entities it introduced,
 its counts and where the next chunk starts. The walk goes on past a chunk
 that does not check: it trusts the frame's lengths when the next frame
-checks, and otherwise scans for the next chunk magic whose frame checks. What
-lies between two whole chunks is indexed as one lost chunk spanning the ticks
-between them (reading it is a DataFormatError naming its offset); its inputs
-and events are lost. States need nothing from other chunks (each chunk starts
-from absolute values); entity descriptions are in the head of the chunk that
+checks, and otherwise scans for the next chunk magic whose frame checks. The
+whole chunks are indexed in tick order (a recording runs on from FIRST_TICK): a
+chunk out of place in the file is read in its place, a copy or an overlap is left
+out, and ticks that no chunk holds are indexed as one lost chunk per gap, the
+damaged stretch between the chunks either side when there is one, else missing
+(reading it is a DataFormatError naming its offset); its inputs and events are
+lost. Bytes between chunks of consecutive ticks held no chunk: a problem only
+(docs/RECORDING.md, "Crash safety"). States need nothing from other chunks (each
+chunk starts from absolute values); entity descriptions are in the head of the chunk that
 first holds them, repeated in the next RECENT_CHUNKS heads (recent_entities),
 so a lost head loses none; an entity that no readable head describes (older
 files) reads with an empty description, listed in :attr:`Recording.undescribed`.
@@ -80,6 +84,9 @@ MAX_BODY_BYTES = 1 << 30
 # cores, and the file is half the size of Tacview's zipped ACMI either way.
 ZSTD_LEVEL = 1
 DECODED_CHUNK_CACHE = 8
+# A recording's first tick: the recorder is attached to a world at tick 0 (server/sim_server.py,
+# server/resim.py take_over), and the world's first tick is tick 1 (server/world.py).
+FIRST_TICK = 1
 
 
 def steps_of(header: rpb.RecordingHeader) -> codec.Steps:
@@ -248,7 +255,7 @@ class CheckReport:
     readable_bytes: int = 0  # the file up to the end of the last good chunk (or the footer)
     damaged_chunks: int = 0  # indexed chunks that do not decode (lost ones only, without decode)
     replays: list = field(default_factory=list)  # (first, last) world times of the stretches that replay
-    lost_ticks: int = 0  # ticks of the recording's span in chunks that do not read
+    lost_ticks: int = 0  # ticks in chunks that do not read, and those lost before the first chunk
 
     @property
     def ok(self) -> bool:
@@ -281,6 +288,7 @@ class Recording:
         self.size = self.path.stat().st_size
         self.problems: list[str] = []
         self.lost: dict[int, str] = {}
+        self.lost_before = 0  # ticks before the first chunk that the walk found lost (out of index.ticks)
         self.undescribed: dict[int, str] = {}
         self.header = self._read_header()
         self.problems += scenario_problems(self.header)
@@ -362,6 +370,11 @@ class Recording:
                     self.problems.append(f"damaged footer at offset {offset}: its index does not decode ({exc}); "
                                          "chunks found by walking the file")
                     return None
+                firsts = list(index.chunk_first_tick)
+                if len(index.chunk_offset) != len(firsts) or any(b < a for a, b in zip(firsts, firsts[1:])):
+                    self.problems.append(f"damaged footer at offset {offset}: its index is not in tick order; "
+                                         "chunks found by walking the file")
+                    return None
                 self._index_end = offset
                 return index
         self.problems.append(f"damaged footer at offset {offset}: chunks found by walking the file")
@@ -419,9 +432,8 @@ class Recording:
 
     def _walk(self) -> rpb.RecordingIndex:
         """Index the chunks by their frames. A chunk that does not check is skipped (see
-        :meth:`_resync`); what lies between two whole chunks is indexed as one lost chunk over
-        the ticks between them (:attr:`lost`); what follows the last whole chunk is a problem
-        only. Everything wrong is said in :attr:`problems`, with its offset."""
+        :meth:`_resync`); the whole chunks found are indexed in tick order (:meth:`_index_walked`).
+        Everything wrong is said in :attr:`problems`, with its offset."""
         found: list = []  # (offset, head) of whole chunks; (offset, why, next offset) of damaged stretches
         offset, got = self._data_start, None
         self._index_end = offset
@@ -439,48 +451,159 @@ class Recording:
             if nxt is None:
                 break
             offset, got = nxt, got_next
+        return self._index_walked(found)
+
+    def _kept(self, found: list) -> list[int]:
+        """The whole chunks of the walk (indices into ``found``) that the index holds, in tick
+        order. A chunk that holds a tick one before it in the file holds (a copy, or an overlap)
+        is left out: the first in the file is kept. A chunk out of place that overlaps none is
+        kept, in its place (each chunk reads alone, and its trusted head says its ticks). A chunk
+        with no tick (the writer writes one last, with the inputs and events done after the last
+        tick) is kept when it comes after every tick kept, the first such one only. What is left
+        out is a problem."""
+        starts: list[int] = []  # first ticks of the chunks kept that hold ticks, ascending
+        spans: list[tuple[int, int, int]] = []  # their (first tick, end tick (exclusive), index in found)
+        empty = []
+        for i, item in enumerate(found):
+            if len(item) != 2:
+                continue
+            head = item[1]
+            a, b = head.first_tick, head.first_tick + head.ticks
+            if not head.ticks:
+                empty.append(i)
+                continue
+            p = bisect.bisect_right(starts, a)
+            clash = spans[p - 1] if p and spans[p - 1][1] > a else (
+                spans[p] if p < len(spans) and spans[p][0] < b else None)
+            if clash is None:
+                if p < len(spans):
+                    c, d, j = spans[p]
+                    self.problems.append(
+                        f"chunk at offset {item[0]} holds ticks {a}..{b - 1} (t = {a * self.dt:.2f} .. "
+                        f"{(b - 1) * self.dt:.2f} s), before those of the chunk at offset {found[j][0]} (ticks "
+                        f"{c}..{d - 1}), which comes first in the file: a chunk out of place, read in its place")
+                starts.insert(p, a)
+                spans.insert(p, (a, b, i))
+                continue
+            self.problems.append(
+                f"chunk at offset {item[0]} holds ticks {a}..{b - 1} (t = {a * self.dt:.2f} .. "
+                f"{(b - 1) * self.dt:.2f} s), and the chunk at offset {found[clash[2]][0]}, before it in the file, "
+                f"holds ticks {clash[0]}..{clash[1] - 1}: a copy or a chunk out of place, left out with its inputs "
+                "and events")
+        kept = [i for _, _, i in spans]
+        end = spans[-1][1] if spans else FIRST_TICK
+        for i in empty:
+            offset, head = found[i]
+            if head.first_tick >= end and not (kept and not found[kept[-1]][1].ticks):
+                kept.append(i)
+                continue
+            why = (f"so does the chunk at offset {found[kept[-1]][0]}, before it in the file"
+                   if head.first_tick >= end else f"the recording goes on to tick {end - 1}")
+            self.problems.append(f"chunk at offset {offset} holds no tick, only inputs and events done after tick "
+                                 f"{head.first_tick - 1} (those done after a recording's last tick), and {why}: "
+                                 "left out with them")
+        return kept
+
+    def _index_walked(self, found: list) -> rpb.RecordingIndex:
+        """The index of what the walk found, in file order: (offset, head) of whole chunks,
+        (offset, why, next offset) of damaged stretches. The whole chunks kept (:meth:`_kept`)
+        are indexed in tick order; a recording's ticks run on from FIRST_TICK, and ticks that no
+        chunk kept holds are lost: each gap is indexed as one lost chunk (:attr:`lost`), put
+        down to the damaged stretch between the chunks either side of it in the file when one
+        lies there, else missing. The gap before the first chunk kept stays out of the index's
+        ticks (the recording's first tick is that chunk's; :attr:`lost_before` counts them). A
+        damaged stretch that holds no gap (its chunks either side hold consecutive ticks: a
+        chunk holds at least one tick, but the writer's last) or that no chunk kept follows
+        is a problem only."""
+        kept = self._kept(found)
+        is_kept = set(kept)
+        after: list = [None] * len(found)  # the next chunk kept in the file after each item
+        nxt = None
+        for i in range(len(found) - 1, -1, -1):
+            after[i] = nxt
+            if i in is_kept:
+                nxt = i
+        stretches, by_sides, before = [], {}, None
+        for i, item in enumerate(found):
+            if i in is_kept:
+                before = i
+            elif len(item) == 3:
+                stretches.append((i, before, after[i]))
+                if item[2] is not None and after[i] is not None:
+                    by_sides.setdefault((before, after[i]), i)
         index = rpb.RecordingIndex()
         entities: dict = {}
-        for i, item in enumerate(found):
-            if len(item) == 2:
-                _add_to_index(index, item[1], item[0], entities)
-            else:
-                before = found[i - 1][1] if i > 0 else None
-                after = found[i + 1][1] if i + 1 < len(found) else None
-                self._add_lost(index, item, before, after)
+        expected, before, used = FIRST_TICK, None, set()
+        for i in kept:
+            offset, head = found[i]
+            if head.first_tick > expected:
+                d = by_sides.get((before, i))
+                if d is not None:
+                    used.add(d)
+                self._add_lost(index, expected, head.first_tick, before is None, found[d] if d is not None else None,
+                               offset)
+            _add_to_index(index, head, offset, entities)
+            expected, before = head.first_tick + head.ticks, i
+        for i, b, a in stretches:
+            if i not in used:
+                self._skipped(found[i], found[b][1] if b is not None else None, found[a][1] if a is not None else None)
         index.entities.extend(entities[i] for i in sorted(entities))
         return index
 
-    def _add_lost(self, index: rpb.RecordingIndex, item: tuple, before, after) -> None:
-        """A damaged stretch of the walk (offset, why, next offset) between the heads ``before``
-        and ``after`` (None: none): indexed as a lost chunk when a whole chunk follows it."""
+    def _skipped(self, item: tuple, before, after) -> None:
+        """A damaged stretch of the walk (offset, why, next offset) that the index holds no lost
+        chunk for, between the heads of the chunks kept ``before`` and ``after`` it in the file
+        (None: none): a problem."""
         offset, why, nxt = item
-        if after is None:
+        if nxt is None:
             tail = ": a partial chunk" if why.startswith("cut short") else (
                 f"; {self.size - offset} bytes skipped (no whole chunk after it)")
             self.problems.append(f"chunk at offset {offset} {why}{tail}")
             return
         if why.startswith("cut short"):  # a whole chunk after it: the frame's lengths are what is wrong
             why = "has damaged frame lengths (they claim more bytes than the file has)"
+        text = f"chunk at offset {offset} {why}: {nxt - offset} bytes skipped to the next whole chunk, at offset {nxt}"
+        last = before.first_tick + before.ticks - 1 if before is not None else FIRST_TICK - 1
+        if after is not None and after.first_tick == last + 1:
+            sides = (f"the chunks either side hold consecutive ticks ({last} then {last + 1})" if before is not None
+                     else f"the chunk after it holds the recording's first tick ({FIRST_TICK})")
+            text += f"; {sides}, so no chunk is lost there (no tick, input or event)"
+        self.problems.append(text)
+
+    def _add_lost(self, index: rpb.RecordingIndex, first: int, stop: int, leading: bool, stretch, at: int) -> None:
+        """Ticks ``first`` .. ``stop`` - 1 that no chunk kept holds, indexed as a lost chunk:
+        the damaged stretch of the walk (offset, why, next offset) that held them, or None (the
+        chunk is missing; ``at``: the offset of the chunk after it). ``leading``: before the
+        first chunk kept (the gap stays out of the index's ticks; :attr:`lost_before`)."""
         k = len(index.chunk_first_tick)
-        first = before.first_tick + before.ticks if before is not None else after.first_tick
-        ticks = max(0, after.first_tick - first)
-        if before is None:
-            span = f"the ticks before tick {first} (t = {first * self.dt:.2f} s) are lost"
-        elif ticks:
-            span = (f"ticks {first}..{first + ticks - 1} (t = {first * self.dt:.2f} .. "
-                    f"{(first + ticks - 1) * self.dt:.2f} s) are lost")
+        last = stop - 1
+        if leading:
+            ticks = f"the ticks before tick {stop} (t = {stop * self.dt:.2f} s)"
+            self.lost_before = stop - first
         else:
-            span = "no tick is lost"
-        self.lost[k] = (f"chunk {k} at offset {offset} {why}: {span}, and the inputs and events recorded with "
-                        f"them; {nxt - offset} bytes skipped to the next whole chunk, at offset {nxt}")
-        self.problems.append(self.lost[k])
-        if ticks and not index.ticks:
+            ticks = f"ticks {first}..{last} (t = {first * self.dt:.2f} .. {last * self.dt:.2f} s)"
+        if stretch is not None:
+            offset, why, nxt = stretch
+            if why.startswith("cut short"):  # a whole chunk after it: the frame's lengths are what is wrong
+                why = "has damaged frame lengths (they claim more bytes than the file has)"
+            text = (f"chunk {k} at offset {offset} {why}: {ticks} are lost, and the inputs and events recorded "
+                    f"with them; {nxt - offset} bytes skipped to the next whole chunk, at offset {nxt}")
+        else:
+            offset = at
+            start = f"; a recording starts at tick {FIRST_TICK}" if leading else ""
+            text = (f"chunk {k} at offset {offset} is missing: no chunk in the file holds {ticks}, so they are lost, "
+                    f"and the inputs and events recorded with them (the chunk at offset {offset} goes on from tick "
+                    f"{stop}{start})")
+        self.lost[k] = text
+        self.problems.append(text)
+        if leading:
+            first = stop
+        elif not index.ticks:
             index.first_time_s = first * self.dt
         index.chunk_first_tick.append(first)
         index.chunk_offset.append(offset)
         index.chunk_time_s.append(first * self.dt)
-        index.ticks += ticks
+        index.ticks += stop - first
 
     def _describe_lost(self) -> None:
         """The entities a lost chunk may have been the first to hold: those of the next chunk
@@ -608,9 +731,16 @@ class Recording:
                 out.append([first, last])
         return [(a, b) for a, b in out]
 
-    def mentions(self, offset: int) -> bool:
-        """Whether :attr:`problems` already names the chunk at ``offset``."""
-        return re.search(rf"offset {offset}(?!\d)", "\n".join(self.problems)) is not None
+    def mentions(self, k: int) -> bool:
+        """Whether :attr:`problems` already names the k-th chunk (a lost one)."""
+        return re.search(rf"chunk {k} at offset {self.index.chunk_offset[k]}(?!\d)", "\n".join(self.problems)) \
+            is not None
+
+    def lost_ticks(self, unreadable=()) -> int:
+        """The ticks of the recording that do not replay: those of the chunks lost, or in
+        ``unreadable`` (indices of chunks that do not decode), and those before the first chunk
+        that the walk found lost (:attr:`lost_before`; a recording starts at FIRST_TICK)."""
+        return self.index.ticks - sum(b - a + 1 for a, b in self.spans(unreadable)) + self.lost_before
 
     def chunk_head(self, k: int) -> rpb.ChunkHead:
         """The k-th chunk's head, read alone (nothing decompressed)."""
@@ -680,10 +810,19 @@ class Recording:
         return min(max(tick, self.first_tick), self.last_tick)
 
     def frame(self, tick: int) -> Frame:
-        """Every entity's state at ``tick`` (clamped to the recording): one chunk decoded."""
+        """Every entity's state at ``tick`` (clamped to the recording): one chunk decoded.
+        NotFound when the recording holds no tick; DataFormatError naming the chunk when it
+        does not read (or does not hold the tick its index says it does)."""
+        if self.last_tick < self.first_tick:
+            raise NotFound(f"{self.path.name}: the recording holds no ticks")
         tick = min(max(int(tick), self.first_tick), self.last_tick)
-        c = self.chunk(self.chunk_of_tick(tick))
+        k = self.chunk_of_tick(tick)
+        c = self.chunk(k)
         j = tick - c.first_tick
+        if not 0 <= j < c.ticks:
+            raise DataFormatError(f"{self.path.name}: chunk {k} at offset {self.index.chunk_offset[k]} holds ticks "
+                                  f"{c.first_tick}..{c.first_tick + c.ticks - 1}, not tick {tick} (its index entry "
+                                  "says it does)")
         here = c.present[j]
         q = c.q[j, here]
         return Frame(tick, tick * self.dt, c.entity_ids[here], codec.dequantize(q, self.steps), q,
@@ -751,14 +890,14 @@ class Recording:
                     c = self.chunk(k)
                 except DataFormatError as exc:
                     unreadable.add(k)
-                    if not self.mentions(self.index.chunk_offset[k]):  # not twice
+                    if not self.mentions(k):  # not twice
                         problems.append(str(exc))
                     continue
                 problems += self._range_problems(k, c)
         end = getattr(self, "_index_end", self._data_start)
         spans = self.spans(unreadable)
         replays = [(a * self.dt, b * self.dt) for a, b in spans]
-        lost_ticks = self.index.ticks - sum(b - a + 1 for a, b in spans)
+        lost_ticks = self.lost_ticks(unreadable)
         return CheckReport(str(self.path), self.size, not self.recovered, self.chunk_count, self.index.ticks,
                            self.first_time_s, self.last_time_s, len(self.entities), self.index.event_count,
                            self.index.input_count, problems, end, len(unreadable), replays, lost_ticks)

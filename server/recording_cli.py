@@ -90,7 +90,7 @@ def summary(rec) -> dict:
             head, body = rec.chunk_body(k)
         except DataFormatError as exc:
             unreadable.add(k)
-            if not rec.mentions(rec.index.chunk_offset[k]):  # a chunk the walk lost is a problem already
+            if not rec.mentions(k):  # a chunk the walk lost is a problem already
                 damaged.append(str(exc))
             continue
         events.update(r.event.kind for r in body.events)
@@ -104,6 +104,7 @@ def summary(rec) -> dict:
             "bytes_per_entity_second": rec.size / entity_s if entity_s else None,
             "footer": not rec.recovered, "problems": list(rec.problems) + damaged, "build_id": h.build_id,
             "replays_s": [[a * rec.dt, b * rec.dt] for a, b in rec.spans(unreadable)],
+            "lost_ticks": rec.lost_ticks(unreadable),
             "damaged_chunks": [{"chunk": k, "offset": rec.index.chunk_offset[k]} for k in sorted(unreadable)],
             "sortie_version": h.sortie_version, "jsbsim_version": h.jsbsim_version,
             "terrain": h.terrain.description}
@@ -126,7 +127,8 @@ def info_command(args) -> int:
           f"jsbsim {s['jsbsim_version']})\n"
           f"  footer {'yes' if s['footer'] else 'no (recovered by walking the chunks)'}")
     if s["damaged_chunks"]:
-        print(f"  replays {_spans(s['replays_s'])}; damaged: "
+        lost = f"{s['lost_ticks']} ticks lost; " if s["lost_ticks"] else ""
+        print(f"  replays {_spans(s['replays_s'])}; {lost}damaged: "
               + ", ".join(f"chunk {d['chunk']} at offset {d['offset']}" for d in s["damaged_chunks"]))
     for p in s["problems"]:
         print(f"  problem: {p}")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import subprocess
 import time
+import types
 import zlib
 
 import numpy as np
@@ -352,3 +353,256 @@ def test_exports_leave_out_a_damaged_chunk_and_say_so(whole, tmp_path):
     lo, hi = whole.ticks[k]
     assert frames and not any(lo / 30 + 1e-6 < t < hi / 30 - 1e-6 for t in frames)  # none inside the lost ticks
     assert any(t < lo / 30 for t in frames) and any(t > hi / 30 for t in frames)  # both sides of it
+
+
+# -- chunks out of order, written twice or missing; bytes between chunks; the ticks before the
+# first chunk (acceptance report "collisions", bugs 3, 4 and 5) ------------------------------------
+
+def rearranged(path, out, order, between=None) -> list[int]:
+    """The chunks of ``path`` (a whole recording) in ``order`` (their indices, repeats allowed)
+    without the footer into ``out``; ``between``: {position in order: bytes written before that
+    chunk}. The offsets the chunks are written at, in ``order``."""
+    with Recording(path) as rec:
+        data = path.read_bytes()
+        offsets, ends = list(rec.index.chunk_offset), list(rec.index.chunk_offset[1:]) + [rec._index_end]
+    parts = [data[a:b] for a, b in zip(offsets, ends)]
+    out_bytes, starts = bytearray(data[:offsets[0]]), []
+    for n, k in enumerate(order):
+        out_bytes += (between or {}).get(n, b"")
+        starts.append(len(out_bytes))
+        out_bytes += parts[k]
+    out.write_bytes(bytes(out_bytes))
+    return starts
+
+
+def assert_frames_as_whole(rec, whole_rec, but=(0, -1)) -> None:
+    """Every tick's frame of ``rec`` is bit-identical to ``whole_rec``'s, but those of ticks
+    ``but`` (first, last), which are a DataFormatError."""
+    for tick in range(1, TICKS + 1):
+        if but[0] <= tick <= but[1]:
+            with pytest.raises(DataFormatError):
+                rec.frame(tick)
+            continue
+        f, g = rec.frame(tick), whole_rec.frame(tick)
+        assert f.tick == tick and np.array_equal(f.ids, g.ids) and np.array_equal(f.q, g.q) and f.digest == g.digest
+
+
+def span_text(lo: int, hi: int) -> str:
+    return f"ticks {lo}..{hi} (t = {lo / 30:.2f} .. {hi / 30:.2f} s)"
+
+
+def test_chunks_out_of_order_in_the_file_read_in_tick_order(whole, tmp_path):
+    """Bug 3: chunks k and k + 1 swapped. Each reads alone and its head says its ticks: both are
+    indexed in tick order, the later one reported out of place; every tick, input and event reads
+    as in the whole file, the ACMI export's time marks go forward, re-simulation is bit-exact."""
+    from server.acmi import export_acmi
+    from server.resim import resimulate
+
+    k, n = whole.quiet, whole.chunks
+    order = list(range(n))
+    order[k], order[k + 1] = k + 1, k
+    path = tmp_path / "swap.sortie"
+    starts = rearranged(whole.path, path, order)
+    with Recording(path) as rec, Recording(whole.path) as w:
+        assert rec.chunk_count == n and rec.lost == {}
+        assert (rec.first_tick, rec.last_tick, rec.index.ticks) == (1, TICKS, TICKS)
+        assert list(rec.index.chunk_first_tick) == list(w.index.chunk_first_tick)
+        assert list(rec.index.chunk_offset) == starts[:k] + [starts[k + 1], starts[k]] + starts[k + 2:]
+        assert_frames_as_whole(rec, w)
+        assert events_by_chunk(rec) == events_by_chunk(w)
+        assert [r.SerializeToString() for r in rec.inputs()] == [r.SerializeToString() for r in w.inputs()]
+        report = rec.check()
+        assert report.problems == [
+            NO_FOOTER, f"chunk at offset {starts[k + 1]} holds {span_text(*whole.ticks[k])}, before those of the "
+            f"chunk at offset {starts[k]} (ticks {whole.ticks[k + 1][0]}..{whole.ticks[k + 1][1]}), which comes "
+            "first in the file: a chunk out of place, read in its place"]
+        assert report.lost_ticks == 0 and report.damaged_chunks == 0 and report.ticks == TICKS
+        assert np.allclose(report.replays, [(1 / 30, TICKS / 30)], rtol=0, atol=1e-12)
+        export_acmi(rec, tmp_path / "swap.acmi")
+    marks = [float(line[1:]) for line in (tmp_path / "swap.acmi").read_text(encoding="utf-8-sig").splitlines()
+             if line.startswith("#")]
+    assert len(marks) == TICKS and marks == sorted(marks)
+    report = resimulate(path)
+    assert report.bit_exact and report.ticks == TICKS and report.ticks_not_compared == 0, report.as_dict()
+
+
+def test_a_chunk_written_twice_is_read_once(whole, tmp_path):
+    """Bug 3: chunk k twice in a row. The copy is reported and left out: the ticks, inputs and
+    events are those of the whole file (no tick counted twice)."""
+    k, n = whole.new, whole.chunks
+    path = tmp_path / "dup.sortie"
+    starts = rearranged(whole.path, path, list(range(k + 1)) + list(range(k, n)))
+    lo, hi = whole.ticks[k]
+    with Recording(path) as rec, Recording(whole.path) as w:
+        assert rec.chunk_count == n and rec.lost == {}
+        assert (rec.first_tick, rec.last_tick, rec.index.ticks) == (1, TICKS, TICKS)
+        assert list(rec.index.chunk_offset) == starts[:k + 1] + starts[k + 2:]
+        assert (rec.index.input_count, rec.index.event_count) == (w.index.input_count, w.index.event_count)
+        assert_frames_as_whole(rec, w)
+        assert events_by_chunk(rec) == events_by_chunk(w)
+        assert rec.problems == [
+            NO_FOOTER, f"chunk at offset {starts[k + 1]} holds {span_text(lo, hi)}, and the chunk at offset "
+            f"{starts[k]}, before it in the file, holds ticks {lo}..{hi}: a copy or a chunk out of place, left out "
+            "with its inputs and events"]
+    out = sortie("recording", "check", path)
+    assert out.returncode == 1 and f"{n} of {n} chunks replay: {TICKS} ticks" in out.stdout, out.stdout
+
+
+def test_a_missing_chunk_is_lost_ticks(whole, tmp_path):
+    """Bug 3: chunk k (it held inputs) not in the file. The gap its ticks leave is indexed as a
+    lost chunk named by the chunk after it: its frames are a DataFormatError, its ticks counted
+    lost, and re-simulation refused past the tick before it."""
+    from server.resim import resimulate
+
+    k, n = whole.new, whole.chunks
+    path = tmp_path / "drop.sortie"
+    starts = rearranged(whole.path, path, [j for j in range(n) if j != k])
+    lo, hi = whole.ticks[k]
+    text = (f"chunk {k} at offset {starts[k]} is missing: no chunk in the file holds {span_text(lo, hi)}, so they "
+            f"are lost, and the inputs and events recorded with them (the chunk at offset {starts[k]} goes on from "
+            f"tick {hi + 1})")
+    with Recording(path) as rec, Recording(whole.path) as w:
+        assert rec.chunk_count == n and rec.lost == {k: text} and rec.problems == [NO_FOOTER, text]
+        assert (rec.first_tick, rec.last_tick, rec.index.ticks) == (1, TICKS, TICKS)
+        assert list(rec.index.chunk_first_tick) == list(w.index.chunk_first_tick)
+        assert list(rec.index.chunk_offset) == starts[:k] + [starts[k]] + starts[k:]
+        assert_frames_as_whole(rec, w, but=(lo, hi))
+        with pytest.raises(DataFormatError, match=f"chunk {k} at offset {starts[k]} is missing"):
+            rec.frame((lo + hi) // 2)
+        report = rec.check()
+        assert report.lost_ticks == hi - lo + 1 and report.damaged_chunks == 1
+        assert np.allclose(report.replays, [(1 / 30, (lo - 1) / 30), ((hi + 1) / 30, TICKS / 30)], rtol=0, atol=1e-12)
+    with pytest.raises(DataFormatError, match=rf"cannot re-simulate past t = {(lo - 1) / 30:.3f} s \(tick {lo - 1}\)"):
+        resimulate(path)
+    out = sortie("recording", "check", path)
+    assert out.returncode == 1 and f"{n - 1} of {n} chunks replay: {TICKS} ticks" in out.stdout, out.stdout
+    assert f"; {hi - lo + 1} ticks lost" in out.stdout
+
+
+def test_a_footer_whose_index_is_out_of_tick_order_is_not_trusted(whole, tmp_path):
+    """Bug 3, with a footer: an index whose chunks' first ticks go back (its CRC checks) is a
+    damaged footer; the file is walked and reads as the whole one."""
+    data = whole.path.read_bytes()
+    with Recording(whole.path) as rec:
+        index, at = rpb.RecordingIndex(), rec._index_end
+        index.CopyFrom(rec.index)
+
+    def with_index(path, index):
+        blob = index.SerializeToString()
+        path.write_bytes(data[:at] + FRAME.pack(b"INDX", len(blob), 0, zlib.crc32(blob)) + blob
+                         + at.to_bytes(8, "little") + b"SORTEND1")
+
+    swapped = rpb.RecordingIndex()
+    swapped.CopyFrom(index)
+    swapped.chunk_first_tick[1], swapped.chunk_first_tick[2] = index.chunk_first_tick[2], index.chunk_first_tick[1]
+    with_index(tmp_path / "index.sortie", swapped)
+    with Recording(tmp_path / "index.sortie") as rec, Recording(whole.path) as w:
+        assert rec.recovered and rec.problems == [f"damaged footer at offset {at}: its index is not in tick order; "
+                                                  "chunks found by walking the file"]
+        assert list(rec.index.chunk_first_tick) == list(w.index.chunk_first_tick)
+        assert_frames_as_whole(rec, w)
+    # In tick order, but chunk 2 said to start 5 ticks late: a frame its index puts in chunk 1
+    # and chunk 1 does not hold is a DataFormatError naming chunk 1 (not an IndexError).
+    late = whole.ticks[2][0] + 5
+    index.chunk_first_tick[2] = late
+    with_index(tmp_path / "late.sortie", index)
+    with Recording(tmp_path / "late.sortie") as rec:
+        assert not rec.recovered
+        lo, hi = whole.ticks[1]
+        with pytest.raises(DataFormatError, match=f"chunk 1 at offset .* holds ticks {lo}..{hi}, not tick {late - 1}"):
+            rec.frame(late - 1)
+
+
+@pytest.mark.parametrize("where", ["middle", "start"])
+def test_bytes_between_chunks_of_consecutive_ticks_lose_nothing(whole, tmp_path, where):
+    """Bug 4: 17 bytes before chunk k (one that holds inputs, or the first): the chunks either
+    side hold consecutive ticks, so no chunk was there (a chunk holds a tick, but the writer's
+    last). The bytes are a problem; nothing is indexed lost, and re-simulation runs through."""
+    from server.resim import resimulate
+
+    k, n = (whole.new if where == "middle" else 0), whole.chunks
+    path = tmp_path / f"garbage-{where}.sortie"
+    starts = rearranged(whole.path, path, range(n), {k: b"\0" * 17})
+    lo = whole.ticks[k][0]
+    sides = (f"the chunks either side hold consecutive ticks ({lo - 1} then {lo})" if k else
+             "the chunk after it holds the recording's first tick (1)")
+    with Recording(path) as rec, Recording(whole.path) as w:
+        assert rec.chunk_count == n and rec.lost == {} and (rec.first_tick, rec.last_tick) == (1, TICKS)
+        assert rec.index.input_count == w.index.input_count > 0
+        assert rec.problems == [NO_FOOTER, f"chunk at offset {starts[k] - 17} is no chunk frame (no CHNK magic): "
+                                           f"17 bytes skipped to the next whole chunk, at offset {starts[k]}; {sides}, "
+                                           "so no chunk is lost there (no tick, input or event)"]
+        report = rec.check()
+        assert report.damaged_chunks == 0 and report.lost_ticks == 0
+    report = resimulate(path)
+    assert report.bit_exact and report.ticks == TICKS and report.ticks_not_compared == 0, report.as_dict()
+
+
+def test_the_writers_last_chunk_without_ticks_is_kept_by_the_walk(tmp_path):
+    """The writer writes a chunk with no tick last when inputs or events came after the last tick
+    (Recorder.close). Footer-less, the walk keeps it after the last tick; with the chunk before
+    it lost, its first tick says what that one held."""
+    from server.recorder import encode_chunk
+    from server.recording import RecordingWriter, quantization_of
+    from server.recording_codec import DEFAULT_STEPS
+    from server.world import Snapshot
+
+    header = rpb.RecordingHeader(format_version=1, exercise_name="empty last", world_rate_hz=30.0,
+                                 quantization=quantization_of(DEFAULT_STEPS))
+    path = tmp_path / "whole.sortie"
+    writer = RecordingWriter(path, header)
+    remove = rpb.InputRecord(tick=6, kind="remove", entity_id=1, reason="after the last tick")
+    z3, q = np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]])
+    for first in (1, 3, 5, 7):
+        snaps = [Snapshot(t / 30, t, np.array([1]), np.array([[4e6 + t, 0.0, 0.0]]), z3, z3, q, z3, *np.zeros((3, 1)))
+                 for t in range(first, min(first + 2, 7))]
+        c = types.SimpleNamespace(snapshots=snaps, inputs=[remove] if first == 7 else [], events=[],
+                                  new_entities=[])
+        writer.write_chunk(*encode_chunk(c, DEFAULT_STEPS, 30.0))
+    writer.close()
+    for damaged in (-1, 2):
+        out = tmp_path / f"cut{damaged}.sortie"
+        offset = footerless(path, out, damaged, "head") if damaged >= 0 else footerless(path, out)
+        with Recording(out) as rec:
+            assert rec.chunk_count == 4 and list(rec.index.chunk_first_tick) == [1, 3, 5, 7]
+            assert (rec.first_tick, rec.last_tick, rec.index.ticks, rec.index.input_count) == (1, 6, 6, 1)
+            assert rec.chunk_head(3).ticks == 0 and [r.reason for r in rec.chunk_body(3)[1].inputs] == [remove.reason]
+            assert rec.frame(4).states[0, 0] == 4e6 + 4
+            if damaged < 0:
+                assert rec.problems == [NO_FOOTER]
+            else:
+                assert list(rec.lost) == [2] and rec.lost[2].startswith(f"chunk 2 at offset {offset} fails its CRC: "
+                                                                        f"{span_text(5, 6)} are lost")
+
+
+@pytest.mark.parametrize("how", ["head", "missing"])
+def test_the_ticks_before_the_first_whole_chunk_are_counted_lost(whole, tmp_path, how):
+    """Bug 5: chunk 0 damaged (its head) or not in the file. A recording starts at tick 1: the
+    ticks before the first whole chunk stay out of the index's ticks (the recording reads from
+    that chunk) and are counted lost, by check and info alike; re-simulation is refused."""
+    from server.resim import resimulate
+
+    n, start = whole.chunks, whole.ticks[1][0]
+    path = tmp_path / f"first-{how}.sortie"
+    if how == "head":
+        offset = footerless(whole.path, path, 0, "head")
+        text = (f"chunk 0 at offset {offset} fails its CRC: the ticks before tick {start} (t = {start / 30:.2f} s) "
+                "are lost, and the inputs and events recorded with them; ")
+    else:
+        offset = rearranged(whole.path, path, range(1, n))[0]
+        text = (f"chunk 0 at offset {offset} is missing: no chunk in the file holds the ticks before tick {start} "
+                f"(t = {start / 30:.2f} s), so they are lost, and the inputs and events recorded with them (the "
+                f"chunk at offset {offset} goes on from tick {start}; a recording starts at tick 1)")
+    with Recording(path) as rec:
+        assert rec.chunk_count == n and list(rec.lost) == [0] and rec.lost[0].startswith(text)
+        assert (rec.first_tick, rec.last_tick, rec.index.ticks) == (start, TICKS, TICKS - start + 1)
+        report = rec.check()
+        assert report.lost_ticks == start - 1 and report.damaged_chunks == 1
+    out = sortie("recording", "check", path)
+    assert out.returncode == 1 and f"replays {start / 30:.2f} .. 6.00 s; {start - 1} ticks lost" in out.stdout, \
+        out.stdout
+    out = sortie("recording", "info", path, "--json")
+    info = json.loads(out.stdout)
+    assert out.returncode == 0 and info["lost_ticks"] == start - 1 and info["ticks"] == TICKS - start + 1
+    with pytest.raises(DataFormatError, match="cannot re-simulate: .* inputs from the recording's start are lost"):
+        resimulate(path)
