@@ -87,6 +87,9 @@ when the GL renderer is a GPU.
 budget, and two small budgets, over the Alps paths: triangles, frame time,
 update time and screen error of each (``series["sweep"]``, plotted by
 bench/plots.plot_render).
+
+**Insets.** A target area's geomipmap inset over the clipmap (bench/render_insets.py): frame
+time with and without it, border flicker and the shading seam (``inset_*``).
 """
 
 from __future__ import annotations
@@ -624,6 +627,9 @@ def run(quick: bool = False) -> Report:
                       flush=True)
     finally:
         ctx.release()
+    from bench.render_insets import run_insets
+
+    run_insets(report, quick)
     _headline_metrics(report, runs)
     report.series["paths"] = {r.key: _path_summary(r) for r in runs}
     report.series["update_ms_histogram"] = _histogram([u for r in runs for u in r.default.update_ms])
