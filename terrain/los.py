@@ -941,12 +941,33 @@ def _inner_bounds(heights, crs, x0, y0, dx, dy, periodic, a_ecef, b_ecef, p0, p1
 
 
 @numba.njit(cache=True, nogil=True)
+def _top_at(iv_src, iv_s0, iv_s1, start, stop, x):
+    """The first (lowest index) source among intervals [start, stop) holding parameter x; -1: none."""
+    top = -1
+    for t in range(start, stop):
+        if iv_s0[t] <= x <= iv_s1[t] and (top < 0 or iv_src[t] < top):
+            top = iv_src[t]
+    return top
+
+
+@numba.njit(cache=True, nogil=True)
 def _stack_parts(iv_ray, iv_src, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out_ray, out_src, out_p0, out_p1):
     """Cut each segment's [s_lo, s_hi] into stretches of one source: the first (lowest index)
-    source whose interval holds the stretch, -1 where none does; a -1 stretch shorter than gap_m
-    metres is dropped (the stretches on either side meet there). iv_*: every source's covered
+    source whose interval holds the stretch, -1 where none does. iv_*: every source's covered
     intervals, grouped by segment in segment order. Returns the count written (in order along
-    each segment); a segment of zero extent gets one stretch, the source holding its point."""
+    each segment); a segment of zero extent gets one stretch, the source holding its point.
+
+    No stretch is shorter than gap_m metres (but that of a segment shorter than it): the ends of
+    the intervals (and the segment's own) are taken in runs each within gap_m of the next, and a
+    run is one boundary. Where two rasters meet, their ends come from two quadratic models of the
+    track (each within MODEL_ERROR_M of it) and differ by nanometres: the run holds both, and the
+    sliver between them (of a source below both, or of none) is no stretch. The stretches meet
+    at the run's end nearer the lower-priority neighbour (the higher-priority neighbour takes the
+    run: the stack's surface where both are within the models' error of covering; a source over
+    no source, -1, comes after every source), the same whichever way the segment runs; a run
+    holding the segment's start or end ends the stretches there. The source of each stretch is
+    read between two runs, where no interval ends, so it holds over the whole stretch but the
+    runs' sub-gap_m ends."""
     count = 0
     g = 0
     for ray in range(s_lo.shape[0]):
@@ -955,40 +976,67 @@ def _stack_parts(iv_ray, iv_src, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out_ra
             g += 1
         lo, hi = s_lo[ray], s_hi[ray]
         if not hi > lo:
-            top = -1
-            for t in range(start, g):
-                if iv_s0[t] <= lo <= iv_s1[t] and (top < 0 or iv_src[t] < top):
-                    top = iv_src[t]
+            top = _top_at(iv_src, iv_s0, iv_s1, start, g, lo)
             out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, top, lo, lo
             count += 1
             continue
-        pts = np.empty(2 * (g - start) + 2)
+        npt = 2 * (g - start) + 2
+        pts = np.empty(npt)
         pts[0], pts[1] = lo, hi
         for t in range(start, g):
             pts[2 + 2 * (t - start)] = min(max(iv_s0[t], lo), hi)
             pts[3 + 2 * (t - start)] = min(max(iv_s1[t], lo), hi)
         pts.sort()
+        tol = gap_m / length[ray] if length[ray] > 0.0 else math.inf
+        run_lo, run_hi = np.empty(npt), np.empty(npt)
+        nr = 0
+        for q in range(npt):
+            if nr > 0 and pts[q] - run_hi[nr - 1] < tol:
+                run_hi[nr - 1] = pts[q]
+            else:
+                run_lo[nr], run_hi[nr] = pts[q], pts[q]
+                nr += 1
+        if nr == 1:  # the segment is shorter than gap_m: one stretch, the source at its middle
+            top = _top_at(iv_src, iv_s0, iv_s1, start, g, 0.5 * (lo + hi))
+            out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, top, lo, hi
+            count += 1
+            continue
+        tops = np.empty(nr - 1, np.int64)
+        for q in range(nr - 1):
+            tops[q] = _top_at(iv_src, iv_s0, iv_s1, start, g, 0.5 * (run_hi[q] + run_lo[q + 1]))
         first = count
-        for q in range(pts.shape[0] - 1):
-            x0, x1 = pts[q], pts[q + 1]
-            if not x1 > x0:
-                continue
-            mid = 0.5 * (x0 + x1)
-            top = -1
-            for t in range(start, g):
-                if iv_s0[t] <= mid <= iv_s1[t] and (top < 0 or iv_src[t] < top):
-                    top = iv_src[t]
-            if top < 0 and (x1 - x0) * length[ray] < gap_m:
-                continue
-            if count > first and out_src[count - 1] == top and out_p1[count - 1] == x0:
+        x0 = lo
+        for q in range(nr - 1):
+            if q == nr - 2:
+                x1 = hi
+            else:
+                left, right = tops[q], tops[q + 1]
+                x1 = run_hi[q + 1] if left >= 0 and (right < 0 or left < right) else run_lo[q + 1]
+            if count > first and out_src[count - 1] == tops[q]:
                 out_p1[count - 1] = x1
             else:
-                out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, top, x0, x1
+                out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, tops[q], x0, x1
                 count += 1
-        if count == first:  # a sliver of a segment that no source covers: keep it a gap
-            out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, -1, lo, hi
-            count += 1
+            x0 = x1
     return count
+
+
+@numba.njit(cache=True, nogil=True)
+def _covered_whole(iv_ray, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out):
+    """out[ray] = whether the intervals (sorted by segment, then by start) cover the segment's
+    [s_lo, s_hi] but for gaps (inside it or at its ends) shorter than gap_m metres, which
+    :func:`_stack_parts` gives to the stretches beside them. A segment no longer than gap_m counts
+    as not covered (the sources below are asked: _stack_parts reads its source at its middle)."""
+    g = 0
+    n_iv = iv_ray.shape[0]
+    for ray in range(s_lo.shape[0]):
+        tol = gap_m / length[ray] if length[ray] > 0.0 else math.inf
+        reach = s_lo[ray]
+        while g < n_iv and iv_ray[g] == ray:
+            if iv_s0[g] < reach + tol:
+                reach = max(reach, iv_s1[g])
+            g += 1
+        out[ray] = (s_hi[ray] - s_lo[ray]) * length[ray] > gap_m and reach > s_hi[ray] - tol
 
 
 def segment_coverage(raster: Raster, a_ecef, b_ecef, s_lo, s_hi):
@@ -1023,9 +1071,11 @@ def segment_coverage(raster: Raster, a_ecef, b_ecef, s_lo, s_hi):
 def _whole_segments(raster: Raster, a_ecef, b_ecef) -> np.ndarray:
     """(n,) bool: segments a raster without holes covers whole, no walk needed (the procedural
     world's raster for the segments' box). A geographic raster covers a segment whose endpoints
-    lie inside its bounds by more than the chord's poleward bulge (terrain.terrain.ray_bulge_deg,
-    per segment): the track's longitude is monotone between the endpoints' (the chord's projection
-    on the equatorial plane is a straight line), its latitude within the endpoints' and the bulge."""
+    lie inside its bounds by more than the chord's poleward bulge (per segment: d^2 tan(phi) / 8
+    radians for an angular span d, the small-angle expansion of the great-circle vertex latitude,
+    with d taken generously as the endpoints' degree spans, longitude unscaled): the track's
+    longitude is monotone between the endpoints' (the chord's projection on the equatorial plane
+    is a straight line), its latitude within the endpoints' and the bulge."""
     n = a_ecef.shape[0]
     if raster.georef.crs != CRS_GEOGRAPHIC or not np.isfinite(raster.pyramid.max_flat[-1]) or n == 0:
         return np.zeros(n, bool)
@@ -1041,30 +1091,92 @@ def _whole_segments(raster: Raster, a_ecef, b_ecef) -> np.ndarray:
             & (np.minimum(wa, wb) > 1.0e-9) & (np.maximum(wa, wb) < lon1 - lon0 - 1.0e-9))
 
 
-def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi):
+def stack_partitions(sources, a_ecef, b_ecef, s_lo, s_hi):
+    """Split a batch of segments a + s (b - a), s in [s_lo, s_hi], over a stack of sources into
+    parts each traced on one raster per source. ``sources``: per source, in priority order, a
+    callable groups(idx) -> iterable of (raster or None, indices), the indices (a partition of
+    the segments idx) that each raster serves (a Raster source serves all; a procedural or
+    store source one raster per group whose box it can serve). A source is asked only for the
+    segments that the sources before it do not cover whole (:func:`_covered_whole`, with
+    STACK_GAP_TOLERANCE_M): a segment inside a DEM needs no procedural raster, and its box does
+    not widen the procedural box of the others. Yields (indices, rasters (one per source, None
+    where that source is not needed or has nothing), coverage (ray (local to the indices),
+    source, s0, s1), for :func:`stack_trace`), lazily: a group's rasters are dropped once its
+    parts have been traced."""
+    n = a_ecef.shape[0]
+    length = np.linalg.norm(b_ecef - a_ecef, axis=1)
+    n_src = len(sources)
+
+    def restrict(cov, idx):
+        keep = np.zeros(n, bool)
+        keep[idx] = True
+        keep = keep[cov[0]]
+        return tuple(x[keep] for x in cov)
+
+    def local(cov, idx):
+        pos = np.empty(n, np.int64)
+        pos[idx] = np.arange(idx.size)
+        return (pos[cov[0]],) + cov[1:]
+
+    def walk(k, idx, rasters, cov):
+        if k > 0 and k < n_src:
+            whole = np.zeros(n, bool)
+            if k == 1 and (cov[0][1:] >= cov[0][:-1]).all():  # one source's: in order along each segment
+                _covered_whole(cov[0], cov[2], cov[3], s_lo, s_hi, length, STACK_GAP_TOLERANCE_M, whole)
+            else:
+                order = np.lexsort((cov[2], cov[0]))
+                _covered_whole(cov[0][order], cov[2][order], cov[3][order], s_lo, s_hi, length,
+                               STACK_GAP_TOLERANCE_M, whole)
+            whole = whole[idx]
+            if whole.any():
+                done = idx[whole]
+                yield done, rasters + [None] * (n_src - k), local(restrict(cov, done), done)
+                idx = idx[~whole]
+                if idx.size == 0:
+                    return
+                cov = restrict(cov, idx)
+        if k == n_src:
+            yield idx, rasters, local(cov, idx)
+            return
+        for raster, sub in sources[k](idx):
+            c = cov if sub.size == idx.size else restrict(cov, sub)
+            if raster is not None:
+                ray, s0, s1 = segment_coverage(raster, a_ecef[sub], b_ecef[sub], s_lo[sub], s_hi[sub])
+                c = tuple(np.concatenate(x) for x in zip(c, (sub[ray], np.full(ray.size, k, np.int64), s0, s1)))
+            yield from walk(k + 1, sub, rasters + [raster], c)
+
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+    yield from walk(0, np.arange(n), [], empty)
+
+
+def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi, coverage=None):
     """First contact of each segment a + s (b - a), s in [s_lo, s_hi], with the surface of a stack
     of rasters (priority order; None: a source with nothing here): at each point the first
     raster covering it. Returns (s (NaN: none), d h / d col and d h / d row at the contact (its
-    raster's index units), status, index of the contact's raster).
+    raster's index units), status, index of the contact's raster). ``coverage``: the rasters'
+    covered intervals (ray, source, s0, s1) when known (:func:`stack_partitions`), else found.
 
     Each raster's covered intervals (:func:`segment_coverage`) are cut into stretches of one
-    source each (:func:`_stack_parts`), which are traced in order along the segment by
-    :func:`trace_segments` (exact against each bilinear surface) until the first contact:
-    where a segment passes from a source onto a higher one under its surface, that is the
-    stretch's start (the step between the two surfaces is a wall). Status OUTSIDE when a
-    stretch no source covers (longer than STACK_GAP_TOLERANCE_M) comes first, else FILLED when a
-    traced stretch passed over a filled void, else OK. Each stretch is traced from and to
-    points its raster covers exactly (:func:`_inner_bounds`): the parts are exact to within
-    about a micrometre of the sources' edges.
+    source each (:func:`_stack_parts`; none shorter than STACK_GAP_TOLERANCE_M), which are traced
+    in order along the segment by :func:`trace_segments` (exact against each bilinear surface)
+    until the first contact: where a segment passes from a source onto a higher one under its
+    surface, that is the stretch's start (the step between the two surfaces is a wall). Status
+    OUTSIDE when a stretch no source covers comes first, else FILLED when a traced stretch passed
+    over a filled void, else OK. Each stretch is traced from and to points its raster covers
+    exactly (:func:`_inner_bounds`): the parts are exact to within about a micrometre of the
+    sources' edges, and to within STACK_GAP_TOLERANCE_M where two sources' edges meet.
     """
     n = a_ecef.shape[0]
     length = np.linalg.norm(b_ecef - a_ecef, axis=1)
-    ivs = []
-    for k, raster in enumerate(rasters):
-        if raster is not None:
-            ray, s0, s1 = segment_coverage(raster, a_ecef, b_ecef, s_lo, s_hi)
-            ivs.append((ray, np.full(ray.size, k, np.int64), s0, s1))
-    iv = [np.concatenate(x) for x in zip(*ivs)] if ivs else [np.zeros(0, np.int64)] * 2 + [np.zeros(0)] * 2
+    if coverage is None:
+        ivs = []
+        for k, raster in enumerate(rasters):
+            if raster is not None:
+                ray, s0, s1 = segment_coverage(raster, a_ecef, b_ecef, s_lo, s_hi)
+                ivs.append((ray, np.full(ray.size, k, np.int64), s0, s1))
+        iv = [np.concatenate(x) for x in zip(*ivs)] if ivs else [np.zeros(0, np.int64)] * 2 + [np.zeros(0)] * 2
+    else:
+        iv = list(coverage)
     order = np.argsort(iv[0], kind="stable")
     cap = 2 * iv[0].size + 2 * n
     parts = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap)
@@ -1105,15 +1217,25 @@ def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi):
     return s, dcol, drow, status, which
 
 
-def stack_line_of_sight(rasters, a_ecef, b_ecef):
+def stack_line_of_sight(sources, a_ecef, b_ecef):
     """Whether each ECEF segment a -> b ((n, 3) float64 metres; swapped in place, per segment, to the
-    order traced) clears the surface of a stack of rasters (as :func:`stack_trace`): (visible,
-    status) as :func:`line_of_sight` gives them on one raster, contacts within ENDPOINT_TOLERANCE_M
-    of either endpoint ignored; OUTSIDE (not visible) when a stretch no raster covers comes before
-    any contact from either end."""
+    order traced) clears the surface of a stack of sources (as :func:`stack_trace`; ``sources`` as
+    :func:`stack_partitions` takes them): (visible, status) as :func:`line_of_sight` gives them on
+    one raster, contacts within ENDPOINT_TOLERANCE_M of either endpoint ignored; OUTSIDE (not
+    visible) when a stretch no raster covers comes before any contact from either end."""
+    n = a_ecef.shape[0]
+    d = b_ecef - a_ecef
+    swap = d[np.arange(n), np.argmax(d != 0.0, axis=1)] < 0.0  # _both_ways's order, so its swap is none
+    a_ecef[swap], b_ecef[swap] = b_ecef[swap], a_ecef[swap]
+    with np.errstate(divide="ignore"):
+        s_lo = np.minimum(ENDPOINT_TOLERANCE_M / np.linalg.norm(d, axis=1), 0.5)
+    visible, status = np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8)
+    for idx, rasters, cov in stack_partitions(sources, a_ecef, b_ecef, s_lo, 1.0 - s_lo):
+        known = [cov]  # the first trace is over [s_lo, 1 - s_lo] of these segments, as partitioned
 
-    def trace(a, b, s_lo, s_hi):
-        s, _, _, status, _ = stack_trace(rasters, a, b, s_lo, s_hi)
-        return s, status
+        def trace(a, b, lo, hi):
+            s, _, _, st, _ = stack_trace(rasters, a, b, lo, hi, known.pop() if known else None)
+            return s, st
 
-    return _both_ways(trace, a_ecef, b_ecef)
+        visible[idx], status[idx] = _both_ways(trace, a_ecef[idx], b_ecef[idx])
+    return visible, status

@@ -42,7 +42,7 @@ import numba
 import numpy as np
 import zstandard
 
-from sortie.errors import DataFormatError, InvalidArgument, NotFound
+from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound
 from terrain import heightcodec
 from terrain.heightcodec import LevelRect, PyramidReader, tile_overlap
 from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
@@ -198,7 +198,7 @@ class TerrainStore:
         return heights, classes
 
     def raster(self, level: int, lat_min: float, lon_min: float, lat_max: float, lon_max: float,
-               region: Region | None = None, max_posts: int | None = None) -> Raster | None:
+               region: Region | None = None, max_posts: int | None = None, strict: bool = False) -> Raster | None:
         """The posts of a level covering a box as a :class:`Raster` (row 0 south), merged from
         every region whose rectangle at this level overlaps the box (only ``region``'s when
         given): posts no region holds are NaN, outside, so a box over two regions reads both
@@ -206,7 +206,8 @@ class TerrainStore:
         to the part of the box the rectangles reach; None when no rectangle overlaps it.
         A box with lon_max above 180 runs east across the antimeridian. With ``max_posts``, a
         merged grid larger than that (regions far apart, or a box wider than a turn) gives way to
-        the one overlapping rectangle that shares most posts with the box, as large as it is."""
+        the one overlapping rectangle that shares most posts with the box, as large as it is; with
+        ``strict`` too, it raises LimitExceeded instead (the caller splits its box)."""
         r_top, c_left = self.fractional_post(level, lat_max, lon_min)
         r_bot, _ = self.fractional_post(level, lat_min, lon_min)
         span = (lon_max - lon_min) / self.spacing_deg(level)[1]
@@ -230,8 +231,11 @@ class TerrainStore:
                     parts.append((reg, ra, rb, ca, cb, m * per_turn))
         if not parts:
             return None
-        if max_posts is not None and (max(p[2] for p in parts) - min(p[1] for p in parts)) * (
-                max(p[4] for p in parts) - min(p[3] for p in parts)) > max_posts:
+        merged = (max(p[2] for p in parts) - min(p[1] for p in parts)) * (
+            max(p[4] for p in parts) - min(p[3] for p in parts))
+        if max_posts is not None and merged > max_posts and len(parts) > 1:
+            if strict:
+                raise LimitExceeded("box posts", merged, max_posts, "regions far apart in one box")
             parts = [max(parts, key=lambda p: (p[2] - p[1]) * (p[4] - p[3]))]
         ga, gb = min(p[1] for p in parts), max(p[2] for p in parts)
         gc, gd = min(p[3] for p in parts), max(p[4] for p in parts)
@@ -660,6 +664,13 @@ class StoreSource:
         """The store's posts over a box of rays (terrain.terrain.Terrain), merged from every region
         holding part of it up to RAY_RASTER_MAX_POSTS, else from the one holding most of it."""
         return self.store.raster(self.level, lat_min, lon_min, lat_max, lon_max, max_posts=RAY_RASTER_MAX_POSTS)
+
+    def ray_raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> Raster | None:
+        """:meth:`raster_for` for a group of rays (terrain.terrain.Terrain splits a batch by it): a
+        box whose regions merge into more than RAY_RASTER_MAX_POSTS posts raises LimitExceeded
+        rather than keeping one region, so that rays over each region are answered from it."""
+        return self.store.raster(self.level, lat_min, lon_min, lat_max, lon_max, max_posts=RAY_RASTER_MAX_POSTS,
+                                 strict=True)
 
     def describe(self) -> dict:
         s = self.store

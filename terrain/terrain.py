@@ -6,11 +6,14 @@ fills everything the DEMs leave). A point a source covers only with a filled
 void (STATUS_FILLED) is answered by the first later source that has it
 measured (STATUS_OK), if any; synthetic sources (procedural) do not count.
 Normals and slopes follow the same rule, from the source the height comes from.
-Segments (intersect, line of sight) meet the same surface: at every point that
-of the first source covering it (:func:`terrain.los.stack_trace`). A source is
+Segments (intersect, line of sight) meet, at every point, the surface of the
+first source covering it (:func:`terrain.los.stack_trace`), its filled voids
+included: along rays a later DEM's measured data does not replace a fill (the
+one difference from heights; see ARCHITECTURE.md). A source is
 anything with the methods of :class:`terrain.raster.Raster` used here:
 ``heights_into``, ``gradient_into``, ``raster_for`` and ``describe`` (and
-optionally ``warm_cache``).
+optionally ``warm_cache``, and ``ray_raster_for``: ``raster_for`` for a group of
+rays that raises LimitExceeded where ``raster_for`` would answer with less).
 
 All heights are metres above mean sea level (the sources' vertical datum,
 EGM96 for SRTM); argument order is always (lat, lon) in degrees.
@@ -24,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sortie.errors import LimitExceeded
 from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
 from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster, metres_per_index
 from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
@@ -290,10 +294,14 @@ class Terrain:
         """First contact of each straight (ECEF) segment a -> b with the surface.
 
         Arrays (n,) float64: (lat, lon) degrees, heights metres MSL. The surface is, at every
-        point, that of the first source covering it (as :meth:`heights` answers; see
-        :func:`terrain.los.stack_trace`), so a -> b and b -> a meet the same surface wherever the
-        segment crosses from one source into another. A segment that reaches a stretch no source
-        covers before any hit is OUTSIDE.
+        point, that of the first source covering it (see :func:`terrain.los.stack_trace`), so
+        a -> b and b -> a meet the same surface wherever the segment crosses from one source into
+        another. It is each source's own surface, filled voids included: unlike :meth:`heights`,
+        a ray over a filled void of one DEM that a later DEM measured meets the fill (see
+        ARCHITECTURE.md, "Line of sight and collision"). A segment that reaches a stretch no
+        source covers before any hit is OUTSIDE. Each segment is answered as it is alone: a batch
+        too wide for one raster of a procedural or store source is split into groups whose boxes
+        it serves; LimitExceeded only for a single segment whose box it cannot serve.
         """
         from terrain.los import check_segments
 
@@ -301,17 +309,11 @@ class Terrain:
         a = geodetic_to_ecef(rays[0], rays[1], rays[2])
         b = geodetic_to_ecef(rays[3], rays[4], rays[5])
         n = rays[0].size
-        s, dcol, drow, status, which, rasters = self._trace(rays, a, b, np.zeros(n), np.ones(n))
-        hit = ~np.isnan(s)
+        s, de, dn, status = self._trace(rays, a, b, np.zeros(n), np.ones(n))
         lat, lon, h = ecef_to_geodetic(a + s[:, None] * (b - a))
-        normal = np.full((n, 3), np.nan)
-        for k in np.unique(which[hit]):
-            sel = np.flatnonzero(hit & (which == k))
-            g = rasters[k].georef
-            m_col, m_row = metres_per_index(g.crs, g.dx, g.dy, lat[sel])
-            nk = np.stack([-dcol[sel] / m_col, -drow[sel] / m_row, np.ones(sel.size)], axis=-1)
-            normal[sel] = nk / np.linalg.norm(nk, axis=-1, keepdims=True)
-        return SegmentResult(hit, s * np.linalg.norm(b - a, axis=1), lat, lon, h, normal, status)
+        normal = np.stack([-de, -dn, np.ones(n)], axis=-1)
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        return SegmentResult(~np.isnan(s), s * np.linalg.norm(b - a, axis=1), lat, lon, h, normal, status)
 
     def line_of_sight(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> LosResult:
         """Whether each straight (ECEF) segment a -> b clears the surface.
@@ -326,74 +328,90 @@ class Terrain:
 
         rays = check_segments(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl)
         n = rays[0].size
-        first = self._first_raster(rays, np.arange(n))
-        if first is not None:
-            visible, status = line_of_sight(first, *rays)
-        else:
-            visible, status = np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8)
-        todo = np.flatnonzero(status == STATUS_OUTSIDE)
-        if len(self.sources) == 1 or todo.size == 0:
-            return LosResult(visible, status)
-        # Off the first source: the stack of every source's surface, as line_of_sight does on one.
-        a = geodetic_to_ecef(rays[0][todo], rays[1][todo], rays[2][todo])
-        b = geodetic_to_ecef(rays[3][todo], rays[4][todo], rays[5][todo])
-        rasters = [first] + self._ray_rasters(rays, todo, from_source=1)
-        visible[todo], status[todo] = stack_line_of_sight(rasters, a, b)
+        a = geodetic_to_ecef(rays[0], rays[1], rays[2])
+        b = geodetic_to_ecef(rays[3], rays[4], rays[5])
+        visible, status = np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8)
+        for first, idx in self._groups(0, rays, a, b, np.arange(n)):
+            sub = tuple(x[idx] for x in rays)
+            if first is not None:
+                visible[idx], status[idx] = line_of_sight(first, *sub)
+            todo = idx[status[idx] == STATUS_OUTSIDE]
+            if len(self.sources) == 1 or todo.size == 0:
+                continue
+            # Off the first source: the stack of every source's surface, as line_of_sight does on one.
+            visible[todo], status[todo] = stack_line_of_sight(self._stack(first, rays, a, b, todo), a[todo], b[todo])
         return LosResult(visible, status)
 
     def _trace(self, rays, a, b, s_lo, s_hi):
         """First contact s in [s_lo, s_hi] of each segment a + s (b - a) with the stack's surface:
-        (s (NaN: none), d h / d col and d h / d row there, status, the hitting raster's index in
-        ``rasters``, rasters). The first source traces every segment on its own (its kernel
-        marks those that leave it); only those go through :func:`terrain.los.stack_trace`, so a
-        terrain whose segments stay on its first source pays nothing more."""
-        from terrain.los import stack_trace, trace_segments
+        (s (NaN: none), d h / d east metre and d h / d north metre there, status). The first
+        source traces every segment on its own (its kernel marks those that leave it); only those
+        go through :func:`terrain.los.stack_trace`, so a terrain whose segments stay on its first
+        source pays nothing more."""
+        from terrain.los import stack_partitions, stack_trace, trace_segments
 
         n = a.shape[0]
-        first = self._first_raster(rays, np.arange(n))
-        which = np.zeros(n, np.int64)
-        if first is not None:
-            s, dcol, drow, status = trace_segments(first, a, b, s_lo, s_hi)
-        else:
-            s, dcol, drow = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-            status = np.full(n, STATUS_OUTSIDE, np.uint8)
-        todo = np.flatnonzero(status == STATUS_OUTSIDE)
-        if len(self.sources) == 1 or todo.size == 0:
-            return s, dcol, drow, status, which, [first]
-        rasters = [first] + self._ray_rasters(rays, todo, from_source=1)
-        s[todo], dcol[todo], drow[todo], status[todo], which[todo] = stack_trace(
-            rasters, a[todo], b[todo], s_lo[todo], s_hi[todo])
-        return s, dcol, drow, status, which, rasters
-
-    def _first_raster(self, rays, idx):
-        """The first source's raster for the segments idx: the source itself if it is a Raster."""
-        if isinstance(self.sources[0], Raster):
-            return self.sources[0]
-        return self._ray_rasters(rays, idx, from_source=0, upto=1)[0]
-
-    def _ray_rasters(self, rays, idx, from_source: int, upto: int | None = None) -> list:
-        """One raster per source (from_source up to ``upto``) for the segments idx: a Raster
-        source itself, any other the raster it hands out for the segments' bounding box (None
-        where it has none)."""
-        a_lat, a_lon, _, b_lat, b_lon, _ = rays
-        out = []
-        for source in self.sources[from_source:upto]:
-            if isinstance(source, Raster) or idx.size == 0:
-                out.append(source if isinstance(source, Raster) else None)
+        s, de, dn = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+        status = np.full(n, STATUS_OUTSIDE, np.uint8)
+        for first, idx in self._groups(0, rays, a, b, np.arange(n)):
+            if first is not None:
+                got = trace_segments(first, a[idx], b[idx], s_lo[idx], s_hi[idx])
+                s[idx], status[idx] = got[0], got[3]
+                _slopes_into(first, a, b, s, idx, got[1], got[2], de, dn)
+            todo = idx[status[idx] == STATUS_OUTSIDE]
+            if len(self.sources) == 1 or todo.size == 0:
                 continue
-            lats = np.concatenate([a_lat[idx], b_lat[idx]])
-            # Unroll every a's longitude next to the first one's, and b's next to its a's, so that
-            # a box never spans the long way round (segments on both sides of the antimeridian).
-            a_lon_near = a_lon[idx[0]] + (a_lon[idx] - a_lon[idx[0]] + 180.0) % 360.0 - 180.0
-            b_lon_near = a_lon_near + (b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0
-            lons = np.concatenate([a_lon_near, b_lon_near])
-            pad = RAY_BOX_PAD_DEG + ray_bulge_deg(np.abs(lats).max(), a_lat[idx], a_lon_near, b_lat[idx],
-                                                  b_lon_near)
-            west = lons.min() - pad
-            turns = 360.0 * math.floor((west + 180.0) / 360.0)  # west in [-180, 180); east may pass 180
-            out.append(source.raster_for(max(lats.min() - pad, -90.0), west - turns, min(lats.max() + pad, 90.0),
-                                         lons.max() + pad - turns))
-        return out
+            a_t, b_t, lo_t, hi_t = a[todo], b[todo], s_lo[todo], s_hi[todo]
+            for part, rasters, cov in stack_partitions(self._stack(first, rays, a, b, todo), a_t, b_t, lo_t, hi_t):
+                got_s, dcol, drow, got_st, which = stack_trace(rasters, a_t[part], b_t[part], lo_t[part], hi_t[part],
+                                                               cov)
+                where = todo[part]
+                s[where], status[where] = got_s, got_st
+                for k in np.unique(which[which >= 0]):
+                    sel = np.flatnonzero(which == k)
+                    _slopes_into(rasters[k], a, b, s, where[sel], dcol[sel], drow[sel], de, dn)
+        return s, de, dn, status
+
+    def _stack(self, first, rays, a, b, todo) -> list:
+        """The sources as :func:`terrain.los.stack_partitions` takes them, for the segments todo
+        (indices local to them): the first source's raster ``first`` (None: it has none here),
+        then each source's groups."""
+        def first_groups(idx):
+            return [(first, idx)]
+
+        def later(k):
+            return lambda idx: self._groups(k, rays, a, b, todo[idx], base=todo)
+
+        return [first_groups] + [later(k) for k in range(1, len(self.sources))]
+
+    def _groups(self, k: int, rays, a, b, idx, base=None):
+        """Yield (raster or None, indices) for source k and the segments idx: a Raster source is
+        its own raster for them all; any other hands out a raster for the segments' box
+        (:func:`ray_box`; None where it has none), and when it cannot serve that box (it raises
+        LimitExceeded: more posts than its limit) the segments are split in two (at the widest gap
+        between their middles along the box's longer side when that holds most of the box, else
+        at the median) until each group's box is served; a lone segment's box that is not is the
+        source's own answer (``raster_for``: a store's region holding most of it, a procedural
+        world's LimitExceeded). Groups are yielded one at a time (their rasters freed once
+        traced). Indices come out relative to ``base`` (None: as given)."""
+        source = self.sources[k]
+        if isinstance(source, Raster) or idx.size == 0:
+            yield (source if isinstance(source, Raster) else None), _relative(idx, base)
+            return
+        strict = getattr(source, "ray_raster_for", source.raster_for)
+        pending = [idx]
+        while pending:
+            grp = pending.pop()
+            box = ray_box(rays, a, b, grp)
+            try:
+                raster = strict(*box)
+            except LimitExceeded:
+                if grp.size == 1:
+                    raster = source.raster_for(*box)
+                else:
+                    pending.extend(_split(rays, grp)[::-1])
+                    continue
+            yield raster, _relative(grp, base)
 
     def describe(self) -> list[dict]:
         """One dict per source: name, kind, bounds, resolution, vertical datum."""
@@ -439,14 +457,78 @@ class LosResult:
     status: np.ndarray
 
 
-def ray_bulge_deg(lat_abs_max_deg: float, a_lat, a_lon, b_lat, b_lon) -> float:
-    """How far (degrees) a chord's ground track may stray poleward of its endpoints.
+def _relative(idx, base):
+    """idx as positions in base (sorted indices holding idx); idx itself when base is None."""
+    return idx if base is None else np.searchsorted(base, idx)
 
-    A great circle through two points of one parallel at latitude phi, d
-    apart, peaks about d^2 tan(phi) / (8 R^2) radians above it (small-angle
-    expansion of the great-circle vertex latitude); d is bounded here by the
-    endpoints' degree spans, generously, with R the equatorial radius.
+
+def _slopes_into(raster, a, b, s, idx, dcol, drow, out_de, out_dn) -> None:
+    """out_*[idx] = the raster's slopes d h / d col, d h / d row at the contacts a + s (b - a) of
+    segments idx (NaN where none), per metre east and north at the contact's latitude."""
+    hit = ~np.isnan(s[idx])
+    sel = idx[hit]
+    if sel.size == 0:
+        return
+    lat, _, _ = ecef_to_geodetic(a[sel] + s[sel][:, None] * (b[sel] - a[sel]))
+    g = raster.georef
+    m_col, m_row = metres_per_index(g.crs, g.dx, g.dy, lat)
+    out_de[sel] = dcol[hit] / m_col
+    out_dn[sel] = drow[hit] / m_row
+
+
+def _split(rays, idx) -> tuple[np.ndarray, np.ndarray]:
+    """Two groups of the segments idx, apart along the longer side of their box (degrees of
+    latitude or of longitude, unrolled as :func:`ray_box` does): at the widest gap between the
+    segments' middles when it holds a quarter of their spread or more (batches over far-apart
+    places come apart as they are), else at the median."""
+    a_lat, a_lon, _, b_lat, b_lon, _ = rays
+    a_near = a_lon[idx[0]] + (a_lon[idx] - a_lon[idx[0]] + 180.0) % 360.0 - 180.0
+    mid_lon = a_near + 0.5 * ((b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0)
+    mid_lat = 0.5 * (a_lat[idx] + b_lat[idx])
+    key = mid_lon if np.ptp(mid_lon) >= np.ptp(mid_lat) else mid_lat
+    order = np.argsort(key, kind="stable")
+    gaps = np.diff(key[order])
+    cut = int(np.argmax(gaps)) + 1
+    if not gaps[cut - 1] >= 0.25 * np.ptp(key):
+        cut = idx.size // 2
+    return np.sort(idx[order[:cut]]), np.sort(idx[order[cut:]])
+
+
+def ray_box(rays, a_ecef, b_ecef, idx) -> tuple[float, float, float, float]:
+    """(lat_min, lon_min, lat_max, lon_max) degrees holding the ground tracks of the segments idx,
+    with RAY_BOX_PAD_DEG around them; lon_min in [-180, 180), lon_max may pass 180 (east across
+    the antimeridian).
+
+    Longitude: along a chord the longitude atan2(y, x) is monotone between its endpoints' and
+    runs the short way round (the chord's projection on the equatorial plane is a straight line,
+    which subtends less than 180 degrees at the axis), so the endpoints' short-way span holds it;
+    every a is unrolled next to the first one's and b next to its a, so a box never spans the long
+    way round. Latitude: the chord's largest and smallest z / rho (rho = hypot(x, y)) are at its
+    ends or where d/ds (z / rho) = 0; with rho^2 = A s^2 + B s + C and z = z0 + z1 s that is
+    z1 rho^2 = z rho rho' = z (2 A s + B) / 2, which is linear in s: s* = (z0 B / 2 - z1 C) /
+    (z1 B / 2 - z0 A). The geodetic latitude there (and at the ends) bounds the track's; it
+    differs from a function of z / rho only through the height (by e^2 h / R radians, ~6e-4
+    degree for 10 km of height change), well inside the pad. Near a pole this is the chord's
+    real poleward reach (metres for a km-long segment), not degrees of longitude.
     """
-    d_rad = np.radians(np.hypot(np.abs(b_lat - a_lat), np.abs(b_lon - a_lon)).max())
-    tan_phi = np.tan(np.radians(min(lat_abs_max_deg, 89.0)))
-    return float(np.degrees(d_rad * d_rad * tan_phi / 8.0))
+    a_lat, a_lon, _, b_lat, b_lon, _ = rays
+    a, b = a_ecef[idx], b_ecef[idx]
+    d = b - a
+    A = d[:, 0] ** 2 + d[:, 1] ** 2
+    B = 2.0 * (a[:, 0] * d[:, 0] + a[:, 1] * d[:, 1])
+    C = a[:, 0] ** 2 + a[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_star = (0.5 * a[:, 2] * B - d[:, 2] * C) / (0.5 * d[:, 2] * B - a[:, 2] * A)
+    inner = np.flatnonzero((s_star > 0.0) & (s_star < 1.0))
+    lats = [a_lat[idx], b_lat[idx]]
+    if inner.size:
+        lats.append(ecef_to_geodetic(a[inner] + s_star[inner, None] * d[inner])[0])
+    lats = np.concatenate(lats)
+    a_lon_near = a_lon[idx[0]] + (a_lon[idx] - a_lon[idx[0]] + 180.0) % 360.0 - 180.0
+    b_lon_near = a_lon_near + (b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0
+    lons = np.concatenate([a_lon_near, b_lon_near])
+    pad = RAY_BOX_PAD_DEG
+    west = lons.min() - pad
+    turns = 360.0 * math.floor((west + 180.0) / 360.0)  # west in [-180, 180); east may pass 180
+    east = min(lons.max() + pad - turns, west - turns + 360.0)  # a box never spans more than a turn
+    return max(lats.min() - pad, -90.0), west - turns, min(lats.max() + pad, 90.0), east

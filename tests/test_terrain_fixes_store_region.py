@@ -151,3 +151,34 @@ def test_rays_over_far_apart_regions_get_a_bounded_raster(store):
 
     world = StoreSource(store, level).raster_for(-60.0, -180.0, 60.0, 540.0)
     assert world is not None and world.heights.size <= RAY_RASTER_MAX_POSTS
+
+
+def test_a_ray_batch_over_far_apart_regions_answers_each_as_alone(store, monkeypatch):
+    """Rays over two regions whose merged grid exceeds RAY_RASTER_MAX_POSTS (lowered here so the
+    fixture's regions 3.5 degrees apart exceed it): the raster used to be the region holding most
+    of the box, and every ray over the other came back OUTSIDE. The batch is now split by box:
+    every answer (intersect, line of sight) equals that of its region's batch alone, bit for bit."""
+    import terrain.store as store_mod
+
+    t = Terrain([StoreSource(store, 0)])
+    rng = np.random.default_rng(4)
+    batches = []
+    for lat0, lon0 in ((10.05, 20.05), (10.25, 23.55)):
+        la, lo = rng.uniform(lat0, lat0 + 0.4, 200), rng.uniform(lon0, lon0 + 0.4, 200)
+        lb, lob = la + rng.uniform(-0.02, 0.02, 200), lo + rng.uniform(-0.02, 0.02, 200)
+        ga, gb = t.heights(la, lo).height_msl_m, t.heights(lb, lob).height_msl_m
+        batches.append([la, lo, ga + rng.uniform(-30.0, 60.0, 200), lb, lob, gb + rng.uniform(-30.0, 60.0, 200)])
+    merged = store.raster(0, 9.9, 19.9, 10.8, 24.1)
+    monkeypatch.setattr(store_mod, "RAY_RASTER_MAX_POSTS", merged.heights.size // 4)
+    both = [np.concatenate([x, y]) for x, y in zip(*batches)]
+    mixed, mixed_los = t.intersect(*both), t.line_of_sight(*both)
+    assert (mixed.status == STATUS_OK).all() and (mixed_los.status == STATUS_OK).all()
+    for j, rays in enumerate(batches):
+        alone, alone_los = t.intersect(*rays), t.line_of_sight(*rays)
+        sl = slice(200 * j, 200 * (j + 1))
+        assert alone.hit.any() and (~alone.hit).any()
+        for g, w in zip((mixed.hit, mixed.distance_m, mixed.lat_deg, mixed.lon_deg, mixed.height_msl_m,
+                         mixed.normal_enu, mixed.status, mixed_los.visible, mixed_los.status),
+                        (alone.hit, alone.distance_m, alone.lat_deg, alone.lon_deg, alone.height_msl_m,
+                         alone.normal_enu, alone.status, alone_los.visible, alone_los.status)):
+            np.testing.assert_array_equal(g[sl], w)
