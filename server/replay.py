@@ -70,6 +70,20 @@ class ReplayWorld(EventLog):
         self.time_s = self.tick_count * self.dt
         self.snapshot = _empty_snapshot(self.time_s, self.tick_count)
         self.damaged: dict[int, str] = {}  # chunk -> why it does not read (each logged once)
+        self._wreck_ticks: dict[int, int] | None = None  # entity -> tick of its crash/destruction
+
+    @property
+    def wrecks(self) -> frozenset:
+        """Entities crashed or destroyed by the tick shown (as World.wrecks: a view they enter is
+        told so). The recording's crash and destroyed events are read once, on first need (one
+        pass over the chunks that read, as ``sortie recording check`` makes)."""
+        if self._wreck_ticks is None:
+            ticks: dict[int, int] = {}
+            for r in self.rec.events(skipped=[]):
+                if r.event.kind in ("crash", "destroyed"):
+                    ticks.setdefault(int(r.event.entity_id), int(r.tick))
+            self._wreck_ticks = ticks
+        return frozenset(i for i, t in self._wreck_ticks.items() if t <= self.tick_count)
 
     def _damaged(self, k: int, exc: DataFormatError) -> None:
         if k not in self.damaged:
@@ -327,7 +341,7 @@ class ReplayServer:
             except DataFormatError as exc:
                 self._pass_damaged(tick, exc)
         self.publisher.publish(self.world.snapshot, self.world.infos, self.sessions.watching(),
-                               self.speed if self.playing else 0.0)
+                               self.speed if self.playing else 0.0, self.world.wrecks)
 
     def _pass_damaged(self, tick: int, exc: DataFormatError) -> None:
         """Playback reached ``tick`` in a damaged chunk: go on from the next chunk (the clients'

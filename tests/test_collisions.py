@@ -379,3 +379,71 @@ def test_an_entity_without_a_position_is_in_no_contact():
     p0[0] = p1[0] = np.nan
     i, j, _, d = new_contacts(p0, p1, [5.0, 5.0, 5.0])
     assert (i.tolist(), j.tolist()) == ([1], [2]) and np.isfinite(d).all()
+
+
+HEAD_ON_TOML = """
+[exercise]
+name = "head-on"
+start_time = 2026-06-15T07:00:00Z
+clock = "fast"
+duration_s = 12.0
+
+[terrain]
+dem = ["{dem}"]
+geoid_undulation_m = 48.0
+{agents}
+"""
+HEAD_ON_AGENT = """
+[[agents]]
+name = "{name}"
+kind = "aircraft"
+coalition = "blue"
+type = "f16"
+lat_deg = 47.3
+lon_deg = {lon}
+alt_m = 4000.0
+heading_deg = {heading}
+speed_mps = 250.0
+autopilot = {{ hold = {{ heading_deg = {heading}, alt_msl_m = 4000.0, speed_mps = 250.0 }} }}
+"""
+
+
+def test_a_recorded_collision_replays_with_its_wrecks(tmp_path, hgt_alps):
+    """`sortie server` records two f16s colliding head-on (2 km apart at 250 m/s each: 4 s);
+    its recording holds the collision and crash events, and a replay seeked past them tells
+    a view entering then that both are wrecks (EntityInfo.destroyed), and before them that
+    neither is."""
+    import subprocess
+
+    from client.sim_client import SimClient
+    from server.process import sortie_command
+    from server.recording import Recording
+    from server.replay import ReplayServer
+
+    east_deg = 1000.0 / (111_200.0 * math.cos(math.radians(47.3)))
+    agents = HEAD_ON_AGENT.format(name="a", lon=9.3 - east_deg, heading=90.0) + HEAD_ON_AGENT.format(
+        name="b", lon=9.3 + east_deg, heading=270.0)
+    scenario = tmp_path / "head_on.toml"
+    scenario.write_text(HEAD_ON_TOML.format(dem=str(hgt_alps), agents=agents))
+    path = tmp_path / "h.sortie"
+    out = subprocess.run(sortie_command() + ["server", "--scenario", str(scenario), "--port", "0", "--record",
+                                              str(path)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    with Recording(path) as rec:
+        kinds = [r.event.kind for r in rec.events()]
+        crash_tick = min(r.tick for r in rec.events() if r.event.kind == "crash")
+        assert kinds.count("collision") == 2 and kinds.count("crash") == 2
+        assert abs(crash_tick * rec.dt - 4.0) < 0.5
+    server = ReplayServer(path, speed=1.0, playing=False)
+    server.start()
+    try:
+        with SimClient(server.address) as c:
+            c.join("debrief", "observer", observer=(47.3, 9.3, 150_000.0))
+            pic = c.watch()
+            assert pic.snapshot_received.wait(15.0)
+            for t_s, wrecked in ((crash_tick * rec.dt - 1.0, False), (crash_tick * rec.dt + 2.0, True)):
+                st = c.replay(seek_time_s=t_s)
+                assert pic.wait_for(lambda p: abs(p.time_s - st.tick * rec.dt) < 1e-9 and len(p.infos) == 2, 15.0)
+                assert [info.destroyed for info in pic.infos.values()] == [wrecked, wrecked], t_s
+    finally:
+        server.stop()
