@@ -763,9 +763,10 @@ class World(EventLog):
         """Entities that came into contact with each other over the last tick
         (server/collisions.py): a "collision" event for each of the two, where it was at
         the moment they touched, naming the other and their relative speed. An aircraft
-        in one crashes (on the ground, only at AIRCRAFT_CRASH_SPEED_MPS or more); a
-        ground vehicle of this world's stops where it stands. Entities new this tick are
-        not tested (they have no path yet)."""
+        in one crashes (on the ground, only at AIRCRAFT_CRASH_SPEED_MPS or more); a ground
+        vehicle or static entity at DESTROY_SPEED_MPS or more is destroyed; below it a ground
+        vehicle of this world's stops where it met the other (moved back along its path this
+        tick, not left past it). Entities new this tick are not tested (they have no path yet)."""
         if before.ids.size == 0 or after.ids.size < 2:
             return []
         if np.array_equal(before.ids, after.ids):  # the usual tick: the same entities in the same order
