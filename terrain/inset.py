@@ -45,6 +45,11 @@ h(post) = b(post) + w(s) d(post), where
   to :class:`terrain.detail.DetailedRaster`'s values there for the same
   sigmas. d is 0 at the DEM's posts. A terrain whose covering source already
   synthesises detail (kind "dem+detail") gets none added (K = 0);
+* the sign of b is kept (``keep_sea_level_sign``): where b <= 0 (the sea, as
+  SRTM stores it) h = b, and land stays above 1 cm, since land and water are
+  told apart by the height's sign (the renderer's colour, the ground vehicles'
+  water rule): detail raised land blotches on half the sea posts of a coastal
+  area before;
 * w(s) = smoothstep(a0, a0 + B, s), s the signed distance (m) of the post
   from the polygon's boundary (positive inside), a0 = sqrt(2) x the DEM's
   larger post spacing (``detail_offset_m``; 131 m for 3" SRTM at 47 N),
@@ -137,9 +142,20 @@ STATS_MARGIN_POSTS = 32  # DEM posts around the area's box whose pyramid residua
 MAX_POLYGON_VERTICES = 1000  # as server/scenario.py
 ALIGNMENT_TOLERANCE_POSTS = 1e-6  # as terrain/detail.py: an origin this close to a multiple is aligned
 DETAIL_TABLE_MAX = float(np.abs(noise_table()).max())  # max |g| of the Gaussian table (4.3)
+LAND_FLOOR_M = 0.01  # the lowest height detail leaves a land post at (keep_sea_level_sign)
 COVERAGE_MASK_MAX_TEXELS = 512  # a side of InsetSource.coverage_mask's grid, at most
 COVERAGE_MASK_MARGIN_TEXELS = math.sqrt(2.0) + 1.0 / 16.0  # e = this x the texel + COVERAGE_MASK_MARGIN_M
 COVERAGE_MASK_MARGIN_M = 2.0
+
+
+def keep_sea_level_sign(below_m, detailed_m) -> np.ndarray:
+    """The detailed heights with the sign of the heights beneath: water (<= 0 m MSL, as SRTM
+    stores the sea) keeps its own height, land stays above LAND_FLOOR_M (or its own height when
+    lower). Land and water are told apart by the height's sign (the renderer's colour, the ground
+    vehicles' water rule), so detail must not raise land in the sea nor sink land under it."""
+    below_m = np.asarray(below_m, np.float64)
+    land = below_m > 0.0
+    return np.where(land, np.maximum(detailed_m, np.minimum(below_m, LAND_FLOOR_M)), below_m)
 
 
 def smoothstep(edge0: float, edge1: float, x) -> np.ndarray:
@@ -452,7 +468,7 @@ class InsetSource(Raster):
         else:
             detail = self._detail(i0, j0, rows, cols)
             a0 = self.detail_offset_m
-            heights = below_h + smoothstep(a0, a0 + self.border_band_m, sd) * detail
+            heights = keep_sea_level_sign(below_h, below_h + smoothstep(a0, a0 + self.border_band_m, sd) * detail)
         super().__init__(heights=heights, georef=Georef(CRS_GEOGRAPHIC, lon0, lat0, dlon, dlat), name=name,
                          vertical_datum=base.vertical_datum, filled=filled if filled.any() else None,
                          source=f"inset over {base.name}", meta={"detail_levels": levels})
