@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from client.render.camera import Camera
-from client.render.clipmap_layer import clipmap_factory, straddles_sea_level
+from client.render.clipmap_layer import clipmap_factory, coastline_shift_m, straddles_sea_level
 from client.render.profiles import profile
 from client.render.renderer import Renderer
 
@@ -53,9 +54,14 @@ def test_decimation_does_not_move_the_coastline(kattegat, altitude_m):
             if pixel_error is not None:
                 layer = r.terrain_layer
     assert 0.05 < frames[None].mean() < 0.95  # a coast: land and water both (82-86 % water)
-    assert int((frames[2.0] != frames[None]).sum()) == 0
+    # Land and water may swap only where the coastline moved within the 2 px bound (+1 px: the
+    # bound is on the shift of the coastline's points, a pixel's colour is sampled at its centre).
+    shore = ndimage.distance_transform_edt(frames[None] == frames[None][0, 0])  # to the other class
+    shore = np.minimum(shore, ndimage.distance_transform_edt(frames[None] != frames[None][0, 0]))
+    moved = frames[2.0] != frames[None]
+    assert moved.sum() < 0.02 * moved.size and np.all(shore[moved] <= 3.0), (int(moved.sum()), shore[moved].max())
     assert triangles[2.0] < 0.5 * triangles[None]  # decimation still draws far fewer triangles
-    # The blocks that straddle sea level are the ones kept whole.
+    # The blocks that straddle sea level are decimated only within the coastline's bound.
     d = min(layer.draws, key=lambda x: x.k)  # the finest level drawn
     level, n = layer.clipmap.levels[d.k], layer.clipmap.n
     h = [level.texel[np.arange(b[0], b[2] + 1)[:, None] % n, np.arange(b[1], b[3] + 1)[None, :] % n, 3]
@@ -63,4 +69,5 @@ def test_decimation_does_not_move_the_coastline(kattegat, altitude_m):
     straddle = np.array([(x <= 0).any() and (x > 0).any() for x in h])
     assert straddle.any() and (~straddle).any()
     assert np.array_equal(straddles_sea_level(d.blocks, level, n), straddle)
-    assert np.all(d.strides[straddle] == 1) and (d.strides[~straddle] > 1).any()
+    shift = coastline_shift_m(d.blocks[straddle], level, n)
+    assert np.all(shift[:, -1] > 0) and np.all(np.diff(shift, axis=1) < 0)  # coarser strides move it more

@@ -827,8 +827,10 @@ def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
     largest distance between the level's full surface over the block and what
     :func:`decimated_grid` draws (exact: over the vertices of the two meshes' overlay,
     :func:`overlay_rows`). A block a ring's edge cuts short is measured as the clamp draws it.
-    Infinite for a block whose posts straddle sea level (:func:`straddles_sea_level`: it keeps
-    every post), when the level holds heights (``texel``; ``pos_ecef`` alone: distances only)."""
+    For a block whose posts straddle sea level (:func:`straddles_sea_level`), when the level holds
+    heights (``texel``; ``pos_ecef`` alone: distances only), at least how far a stride can move
+    the coastline (:func:`coastline_shift_m`), so it is decimated only where that is within the
+    pixel bound too."""
     out = np.empty((len(blk), len(DECIMATION_STRIDES)))
     if len(blk) == 0:
         return out
@@ -842,16 +844,33 @@ def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
             _overlay_errors(level.pos_ecef, sub, n, BLOCK, *_overlay(s, h, w), errs, s_i)
         out[sel] = errs
     if getattr(level, "texel", None) is not None:
-        out[straddles_sea_level(blk, level, n)] = np.inf
+        wet = straddles_sea_level(blk, level, n)
+        if wet.any():
+            out[wet] = np.maximum(out[wet], coastline_shift_m(blk[wet], level, n))
     return out
+
+
+def coastline_shift_m(blk: np.ndarray, level, n: int) -> np.ndarray:
+    """(m, len(DECIMATION_STRIDES)) metres: how far each stride can move the coastline in blocks
+    (m, 4) whose posts straddle sea level. Colour tells land from water by the interpolated
+    height's sign, and a stride-s mesh draws each s x s cell of posts from its corners alone: a
+    sign change inside the cell moves, or an islet or inlet smaller than the cell vanishes, by at
+    most the cell's diagonal, s sqrt(2) times the larger post spacing (the block's first row and
+    column: a level's spacing changes by far less across a block)."""
+    i0, j0 = blk[:, 0] % n, blk[:, 1] % n
+    p = level.pos_ecef
+    spacing = np.maximum(np.linalg.norm(p[(i0 + 1) % n, j0] - p[i0, j0], axis=-1),
+                         np.linalg.norm(p[i0, (j0 + 1) % n] - p[i0, j0], axis=-1))
+    return spacing[:, None] * (math.sqrt(2.0) * np.asarray(DECIMATION_STRIDES, np.float64))[None, :]
 
 
 def straddles_sea_level(blk: np.ndarray, level, n: int) -> np.ndarray:
     """(m,) bool: block (m, 4)'s posts hold heights both at or below 0 m MSL and above. Such a
-    block is never decimated (:func:`decimation_errors` counts its errors infinite): colour tells land
-    from water by the interpolated height's sign (terrain_mesh TERRAIN_COLOUR_GLSL), and a
-    coarser mesh there moves the coastline by up to the stride's span whatever its vertical
-    error (the Kattegat's skerries, 0-20 m high, merged into kilometres of land at 2 px).
+    block is decimated only where the coastline's shift is within the pixel bound too
+    (:func:`decimation_errors`, :func:`coastline_shift_m`): colour tells land from water by the
+    interpolated height's sign (terrain_mesh TERRAIN_COLOUR_GLSL), and a coarser mesh there moves
+    the coastline by up to the stride's span whatever its vertical error (the Kattegat's
+    skerries, 0-20 m high, merged into kilometres of land at 2 px when only height counted).
     Elsewhere every post of a block, and so every convex combination of them a coarser mesh or
     its morph draws, has one sign: decimation never turns land into water or back."""
     if len(blk) == 0:
