@@ -181,8 +181,8 @@ def _run(world, ticks):
 
 
 def test_head_on_aircraft_collide_and_crash():
-    """Two trimmed f16s 3 km apart at the same altitude, head-on at 250 m/s each (16.7 m a
-    tick at 30 Hz, closing 33 m a tick, against a contact distance of 15 m): each gets one
+    """Two trimmed f16s 3 km apart at the same altitude, head-on at 250 m/s each (8.3 m a
+    tick at 30 Hz, closing 16.7 m a tick, against a contact distance of 15 m): each gets one
     collision event naming the other within 0.5 s of 6 s, then a crash for that reason; a
     third pair 300 m to the side flies on."""
     world = World(FlatTerrain(400.0))
