@@ -669,11 +669,14 @@ class GroundVehicles:
             where = "outside the terrain" if (st[i] == STATUS_OUTSIDE).any() else "in the water (height <= sea level)"
             raise InvalidArgument("lat", f"vehicle placed {where} (lon {float(self.lon[i])!r})", index=i,
                                   value=float(self.lat[i]))
-        lengths = self.table[self.type_id, P_LEN]
-        widths = self.table[self.type_id, P_WID]
-        self.height_msl_m[:] = h[:, 0]
-        self.pitch_grad[:] = (h[:, 1] - h[:, 2]) / lengths
-        self.roll_grad[:] = (h[:, 4] - h[:, 3]) / widths
+        self._set_pose(self._all, h)
+
+    def _set_pose(self, idx: np.ndarray, h: np.ndarray) -> None:
+        """Height, pitch and roll of the vehicles idx from the heights (m, N_CONTACTS) of their
+        contacts (centre, front, rear, left, right: _contacts)."""
+        self.height_msl_m[idx] = h[:, 0]
+        self.pitch_grad[idx] = (h[:, 1] - h[:, 2]) / self.table[self.type_id[idx], P_LEN]
+        self.roll_grad[idx] = (h[:, 4] - h[:, 3]) / self.table[self.type_id[idx], P_WID]
 
     @property
     def pitch_deg(self) -> np.ndarray:
@@ -760,9 +763,7 @@ class GroundVehicles:
             ok = ~(st == STATUS_OUTSIDE).any(axis=1) & (h > self.water_level_msl_m).all(axis=1)
             j = idx[ok]
             self.lat[j], self.lon[j] = lat[ok], lon[ok]
-            self.height_msl_m[j] = h[ok, 0]
-            self.pitch_grad[j] = (h[ok, 1] - h[ok, 2]) / self.table[self.type_id[j], P_LEN]
-            self.roll_grad[j] = (h[ok, 4] - h[ok, 3]) / self.table[self.type_id[j], P_WID]
+            self._set_pose(j, h[ok])
         self.speed_mps[idx] = 0.0
         self.blocked[idx] = reason
 

@@ -667,6 +667,18 @@ def external_id(entity_id) -> str:
     return "dis:" + ".".join(str(int(x)) for x in entity_id)
 
 
+def entity_id_of(xid: str) -> tuple[int, int, int] | None:
+    """The DIS Entity ID (site, application, entity) of a Sortie external id made by
+    :func:`external_id`; None for any other external id."""
+    if not xid.startswith("dis:"):
+        return None
+    try:
+        site, app, number = (int(x) for x in xid[4:].split("."))
+    except ValueError:
+        return None
+    return site, app, number
+
+
 def unique_name(name: str, xid: str, taken) -> str:
     """A world name for the DIS entity ``xid`` ("dis:<site>.<app>.<entity>") whose marking gives
     ``name``, not in ``taken`` (the names of every other entity): DIS markings need not be

@@ -356,14 +356,8 @@ class DisGateway:
         """The DIS Entity ID of a world entity: a DIS entity's own (its external id), ours for
         one we speak for or could, (0, 0, 0) (no entity) for anything else."""
         info = next((i for i in self._world_infos() if i.entity_id == entity_id), None)
-        if info is not None and info.external_id.startswith("dis:"):
-            try:
-                site, app, number = (int(x) for x in info.external_id[4:].split("."))
-                return site, app, number
-            except ValueError:
-                return 0, 0, 0
         if info is not None and info.external_id:
-            return 0, 0, 0
+            return dis.entity_id_of(info.external_id) or (0, 0, 0)
         return (self.site, self.application, entity_id) if 0 < entity_id <= MAX_ENTITY_NUMBER else (0, 0, 0)
 
     def _send_collision(self, event: pb.WorldEvent) -> None:

@@ -219,7 +219,6 @@ class World(EventLog):
         self._layout_cache = None
         self._shape_cache = None  # (layout version, ids sorted, radius, half length, half width, fixed)
         self._shapes_of = None  # (ids, _shapes(ids)) of the last call
-        self._destroyed_ground: list[int] = []  # ground vehicles destroyed in collisions (they no longer move)
         self.ground: GroundVehicles | None = None
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
         self._scenario_routes: dict[int, dict] = {}  # the route spec each ground agent spawned on
@@ -442,8 +441,6 @@ class World(EventLog):
             self._pending.pop(entity_id, None)
             self._ground_heading_hold.pop(entity_id, None)
             self._hold_version += 1
-            if entity_id in self._destroyed_ground:
-                self._destroyed_ground.remove(entity_id)
             if e.external_id:
                 self._external.pop(entity_id, None)
                 self._external_ids.pop(e.external_id, None)
@@ -451,11 +448,15 @@ class World(EventLog):
                 self.air.remove(entity_id)
             elif e.kind == GROUND:
                 self.ground.remove([e.ground_id])
-                self.routes = [(spec, [i for i in ids if i != entity_id]) for spec, ids in self.routes]
-                self.routes = [(spec, ids) for spec, ids in self.routes if ids]
                 self._scenario_routes.pop(entity_id, None)
-                self._rebuild_followers()
+                self._off_route(entity_id)
             self._emit(WorldEvent(self.time_s, "remove", entity_id, detail={"name": e.name, "reason": reason}))
+
+    def _off_route(self, entity_id: int) -> None:
+        """Take a ground vehicle off its route (its convoy goes on without it)."""
+        self.routes = [(spec, [i for i in ids if i != entity_id]) for spec, ids in self.routes]
+        self.routes = [(spec, ids) for spec, ids in self.routes if ids]
+        self._rebuild_followers()
 
     def _rebuild_followers(self) -> None:
         """Route followers index vehicles by position in the arrays, which removals shift."""
@@ -621,9 +622,7 @@ class World(EventLog):
 
     def _drive(self, e: Entity, kind: str, values: dict) -> None:
         if e.id in self._followed:  # a commanded vehicle leaves its route
-            self.routes = [(spec, [i for i in ids if i != e.id]) for spec, ids in self.routes]
-            self.routes = [(spec, ids) for spec, ids in self.routes if ids]
-            self._rebuild_followers()
+            self._off_route(e.id)
         idx = self.ground.index_of([e.ground_id])
         if kind == "drive":
             self.ground.set_controls(values.get("speed_mps", 0.0), values.get("yaw_rate_dps", 0.0), index=idx)
@@ -665,16 +664,21 @@ class World(EventLog):
                 events.append(self._lose(entity_id))
             snapshot = self._take_snapshot()
             events += self._terrain_collisions(self.snapshot, snapshot)
+            self._note_wrecks(events)  # what crashed so far this tick moves no more
             events += self._agent_collisions(self.snapshot, snapshot)
+            self._note_wrecks(events)
             for ev in events:
                 self._emit(ev)
-            down = {ev.entity_id for ev in events if ev.kind in ("crash", "destroyed")}
-            if down:
-                self.wrecks = self.wrecks | down
             self.snapshot = snapshot
             if self.recorder is not None:
                 self.recorder.on_tick(snapshot, self.infos)
             return events
+
+    def _note_wrecks(self, events: list) -> None:
+        """Add the entities that crashed or were destroyed in ``events`` to :attr:`wrecks`."""
+        down = {ev.entity_id for ev in events if ev.kind in ("crash", "destroyed")}
+        if not down <= self.wrecks:
+            self.wrecks = self.wrecks | down
 
     def _lose(self, entity_id: int) -> WorldEvent:
         """An aircraft whose worker process died: gone from the world (the host has forgotten it)."""
@@ -783,11 +787,8 @@ class World(EventLog):
         if gnd_rows.size:
             heading[gnd_rows] = self.ground.heading_deg[gnd_idx]
         moving = ~fixed
-        air = self._air_tick
-        wrecks = [] if air is None else [i for i in air.ids.tolist() if getattr(self.entities.get(i), "crashed", 0)]
-        wrecks += self._destroyed_ground
-        if wrecks:
-            rows, found = rows_of(ids, np.array(wrecks, np.int64))
+        if self.wrecks:  # crashed aircraft and destroyed vehicles move no more
+            rows, found = rows_of(ids, np.fromiter(self.wrecks, np.int64, len(self.wrecks)))
             moving[rows[found]] = False
         ci, cj, t, dist = new_contacts(before.ecef_m[kb], after.ecef_m[ka], radius, heading_deg=heading,
                                        half_length_m=half_l, half_width_m=half_w, moves=moving,
@@ -836,9 +837,7 @@ class World(EventLog):
         if e.kind != GROUND:
             return
         if e.id in self._followed:
-            self.routes = [(spec, [i for i in ids if i != e.id]) for spec, ids in self.routes]
-            self.routes = [(spec, ids) for spec, ids in self.routes if ids]
-            self._rebuild_followers()
+            self._off_route(e.id)
         self._scenario_routes.pop(e.id, None)
         if self._ground_heading_hold.pop(e.id, None) is not None:
             self._hold_version += 1
@@ -846,7 +845,6 @@ class World(EventLog):
         idx = self.ground.index_of([e.ground_id])
         self.ground.set_controls(0.0, 0.0, index=idx)
         self.ground.stop(idx, lat=[where[0]], lon=[where[1]])
-        self._destroyed_ground.append(e.id)
 
     def _hold_ground_headings(self) -> None:
         if not self._ground_heading_hold:

@@ -15,17 +15,9 @@ from fdm.ground import BLOCKED_COLLISION
 from fdm.vehicle_types import VEHICLE_TYPES
 from server.collisions import new_contacts
 from server.world import STATIC_RADIUS_M, World
-from terrain.geodesy import geodetic_to_ecef
+from terrain.geodesy import enu_basis, geodetic_to_ecef
 
 LAT0, LON0 = 47.0, 9.0
-
-
-def _enu_basis(lat_deg, lon_deg):
-    phi, lam = math.radians(lat_deg), math.radians(lon_deg)
-    east = np.array([-math.sin(lam), math.cos(lam), 0.0])
-    north = np.array([-math.sin(phi) * math.cos(lam), -math.sin(phi) * math.sin(lam), math.cos(phi)])
-    up = np.array([math.cos(phi) * math.cos(lam), math.cos(phi) * math.sin(lam), math.sin(phi)])
-    return east, north, up
 
 
 def _corners(cx, cy, heading_deg, half_l, half_w):
@@ -70,7 +62,7 @@ def _reference(p0, p1, radius, heading, half_l, half_w, lat, lon, moves):
                 continue
             rs = radius[i] + radius[j]
             if half_l[i] > 0 and half_l[j] > 0:
-                east, north, up = _enu_basis(lat[i], lon[i])
+                east, north, up = enu_basis(lat[i], lon[i])
                 touching = []
                 for p in (p0, p1):
                     d = p[j] - p[i]
@@ -128,7 +120,7 @@ def test_a_fast_crossing_between_snapshots_is_found():
     the tick's start they are 10.2 m apart, at its end 9.8 m on the other side: both ends
     apart, the paths meet half-way. Found, at t = 0.5 within the touching time's bound."""
     p = geodetic_to_ecef(np.array([LAT0, LAT0]), np.array([LON0, LON0]), np.array([1000.0, 1000.0]))
-    east, _, _ = _enu_basis(LAT0, LON0)
+    east, _, _ = enu_basis(LAT0, LON0)
     p0 = np.stack([p[0] - 5.1 * east, p[1] + 5.1 * east])
     p1 = np.stack([p[0] + 4.9 * east, p[1] - 4.9 * east])
     i, j, t, d = new_contacts(p0, p1, [5.0, 5.0])
@@ -137,7 +129,7 @@ def test_a_fast_crossing_between_snapshots_is_found():
     assert 0.0 <= t[0] <= 0.5  # they touch (10 m apart) at t = 0.01, before the least distance
     assert abs(t[0] - 0.01) < 1e-6
     # Beside each other by 10.5 m: never within the 10 m of the two radii.
-    off = np.stack([np.zeros(3), 10.5 * _enu_basis(LAT0, LON0)[1]])
+    off = np.stack([np.zeros(3), 10.5 * enu_basis(LAT0, LON0)[1]])
     assert new_contacts(p0 + off, p1 + off, [5.0, 5.0])[0].size == 0
 
 
@@ -151,7 +143,7 @@ def test_boxes_side_by_side_are_not_a_collision():
     for gap_m, touches in ((4.0, False), (3.5, True)):
         lon = np.array([LON0, LON0 + gap_m / 4.0 * east_deg])
         p1 = geodetic_to_ecef(lat, lon, np.array([400.0, 400.0]))
-        north = _enu_basis(LAT0, LON0)[1]
+        north = enu_basis(LAT0, LON0)[1]
         p0 = p1 - 0.5 * north
         p0[1] = geodetic_to_ecef(lat[1:], np.array([LON0 + 6.0 * east_deg]), np.array([400.0]))[0] - 0.5 * north
         r = math.hypot(t.length_m, t.width_m) / 2
@@ -373,7 +365,7 @@ def test_an_entity_without_a_position_is_in_no_contact():
     """A NaN position (nothing the world publishes, but the kernel must not compare it into
     a contact): the other pairs are found as without it, with their own indices."""
     p = geodetic_to_ecef(np.array([LAT0] * 3), np.array([LON0] * 3), np.array([1000.0] * 3))
-    east = _enu_basis(LAT0, LON0)[0]
+    east = enu_basis(LAT0, LON0)[0]
     p1 = np.stack([p[0], p[1] + 8.0 * east, p[2]])
     p0 = np.stack([p[0], p[1] + 30.0 * east, p[2]])
     p0[0] = p1[0] = np.nan
