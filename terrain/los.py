@@ -68,7 +68,8 @@ Stacks of sources
 -----------------
 :func:`stack_trace` and :func:`stack_line_of_sight` meet the surface of an
 ordered stack of rasters (a terrain.terrain.Terrain's sources): at each point
-that of the first raster covering it. Each raster's covered intervals along a
+that of the first raster covering it, or, where that raster has only a filled
+void, of the first later raster measuring the ground there. Each raster's covered intervals along a
 segment (:func:`segment_coverage`) come from the same pieces, track and block
 walk as the exact trace (the walk's stepping is shared: :func:`_walk_start`,
 :func:`_enter`, :func:`_block`, :func:`_next_cell`); the stretches left to
@@ -723,7 +724,8 @@ def dense_los_reference(raster: Raster, a_lat, a_lon, a_h, b_lat, b_lon, b_h, sa
 # --------------------------------------------------------------------------- segments over a stack of sources
 #
 # The stack's surface along a segment is, at each point, the surface of the first source covering
-# it, as terrain.terrain.Terrain.heights answers. stack_trace finds the first contact with it: every
+# it (over its filled void, the first later one measuring the ground), as
+# terrain.terrain.Terrain.heights answers. stack_trace finds the first contact with it: every
 # source's raster gives the parameter intervals of the segment it covers (the cells of four finite
 # posts the segment's track crosses, walked as _walk walks them: the same pieces and quadratic track,
 # _next_piece and _fit_piece, and the same block walk over the same cells, _walk_start, _enter,
@@ -762,28 +764,32 @@ def _clip_monotone(p0, p1, p2, ua, ub, lo, hi):
 
 
 @numba.njit(cache=True, nogil=True)
-def _emit(s0, s1, ray, first, count, out_ray, out_s0, out_s1):
-    """Add [s0, s1] to the ray's intervals out_*[first:count], merged into the last one when it
-    continues it; the new count, or -1 when the arrays are full."""
-    if count > first and s0 <= out_s1[count - 1] + _TOUCH:
+def _emit(s0, s1, fill, ray, first, count, out_ray, out_s0, out_s1, out_fill):
+    """Add [s0, s1] (fill: 1 over filled-void cells, else 0) to the ray's intervals
+    out_*[first:count], merged into the last one when it continues it with the same fill; the new
+    count, or -1 when the arrays are full."""
+    if count > first and s0 <= out_s1[count - 1] + _TOUCH and out_fill[count - 1] == fill:
         if s1 > out_s1[count - 1]:
             out_s1[count - 1] = s1
         return count
     if count >= out_ray.shape[0]:
         return -1
-    out_ray[count], out_s0[count], out_s1[count] = ray, s0, s1
+    out_ray[count], out_s0[count], out_s1[count], out_fill[count] = ray, s0, s1, fill
     return count + 1
 
 
 @numba.njit(cache=True, nogil=True)
-def _cover_walk(pmax, poff, pshape, periodic, poles, poly, shift, u0, u1, sa, sb, ray, first, count,
-                out_ray, out_s0, out_s1):
+def _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, u0, u1, sa, sb, ray, first, count,
+                out_ray, out_s0, out_s1, out_fill):
     """Emit (as parameters s = sa + u (sb - sa)) the parts of [u0, u1] over cells of four finite
-    posts. [u0, u1] is a monotone stretch of a piece clipped to the raster's rows and (columns less
-    ``shift``, a whole number of turns) its columns. The walk is :func:`_walk`'s (the same block
-    steps on the min/max pyramid): a block whose maximum is finite holds no hole and is passed
-    whole (a cell with a NaN post has maximum +inf, terrain.pyramid)."""
+    posts, each marked 1 in out_fill over cells with a filled-void post (pfill: the pyramid's
+    filled flags, empty when the raster has none), else 0. [u0, u1] is a monotone stretch of a
+    piece clipped to the raster's rows and (columns less ``shift``, a whole number of turns) its
+    columns. The walk is :func:`_walk`'s (the same block steps on the min/max pyramid): a block
+    whose maximum is finite holds no hole and is passed whole (a cell with a NaN post has maximum
+    +inf, terrain.pyramid), unless it holds a filled post (then its cells are told apart)."""
     ncy, ncx = pshape[0, 0], pshape[0, 1]
+    has_fill = pfill.shape[0] > 0
     r0, r1, r2 = poly[0], poly[1], poly[2]
     c0, c1, c2 = poly[3] - shift, poly[4], poly[5]
     sr, sc, i, j = _walk_start(r0, r1, r2, c0, c1, c2, u0, u1, ncy, ncx)
@@ -801,12 +807,15 @@ def _cover_walk(pmax, poff, pshape, periodic, poles, poly, shift, u0, u1, sa, sb
             return count
         bi, bj, rlo, rhi, clo, chi, u_r, u_c, u_e = _block(r0, r1, r2, c0, c1, c2, i, j, jw, k, sr, sc, u, u1,
                                                            ncy, ncx)
-        covered = pmax[poff[k] + bi * pshape[k, 1] + bj] < math.inf
-        if not covered and k > 0:
+        block = poff[k] + bi * pshape[k, 1] + bj
+        covered = pmax[block] < math.inf
+        fill = pfill[block] if has_fill else 0
+        if (not covered or fill) and k > 0:
             k -= 1
             continue
         if covered:
-            count = _emit(sa + u * (sb - sa), sa + u_e * (sb - sa), ray, first, count, out_ray, out_s0, out_s1)
+            count = _emit(sa + u * (sb - sa), sa + u_e * (sb - sa), fill, ray, first, count, out_ray, out_s0, out_s1,
+                          out_fill)
             if count < 0:
                 return count
         if u_e >= u1:
@@ -817,8 +826,8 @@ def _cover_walk(pmax, poff, pshape, periodic, poles, poly, shift, u0, u1, sa, sb
 
 
 @numba.njit(cache=True, nogil=True)
-def _cover_stretch(pmax, poff, pshape, periodic, poles, turn_cols, poly, ua, ub, sa, sb, ray, first, count,
-                   out_ray, out_s0, out_s1):
+def _cover_stretch(pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, ua, ub, sa, sb, ray, first, count,
+                   out_ray, out_s0, out_s1, out_fill):
     """:func:`_cover_walk` over the parts of the monotone stretch [ua, ub] inside the raster's rows
     (beyond a pole row too, when the raster reaches the pole) and columns: every copy of the
     column range a whole turn apart that the stretch meets, in order along it (a raster not
@@ -829,8 +838,8 @@ def _cover_stretch(pmax, poff, pshape, periodic, poles, turn_cols, poly, ua, ub,
     if not u0 <= u1:
         return count
     if periodic:
-        return _cover_walk(pmax, poff, pshape, periodic, poles, poly, 0.0, u0, u1, sa, sb, ray, first, count,
-                           out_ray, out_s0, out_s1)
+        return _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, 0.0, u0, u1, sa, sb, ray, first, count,
+                           out_ray, out_s0, out_s1, out_fill)
     c_a, c_b = _quad(poly[3], poly[4], poly[5], ua), _quad(poly[3], poly[4], poly[5], ub)
     lo, hi = min(c_a, c_b), max(c_a, c_b)
     if not (abs(lo) < 1.0e12 and abs(hi) < 1.0e12):
@@ -842,18 +851,19 @@ def _cover_stretch(pmax, poff, pshape, periodic, poles, turn_cols, poly, ua, ub,
         v0, v1 = _clip_monotone(poly[3] - shift, poly[4], poly[5], ua, ub, 0.0, float(ncx))
         v0, v1 = max(v0, u0), min(v1, u1)
         if v0 <= v1:
-            count = _cover_walk(pmax, poff, pshape, periodic, poles, poly, shift, v0, v1, sa, sb, ray, first,
-                                count, out_ray, out_s0, out_s1)
+            count = _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, v0, v1, sa, sb, ray, first,
+                                count, out_ray, out_s0, out_s1, out_fill)
             if count < 0:
                 return count
     return count
 
 
 @numba.njit(cache=True, nogil=True)
-def _cover_kernel(pmax, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn_cols, a_ecef, b_ecef, s_lo, s_hi,
-                  rho_coef, first_ray, out_ray, out_s0, out_s1):
+def _cover_kernel(pmax, pfill, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn_cols, a_ecef, b_ecef, s_lo,
+                  s_hi, rho_coef, first_ray, out_ray, out_s0, out_s1, out_fill):
     """The parameter intervals of each segment a + s (b - a), s in [s_lo, s_hi], over the raster's
-    covered cells, in order, from segment first_ray on: (count written, next segment). The
+    covered cells (out_fill: 1 over filled-void cells), in order, from segment first_ray on:
+    (count written, next segment). The
     track is :func:`_trace_kernel`'s (the pieces and monotone stretches of :func:`_next_piece` and
     :func:`_fit_piece`). When the arrays fill up the next segment is below n and none of its
     intervals are written: call again from it with larger ones."""
@@ -870,8 +880,8 @@ def _cover_kernel(pmax, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn
             n_cuts = _fit_piece(ra, rm, rb, ca, cm, cb, ha, hm, hb, poly, cuts)
             u0 = 0.0
             for c in range(n_cuts + 1):
-                count = _cover_stretch(pmax, poff, pshape, periodic, poles, turn_cols, poly, u0, cuts[c], sa, sb,
-                                       n, first, count, out_ray, out_s0, out_s1)
+                count = _cover_stretch(pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, u0, cuts[c], sa,
+                                       sb, n, first, count, out_ray, out_s0, out_s1, out_fill)
                 if count < 0:
                     return first, n
                 u0 = cuts[c]
@@ -941,21 +951,50 @@ def _inner_bounds(heights, crs, x0, y0, dx, dy, periodic, a_ecef, b_ecef, p0, p1
 
 
 @numba.njit(cache=True, nogil=True)
-def _top_at(iv_src, iv_s0, iv_s1, start, stop, x):
-    """The first (lowest index) source among intervals [start, stop) holding parameter x; -1: none."""
-    top = -1
+def _top_at(iv_src, iv_s0, iv_s1, iv_fill, measured, start, stop, x):
+    """The source of the stack's surface at parameter x, among intervals [start, stop): the first
+    (lowest index) source holding x, unless it holds x only over filled-void cells and a measured
+    source (measured[source] set) holds x over cells of its own data: then the first of those,
+    as terrain.terrain.Terrain.heights answers a filled point. Returns (source, 1 when the
+    source holds x over filled-void cells only, else 0); source -1: none."""
+    top, top_fill, alt = -1, 0, -1
     for t in range(start, stop):
-        if iv_s0[t] <= x <= iv_s1[t] and (top < 0 or iv_src[t] < top):
-            top = iv_src[t]
-    return top
+        if not iv_s0[t] <= x <= iv_s1[t]:
+            continue
+        src = iv_src[t]
+        if top < 0 or src < top:
+            top, top_fill = src, iv_fill[t]
+        elif src == top:
+            top_fill &= iv_fill[t]
+        if iv_fill[t] == 0 and measured[src] and (alt < 0 or src < alt):
+            alt = src
+    if top_fill and alt >= 0:
+        return alt, 0
+    return top, top_fill
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _takes_the_run(left, left_fill, right, right_fill, measured):
+    """Whether the stretch of source ``left`` (its fill flag left_fill, as :func:`_top_at` gives
+    them) takes a run between it and that of ``right``: the one heights would answer where both
+    cover (a source's own data over another's filled void, else the first; -1: no source)."""
+    if left < 0 or right < 0:
+        return left >= 0
+    if left_fill != right_fill:
+        return measured[right] == 0 if left_fill else measured[left] == 1
+    return left < right
 
 
 @numba.njit(cache=True, nogil=True)
-def _stack_parts(iv_ray, iv_src, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out_ray, out_src, out_p0, out_p1):
+def _stack_parts(iv_ray, iv_src, iv_s0, iv_s1, iv_fill, measured, s_lo, s_hi, length, gap_m, out_ray, out_src,
+                 out_p0, out_p1, out_fill):
     """Cut each segment's [s_lo, s_hi] into stretches of one source: the first (lowest index)
-    source whose interval holds the stretch, -1 where none does. iv_*: every source's covered
-    intervals, grouped by segment in segment order. Returns the count written (in order along
-    each segment); a segment of zero extent gets one stretch, the source holding its point.
+    source whose interval holds the stretch, or the first measured one for a stretch the first
+    holds over filled voids only (:func:`_top_at`), -1 where none does. iv_*: every source's
+    covered intervals, grouped by segment in segment order; measured: per source, 1 unless its
+    data is synthetic. out_fill: 1 for a stretch its source holds over filled voids only. Returns
+    the count written (in order along each segment); a segment of zero extent gets one stretch,
+    the source holding its point.
 
     No stretch is shorter than gap_m metres (but that of a segment shorter than it): the ends of
     the intervals (and the segment's own) are taken in runs each within gap_m of the next, and a
@@ -976,8 +1015,8 @@ def _stack_parts(iv_ray, iv_src, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out_ra
             g += 1
         lo, hi = s_lo[ray], s_hi[ray]
         if not hi > lo:
-            top = _top_at(iv_src, iv_s0, iv_s1, start, g, lo)
-            out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, top, lo, lo
+            top, fill = _top_at(iv_src, iv_s0, iv_s1, iv_fill, measured, start, g, lo)
+            out_ray[count], out_src[count], out_p0[count], out_p1[count], out_fill[count] = ray, top, lo, lo, fill
             count += 1
             continue
         npt = 2 * (g - start) + 2
@@ -997,25 +1036,28 @@ def _stack_parts(iv_ray, iv_src, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out_ra
                 run_lo[nr], run_hi[nr] = pts[q], pts[q]
                 nr += 1
         if nr == 1:  # the segment is shorter than gap_m: one stretch, the source at its middle
-            top = _top_at(iv_src, iv_s0, iv_s1, start, g, 0.5 * (lo + hi))
-            out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, top, lo, hi
+            top, fill = _top_at(iv_src, iv_s0, iv_s1, iv_fill, measured, start, g, 0.5 * (lo + hi))
+            out_ray[count], out_src[count], out_p0[count], out_p1[count], out_fill[count] = ray, top, lo, hi, fill
             count += 1
             continue
-        tops = np.empty(nr - 1, np.int64)
+        tops, fills = np.empty(nr - 1, np.int64), np.empty(nr - 1, np.uint8)
         for q in range(nr - 1):
-            tops[q] = _top_at(iv_src, iv_s0, iv_s1, start, g, 0.5 * (run_hi[q] + run_lo[q + 1]))
+            tops[q], fills[q] = _top_at(iv_src, iv_s0, iv_s1, iv_fill, measured, start, g,
+                                        0.5 * (run_hi[q] + run_lo[q + 1]))
         first = count
         x0 = lo
         for q in range(nr - 1):
             if q == nr - 2:
                 x1 = hi
+            elif _takes_the_run(tops[q], fills[q], tops[q + 1], fills[q + 1], measured):
+                x1 = run_hi[q + 1]
             else:
-                left, right = tops[q], tops[q + 1]
-                x1 = run_hi[q + 1] if left >= 0 and (right < 0 or left < right) else run_lo[q + 1]
-            if count > first and out_src[count - 1] == tops[q]:
+                x1 = run_lo[q + 1]
+            if count > first and out_src[count - 1] == tops[q] and out_fill[count - 1] == fills[q]:
                 out_p1[count - 1] = x1
             else:
                 out_ray[count], out_src[count], out_p0[count], out_p1[count] = ray, tops[q], x0, x1
+                out_fill[count] = fills[q]
                 count += 1
             x0 = x1
     return count
@@ -1040,9 +1082,10 @@ def _covered_whole(iv_ray, iv_s0, iv_s1, s_lo, s_hi, length, gap_m, out):
 
 
 def segment_coverage(raster: Raster, a_ecef, b_ecef, s_lo, s_hi):
-    """Where segments run over a raster: (segment index, s0, s1) (m,) arrays of the parameter
+    """Where segments run over a raster: (segment index, s0, s1, fill) (m,) arrays of the parameter
     intervals of each a + s (b - a), s in [s_lo, s_hi], over cells of four finite posts, grouped
-    by segment in order and along each segment. The track and the cells are those of
+    by segment in order and along each segment; fill (uint8) is 1 for an interval over cells with
+    a filled-void post (such cells make intervals of their own), else 0. The track and the cells are those of
     :func:`trace_segments`: a trace started inside an interval leaves the raster at its end, to
     within the track model's error (MODEL_ERROR_M)."""
     g = raster.georef
@@ -1055,21 +1098,21 @@ def segment_coverage(raster: Raster, a_ecef, b_ecef, s_lo, s_hi):
     cap = max(64, 4 * n)
     parts, first = [], 0
     while first < n:
-        out = np.empty(cap, np.int64), np.empty(cap), np.empty(cap)
-        count, first = _cover_kernel(pyr.max_flat, pyr.offsets, pyr.shapes, g.crs, g.x0, g.y0, g.dx, g.dy, periodic,
-                                     poles, turn_cols, a_walk, b_walk, s_lo[walk], s_hi[walk], PIECE_RHO_COEF, first,
-                                     *out)
-        parts.append((walk[out[0][:count]], out[1][:count], out[2][:count]))
+        out = np.empty(cap, np.int64), np.empty(cap), np.empty(cap), np.empty(cap, np.uint8)
+        count, first = _cover_kernel(pyr.max_flat, pyr.filled_flat, pyr.offsets, pyr.shapes, g.crs, g.x0, g.y0, g.dx,
+                                     g.dy, periodic, poles, turn_cols, a_walk, b_walk, s_lo[walk], s_hi[walk],
+                                     PIECE_RHO_COEF, first, *out)
+        parts.append((walk[out[0][:count]], out[1][:count], out[2][:count], out[3][:count]))
         cap *= 2
     inside = np.flatnonzero(whole)
-    parts.append((inside, s_lo[inside], s_hi[inside]))
-    ray, s0, s1 = (np.concatenate(p) for p in zip(*parts))
+    parts.append((inside, s_lo[inside], s_hi[inside], np.zeros(inside.size, np.uint8)))
+    ray, s0, s1, fill = (np.concatenate(p) for p in zip(*parts))
     order = np.argsort(ray, kind="stable")  # each segment's intervals stay in order along it
-    return ray[order], s0[order], s1[order]
+    return ray[order], s0[order], s1[order], fill[order]
 
 
 def _whole_segments(raster: Raster, a_ecef, b_ecef) -> np.ndarray:
-    """(n,) bool: segments a raster without holes covers whole, no walk needed (the procedural
+    """(n,) bool: segments a raster without holes or filled voids covers whole, no walk needed (the procedural
     world's raster for the segments' box). A geographic raster covers a segment whose endpoints
     lie inside its bounds by more than the chord's poleward bulge (per segment: d^2 tan(phi) / 8
     radians for an angular span d, the small-angle expansion of the great-circle vertex latitude,
@@ -1077,7 +1120,8 @@ def _whole_segments(raster: Raster, a_ecef, b_ecef) -> np.ndarray:
     longitude is monotone between the endpoints' (the chord's projection on the equatorial plane
     is a straight line), its latitude within the endpoints' and the bulge."""
     n = a_ecef.shape[0]
-    if raster.georef.crs != CRS_GEOGRAPHIC or not np.isfinite(raster.pyramid.max_flat[-1]) or n == 0:
+    if (raster.georef.crs != CRS_GEOGRAPHIC or not np.isfinite(raster.pyramid.max_flat[-1]) or n == 0
+            or raster.pyramid.filled_flat.size > 0):
         return np.zeros(n, bool)
     lat_a, lon_a, _ = ecef_to_geodetic(a_ecef)
     lat_b, lon_b, _ = ecef_to_geodetic(b_ecef)
@@ -1091,21 +1135,24 @@ def _whole_segments(raster: Raster, a_ecef, b_ecef) -> np.ndarray:
             & (np.minimum(wa, wb) > 1.0e-9) & (np.maximum(wa, wb) < lon1 - lon0 - 1.0e-9))
 
 
-def stack_partitions(sources, a_ecef, b_ecef, s_lo, s_hi):
+def stack_partitions(sources, a_ecef, b_ecef, s_lo, s_hi, measured=None):
     """Split a batch of segments a + s (b - a), s in [s_lo, s_hi], over a stack of sources into
     parts each traced on one raster per source. ``sources``: per source, in priority order, a
     callable groups(idx) -> iterable of (raster or None, indices), the indices (a partition of
     the segments idx) that each raster serves (a Raster source serves all; a procedural or
     store source one raster per group whose box it can serve). A source is asked only for the
     segments that the sources before it do not cover whole (:func:`_covered_whole`, with
-    STACK_GAP_TOLERANCE_M): a segment inside a DEM needs no procedural raster, and its box does
-    not widen the procedural box of the others. Yields (indices, rasters (one per source, None
-    where that source is not needed or has nothing), coverage (ray (local to the indices),
-    source, s0, s1), for :func:`stack_trace`), lazily: a group's rasters are dropped once its
-    parts have been traced."""
+    STACK_GAP_TOLERANCE_M), counting neither filled voids nor, on a segment over a filled void,
+    synthetic sources (``measured`` as :func:`stack_trace` takes it): a later source may have
+    measured the void's ground. A segment inside a DEM needs no procedural raster, and
+    its box does not widen the procedural box of the others. Yields (indices, rasters (one per
+    source, None where that source is not needed or has nothing), coverage (ray (local to the
+    indices), source, s0, s1, fill), for :func:`stack_trace`), lazily: a group's rasters are
+    dropped once its parts have been traced."""
     n = a_ecef.shape[0]
     length = np.linalg.norm(b_ecef - a_ecef, axis=1)
     n_src = len(sources)
+    flags = np.ones(n_src, bool) if measured is None else np.asarray(measured, bool)
 
     def restrict(cov, idx):
         keep = np.zeros(n, bool)
@@ -1121,11 +1168,12 @@ def stack_partitions(sources, a_ecef, b_ecef, s_lo, s_hi):
     def walk(k, idx, rasters, cov):
         if k > 0 and k < n_src:
             whole = np.zeros(n, bool)
-            if k == 1 and (cov[0][1:] >= cov[0][:-1]).all():  # one source's: in order along each segment
-                _covered_whole(cov[0], cov[2], cov[3], s_lo, s_hi, length, STACK_GAP_TOLERANCE_M, whole)
+            own = cov if not cov[4].any() else tuple(x[_final(cov, flags, n)] for x in cov)
+            if k == 1 and (own[0][1:] >= own[0][:-1]).all():  # one source's: in order along each segment
+                _covered_whole(own[0], own[2], own[3], s_lo, s_hi, length, STACK_GAP_TOLERANCE_M, whole)
             else:
-                order = np.lexsort((cov[2], cov[0]))
-                _covered_whole(cov[0][order], cov[2][order], cov[3][order], s_lo, s_hi, length,
+                order = np.lexsort((own[2], own[0]))
+                _covered_whole(own[0][order], own[2][order], own[3][order], s_lo, s_hi, length,
                                STACK_GAP_TOLERANCE_M, whole)
             whole = whole[idx]
             if whole.any():
@@ -1141,20 +1189,32 @@ def stack_partitions(sources, a_ecef, b_ecef, s_lo, s_hi):
         for raster, sub in sources[k](idx):
             c = cov if sub.size == idx.size else restrict(cov, sub)
             if raster is not None:
-                ray, s0, s1 = segment_coverage(raster, a_ecef[sub], b_ecef[sub], s_lo[sub], s_hi[sub])
-                c = tuple(np.concatenate(x) for x in zip(c, (sub[ray], np.full(ray.size, k, np.int64), s0, s1)))
+                ray, s0, s1, fill = segment_coverage(raster, a_ecef[sub], b_ecef[sub], s_lo[sub], s_hi[sub])
+                c = tuple(np.concatenate(x) for x in zip(c, (sub[ray], np.full(ray.size, k, np.int64), s0, s1, fill)))
             yield from walk(k + 1, sub, rasters + [raster], c)
 
-    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint8))
     yield from walk(0, np.arange(n), [], empty)
 
 
-def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi, coverage=None):
+def _final(cov, measured, n):
+    """(m,) bool over covered intervals (ray, source, s0, s1, fill): those no later source can
+    replace, the intervals of a source's own data, and a synthetic source's only on segments with
+    no filled-void interval."""
+    over_fill = np.zeros(n, bool)
+    over_fill[cov[0][cov[4] > 0]] = True
+    return (cov[4] == 0) & (measured[cov[1]] | ~over_fill[cov[0]])
+
+
+def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi, coverage=None, measured=None):
     """First contact of each segment a + s (b - a), s in [s_lo, s_hi], with the surface of a stack
     of rasters (priority order; None: a source with nothing here): at each point the first
-    raster covering it. Returns (s (NaN: none), d h / d col and d h / d row at the contact (its
-    raster's index units), status, index of the contact's raster). ``coverage``: the rasters'
-    covered intervals (ray, source, s0, s1) when known (:func:`stack_partitions`), else found.
+    raster covering it, but where that raster has only a filled void and a measured raster
+    (``measured``: per raster, False for synthetic data such as the procedural world's; None: all
+    measured) has its own data, the first such (terrain.terrain.Terrain.heights's rule). Returns
+    (s (NaN: none), d h / d col and d h / d row at the contact (its raster's index units), status,
+    index of the contact's raster). ``coverage``: the rasters' covered intervals (ray, source, s0,
+    s1, fill) when known (:func:`stack_partitions`), else found.
 
     Each raster's covered intervals (:func:`segment_coverage`) are cut into stretches of one
     source each (:func:`_stack_parts`; none shorter than STACK_GAP_TOLERANCE_M), which are traced
@@ -1172,16 +1232,18 @@ def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi, coverage=None):
         ivs = []
         for k, raster in enumerate(rasters):
             if raster is not None:
-                ray, s0, s1 = segment_coverage(raster, a_ecef, b_ecef, s_lo, s_hi)
-                ivs.append((ray, np.full(ray.size, k, np.int64), s0, s1))
-        iv = [np.concatenate(x) for x in zip(*ivs)] if ivs else [np.zeros(0, np.int64)] * 2 + [np.zeros(0)] * 2
+                ray, s0, s1, fill = segment_coverage(raster, a_ecef, b_ecef, s_lo, s_hi)
+                ivs.append((ray, np.full(ray.size, k, np.int64), s0, s1, fill))
+        iv = ([np.concatenate(x) for x in zip(*ivs)] if ivs
+              else [np.zeros(0, np.int64)] * 2 + [np.zeros(0)] * 2 + [np.zeros(0, np.uint8)])
     else:
         iv = list(coverage)
+    measured = np.ones(len(rasters), np.uint8) if measured is None else np.asarray(measured, np.uint8)
     order = np.argsort(iv[0], kind="stable")
     cap = 2 * iv[0].size + 2 * n
-    parts = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap)
-    m = _stack_parts(*(x[order] for x in iv), s_lo, s_hi, length, STACK_GAP_TOLERANCE_M, *parts)
-    p_ray, p_src, p_0, p_1 = (x[:m] for x in parts)
+    parts = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap), np.empty(cap, np.uint8)
+    m = _stack_parts(*(x[order] for x in iv), measured, s_lo, s_hi, length, STACK_GAP_TOLERANCE_M, *parts)
+    p_ray, p_src, p_0, p_1, p_fill = (x[:m] for x in parts)
     rank = np.arange(m) - np.searchsorted(p_ray, p_ray)  # parts come in order along each segment
     s, dcol, drow = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
     status = np.full(n, STATUS_OUTSIDE, np.uint8)
@@ -1203,8 +1265,10 @@ def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi, coverage=None):
                           b_ecef[ray], p_0[part], p_1[part], STACK_NUDGE_M, lo, hi)
             ok = ~np.isnan(lo) & ~np.isnan(hi) & (lo <= hi)
             ray = ray[ok]
-            got_s, got_dc, got_dr, got_st = trace_segments(raster, a_ecef[ray], b_ecef[ray], lo[ok], hi[ok])
-            filled[ray[got_st == STATUS_FILLED]] = True  # an OUTSIDE (an end off by rounding) adds nothing
+            got_s, got_dc, got_dr, _ = trace_segments(raster, a_ecef[ray], b_ecef[ray], lo[ok], hi[ok])
+            # The stretch's own flag, not the walk's (which flags every block it clears holding a
+            # filled post, also beyond the stretch's ends).
+            filled[ray[p_fill[part][ok] > 0]] = True
             hit = ~np.isnan(got_s)
             r = ray[hit]
             s[r], dcol[r], drow[r], which[r] = got_s[hit], got_dc[hit], got_dr[hit], k
@@ -1217,12 +1281,13 @@ def stack_trace(rasters, a_ecef, b_ecef, s_lo, s_hi, coverage=None):
     return s, dcol, drow, status, which
 
 
-def stack_line_of_sight(sources, a_ecef, b_ecef):
+def stack_line_of_sight(sources, a_ecef, b_ecef, measured=None):
     """Whether each ECEF segment a -> b ((n, 3) float64 metres; swapped in place, per segment, to the
     order traced) clears the surface of a stack of sources (as :func:`stack_trace`; ``sources`` as
-    :func:`stack_partitions` takes them): (visible, status) as :func:`line_of_sight` gives them on
-    one raster, contacts within ENDPOINT_TOLERANCE_M of either endpoint ignored; OUTSIDE (not
-    visible) when a stretch no raster covers comes before any contact from either end."""
+    :func:`stack_partitions` takes them, ``measured`` as :func:`stack_trace` does): (visible,
+    status) as :func:`line_of_sight` gives them on one raster, contacts within
+    ENDPOINT_TOLERANCE_M of either endpoint ignored; OUTSIDE (not visible) when a stretch no
+    raster covers comes before any contact from either end."""
     n = a_ecef.shape[0]
     d = b_ecef - a_ecef
     swap = d[np.arange(n), np.argmax(d != 0.0, axis=1)] < 0.0  # _both_ways's order, so its swap is none
@@ -1230,11 +1295,11 @@ def stack_line_of_sight(sources, a_ecef, b_ecef):
     with np.errstate(divide="ignore"):
         s_lo = np.minimum(ENDPOINT_TOLERANCE_M / np.linalg.norm(d, axis=1), 0.5)
     visible, status = np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8)
-    for idx, rasters, cov in stack_partitions(sources, a_ecef, b_ecef, s_lo, 1.0 - s_lo):
+    for idx, rasters, cov in stack_partitions(sources, a_ecef, b_ecef, s_lo, 1.0 - s_lo, measured):
         known = [cov]  # the first trace is over [s_lo, 1 - s_lo] of these segments, as partitioned
 
         def trace(a, b, lo, hi):
-            s, _, _, st, _ = stack_trace(rasters, a, b, lo, hi, known.pop() if known else None)
+            s, _, _, st, _ = stack_trace(rasters, a, b, lo, hi, known.pop() if known else None, measured)
             return s, st
 
         visible[idx], status[idx] = _both_ways(trace, a_ecef[idx], b_ecef[idx])

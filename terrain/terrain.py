@@ -6,10 +6,10 @@ fills everything the DEMs leave). A point a source covers only with a filled
 void (STATUS_FILLED) is answered by the first later source that has it
 measured (STATUS_OK), if any; synthetic sources (procedural) do not count.
 Normals and slopes follow the same rule, from the source the height comes from.
-Segments (intersect, line of sight) meet, at every point, the surface of the
-first source covering it (:func:`terrain.los.stack_trace`), its filled voids
-included: along rays a later DEM's measured data does not replace a fill (the
-one difference from heights; see ARCHITECTURE.md). A source is
+Segments (intersect, line of sight) meet, at every point, the surface the
+same rule gives (:func:`terrain.los.stack_trace`): that of the first source
+covering it, or over its filled void the first later source measuring the
+ground there. A source is
 anything with the methods of :class:`terrain.raster.Raster` used here:
 ``heights_into``, ``gradient_into``, ``raster_for`` and ``describe`` (and
 optionally ``warm_cache``, and ``ray_raster_for``: ``raster_for`` for a group of
@@ -151,8 +151,9 @@ class Terrain:
         """Yield (source, indices, their heights there) for the points answered FILLED (a filled
         void: a guess) that a measured source has with status OK: each point by the first such
         source, in priority order; synthetic sources (procedural) measure nothing and are not
-        asked. This is the one place the rule lives, so heights, slopes and their lattice forms
-        take a point from the same source. A terrain of one measured source pays nothing; others
+        asked. This is the one place the rule lives for points, so heights, slopes and their
+        lattice forms take a point from the same source (segments apply it cell by cell:
+        terrain.los._top_at). A terrain of one measured source pays nothing; others
         one pass over the statuses, and the filled points their height queries."""
         if len(self.sources) == 1 or len(self._measured_sources()) < 2:
             return
@@ -173,6 +174,19 @@ class Terrain:
         if self._measured is None:
             self._measured = [s for s in self.sources if s.describe().get("kind") not in SYNTHETIC_KINDS]
         return self._measured
+
+    def _left_to_stack(self, status):
+        """(n,) bool over a first source's statuses for segments: those the stack of every
+        source answers instead, the segments that leave it (OUTSIDE) and, where a later source
+        measures ground, those that passed over its filled voids (FILLED)."""
+        if len(self._measured_sources()) < 2:
+            return status == STATUS_OUTSIDE
+        return (status == STATUS_OUTSIDE) | (status == STATUS_FILLED)
+
+    def _measured_flags(self) -> list[bool]:
+        """Per source, whether it holds measured data (:func:`terrain.los.stack_trace`'s ``measured``)."""
+        measured = self._measured_sources()
+        return [any(source is m for m in measured) for source in self.sources]
 
     def _unanswered(self, status):
         """(indices, source) for each source in priority order, indices being the
@@ -296,9 +310,9 @@ class Terrain:
         Arrays (n,) float64: (lat, lon) degrees, heights metres MSL. The surface is, at every
         point, that of the first source covering it (see :func:`terrain.los.stack_trace`), so
         a -> b and b -> a meet the same surface wherever the segment crosses from one source into
-        another. It is each source's own surface, filled voids included: unlike :meth:`heights`,
-        a ray over a filled void of one DEM that a later DEM measured meets the fill (see
-        ARCHITECTURE.md, "Line of sight and collision"). A segment that reaches a stretch no
+        another. Over a filled void of one DEM that a later DEM measured it is the later DEM's
+        surface, as :meth:`heights` answers (see ARCHITECTURE.md, "Line of sight and
+        collision"). A segment that reaches a stretch no
         source covers before any hit is OUTSIDE. Each segment is answered as it is alone: a batch
         too wide for one raster of a procedural or store source is split into groups whose boxes
         it serves; LimitExceeded only for a single segment whose box it cannot serve.
@@ -335,19 +349,21 @@ class Terrain:
             sub = tuple(x[idx] for x in rays)
             if first is not None:
                 visible[idx], status[idx] = line_of_sight(first, *sub)
-            todo = idx[status[idx] == STATUS_OUTSIDE]
+            todo = idx[self._left_to_stack(status[idx])]
             if len(self.sources) == 1 or todo.size == 0:
                 continue
             # Off the first source: the stack of every source's surface, as line_of_sight does on one.
-            visible[todo], status[todo] = stack_line_of_sight(self._stack(first, rays, a, b, todo), a[todo], b[todo])
+            visible[todo], status[todo] = stack_line_of_sight(self._stack(first, rays, a, b, todo), a[todo], b[todo],
+                                                              self._measured_flags())
         return LosResult(visible, status)
 
     def _trace(self, rays, a, b, s_lo, s_hi):
         """First contact s in [s_lo, s_hi] of each segment a + s (b - a) with the stack's surface:
         (s (NaN: none), d h / d east metre and d h / d north metre there, status). The first
         source traces every segment on its own (its kernel marks those that leave it); only those
-        go through :func:`terrain.los.stack_trace`, so a terrain whose segments stay on its first
-        source pays nothing more."""
+        go through :func:`terrain.los.stack_trace` (and those over its filled voids, where a later
+        source may measure the ground), so a terrain whose segments stay on its first source
+        pays nothing more."""
         from terrain.los import stack_partitions, stack_trace, trace_segments
 
         n = a.shape[0]
@@ -358,13 +374,15 @@ class Terrain:
                 got = trace_segments(first, a[idx], b[idx], s_lo[idx], s_hi[idx])
                 s[idx], status[idx] = got[0], got[3]
                 _slopes_into(first, a, b, s, idx, got[1], got[2], de, dn)
-            todo = idx[status[idx] == STATUS_OUTSIDE]
+            todo = idx[self._left_to_stack(status[idx])]
             if len(self.sources) == 1 or todo.size == 0:
                 continue
             a_t, b_t, lo_t, hi_t = a[todo], b[todo], s_lo[todo], s_hi[todo]
-            for part, rasters, cov in stack_partitions(self._stack(first, rays, a, b, todo), a_t, b_t, lo_t, hi_t):
+            measured = self._measured_flags()
+            for part, rasters, cov in stack_partitions(self._stack(first, rays, a, b, todo), a_t, b_t, lo_t, hi_t,
+                                                       measured):
                 got_s, dcol, drow, got_st, which = stack_trace(rasters, a_t[part], b_t[part], lo_t[part], hi_t[part],
-                                                               cov)
+                                                               cov, measured)
                 where = todo[part]
                 s[where], status[where] = got_s, got_st
                 for k in np.unique(which[which >= 0]):
