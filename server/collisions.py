@@ -4,7 +4,9 @@ Every entity moving over a tick is a straight ECEF segment from its position in 
 previous snapshot to its position in this one (the same path the terrain collision test
 uses). Two entities collide in a tick when they were apart at its start and touch during
 it; pairs already touching at the start are an ongoing contact, not a new collision, so a
-collision is reported once however long the two stay together.
+collision is reported once however long the two stay together. On request the same pass
+lists the ongoing contacts too (touching at the tick's start and at its end), which the
+world uses to keep a vehicle from driving on through what it touches.
 
 Shapes:
 
@@ -62,15 +64,16 @@ def _box_overlap(dx, dy, ci, si, li, wi, cj, sj, lj, wj):
 
 
 @numba.njit(cache=True, nogil=True)
-def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half_w, moves, out_i, out_j, out_t,
-                     out_d):
+def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half_w, moves, ongoing, out_i, out_j,
+                     out_t, out_d):
     """New contacts among n entities (see the module docstring), as rows (out_i, out_j,
     out_t, out_d): the two entities' indices (i < j), the fraction of the tick at which they
     first touch (spheres: the smaller root of |r(t)| = r_i + r_j; boxes: the first instant
     tested that overlaps) and their reference points' distance then (spheres: the least over
-    the tick). Returns the count, or minus the count needed
-    when the outputs are too small. ``moves`` says which entities can move (pairs of two
-    that cannot are skipped)."""
+    the tick). With ``ongoing``, also the pairs touching at the tick's start and still at its
+    end, with out_t -1 and their distance at the end. Returns the count, or minus the count
+    needed when the outputs are too small. ``moves`` says which entities can move (pairs of
+    two that cannot are skipped)."""
     n = p0.shape[0]
     # The sweep's axis: the one along which the paths' midpoints spread most.
     best, axis = -1.0, 0
@@ -143,21 +146,33 @@ def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half
                                              half_w[i], cj, sj, half_l[j], half_w[j])):
                         t = tk
                         break
-                if t <= 0.0:
-                    continue  # never touching, or touching already at the start: an ongoing contact
-                mx, my, mz = r0x + t * drx, r0y + t * dry, r0z + t * drz
+                if t < 0.0:
+                    continue  # never touching
+                if t == 0.0:  # touching already at the start: an ongoing contact, if still at the end
+                    if not (ongoing and abs(r1x * ux + r1y * uy + r1z * uz) < rs
+                            and _box_overlap(r1x * ex + r1y * ey, r1x * nx + r1y * ny + r1z * nz, ci, si, half_l[i],
+                                             half_w[i], cj, sj, half_l[j], half_w[j])):
+                        continue
+                    t = -1.0
+                    mx, my, mz = r1x, r1y, r1z
+                else:
+                    mx, my, mz = r0x + t * drx, r0y + t * dry, r0z + t * drz
                 d = math.sqrt(mx * mx + my * my + mz * mz)
             else:  # spheres, continuously
-                if d0 < rs:
-                    continue  # touching already
-                t = 0.0 if dd == 0.0 else min(max(-b / dd, 0.0), 1.0)
-                mx, my, mz = r0x + t * drx, r0y + t * dry, r0z + t * drz
-                d = math.sqrt(mx * mx + my * my + mz * mz)
-                if d >= rs:
-                    continue
-                # When they first touch: the smaller root of |r0 + t dr| = rs (t <= the least's).
-                disc = b * b - dd * (d0 * d0 - rs * rs)
-                t = min(max((-b - math.sqrt(max(disc, 0.0))) / dd, 0.0), 1.0)
+                if d0 < rs:  # touching already: an ongoing contact, if still at the end
+                    d = math.sqrt(r1x * r1x + r1y * r1y + r1z * r1z)
+                    if not (ongoing and d < rs):
+                        continue
+                    t = -1.0
+                else:
+                    t = 0.0 if dd == 0.0 else min(max(-b / dd, 0.0), 1.0)
+                    mx, my, mz = r0x + t * drx, r0y + t * dry, r0z + t * drz
+                    d = math.sqrt(mx * mx + my * my + mz * mz)
+                    if d >= rs:
+                        continue
+                    # When they first touch: the smaller root of |r0 + t dr| = rs (t <= the least's).
+                    disc = b * b - dd * (d0 * d0 - rs * rs)
+                    t = min(max((-b - math.sqrt(max(disc, 0.0))) / dd, 0.0), 1.0)
             if count < cap:
                 out_i[count] = min(i, j)
                 out_j[count] = max(i, j)
@@ -168,7 +183,7 @@ def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half
 
 
 def new_contacts(p0, p1, radius, *, heading_deg=None, half_length_m=None, half_width_m=None, moves=None,
-                 lat_deg=None, lon_deg=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 lat_deg=None, lon_deg=None, ongoing=False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Pairs of entities that came into contact over one tick (the module docstring's rules).
 
     ``p0``, ``p1``: (n, 3) ECEF positions at the tick's start and end, metres; ``radius``
@@ -178,7 +193,8 @@ def new_contacts(p0, p1, radius, *, heading_deg=None, half_length_m=None, half_w
     sphere. ``moves`` (n,) bool: entities that can move (default all; two that cannot are
     never tested). Returns (i, j, t, distance): index pairs with i < j, sorted; the fraction
     of the tick at which they first touched; their reference points' distance (see the
-    kernel)."""
+    kernel). ``ongoing``: also the pairs touching at the tick's start and its end, with t -1
+    (their distance at the end)."""
     p0 = np.ascontiguousarray(p0, np.float64).reshape(-1, 3)
     p1 = np.ascontiguousarray(p1, np.float64).reshape(-1, 3)
     n = p0.shape[0]
@@ -201,14 +217,40 @@ def new_contacts(p0, p1, radius, *, heading_deg=None, half_length_m=None, half_w
         keep = np.flatnonzero(finite)
         i, j, t, d = new_contacts(p0[keep], p1[keep], args[2][keep], heading_deg=np.degrees(args[5][keep]),
                                   half_length_m=half_l[keep], half_width_m=args[7][keep], moves=moves[keep],
-                                  lat_deg=args[3][keep], lon_deg=args[4][keep])
+                                  lat_deg=args[3][keep], lon_deg=args[4][keep], ongoing=ongoing)
         return keep[i], keep[j], t, d
     while True:
         out_i, out_j = np.empty(cap, np.int64), np.empty(cap, np.int64)
         out_t, out_d = np.empty(cap), np.empty(cap)
-        k = _contacts_kernel(*args, out_i, out_j, out_t, out_d)
+        k = _contacts_kernel(*args, bool(ongoing), out_i, out_j, out_t, out_d)
         if k >= 0:
             break
         cap = -k
     key = np.lexsort((out_j[:k], out_i[:k]))
     return out_i[:k][key], out_j[:k][key], out_t[:k][key], out_d[:k][key]
+
+
+def overlap_depth(r, lat_deg, lon_deg, heading_i_deg, heading_j_deg, half_l_i, half_w_i, half_l_j, half_w_j,
+                  radius_i, radius_j) -> np.ndarray:
+    """(m,) how deep entity j (at ECEF offset ``r`` (m, 3) from i, metres) overlaps i, by the
+    shapes of :func:`new_contacts`: two boxes (both half lengths > 0) by the separating-axis
+    test on i's local horizontal (``lat_deg``/``lon_deg``: i's position), the least of the
+    four axes' overlaps; otherwise spheres, the sum of the radii less the distance. Positive
+    when they overlap."""
+    from terrain.geodesy import enu_basis
+
+    r = np.asarray(r, np.float64).reshape(-1, 3)
+    depth = np.asarray(radius_i, np.float64) + np.asarray(radius_j, np.float64) - np.linalg.norm(r, axis=1)
+    boxes = (np.asarray(half_l_i) > 0.0) & (np.asarray(half_l_j) > 0.0)
+    if not boxes.any():
+        return depth
+    east, north, _ = enu_basis(lat_deg, lon_deg)
+    dx, dy = np.einsum("ij,ij->i", r, east), np.einsum("ij,ij->i", r, north)
+    hi, hj = np.radians(heading_i_deg), np.radians(heading_j_deg)
+    ci, si, cj, sj = np.sin(hi), np.cos(hi), np.sin(hj), np.cos(hj)  # along each length: (east, north)
+    box_depth = np.full(dx.shape, np.inf)
+    for ax, ay in ((ci, si), (si, -ci), (cj, sj), (sj, -cj)):
+        reach = (half_l_i * np.abs(ci * ax + si * ay) + half_w_i * np.abs(si * ax - ci * ay)
+                 + half_l_j * np.abs(cj * ax + sj * ay) + half_w_j * np.abs(sj * ax - cj * ay))
+        box_depth = np.minimum(box_depth, reach - np.abs(dx * ax + dy * ay))
+    return np.where(boxes, box_depth, depth)

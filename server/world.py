@@ -61,7 +61,7 @@ from fdm.convoy import Convoy, FollowerSet, Route, RouteFollower
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
 from server.aircraft_host import LocalAircraftHost
-from server.collisions import new_contacts
+from server.collisions import new_contacts, overlap_depth
 from server.dead_reckoning import extrapolate, ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
@@ -87,6 +87,10 @@ AIRCRAFT_CRASH_SPEED_MPS = 2.0
 # destroyed (72 km/h: an aircraft flying into it, two vehicles meeting head-on at speed);
 # below it a ground vehicle stops and drives on, a static one is unharmed.
 DESTROY_SPEED_MPS = 20.0
+# A ground vehicle touching another entity may not move deeper into it by more than this in a
+# tick (metres; rounding of positions through geodetic coordinates is far below it): it is put
+# back where it began the tick, so a driver pushing on does not pass through.
+HOLD_DEPTH_M = 1.0e-3
 
 
 @dataclass(frozen=True)
@@ -770,7 +774,10 @@ class World(EventLog):
         in one crashes (on the ground, only at AIRCRAFT_CRASH_SPEED_MPS or more); a ground
         vehicle or static entity at DESTROY_SPEED_MPS or more is destroyed; below it a ground
         vehicle of this world's stops where it met the other (moved back along its path this
-        tick, not left past it). Entities new this tick are not tested (they have no path yet)."""
+        tick, not left past it). A ground vehicle of this world's that drives deeper into
+        what it already touches is put back where it began the tick and stopped
+        (:meth:`_held_back`): it can back off, turn or slide along, not drive through.
+        Entities new this tick are not tested (they have no path yet)."""
         if before.ids.size == 0 or after.ids.size < 2:
             return []
         if np.array_equal(before.ids, after.ids):  # the usual tick: the same entities in the same order
@@ -792,7 +799,14 @@ class World(EventLog):
             moving[rows[found]] = False
         ci, cj, t, dist = new_contacts(before.ecef_m[kb], after.ecef_m[ka], radius, heading_deg=heading,
                                        half_length_m=half_l, half_width_m=half_w, moves=moving,
-                                       lat_deg=after.lat_deg[ka], lon_deg=after.lon_deg[ka])
+                                       lat_deg=after.lat_deg[ka], lon_deg=after.lon_deg[ka], ongoing=gnd_rows.size > 0)
+        held = t < 0.0  # touching at both ends of the tick: an ongoing contact
+        if held.any():
+            back = self._held_back(before, after, ka, kb, ci[held], cj[held], heading, radius, half_l, half_w,
+                                   gnd_rows, gnd_idx, moving)
+            ci, cj, t, dist = ci[~held], cj[~held], t[~held], dist[~held]
+        else:
+            back = None
         events, crashes, stops = [], [], []
         for i, j, frac, d in zip(ci.tolist(), cj.tolist(), t.tolist(), dist.tolist()):
             a, b = self.entities.get(int(ids[i])), self.entities.get(int(ids[j]))
@@ -827,7 +841,34 @@ class World(EventLog):
             gid, lat, lon = zip(*stops)
             # Where each was when it met the other (on its path this tick), not past it.
             self.ground.stop(self.ground.index_of(list(gid)), lat=lat, lon=lon)
+        if back is not None and back[0].size:  # after the stops: the tick's start is before any contact point
+            alive = np.array([not self.entities[int(i)].destroyed for i in ids[back[1]]], bool)
+            rows = back[0][alive]
+            self.ground.stop(rows, lat=before.lat_deg[kb[back[1][alive]]], lon=before.lon_deg[kb[back[1][alive]]])
         return events
+
+    def _held_back(self, before: Snapshot, after: Snapshot, ka, kb, ci, cj, heading, radius, half_l, half_w,
+                   gnd_rows, gnd_idx, moving) -> tuple[np.ndarray, np.ndarray]:
+        """Of the pairs (ci, cj) touching at both ends of the tick (rows of ``ids`` in
+        :meth:`_agent_collisions`, with its shapes), the ground vehicles of this world that
+        moved deeper into the other: its overlap with the other where that began the tick is
+        deeper from where the vehicle ended it than from where it began, by more than
+        HOLD_DEPTH_M (headings the tick's end, so turning on the spot is free). Returns their
+        rows in ``self.ground`` and in ``ids``, each once."""
+        gidx = np.full(heading.size, -1, np.int64)
+        gidx[gnd_rows] = gnd_idx
+        mine, others = np.concatenate([ci, cj]), np.concatenate([cj, ci])
+        sel = (gidx[mine] >= 0) & moving[mine]
+        mine, others = mine[sel], others[sel]
+        if mine.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        q = before.ecef_m[kb[others]]
+        shape = (after.lat_deg[ka[mine]], after.lon_deg[ka[mine]], heading[mine], heading[others], half_l[mine],
+                 half_w[mine], half_l[others], half_w[others], radius[mine], radius[others])
+        deeper = (overlap_depth(q - after.ecef_m[ka[mine]], *shape)
+                  > overlap_depth(q - before.ecef_m[kb[mine]], *shape) + HOLD_DEPTH_M)
+        rows = np.unique(mine[deeper])
+        return gidx[rows], rows
 
     def _destroy(self, e: Entity, where: tuple) -> None:
         """A ground vehicle or static entity destroyed: it stays as a wreck; a vehicle where it

@@ -439,3 +439,67 @@ def test_a_recorded_collision_replays_with_its_wrecks(tmp_path, hgt_alps):
                 assert [info.destroyed for info in pic.infos.values()] == [wrecked, wrecked], t_s
     finally:
         server.stop()
+
+
+def _east_m(world, entity):
+    lon = world.ground.lon[world.ground.index_of([entity.ground_id])][0]
+    return (lon - LON0) * 111_200.0 * math.cos(math.radians(LAT0))
+
+
+def test_a_vehicle_pushing_on_does_not_pass_through():
+    """Two tanks driven at each other at 6 m/s whose drivers keep the throttle on after they
+    meet: they stay in contact, west stays west (before, each drove on through the other and
+    was 40 m past it 8 s later), each overlaps the other by no more than a tick's travel, and
+    no second collision is reported. One driver then reverses: it backs off, free."""
+    world = World(FlatTerrain(400.0))
+    try:
+        east_deg = 20.0 / (111_200.0 * math.cos(math.radians(LAT0)))
+        a, b = world.spawn_ground(["a", "b"], "m1a2", [LAT0, LAT0], [LON0 - east_deg, LON0 + east_deg], [90.0, 270.0],
+                                  controllable=True)
+        for e in (a, b):
+            world.command(e.id, "drive", {"speed_mps": 6.0, "yaw_rate_dps": 0.0})
+        events = _run(world, 240)  # 8 s: they meet after about 2 s
+        length = VEHICLE_TYPES["m1a2"].length_m
+        gap = _east_m(world, b) - _east_m(world, a)
+        assert length - 2 * 6.0 / 30.0 - 1e-3 <= gap <= length + 1e-3, gap
+        assert len(_collisions(events, a.id)) == 1 and len(_collisions(events, b.id)) == 1
+        world.command(a.id, "drive", {"speed_mps": -3.0, "yaw_rate_dps": 0.0})
+        before = _east_m(world, a)
+        _run(world, 90)
+        assert _east_m(world, a) < before - 3.0  # backed off: moving out of the overlap is free
+    finally:
+        world.close()
+
+
+def test_a_vehicle_driven_into_a_static_site_stays_held():
+    """A truck whose driver keeps driving into a radar site: it stays at the site's edge."""
+    world = World(FlatTerrain(400.0))
+    try:
+        world.spawn_static("site", "radar", LAT0, LON0, 400.0)
+        truck, = world.spawn_ground(["truck"], "m1083", [LAT0 - 40.0 / 111_200.0], [LON0], [0.0], controllable=True)
+        world.command(truck.id, "drive", {"speed_mps": 5.0, "yaw_rate_dps": 0.0})
+        _run(world, 300)  # 10 s: 50 m at 5 m/s
+        lat = world.ground.lat[world.ground.index_of([truck.ground_id])][0]
+        north_m = (lat - LAT0) * 111_200.0
+        t = VEHICLE_TYPES["m1083"]
+        # Sphere against sphere: the truck's bounding radius plus the site's, less a tick's travel.
+        reach = math.hypot(t.length_m / 2, t.width_m / 2) + STATIC_RADIUS_M
+        assert -reach - 0.2 <= north_m < -reach + 0.3, north_m
+    finally:
+        world.close()
+
+
+def test_a_vehicle_touching_another_can_slide_along_it():
+    """Two Humvees parked side by side, touching (1.9 m apart, 2.12 m wide): one drives north
+    along the other; its overlap does not deepen, so it is not held."""
+    world = World(FlatTerrain(400.0))
+    try:
+        side = 1.9 / (111_200.0 * math.cos(math.radians(LAT0)))
+        c, d = world.spawn_ground(["c", "d"], "hmmwv", [LAT0] * 2, [LON0, LON0 + side], [0.0, 0.0],
+                                  controllable=True)
+        world.command(c.id, "drive", {"speed_mps": 5.0, "yaw_rate_dps": 0.0})
+        _run(world, 150)  # 5 s
+        lat = world.ground.lat[world.ground.index_of([c.ground_id])][0]
+        assert (lat - LAT0) * 111_200.0 > 15.0
+    finally:
+        world.close()
