@@ -62,6 +62,9 @@ CATCH_UP_FRAC = 0.3
 # of its speed ceiling, so stragglers close up.
 WAIT_DISTANCE_M = 100.0
 WAIT_MIN_FRAC = 0.3
+# A driver stops this far (m, bumper to bumper) behind what is in its path (server/obstacles.py),
+# braking at STOP_BRAKE_FRAC of its type's deceleration.
+OBSTACLE_STANDOFF_M = 4.0
 # Segments searched before and after a vehicle's last segment when projecting.
 SEARCH_BEHIND = 1
 SEARCH_AHEAD = 3
@@ -69,6 +72,21 @@ SEARCH_AHEAD = 3
 # where legs overlap (an out-and-back A -> B -> A) the two legs' distances differ only by
 # rounding, and the leg whose direction agrees with the vehicle's heading is taken.
 PROJECT_TIE_M = 0.5
+
+
+def obstacle_speed_ceiling(clearance_m, brake_mps2):
+    """The speed (m/s) from which a driver stops OBSTACLE_STANDOFF_M short of an obstacle
+    ``clearance_m`` ahead (free distance, front to its near side; inf: none), braking at
+    STOP_BRAKE_FRAC of ``brake_mps2``: sqrt(2 a d), 0 within the standoff."""
+    free = np.maximum(np.asarray(clearance_m, np.float64) - OBSTACLE_STANDOFF_M, 0.0)
+    return np.sqrt(2.0 * STOP_BRAKE_FRAC * np.asarray(brake_mps2, np.float64) * free)
+
+
+def obstacle_reach_m(speed_mps, brake_mps2):
+    """How far ahead (m of clearance) a driver at ``speed_mps`` looks for obstacles: its stopping
+    distance at STOP_BRAKE_FRAC of ``brake_mps2``, the standoff, two seconds of travel and 10 m."""
+    v = np.abs(np.asarray(speed_mps, np.float64))
+    return v * v / (2.0 * STOP_BRAKE_FRAC * np.asarray(brake_mps2, np.float64)) + OBSTACLE_STANDOFF_M + 2.0 * v + 10.0
 
 
 @numba.njit(cache=True, nogil=True)
@@ -477,9 +495,14 @@ class FollowerSet:
         self._spacing = each([getattr(f, "spacing_m", np.nan) for f in self.followers])
         self._gain = each([getattr(f, "gain_per_s", np.nan) for f in self.followers])
         self._convoy = convoy
+        # Per vehicle, its convoy's number (vehicles of one convoy keep their spacing by the
+        # convoy's law, not by braking for each other), -1 for a route follower's.
+        self.convoy_of = np.repeat(np.where(convoy, np.arange(convoy.size), -1), sizes).astype(np.int64)
 
-    def update(self) -> None:
-        """Every follower's update (locate, speed law, pure pursuit), applied at once."""
+    def update(self, ceiling_mps=None) -> None:
+        """Every follower's update (locate, speed law, pure pursuit), applied at once;
+        ``ceiling_mps`` (per vehicle of :attr:`index`, or None): a further speed ceiling (an
+        obstacle ahead, :func:`obstacle_speed_ceiling`)."""
         if not self.followers:
             return
         v, idx, fs, r = self.vehicles, self.index, self.followers, self._route
@@ -501,6 +524,8 @@ class FollowerSet:
         speed_cmd = np.where(self._stops, np.minimum(speed_cmd, end), speed_cmd)
         if self._leaders.size:
             self._convoy_law(speed_cmd, corner, s, speed, t)
+        if ceiling_mps is not None:
+            speed_cmd = np.minimum(speed_cmd, ceiling_mps)
         g_lat, g_lon = np.empty(n), np.empty(n)
         _points_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_dn"], r["seg_de"], r["seg_len"], r["cum"],
                     self._p0, self._g0, self._v0, s + lookahead, g_lat, g_lon)

@@ -57,11 +57,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fdm.aircraft import InitialConditions, validate_controls
-from fdm.convoy import Convoy, FollowerSet, Route, RouteFollower
+from fdm.convoy import Convoy, FollowerSet, Route, RouteFollower, obstacle_reach_m, obstacle_speed_ceiling
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
+from fdm.vehicle_types import P_BRAKE
 from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
+from server.obstacles import clearance_ahead
 from server.dead_reckoning import extrapolate, ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
@@ -645,7 +647,9 @@ class World(EventLog):
                 self._apply_commands()
                 self.air.begin_tick(self.steps_per_tick)
             if self.ground is not None and self.ground.n:
-                self._followers.update()
+                fs = self._followers
+                if fs.followers:
+                    fs.update(self._obstacle_ceiling(fs.index, fs.convoy_of))
                 self._hold_ground_headings()
                 self.ground.step(self.dt)
             air = self._air_tick = self.air.end_tick()
@@ -905,7 +909,32 @@ class World(EventLog):
         target = np.where(np.isnan(target), heading, target)
         err = (target - heading + 180.0) % 360.0 - 180.0
         rate = np.clip(0.5 * err, -self.ground.yaw_rate_limit_dps[idx], self.ground.yaw_rate_limit_dps[idx])
-        self.ground.set_controls(speed, rate, index=idx)
+        ceiling = self._obstacle_ceiling(idx)
+        self.ground.set_controls(speed if ceiling is None else np.minimum(speed, ceiling), rate, index=idx)
+
+    def _obstacle_ceiling(self, idx: np.ndarray, convoy: np.ndarray | None = None) -> np.ndarray | None:
+        """Speed ceilings (m/s) for the autopilot-driven ground vehicles ``idx`` (rows of
+        self.ground), so each stops OBSTACLE_STANDOFF_M short of the nearest entity in its path
+        (server/obstacles.py: vehicles, wrecks, static sites, aircraft on the ground, as the
+        last snapshot has them); ``convoy``: per vehicle its convoy's number (-1: none), whose
+        members do not brake for each other. None when there is nothing to look at. A human
+        driver's commands are not capped: braking is his."""
+        snap = self.snapshot
+        if snap.ids.size < 2 or idx.size == 0:
+            return None
+        radius, half_l, half_w, _, gnd_rows, gnd_idx = self._shapes(snap.ids)
+        heading = np.zeros(snap.ids.size)
+        heading[gnd_rows] = self.ground.heading_deg[gnd_idx]
+        row_of = np.full(self.ground.n, -1, np.int64)
+        row_of[gnd_idx] = gnd_rows
+        rows = row_of[idx]
+        group = np.full(snap.ids.size, -1, np.int64)
+        if convoy is not None:
+            group[rows[rows >= 0]] = convoy[rows >= 0]
+        brake = self.ground.table[self.ground.type_id[idx], P_BRAKE]
+        clear, _ = clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l, half_w, group,
+                                   rows, obstacle_reach_m(self.ground.speed_mps[idx], brake))
+        return obstacle_speed_ceiling(clear, brake)
 
     def _layout(self):
         """(ground entity ids, their rows in self.ground, (static ids, static snapshot

@@ -1,0 +1,119 @@
+"""What lies ahead of a ground vehicle: the nearest entity in the strip it is about to drive over.
+
+An autopilot driver (a route follower or a convoy, fdm.convoy) brakes for what is in its path:
+another vehicle, a wreck, a static site, an aircraft on the ground. For each vehicle asked about,
+every entity within its look-ahead is put in the vehicle's own frame (ahead along its heading,
+across to its right, up) and is in the path when it is ahead, within the vehicle's half width
+plus its own half extent across the heading (and a margin) to either side, and within their
+heights of each other, with its centre in front of the vehicle's front (what is beside it is
+not in its way: two vehicles parked side by side do not hold each other). The clearance is the
+free distance along the heading from the vehicle's front to the entity's near side: ahead less
+the vehicle's half length and the entity's half extent along the heading (boxes by their
+footprint, spheres by their radius); negative when they already overlap.
+
+Broad phase: the entities sorted once on the ECEF axis along which they spread most; each
+vehicle looks at those within its look-ahead on that axis (binary search), so a tick of 2000
+vehicles costs a sort and a few neighbours each, not all pairs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# Free space either side of the path (m): a vehicle brakes for what would pass closer than this.
+PATH_MARGIN_M = 0.75
+
+
+@numba.njit(cache=True, nogil=True)
+def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, rows, reach, out_clear,
+                  out_row):
+    n = p.shape[0]
+    best, axis = -1.0, 0
+    for ax in range(3):  # the axis the entities spread most along
+        m = 0.0
+        for i in range(n):
+            m += p[i, ax]
+        m /= n
+        v = 0.0
+        for i in range(n):
+            v += (p[i, ax] - m) ** 2
+        if v > best:
+            best, axis = v, ax
+    order = np.argsort(p[:, axis])
+    keys = p[order, axis]
+    r_max = 0.0
+    for i in range(n):
+        r_max = max(r_max, radius[i])
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        out_clear[k] = math.inf
+        out_row[k] = -1
+        if i < 0:
+            continue
+        sp, cp = math.sin(math.radians(lat_deg[i])), math.cos(math.radians(lat_deg[i]))
+        sl, cl = math.sin(math.radians(lon_deg[i])), math.cos(math.radians(lon_deg[i]))
+        ex, ey = -sl, cl
+        nx, ny, nz = -sp * cl, -sp * sl, cp
+        ux, uy, uz = cp * cl, cp * sl, sp
+        fe, fn = math.sin(heading_rad[i]), math.cos(heading_rad[i])  # ahead, east and north parts
+        lo = np.searchsorted(keys, p[i, axis] - reach[k] - radius[i] - r_max)
+        hi = np.searchsorted(keys, p[i, axis] + reach[k] + radius[i] + r_max, side="right")
+        for o in range(lo, hi):
+            j = order[o]
+            if j == i or (group[i] >= 0 and group[j] == group[i]):
+                continue
+            dx, dy, dz = p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2]
+            up = dx * ux + dy * uy + dz * uz
+            if abs(up) > radius[i] + radius[j]:
+                continue  # above or below (an aircraft overhead, a bridge's traffic)
+            de = dx * ex + dy * ey
+            dn = dx * nx + dy * ny + dz * nz
+            ahead = de * fe + dn * fn
+            across = de * fn - dn * fe  # to the right
+            if half_l[j] > 0.0:  # a box: its half extents along and across i's heading
+                ge, gn = math.sin(heading_rad[j]), math.cos(heading_rad[j])
+                c = abs(fe * ge + fn * gn)
+                s = abs(fe * gn - fn * ge)
+                ext_along = half_l[j] * c + half_w[j] * s
+                ext_across = half_l[j] * s + half_w[j] * c
+            else:
+                ext_along = ext_across = radius[j]
+            if abs(across) > half_w[i] + ext_across + PATH_MARGIN_M:
+                continue
+            clear = ahead - half_l[i] - ext_along
+            if ahead < half_l[i] or clear > reach[k]:
+                continue  # beside it (no further in front than its own front: not in its way), or far
+            if clear < out_clear[k]:
+                out_clear[k] = clear
+                out_row[k] = j
+
+
+def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length_m, half_width_m, group, rows,
+                    reach_m) -> tuple[np.ndarray, np.ndarray]:
+    """For each vehicle ``rows`` (indices into the entity arrays; -1: none) the free distance
+    (m) from its front to the nearest entity in its path ahead (the module docstring), and that
+    entity's index; inf and -1 where nothing is within ``reach_m`` (per row, metres of clearance).
+
+    Entity arrays (n,): ECEF positions (n, 3) m, geodetic lat/lon, heading (degrees from north;
+    of boxes, and of the asking vehicles), bounding radius, half length (0: a sphere), half
+    width; ``group`` (n,) int64: entities of one group (>= 0) ignore each other (a convoy,
+    whose spacing its own law keeps)."""
+    rows = np.ascontiguousarray(rows, np.int64)
+    clear, row = np.full(rows.size, np.inf), np.full(rows.size, -1, np.int64)
+    p = np.ascontiguousarray(ecef_m, np.float64).reshape(-1, 3)
+    if rows.size == 0 or p.shape[0] < 2:
+        return clear, row
+    finite = np.isfinite(p).all(axis=1)
+    if not finite.all():  # an entity with no position is in nobody's path
+        p = np.where(finite[:, None], p, 1.0e12)
+
+    def column(values, dtype=np.float64):
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(values, dtype), (p.shape[0],)))
+
+    _ahead_kernel(p, column(lat_deg), column(lon_deg), np.radians(column(heading_deg)), column(radius_m),
+                  column(half_length_m), column(half_width_m), column(group, np.int64), rows,
+                  np.ascontiguousarray(np.broadcast_to(np.asarray(reach_m, np.float64), rows.shape)), clear, row)
+    return clear, row

@@ -1,0 +1,143 @@
+"""Autopilot drivers brake for what is in their path (server/obstacles.py, fdm.convoy's
+obstacle ceiling, World._obstacle_ceiling): the compiled search against a brute-force
+reference, and route followers in a world stopping short of a site, queueing behind a slower
+vehicle, passing one parked beside the road, with no collision."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fdm.aircraft import FlatTerrain
+from fdm.convoy import OBSTACLE_STANDOFF_M
+from fdm.vehicle_types import VEHICLE_TYPES
+from server.obstacles import PATH_MARGIN_M, clearance_ahead
+from server.world import STATIC_RADIUS_M, World
+from terrain.geodesy import enu_basis, geodetic_to_ecef
+
+LAT0, LON0 = 47.0, 9.0
+M_PER_DEG_LON = 111_200.0 * math.cos(math.radians(LAT0))
+
+
+def _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach):
+    """Every entity against every asking vehicle, in numpy, by the module docstring's rules."""
+    clear = np.full(rows.size, np.inf)
+    for k, i in enumerate(rows):
+        e, n, u = (b for b in enu_basis(lat[i], lon[i]))
+        fwd = np.sin(np.radians(heading[i])) * e + np.cos(np.radians(heading[i])) * n
+        right = np.cos(np.radians(heading[i])) * e - np.sin(np.radians(heading[i])) * n
+        for j in range(p.shape[0]):
+            if j == i or (group[i] >= 0 and group[j] == group[i]):
+                continue
+            d = p[j] - p[i]
+            if abs(d @ u) > radius[i] + radius[j]:
+                continue
+            ahead, across = d @ fwd, d @ right
+            if half_l[j] > 0:
+                rel = np.radians(heading[j] - heading[i])
+                ext_along = half_l[j] * abs(np.cos(rel)) + half_w[j] * abs(np.sin(rel))
+                ext_across = half_l[j] * abs(np.sin(rel)) + half_w[j] * abs(np.cos(rel))
+            else:
+                ext_along = ext_across = radius[j]
+            c = ahead - half_l[i] - ext_along
+            if abs(across) <= half_w[i] + ext_across + PATH_MARGIN_M and ahead >= half_l[i] and c <= reach[k]:
+                clear[k] = min(clear[k], c)
+    return clear
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_clearance_matches_a_brute_force_reference(seed):
+    """300 entities (boxes of the catalog's types and spheres) in a 400 m square, some in
+    groups; 80 of them ask. Equal to the reference to rounding."""
+    rng = np.random.default_rng(seed)
+    n = 300
+    lat = LAT0 + rng.uniform(0, 400, n) / 111_200.0
+    lon = LON0 + rng.uniform(0, 400, n) / M_PER_DEG_LON
+    h = 400.0 + rng.uniform(0, 3, n)
+    h[:10] += rng.uniform(5, 200, 10)  # a few above the others: aircraft overhead
+    p = geodetic_to_ecef(lat, lon, h)
+    heading = rng.uniform(0, 360, n)
+    types = list(VEHICLE_TYPES.values())
+    box = rng.random(n) < 0.8
+    half_l = np.where(box, [types[k % len(types)].length_m / 2 for k in range(n)], 0.0)
+    half_w = np.where(box, [types[k % len(types)].width_m / 2 for k in range(n)], 0.0)
+    radius = np.where(box, np.hypot(half_l, half_w), rng.uniform(3, 12, n))
+    group = np.where(rng.random(n) < 0.3, rng.integers(0, 5, n), -1)
+    rows = np.flatnonzero(box)[:80]
+    reach = rng.uniform(10, 120, rows.size)
+    clear, row = clearance_ahead(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
+    ref = _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
+    np.testing.assert_allclose(clear, ref, atol=1e-6)
+    assert np.isfinite(ref).sum() > 10  # the scene has obstacles in many paths
+    assert (row[np.isfinite(clear)] >= 0).all() and (row[~np.isfinite(clear)] == -1).all()
+
+
+def _route_east(m_from, m_to, lat=LAT0):
+    return [(lat, LON0 + m_from / M_PER_DEG_LON), (lat, LON0 + m_to / M_PER_DEG_LON)]
+
+
+def _east_m(world, e):
+    return (world.ground.lon[world.ground.index_of([e.ground_id])][0] - LON0) * M_PER_DEG_LON
+
+
+def _run(world, ticks):
+    events = []
+    for _ in range(ticks):
+        events += world.tick()
+    return events
+
+
+def test_a_route_follower_stops_short_of_a_site_on_its_route():
+    """A Humvee at 12 m/s on a route through a radar site stops OBSTACLE_STANDOFF_M (within a
+    metre) short of it, with no collision; before, it drove into it."""
+    world = World(FlatTerrain(400.0))
+    try:
+        world.spawn_static("site", "radar", LAT0, LON0 + 200.0 / M_PER_DEG_LON, 400.0)
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 600),
+                                  cruise_mps=12.0)
+        events = _run(world, 900)  # 30 s
+        assert not [e for e in events if e.kind == "collision"]
+        front = _east_m(world, car) + VEHICLE_TYPES["hmmwv"].length_m / 2
+        clear = 200.0 - STATIC_RADIUS_M - front
+        assert OBSTACLE_STANDOFF_M - 1.0 < clear < OBSTACLE_STANDOFF_M + 1.0, clear
+        assert world.ground.speed_mps[world.ground.index_of([car.ground_id])][0] == pytest.approx(0.0, abs=0.05)
+    finally:
+        world.close()
+
+
+def test_a_faster_follower_queues_behind_a_slower_one():
+    """Two route followers on one road, the one behind at 14 m/s and the one ahead at 5: it
+    closes up, then follows at the slower one's speed, a standoff behind, and never hits it."""
+    world = World(FlatTerrain(400.0))
+    try:
+        slow, = world.spawn_ground(["slow"], "m1083", [LAT0], [LON0 + 60.0 / M_PER_DEG_LON], [90.0],
+                                   route=_route_east(60, 2000), cruise_mps=5.0)
+        fast, = world.spawn_ground(["fast"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 2000),
+                                   cruise_mps=14.0)
+        events = _run(world, 1200)  # 40 s
+        assert not [e for e in events if e.kind == "collision"]
+        gap = (_east_m(world, slow) - VEHICLE_TYPES["m1083"].length_m / 2
+               - _east_m(world, fast) - VEHICLE_TYPES["hmmwv"].length_m / 2)
+        assert OBSTACLE_STANDOFF_M - 1.0 < gap < 25.0, gap
+        idx = world.ground.index_of([slow.ground_id, fast.ground_id])
+        assert world.ground.speed_mps[idx][1] == pytest.approx(5.0, abs=1.0)
+        assert _east_m(world, fast) > 150.0  # it drove on behind the slow one, not stopped
+    finally:
+        world.close()
+
+
+def test_a_vehicle_parked_beside_the_road_is_passed():
+    """A truck parked 5 m to the side of the route (beyond the path's half width, 1.06 + 1.22 +
+    0.75 m): the follower drives past it at cruise speed."""
+    world = World(FlatTerrain(400.0))
+    try:
+        world.spawn_ground(["parked"], "m1083", [LAT0 - 5.0 / 111_200.0], [LON0 + 100.0 / M_PER_DEG_LON], [90.0])
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 600),
+                                  cruise_mps=10.0)
+        events = _run(world, 600)  # 20 s
+        assert not [e for e in events if e.kind == "collision"]
+        assert _east_m(world, car) > 150.0
+    finally:
+        world.close()
