@@ -65,6 +65,17 @@ WAIT_MIN_FRAC = 0.3
 # A driver stops this far (m, bumper to bumper) behind what is in its path (server/obstacles.py),
 # braking at STOP_BRAKE_FRAC of its type's deceleration.
 OBSTACLE_STANDOFF_M = 4.0
+# A driver passing an obstacle (stopped, or coming the other way) steers its route's goal point
+# sideways so the two pass this far apart (m, side to side), for as long as it takes to get past
+# (its length, the obstacle's and PASS_AFTER_M); it does not leave its route by more than
+# PASS_MAX_OFFSET_M for it (it waits instead).
+PASS_CLEAR_M = 1.5
+PASS_AFTER_M = 10.0
+PASS_MAX_OFFSET_M = 25.0
+# While it steers out to pass, a driver keeps rolling at up to this speed (m/s; a wheeled vehicle
+# cannot turn standing) until within PASS_CRAWL_CLEAR_M of the obstacle.
+PASS_CRAWL_MPS = 3.0
+PASS_CRAWL_CLEAR_M = 1.0
 # Segments searched before and after a vehicle's last segment when projecting.
 SEARCH_BEHIND = 1
 SEARCH_AHEAD = 3
@@ -80,6 +91,18 @@ def obstacle_speed_ceiling(clearance_m, brake_mps2):
     STOP_BRAKE_FRAC of ``brake_mps2``: sqrt(2 a d), 0 within the standoff."""
     free = np.maximum(np.asarray(clearance_m, np.float64) - OBSTACLE_STANDOFF_M, 0.0)
     return np.sqrt(2.0 * STOP_BRAKE_FRAC * np.asarray(brake_mps2, np.float64) * free)
+
+
+def pass_offset_m(across_m, need_m, oncoming):
+    """The sideways shift (m, to the right; negative: left) of a driver's path that passes an
+    obstacle ``across_m`` to its right (negative: left) with ``need_m`` between their centres
+    side to side plus PASS_CLEAR_M: one coming the other way is kept on the left (both keep
+    right), a stopped one on the side of the smaller shift (right on a tie). NaN where the
+    shift would exceed PASS_MAX_OFFSET_M."""
+    across, need = np.asarray(across_m, np.float64), np.asarray(need_m, np.float64) + PASS_CLEAR_M
+    right, left = across + need, across - need
+    shift = np.where(np.asarray(oncoming, bool) | (np.abs(right) <= np.abs(left)), right, left)
+    return np.where(np.abs(shift) <= PASS_MAX_OFFSET_M, shift, np.nan)
 
 
 def obstacle_reach_m(speed_mps, brake_mps2):
@@ -498,11 +521,15 @@ class FollowerSet:
         # Per vehicle, its convoy's number (vehicles of one convoy keep their spacing by the
         # convoy's law, not by braking for each other), -1 for a route follower's.
         self.convoy_of = np.repeat(np.where(convoy, np.arange(convoy.size), -1), sizes).astype(np.int64)
+        self._pass_offset = self._pass_until = None  # passes in progress (see update), made on the first
 
-    def update(self, ceiling_mps=None) -> None:
+    def update(self, ceiling_mps=None, pass_offset=None, pass_length=None) -> None:
         """Every follower's update (locate, speed law, pure pursuit), applied at once;
         ``ceiling_mps`` (per vehicle of :attr:`index`, or None): a further speed ceiling (an
-        obstacle ahead, :func:`obstacle_speed_ceiling`)."""
+        obstacle ahead, :func:`obstacle_speed_ceiling`). ``pass_offset``/``pass_length`` (per
+        vehicle, NaN: none): pass an obstacle with the path shifted ``pass_offset`` metres to
+        the right (:func:`pass_offset_m`) for the next ``pass_length`` metres of route; a
+        pass in progress on the same side keeps the larger shift and the farther end."""
         if not self.followers:
             return
         v, idx, fs, r = self.vehicles, self.index, self.followers, self._route
@@ -529,7 +556,45 @@ class FollowerSet:
         g_lat, g_lon = np.empty(n), np.empty(n)
         _points_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_dn"], r["seg_de"], r["seg_len"], r["cum"],
                     self._p0, self._g0, self._v0, s + lookahead, g_lat, g_lon)
+        offset = self._passing(s, pass_offset, pass_length)
+        if offset is not None:
+            self._shift_goals(s + lookahead, offset, g_lat, g_lon)
         v.set_controls(*pursue(v, idx, g_lat, g_lon, speed_cmd), index=idx)
+
+    def _passing(self, s, pass_offset, pass_length):
+        """The passes in progress after this update's requests (see :meth:`update`): per
+        vehicle its path's shift to the right (m), or None when no vehicle is passing."""
+        n = s.size
+        if self._pass_offset is None:
+            if pass_offset is None or np.isnan(pass_offset).all():
+                return None
+            self._pass_offset, self._pass_until = np.zeros(n), np.full(n, -np.inf)
+        if pass_offset is not None:
+            new = ~np.isnan(pass_offset)
+            active = s < self._pass_until
+            same_side = np.sign(self._pass_offset) == np.sign(pass_offset)
+            keep = new & active & same_side & (np.abs(self._pass_offset) >= np.abs(pass_offset))
+            self._pass_offset = np.where(new & ~keep, pass_offset, self._pass_offset)
+            until = s + np.where(new, pass_length, -np.inf)
+            self._pass_until = np.where(new & ~(active & same_side), until, np.maximum(self._pass_until, until))
+        offset = np.where(s < self._pass_until, self._pass_offset, 0.0)
+        return offset if offset.any() else None
+
+    def _shift_goals(self, at, offset, g_lat, g_lon) -> None:
+        """Move the goal points (g_lat, g_lon), at route arc lengths ``at``, ``offset`` metres
+        to the right of the route's direction there (in place)."""
+        r = self._route
+        b_lat, b_lon = np.empty(at.size), np.empty(at.size)
+        _points_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_dn"], r["seg_de"], r["seg_len"], r["cum"],
+                    self._p0, self._g0, self._v0, at - 1.0, b_lat, b_lon)
+        m, nr = radii_of_curvature(g_lat)
+        cos_lat = np.cos(np.radians(g_lat))
+        dn = np.radians(g_lat - b_lat) * m
+        de = np.radians((g_lon - b_lon + 180.0) % 360.0 - 180.0) * nr * cos_lat
+        norm = np.maximum(np.hypot(dn, de), 1e-9)
+        right_n, right_e = -de / norm, dn / norm
+        g_lat += np.degrees(offset * right_n / m)
+        g_lon[:] = (g_lon + np.degrees(offset * right_e / (nr * cos_lat)) + 180.0) % 360.0 - 180.0
 
     def _convoy_law(self, speed_cmd, corner, s, speed, t) -> None:
         """Convoy.commands' speed law for every convoy, into speed_cmd."""

@@ -29,7 +29,7 @@ PATH_MARGIN_M = 0.75
 
 @numba.njit(cache=True, nogil=True)
 def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, rows, reach, out_clear,
-                  out_row):
+                  out_row, out_across, out_need):
     n = p.shape[0]
     best, axis = -1.0, 0
     for ax in range(3):  # the axis the entities spread most along
@@ -89,13 +89,18 @@ def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, grou
             if clear < out_clear[k]:
                 out_clear[k] = clear
                 out_row[k] = j
+                out_across[k] = across
+                out_need[k] = half_w[i] + ext_across
 
 
 def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length_m, half_width_m, group, rows,
-                    reach_m) -> tuple[np.ndarray, np.ndarray]:
+                    reach_m) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For each vehicle ``rows`` (indices into the entity arrays; -1: none) the free distance
-    (m) from its front to the nearest entity in its path ahead (the module docstring), and that
-    entity's index; inf and -1 where nothing is within ``reach_m`` (per row, metres of clearance).
+    (m) from its front to the nearest entity in its path ahead (the module docstring), that
+    entity's index, how far it is to the vehicle's right (m, negative: left) and how far apart
+    sideways their centres must be for the two to pass clear (m: their half extents across
+    the heading); inf, -1, NaN, NaN where nothing is within ``reach_m`` (per row, metres of
+    clearance).
 
     Entity arrays (n,): ECEF positions (n, 3) m, geodetic lat/lon, heading (degrees from north;
     of boxes, and of the asking vehicles), bounding radius, half length (0: a sphere), half
@@ -103,9 +108,10 @@ def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length
     whose spacing its own law keeps)."""
     rows = np.ascontiguousarray(rows, np.int64)
     clear, row = np.full(rows.size, np.inf), np.full(rows.size, -1, np.int64)
+    across, need = np.full(rows.size, np.nan), np.full(rows.size, np.nan)
     p = np.ascontiguousarray(ecef_m, np.float64).reshape(-1, 3)
     if rows.size == 0 or p.shape[0] < 2:
-        return clear, row
+        return clear, row, across, need
     finite = np.isfinite(p).all(axis=1)
     if not finite.all():  # an entity with no position is in nobody's path
         p = np.where(finite[:, None], p, 1.0e12)
@@ -115,5 +121,6 @@ def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length
 
     _ahead_kernel(p, column(lat_deg), column(lon_deg), np.radians(column(heading_deg)), column(radius_m),
                   column(half_length_m), column(half_width_m), column(group, np.int64), rows,
-                  np.ascontiguousarray(np.broadcast_to(np.asarray(reach_m, np.float64), rows.shape)), clear, row)
-    return clear, row
+                  np.ascontiguousarray(np.broadcast_to(np.asarray(reach_m, np.float64), rows.shape)), clear, row,
+                  across, need)
+    return clear, row, across, need

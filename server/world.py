@@ -57,17 +57,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fdm.aircraft import InitialConditions, validate_controls
-from fdm.convoy import Convoy, FollowerSet, Route, RouteFollower, obstacle_reach_m, obstacle_speed_ceiling
+from fdm.convoy import (PASS_AFTER_M, PASS_CRAWL_CLEAR_M, PASS_CRAWL_MPS, Convoy, FollowerSet, Route, RouteFollower,
+                        obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m)
 from fdm.ground import GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
-from fdm.vehicle_types import P_BRAKE
+from fdm.vehicle_types import P_BRAKE, P_LEN
 from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
 from server.obstacles import clearance_ahead
 from server.dead_reckoning import extrapolate, ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
-from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
 AIRCRAFT, GROUND, STATIC = 1, 2, 3  # = sortie.v1.EntityKind values
 KIND_NAMES = {AIRCRAFT: "aircraft", GROUND: "ground", STATIC: "static"}
@@ -649,7 +650,7 @@ class World(EventLog):
             if self.ground is not None and self.ground.n:
                 fs = self._followers
                 if fs.followers:
-                    fs.update(self._obstacle_ceiling(fs.index, fs.convoy_of))
+                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of))
                 self._hold_ground_headings()
                 self.ground.step(self.dt)
             air = self._air_tick = self.air.end_tick()
@@ -909,19 +910,23 @@ class World(EventLog):
         target = np.where(np.isnan(target), heading, target)
         err = (target - heading + 180.0) % 360.0 - 180.0
         rate = np.clip(0.5 * err, -self.ground.yaw_rate_limit_dps[idx], self.ground.yaw_rate_limit_dps[idx])
-        ceiling = self._obstacle_ceiling(idx)
+        ceiling = self._obstacles_ahead(idx, passing=False)[0]
         self.ground.set_controls(speed if ceiling is None else np.minimum(speed, ceiling), rate, index=idx)
 
-    def _obstacle_ceiling(self, idx: np.ndarray, convoy: np.ndarray | None = None) -> np.ndarray | None:
-        """Speed ceilings (m/s) for the autopilot-driven ground vehicles ``idx`` (rows of
-        self.ground), so each stops OBSTACLE_STANDOFF_M short of the nearest entity in its path
-        (server/obstacles.py: vehicles, wrecks, static sites, aircraft on the ground, as the
-        last snapshot has them); ``convoy``: per vehicle its convoy's number (-1: none), whose
-        members do not brake for each other. None when there is nothing to look at. A human
-        driver's commands are not capped: braking is his."""
+    def _obstacles_ahead(self, idx: np.ndarray, convoy: np.ndarray | None = None, passing: bool = True) -> tuple:
+        """What the autopilot-driven ground vehicles ``idx`` (rows of self.ground) do about the
+        nearest entity in their path (server/obstacles.py: vehicles, wrecks, static sites,
+        aircraft on the ground, as the last snapshot has them): (speed ceilings (m/s), so each
+        stops OBSTACLE_STANDOFF_M short of it; with ``passing``, the sideways shift of the path
+        that passes it (m, to the right; NaN: none) and over how much route, for one stopped or
+        coming the other way (one going its way is followed, not passed), while the ceiling
+        lets it roll out at PASS_CRAWL_MPS), as :meth:`FollowerSet.update` takes them; Nones
+        when there is nothing to look at. ``convoy``: per vehicle its convoy's number (-1:
+        none), whose members do not brake for each other. A human driver's commands are not
+        capped: braking is his."""
         snap = self.snapshot
         if snap.ids.size < 2 or idx.size == 0:
-            return None
+            return None, None, None
         radius, half_l, half_w, _, gnd_rows, gnd_idx = self._shapes(snap.ids)
         heading = np.zeros(snap.ids.size)
         heading[gnd_rows] = self.ground.heading_deg[gnd_idx]
@@ -932,9 +937,28 @@ class World(EventLog):
         if convoy is not None:
             group[rows[rows >= 0]] = convoy[rows >= 0]
         brake = self.ground.table[self.ground.type_id[idx], P_BRAKE]
-        clear, _ = clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l, half_w, group,
-                                   rows, obstacle_reach_m(self.ground.speed_mps[idx], brake))
-        return obstacle_speed_ceiling(clear, brake)
+        clear, other, across, need = clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l,
+                                                     half_w, group, rows, obstacle_reach_m(self.ground.speed_mps[idx],
+                                                                                           brake))
+        ceiling = obstacle_speed_ceiling(clear, brake)
+        seen = np.flatnonzero(other >= 0)
+        if not passing or seen.size == 0:
+            return ceiling, None, None
+        j = other[seen]
+        east, north, _ = enu_basis(snap.lat_deg[rows[seen]], snap.lon_deg[rows[seen]])
+        h = np.radians(heading[rows[seen]])
+        forward = np.sin(h)[:, None] * east + np.cos(h)[:, None] * north
+        vel = snap.vel_ecef_mps[j]
+        along = np.einsum("ij,ij->i", vel, forward)
+        stopped = np.linalg.norm(vel, axis=1) < 0.5
+        oncoming = along < -0.5
+        shift = np.full(idx.size, np.nan)
+        shift[seen] = np.where(stopped | oncoming, pass_offset_m(across[seen], need[seen], oncoming), np.nan)
+        length = clear + 2.0 * (self.ground.table[self.ground.type_id[idx], P_LEN] + radius[np.maximum(other, 0)]) \
+            + PASS_AFTER_M
+        rolls = ~np.isnan(shift) & (clear > PASS_CRAWL_CLEAR_M)
+        ceiling = np.where(rolls, np.maximum(ceiling, PASS_CRAWL_MPS), ceiling)
+        return ceiling, shift, length
 
     def _layout(self):
         """(ground entity ids, their rows in self.ground, (static ids, static snapshot

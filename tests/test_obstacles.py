@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fdm.aircraft import FlatTerrain
-from fdm.convoy import OBSTACLE_STANDOFF_M
+from fdm.convoy import OBSTACLE_STANDOFF_M, PASS_MAX_OFFSET_M
 from fdm.vehicle_types import VEHICLE_TYPES
 from server.obstacles import PATH_MARGIN_M, clearance_ahead
 from server.world import STATIC_RADIUS_M, World
@@ -23,7 +23,7 @@ M_PER_DEG_LON = 111_200.0 * math.cos(math.radians(LAT0))
 
 def _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach):
     """Every entity against every asking vehicle, in numpy, by the module docstring's rules."""
-    clear = np.full(rows.size, np.inf)
+    clear, across_of, need = np.full(rows.size, np.inf), np.full(rows.size, np.nan), np.full(rows.size, np.nan)
     for k, i in enumerate(rows):
         e, n, u = (b for b in enu_basis(lat[i], lon[i]))
         fwd = np.sin(np.radians(heading[i])) * e + np.cos(np.radians(heading[i])) * n
@@ -43,8 +43,9 @@ def _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
                 ext_along = ext_across = radius[j]
             c = ahead - half_l[i] - ext_along
             if abs(across) <= half_w[i] + ext_across + PATH_MARGIN_M and ahead >= half_l[i] and c <= reach[k]:
-                clear[k] = min(clear[k], c)
-    return clear
+                if c < clear[k]:
+                    clear[k], across_of[k], need[k] = c, across, half_w[i] + ext_across
+    return clear, across_of, need
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -67,9 +68,11 @@ def test_clearance_matches_a_brute_force_reference(seed):
     group = np.where(rng.random(n) < 0.3, rng.integers(0, 5, n), -1)
     rows = np.flatnonzero(box)[:80]
     reach = rng.uniform(10, 120, rows.size)
-    clear, row = clearance_ahead(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
-    ref = _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
+    clear, row, across, need = clearance_ahead(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
+    ref, ref_across, ref_need = _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
     np.testing.assert_allclose(clear, ref, atol=1e-6)
+    np.testing.assert_allclose(across, ref_across, atol=1e-6)
+    np.testing.assert_allclose(need, ref_need, atol=1e-9)
     assert np.isfinite(ref).sum() > 10  # the scene has obstacles in many paths
     assert (row[np.isfinite(clear)] >= 0).all() and (row[~np.isfinite(clear)] == -1).all()
 
@@ -89,20 +92,69 @@ def _run(world, ticks):
     return events
 
 
-def test_a_route_follower_stops_short_of_a_site_on_its_route():
-    """A Humvee at 12 m/s on a route through a radar site stops OBSTACLE_STANDOFF_M (within a
-    metre) short of it, with no collision; before, it drove into it."""
+def test_a_vehicle_holding_its_heading_stops_short_of_a_site():
+    """A Humvee on autopilot (heading 090, 12 m/s) towards a radar site stops OBSTACLE_STANDOFF_M
+    (within a metre) short of it, with no collision; before, it drove into it."""
     world = World(FlatTerrain(400.0))
     try:
         world.spawn_static("site", "radar", LAT0, LON0 + 200.0 / M_PER_DEG_LON, 400.0)
-        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 600),
-                                  cruise_mps=12.0)
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], controllable=True)
+        world.command(car.id, "autopilot", {"heading_deg": 90.0, "speed_mps": 12.0})
         events = _run(world, 900)  # 30 s
         assert not [e for e in events if e.kind == "collision"]
         front = _east_m(world, car) + VEHICLE_TYPES["hmmwv"].length_m / 2
         clear = 200.0 - STATIC_RADIUS_M - front
         assert OBSTACLE_STANDOFF_M - 1.0 < clear < OBSTACLE_STANDOFF_M + 1.0, clear
         assert world.ground.speed_mps[world.ground.index_of([car.ground_id])][0] == pytest.approx(0.0, abs=0.05)
+    finally:
+        world.close()
+
+
+def _north_m(world, e):
+    return (world.ground.lat[world.ground.index_of([e.ground_id])][0] - LAT0) * 111_200.0
+
+
+def test_a_route_follower_drives_around_a_site_on_its_route():
+    """A Humvee at 12 m/s on a route through a radar site drives around it with no collision
+    (before, it drove into it), no farther off its route than the pass needs and PASS_MAX_OFFSET_M,
+    and is back on its route 150 m past it."""
+    world = World(FlatTerrain(400.0))
+    try:
+        world.spawn_static("site", "radar", LAT0, LON0 + 200.0 / M_PER_DEG_LON, 400.0)
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 800),
+                                  cruise_mps=12.0)
+        events, off = [], []
+        for _ in range(1200):  # 40 s
+            events += world.tick()
+            off.append(_north_m(world, car))
+            if _east_m(world, car) > 350.0:
+                break
+        assert not [e for e in events if e.kind == "collision"]
+        assert _east_m(world, car) > 350.0
+        need = VEHICLE_TYPES["hmmwv"].width_m / 2 + STATIC_RADIUS_M
+        assert need < max(np.abs(off)) <= PASS_MAX_OFFSET_M + 1.0
+        assert abs(off[-1]) < 1.0
+    finally:
+        world.close()
+
+
+def test_two_vehicles_meeting_head_on_keep_right_and_pass():
+    """Two trucks driving one road from opposite ends at 10 m/s: each keeps right, they pass
+    with no collision and both reach the far end (before: they met head-on and stopped)."""
+    world = World(FlatTerrain(400.0))
+    try:
+        west, = world.spawn_ground(["west"], "m1083", [LAT0], [LON0], [90.0], route=_route_east(0, 600),
+                                   cruise_mps=10.0)
+        east, = world.spawn_ground(["east"], "m1083", [LAT0], [LON0 + 600.0 / M_PER_DEG_LON], [270.0],
+                                   route=_route_east(600, 0), cruise_mps=10.0)
+        events, abreast = [], None
+        for _ in range(2700):  # 90 s
+            events += world.tick()
+            if abreast is None and _east_m(world, west) > _east_m(world, east):
+                abreast = (_north_m(world, west), _north_m(world, east))
+        assert not [e for e in events if e.kind == "collision"]
+        assert abreast is not None and abreast[0] < -1.0 and abreast[1] > 1.0  # each on its right
+        assert _east_m(world, west) > 590.0 and _east_m(world, east) < 10.0
     finally:
         world.close()
 
