@@ -26,7 +26,7 @@ CRS_WEB_MERCATOR = 1  # EPSG:3857: x, y in projected metres
 CRS_NAMES = {CRS_GEOGRAPHIC: "EPSG:4326", CRS_WEB_MERCATOR: "EPSG:3857"}
 
 # Per-point status codes; the values equal sortie.v1.PointStatus.
-STATUS_OK = 1  # inside the data, every contributing post measured
+STATUS_OK = 1  # inside the data, from a source's own posts (measured, or generated for the procedural world)
 STATUS_FILLED = 2  # inside, but a contributing post was a void filled by rule
 STATUS_OUTSIDE = 3  # no terrain covers the point: height is NaN
 
