@@ -59,7 +59,7 @@ import numpy as np
 from fdm.aircraft import InitialConditions, validate_controls
 from fdm.convoy import (PASS_AFTER_M, PASS_CRAWL_CLEAR_M, PASS_CRAWL_MPS, Convoy, FollowerSet, Route, RouteFollower,
                         obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m)
-from fdm.ground import GroundVehicles
+from fdm.ground import BLOCKED_COLLISION, BLOCKED_NAMES, FREE, GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
 from fdm.vehicle_types import P_BRAKE, P_LEN
 from server.aircraft_host import LocalAircraftHost
@@ -94,6 +94,10 @@ DESTROY_SPEED_MPS = 20.0
 # tick (metres; rounding of positions through geodetic coordinates is far below it): it is put
 # back where it began the tick, so a driver pushing on does not pass through.
 HOLD_DEPTH_M = 1.0e-3
+# A ground vehicle the terrain stops (a slope, water, the terrain's edge) is reported once
+# ("blocked", with the reason) and again only after it has driven free for this long (s): a
+# driver pushing against a slope is stopped, accelerates and is stopped again tick after tick.
+BLOCKED_REPORT_AFTER_FREE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -230,6 +234,7 @@ class World(EventLog):
         self.routes: list = []  # (route spec, [entity ids]) of ground agents on routes
         self._scenario_routes: dict[int, dict] = {}  # the route spec each ground agent spawned on
         self._followers = FollowerSet([])  # a RouteFollower/Convoy per route, rebuilt when vehicles go
+        self._blocked_reported: dict = {}  # entity id -> (blocked reason reported, last time seen blocked)
         self._followed: set = set()  # entity ids on a route
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
         self._hold_version = 0  # bumped when a hold changes (its arrays are cached against it)
@@ -676,12 +681,37 @@ class World(EventLog):
             self._note_wrecks(events)  # what crashed so far this tick moves no more
             events += self._agent_collisions(self.snapshot, snapshot)
             self._note_wrecks(events)
+            events += self._terrain_blocks()
             for ev in events:
                 self._emit(ev)
             self.snapshot = snapshot
             if self.recorder is not None:
                 self.recorder.on_tick(snapshot, self.infos)
             return events
+
+    def _terrain_blocks(self) -> list[WorldEvent]:
+        """A "blocked" event for each ground vehicle of this world that the terrain stopped
+        this tick (fdm.ground: ``reason`` side_slope, slope, water or outside) and that was not
+        already reported for that reason (see BLOCKED_REPORT_AFTER_FREE_S), where it stands;
+        so a vehicle stuck on its route says so once, not silently and not every tick."""
+        g = self.ground
+        if g is None or g.n == 0:
+            return []
+        gnd_ids, idx, _ = self._layout()
+        code = g.blocked[idx]
+        rows = np.flatnonzero((code != FREE) & (code != BLOCKED_COLLISION))
+        reported, events = self._blocked_reported, []
+        for k in rows.tolist():
+            eid, c = int(gnd_ids[k]), int(code[k])
+            if reported.get(eid, (FREE,))[0] != c and eid not in self.wrecks:
+                j = idx[k]
+                events.append(WorldEvent(self.time_s, "blocked", eid, float(g.lat[j]), float(g.lon[j]),
+                                         float(g.height_msl_m[j]), {"reason": BLOCKED_NAMES[c]}))
+            reported[eid] = (c, self.time_s)
+        if len(reported) > rows.size:  # forget those free (or gone) for long enough
+            for eid in [i for i, (_, t) in reported.items() if self.time_s - t >= BLOCKED_REPORT_AFTER_FREE_S]:
+                del reported[eid]
+        return events
 
     def _note_wrecks(self, events: list) -> None:
         """Add the entities that crashed or were destroyed in ``events`` to :attr:`wrecks`."""

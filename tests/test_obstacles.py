@@ -193,3 +193,32 @@ def test_a_vehicle_parked_beside_the_road_is_passed():
         assert _east_m(world, car) > 150.0
     finally:
         world.close()
+
+
+def test_a_vehicle_the_terrain_stops_says_so_once():
+    """A Humvee driven east towards the sea (a coast 100 m ahead) is stopped at the shore: one
+    "blocked" event (reason water) where it stands, though its driver pushes on for 10 s; it
+    backs off, drives free for 2 s and on to the shore again: a second event."""
+    from terrain.raster import CRS_GEOGRAPHIC, Georef, Raster
+    from terrain.terrain import Terrain
+
+    d = 1.0 / 3600.0
+    h = np.full((200, 400), 3.0, np.float32)
+    h[:, 100:] = np.maximum(3.0 - 0.5 * np.arange(300), -2.0)  # a beach from the start east into the sea
+    coast = Raster(h, Georef(CRS_GEOGRAPHIC, LON0 - 100 * d, LAT0 - 100 * d, d, d), name="coast")
+    world = World(Terrain([coast]))
+    try:
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], controllable=True)
+        world.command(car.id, "drive", {"speed_mps": 8.0, "yaw_rate_dps": 0.0})
+        events = _run(world, 600)  # 20 s: the shore is about 100 m east
+        blocked = [e for e in events if e.kind == "blocked"]
+        assert len(blocked) == 1 and blocked[0].entity_id == car.id and blocked[0].detail["reason"] == "water"
+        east_m = (world.ground.lon[world.ground.index_of([car.ground_id])][0] - blocked[0].lon_deg) * M_PER_DEG_LON
+        assert 0.0 <= east_m < 1.0  # at the shore: pushing on, it creeps no more than its last sub-steps allow
+        world.command(car.id, "drive", {"speed_mps": -4.0, "yaw_rate_dps": 0.0})
+        _run(world, 90)
+        world.command(car.id, "drive", {"speed_mps": 8.0, "yaw_rate_dps": 0.0})
+        events = _run(world, 300)
+        assert [e.detail["reason"] for e in events if e.kind == "blocked"] == ["water"]
+    finally:
+        world.close()
