@@ -117,9 +117,10 @@ def mesh_command(args) -> int:
 
     from server.terrain_cli import terrain_source
     from terrain.mesh import MAX_GEOID_UNDULATION_M, centre_error, output_format, write_mesh
-    from terrain.texture_cli import box_of, texture_request
+    from terrain.texture_cli import box_of, check_output_path, texture_request
 
     output_format(args.output)
+    check_output_path(args.output, folder=False)  # before the work: a folder or an unwritable place
     if not (math.isfinite(args.geoid_undulation_m) and abs(args.geoid_undulation_m) <= MAX_GEOID_UNDULATION_M):
         raise InvalidArgument("--geoid-undulation-m", f"must be within +-{MAX_GEOID_UNDULATION_M:g} m",
                               value=args.geoid_undulation_m)

@@ -602,7 +602,7 @@ def _line_sample(grid: np.ndarray, dr: int, dc: float):
     return (tr, slice(j0, j1)), left + (right - left) * w
 
 
-def cast_shadow(heights, dx_m: float, dy_m: float, sun_az_deg: float, sun_el_deg: float,
+def cast_shadow(heights, dx_m: float, dy_m: float, sun_az_deg, sun_el_deg,
                 *, max_distance_m: float | None = None) -> np.ndarray:
     """True where terrain toward the sun rises above the sun's elevation (a cast shadow).
 
@@ -619,8 +619,14 @@ def cast_shadow(heights, dx_m: float, dy_m: float, sun_az_deg: float, sun_el_deg
     blocker d away by d^2 / 2R: 20 m at 16 km). NaN posts neither cast nor
     receive shadows. max_distance_m: forget blockers farther than this (None: any).
     Below or on the horizon everything is in shadow.
+
+    sun_az_deg, sun_el_deg: scalars (one sun for the whole grid), or arrays
+    broadcastable to the grid: each post's own sun (:func:`_cast_shadow_field`).
     """
     z = np.asarray(heights, dtype=np.float64)
+    if np.ndim(sun_az_deg) or np.ndim(sun_el_deg):
+        return _cast_shadow_field(z, dx_m, dy_m, sun_az_deg, sun_el_deg, max_distance_m)
+    sun_az_deg, sun_el_deg = float(sun_az_deg), float(sun_el_deg)
     if sun_el_deg <= 0.0:
         return np.ones(z.shape, dtype=bool)
     az = np.radians(sun_az_deg)
@@ -672,7 +678,95 @@ def cast_shadow(heights, dx_m: float, dy_m: float, sun_az_deg: float, sun_el_deg
     return np.ascontiguousarray(shadow)
 
 
-def light_map(heights, dx_m: float, dy_m: float, sun_az_deg: float, sun_el_deg: float,
+def _cast_shadow_field(z: np.ndarray, dx_m: float, dy_m: float, sun_az_deg, sun_el_deg,
+                       max_distance_m: float | None) -> np.ndarray:
+    """:func:`cast_shadow` with each post's own sun: az and el arrays broadcastable to z.
+
+    One sun everywhere (equal arrays) is cast_shadow's own sweep, exactly.
+    Otherwise posts are sorted into four sweeps by the axis their sun is
+    closer to and its side (north, south, east, west: the sunward edge
+    first), and each sweep runs cast_shadow's recurrence with every post's
+    own sun: H(p) = max(z, H) at the point one line toward p's sun (p's own
+    sideways offset, linear between the two posts either side of it) minus
+    p's own along-ray step times tan(p's elevation). Digital lines, exact for
+    one sun, would step a post early or late wherever neighbouring posts'
+    suns differ; the interpolation has no such jitter (it is exact on a
+    plane) but blends the envelopes of neighbouring rays, as sky_view's
+    samples do. Where the sun varies, the envelope p takes from its sunward
+    neighbour was swept along that neighbour's sun, so a ray bends with the
+    sun's direction along it: the error is the change of the sun's direction
+    over the shadow's length (about 1 degree per degree of arc on the
+    ground at mid-latitudes, 0.1 degree along a 10 km shadow; east-west,
+    1/cos(latitude) times that toward the poles), not the change across the box.
+    Within a sweep, posts whose sun lies on the far side of the sweep's axis
+    pass on no envelope (only their height), and posts whose sun is nearer
+    the other axis step diagonally (offset clamped to one post per line), so
+    rays running from one sweep's posts into another's keep their blockers.
+    """
+    shape = z.shape
+    az = np.broadcast_to(np.asarray(sun_az_deg, dtype=np.float64), shape)
+    el = np.broadcast_to(np.asarray(sun_el_deg, dtype=np.float64), shape)
+    if az.size and (az == az.flat[0]).all() and (el == el.flat[0]).all():
+        return cast_shadow(z, dx_m, dy_m, float(az.flat[0]), float(el.flat[0]), max_distance_m=max_distance_m)
+    up = el > 0.0  # False for NaN
+    shadow = ~up  # below or on the horizon: in shadow
+    rad = np.radians(az)
+    se, cn = np.sin(rad), np.cos(rad)  # toward the sun: east, north components
+    tan_e = np.tan(np.radians(np.where(up, el, 45.0)))
+    rows_major = np.abs(cn) / dy_m >= np.abs(se) / dx_m
+    # (members, view of a grid in the sweep's frame, forward and sideways components of the
+    # direction to the sun, metres per line and per post across)
+    sweeps = (
+        (rows_major & (cn > 0), lambda a: a, cn, se, dy_m, dx_m),  # sun in the north: row 0 first
+        (rows_major & (cn <= 0), lambda a: a[::-1], -cn, se, dy_m, dx_m),
+        (~rows_major & (se > 0), lambda a: a.T[::-1], se, -cn, dx_m, dy_m),  # sun in the east: east column first
+        (~rows_major & (se <= 0), lambda a: a.T, -se, -cn, dx_m, dy_m),
+    )
+    for members, frame, forward, sideways, line_m, across_m in sweeps:
+        mine = members & up
+        if not mine.any():
+            continue
+        grid = frame(z)
+        fwd, sdw, tan_f = frame(forward), frame(sideways), frame(tan_e)
+        toward = fwd > 0.0  # the sun on this sweep's side of the axis
+        with np.errstate(divide="ignore", invalid="ignore"):
+            side = np.where(toward, np.clip(sdw * (line_m / fwd) / across_m, -1.0, 1.0), 0.0)  # posts per line
+        delta = np.hypot(line_m, side * across_m)  # metres along the (clamped) ray per line
+        drop = np.where(toward & frame(up), delta * tan_f, np.inf)  # inf: passes on no envelope
+        n_lines, width = grid.shape
+        env = np.full(grid.shape, -np.inf)
+        posts = np.arange(width)
+        reach = None
+        if max_distance_m is not None:
+            reach = np.maximum(1, np.minimum(np.floor(max_distance_m / delta), n_lines)).astype(np.int64)
+        for k in range(1, n_lines):
+            if reach is None:
+                steps = (1,)
+            else:
+                steps = range(1, min(k, int(reach[k].max())) + 1)
+            for s in steps:
+                src = grid[k - s] if reach is not None else np.fmax(grid[k - s], env[k - s])
+                pos = posts + s * side[k]
+                c0 = np.floor(pos).astype(np.int64)
+                w = pos - c0
+                left = np.where((c0 >= 0) & (c0 < width), src[np.clip(c0, 0, width - 1)], -np.inf)
+                right = np.where((c0 + 1 >= 0) & (c0 + 1 < width), src[np.clip(c0 + 1, 0, width - 1)], -np.inf)
+                both = np.isfinite(left) & np.isfinite(right)
+                with np.errstate(invalid="ignore"):
+                    val = np.where(both, left + (right - left) * w,
+                                   np.where(w > 0.0, np.fmax(left, right), left)) - s * drop[k]
+                if reach is not None:
+                    val = np.where(s <= reach[k], val, -np.inf)
+                np.fmax(env[k], val, out=env[k])
+        with np.errstate(invalid="ignore"):
+            cast = env > grid  # False where grid is NaN
+        back = np.zeros(shape, dtype=bool)
+        frame(back)[...] = cast  # the frame is a view: this writes back in the grid's own orientation
+        shadow[mine] = back[mine]
+    return np.ascontiguousarray(shadow)
+
+
+def light_map(heights, dx_m: float, dy_m: float, sun_az_deg, sun_el_deg,
               *, params: LightParams = LightParams(), sky: np.ndarray | None = None) -> LightResult:
     """Light reaching each post (§7.4), float32 in [0, 1], and the shadow mask.
 
@@ -684,6 +778,11 @@ def light_map(heights, dx_m: float, dy_m: float, sun_az_deg: float, sun_el_deg: 
     by day, falling linearly to params.night_ambient at -twilight_deg.
     No-data posts get light 0 and shadow False. ``sky``: a precomputed
     :func:`sky_view` (it does not depend on the sun).
+
+    sun_az_deg, sun_el_deg: scalars, one sun for every post, or arrays
+    broadcastable to the grid, each post's own sun (a box wide enough for
+    the sun to differ across it: its ambient, N.L and day or night are each
+    post's own, its shadows :func:`cast_shadow`'s per-post sweep).
     """
     from terrain.sun import sun_direction_enu
 
@@ -692,14 +791,20 @@ def light_map(heights, dx_m: float, dy_m: float, sun_az_deg: float, sun_el_deg: 
     if sky is None:
         sky = sky_view(z, dx_m, dy_m, azimuths=p.sky_azimuths, radius_m=p.sky_radius_m)
     normal = normals_enu(z, dx_m, dy_m)
-    sun = sun_direction_enu(sun_az_deg, sun_el_deg)
-    n_dot_l = normal @ sun
-    day = np.clip(1.0 + sun_el_deg / p.twilight_deg, 0.0, 1.0)
+    per_post = bool(np.ndim(sun_az_deg) or np.ndim(sun_el_deg))
+    if per_post:
+        az = np.broadcast_to(np.asarray(sun_az_deg, dtype=np.float64), z.shape)
+        el = np.broadcast_to(np.asarray(sun_el_deg, dtype=np.float64), z.shape)
+        n_dot_l = np.einsum("ijk,ijk->ij", normal, sun_direction_enu(az, el))
+    else:
+        az, el = float(sun_az_deg), float(sun_el_deg)
+        n_dot_l = normal @ sun_direction_enu(az, el)
+    day = np.clip(1.0 + el / p.twilight_deg, 0.0, 1.0)
     ambient = p.night_ambient + (p.ambient - p.night_ambient) * day
     light = ambient * sky.astype(np.float64)
-    if sun_el_deg > 0.0:
-        shadow = cast_shadow(z, dx_m, dy_m, sun_az_deg, sun_el_deg, max_distance_m=p.shadow_max_m)
-        light += p.sun * np.where(shadow, 0.0, np.maximum(np.nan_to_num(n_dot_l), 0.0))
+    if np.any(el > 0.0):
+        shadow = cast_shadow(z, dx_m, dy_m, az, el, max_distance_m=p.shadow_max_m)  # True where el <= 0
+        light = light + p.sun * np.where(shadow, 0.0, np.maximum(np.nan_to_num(n_dot_l), 0.0))
     else:
         shadow = np.ones(z.shape, dtype=bool)
     nodata = np.isnan(z)
@@ -729,10 +834,13 @@ class Texture:
     image: np.ndarray
 
 
-def synthesize(heights, dx_m: float, dy_m: float, sun_az_deg: float, sun_el_deg: float, lat_deg=45.0, *,
+def synthesize(heights, dx_m: float, dy_m: float, sun_az_deg, sun_el_deg, lat_deg=45.0, *,
                class_params: ClassParams = ClassParams(), light_params: LightParams = LightParams(),
                seed: int = 0, soft_px: int = 0, noise_en_m=None) -> Texture:
-    """slope -> class map -> diffuse -> light map -> image, for one height grid."""
+    """slope -> class map -> diffuse -> light map -> image, for one height grid.
+
+    sun_az_deg, sun_el_deg: one sun (scalars) or each post's own (arrays broadcastable to
+    the grid), as :func:`light_map` takes them."""
     slope = slope_deg(heights, dx_m, dy_m)
     classes = class_map(heights, slope, dx_m, dy_m, lat_deg, params=class_params, seed=seed,
                         noise_en_m=noise_en_m)

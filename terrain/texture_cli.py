@@ -11,9 +11,26 @@ classes), slope.png (8-bit, 255 = 90 degrees), diffuse.png, lightmap.png
 (8-bit, 255 = full light), shadow.png (255 = in shadow), composite.png and
 texture.json (box, size, spacings, sun, class histogram, files).
 
-The sun is placed once, for the box's centre (across a 1-degree box its
-direction changes by about 1 degree), with refraction (the apparent sun)
-unless --no-refraction.
+The sun is placed at every pixel (terrain/sun.py at the pixel's centre),
+with refraction (the apparent sun) unless --no-refraction. Where its
+direction differs by less than SUN_UNIFORM_DEG across the box (a 1-degree
+box differs by about 1 degree), the centre's sun lights the whole box and
+shadows take the exact one-sun sweep, as before. Otherwise each pixel's
+ambient light (and its twilight ramp), N.L and day or night are its own, so
+a box wide enough to span day and night is lit on its day side and dark on
+its night side, and cast shadows follow each pixel's own sun, in one sweep
+per quadrant of sun directions (terrain.texture.cast_shadow): a shadow ray
+bends with the change of the sun's direction along it, about 1 degree per
+degree of arc it runs over the ground at mid-latitudes (0.1 degree along a
+10 km shadow; east-west, 1/cos(latitude) times that toward the poles),
+whatever the box's width; no box is refused or tiled for its width.
+texture.json gives the sun at the box's centre, whether it was per pixel,
+and the range of its elevation over the pixels.
+
+-o names a folder: it is created if missing; an existing file there, or a
+path that cannot be made or written, is an error naming -o (exit status 2,
+like every invalid input), as is a box with no terrain data under any pixel
+(naming --bbox or --cell, as ``sortie terrain mesh`` does).
 
 Registered under ``sortie terrain`` by :func:`add_texture_parser`; only
 argparse and json are imported until the command runs.
@@ -39,6 +56,10 @@ DEFAULT_LONG_SIDE_PX = 1024  # neither --size nor --spacing-m: the longer side g
 # Longitudes as terrain.validate accepts them (one extra turn either way).
 LON_ABS_MAX_DEG = 540.0
 
+# Where the sun's direction differs by less than this (degrees) across the whole box, the box is
+# lit by the sun at its centre (one direction: the exact digital-line shadow sweep, as before the
+# per-pixel sun); a 1-degree box at mid-latitudes differs by about 1 degree.
+SUN_UNIFORM_DEG = 0.5
 SIZE_PATTERN = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
 
@@ -62,8 +83,11 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
         description="Synthesize aerial imagery of a lat/lon box from the terrain alone, after Flight "
                     "Simulator X: a land-class map from elevation, water and slope, procedural class "
                     "textures, and a light map (sky exposure, sun, cast shadows) for the given UTC time. "
-                    "Writes classes.png, slope.png, diffuse.png, lightmap.png, shadow.png, "
-                    "composite.png and texture.json into DIR.")
+                    "The sun is each pixel's own (a box may span day and night); cast shadows follow each "
+                    "pixel's sun, a shadow ray bending with the sun's direction along it (about 1 degree per "
+                    "degree of arc it runs at mid-latitudes). Writes classes.png, slope.png, diffuse.png, "
+                    "lightmap.png, shadow.png, composite.png and texture.json into DIR. A box with no terrain "
+                    "data is refused.")
     from server.terrain_cli import add_terrain_source_args  # loaded by now: it registers this command
 
     add_terrain_source_args(p)
@@ -74,7 +98,8 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="noise seed of the textures and bands (default %(default)s)")
     p.add_argument("--soft-px", type=int, default=0, metavar="N",
                    help="blend class edges over about N pixels (default %(default)s: hard stencil)")
-    p.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the images (created)")
+    p.add_argument("-o", "--output", required=True, metavar="DIR",
+                   help="folder for the images (created if missing; an existing file is an error)")
     p.set_defaults(func=texture_command)
     return p
 
@@ -223,12 +248,21 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
     lat_c, lon_c = 0.5 * (req.lat_min + req.lat_max), 0.5 * (req.lon_min + req.lon_max)
     sun = sun_position(req.when, lat_c, lon_c, refraction=refraction)
     az, el = float(sun.azimuth_deg), float(sun.elevation_deg)
+    # Each pixel's own sun, unless it is the centre's within SUN_UNIFORM_DEG everywhere.
+    from terrain.sun import sun_direction_enu
+
+    field = sun_position(req.when, lat[:, None], lon[None, :], refraction=refraction)
+    az_px, el_px = np.broadcast_arrays(field.azimuth_deg, field.elevation_deg)
+    cos_apart = np.clip(sun_direction_enu(az_px, el_px) @ sun_direction_enu(az, el), -1.0, 1.0)
+    per_pixel = bool(np.degrees(np.arccos(cos_apart.min())) >= SUN_UNIFORM_DEG)
+    az_lit, el_lit = (az_px, el_px) if per_pixel else (az, el)
     # Noise placed by world position (metres east and north at the centre's scale), so two
     # boxes draw the same bands and woodlots where they overlap.
     m, n = radii_of_curvature(lat_c)
     east = (np.radians(lon) * n * np.cos(np.radians(lat_c)))[None, :]
     north = (np.radians(lat) * m)[:, None]
-    tex = synthesize(heights, dx, dy, az, el, lat[:, None], seed=seed, soft_px=soft_px, noise_en_m=(east, north))
+    tex = synthesize(heights, dx, dy, az_lit, el_lit, lat[:, None], seed=seed, soft_px=soft_px,
+                     noise_en_m=(east, north))
     finite = heights[np.isfinite(heights)]
     hist = class_histogram(tex.classes)
     summary = {
@@ -237,7 +271,9 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
         "spacing_m": {"east": dx, "north": dy},
         "time_utc": req.when.isoformat().replace("+00:00", "Z"),
         "sun": {"azimuth_deg": az, "elevation_deg": el, "refraction": refraction,
-                "at": {"lat": lat_c, "lon": lon_c}},
+                "at": {"lat": lat_c, "lon": lon_c}, "per_pixel": per_pixel,
+                "elevation_deg_min": float(el_px.min()), "elevation_deg_max": float(el_px.max()),
+                "daylit_fraction": float((el_px > 0.0).mean())},
         "height_msl_m": {"min": float(finite.min()) if finite.size else None,
                          "max": float(finite.max()) if finite.size else None,
                          "nodata_pixels": int(heights.size - finite.size)},
@@ -256,8 +292,40 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
 IMAGE_FILES = ("classes.png", "slope.png", "diffuse.png", "lightmap.png", "shadow.png", "composite.png")
 
 
+def _nearest_existing(path):
+    """The path itself or its nearest ancestor that exists (a Path)."""
+    from pathlib import Path
+
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_output_path(path, *, folder: bool, field: str = "output") -> None:
+    """Refuse, before any work, an output -o cannot take: for a ``folder`` (texture) an existing
+    file; for a file (mesh) an existing folder; for either, an ancestor that is a file or a
+    folder that cannot be written into. InvalidArgument naming ``field`` and -o with the value."""
+    import os
+    from pathlib import Path
+
+    p = Path(path)
+    shown = str(path)
+    if folder and p.exists() and not p.is_dir():
+        raise InvalidArgument(field, "-o names the folder the images go into, and this is a file", value=shown)
+    if not folder and p.is_dir():
+        raise InvalidArgument(field, "cannot be written: -o names the mesh file, and this is a folder", value=shown)
+    base = _nearest_existing(p if folder else p.parent)
+    if not base.is_dir():
+        raise InvalidArgument(field, f"cannot be written: -o's path runs through {base}, a file, not a folder",
+                              value=shown)
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise InvalidArgument(field, f"cannot be written: no permission to write in {base} (-o)", value=shown)
+
+
 def write_texture(tex, summary: dict, out_dir) -> list:
-    """Write the six PNGs and texture.json into out_dir (created); returns the paths written."""
+    """Write the six PNGs and texture.json into out_dir (created); returns the paths written.
+    A folder that cannot be made or written is InvalidArgument naming -o (field ``output``)."""
     from pathlib import Path
 
     import numpy as np
@@ -266,7 +334,7 @@ def write_texture(tex, summary: dict, out_dir) -> list:
     from terrain.texture import CLASS_COLOURS_RGB
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_path(out, folder=True)
     classes = Image.fromarray(np.ascontiguousarray(tex.classes, dtype=np.uint8))
     classes.putpalette(CLASS_COLOURS_RGB.ravel().tolist())  # makes it a palette ("P") image
     slope = np.rint(np.nan_to_num(tex.slope_deg) * (255.0 / 90.0)).clip(0, 255).astype(np.uint8)
@@ -279,25 +347,39 @@ def write_texture(tex, summary: dict, out_dir) -> list:
         "composite.png": Image.fromarray(tex.image),
     }
     paths = []
-    for name in IMAGE_FILES:
-        images[name].save(out / name)
-        paths.append(out / name)
-    (out / "texture.json").write_text(json.dumps(summary, indent=2) + "\n")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for name in IMAGE_FILES:
+            images[name].save(out / name)
+            paths.append(out / name)
+        (out / "texture.json").write_text(json.dumps(summary, indent=2) + "\n")
+    except OSError as exc:
+        raise InvalidArgument("output", f"cannot be written: {exc.strerror or exc} (-o)", value=str(out_dir)) from None
     paths.append(out / "texture.json")
     return paths
 
 
 def texture_command(args) -> int:
+    import numpy as np
+
     from server.terrain_cli import terrain_source
 
-    req = texture_request(box_of(args), args.size, args.spacing_m, args.time)
+    bbox = box_of(args)
+    req = texture_request(bbox, args.size, args.spacing_m, args.time)
     if args.soft_px < 0:
         raise InvalidArgument("--soft-px", "must be 0 or more", value=args.soft_px)
+    check_output_path(args.output, folder=True)
     terrain = terrain_source(args)
+    sampled = sample_heights(terrain, req)
+    if not np.isfinite(sampled[0]).any():
+        raise InvalidArgument("--bbox" if args.cell is None else "--cell",
+                              "holds no terrain data: no pixel has a height", value=list(bbox))
     tex, summary = make_texture(terrain, req, seed=args.seed, soft_px=args.soft_px,
-                                refraction=not args.no_refraction)
+                                refraction=not args.no_refraction, sampled=sampled)
     write_texture(tex, summary, args.output)
     sun = summary["sun"]
-    print(f"{req.cols}x{req.rows} texture in {args.output}: sun azimuth {sun['azimuth_deg']:.1f} deg, "
-          f"elevation {sun['elevation_deg']:.1f} deg, {summary['shadow_fraction']:.1%} in shadow")
+    print(f"{req.cols}x{req.rows} texture in {args.output}: sun at the centre azimuth {sun['azimuth_deg']:.1f} deg, "
+          f"elevation {sun['elevation_deg']:.1f} deg (each pixel its own: {sun['elevation_deg_min']:.1f} to "
+          f"{sun['elevation_deg_max']:.1f} deg, {sun['daylit_fraction']:.1%} of the box in daylight), "
+          f"{summary['shadow_fraction']:.1%} in shadow")
     return 0
