@@ -3,7 +3,7 @@
 ``sortie bot`` (many autopilot agents in one process, as ordinary clients).
 
     sortie client --server HOST:PORT [--observe LAT LON RADIUS_M] [--duration S] [--every S]
-    sortie bot --server HOST:PORT [--count N] [--profile patrol|racetrack] [--duration S]
+    sortie bot --server HOST:PORT [--count N] [--profile patrol|racetrack] [--leg-s S] [--duration S]
 
 A bot joins as ROLE_BOT (taking a free controllable agent), watches, and flies
 or drives its profile with autopilot commands: "patrol" turns 90 degrees
@@ -13,6 +13,7 @@ their altitude by +-300 m each leg.
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 import signal
@@ -22,6 +23,51 @@ import time
 import numpy as np
 
 PROFILES = ("patrol", "racetrack")
+MAX_BOTS = 256  # a server's sessions (server/sim_service.py MAX_SESSIONS)
+MAX_DURATION_S = 7 * 86_400.0  # a scenario's longest exercise (server/scenario.py DURATION_MAX_S)
+LEG_S = (1.0, 3_600.0)  # --leg-s, world seconds
+EVERY_S = (0.05, 3_600.0)  # --every, wall seconds
+MIN_LEG_WALL_S = 0.2  # a bot commands at most 5 times a wall second, however fast the clock
+DEFAULT_OBSERVE_RADIUS_M = 100_000.0
+
+
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number (got {text!r})") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number (got {text!r})")
+    return value
+
+
+def _seconds_within(lo: float, hi: float):
+    """An argparse type: a finite number of seconds in [lo, hi]."""
+    def parse(text: str) -> float:
+        value = _finite(text)
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be within [{lo:g}, {hi:g}] s (got {text!r})")
+        return value
+    return parse
+
+
+def _duration_s(text: str) -> float:
+    """An argparse type: 0 (until a signal) or wall seconds in (0, MAX_DURATION_S]."""
+    value = _finite(text)
+    if not 0.0 <= value <= MAX_DURATION_S:
+        raise argparse.ArgumentTypeError(f"must be 0 (until SIGTERM/SIGINT) or within (0, {MAX_DURATION_S:g}] s "
+                                         f"(got {text!r})")
+    return value
+
+
+def _bot_count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number (got {text!r})") from None
+    if not 1 <= value <= MAX_BOTS:
+        raise argparse.ArgumentTypeError(f"must be within [1, {MAX_BOTS}] (got {text!r})")
+    return value
 
 
 def add_parser(sub) -> None:
@@ -30,10 +76,13 @@ def add_parser(sub) -> None:
                                    "(dead-reckoned positions) every --every seconds.")
     c.add_argument("--server", required=True, metavar="HOST:PORT")
     c.add_argument("--observe", nargs=3, type=float, metavar=("LAT", "LON", "RADIUS_M"),
-                   help="centre and radius of the area of interest (default: the first target area, 100 km)")
-    c.add_argument("--duration", type=float, default=10.0, metavar="S",
-                   help="wall seconds; 0 runs until SIGTERM/SIGINT (default %(default)s)")
-    c.add_argument("--every", type=float, default=2.0, metavar="S", help="print period (default %(default)s)")
+                   help="centre and radius of the area of interest (default: the first target area, 100 km or "
+                        "the server's observer limit when smaller)")
+    c.add_argument("--duration", type=_duration_s, default=10.0, metavar="S",
+                   help=f"wall seconds, at most {MAX_DURATION_S:g}; 0 runs until SIGTERM/SIGINT "
+                        "(default %(default)s)")
+    c.add_argument("--every", type=_seconds_within(*EVERY_S), default=2.0, metavar="S",
+                   help=f"print period, wall seconds in [{EVERY_S[0]:g}, {EVERY_S[1]:g}] (default %(default)s)")
     c.add_argument("--name", default="observer")
     render = c.add_argument_group("rendering (issue #5's thin client: the same as sortie view)")
     who = render.add_mutually_exclusive_group()
@@ -51,11 +100,15 @@ def add_parser(sub) -> None:
                        description="Each bot joins as ROLE_BOT, takes a free controllable agent and flies or "
                                    "drives a profile with autopilot commands.")
     b.add_argument("--server", required=True, metavar="HOST:PORT")
-    b.add_argument("--count", type=int, default=1, help="bots (default %(default)s)")
+    b.add_argument("--count", type=_bot_count, default=1, metavar="N",
+                   help=f"bots, [1, {MAX_BOTS}] (a server's session limit; default %(default)s)")
     b.add_argument("--profile", choices=PROFILES, default="patrol")
-    b.add_argument("--leg-s", type=float, default=20.0, help="world seconds per leg (default %(default)s)")
-    b.add_argument("--duration", type=float, default=30.0, metavar="S",
-                   help="wall seconds; 0 runs until SIGTERM/SIGINT (default %(default)s)")
+    b.add_argument("--leg-s", type=_seconds_within(*LEG_S), default=20.0, metavar="S",
+                   help=f"world seconds per leg, [{LEG_S[0]:g}, {LEG_S[1]:g}]; a leg lasts at least "
+                        f"{MIN_LEG_WALL_S:g} wall seconds whatever the clock's speed (default %(default)s)")
+    b.add_argument("--duration", type=_duration_s, default=30.0, metavar="S",
+                   help=f"wall seconds, at most {MAX_DURATION_S:g}; 0 runs until SIGTERM/SIGINT "
+                        "(default %(default)s)")
     b.set_defaults(func=bot_command)
 
 
@@ -90,14 +143,7 @@ def client_command(args) -> int:
     stop = _stop_on_signals()
     with SimClient(args.server) as sim:
         sim.wait_ready()
-        observe = args.observe
-        if observe is None:
-            w = sim.world()
-            if w.target_areas:
-                a = w.target_areas[0]
-                observe = (float(np.mean(a.lat_deg)), float(np.mean(a.lon_deg)), 100_000.0)
-            else:
-                observe = (0.0, 0.0, 100_000.0)
+        observe = args.observe if args.observe is not None else default_observe(sim.world())
         sim.join(args.name, "observer", observer=tuple(observe))
         print(f"observing {sim.world_info.exercise_name!r} around ({observe[0]:.4f}, {observe[1]:.4f}), "
               f"{observe[2] / 1000:.0f} km", flush=True)
@@ -118,6 +164,19 @@ def client_command(args) -> int:
                     kind = info.type if info else ""
                     print(f"  {name:14s} {kind:10s} {lat[k]:9.5f} {lon[k]:9.5f} {h[k]:8.1f} m (ellipsoid)", flush=True)
         return stream_end(sim, picture)
+
+
+def default_observe(w) -> tuple[float, float, float]:
+    """(lat, lon, radius_m) an observer watches without --observe: the centre of the world's
+    (a WorldInfo) first target area, else (0, 0); 100 km, or the server's observer limit
+    (observer_radius_max_m) when that is smaller."""
+    radius = DEFAULT_OBSERVE_RADIUS_M
+    if w.observer_radius_max_m > 0:  # 0: a server that does not say
+        radius = min(radius, w.observer_radius_max_m)
+    if w.target_areas:
+        a = w.target_areas[0]
+        return float(np.mean(a.lat_deg)), float(np.mean(a.lon_deg)), radius
+    return 0.0, 0.0, radius
 
 
 def stream_end(sim, picture) -> int:
@@ -185,7 +244,7 @@ def _fly_bot(address: str, k: int, profile: str, leg_s: float, duration_s: float
                 targets["speed_mps"] = 8.0
             controls.autopilot(**targets)
             legs += 1
-            wait_end = time.monotonic() + leg_s / max(picture.time_scale, 1e-6)
+            wait_end = time.monotonic() + max(leg_s / max(picture.time_scale, 1e-6), MIN_LEG_WALL_S)
             while time.monotonic() < min(wait_end, end) and not stop.is_set():
                 stop.wait(0.2)
         accepted = controls.close()

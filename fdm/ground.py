@@ -722,8 +722,13 @@ class GroundVehicles:
 
     @property
     def yaw_rate_limit_dps(self) -> np.ndarray:
-        """Largest heading-rate command accepted per vehicle, deg/s."""
-        return np.degrees(self.table[self.type_id, P_YAWMAX])
+        """Largest heading-rate command accepted per vehicle, deg/s (inclusive)."""
+        return self._type_yaw_limits_dps()[self.type_id]
+
+    def _type_yaw_limits_dps(self) -> np.ndarray:
+        """Each type's ``max_yaw_rate_dps`` as the type gives it: the table's radians back in
+        degrees can land a hair under it (degrees(radians(30)) < 30), which refused exactly 30."""
+        return np.array([t.max_yaw_rate_dps for t in self.types], dtype=np.float64)
 
     # -- controls ---------------------------------------------------------------
 
@@ -767,9 +772,11 @@ class GroundVehicles:
         self.speed_mps[idx] = 0.0
         self.blocked[idx] = reason
 
-    def check_controls(self, speed_mps=None, yaw_rate_dps=None, index=None):
+    def check_controls(self, speed_mps=None, yaw_rate_dps=None, index=None, names=None):
         """The checks of :meth:`set_controls`, applying nothing: (rows, speeds or None,
-        rates or None) as it would apply them; InvalidArgument as it would raise."""
+        rates or None) as it would apply them; InvalidArgument as it would raise. Both
+        limits are inclusive. ``names`` (one per indexed vehicle, e.g. the world's agent
+        names) label the vehicle in the message in place of ``vehicle <row>``."""
         if index is None:
             idx = self._all
         else:
@@ -784,6 +791,11 @@ class GroundVehicles:
                 raise InvalidArgument("index", f"must be within [0, {self.n})", index=i, value=int(idx[i]))
             idx = idx.astype(np.int64)
         m = idx.size
+
+        def which(i: int) -> str:
+            label = f"vehicle {int(idx[i])}" if names is None else str(names[i])
+            return f"{label} ({self.types[self.type_id[idx[i]]].name})"
+
         v = r = None
         if speed_mps is not None:
             v = _command("speed_mps", speed_mps, m)
@@ -791,17 +803,15 @@ class GroundVehicles:
             bad = (v > fwd) | (v < -rev)
             if bad.any():
                 i = first_bad(bad)
-                raise InvalidArgument("speed_mps", f"must be within [-{rev[i]:.3g}, {fwd[i]:.3g}] m/s for vehicle "
-                                      f"{int(idx[i])} ({self.types[self.type_id[idx[i]]].name})", index=i,
-                                      value=float(v[i]))
+                raise InvalidArgument("speed_mps", f"must be within [-{rev[i]:.3g}, {fwd[i]:.3g}] m/s for {which(i)}",
+                                      index=i, value=float(v[i]))
         if yaw_rate_dps is not None:
             r = _command("yaw_rate_dps", yaw_rate_dps, m)
-            lim = np.degrees(self.table[self.type_id[idx], P_YAWMAX])
+            lim = self._type_yaw_limits_dps()[self.type_id[idx]]
             bad = np.abs(r) > lim
             if bad.any():
                 i = first_bad(bad)
-                raise InvalidArgument("yaw_rate_dps", f"must be within +-{lim[i]:.3g} deg/s for vehicle "
-                                      f"{int(idx[i])} ({self.types[self.type_id[idx[i]]].name})", index=i,
+                raise InvalidArgument("yaw_rate_dps", f"must be within +-{lim[i]:.3g} deg/s for {which(i)}", index=i,
                                       value=float(r[i]))
         return idx, v, r
 

@@ -22,7 +22,9 @@ What we write:
   type: LongName is a detail name, so Tacview keeps labelling the object by
   its Name), ``Coalition`` (Blue, Red, Neutrals) and ``Color`` (Blue, Red, Grey).
 - **Coordinates**: ``T=lon|lat|alt|roll|pitch|yaw``: longitude and latitude
-  (WGS84, degrees, as offsets from the reference, 7 decimals: ~1 cm),
+  (WGS84, degrees, as offsets from the reference, 7 decimals: ~1 cm; a
+  longitude offset is unwrapped into (-180, 180], so across the antimeridian
+  it runs on past +-180 instead of jumping by 360, :func:`lon_offset_deg`),
   altitude (m above MSL = ellipsoid height - the recording's geoid
   undulation, 2 decimals), roll, pitch and yaw (degrees, 1 decimal; yaw is the
   true heading in [0, 360), roll in (-180, 180]), the z-y-x Euler angles of the
@@ -158,7 +160,7 @@ def pose_integers(pose, ref_lon_deg: int, ref_lat_deg: int) -> np.ndarray:
     """(..., 6) int64: a pose rounded to the written decimals (T_DECIMALS), in units of the
     last decimal; longitude and latitude as offsets from the reference."""
     p = np.array(pose, dtype=np.float64)
-    p[..., 0] -= ref_lon_deg
+    p[..., 0] = lon_offset_deg(p[..., 0], ref_lon_deg)
     p[..., 1] -= ref_lat_deg
     scaled = np.clip(np.nan_to_num(p * _T_SCALE), -_MAX_WRITTEN, _MAX_WRITTEN)  # keep int64 text sane
     v = np.rint(scaled).astype(np.int64)
@@ -168,11 +170,31 @@ def pose_integers(pose, ref_lon_deg: int, ref_lat_deg: int) -> np.ndarray:
     return v
 
 
+def lon_offset_deg(lon_deg, ref_lon_deg) -> np.ndarray:
+    """Longitudes as offsets from the reference, unwrapped into (-180, 180]: with
+    ReferenceLongitude=180 an object just east of the antimeridian (-179.75) is +0.25, not
+    -359.75, so one crossing it moves on smoothly (Tacview interpolates the offsets)."""
+    d = np.asarray(lon_deg, dtype=np.float64) - ref_lon_deg
+    out = (d > 180.0) | (d <= -180.0)
+    if out.any():
+        d = np.where(out, 180.0 - np.mod(180.0 - d, 360.0), d)
+    return d
+
+
 def reference_point(lat_deg, lon_deg) -> tuple[int, int]:
-    """(longitude, latitude) whole degrees nearest the median position (0, 0 for none)."""
+    """(longitude, latitude) whole degrees nearest the median position (0, 0 for none).
+    Longitudes spread over more than 180 degrees (an exercise across the antimeridian) take
+    their median in [0, 360), so the reference falls among them (180, not 0), within
+    (-180, 180]."""
     if np.size(lat_deg) == 0:
         return 0, 0
-    return int(np.rint(np.median(lon_deg))), int(np.rint(np.median(lat_deg)))
+    lon = np.asarray(lon_deg, dtype=np.float64).reshape(-1)
+    if np.ptp(lon) <= 180.0:
+        ref_lon = int(np.rint(np.median(lon)))
+    else:
+        ref_lon = int(np.rint(np.median(np.mod(lon, 360.0))))
+        ref_lon = ref_lon - 360 if ref_lon > 180 else ref_lon
+    return ref_lon, int(np.rint(np.median(lat_deg)))
 
 
 def acmi_type(kind: int, type_name: str) -> str:

@@ -33,7 +33,6 @@ from __future__ import annotations
 import functools
 import json
 import time
-import tomllib
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,12 +99,12 @@ class ResimReport:
 def recorded_scenario(rec: Recording):
     """The scenario as recorded (its text from the header; relative DEM paths against the
     scenario file's folder at record time)."""
-    from server.scenario import ScenarioError, parse_scenario
+    from server.scenario import ScenarioError, parse_scenario, scenario_data
 
     h = rec.header
-    try:
-        data = tomllib.loads(h.scenario_toml)
-    except tomllib.TOMLDecodeError as exc:
+    try:  # TOML or YAML, by the recorded path's suffix
+        data = scenario_data(h.scenario_toml, h.scenario_path)
+    except ScenarioError as exc:
         raise DataFormatError(f"{rec.path.name}: the recorded scenario does not parse: {exc}") from None
     try:
         return parse_scenario(data, Path(h.scenario_path).parent)

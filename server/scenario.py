@@ -1,14 +1,25 @@
 """The scenario file of the simulation server (``sortie server --scenario FILE``).
 
-A scenario is a TOML file (read with the standard library's ``tomllib``)
-that this module only *validates*: it checks every value, resolves names and
-paths, and returns frozen dataclasses. It neither loads DEMs nor builds the
-world (it checks that DEM files exist, nothing more). Every failure is a
-:class:`ScenarioError` (an ``InvalidArgument``) whose message names the key
-path and the value, e.g. ``agents[2].lat_deg: must be within [-90, 90] (got
-123.0)``; a TOML syntax error names its line and column. Unknown keys are
-errors everywhere, with a suggestion for near misses, so a typo never passes
-silently. Units are SI, angles in degrees, positions in (lat, lon) order.
+A scenario is a TOML file (``.toml``, read with the standard library's
+``tomllib``) or the same tables in YAML (``.yaml`` / ``.yml``, read with
+PyYAML's safe loader and YAML 1.2's core schema, :func:`scenario_data`); the
+file's suffix picks the format. This module only *validates*: it checks every
+value, resolves names and paths, and returns frozen dataclasses. It neither
+loads DEMs nor builds the world (it checks that DEM files exist, nothing
+more). Every failure is a :class:`ScenarioError` (an ``InvalidArgument``)
+whose message names the key path and the value, e.g. ``agents[2].lat_deg:
+must be within [-90, 90] (got 123.0)``; a TOML or YAML syntax error names its
+line and column. Unknown keys are errors everywhere, with a suggestion for
+near misses, so a typo never passes silently. Units are SI, angles in
+degrees, positions in (lat, lon) order.
+
+YAML gives exactly the scenario its TOML twin gives: a TOML table is a YAML
+mapping, an array of tables (``[[agents]]``) a sequence of mappings, and
+scalars read as TOML's do (YAML 1.2 core: ``1e3`` is a number; ``yes``, ``no``,
+``on`` and ``off`` are strings, only ``true`` / ``false`` are booleans; ``010``
+is ten). What TOML cannot say is an error with its line and column, or its key
+path: a duplicate key, a key that is not a string, a null value (leave the key
+out for its default).
 
 Schema (``*`` required; everything else has the default shown)::
 
@@ -192,7 +203,7 @@ class ScenarioError(InvalidArgument):
     """A scenario value is wrong: ``field`` is its key path (``agents[2].lat_deg``).
 
     ``file``, ``line`` and ``column`` are set where known (the file by
-    :func:`load_scenario`, line and column for TOML syntax errors).
+    :func:`load_scenario`, line and column for TOML and YAML syntax errors).
     """
 
     def __init__(self, field: str, message: str, value=None, *, file: str | None = None,
@@ -379,31 +390,58 @@ class Scenario:
 
 # --- entry points ---------------------------------------------------------------------------------
 
-def load_scenario(path) -> Scenario:
-    """Read and validate the TOML scenario at ``path`` (see the module docstring).
+def load_scenario(path, option: str = "--scenario") -> Scenario:
+    """Read and validate the scenario at ``path`` (see the module docstring): TOML for a
+    ``.toml`` file, YAML for ``.yaml`` / ``.yml``.
 
-    Raises NotFound when the file does not exist, ScenarioError (message
-    prefixed with the file name) for anything wrong inside it.
+    Raises NotFound when the file does not exist, ScenarioError naming ``option`` (the
+    command-line option that gave the path) for any other suffix, and ScenarioError
+    (message prefixed with the file name) for anything wrong inside it.
     """
     path = Path(path)
+    scenario_format(path, option)
     if not path.is_file():
         raise NotFound(f"scenario file {str(path)!r} does not exist")
     size = path.stat().st_size
     if size > MAX_FILE_BYTES:
         raise ScenarioError("file", f"must be at most {MAX_FILE_BYTES} bytes", value=size, file=str(path))
     try:
-        data = tomllib.loads(path.read_bytes().decode("utf-8"))
+        text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as e:
         raise ScenarioError("file", f"is not UTF-8 text (byte {e.start})", file=str(path)) from None
-    except tomllib.TOMLDecodeError as e:
-        raise _syntax_error(e, path) from None
     try:
-        return parse_scenario(data, path.resolve().parent)
+        return parse_scenario(scenario_data(text, path), path.resolve().parent)
     except ScenarioError as e:
         raise e.in_file(path) from None
 
 
-def _syntax_error(error: tomllib.TOMLDecodeError, path: Path) -> ScenarioError:
+SCENARIO_FORMATS = MappingProxyType({".toml": "TOML", ".yaml": "YAML", ".yml": "YAML"})
+
+
+def scenario_format(path, option: str = "--scenario") -> str:
+    """"TOML" or "YAML", by the suffix of ``path`` (case-insensitive); any other suffix is a
+    ScenarioError naming ``option``."""
+    fmt = SCENARIO_FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        raise ScenarioError(option, f"must name a scenario file ending in {', '.join(SCENARIO_FORMATS)} (the "
+                                    "suffix picks TOML or YAML)", value=str(path))
+    return fmt
+
+
+def scenario_data(text: str, path) -> dict:
+    """The tables of a scenario file's ``text``, for :func:`parse_scenario`: YAML when
+    ``path`` ends in .yaml / .yml, TOML otherwise (a recording keeps the text and the
+    path it was read from; server/resim.py). A syntax error is a ScenarioError naming
+    the line and column (no file name: :func:`load_scenario` adds it)."""
+    if SCENARIO_FORMATS.get(Path(path).suffix.lower()) != "YAML":
+        try:
+            return tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise _syntax_error(e) from None
+    return _yaml_data(text)
+
+
+def _syntax_error(error: tomllib.TOMLDecodeError) -> ScenarioError:
     text = str(error)
     m = re.search(r"\(at line (\d+), column (\d+)\)$", text)
     if m:
@@ -412,11 +450,106 @@ def _syntax_error(error: tomllib.TOMLDecodeError, path: Path) -> ScenarioError:
     else:
         line = column = None
         where, reason = "end of file", re.sub(r"\s*\(at end of document\)$", "", text)
-    return ScenarioError(where, f"TOML syntax error: {reason}", file=str(path), line=line, column=column)
+    return ScenarioError(where, f"TOML syntax error: {reason}", line=line, column=column)
+
+
+@functools.cache
+def _yaml_loader():
+    """PyYAML's safe loader (its C parser where built) with YAML 1.2's core schema, so a
+    scalar reads as TOML reads it, refusing duplicate and non-string keys."""
+    import yaml
+    from yaml.constructor import ConstructorError
+
+    base = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+    class Loader(base):
+        yaml_implicit_resolvers: dict = {}
+
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen = set()
+                for key_node, _ in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue
+                    key = self.construct_object(key_node, deep=True)
+                    if not isinstance(key, str):
+                        raise ConstructorError("while reading a mapping", node.start_mark,
+                                               f"found a key that is not a string ({key!r}; quote it)",
+                                               key_node.start_mark)
+                    if key in seen:
+                        raise ConstructorError("while reading a mapping", node.start_mark,
+                                               f"found the key {key!r} twice", key_node.start_mark)
+                    seen.add(key)
+            return super().construct_mapping(node, deep)
+
+        def construct_core_int(self, node):
+            text = self.construct_scalar(node)
+            if text.startswith(("0o", "0x")):
+                return int(text[2:], 8 if text[1] == "o" else 16)
+            return int(text, 10)
+
+    resolvers = (
+        ("null", r"~|null|Null|NULL|", "~nN"),
+        ("bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
+        ("int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
+        ("float", r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)"
+                  r"|\.(?:nan|NaN|NAN)", "-+0123456789."),
+        ("merge", r"<<", "<"),
+    )
+    for tag, pattern, first in resolvers:
+        Loader.add_implicit_resolver(f"tag:yaml.org,2002:{tag}", re.compile(f"^(?:{pattern})$"), list(first))
+    Loader.add_implicit_resolver("tag:yaml.org,2002:null", re.compile("^$"), [""])
+    timestamp = next(regexp for tag, regexp in yaml.SafeLoader.yaml_implicit_resolvers["2"]
+                     if tag == "tag:yaml.org,2002:timestamp")  # as TOML's date-times read
+    Loader.add_implicit_resolver("tag:yaml.org,2002:timestamp", timestamp, list("0123456789"))
+    Loader.add_constructor("tag:yaml.org,2002:int", Loader.construct_core_int)
+    return Loader
+
+
+def _yaml_data(text: str) -> dict:
+    """A YAML scenario's tables (an empty document is an empty table, as in TOML); a
+    syntax error, a duplicate or non-string key a ScenarioError with line and column,
+    a null value one with its key path."""
+    import yaml
+
+    try:
+        data = yaml.load(text, Loader=_yaml_loader())  # noqa: S506 - a safe loader
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        reason = "; ".join(str(x) for x in (e.context, e.problem) if x)
+        if mark is None:
+            raise ScenarioError("end of file", f"YAML syntax error: {reason}") from None
+        line, column = mark.line + 1, mark.column + 1
+        raise ScenarioError(f"line {line}, column {column}", f"YAML syntax error: {reason}", line=line,
+                            column=column) from None
+    except yaml.YAMLError as e:
+        raise ScenarioError("file", f"YAML syntax error: {e}") from None
+    except RecursionError:
+        raise ScenarioError("file", "YAML syntax error: nested too deeply") from None
+    if data is None:
+        return {}
+    _check_no_nulls(data)
+    return data
+
+
+def _check_no_nulls(data) -> None:
+    """TOML has no null: a YAML null anywhere is an error at its key path."""
+    stack, seen = [("", data)], set()
+    while stack:
+        path, value = stack.pop()
+        if value is None:
+            raise ScenarioError(path or "scenario", "has no value (YAML null): give one, or leave the key out for "
+                                                    "its default")
+        if isinstance(value, dict) and id(value) not in seen:  # aliases: one visit each
+            seen.add(id(value))
+            stack.extend(reversed([(f"{path}.{k}" if path else k, v) for k, v in value.items()]))
+        elif isinstance(value, list) and id(value) not in seen:
+            seen.add(id(value))
+            stack.extend(reversed([(f"{path}[{i}]", v) for i, v in enumerate(value)]))
 
 
 def parse_scenario(data: Mapping, base_dir) -> Scenario:
-    """Validate a scenario already parsed from TOML; DEM paths are relative to ``base_dir``."""
+    """Validate a scenario already parsed (:func:`scenario_data`); DEM paths are relative to ``base_dir``."""
     top = _Table(data, "", ("exercise", "terrain", "agent_types", "agents", "target_areas"))
     base_dir = Path(base_dir)
     exercise = _exercise(top.table("exercise"))
@@ -528,7 +661,10 @@ def _number(value, path: str, lo=None, hi=None, lo_open=False, hi_open=False) ->
     """A finite float within the bounds (either may be open); ints are accepted, bools not."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ScenarioError(path, "must be a number", value=_shown(value))
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # a whole number beyond float's range (TOML and YAML integers have none)
+        value = math.inf if value > 0 else -math.inf
     if not math.isfinite(value):
         raise ScenarioError(path, "must be a finite number", value=value)
     _check_range(value, path, lo, hi, lo_open, hi_open)

@@ -52,7 +52,8 @@ functions build it):
 - A new client first gets the header (``FileType``, ``FileVersion``,
   ``ReferenceTime`` = the exercise's start time, ``ReferenceLongitude`` and
   ``ReferenceLatitude`` = the whole degrees nearest the median position at
-  start, ``Title``, ``DataSource``, ``DataRecorder``, ``RecordingTime``) and
+  start (longitude offsets unwrapped into (-180, 180], as the export writes
+  them), ``Title``, ``DataSource``, ``DataRecorder``, ``RecordingTime``) and
   a key frame: the last frame's time and a full line of every object as last
   written; from the next frame on it gets the same bytes as everyone else.
 - Altitude is metres above MSL: the ellipsoid height minus the geoid

@@ -51,7 +51,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import re
 import threading
 from dataclasses import dataclass, field
 
@@ -606,10 +605,9 @@ class World(EventLog):
         with self._lock:
             idx = self.ground.index_of([e.ground_id])
             try:
-                self.ground.check_controls(speed_mps, yaw_rate_dps, index=idx)
-            except InvalidArgument as exc:  # named by the agent, not the model's internal row
-                message = re.sub(r"vehicle \d+ \(", f"{e.name} (", exc.message)
-                raise InvalidArgument(f"{command}.{exc.field}", message, value=exc.value) from None
+                self.ground.check_controls(speed_mps, yaw_rate_dps, index=idx, names=[e.name])
+            except InvalidArgument as exc:
+                raise InvalidArgument(f"{command}.{exc.field}", exc.message, value=exc.value) from None
 
     def aircraft_controls(self, entity_id: int):
         """An aircraft's present controls (fdm.aircraft.Controls)."""
