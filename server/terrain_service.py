@@ -44,7 +44,9 @@ logger = logging.getLogger(__name__)
 
 SERVICE_NAME = "sortie.v1.TerrainService"
 
-MAX_HEIGHT_POINTS = 1_000_000  # per GetHeights: 16 MB request, about 25 ms of work
+# Per GetHeights: 16 MB request, about 25 ms of work over DEMs; over the procedural world each block
+# a call generates costs 1.5-4 ms more, at most terrain.procedural.MAX_NEW_BLOCKS_PER_CALL of them.
+MAX_HEIGHT_POINTS = 1_000_000
 MAX_NORMAL_POINTS = 1_000_000  # per GetNormals: 33 MB response
 MAX_PROFILE_SAMPLES = PROFILE_MAX_SAMPLES  # per GetProfile; enforced by terrain.profile
 MAX_LOS_RAYS = 100_000  # per LineOfSight: each ray marches the terrain between its ends

@@ -41,7 +41,7 @@ import numba
 import numpy as np
 from scipy.special import ndtri
 
-from sortie.errors import InvalidArgument
+from sortie.errors import InvalidArgument, LimitExceeded
 from terrain.geodesy import WGS84_A_M
 from terrain.procedural import lattice_hash, mix64
 from terrain.raster import CRS_GEOGRAPHIC, STATUS_OUTSIDE, Georef, Raster, fractional_index, metres_per_index
@@ -50,7 +50,7 @@ NOISE_TABLE_SIZE = 1 << 16  # Gaussian quantiles; a power of two so "modulo" is 
 FIT_LEVELS = 4  # finest pyramid levels used in the log-linear variance fit
 MAX_SUB_LEVELS = 24  # 90 m / 2^24 is 5 micrometres: deeper is never useful
 # Largest densified raster raster_for builds (32 MiB of float64); bigger boxes
-# get the finest detail level that fits.
+# get the finest detail level that fits (ray_raster_for raises LimitExceeded instead).
 DETAIL_RASTER_MAX_POSTS = 1 << 22
 # A raster origin within this many posts of a whole multiple of its spacing is
 # taken as aligned to the global lattice of that spacing.
@@ -313,30 +313,57 @@ class DetailedRaster:
         Posts on the finest sub-level lattice whose posts in the box number at
         most DETAIL_RASTER_MAX_POSTS; its bilinear surface then equals this
         source's wherever that is the finest level (coarser levels for big
-        boxes: the omitted detail is in ``meta["omitted_detail_std_m"]``).
-        lon_max < lon_min means the box crosses the antimeridian.
+        boxes: the omitted detail is in ``meta["omitted_detail_std_m"]``; a
+        viewer's overview). lon_max < lon_min means the box crosses the
+        antimeridian. Rays use :meth:`ray_raster_for`, which never omits detail.
         """
-        span = lon_max - lon_min if lon_max >= lon_min else lon_max - lon_min + 360.0
-        base = self.raster.raster_for(lat_min, lon_min, lat_max, lon_min + span)
-        if base is None or self.sub_levels == 0:
-            return base
-        g = self.raster.georef
-        ny, nx = self.raster.shape
-        (r_lo, r_hi), (c_lo, _) = _fractional_indices(np.array([lat_min, lat_max]), np.array([lon_min, lon_min]),
-                                                      g.crs, g.x0, g.y0, g.dx, g.dy)
-        c_hi = c_lo + (span if g.crs == CRS_GEOGRAPHIC else math.radians(span) * WGS84_A_M) / g.dx
+        window = self._window(lat_min, lon_min, lat_max, lon_max)
+        if window is None or window[0] is None:
+            return None if window is None else window[1]
+        base, (r_lo, r_hi, c_lo, c_hi) = window
         level = self.sub_levels
-        while level > 0 and _lattice_posts(r_lo, r_hi, c_lo, c_hi, level) > DETAIL_RASTER_MAX_POSTS:
+        while level > 0 and _window_posts(_lattice_window(r_lo, r_hi, c_lo, c_hi, level, self.raster.shape)) \
+                > DETAIL_RASTER_MAX_POSTS:
             level -= 1
         if level == 0:
             return base
+        return self._dense(_lattice_window(r_lo, r_hi, c_lo, c_hi, level, self.raster.shape), level)
+
+    def ray_raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float):
+        """:meth:`raster_for` for a group of rays (terrain.terrain.Terrain): always every detail
+        level, so a ray meets the surface :meth:`heights_into` answers; a box whose finest lattice
+        holds more than DETAIL_RASTER_MAX_POSTS posts raises LimitExceeded (the Terrain then splits
+        the group, and traces a lone segment in parts)."""
+        window = self._window(lat_min, lon_min, lat_max, lon_max)
+        if window is None or window[0] is None:
+            return None if window is None else window[1]
+        lattice = _lattice_window(*window[1], self.sub_levels, self.raster.shape)
+        posts = _window_posts(lattice)
+        if posts > DETAIL_RASTER_MAX_POSTS:
+            raise LimitExceeded("detail box posts", posts, DETAIL_RASTER_MAX_POSTS)
+        return self._dense(lattice, self.sub_levels)
+
+    def _window(self, lat_min, lon_min, lat_max, lon_max):
+        """None when the raster does not cover the box; (None, raster) when it has no sub-levels;
+        else (the raster, (r_lo, r_hi, c_lo, c_hi)): the box's fractional index ranges."""
+        span = lon_max - lon_min if lon_max >= lon_min else lon_max - lon_min + 360.0
+        base = self.raster.raster_for(lat_min, lon_min, lat_max, lon_min + span)
+        if base is None:
+            return None
+        if self.sub_levels == 0:
+            return None, base
+        g = self.raster.georef
+        (r_lo, r_hi), (c_lo, _) = _fractional_indices(np.array([lat_min, lat_max]), np.array([lon_min, lon_min]),
+                                                      g.crs, g.x0, g.y0, g.dx, g.dy)
+        c_hi = c_lo + (span if g.crs == CRS_GEOGRAPHIC else math.radians(span) * WGS84_A_M) / g.dx
+        return base, (r_lo, r_hi, c_lo, c_hi)
+
+    def _dense(self, lattice, level: int) -> Raster:
+        """The Raster of the detailed surface (sub-levels 1..level) on the level's lattice posts
+        i0..i1, j0..j1 (``lattice``, :func:`_lattice_window`)."""
+        i0, i1, j0, j1 = lattice
+        g = self.raster.georef
         scale = float(1 << level)
-        i0 = int(math.floor(r_lo * scale))
-        i1 = max(i0 + 1, min(int(math.ceil(r_hi * scale)), int((ny - 1) * scale)))
-        i0 = min(i0, i1 - 1)
-        j0 = int(math.floor(c_lo * scale))
-        j1 = max(j0 + 1, min(int(math.ceil(c_hi * scale)), int((nx - 1) * scale)))
-        j0 = min(j0, j1 - 1)
         rows, cols = np.meshgrid(np.arange(i0, i1 + 1) / scale, np.arange(j0, j1 + 1) / scale, indexing="ij")
         rows, cols = rows.ravel(), cols.ravel()
         dense = _bilinear_at_index(self.raster.heights, rows, cols) + self.detail_at_index(rows, cols, level)[0]
@@ -368,7 +395,22 @@ class DetailedRaster:
                                    g.dy)
 
 
-def _lattice_posts(r_lo, r_hi, c_lo, c_hi, level):
+def _lattice_window(r_lo, r_hi, c_lo, c_hi, level, shape):
+    """(i0, i1, j0, j1): the first and last post rows and columns, on the lattice of sub-level
+    ``level`` (spacing 2^-level posts), of the cells holding fractional indices [r_lo, r_hi] x
+    [c_lo, c_hi], within the raster of ``shape`` (ny, nx), at least one cell."""
+    ny, nx = shape
     scale = float(1 << level)
-    return (math.ceil(r_hi * scale) - math.floor(r_lo * scale) + 1) * (math.ceil(c_hi * scale)
-                                                                       - math.floor(c_lo * scale) + 1)
+    i0 = int(math.floor(r_lo * scale))
+    i1 = max(i0 + 1, min(int(math.ceil(r_hi * scale)), int((ny - 1) * scale)))
+    i0 = min(i0, i1 - 1)
+    j0 = int(math.floor(c_lo * scale))
+    j1 = max(j0 + 1, min(int(math.ceil(c_hi * scale)), int((nx - 1) * scale)))
+    j0 = min(j0, j1 - 1)
+    return i0, i1, j0, j1
+
+
+def _window_posts(lattice) -> int:
+    """Posts of a :func:`_lattice_window`."""
+    i0, i1, j0, j1 = lattice
+    return (i1 - i0 + 1) * (j1 - j0 + 1)

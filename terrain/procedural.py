@@ -75,6 +75,26 @@ DEFAULT_CACHE_BLOCKS = 64
 # Largest raster_for box, in posts (64 MiB of float64): a box of about
 # 220 km x 220 km at the default spacing near the equator.
 RASTER_FOR_MAX_POSTS = 1 << 23
+# Most blocks one query (heights_into, gradient_into, raster_for) may generate anew, beyond those
+# cached: a new block costs about 1.5 ms (257^2 posts, measured), so 4096 is about 6 s of work,
+# where 1,000,000 scattered points would take 25-45 minutes. A legitimate call stays far below:
+# an aircraft's contacts touch 1-4 blocks, a profile across a continent (5000 km) about 400, a
+# renderer's region of 1250 km x 1250 km 4096, a ray batch over one area its box's blocks. A
+# query over one full ring of block columns (rays over a pole: every longitude, a few rows) is
+# always allowed: the cap is max(MAX_NEW_BLOCKS_PER_CALL, block columns per turn).
+MAX_NEW_BLOCKS_PER_CALL = 4096
+# Upper bound of level_exponent: L^-E for L >= 2 is then at most 2^-64 (heights change by less than
+# a part in 1e19 beyond it), and L**E stays finite (2^20 levels at most: 20^64 ~ 1e83).
+LEVEL_EXPONENT_MAX = 64.0
+# Upper bound of max_height_m (m): about eleven times Mount Everest (8849 m). Heights stay finite
+# and slopes meaningful: height_bounds_m is then below 1e5 (1 + 4 H_12) m, about 1.4e6 m, for any
+# E > 1 and the largest block (H_12 the 12th harmonic number, log2(BLOCK_CELLS_MAX) levels).
+MAX_HEIGHT_MAX_M = 1.0e5
+# Largest block (cells a side): 4097^2 posts are 134 MB of float64 per array (bed, surface and
+# the generation's temporaries, about 0.7 GB at once), the most one block may take.
+BLOCK_CELLS_MAX = 4096
+# Most memory the block cache may hold (bed and surface of cache_blocks blocks): 4 GiB.
+CACHE_MAX_BYTES = 4 << 30
 # Upper clamp of the roughness factor's base (1 + a): see the module docstring.
 ROUGHNESS_BASE_MAX = 2.0
 # Spherical radius used only to decide which blocks are near a viewer (IUGG mean
@@ -212,6 +232,12 @@ class ProceduralTerrain:
     :class:`terrain.raster.Raster`). Blocks are kept in an LRU cache of at most
     ``cache_blocks`` blocks; :meth:`retain_near` drops those no viewer is near.
     A dropped block regenerates bit for bit. Thread-safe.
+
+    Parameters are checked when it is made (InvalidArgument naming the field):
+    0 < max_height_m <= MAX_HEIGHT_MAX_M, 1 < level_exponent <=
+    LEVEL_EXPONENT_MAX, 0 <= water <= 1, block_cells a power of two in
+    [2, BLOCK_CELLS_MAX], posts_per_turn a multiple of 2 block_cells up to
+    2^40, cache_blocks at least 1 and holding at most CACHE_MAX_BYTES.
     """
 
     def __init__(self, seed: int, max_height_m: float = 1000.0, level_exponent: float = 2.0,
@@ -219,17 +245,20 @@ class ProceduralTerrain:
                  posts_per_turn: int = DEFAULT_POSTS_PER_TURN, cache_blocks: int = DEFAULT_CACHE_BLOCKS,
                  name: str = "procedural"):
         _check_int("seed", seed, 0, 2**64 - 1)
-        _check_real("max_height_m", max_height_m, lambda v: v > 0, "> 0")
-        _check_real("level_exponent", level_exponent, lambda v: v > 1, "> 1")
+        _check_real("max_height_m", max_height_m, lambda v: 0 < v <= MAX_HEIGHT_MAX_M,
+                    f"within (0, {MAX_HEIGHT_MAX_M:g}]")
+        _check_real("level_exponent", level_exponent, lambda v: 1 < v <= LEVEL_EXPONENT_MAX,
+                    f"within (1, {LEVEL_EXPONENT_MAX:g}]")
         _check_real("water", water, lambda v: 0 <= v <= 1, "within [0, 1]")
-        _check_int("block_cells", block_cells, 2, 2**16)
+        _check_int("block_cells", block_cells, 2, BLOCK_CELLS_MAX)
         if block_cells & (block_cells - 1):
             raise InvalidArgument("block_cells", "must be a power of two", value=block_cells)
         _check_int("posts_per_turn", posts_per_turn, 2 * block_cells, 2**40)
         if posts_per_turn % (2 * block_cells):
             raise InvalidArgument("posts_per_turn", f"must be a multiple of 2 * block_cells = {2 * block_cells}",
                                   value=posts_per_turn)
-        _check_int("cache_blocks", cache_blocks, 1, 2**20)
+        block_bytes = 2 * 8 * (block_cells + 1) ** 2
+        _check_int("cache_blocks", cache_blocks, 1, max(1, min(2**20, CACHE_MAX_BYTES // block_bytes)))
         self.seed = int(seed)
         self.max_height_m = float(max_height_m)
         self.level_exponent = float(level_exponent)
@@ -340,7 +369,9 @@ class ProceduralTerrain:
 
         lat, lon: (n,) float64 degrees, (lat, lon) order; out_h: (n,) float64;
         out_status: (n,) uint8. Bilinear over the surface posts max(H, 0),
-        exact at posts. The world is unbounded: every point is answered.
+        exact at posts. The world is unbounded: every point is answered. Raises
+        LimitExceeded, before generating any, when the points lie in more than
+        MAX_NEW_BLOCKS_PER_CALL blocks not cached.
         """
         for sel, s, fy, fx, i, j in self._cells(lat, lon, out_status):
             out_h[sel] = _lerp2(s[i, j], s[i, j + 1], s[i + 1, j], s[i + 1, j + 1], fy, fx)
@@ -351,7 +382,7 @@ class ProceduralTerrain:
 
         Derivatives of the bilinear cell (the north-east cell on a post line,
         as in :func:`terrain.raster.gradient_into`); at the poles the pole row
-        is constant, so the east derivative is 0.
+        is constant, so the east derivative is 0. LimitExceeded as :meth:`heights_into`.
         """
         for sel, s, fy, fx, i, j in self._cells(lat, lon, out_status):
             dcol = (s[i, j + 1] - s[i, j]) * (1.0 - fy) + (s[i + 1, j + 1] - s[i + 1, j]) * fy
@@ -366,7 +397,9 @@ class ProceduralTerrain:
 
         lon_max < lon_min means the box crosses the antimeridian. The raster's
         posts are lattice posts, so its bilinear surface is this terrain's.
-        Raises LimitExceeded beyond RASTER_FOR_MAX_POSTS posts.
+        Raises LimitExceeded beyond RASTER_FOR_MAX_POSTS posts, or when it would generate more
+        than MAX_NEW_BLOCKS_PER_CALL new blocks (a box of every longitude: a full ring of block
+        columns, if more: rays over a pole).
         """
         for nm, v in (("lat_min", lat_min), ("lon_min", lon_min), ("lat_max", lat_max), ("lon_max", lon_max)):
             _check_real(nm, v, lambda x: abs(x) <= 540.0, "within +-540 degrees")
@@ -384,8 +417,12 @@ class ProceduralTerrain:
         posts = (r1 - r0 + 1) * (c1 - c0 + 1)
         if posts > RASTER_FOR_MAX_POSTS:
             raise LimitExceeded("box posts", posts, RASTER_FOR_MAX_POSTS)
-        out = np.zeros((r1 - r0 + 1, c1 - c0 + 1))
         n = self.block_cells
+        rows, cols = np.arange(r0 // n, (r1 - 1) // n + 1), np.arange(c0 // n, (c1 - 1) // n + 1)
+        keys = np.repeat(rows, cols.size) * self.block_cols + np.tile(cols % self.block_cols, rows.size)
+        self._check_new_blocks(keys, max(MAX_NEW_BLOCKS_PER_CALL, self.block_cols) if span >= 360.0 else
+                               MAX_NEW_BLOCKS_PER_CALL)
+        out = np.zeros((r1 - r0 + 1, c1 - c0 + 1))
         for br in range(r0 // n, (r1 - 1) // n + 1):
             for bc in range(c0 // n, (c1 - 1) // n + 1):
                 rs, re = max(r0, br * n), min(r1, br * n + n)
@@ -422,6 +459,19 @@ class ProceduralTerrain:
 
     # -- internals ------------------------------------------------------------
 
+    def _check_new_blocks(self, keys, limit: int) -> None:
+        """Raise LimitExceeded when more of the distinct blocks ``keys`` ((k,) int64, row *
+        block_cols + col) than ``limit`` are not cached: before any is generated."""
+        if keys.size <= limit:
+            return
+        with self._lock:
+            cached = np.array([r * self.block_cols + c for r, c in self._cache], np.int64)
+        new = int(keys.size - np.isin(keys, cached).sum())
+        if new > limit:
+            raise LimitExceeded("points (new procedural blocks)", new, limit,
+                                f"each new block of {self.block_cells + 1}^2 posts is generated, about 1.5-4 ms; "
+                                "ask over a smaller area or in several calls")
+
     def _cells(self, lat, lon, out_status):
         """Yield (sel, surface, fy, fx, i, j) per block for the points still OUTSIDE.
 
@@ -440,6 +490,7 @@ class ProceduralTerrain:
         key = (i // n) * self.block_cols + j // n
         order = np.argsort(key, kind="stable")
         starts = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+        self._check_new_blocks(key[order][starts], MAX_NEW_BLOCKS_PER_CALL)
         for part in np.split(order, starts[1:]):
             br, bc = divmod(int(key[part[0]]), self.block_cols)
             yield todo[part], self.block(br, bc).surface_msl_m, fy[part], fx[part], i[part] - br * n, j[part] - bc * n

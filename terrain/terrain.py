@@ -28,13 +28,26 @@ from dataclasses import dataclass
 import numpy as np
 
 from sortie.errors import LimitExceeded
-from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from terrain.geodesy import WGS84_A_M, WGS84_E2, ecef_to_geodetic, geodetic_to_ecef
 from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster, metres_per_index
 from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
 
 
-# Least margin around the endpoints' box when a source builds a raster for rays.
-RAY_BOX_PAD_DEG = 0.01
+# Margin (m) around a segment's ground track in the box a source builds a raster for: far above the
+# track model's error (terrain.los.MODEL_ERROR_M, 1 micrometre; 1 mm within 1 cm of the polar axis)
+# and rounding, far below any source's post spacing (a detail raster's finest lattice: about 0.5 m).
+RAY_BOX_PAD_M = 0.1
+# Least metres per radian of latitude on WGS84: the meridian radius of curvature at the equator,
+# a (1 - e^2) (Torge & Mueller, Geodesy, 4th ed., eq. 4.32), so metres of pad are at least that
+# many degrees. Also the least radius of curvature, bounding a chord's sag below its ends.
+MERIDIAN_RADIUS_MIN_M = WGS84_A_M * (1.0 - WGS84_E2)
+# A single segment whose box a source cannot serve is traced in halves (each with its own box)
+# down to this length (m); a shorter one gets the source's own answer (raster_for).
+RAY_PART_MIN_M = 1.0
+# Where a stretch is cut (fraction of it): the golden section, not the middle, so that a segment
+# symmetric about a pole (ends at one latitude, 180 degrees apart) has the pole inside one part,
+# which alone needs every longitude, not at the end of two (each a full turn of the ring).
+RAY_PART_CUT = (3.0 - math.sqrt(5.0)) / 2.0
 # Source kinds (describe()["kind"]) whose heights are made up, not measured: a
 # filled void of a DEM is not handed to them.
 SYNTHETIC_KINDS = ("procedural",)
@@ -338,14 +351,15 @@ class Terrain:
         stretch no source covers before any contact from the other as well (blocked when
         either meets the surface first, else OUTSIDE).
         """
-        from terrain.los import check_segments, line_of_sight, stack_line_of_sight
+        from terrain.los import _both_ways, check_segments, line_of_sight, stack_line_of_sight
 
         rays = check_segments(a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl)
         n = rays[0].size
         a = geodetic_to_ecef(rays[0], rays[1], rays[2])
         b = geodetic_to_ecef(rays[3], rays[4], rays[5])
         visible, status = np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8)
-        for first, idx in self._groups(0, rays, a, b, np.arange(n)):
+        parted = []
+        for first, idx in self._groups(0, rays, a, b, np.arange(n), parted=parted):
             sub = tuple(x[idx] for x in rays)
             if first is not None:
                 visible[idx], status[idx] = line_of_sight(first, *sub)
@@ -353,23 +367,37 @@ class Terrain:
             if len(self.sources) == 1 or todo.size == 0:
                 continue
             # Off the first source: the stack of every source's surface, as line_of_sight does on one.
-            visible[todo], status[todo] = stack_line_of_sight(self._stack(first, rays, a, b, todo), a[todo], b[todo],
-                                                              self._measured_flags())
+            visible[todo], status[todo] = stack_line_of_sight(self._stack(first, rays, a, b, todo, parted), a[todo],
+                                                              b[todo], self._measured_flags())
+        if parted:
+            # Segments whose box a source cannot serve: line_of_sight's rule over their traces in parts.
+            idx = np.unique(np.concatenate(parted))
+
+            def trace(a_, b_, lo, hi):
+                got = self._trace_in_halves(a_, b_, lo, hi)
+                return got[0], got[3]
+
+            visible[idx], status[idx] = _both_ways(trace, a[idx], b[idx])
         return LosResult(visible, status)
 
-    def _trace(self, rays, a, b, s_lo, s_hi):
+    def _trace(self, rays, a, b, s_lo, s_hi, chord=None):
         """First contact s in [s_lo, s_hi] of each segment a + s (b - a) with the stack's surface:
         (s (NaN: none), d h / d east metre and d h / d north metre there, status). The first
         source traces every segment on its own (its kernel marks those that leave it); only those
         go through :func:`terrain.los.stack_trace` (and those over its filled voids, where a later
         source may measure the ground), so a terrain whose segments stay on its first source
-        pays nothing more."""
+        pays nothing more. Sources' boxes are made for the stretches [s_lo, s_hi]: ``rays``
+        holds their ends' (lat, lon, h) and ``chord`` their ECEF ends (None: a and b, the
+        stretches being the whole segments). A segment whose box a source cannot serve is traced
+        in halves (:meth:`_trace_in_halves`)."""
         from terrain.los import stack_partitions, stack_trace, trace_segments
 
         n = a.shape[0]
+        ca, cb = (a, b) if chord is None else chord
         s, de, dn = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
         status = np.full(n, STATUS_OUTSIDE, np.uint8)
-        for first, idx in self._groups(0, rays, a, b, np.arange(n)):
+        parted = []
+        for first, idx in self._groups(0, rays, ca, cb, np.arange(n), parted=parted):
             if first is not None:
                 got = trace_segments(first, a[idx], b[idx], s_lo[idx], s_hi[idx])
                 s[idx], status[idx] = got[0], got[3]
@@ -379,8 +407,8 @@ class Terrain:
                 continue
             a_t, b_t, lo_t, hi_t = a[todo], b[todo], s_lo[todo], s_hi[todo]
             measured = self._measured_flags()
-            for part, rasters, cov in stack_partitions(self._stack(first, rays, a, b, todo), a_t, b_t, lo_t, hi_t,
-                                                       measured):
+            for part, rasters, cov in stack_partitions(self._stack(first, rays, ca, cb, todo, parted), a_t, b_t,
+                                                       lo_t, hi_t, measured):
                 got_s, dcol, drow, got_st, which = stack_trace(rasters, a_t[part], b_t[part], lo_t[part], hi_t[part],
                                                                cov, measured)
                 where = todo[part]
@@ -388,21 +416,47 @@ class Terrain:
                 for k in np.unique(which[which >= 0]):
                     sel = np.flatnonzero(which == k)
                     _slopes_into(rasters[k], a, b, s, where[sel], dcol[sel], drow[sel], de, dn)
+        if parted:
+            idx = np.unique(np.concatenate(parted))
+            s[idx], de[idx], dn[idx], status[idx] = self._trace_in_halves(a[idx], b[idx], s_lo[idx], s_hi[idx])
         return s, de, dn, status
 
-    def _stack(self, first, rays, a, b, todo) -> list:
+    def _trace_in_halves(self, a, b, s_lo, s_hi):
+        """:meth:`_trace` of segments a + s (b - a), s in [s_lo, s_hi] ((n, 3) ECEF, (n,)), each cut at
+        RAY_PART_CUT of [s_lo, s_hi] into two stretches traced with boxes of their own (a stretch
+        still too big for a source is halved again): near a pole a short stretch spans every
+        longitude but a few rows, a long one over fine detail few posts a side. The segment's
+        answer is its first half's when that meets the surface or leaves every source (OUTSIDE),
+        else its second half's, FILLED if either half's is."""
+        n = a.shape[0]
+        mid = s_lo + RAY_PART_CUT * (s_hi - s_lo)
+        lo, hi = np.concatenate([s_lo, mid]), np.concatenate([mid, s_hi])
+        a2, b2 = np.concatenate([a, a]), np.concatenate([b, b])
+        pa, pb = a2 + lo[:, None] * (b2 - a2), a2 + hi[:, None] * (b2 - a2)
+        rays = ecef_to_geodetic(pa) + ecef_to_geodetic(pb)
+        s, de, dn, status = self._trace(rays, a2, b2, lo, hi, chord=(pa, pb))
+        second = np.flatnonzero(np.isnan(s[:n]) & (status[:n] != STATUS_OUTSIDE))
+        filled = second[(status[second] == STATUS_FILLED) & (status[n + second] != STATUS_OUTSIDE)]
+        got = s[:n].copy(), de[:n].copy(), dn[:n].copy(), status[:n].copy()
+        for out, both in zip(got, (s, de, dn, status)):
+            out[second] = both[n + second]
+        got[3][filled] = STATUS_FILLED
+        return got
+
+    def _stack(self, first, rays, a, b, todo, parted=None) -> list:
         """The sources as :func:`terrain.los.stack_partitions` takes them, for the segments todo
         (indices local to them): the first source's raster ``first`` (None: it has none here),
-        then each source's groups."""
+        then each source's groups (lone segments whose box a source cannot serve go to
+        ``parted``, as :meth:`_groups` says)."""
         def first_groups(idx):
             return [(first, idx)]
 
         def later(k):
-            return lambda idx: self._groups(k, rays, a, b, todo[idx], base=todo)
+            return lambda idx: self._groups(k, rays, a, b, todo[idx], base=todo, parted=parted)
 
         return [first_groups] + [later(k) for k in range(1, len(self.sources))]
 
-    def _groups(self, k: int, rays, a, b, idx, base=None):
+    def _groups(self, k: int, rays, a, b, idx, base=None, parted=None):
         """Yield (raster or None, indices) for source k and the segments idx: a Raster source is
         its own raster for them all; any other hands out a raster for the segments' box
         (:func:`ray_box`; None where it has none), and when it cannot serve that box (it raises
@@ -411,7 +465,11 @@ class Terrain:
         at the median) until each group's box is served; a lone segment's box that is not is the
         source's own answer (``raster_for``: a store's region holding most of it, a procedural
         world's LimitExceeded). Groups are yielded one at a time (their rasters freed once
-        traced). Indices come out relative to ``base`` (None: as given)."""
+        traced). Indices come out relative to ``base`` (None: as given). With ``parted`` (a list),
+        a lone segment whose box is not served, longer than RAY_PART_MIN_M, is not yielded but its
+        (global) index appended there, for the caller to trace in parts
+        (:meth:`_trace_in_halves`); rays, a and b are then the ends of the stretches boxes are
+        made for."""
         source = self.sources[k]
         if isinstance(source, Raster) or idx.size == 0:
             yield (source if isinstance(source, Raster) else None), _relative(idx, base)
@@ -424,11 +482,13 @@ class Terrain:
             try:
                 raster = strict(*box)
             except LimitExceeded:
-                if grp.size == 1:
-                    raster = source.raster_for(*box)
-                else:
+                if grp.size > 1:
                     pending.extend(_split(rays, grp)[::-1])
                     continue
+                if parted is not None and np.linalg.norm(b[grp[0]] - a[grp[0]]) > RAY_PART_MIN_M:
+                    parted.append(grp)
+                    continue
+                raster = source.raster_for(*box)
             yield raster, _relative(grp, base)
 
     def describe(self) -> list[dict]:
@@ -514,22 +574,30 @@ def _split(rays, idx) -> tuple[np.ndarray, np.ndarray]:
 
 def ray_box(rays, a_ecef, b_ecef, idx) -> tuple[float, float, float, float]:
     """(lat_min, lon_min, lat_max, lon_max) degrees holding the ground tracks of the segments idx,
-    with RAY_BOX_PAD_DEG around them; lon_min in [-180, 180), lon_max may pass 180 (east across
-    the antimeridian).
+    with RAY_BOX_PAD_M around them; lon_min in [-180, 180), lon_max may pass 180 (east across the
+    antimeridian); (-180, 180) when the tracks need every longitude.
 
     Longitude: along a chord the longitude atan2(y, x) is monotone between its endpoints' and
-    runs the short way round (the chord's projection on the equatorial plane is a straight line,
-    which subtends less than 180 degrees at the axis), so the endpoints' short-way span holds it;
-    every a is unrolled next to the first one's and b next to its a, so a box never spans the long
-    way round. Latitude: the chord's largest and smallest z / rho (rho = hypot(x, y)) are at its
-    ends or where d/ds (z / rho) = 0; with rho^2 = A s^2 + B s + C and z = z0 + z1 s that is
+    turns the way the sign of (a x b)_z says (east when positive: the chord's projection on the
+    equatorial plane is a straight line, which subtends less than 180 degrees at the axis), so
+    the endpoints' span that way holds it, also where the short way is ambiguous (ends 180 degrees
+    apart, passing beside a pole). A track passing through the axis (sign 0, ends 180 degrees
+    apart) or within about the pad of it needs every longitude. Every a is unrolled next to the
+    first one's and b next to its a, so a box never spans the long way round. The pad in degrees
+    of longitude is RAY_BOX_PAD_M over the track's least distance from the axis (its closest
+    point when inside the segment, else an end's).
+
+    Latitude: the chord's largest and smallest z / rho (rho = hypot(x, y)) are at its ends or
+    where d/ds (z / rho) = 0; with rho^2 = A s^2 + B s + C and z = z0 + z1 s that is
     z1 rho^2 = z rho rho' = z (2 A s + B) / 2, which is linear in s: s* = (z0 B / 2 - z1 C) /
-    (z1 B / 2 - z0 A). The geodetic latitude there (and at the ends) bounds the track's; it
-    differs from a function of z / rho only through the height (by e^2 h / R radians, ~6e-4
-    degree for 10 km of height change), well inside the pad. Near a pole this is the chord's
-    real poleward reach (metres for a km-long segment), not degrees of longitude.
+    (z1 B / 2 - z0 A). The geodetic latitude there (and at the ends) bounds the track's to within
+    e^2 dh / R radians, dh the chord's height range (geodetic latitude depends on the height at a
+    given z / rho only through the e^2 term): at most |h_a - h_b| plus the chord's sag d^2 / (8 R)
+    below its ends. The pad is twice that (in metres: e^2 dh) plus RAY_BOX_PAD_M, over the least
+    metres per radian of latitude. Near a pole this is the chord's real poleward reach, not
+    degrees of longitude.
     """
-    a_lat, a_lon, _, b_lat, b_lon, _ = rays
+    a_lat, a_lon, a_h, b_lat, b_lon, b_h = rays
     a, b = a_ecef[idx], b_ecef[idx]
     d = b - a
     A = d[:, 0] ** 2 + d[:, 1] ** 2
@@ -542,11 +610,25 @@ def ray_box(rays, a_ecef, b_ecef, idx) -> tuple[float, float, float, float]:
     if inner.size:
         lats.append(ecef_to_geodetic(a[inner] + s_star[inner, None] * d[inner])[0])
     lats = np.concatenate(lats)
+    length2 = A + d[:, 2] ** 2
+    dh = np.abs(a_h[idx] - b_h[idx]) + length2 / (8.0 * MERIDIAN_RADIUS_MIN_M)
+    pad_lat = np.degrees((RAY_BOX_PAD_M + 2.0 * WGS84_E2 * dh.max()) / MERIDIAN_RADIUS_MIN_M)
+    cross = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]  # (a x b)_z: the way the longitude turns
+    delta = (b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0
+    delta = np.where((cross > 0.0) & (delta < 0.0), delta + 360.0, delta)
+    delta = np.where((cross < 0.0) & (delta > 0.0), delta - 360.0, delta)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_axis = -B / (2.0 * A)  # nearest the axis: the distance of the line x, y from the origin
+        rho_min = np.where((s_axis > 0.0) & (s_axis < 1.0), np.abs(a[:, 0] * d[:, 1] - a[:, 1] * d[:, 0])
+                           / np.sqrt(A), np.sqrt(np.minimum(C, C + B + A)))
+        pad_lon = np.degrees(RAY_BOX_PAD_M / rho_min)
+    lat_lo = max(lats.min() - pad_lat, -90.0)
+    lat_hi = min(lats.max() + pad_lat, 90.0)
     a_lon_near = a_lon[idx[0]] + (a_lon[idx] - a_lon[idx[0]] + 180.0) % 360.0 - 180.0
-    b_lon_near = a_lon_near + (b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0
-    lons = np.concatenate([a_lon_near, b_lon_near])
-    pad = RAY_BOX_PAD_DEG
-    west = lons.min() - pad
+    west = np.minimum(a_lon_near, a_lon_near + delta) - pad_lon
+    east = np.maximum(a_lon_near, a_lon_near + delta) + pad_lon
+    if not (np.all(np.abs(delta) < 180.0) and east.max() - west.min() < 360.0):
+        return lat_lo, -180.0, lat_hi, 180.0  # every longitude (a track through or beside the axis)
+    west, east = west.min(), east.max()
     turns = 360.0 * math.floor((west + 180.0) / 360.0)  # west in [-180, 180); east may pass 180
-    east = min(lons.max() + pad - turns, west - turns + 360.0)  # a box never spans more than a turn
-    return max(lats.min() - pad, -90.0), west - turns, min(lats.max() + pad, 90.0), east
+    return lat_lo, west - turns, lat_hi, east - turns

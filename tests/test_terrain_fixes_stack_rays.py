@@ -442,7 +442,7 @@ def test_a_batch_too_wide_for_one_procedural_raster_is_split():
                                  ((89.999, 30.0), (89.998, -100.0))])
 def test_segments_near_a_pole_over_the_procedural_world(seg):
     """Short segments near the north pole (10 km, 2.2 km, passing within a few hundred metres of it;
-    one exactly over the pole is not answered yet: OUTSIDE): the box pad used to be degrees of
+    those right over it: tests/test_terrain_fixes_procedural_rays.py): the box pad used to be degrees of
     longitude times tan(lat), hundreds to thousands of degrees (InvalidArgument naming lon_max, a
     field the caller never sent, or LimitExceeded). The box is now the chord's real latitude
     reach: answered. Oracle: dense samples of the segment against Terrain.heights."""
