@@ -181,8 +181,8 @@ def default_observe(w) -> tuple[float, float, float]:
 
 def stream_end(sim, picture) -> int:
     """Leave the server if it is still there; the exit code: 0 for a stop asked of this
-    client or an exercise the server ended, 1 for a server gone (the stream broke), each
-    with a line that says so. A picture is no longer extrapolated past the stream's end."""
+    client or an exercise the server ended, 1 for a server gone (the stream broke) or a
+    stream its own session ended (ABORTED: superseded, left), each with a line that says so. A picture is no longer extrapolated past the stream's end."""
     from sortie.errors import SortieError
 
     if picture.alive:  # stopped here (duration, signal)
@@ -194,6 +194,12 @@ def stream_end(sim, picture) -> int:
     if picture.error is None:
         print(f"the server ended the exercise at world time {picture.time_s:.1f} s", flush=True)
         return 0
+    from client.sim_client import StreamAborted
+
+    if isinstance(picture.error, StreamAborted):  # its own session ended it (a new Watch, a leave)
+        print(f"this client's stream was ended at world time {picture.time_s:.1f} s: {picture.error}",
+              file=sys.stderr, flush=True)
+        return 1
     print(f"the server went away at world time {picture.time_s:.1f} s: {picture.error}", file=sys.stderr,
           flush=True)
     return 1

@@ -15,6 +15,12 @@ last update of every entity in view, extrapolated on demand (server
 dead_reckoning.Extrapolator) to the server's world time (estimated from the
 stream: the last update's time plus the wall time since it arrived, times the
 clock's scale).
+
+How a stream ends: the server's end of the exercise ends it with no error
+(:attr:`Picture.error` None); the server ends it with :class:`StreamAborted`
+when it was superseded by a newer Watch of the same session or the session
+left (the exercise goes on); anything else (a server gone) is the error of the
+failed call.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import grpc
 import numpy as np
@@ -33,9 +40,24 @@ from sortie.errors import InvalidArgument
 from sortie.v1 import simulation_pb2 as pb
 from sortie.v1 import simulation_pb2_grpc as pb_grpc
 
+if TYPE_CHECKING:
+    from sortie.v1 import recording_pb2 as rpb
+
 ROLES = {"pilot": pb.ROLE_PILOT, "driver": pb.ROLE_DRIVER, "observer": pb.ROLE_OBSERVER, "bot": pb.ROLE_BOT,
          "gateway": pb.ROLE_GATEWAY}
 DEFAULT_TIMEOUT_S = 10.0
+
+
+class StreamAborted(ServiceError):
+    """The server ended a stream of this session for the session's own reason (a newer
+    Watch of the session superseded it, the session left); the exercise goes on."""
+
+
+def stream_error(error: grpc.RpcError):
+    """The sortie error for a stream that failed: :class:`StreamAborted` for ABORTED."""
+    if error.code() == grpc.StatusCode.ABORTED:
+        return StreamAborted(grpc.StatusCode.ABORTED, error.details() or "")
+    return error_from_rpc(error)
 
 
 class SimClient:
@@ -149,7 +171,7 @@ class SimClient:
             yield from call
         except grpc.RpcError as exc:
             if exc.code() != grpc.StatusCode.CANCELLED:
-                raise error_from_rpc(exc) from None
+                raise stream_error(exc) from None
 
 
 class _RequestStream:
@@ -257,6 +279,8 @@ class Picture:
         self.time_s = 0.0  # world time of the last update
         self._wall = time.monotonic()
         self.wall_log: list = []  # (world time of the update, time.time() it arrived): latency measurements
+        # Why the stream ended, once it has: None for the server's end of the exercise,
+        # StreamAborted for a newer Watch of the session or the session's Leave, else the error.
         self.error: Exception | None = None
         self.snapshot_received = threading.Event()
         # Called as fn(picture, update) on the stream's thread after each WatchUpdate is
@@ -331,7 +355,7 @@ class Picture:
                     self._cond.notify_all()
         except grpc.RpcError as exc:
             if exc.code() != grpc.StatusCode.CANCELLED:
-                self.error = error_from_rpc(exc)
+                self.error = stream_error(exc)  # StreamAborted: superseded, or the session left
         finally:
             with self._cond:
                 self._cond.notify_all()

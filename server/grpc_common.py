@@ -5,10 +5,11 @@ a graceful lifecycle.
 The wire codec exists for speed. Building a protobuf message from numpy arrays
 through the generated classes costs 35 to 70 ns per value (``extend`` walks
 Python floats), which for a 100,000-point height batch (7 ms to build the
-request, 7 ms the response) is several times the query itself (2.5 ms). A message made only of packed repeated numbers and scalars has a
-trivial encoding (protobuf encoding spec, "Packed Repeated Fields"): per field
-a tag varint, a length varint and the values' raw bytes, which for ``double``
-are little-endian IEEE 754. :class:`PackedCodec` writes and reads exactly those
+request, 7 ms the response) is several times the query itself (2.5 ms). A
+message made only of packed repeated numbers and scalars has a trivial
+encoding (protobuf encoding spec, "Packed Repeated Fields"): per field a tag
+varint, a length varint and the values' raw bytes, which for ``double`` are
+little-endian IEEE 754. :class:`PackedCodec` writes and reads exactly those
 bytes with numpy, so the messages on the wire are the standard ones (grpcurl
 and generated stubs interoperate) while the Python side never touches a
 per-value object. Anything it does not expect (an unpacked encoding, an
@@ -33,7 +34,7 @@ from google.protobuf.message import DecodeError
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from sortie.errors import InvalidArgument, LimitExceeded, SortieError, grpc_code
+from sortie.errors import InvalidArgument, LimitExceeded, SortieError, grpc_code, message_of
 
 logger = logging.getLogger(__name__)
 
@@ -338,11 +339,12 @@ def unary_handler(name: str, method: Callable, field_names: Mapping[str, str],
         except SortieError as exc:
             logger.debug("%s rejected: %s", name, exc)
             code = grpc_code(exc).name
-            context.abort(grpc_code(exc), wire_message(exc, field_names))
+            context.abort(grpc_code(exc), message_of(wire_message(exc, field_names)))
         except Exception as exc:
             logger.exception("%s failed", name)
             code = "INTERNAL"
-            context.abort(grpc.StatusCode.INTERNAL, f"{name}: internal error ({type(exc).__name__}: {exc})")
+            context.abort(grpc.StatusCode.INTERNAL, message_of(f"{name}: internal error ({type(exc).__name__}: "
+                                                               f"{exc})"))
         finally:
             if stats is not None:
                 stats.record(short, time.perf_counter() - t0, code)

@@ -9,10 +9,22 @@ if it cannot keep up: bots and tests), and "paused" (no ticks until
 resumed). When ticks fall more than MAX_LAG_S behind the clock does not try
 to catch up in a burst: it slips, and the slip is counted (``overruns``);
 physics never waits on the network.
+
+The rate advertised to clients (WorldInfo.time_scale, WatchUpdate.time_scale,
+which receivers advance their world time by) is the rate the clock achieves:
+the set one while it keeps up, else the one measured over the last
+RATE_WINDOW_S of wall time (e.g. "fast" x100 that reaches x28 says 28), so a
+receiver's estimate of world time does not run ahead of the world.
+
+A server started paused runs the world's first tick before it stops (world
+time 1 / world rate): until a world has ticked it has no snapshot (its
+aircraft's states come from their first tick), and clients joining the paused
+exercise get the whole picture, as when a running clock is paused.
 """
 
 from __future__ import annotations
 
+import collections
 import functools
 import gc
 import logging
@@ -38,6 +50,12 @@ DEFAULT_MAX_WORKERS = 512  # concurrent RPCs (streams are coroutines, not thread
 EXPIRE_EVERY_S = 1.0
 # A realtime clock more than this far behind resynchronises instead of bursting.
 MAX_LAG_S = 0.25
+# The achieved clock rate is measured over this much wall time (sampled every RATE_SAMPLE_S);
+# it is advertised instead of the set rate when it falls short of it by more than
+# RATE_TOLERANCE, and changed only by more than that (each change goes to every stream).
+RATE_WINDOW_S = 2.0
+RATE_SAMPLE_S = 0.1
+RATE_TOLERANCE = 0.03
 
 
 @dataclass(frozen=True)
@@ -78,7 +96,8 @@ def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_
                         server_unix_time_s=time.time(), clock=clock, time_scale=time_scale,
                         world_rate_hz=world_rate_hz, network_rate_hz=config.network_rate_hz, target_areas=areas,
                         terrain=config.terrain, geoid_undulation_m=geoid_undulation_m,
-                        terrain_insets=config.insets)
+                        terrain_insets=config.insets,
+                        observer_radius_max_m=type_params(config.params, {}, None, "observer").aoi_radius_m)
 
 
 @dataclass
@@ -121,6 +140,9 @@ class SimulationServer:
         self.tick_ms: list[float] = []  # wall time of each tick + publish, for benchmarks
         self.overruns = 0
         self._clock = config.clock
+        self._rate_marks: collections.deque = collections.deque()  # (wall monotonic, world time) samples
+        self._achieved: float | None = None  # the advertised rate when short of the set one (None: the set one)
+        self._rate_reset = False  # set_clock asks the clock thread to measure anew
         self._stop = threading.Event()
         self._resume = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world-clock", daemon=True)
@@ -169,13 +191,42 @@ class SimulationServer:
             raise InvalidArgument("clock", f"must be one of {', '.join(CLOCKS)}", value=clock)
         if time_scale is not None:
             self.config.time_scale = float(time_scale)
+            self._achieved = None
+            self._rate_reset = True  # measured anew at the new rate (by the clock thread, which owns the marks)
         self._clock = clock
         if clock != "paused":
             self._resume.set()
 
+    @property
+    def time_scale(self) -> float:
+        """World seconds per wall second that the clock achieves (see the module docstring):
+        the set rate, or the measured one while it cannot keep up."""
+        return self.config.time_scale if self._achieved is None else self._achieved
+
     def world_info(self) -> pb.WorldInfo:
-        return world_info(self.config, self.world.time_s, self._clock, self.config.time_scale, 1.0 / self.world.dt,
+        return world_info(self.config, self.world.time_s, self._clock, self.time_scale, 1.0 / self.world.dt,
                           self.world.geoid_undulation_m)
+
+    def _measure_rate(self, wall: float) -> None:
+        """Sample (wall, world time) and update the advertised rate (clock thread, running clock)."""
+        marks = self._rate_marks
+        if self._rate_reset:
+            self._rate_reset = False
+            marks.clear()
+        if marks and wall - marks[-1][0] < RATE_SAMPLE_S:
+            return
+        marks.append((wall, self.world.time_s))
+        while wall - marks[0][0] > RATE_WINDOW_S:
+            marks.popleft()
+        span = wall - marks[0][0]
+        if span < RATE_WINDOW_S / 2:
+            return
+        rate = (self.world.time_s - marks[0][1]) / span
+        target = self.config.time_scale
+        if rate >= target * (1.0 - RATE_TOLERANCE):
+            self._achieved = None
+        elif self._achieved is None or abs(rate - self._achieved) > RATE_TOLERANCE * self._achieved:
+            self._achieved = float(f"{rate:.3g}")
 
     # -- the clock thread -----------------------------------------------------------------------
 
@@ -187,8 +238,11 @@ class SimulationServer:
         wall_next = time.monotonic()
         try:
             while not self._stop.is_set():
-                if self._clock == "paused":  # watchers learn the clock stopped; newcomers get their snapshot
+                # Paused: watchers learn the clock stopped; newcomers get their snapshot. A world
+                # that never ticked has none: its first tick runs first (see the module docstring).
+                if self._clock == "paused" and world.tick_count > 0:
                     self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), 0.0, world.wrecks)
+                    self._rate_marks.clear()  # the rate is measured anew when the clock runs again
                     self._resume.clear()
                     self._resume.wait(0.1)
                     wall_next = time.monotonic()
@@ -197,9 +251,12 @@ class SimulationServer:
                 if self.before_tick is not None:
                     self.before_tick(world)
                 world.tick()
+                running = self._clock != "paused"
+                if running:
+                    self._measure_rate(time.monotonic())
                 if world.time_s + 1e-9 >= next_net:
-                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), cfg.time_scale,
-                                           world.wrecks)
+                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(),
+                                           self.time_scale if running else 0.0, world.wrecks)
                     next_net += net_dt
                 self.tick_ms.append((time.perf_counter() - t0) * 1e3)
                 if len(self.tick_ms) > 100_000:

@@ -8,10 +8,23 @@ within ``vanished_timeout_s``; after that its agent is released (to its
 autopilot or removed, per the scenario) and the token stops working.
 
 Limits (all explicit): MAX_SESSIONS sessions; client names of 1-64 printable
-characters; the controls stream validates each message before applying it and
-ends the stream with INVALID_ARGUMENT on the first bad one, naming the field
-(the session and everyone else carry on); gRPC's message size limit
-(grpc_common.MAX_MESSAGE_BYTES) refuses oversized messages before parsing.
+characters, agent names of at most 64 (a scenario's limit); MAX_EVENT_STREAMS
+events streams per session; the controls stream validates each message before
+applying it and ends the stream with INVALID_ARGUMENT on the first bad one,
+naming the field (the session and everyone else carry on); gRPC's message size
+limit (grpc_common.MAX_MESSAGE_BYTES) refuses oversized messages before
+parsing, and bytes that do not decode are INVALID_ARGUMENT with the decoder's
+reason. An error message shows a bad value cut short (sortie.errors.shown).
+
+Streams end with a status that says why: OK when the server stops (the end of
+the exercise), ABORTED when a new Watch of the session supersedes a Watch
+("superseded by a new Watch of this session") or the session leaves while a
+stream is open ("session left").
+
+No stream holds a thread while it waits: a Watch stream awaits its queue's
+asyncio event (set by the publisher), an events stream an event that one
+thread per servicer (:class:`EventBell`) sets for all of them when the world
+emits; the thread pool is left to Join, Leave and commands.
 """
 
 from __future__ import annotations
@@ -28,10 +41,12 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
-from server.streaming import ClientQueue, encode_watch_update
 from server.external import external_state
+from server.grpc_common import Malformed, tolerant_decoder
+from server.streaming import ClientQueue, encode_watch_update
 from server.world import AIRCRAFT, GROUND, World
-from sortie.errors import InvalidArgument, LimitExceeded, PermissionDenied, SortieError, Unauthenticated, grpc_code
+from sortie.errors import (InvalidArgument, LimitExceeded, PermissionDenied, SortieError, Unauthenticated, grpc_code,
+                           message_of)
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import geodetic_to_ecef
 
@@ -39,9 +54,13 @@ logger = logging.getLogger(__name__)
 
 SERVICE_NAME = "sortie.v1.SimulationService"
 MAX_SESSIONS = 256
-MAX_NAME_CHARS = 64
-# How long a Watch stream waits for changes before checking that it is still wanted.
+MAX_NAME_CHARS = 64  # client names, and agent names (a scenario's agent names are at most 64 characters)
+MAX_EVENT_STREAMS = 4  # WatchEvents streams open at once per session
+# How long a stream waits for changes before checking that it is still wanted (on the event
+# loop: the wait holds no thread).
 STREAM_POLL_S = 0.25
+SUPERSEDED = "superseded by a new Watch of this session"
+SESSION_LEFT = "session left"
 
 
 def status_of(error: Exception):
@@ -58,6 +77,8 @@ class Session:
     radius_m: float = 0.0
     last_seen: float = field(default_factory=time.monotonic)
     open_streams: int = 0
+    event_streams: int = 0  # WatchEvents streams open (at most MAX_EVENT_STREAMS)
+    left: bool = False  # set by Sessions.leave: its streams end (ABORTED "session left")
     queue: ClientQueue | None = None
     # What the session's stream has been told it sees (server.streaming.Publisher):
     # the ids, and the same as a mask over the publisher's entity layout number visible_layout.
@@ -86,6 +107,9 @@ class Sessions:
         if role not in (pb.ROLE_PILOT, pb.ROLE_DRIVER, pb.ROLE_OBSERVER, pb.ROLE_BOT, pb.ROLE_GATEWAY):
             raise InvalidArgument("role", "must be ROLE_PILOT, ROLE_DRIVER, ROLE_OBSERVER, ROLE_BOT or ROLE_GATEWAY",
                                   value=role)
+        if len(agent_name) > MAX_NAME_CHARS:
+            raise InvalidArgument("agent_name", f"must be at most {MAX_NAME_CHARS} characters (no scenario agent "
+                                                "has a longer name)", value=agent_name)
         with self._lock:
             if len(self._by_token) >= MAX_SESSIONS:
                 raise LimitExceeded("sessions", len(self._by_token) + 1, MAX_SESSIONS)
@@ -158,8 +182,9 @@ class Sessions:
             s = self._by_token.pop(token, None)
         if s is None:
             raise Unauthenticated("unknown or expired session token")
+        s.left = True
         if s.queue is not None:
-            s.queue.close()
+            s.queue.close(SESSION_LEFT)
         if s.agent_id:
             self.world.release(s.agent_id, vanished=vanished)
         if s.role == pb.ROLE_GATEWAY:
@@ -185,6 +210,69 @@ class Sessions:
 
     def __len__(self) -> int:
         return len(self._by_token)
+
+
+class EventBell:
+    """Wakes the events streams when the world emits, as the publisher wakes the Watch streams.
+
+    Each stream is a coroutine that awaits an asyncio.Event of its own (:meth:`add`). One
+    thread waits on the event log's condition for all of them and, when the log grows, sets
+    every stream's event with one call per event loop; so a waiting stream holds no thread
+    (they used to wait on the thread pool Join, Leave and commands run on: 40 streams made
+    each of those take 1.0-1.3 s). The thread runs while a stream is registered and ends
+    within a second of the last one leaving.
+    """
+
+    def __init__(self, log):
+        self.log = log  # server.world.EventLog: events_total, event_cond
+        self._lock = threading.Lock()
+        self._events: dict = {}  # asyncio.Event -> its loop
+        self._thread: threading.Thread | None = None
+
+    def add(self, loop) -> asyncio.Event:
+        """A new stream's event (set on ``loop`` whenever the log grows); :meth:`remove` it after."""
+        event = asyncio.Event()
+        with self._lock:
+            self._events[event] = loop
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="events-bell", daemon=True)
+                self._thread.start()
+        return event
+
+    def remove(self, event) -> None:
+        with self._lock:
+            self._events.pop(event, None)
+
+    def _run(self) -> None:
+        log = self.log
+        seen = log.events_total
+        while True:
+            with log.event_cond:
+                if log.events_total == seen:
+                    log.event_cond.wait(1.0)
+                total = log.events_total
+            with self._lock:
+                if not self._events:
+                    self._thread = None  # under the lock: add() starts a new one from here on
+                    return
+                by_loop: dict = {}
+                if total != seen:
+                    for event, loop in self._events.items():
+                        by_loop.setdefault(loop, []).append(event)
+            seen = total
+            for loop, events in by_loop.items():
+                try:
+                    loop.call_soon_threadsafe(lambda events=events: [e.set() for e in events])
+                except RuntimeError:  # the loop has closed: nobody is reading
+                    pass
+
+
+def _decoded(request, what: str):
+    """``request``, or INVALID_ARGUMENT with the decoder's reason when its bytes did not decode
+    (grpc_common.tolerant_decoder; gRPC alone would answer UNKNOWN or INTERNAL)."""
+    if isinstance(request, Malformed):
+        raise InvalidArgument("request", f"does not decode as a {what}: {request.reason}")
+    return request
 
 
 @dataclass
@@ -214,6 +302,7 @@ class SimulationServicer:
         self.world = sessions.world
         self.world_info = world_info
         self.blocking = blocking  # concurrent.futures executor for calls that may block (None: the loop's default)
+        self.bell = EventBell(self.world)
 
     async def _offload(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.blocking, fn, *args)
@@ -223,10 +312,11 @@ class SimulationServicer:
         code = status_of(error)
         if code == grpc.StatusCode.INTERNAL:
             logger.error("internal error in a simulation RPC", exc_info=error)
-        await context.abort(code, str(error))
+        await context.abort(code, message_of(error))
 
     async def Join(self, request, context):
         try:
+            _decoded(request, "Join request")
             s = await self._offload(self.sessions.join, request.client_name, request.role, request.agent_name,
                                     (request.observer_lat_deg, request.observer_lon_deg, request.observer_radius_m))
             return pb.JoinResponse(session_token=s.token, agent_id=s.agent_id, world=self.world_info())
@@ -235,6 +325,7 @@ class SimulationServicer:
 
     async def Leave(self, request, context):
         try:
+            _decoded(request, "Leave request")
             await self._offload(self.sessions.leave, request.session_token)
             return pb.LeaveResponse()
         except Exception as exc:  # noqa: BLE001
@@ -254,9 +345,10 @@ class SimulationServicer:
         """A client stream: each message handled in turn (on the thread pool); the first
         failure ends the stream with its status; else ``response_class(accepted=n)``."""
         accepted = 0
+        what = f"{response_class.DESCRIPTOR.name.removesuffix('Response')} message"
         try:
             async for msg in request_iterator:
-                await self._offload(handle, msg)
+                await self._offload(handle, _decoded(msg, what))
                 accepted += 1
             return response_class(accepted=accepted)
         except Exception as exc:  # noqa: BLE001 - every error becomes a status
@@ -291,12 +383,12 @@ class SimulationServicer:
 
     async def Watch(self, request, context):
         try:
-            s = self.sessions.get(request.session_token)
+            s = self.sessions.get(_decoded(request, "Watch request").session_token)
         except Exception as exc:  # noqa: BLE001
             await self._fail(context, exc)
             return
         if s.queue is not None:
-            s.queue.close()
+            s.queue.close(SUPERSEDED)
         queue = ClientQueue(asyncio.get_running_loop())
         s.reset_visible()
         s.queue = queue
@@ -320,57 +412,76 @@ class SimulationServicer:
         finally:
             s.open_streams -= 1
             queue.close()
-
-    def _events_after(self, count: int):
-        """(events, new count), waiting up to STREAM_POLL_S for one (runs on the thread pool)."""
-        with self.world.event_cond:
-            if self.world.events_total == count:
-                self.world.event_cond.wait(STREAM_POLL_S)
-        return self.world.events_since(count)
+        if queue.close_reason is not None:  # not the server's end: say why this stream ends
+            await context.abort(grpc.StatusCode.ABORTED, queue.close_reason)
 
     async def WatchEvents(self, request, context):
         try:
-            s = self.sessions.get(request.session_token)
+            s = self.sessions.get(_decoded(request, "WatchEvents request").session_token)
+            if s.event_streams >= MAX_EVENT_STREAMS:
+                raise LimitExceeded("events_streams", s.event_streams + 1, MAX_EVENT_STREAMS,
+                                    "WatchEvents streams open at once per session")
         except Exception as exc:  # noqa: BLE001
             await self._fail(context, exc)
             return
         s.open_streams += 1
-        _, count = self.world.events_since(1 << 62)
+        s.event_streams += 1
+        log = self.world
+        bell = self.bell.add(asyncio.get_running_loop())
+        count = log.events_total  # events from now on
         try:
-            while not context.done():
-                events, count = await self._offload(self._events_after, count)
+            while not context.done() and not s.left:
+                bell.clear()
                 s.last_seen = time.monotonic()
-                for ev in events:
-                    await context.write(pb.WorldEvent(
-                        time_s=ev.time_s, kind=ev.kind, entity_id=ev.entity_id, lat_deg=ev.lat_deg,
-                        lon_deg=ev.lon_deg, alt_msl_m=ev.alt_msl_m,
-                        detail_json=json.dumps(ev.detail, sort_keys=True, default=str)))
+                if log.events_total != count:
+                    events, count = log.events_since(count)
+                    for ev in events:
+                        await context.write(pb.WorldEvent(
+                            time_s=ev.time_s, kind=ev.kind, entity_id=ev.entity_id, lat_deg=ev.lat_deg,
+                            lon_deg=ev.lon_deg, alt_msl_m=ev.alt_msl_m,
+                            detail_json=json.dumps(ev.detail, sort_keys=True, default=str)))
+                    continue
+                try:  # on the loop: a waiting stream holds no thread
+                    async with asyncio.timeout(STREAM_POLL_S):
+                        await bell.wait()
+                except TimeoutError:
+                    pass
         finally:
+            self.bell.remove(bell)
             s.open_streams -= 1
+            s.event_streams -= 1
+        if s.left:
+            await context.abort(grpc.StatusCode.ABORTED, SESSION_LEFT)
 
     async def GetWorld(self, request, context):
-        return self.world_info()
+        try:
+            _decoded(request, "GetWorld request")
+            return self.world_info()
+        except Exception as exc:  # noqa: BLE001
+            await self._fail(context, exc)
 
 
 def method_handlers(servicer: SimulationServicer) -> dict:
     def unary(fn, req):
-        return grpc.unary_unary_rpc_method_handler(fn, request_deserializer=req.FromString,
+        return grpc.unary_unary_rpc_method_handler(fn, request_deserializer=tolerant_decoder(req.FromString),
                                                    response_serializer=lambda m: m.SerializeToString())
 
+    # Every request decoder is tolerant: undecodable bytes reach the handler as a
+    # grpc_common.Malformed, which it answers INVALID_ARGUMENT with the decoder's reason.
     return {
         "Join": unary(servicer.Join, pb.JoinRequest),
         "Leave": unary(servicer.Leave, pb.LeaveRequest),
         "GetWorld": unary(servicer.GetWorld, pb.GetWorldRequest),
         "SendControls": grpc.stream_unary_rpc_method_handler(
-            servicer.SendControls, request_deserializer=pb.ControlInput.FromString,
+            servicer.SendControls, request_deserializer=tolerant_decoder(pb.ControlInput.FromString),
             response_serializer=lambda m: m.SerializeToString()),
         "PublishExternal": grpc.stream_unary_rpc_method_handler(
-            servicer.PublishExternal, request_deserializer=pb.ExternalEntityUpdate.FromString,
+            servicer.PublishExternal, request_deserializer=tolerant_decoder(pb.ExternalEntityUpdate.FromString),
             response_serializer=lambda m: m.SerializeToString()),
         "Watch": grpc.unary_stream_rpc_method_handler(
-            servicer.Watch, request_deserializer=pb.WatchRequest.FromString,
+            servicer.Watch, request_deserializer=tolerant_decoder(pb.WatchRequest.FromString),
             response_serializer=bytes),  # updates come encoded (server.streaming.encode_watch_update)
         "WatchEvents": grpc.unary_stream_rpc_method_handler(
-            servicer.WatchEvents, request_deserializer=pb.WatchEventsRequest.FromString,
+            servicer.WatchEvents, request_deserializer=tolerant_decoder(pb.WatchEventsRequest.FromString),
             response_serializer=lambda m: m.SerializeToString()),
     }

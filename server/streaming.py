@@ -70,6 +70,7 @@ class ClientQueue:
         self._snapshot = True
         self._dirty = False
         self.closed = False
+        self.close_reason: str | None = None  # see close()
         self.merged = 0  # states overwritten before they were read (slow-reader measure)
 
     def push(self, time_s: float, entered: dict, left, states: dict, wake: bool = True,
@@ -139,8 +140,12 @@ class ClientQueue:
         """True until the first update (the snapshot) has been taken."""
         return self._snapshot
 
-    def close(self) -> None:
+    def close(self, reason: str | None = None) -> None:
+        """End the stream; ``reason``: why, when it is not the server's end (the stream then
+        ends ABORTED with it: a new Watch of the session, the session left)."""
         with self.cond:
+            if not self.closed:
+                self.close_reason = reason
             self.closed = True
             self.cond.notify_all()
         self._wake()

@@ -6,6 +6,33 @@ Library code raises these; servicers catch :class:`SortieError` and call
 
 from __future__ import annotations
 
+# How much of a bad value an error message shows (its repr cut here, then its length), and the
+# longest message a status carries: gRPC sends the message as trailing metadata, which a
+# receiver refuses beyond 16 KiB (the call then fails RESOURCE_EXHAUSTED instead of saying why).
+SHOWN_VALUE_CHARS = 64
+MAX_MESSAGE_CHARS = 1024
+
+
+def shown(value) -> str:
+    """``repr(value)`` for an error message, cut to SHOWN_VALUE_CHARS with the value's length
+    when longer (a 5 MB name is not echoed back)."""
+    text = repr(value)
+    if len(text) <= SHOWN_VALUE_CHARS:
+        return text
+    try:
+        size = f"{len(value):,} {'characters' if isinstance(value, str) else 'items'}"
+    except TypeError:
+        size = f"{len(text):,} characters"
+    return f"{text[:SHOWN_VALUE_CHARS]}... ({size})"
+
+
+def message_of(error) -> str:
+    """An error's (or a text's) text for a status or a log line, at most MAX_MESSAGE_CHARS (cut with its length)."""
+    text = str(error)
+    if len(text) <= MAX_MESSAGE_CHARS:
+        return text
+    return f"{text[:MAX_MESSAGE_CHARS]}... (message of {len(text):,} characters cut)"
+
 
 class SortieError(Exception):
     """Root of every error Sortie raises on purpose."""
@@ -14,13 +41,14 @@ class SortieError(Exception):
 class InvalidArgument(SortieError, ValueError):
     """An input value is malformed: NaN, out of range, wrong shape.
 
-    The message always names the field, and the index when the field is an array.
+    The message always names the field, and the index when the field is an array; the value
+    shown is cut short (:func:`shown`).
     """
 
     def __init__(self, field: str, message: str, index: int | None = None, value=None):
         where = f"{field}[{index}]" if index is not None else field
-        shown = "" if value is None else f" (got {value!r})"
-        super().__init__(f"{where}: {message}{shown}")
+        got = "" if value is None else f" (got {shown(value)})"
+        super().__init__(f"{where}: {message}{got}")
         self.field = field
         self.message = message
         self.index = index
