@@ -36,7 +36,8 @@ def add_parser(sub) -> None:
     p = sub.add_parser("server", help="run the simulation server of a scenario",
                        description="Run sortie.v1.SimulationService (with health and reflection) for a scenario "
                                    "until SIGTERM/SIGINT or the exercise's end; prints the bound address.")
-    p.add_argument("--scenario", required=True, metavar="FILE", help="scenario file, .toml or the same tables in .yaml/.yml (see server/scenario.py)")
+    p.add_argument("--scenario", required=True, metavar="FILE",
+                   help="scenario file, .toml or the same tables in .yaml/.yml (see server/scenario.py)")
     terrain = p.add_mutually_exclusive_group()
     terrain.add_argument("--dem", nargs="+", metavar="FILE", help="DEM files instead of the scenario's terrain")
     terrain.add_argument("--terrain", metavar="HOST:PORT[,HOST:PORT...]",
