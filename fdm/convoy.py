@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from fdm.ground import GroundVehicles
-from fdm.vehicle_types import P_ALAT, P_BRAKE, P_KIND, P_VMAX, TRACKED
+from fdm.vehicle_types import P_ALAT, P_BRAKE, P_KIND, P_VMAX, P_VREV, TRACKED
 from sortie.errors import InvalidArgument
 from terrain.geodesy import radii_of_curvature
 from terrain.validate import check_latlon
@@ -76,6 +76,12 @@ PASS_MAX_OFFSET_M = 25.0
 # cannot turn standing) until within PASS_CRAWL_CLEAR_M of the obstacle.
 PASS_CRAWL_MPS = 3.0
 PASS_CRAWL_CLEAR_M = 1.0
+# A driver that has stood for BACK_OFF_AFTER_S too close to what it would pass to steer round it
+# (a wheeled vehicle cannot turn standing; two meeting nose to nose at a corner) backs straight off
+# at BACK_OFF_MPS (its reverse limit if lower) for BACK_OFF_S, then steers round it.
+BACK_OFF_AFTER_S = 2.0
+BACK_OFF_S = 3.0
+BACK_OFF_MPS = 2.0
 # Segments searched before and after a vehicle's last segment when projecting.
 SEARCH_BEHIND = 1
 SEARCH_AHEAD = 3
@@ -522,14 +528,23 @@ class FollowerSet:
         # convoy's law, not by braking for each other), -1 for a route follower's.
         self.convoy_of = np.repeat(np.where(convoy, np.arange(convoy.size), -1), sizes).astype(np.int64)
         self._pass_offset = self._pass_until = None  # passes in progress (see update), made on the first
+        self._s = None  # each vehicle's arc length along its route at the last update
 
-    def update(self, ceiling_mps=None, pass_offset=None, pass_length=None) -> None:
+    def remaining_m(self) -> np.ndarray:
+        """Per vehicle of :attr:`index`, the route still ahead of it (m) as of the last update, for
+        those that stop at their route's end; inf for the others and before the first update."""
+        if self._s is None:
+            return np.full(self.index.size, np.inf)
+        return np.where(self._stops, np.maximum(self._length - self._s, 0.0), np.inf)
+
+    def update(self, ceiling_mps=None, pass_offset=None, pass_length=None, backing=None) -> None:
         """Every follower's update (locate, speed law, pure pursuit), applied at once;
         ``ceiling_mps`` (per vehicle of :attr:`index`, or None): a further speed ceiling (an
         obstacle ahead, :func:`obstacle_speed_ceiling`). ``pass_offset``/``pass_length`` (per
         vehicle, NaN: none): pass an obstacle with the path shifted ``pass_offset`` metres to
         the right (:func:`pass_offset_m`) for the next ``pass_length`` metres of route; a
-        pass in progress on the same side keeps the larger shift and the farther end."""
+        pass in progress on the same side keeps the larger shift and the farther end.
+        ``backing`` (per vehicle, bool, or None): back straight off at BACK_OFF_MPS."""
         if not self.followers:
             return
         v, idx, fs, r = self.vehicles, self.index, self.followers, self._route
@@ -540,6 +555,7 @@ class FollowerSet:
                      self._v0, v.lat[idx], v.lon[idx], hint, v.heading_deg[idx], s, x, seg)
         for f, a, b in zip(fs, self._v0[:-1].tolist(), self._v0[1:].tolist()):
             f.s, f.cross_track_m, f._hint = s[a:b], x[a:b], seg[a:b]
+        self._s = s
         speed = v.speed_mps[idx]
         lookahead = np.clip(LOOKAHEAD_GAIN_S * np.abs(speed), LOOKAHEAD_MIN_M, LOOKAHEAD_MAX_M)
         t = v.table[v.type_id[idx]]
@@ -559,7 +575,13 @@ class FollowerSet:
         offset = self._passing(s, pass_offset, pass_length)
         if offset is not None:
             self._shift_goals(s + lookahead, offset, g_lat, g_lon)
-        v.set_controls(*pursue(v, idx, g_lat, g_lon, speed_cmd), index=idx)
+        speed_cmd, yaw_cmd = pursue(v, idx, g_lat, g_lon, speed_cmd)
+        if backing is not None and backing.any():
+            rev = v.table[v.type_id[idx[backing]], P_VREV]
+            speed_cmd = np.where(backing, 0.0, speed_cmd)
+            speed_cmd[backing] = -np.minimum(BACK_OFF_MPS, rev)
+            yaw_cmd = np.where(backing, 0.0, yaw_cmd)
+        v.set_controls(speed_cmd, yaw_cmd, index=idx)
 
     def _passing(self, s, pass_offset, pass_length):
         """The passes in progress after this update's requests (see :meth:`update`): per

@@ -25,12 +25,26 @@ import numpy as np
 
 # Free space either side of the path (m): a vehicle brakes for what would pass closer than this.
 PATH_MARGIN_M = 0.75
+# Crossing traffic: a mover whose heading differs from the vehicle's by at least CROSSING_MIN_DEG
+# (and at most 180 less it: head-on and same-way traffic is the path's) and whose closest approach,
+# both going on as they go, comes within YIELD_HORIZON_S and closer than their radii and
+# YIELD_MARGIN_M, is a conflict; the vehicle that has the other on its right yields (the
+# right-hand rule: of two crossing, exactly one sees the other on its right), stopping short of
+# where it would be at the closest approach. Movers are at least MOVING_MPS.
+CROSSING_MIN_DEG = 25.0
+YIELD_HORIZON_S = 6.0
+YIELD_MARGIN_M = 1.5
+MOVING_MPS = 0.5
 
 
 @numba.njit(cache=True, nogil=True)
-def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, rows, reach, out_clear,
-                  out_row, out_across, out_need):
+def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, rows, reach, out_clear,
+                  out_row, out_across, out_need, out_yield):
     n = p.shape[0]
+    v_max = 0.0
+    for i in range(n):
+        v_max = max(v_max, math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2))
+    cos_cross = math.cos(math.radians(CROSSING_MIN_DEG))
     best, axis = -1.0, 0
     for ax in range(3):  # the axis the entities spread most along
         m = 0.0
@@ -51,6 +65,7 @@ def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, grou
         i = rows[k]
         out_clear[k] = math.inf
         out_row[k] = -1
+        out_yield[k] = math.inf
         if i < 0:
             continue
         sp, cp = math.sin(math.radians(lat_deg[i])), math.cos(math.radians(lat_deg[i]))
@@ -59,12 +74,16 @@ def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, grou
         nx, ny, nz = -sp * cl, -sp * sl, cp
         ux, uy, uz = cp * cl, cp * sl, sp
         fe, fn = math.sin(heading_rad[i]), math.cos(heading_rad[i])  # ahead, east and north parts
-        lo = np.searchsorted(keys, p[i, axis] - reach[k] - radius[i] - r_max)
-        hi = np.searchsorted(keys, p[i, axis] + reach[k] + radius[i] + r_max, side="right")
+        vie = vel[i, 0] * ex + vel[i, 1] * ey
+        vin = vel[i, 0] * nx + vel[i, 1] * ny + vel[i, 2] * nz
+        window = reach[k] + radius[i] + r_max + v_max * YIELD_HORIZON_S
+        lo = np.searchsorted(keys, p[i, axis] - window)
+        hi = np.searchsorted(keys, p[i, axis] + window, side="right")
         for o in range(lo, hi):
             j = order[o]
-            if j == i or (group[i] >= 0 and group[j] == group[i]):
-                continue
+            if j == i or (group[i] >= 0 and group[j] == group[i]
+                          and math.cos(heading_rad[i] - heading_rad[j]) > 0.0):
+                continue  # its own convoy going its way (the convoy's law spaces it; met head-on it is traffic)
             dx, dy, dz = p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2]
             up = dx * ux + dy * uy + dz * uz
             if abs(up) > radius[i] + radius[j]:
@@ -73,6 +92,20 @@ def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, grou
             dn = dx * nx + dy * ny + dz * nz
             ahead = de * fe + dn * fn
             across = de * fn - dn * fe  # to the right
+            vje = vel[j, 0] * ex + vel[j, 1] * ey
+            vjn = vel[j, 0] * nx + vel[j, 1] * ny + vel[j, 2] * nz
+            sj = math.sqrt(vje * vje + vjn * vjn)
+            if across > 0.0 and sj >= MOVING_MPS and abs(vje * fe + vjn * fn) <= cos_cross * sj:
+                # Crossing traffic on its right: yield when they would come too close.
+                we, wn = vje - vie, vjn - vin
+                ww = we * we + wn * wn
+                t = -(de * we + dn * wn) / ww if ww > 0.0 else 0.0
+                if 0.0 < t <= YIELD_HORIZON_S:
+                    ce, cn = de + we * t, dn + wn * t
+                    if ce * ce + cn * cn < (radius[i] + radius[j] + YIELD_MARGIN_M) ** 2:
+                        # Stop short of its position then, by the two radii and the margin.
+                        own = (vie * fe + vin * fn) * t - radius[i] - radius[j] - YIELD_MARGIN_M
+                        out_yield[k] = min(out_yield[k], own)
             if half_l[j] > 0.0:  # a box: its half extents along and across i's heading
                 ge, gn = math.sin(heading_rad[j]), math.cos(heading_rad[j])
                 c = abs(fe * ge + fn * gn)
@@ -94,24 +127,29 @@ def _ahead_kernel(p, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, grou
 
 
 def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length_m, half_width_m, group, rows,
-                    reach_m) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    reach_m, vel_ecef_mps=None) -> tuple:
     """For each vehicle ``rows`` (indices into the entity arrays; -1: none) the free distance
     (m) from its front to the nearest entity in its path ahead (the module docstring), that
     entity's index, how far it is to the vehicle's right (m, negative: left) and how far apart
     sideways their centres must be for the two to pass clear (m: their half extents across
     the heading); inf, -1, NaN, NaN where nothing is within ``reach_m`` (per row, metres of
-    clearance).
+    clearance); and how far it may go on before yielding to crossing traffic (m, the module
+    docstring's right-hand rule; inf: no conflict; ``vel_ecef_mps`` (n, 3): the entities'
+    velocities, None: nobody moves).
 
     Entity arrays (n,): ECEF positions (n, 3) m, geodetic lat/lon, heading (degrees from north;
     of boxes, and of the asking vehicles), bounding radius, half length (0: a sphere), half
-    width; ``group`` (n,) int64: entities of one group (>= 0) ignore each other (a convoy,
-    whose spacing its own law keeps)."""
+    width; ``group`` (n,) int64: entities of one group (>= 0) going the same way ignore each
+    other (a convoy, whose spacing its own law keeps; on an out-and-back route its leader
+    meets its own column head-on, and that is traffic)."""
     rows = np.ascontiguousarray(rows, np.int64)
     clear, row = np.full(rows.size, np.inf), np.full(rows.size, -1, np.int64)
     across, need = np.full(rows.size, np.nan), np.full(rows.size, np.nan)
+    yield_m = np.full(rows.size, np.inf)
     p = np.ascontiguousarray(ecef_m, np.float64).reshape(-1, 3)
     if rows.size == 0 or p.shape[0] < 2:
-        return clear, row, across, need
+        return clear, row, across, need, yield_m
+    vel = np.zeros_like(p) if vel_ecef_mps is None else np.nan_to_num(np.asarray(vel_ecef_mps, np.float64))
     finite = np.isfinite(p).all(axis=1)
     if not finite.all():  # an entity with no position is in nobody's path
         p = np.where(finite[:, None], p, 1.0e12)
@@ -119,8 +157,9 @@ def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length
     def column(values, dtype=np.float64):
         return np.ascontiguousarray(np.broadcast_to(np.asarray(values, dtype), (p.shape[0],)))
 
-    _ahead_kernel(p, column(lat_deg), column(lon_deg), np.radians(column(heading_deg)), column(radius_m),
-                  column(half_length_m), column(half_width_m), column(group, np.int64), rows,
-                  np.ascontiguousarray(np.broadcast_to(np.asarray(reach_m, np.float64), rows.shape)), clear, row,
-                  across, need)
-    return clear, row, across, need
+    _ahead_kernel(p, np.ascontiguousarray(vel.reshape(-1, 3)), column(lat_deg), column(lon_deg),
+                  np.radians(column(heading_deg)), column(radius_m), column(half_length_m), column(half_width_m),
+                  column(group, np.int64), rows,
+                  np.ascontiguousarray(np.broadcast_to(np.asarray(reach_m, np.float64), rows.shape)),
+                  clear, row, across, need, yield_m)
+    return clear, row, across, need, yield_m

@@ -57,11 +57,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fdm.aircraft import InitialConditions, validate_controls
-from fdm.convoy import (PASS_AFTER_M, PASS_CRAWL_CLEAR_M, PASS_CRAWL_MPS, Convoy, FollowerSet, Route, RouteFollower,
+from fdm.convoy import (BACK_OFF_AFTER_S, BACK_OFF_MPS, BACK_OFF_S, OBSTACLE_STANDOFF_M, PASS_AFTER_M,
+                        PASS_CRAWL_CLEAR_M, PASS_CRAWL_MPS, Convoy, FollowerSet, Route, RouteFollower,
                         obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m)
 from fdm.ground import BLOCKED_COLLISION, BLOCKED_NAMES, FREE, GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
-from fdm.vehicle_types import P_BRAKE, P_LEN
+from fdm.vehicle_types import P_BRAKE
 from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
 from server.obstacles import clearance_ahead
@@ -98,6 +99,14 @@ HOLD_DEPTH_M = 1.0e-3
 # ("blocked", with the reason) and again only after it has driven free for this long (s): a
 # driver pushing against a slope is stopped, accelerates and is stopped again tick after tick.
 BLOCKED_REPORT_AFTER_FREE_S = 1.0
+# An autopilot driver held at a standstill by traffic (what is in its path, server/obstacles.py)
+# for this long (s) is reported too ("blocked", reason "traffic"): a jam is not silent.
+TRAFFIC_REPORT_S = 10.0
+TRAFFIC = -1  # the "blocked" code of a traffic stop (fdm.ground's codes are its own)
+BACK_OFF_RUN_M = BACK_OFF_MPS * BACK_OFF_S  # how far a driver backs off (fdm.convoy)
+# A driver backs off again only this long (s) after it last did: one whose way round stays
+# blocked waits (and is reported as traffic) instead of shuttling back and forth.
+BACK_OFF_RETRY_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -235,6 +244,9 @@ class World(EventLog):
         self._scenario_routes: dict[int, dict] = {}  # the route spec each ground agent spawned on
         self._followers = FollowerSet([])  # a RouteFollower/Convoy per route, rebuilt when vehicles go
         self._blocked_reported: dict = {}  # entity id -> (blocked reason reported, last time seen blocked)
+        self._waiting: dict = {}  # entity id -> world time since which traffic has held it at a standstill
+        self._backing: dict = {}  # entity id -> world time until which it backs off (fdm.convoy BACK_OFF_S)
+        self._backed: dict = {}  # entity id -> world time it last began to back off
         self._followed: set = set()  # entity ids on a route
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
         self._hold_version = 0  # bumped when a hold changes (its arrays are cached against it)
@@ -655,8 +667,9 @@ class World(EventLog):
             if self.ground is not None and self.ground.n:
                 fs = self._followers
                 if fs.followers:
-                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of))
+                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, remaining_m=fs.remaining_m()))
                 self._hold_ground_headings()
+                self._heading_before = self.ground.heading_deg.copy()  # turning into another is held too
                 self.ground.step(self.dt)
             air = self._air_tick = self.air.end_tick()
             # The next tick's aircraft start now, with the commands in so far: in worker
@@ -691,14 +704,21 @@ class World(EventLog):
 
     def _terrain_blocks(self) -> list[WorldEvent]:
         """A "blocked" event for each ground vehicle of this world that the terrain stopped
-        this tick (fdm.ground: ``reason`` side_slope, slope, water or outside) and that was not
+        this tick (fdm.ground: ``reason`` side_slope, slope, water or outside), or that traffic
+        has held at a standstill for TRAFFIC_REPORT_S (``reason`` traffic), and that was not
         already reported for that reason (see BLOCKED_REPORT_AFTER_FREE_S), where it stands;
-        so a vehicle stuck on its route says so once, not silently and not every tick."""
+        so a vehicle stuck on its route, or in a jam, says so once, not silently and not every
+        tick."""
         g = self.ground
         if g is None or g.n == 0:
             return []
         gnd_ids, idx, _ = self._layout()
-        code = g.blocked[idx]
+        code = g.blocked[idx].astype(np.int64)
+        if self._waiting:  # held by traffic long enough (and not stopped by the terrain)
+            rows_w, found = rows_of(gnd_ids, np.fromiter(self._waiting, np.int64, len(self._waiting)))
+            since = np.fromiter(self._waiting.values(), np.float64, len(self._waiting))
+            late = rows_w[found & (self.time_s - since >= TRAFFIC_REPORT_S)]
+            code[late[code[late] == FREE]] = TRAFFIC
         rows = np.flatnonzero((code != FREE) & (code != BLOCKED_COLLISION))
         reported, events = self._blocked_reported, []
         for k in rows.tolist():
@@ -706,7 +726,8 @@ class World(EventLog):
             if reported.get(eid, (FREE,))[0] != c and eid not in self.wrecks:
                 j = idx[k]
                 events.append(WorldEvent(self.time_s, "blocked", eid, float(g.lat[j]), float(g.lon[j]),
-                                         float(g.height_msl_m[j]), {"reason": BLOCKED_NAMES[c]}))
+                                         float(g.height_msl_m[j]),
+                                         {"reason": "traffic" if c == TRAFFIC else BLOCKED_NAMES[c]}))
             reported[eid] = (c, self.time_s)
         if len(reported) > rows.size:  # forget those free (or gone) for long enough
             for eid in [i for i, (_, t) in reported.items() if self.time_s - t >= BLOCKED_REPORT_AFTER_FREE_S]:
@@ -826,8 +847,12 @@ class World(EventLog):
         ids = after.ids[ka]
         radius, half_l, half_w, fixed, gnd_rows, gnd_idx = self._shapes(ids)
         heading = np.zeros(ids.size)
+        heading0 = heading.copy()  # at the tick's start
         if gnd_rows.size:
             heading[gnd_rows] = self.ground.heading_deg[gnd_idx]
+            start = getattr(self, "_heading_before", None)
+            heading0[gnd_rows] = start[gnd_idx] if start is not None and start.size == self.ground.n else \
+                heading[gnd_rows]
         moving = ~fixed
         if self.wrecks:  # crashed aircraft and destroyed vehicles move no more
             rows, found = rows_of(ids, np.fromiter(self.wrecks, np.int64, len(self.wrecks)))
@@ -837,8 +862,8 @@ class World(EventLog):
                                        lat_deg=after.lat_deg[ka], lon_deg=after.lon_deg[ka], ongoing=gnd_rows.size > 0)
         held = t < 0.0  # touching at both ends of the tick: an ongoing contact
         if held.any():
-            back = self._held_back(before, after, ka, kb, ci[held], cj[held], heading, radius, half_l, half_w,
-                                   gnd_rows, gnd_idx, moving)
+            back = self._held_back(before, after, ka, kb, ci[held], cj[held], (heading0, heading), radius, half_l,
+                                   half_w, gnd_rows, gnd_idx, moving)
             ci, cj, t, dist = ci[~held], cj[~held], t[~held], dist[~held]
         else:
             back = None
@@ -879,17 +904,20 @@ class World(EventLog):
         if back is not None and back[0].size:  # after the stops: the tick's start is before any contact point
             alive = np.array([not self.entities[int(i)].destroyed for i in ids[back[1]]], bool)
             rows = back[0][alive]
+            self.ground.heading_deg[rows] = heading0[back[1][alive]]  # and as it was turned then
             self.ground.stop(rows, lat=before.lat_deg[kb[back[1][alive]]], lon=before.lon_deg[kb[back[1][alive]]])
         return events
 
-    def _held_back(self, before: Snapshot, after: Snapshot, ka, kb, ci, cj, heading, radius, half_l, half_w,
+    def _held_back(self, before: Snapshot, after: Snapshot, ka, kb, ci, cj, headings, radius, half_l, half_w,
                    gnd_rows, gnd_idx, moving) -> tuple[np.ndarray, np.ndarray]:
         """Of the pairs (ci, cj) touching at both ends of the tick (rows of ``ids`` in
-        :meth:`_agent_collisions`, with its shapes), the ground vehicles of this world that
-        moved deeper into the other: its overlap with the other where that began the tick is
-        deeper from where the vehicle ended it than from where it began, by more than
-        HOLD_DEPTH_M (headings the tick's end, so turning on the spot is free). Returns their
-        rows in ``self.ground`` and in ``ids``, each once."""
+        :meth:`_agent_collisions`, with its shapes; ``headings``: at the tick's start and end),
+        the ground vehicles of this world that moved deeper into the other: its overlap with the
+        other as that began the tick is deeper from where and as the vehicle ended it than from
+        where and as it began, by more than HOLD_DEPTH_M (so a tank pivoting into its neighbour
+        is held as one driving into it). Returns their rows in ``self.ground`` and in ``ids``,
+        each once."""
+        heading0, heading = headings
         gidx = np.full(heading.size, -1, np.int64)
         gidx[gnd_rows] = gnd_idx
         mine, others = np.concatenate([ci, cj]), np.concatenate([cj, ci])
@@ -898,10 +926,11 @@ class World(EventLog):
         if mine.size == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         q = before.ecef_m[kb[others]]
-        shape = (after.lat_deg[ka[mine]], after.lon_deg[ka[mine]], heading[mine], heading[others], half_l[mine],
-                 half_w[mine], half_l[others], half_w[others], radius[mine], radius[others])
-        deeper = (overlap_depth(q - after.ecef_m[ka[mine]], *shape)
-                  > overlap_depth(q - before.ecef_m[kb[mine]], *shape) + HOLD_DEPTH_M)
+        where = (after.lat_deg[ka[mine]], after.lon_deg[ka[mine]])
+        sizes = (half_l[mine], half_w[mine], half_l[others], half_w[others], radius[mine], radius[others])
+        deeper = (overlap_depth(q - after.ecef_m[ka[mine]], *where, heading[mine], heading0[others], *sizes)
+                  > overlap_depth(q - before.ecef_m[kb[mine]], *where, heading0[mine], heading0[others], *sizes)
+                  + HOLD_DEPTH_M)
         rows = np.unique(mine[deeper])
         return gidx[rows], rows
 
@@ -940,10 +969,11 @@ class World(EventLog):
         target = np.where(np.isnan(target), heading, target)
         err = (target - heading + 180.0) % 360.0 - 180.0
         rate = np.clip(0.5 * err, -self.ground.yaw_rate_limit_dps[idx], self.ground.yaw_rate_limit_dps[idx])
-        ceiling = self._obstacles_ahead(idx, passing=False)[0]
+        ceiling = self._obstacles_ahead(idx, passing=False)[0]  # heading holds brake, never pass
         self.ground.set_controls(speed if ceiling is None else np.minimum(speed, ceiling), rate, index=idx)
 
-    def _obstacles_ahead(self, idx: np.ndarray, convoy: np.ndarray | None = None, passing: bool = True) -> tuple:
+    def _obstacles_ahead(self, idx: np.ndarray, convoy: np.ndarray | None = None, passing: bool = True,
+                         remaining_m: np.ndarray | None = None) -> tuple:
         """What the autopilot-driven ground vehicles ``idx`` (rows of self.ground) do about the
         nearest entity in their path (server/obstacles.py: vehicles, wrecks, static sites,
         aircraft on the ground, as the last snapshot has them): (speed ceilings (m/s), so each
@@ -952,11 +982,13 @@ class World(EventLog):
         coming the other way (one going its way is followed, not passed), while the ceiling
         lets it roll out at PASS_CRAWL_MPS), as :meth:`FollowerSet.update` takes them; Nones
         when there is nothing to look at. ``convoy``: per vehicle its convoy's number (-1:
-        none), whose members do not brake for each other. A human driver's commands are not
-        capped: braking is his."""
+        none), whose members do not brake for each other; ``remaining_m``: per vehicle the
+        route still ahead of it (m): one whose route ends before it would be past the obstacle
+        does not pass it (it queues: vehicles bound for one place do not jostle round each
+        other there). A human driver's commands are not capped: braking is his."""
         snap = self.snapshot
         if snap.ids.size < 2 or idx.size == 0:
-            return None, None, None
+            return None, None, None, None
         radius, half_l, half_w, _, gnd_rows, gnd_idx = self._shapes(snap.ids)
         heading = np.zeros(snap.ids.size)
         heading[gnd_rows] = self.ground.heading_deg[gnd_idx]
@@ -967,13 +999,21 @@ class World(EventLog):
         if convoy is not None:
             group[rows[rows >= 0]] = convoy[rows >= 0]
         brake = self.ground.table[self.ground.type_id[idx], P_BRAKE]
-        clear, other, across, need = clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l,
-                                                     half_w, group, rows, obstacle_reach_m(self.ground.speed_mps[idx],
-                                                                                           brake))
+        clear, other, across, need, yield_m = clearance_ahead(
+            snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l, half_w, group, rows,
+            obstacle_reach_m(self.ground.speed_mps[idx], brake), snap.vel_ecef_mps)
         ceiling = obstacle_speed_ceiling(clear, brake)
+        # What it would not touch driving straight on (beside its path, within the margin) it
+        # passes slowly: two vehicles side by side each in the other's margin do not hold each
+        # other for good.
+        grazing = (other >= 0) & (np.abs(across) > need)
+        ceiling = np.where(grazing, np.maximum(ceiling, PASS_CRAWL_MPS), ceiling)
+        # Crossing traffic on its right goes first (server/obstacles.py): it stops short.
+        ceiling = np.minimum(ceiling, obstacle_speed_ceiling(yield_m, brake))
         seen = np.flatnonzero(other >= 0)
         if not passing or seen.size == 0:
-            return ceiling, None, None
+            self._note_waiting(idx, ceiling)
+            return ceiling, None, None, None
         j = other[seen]
         east, north, _ = enu_basis(snap.lat_deg[rows[seen]], snap.lon_deg[rows[seen]])
         h = np.radians(heading[rows[seen]])
@@ -982,13 +1022,86 @@ class World(EventLog):
         along = np.einsum("ij,ij->i", vel, forward)
         stopped = np.linalg.norm(vel, axis=1) < 0.5
         oncoming = along < -0.5
+        if remaining_m is not None:  # a follower stopped on its way going our way (queued) is not passed
+            en_route = np.zeros(snap.ids.size, bool)
+            en_route[rows] = remaining_m > 1.0
+            facing = np.cos(np.radians(heading[j] - heading[rows[seen]])) < 0.0  # nose to nose: not a queue
+            stopped &= ~en_route[j] | facing
         shift = np.full(idx.size, np.nan)
         shift[seen] = np.where(stopped | oncoming, pass_offset_m(across[seen], need[seen], oncoming), np.nan)
-        length = clear + 2.0 * (self.ground.table[self.ground.type_id[idx], P_LEN] + radius[np.maximum(other, 0)]) \
-            + PASS_AFTER_M
+        # Route to get past: its own length, the obstacle's reach along and PASS_AFTER_M.
+        length = clear + 2.0 * (half_l[rows] + radius[np.maximum(other, 0)]) + PASS_AFTER_M
+        if remaining_m is not None:
+            shift = np.where(remaining_m < length, np.nan, shift)
+        # It rolls out to pass at up to PASS_CRAWL_MPS, slower where it could not stop short of
+        # touching the obstacle (half its braking, as every ceiling here).
         rolls = ~np.isnan(shift) & (clear > PASS_CRAWL_CLEAR_M)
-        ceiling = np.where(rolls, np.maximum(ceiling, PASS_CRAWL_MPS), ceiling)
-        return ceiling, shift, length
+        crawl = np.minimum(PASS_CRAWL_MPS, obstacle_speed_ceiling(clear + OBSTACLE_STANDOFF_M - PASS_CRAWL_CLEAR_M,
+                                                                  brake))
+        ceiling = np.where(rolls & (yield_m == np.inf), np.maximum(ceiling, crawl), ceiling)
+        self._note_waiting(idx, ceiling)
+        backing = self._backing_off(idx, ceiling <= 0.0, ~np.isnan(shift), (snap, rows, heading, radius, half_l,
+                                                                           half_w, group))
+        return ceiling, shift, length, backing
+
+    def _backing_off(self, idx: np.ndarray, held: np.ndarray, passable: np.ndarray, scene: tuple) -> np.ndarray | None:
+        """(per vehicle of ``idx``) which back off now (fdm.convoy BACK_OFF_*): those held at a
+        standstill by something they would pass (``held & passable``) for BACK_OFF_AFTER_S
+        start to, for BACK_OFF_S, where nothing is behind them within that run and the
+        standoff (the path search of server/obstacles.py, looking back), and not within
+        BACK_OFF_RETRY_S of its last; one that finds something behind it as it goes stops
+        backing. None when none backs off."""
+        if not (held & passable).any() and not self._backing:
+            return None
+        snap, rows, heading, radius, half_l, half_w, group = scene
+
+        def clear_behind(sel):
+            back = heading.copy()
+            back[rows[sel]] = (heading[rows[sel]] + 180.0) % 360.0
+            return clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, back, radius, half_l, half_w, group,
+                                   rows[sel], BACK_OFF_RUN_M + OBSTACLE_STANDOFF_M)[0]
+        gnd_ids, lay_idx, _ = self._layout()
+        eid_of = np.full(self.ground.n, -1, np.int64)
+        eid_of[lay_idx] = gnd_ids
+        eids = eid_of[idx]
+        now = self.time_s
+        due = [k for k in np.flatnonzero(held & passable).tolist()
+               if int(eids[k]) not in self._backing and now - self._waiting.get(int(eids[k]), now) >= BACK_OFF_AFTER_S
+               and now - self._backed.get(int(eids[k]), -math.inf) >= BACK_OFF_RETRY_S]
+        if due:
+            free = clear_behind(np.array(due)) > BACK_OFF_RUN_M + OBSTACLE_STANDOFF_M
+            for k in np.array(due)[free].tolist():
+                self._backing[int(eids[k])] = now + BACK_OFF_S
+                self._backed[int(eids[k])] = now
+        going = np.flatnonzero(np.isin(eids, np.fromiter(self._backing, np.int64, len(self._backing))))
+        if going.size:  # something came up behind: stop backing
+            for k in going[clear_behind(going) <= OBSTACLE_STANDOFF_M / 2].tolist():
+                self._backing[int(eids[k])] = now
+        for eid in [e for e, until in self._backing.items() if until <= now]:
+            del self._backing[eid]
+        if not self._backing:
+            return None
+        return np.isin(eids, np.fromiter(self._backing, np.int64, len(self._backing)))
+
+    def _note_waiting(self, idx: np.ndarray, ceiling: np.ndarray) -> None:
+        """Keep :attr:`_waiting` (for :meth:`_terrain_blocks`): the vehicles ``idx`` whose
+        obstacle ceiling is 0 (something in their path within the standoff) are waiting, since
+        when they first were; the others of ``idx`` are not."""
+        held = ceiling <= 0.0
+        if not held.any() and not self._waiting:
+            return
+        gnd_ids, lay_idx, _ = self._layout()
+        eid_of = np.full(self.ground.n, -1, np.int64)
+        eid_of[lay_idx] = gnd_ids
+        now_held = set(eid_of[idx[held]].tolist())
+        if self._waiting:
+            asked = eid_of[idx]
+            keys = np.fromiter(self._waiting, np.int64, len(self._waiting))
+            for eid in keys[np.isin(keys, asked)].tolist():
+                if eid not in now_held:
+                    del self._waiting[eid]
+        for eid in now_held:
+            self._waiting.setdefault(eid, self.time_s)
 
     def _layout(self):
         """(ground entity ids, their rows in self.ground, (static ids, static snapshot

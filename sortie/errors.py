@@ -6,16 +6,19 @@ Library code raises these; servicers catch :class:`SortieError` and call
 
 from __future__ import annotations
 
-# How much of a bad value an error message shows (its repr cut here, then its length), and the
-# longest message a status carries: gRPC sends the message as trailing metadata, which a
-# receiver refuses beyond 16 KiB (the call then fails RESOURCE_EXHAUSTED instead of saying why).
-SHOWN_VALUE_CHARS = 64
+# How much of a bad value an error message shows (a longer repr keeps its head and its last
+# SHOWN_TAIL_CHARS, a file's name, with its length between), and the longest message a status
+# carries: gRPC sends the message as trailing metadata, which a receiver refuses beyond 16 KiB
+# (the call then fails RESOURCE_EXHAUSTED instead of saying why).
+SHOWN_VALUE_CHARS = 256
+SHOWN_TAIL_CHARS = 48
 MAX_MESSAGE_CHARS = 1024
 
 
 def shown(value) -> str:
-    """``repr(value)`` for an error message, cut to SHOWN_VALUE_CHARS with the value's length
-    when longer (a 5 MB name is not echoed back)."""
+    """``repr(value)`` for an error message, cut to about SHOWN_VALUE_CHARS (its head and its
+    tail, with the value's length) when longer: a 5 MB name is not echoed back, a long path
+    keeps its file name."""
     text = repr(value)
     if len(text) <= SHOWN_VALUE_CHARS:
         return text
@@ -23,7 +26,8 @@ def shown(value) -> str:
         size = f"{len(value):,} {'characters' if isinstance(value, str) else 'items'}"
     except TypeError:
         size = f"{len(text):,} characters"
-    return f"{text[:SHOWN_VALUE_CHARS]}... ({size})"
+    head = SHOWN_VALUE_CHARS - SHOWN_TAIL_CHARS
+    return f"{text[:head]}...({size})...{text[-SHOWN_TAIL_CHARS:]}"
 
 
 def message_of(error) -> str:

@@ -503,3 +503,23 @@ def test_a_vehicle_touching_another_can_slide_along_it():
         assert (lat - LAT0) * 111_200.0 > 15.0
     finally:
         world.close()
+
+
+def test_a_tank_pivoting_into_its_neighbour_is_held():
+    """An M1A2 parked 0.14 m beside another pivots on the spot (speed 0, 30 deg/s): its hull may
+    not sweep into the other's (before: it turned 180 degrees through it, 2.4 m deep); it is held
+    touching, at the heading where they met, and turning the other way is free."""
+    world = World(FlatTerrain(400.0))
+    try:
+        side = (VEHICLE_TYPES["m1a2"].width_m + 0.14) / (111_200.0 * math.cos(math.radians(LAT0)))
+        a, b = world.spawn_ground(["a", "b"], "m1a2", [LAT0, LAT0], [LON0, LON0 + side], [0.0, 0.0],
+                                  controllable=True)
+        world.command(a.id, "drive", {"speed_mps": 0.0, "yaw_rate_dps": 30.0})
+        _run(world, 180)  # 6 s: 180 degrees free
+        i = world.ground.index_of([a.ground_id])[0]
+        assert world.ground.heading_deg[i] < 10.0  # a few degrees take up the 0.14 m, then held
+        world.command(a.id, "drive", {"speed_mps": 0.0, "yaw_rate_dps": -30.0})
+        _run(world, 60)
+        assert 300.0 < world.ground.heading_deg[i] < 360.0  # away from it: free
+    finally:
+        world.close()

@@ -178,7 +178,7 @@ def test_long_names_are_invalid_argument_with_the_value_cut_short(server):
             details = info.value.details()
             assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT, details[:200]
             assert details.startswith(f"{field}: ") and f"({n:,} characters)" in details
-            assert len(details) < 300
+            assert len(details) < 500
     # An agent name at the limit is looked up as before.
     with pytest.raises(grpc.RpcError) as info:
         stub.Join(pb.JoinRequest(client_name="ok", role=pb.ROLE_PILOT, agent_name="z" * MAX_NAME_CHARS), timeout=10)
@@ -189,7 +189,7 @@ def test_errors_show_values_cut_short_and_messages_bounded():
     assert str(InvalidArgument("f", "bad", value="abc")) == "f: bad (got 'abc')"
     long = InvalidArgument("name", "too long", value="n" * 10_000)
     assert str(long) == f"name: too long (got {shown('n' * 10_000)})" and "(10,000 characters)" in str(long)
-    assert len(str(long)) < 120 and long.value == "n" * 10_000  # the value itself is kept
+    assert len(str(long)) < 320 and long.value == "n" * 10_000  # the value itself is kept
     assert "(300 items)" in shown(list(range(300)))
     assert message_of(LimitExceeded("x", 2, 1)) == "x: 2 exceeds the limit of 1"
     assert len(message_of("m" * 100_000)) < MAX_MESSAGE_CHARS + 60
