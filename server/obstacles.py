@@ -38,8 +38,8 @@ MOVING_MPS = 0.5
 
 
 @numba.njit(cache=True, nogil=True)
-def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, rows, reach, out_clear,
-                  out_row, out_across, out_need, out_yield):
+def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, rows, reach, offset,
+                  min_speed, out_clear, out_row, out_across, out_need, out_yield):
     n = p.shape[0]
     v_max = 0.0
     for i in range(n):
@@ -106,6 +106,8 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
                         # Stop short of its position then, by the two radii and the margin.
                         own = (vie * fe + vin * fn) * t - radius[i] - radius[j] - YIELD_MARGIN_M
                         out_yield[k] = min(out_yield[k], own)
+            if sj < min_speed:
+                continue  # only movers asked for (the lane a pass would take)
             if half_l[j] > 0.0:  # a box: its half extents along and across i's heading
                 ge, gn = math.sin(heading_rad[j]), math.cos(heading_rad[j])
                 c = abs(fe * ge + fn * gn)
@@ -114,7 +116,7 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
                 ext_across = half_l[j] * s + half_w[j] * c
             else:
                 ext_along = ext_across = radius[j]
-            if abs(across) > half_w[i] + ext_across + PATH_MARGIN_M:
+            if abs(across - offset[k]) > half_w[i] + ext_across + PATH_MARGIN_M:
                 continue
             clear = ahead - half_l[i] - ext_along
             if ahead < half_l[i] or clear > reach[k]:
@@ -127,7 +129,7 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
 
 
 def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length_m, half_width_m, group, rows,
-                    reach_m, vel_ecef_mps=None) -> tuple:
+                    reach_m, vel_ecef_mps=None, offset_m=None, min_speed_mps=0.0) -> tuple:
     """For each vehicle ``rows`` (indices into the entity arrays; -1: none) the free distance
     (m) from its front to the nearest entity in its path ahead (the module docstring), that
     entity's index, how far it is to the vehicle's right (m, negative: left) and how far apart
@@ -135,7 +137,9 @@ def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length
     the heading); inf, -1, NaN, NaN where nothing is within ``reach_m`` (per row, metres of
     clearance); and how far it may go on before yielding to crossing traffic (m, the module
     docstring's right-hand rule; inf: no conflict; ``vel_ecef_mps`` (n, 3): the entities'
-    velocities, None: nobody moves).
+    velocities, None: nobody moves). ``offset_m`` (per row; None: 0): the path searched runs
+    that far to the vehicle's right of it, parallel (the lane a pass would take);
+    ``min_speed_mps``: only entities moving at least this fast count for the path.
 
     Entity arrays (n,): ECEF positions (n, 3) m, geodetic lat/lon, heading (degrees from north;
     of boxes, and of the asking vehicles), bounding radius, half length (0: a sphere), half
@@ -161,5 +165,7 @@ def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length
                   np.radians(column(heading_deg)), column(radius_m), column(half_length_m), column(half_width_m),
                   column(group, np.int64), rows,
                   np.ascontiguousarray(np.broadcast_to(np.asarray(reach_m, np.float64), rows.shape)),
-                  clear, row, across, need, yield_m)
+                  np.ascontiguousarray(np.broadcast_to(np.asarray(0.0 if offset_m is None else offset_m, np.float64),
+                                                       rows.shape)),
+                  float(min_speed_mps), clear, row, across, need, yield_m)
     return clear, row, across, need, yield_m

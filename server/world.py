@@ -65,7 +65,7 @@ from fdm.state import euler_to_quaternion, state_arrays
 from fdm.vehicle_types import P_BRAKE
 from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
-from server.obstacles import clearance_ahead
+from server.obstacles import MOVING_MPS, clearance_ahead
 from server.dead_reckoning import extrapolate, ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound
@@ -107,6 +107,10 @@ BACK_OFF_RUN_M = BACK_OFF_MPS * BACK_OFF_S  # how far a driver backs off (fdm.co
 # A driver backs off again only this long (s) after it last did: one whose way round stays
 # blocked waits (and is reported as traffic) instead of shuttling back and forth.
 BACK_OFF_RETRY_S = 30.0
+# A driver swings out to pass a parked obstacle only when the lane it would take is clear for the
+# pass and for what oncoming traffic at this speed (m/s) covers meanwhile, at most this far (m).
+PASS_LANE_ONCOMING_MPS = 20.0
+PASS_LANE_MAX_M = 300.0
 
 
 @dataclass(frozen=True)
@@ -1033,6 +1037,7 @@ class World(EventLog):
         length = clear + 2.0 * (half_l[rows] + radius[np.maximum(other, 0)]) + PASS_AFTER_M
         if remaining_m is not None:
             shift = np.where(remaining_m < length, np.nan, shift)
+        shift = self._lane_clear(shift, length, idx, rows, heading, radius, half_l, half_w, group, oncoming, seen)
         # It rolls out to pass at up to PASS_CRAWL_MPS, slower where it could not stop short of
         # touching the obstacle (half its braking, as every ceiling here).
         rolls = ~np.isnan(shift) & (clear > PASS_CRAWL_CLEAR_M)
@@ -1043,6 +1048,31 @@ class World(EventLog):
         backing = self._backing_off(idx, ceiling <= 0.0, ~np.isnan(shift), (snap, rows, heading, radius, half_l,
                                                                            half_w, group))
         return ceiling, shift, length, backing
+
+    def _lane_clear(self, shift, length, idx, rows, heading, radius, half_l, half_w, group, oncoming, seen):
+        """``shift`` with the passes of parked obstacles whose lane is not clear withdrawn (NaN):
+        one whose lane (the path ``shift`` to the side, server/obstacles.py) holds a mover
+        within the pass and the way oncoming traffic at PASS_LANE_ONCOMING_MPS covers meanwhile
+        waits behind the obstacle instead of swinging into it (what stands in the lane it brakes
+        for as for anything in its path; two each waiting for the other's lane would wait for
+        good). Passes of oncoming vehicles (each keeping right) are left as they are."""
+        cand = np.flatnonzero(~np.isnan(shift))
+        if cand.size == 0:
+            return shift
+        on = np.zeros(idx.size, bool)
+        on[seen] = oncoming
+        cand = cand[~on[cand]]
+        if cand.size == 0:
+            return shift
+        snap = self.snapshot
+        v = np.maximum(np.abs(self.ground.speed_mps[idx[cand]]), PASS_CRAWL_MPS)
+        reach = np.minimum(length[cand] * (1.0 + PASS_LANE_ONCOMING_MPS / v), PASS_LANE_MAX_M)
+        busy = clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l, half_w, group,
+                               rows[cand], reach, snap.vel_ecef_mps, offset_m=shift[cand],
+                               min_speed_mps=MOVING_MPS)[1] >= 0
+        shift = shift.copy()
+        shift[cand[busy]] = np.nan
+        return shift
 
     def _backing_off(self, idx: np.ndarray, held: np.ndarray, passable: np.ndarray, scene: tuple) -> np.ndarray | None:
         """(per vehicle of ``idx``) which back off now (fdm.convoy BACK_OFF_*): those held at a
