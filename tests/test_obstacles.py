@@ -296,3 +296,22 @@ def test_a_vehicle_queued_by_traffic_says_so():
         assert _east_m(world, cars[0]) > 199.0 and _east_m(world, cars[1]) < _east_m(world, cars[0]) - 4.0
     finally:
         world.close()
+
+
+def test_a_pass_waits_for_the_oncoming_lane_to_clear():
+    """A truck parked 1 m right of the road's centre line; a Humvee east-bound would pass it on
+    the left, into the lane of a truck coming west that reaches the parked one about then: the
+    Humvee waits behind the parked truck until the oncoming one is by, then passes; no collision
+    (before: they met in that lane at 3 m/s and stood there)."""
+    world = World(FlatTerrain(400.0))
+    try:
+        world.spawn_ground(["parked"], "m1083", [LAT0 - 1.0 / 111_200.0], [LON0 + 300.0 / M_PER_DEG_LON], [90.0])
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 900),
+                                  cruise_mps=12.0)
+        other, = world.spawn_ground(["other"], "m1083", [LAT0], [LON0 + 596.0 / M_PER_DEG_LON], [270.0],
+                                    route=_route_east(596, -300), cruise_mps=12.0)
+        events = _run(world, 30 * 180)
+        assert not [e for e in events if e.kind == "collision"]
+        assert _east_m(world, car) > 890.0 and _east_m(world, other) < -290.0
+    finally:
+        world.close()
