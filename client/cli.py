@@ -182,7 +182,8 @@ def default_observe(w) -> tuple[float, float, float]:
 def stream_end(sim, picture) -> int:
     """Leave the server if it is still there; the exit code: 0 for a stop asked of this
     client or an exercise the server ended, 1 for a server gone (the stream broke) or a
-    stream its own session ended (ABORTED: superseded, left), each with a line that says so. A picture is no longer extrapolated past the stream's end."""
+    stream its own session ended (ABORTED: superseded, left), each with a line that says
+    so. A picture is no longer extrapolated past the stream's end."""
     from sortie.errors import SortieError
 
     if picture.alive:  # stopped here (duration, signal)
