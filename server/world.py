@@ -1090,10 +1090,7 @@ class World(EventLog):
             back[rows[sel]] = (heading[rows[sel]] + 180.0) % 360.0
             return clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, back, radius, half_l, half_w, group,
                                    rows[sel], BACK_OFF_RUN_M + OBSTACLE_STANDOFF_M)[0]
-        gnd_ids, lay_idx, _ = self._layout()
-        eid_of = np.full(self.ground.n, -1, np.int64)
-        eid_of[lay_idx] = gnd_ids
-        eids = eid_of[idx]
+        eids = self._entity_ids_of(idx)
         now = self.time_s
         due = [k for k in np.flatnonzero(held & passable).tolist()
                if int(eids[k]) not in self._backing and now - self._waiting.get(int(eids[k]), now) >= BACK_OFF_AFTER_S
@@ -1113,6 +1110,13 @@ class World(EventLog):
             return None
         return np.isin(eids, np.fromiter(self._backing, np.int64, len(self._backing)))
 
+    def _entity_ids_of(self, idx: np.ndarray) -> np.ndarray:
+        """The entity ids of the ground vehicles in rows ``idx`` of self.ground (-1: none)."""
+        gnd_ids, lay_idx, _ = self._layout()
+        eid_of = np.full(self.ground.n, -1, np.int64)
+        eid_of[lay_idx] = gnd_ids
+        return eid_of[idx]
+
     def _note_waiting(self, idx: np.ndarray, ceiling: np.ndarray) -> None:
         """Keep :attr:`_waiting` (for :meth:`_terrain_blocks`): the vehicles ``idx`` whose
         obstacle ceiling is 0 (something in their path within the standoff) are waiting, since
@@ -1120,12 +1124,9 @@ class World(EventLog):
         held = ceiling <= 0.0
         if not held.any() and not self._waiting:
             return
-        gnd_ids, lay_idx, _ = self._layout()
-        eid_of = np.full(self.ground.n, -1, np.int64)
-        eid_of[lay_idx] = gnd_ids
-        now_held = set(eid_of[idx[held]].tolist())
+        asked = self._entity_ids_of(idx)
+        now_held = set(asked[held].tolist())
         if self._waiting:
-            asked = eid_of[idx]
             keys = np.fromiter(self._waiting, np.int64, len(self._waiting))
             for eid in keys[np.isin(keys, asked)].tolist():
                 if eid not in now_held:
