@@ -168,7 +168,8 @@ def client_command(args) -> int:
 
 def default_observe(w) -> tuple[float, float, float]:
     """(lat, lon, radius_m) an observer watches without --observe: the centre of the world's
-    (a WorldInfo) first target area, else (0, 0); 100 km, or the server's observer limit
+    (a WorldInfo) first target area, else where its entities are (entity_count,
+    centre_lat_deg, centre_lon_deg), else (0, 0); 100 km, or the server's observer limit
     (observer_radius_max_m) when that is smaller."""
     radius = DEFAULT_OBSERVE_RADIUS_M
     if w.observer_radius_max_m > 0:  # 0: a server that does not say
@@ -176,6 +177,8 @@ def default_observe(w) -> tuple[float, float, float]:
     if w.target_areas:
         a = w.target_areas[0]
         return float(np.mean(a.lat_deg)), float(np.mean(a.lon_deg)), radius
+    if w.entity_count > 0:
+        return float(w.centre_lat_deg), float(w.centre_lon_deg), radius
     return 0.0, 0.0, radius
 
 

@@ -298,7 +298,7 @@ class ReplayServer:
 
         clock = "paused" if not self.playing else "realtime" if self.speed == 1.0 else "fast"
         return world_info(self.config, self.world.time_s, clock, self.speed if self.playing else 0.0,
-                          self.rec.rate_hz, self.world.geoid_undulation_m)
+                          self.rec.rate_hz, self.world.geoid_undulation_m, self.world.snapshot)
 
     def _handlers(self) -> dict:
         async def control(request, context):

@@ -86,10 +86,25 @@ def type_params(params: dict, entities: dict, entity_id, kind: str | None = None
     return params.get(e.type, params.get(k, DEFAULT_PARAMS[k]))
 
 
+def entities_centre(lat_deg, lon_deg) -> tuple[int, float, float]:
+    """(count, median latitude, median longitude) of the entities with a position (degrees),
+    the longitudes unrolled about the first one's, so a group across the antimeridian has its
+    median among them; (0, 0, 0) for none."""
+    lat, lon = np.asarray(lat_deg, np.float64), np.asarray(lon_deg, np.float64)
+    ok = np.isfinite(lat) & np.isfinite(lon)
+    if not ok.any():
+        return 0, 0.0, 0.0
+    lat, lon = lat[ok], lon[ok]
+    unrolled = lon[0] + (lon - lon[0] + 180.0) % 360.0 - 180.0
+    centre_lon = (float(np.median(unrolled)) + 180.0) % 360.0 - 180.0
+    return int(lat.size), float(np.median(lat)), centre_lon
+
+
 def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_hz: float,
-               geoid_undulation_m: float = 0.0) -> pb.WorldInfo:
+               geoid_undulation_m: float = 0.0, snapshot=None) -> pb.WorldInfo:
     """GetWorld's answer: the exercise of ``config`` (a ServerConfig) at world time ``time_s``
-    (live server and replay alike)."""
+    (live server and replay alike); ``snapshot`` (the world's last, or None) says where its
+    entities are (:func:`entities_centre`)."""
     areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
              for name, poly, d in config.target_areas]
     return pb.WorldInfo(exercise_name=config.exercise_name, start_time=config.start_time, time_s=time_s,
@@ -97,7 +112,15 @@ def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_
                         world_rate_hz=world_rate_hz, network_rate_hz=config.network_rate_hz, target_areas=areas,
                         terrain=config.terrain, geoid_undulation_m=geoid_undulation_m,
                         terrain_insets=config.insets,
-                        observer_radius_max_m=type_params(config.params, {}, None, "observer").aoi_radius_m)
+                        observer_radius_max_m=type_params(config.params, {}, None, "observer").aoi_radius_m,
+                        **_centre_fields(snapshot))
+
+
+def _centre_fields(snapshot) -> dict:
+    if snapshot is None or not getattr(snapshot, "ids", np.zeros(0)).size:
+        return {}
+    count, lat, lon = entities_centre(snapshot.lat_deg, snapshot.lon_deg)
+    return {"entity_count": count, "centre_lat_deg": lat, "centre_lon_deg": lon}
 
 
 @dataclass
@@ -205,7 +228,7 @@ class SimulationServer:
 
     def world_info(self) -> pb.WorldInfo:
         return world_info(self.config, self.world.time_s, self._clock, self.time_scale, 1.0 / self.world.dt,
-                          self.world.geoid_undulation_m)
+                          self.world.geoid_undulation_m, self.world.snapshot)
 
     def _measure_rate(self, wall: float) -> None:
         """Sample (wall, world time) and update the advertised rate (clock thread, running clock)."""

@@ -9,6 +9,7 @@ import threading
 import time
 
 import grpc
+import numpy as np
 import pytest
 
 from client.sim_client import SimClient, StreamAborted
@@ -311,3 +312,36 @@ def test_world_info_says_the_observer_radius_a_join_accepts(alps):
             c.leave()
     finally:
         srv.stop(0.5)
+
+
+def test_world_info_says_where_the_entities_are(alps):
+    """With no target area, WorldInfo's entity_count and centre (the median of the entities'
+    positions) give `sortie client`'s default area: it sees the world's entities, not (0, 0)."""
+    from client.cli import default_observe
+    from server.sim_server import entities_centre
+
+    srv = serve(alps, clock="fast", time_scale=2.0)
+    try:
+        with SimClient(srv.address) as c:
+            c.wait_ready()
+            deadline = time.monotonic() + 10.0
+            info = c.world()
+            while info.entity_count == 0 and time.monotonic() < deadline:
+                time.sleep(0.05)
+                info = c.world()
+            assert not info.target_areas and info.entity_count == 4
+            lat, lon, radius = default_observe(info)
+            assert 47.28 < lat < 47.47 and 9.28 < lon < 9.62
+            c.join("watcher", "observer", observer=(lat, lon, radius))
+            picture = c.watch()
+            deadline = time.monotonic() + 10.0
+            while len(picture) < 4 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert len(picture) == 4
+            c.leave()
+    finally:
+        srv.stop(0.5)
+    # Across the antimeridian the median is among them, not half a world away.
+    count, lat, lon = entities_centre([10.0, 10.2, 9.9], [179.9, -179.8, 179.7])
+    assert count == 3 and abs(lat - 10.0) < 1e-9 and abs(abs(lon) - 179.9) < 1e-9
+    assert entities_centre([np.nan], [0.0]) == (0, 0.0, 0.0)

@@ -249,7 +249,7 @@ class TargetArea(_message.Message):
     def __init__(self, name: _Optional[str] = ..., lat_deg: _Optional[_Iterable[float]] = ..., lon_deg: _Optional[_Iterable[float]] = ..., detail_m: _Optional[float] = ...) -> None: ...
 
 class WorldInfo(_message.Message):
-    __slots__ = ("exercise_name", "start_time", "time_s", "server_unix_time_s", "clock", "time_scale", "world_rate_hz", "network_rate_hz", "target_areas", "terrain", "geoid_undulation_m", "terrain_insets", "observer_radius_max_m")
+    __slots__ = ("exercise_name", "start_time", "time_s", "server_unix_time_s", "clock", "time_scale", "world_rate_hz", "network_rate_hz", "target_areas", "terrain", "geoid_undulation_m", "terrain_insets", "observer_radius_max_m", "entity_count", "centre_lat_deg", "centre_lon_deg")
     EXERCISE_NAME_FIELD_NUMBER: _ClassVar[int]
     START_TIME_FIELD_NUMBER: _ClassVar[int]
     TIME_S_FIELD_NUMBER: _ClassVar[int]
@@ -263,6 +263,9 @@ class WorldInfo(_message.Message):
     GEOID_UNDULATION_M_FIELD_NUMBER: _ClassVar[int]
     TERRAIN_INSETS_FIELD_NUMBER: _ClassVar[int]
     OBSERVER_RADIUS_MAX_M_FIELD_NUMBER: _ClassVar[int]
+    ENTITY_COUNT_FIELD_NUMBER: _ClassVar[int]
+    CENTRE_LAT_DEG_FIELD_NUMBER: _ClassVar[int]
+    CENTRE_LON_DEG_FIELD_NUMBER: _ClassVar[int]
     exercise_name: str
     start_time: str
     time_s: float
@@ -276,7 +279,10 @@ class WorldInfo(_message.Message):
     geoid_undulation_m: float
     terrain_insets: bool
     observer_radius_max_m: float
-    def __init__(self, exercise_name: _Optional[str] = ..., start_time: _Optional[str] = ..., time_s: _Optional[float] = ..., server_unix_time_s: _Optional[float] = ..., clock: _Optional[str] = ..., time_scale: _Optional[float] = ..., world_rate_hz: _Optional[float] = ..., network_rate_hz: _Optional[float] = ..., target_areas: _Optional[_Iterable[_Union[TargetArea, _Mapping]]] = ..., terrain: _Optional[str] = ..., geoid_undulation_m: _Optional[float] = ..., terrain_insets: _Optional[bool] = ..., observer_radius_max_m: _Optional[float] = ...) -> None: ...
+    entity_count: int
+    centre_lat_deg: float
+    centre_lon_deg: float
+    def __init__(self, exercise_name: _Optional[str] = ..., start_time: _Optional[str] = ..., time_s: _Optional[float] = ..., server_unix_time_s: _Optional[float] = ..., clock: _Optional[str] = ..., time_scale: _Optional[float] = ..., world_rate_hz: _Optional[float] = ..., network_rate_hz: _Optional[float] = ..., target_areas: _Optional[_Iterable[_Union[TargetArea, _Mapping]]] = ..., terrain: _Optional[str] = ..., geoid_undulation_m: _Optional[float] = ..., terrain_insets: _Optional[bool] = ..., observer_radius_max_m: _Optional[float] = ..., entity_count: _Optional[int] = ..., centre_lat_deg: _Optional[float] = ..., centre_lon_deg: _Optional[float] = ...) -> None: ...
 
 class ExternalEntityUpdate(_message.Message):
     __slots__ = ("session_token", "external_id", "name", "kind", "type", "coalition", "state", "remove")
