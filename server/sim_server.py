@@ -117,7 +117,7 @@ def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_
 
 
 def _centre_fields(snapshot) -> dict:
-    if snapshot is None or not getattr(snapshot, "ids", np.zeros(0)).size:
+    if snapshot is None or snapshot.ids.size == 0:
         return {}
     count, lat, lon = entities_centre(snapshot.lat_deg, snapshot.lon_deg)
     return {"entity_count": count, "centre_lat_deg": lat, "centre_lon_deg": lon}

@@ -1003,9 +1003,13 @@ class World(EventLog):
         if convoy is not None:
             group[rows[rows >= 0]] = convoy[rows >= 0]
         brake = self.ground.table[self.ground.type_id[idx], P_BRAKE]
-        clear, other, across, need, yield_m = clearance_ahead(
-            snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l, half_w, group, rows,
-            obstacle_reach_m(self.ground.speed_mps[idx], brake), snap.vel_ecef_mps)
+
+        def search(asking, reach, headings=heading, **options):
+            """server/obstacles.clearance_ahead over this tick's scene, for the snapshot rows asking."""
+            return clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, headings, radius, half_l, half_w, group,
+                                   asking, reach, snap.vel_ecef_mps, **options)
+
+        clear, other, across, need, yield_m = search(rows, obstacle_reach_m(self.ground.speed_mps[idx], brake))
         ceiling = obstacle_speed_ceiling(clear, brake)
         # What it would not touch driving straight on (beside its path, within the margin) it
         # passes slowly: two vehicles side by side each in the other's margin do not hold each
@@ -1037,7 +1041,7 @@ class World(EventLog):
         length = clear + 2.0 * (half_l[rows] + radius[np.maximum(other, 0)]) + PASS_AFTER_M
         if remaining_m is not None:
             shift = np.where(remaining_m < length, np.nan, shift)
-        shift = self._lane_clear(shift, length, idx, rows, heading, radius, half_l, half_w, group, oncoming, seen)
+        shift = self._lane_clear(shift, length, idx, rows, oncoming, seen, search)
         # It rolls out to pass at up to PASS_CRAWL_MPS, slower where it could not stop short of
         # touching the obstacle (half its braking, as every ceiling here).
         rolls = ~np.isnan(shift) & (clear > PASS_CRAWL_CLEAR_M)
@@ -1045,17 +1049,17 @@ class World(EventLog):
                                                                   brake))
         ceiling = np.where(rolls & (yield_m == np.inf), np.maximum(ceiling, crawl), ceiling)
         self._note_waiting(idx, ceiling)
-        backing = self._backing_off(idx, ceiling <= 0.0, ~np.isnan(shift), (snap, rows, heading, radius, half_l,
-                                                                           half_w, group))
+        backing = self._backing_off(idx, ceiling <= 0.0, ~np.isnan(shift), rows, heading, search)
         return ceiling, shift, length, backing
 
-    def _lane_clear(self, shift, length, idx, rows, heading, radius, half_l, half_w, group, oncoming, seen):
+    def _lane_clear(self, shift, length, idx, rows, oncoming, seen, search):
         """``shift`` with the passes of parked obstacles whose lane is not clear withdrawn (NaN):
         one whose lane (the path ``shift`` to the side, server/obstacles.py) holds a mover
         within the pass and the way oncoming traffic at PASS_LANE_ONCOMING_MPS covers meanwhile
         waits behind the obstacle instead of swinging into it (what stands in the lane it brakes
         for as for anything in its path; two each waiting for the other's lane would wait for
-        good). Passes of oncoming vehicles (each keeping right) are left as they are."""
+        good). Passes of oncoming vehicles (each keeping right) are left as they are. ``search``:
+        :meth:`_obstacles_ahead`'s path search over this tick's scene."""
         cand = np.flatnonzero(~np.isnan(shift))
         if cand.size == 0:
             return shift
@@ -1064,32 +1068,29 @@ class World(EventLog):
         cand = cand[~on[cand]]
         if cand.size == 0:
             return shift
-        snap = self.snapshot
         v = np.maximum(np.abs(self.ground.speed_mps[idx[cand]]), PASS_CRAWL_MPS)
         reach = np.minimum(length[cand] * (1.0 + PASS_LANE_ONCOMING_MPS / v), PASS_LANE_MAX_M)
-        busy = clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, heading, radius, half_l, half_w, group,
-                               rows[cand], reach, snap.vel_ecef_mps, offset_m=shift[cand],
-                               min_speed_mps=MOVING_MPS)[1] >= 0
+        busy = search(rows[cand], reach, offset_m=shift[cand], min_speed_mps=MOVING_MPS)[1] >= 0
         shift = shift.copy()
         shift[cand[busy]] = np.nan
         return shift
 
-    def _backing_off(self, idx: np.ndarray, held: np.ndarray, passable: np.ndarray, scene: tuple) -> np.ndarray | None:
+    def _backing_off(self, idx: np.ndarray, held: np.ndarray, passable: np.ndarray, rows, heading,
+                     search) -> np.ndarray | None:
         """(per vehicle of ``idx``) which back off now (fdm.convoy BACK_OFF_*): those held at a
         standstill by something they would pass (``held & passable``) for BACK_OFF_AFTER_S
         start to, for BACK_OFF_S, where nothing is behind them within that run and the
         standoff (the path search of server/obstacles.py, looking back), and not within
         BACK_OFF_RETRY_S of its last; one that finds something behind it as it goes stops
-        backing. None when none backs off."""
+        backing. None when none backs off. ``rows``, ``heading``, ``search``: the snapshot
+        rows of ``idx``, every entity's heading and the path search of :meth:`_obstacles_ahead`."""
         if not (held & passable).any() and not self._backing:
             return None
-        snap, rows, heading, radius, half_l, half_w, group = scene
 
         def clear_behind(sel):
             back = heading.copy()
             back[rows[sel]] = (heading[rows[sel]] + 180.0) % 360.0
-            return clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, back, radius, half_l, half_w, group,
-                                   rows[sel], BACK_OFF_RUN_M + OBSTACLE_STANDOFF_M)[0]
+            return search(rows[sel], BACK_OFF_RUN_M + OBSTACLE_STANDOFF_M, headings=back)[0]
         eids = self._entity_ids_of(idx)
         now = self.time_s
         due = [k for k in np.flatnonzero(held & passable).tolist()

@@ -16,6 +16,7 @@ from fdm.vehicle_types import VEHICLE_TYPES
 from server.obstacles import PATH_MARGIN_M, clearance_ahead
 from server.world import STATIC_RADIUS_M, World
 from terrain.geodesy import enu_basis, geodetic_to_ecef
+from tests.test_collisions import _east_m, _run
 
 LAT0, LON0 = 47.0, 9.0
 M_PER_DEG_LON = 111_200.0 * math.cos(math.radians(LAT0))
@@ -80,16 +81,6 @@ def test_clearance_matches_a_brute_force_reference(seed):
 def _route_east(m_from, m_to, lat=LAT0):
     return [(lat, LON0 + m_from / M_PER_DEG_LON), (lat, LON0 + m_to / M_PER_DEG_LON)]
 
-
-def _east_m(world, e):
-    return (world.ground.lon[world.ground.index_of([e.ground_id])][0] - LON0) * M_PER_DEG_LON
-
-
-def _run(world, ticks):
-    events = []
-    for _ in range(ticks):
-        events += world.tick()
-    return events
 
 
 def test_a_vehicle_holding_its_heading_stops_short_of_a_site():
