@@ -9,7 +9,10 @@ heights of each other, with its centre in front of the vehicle's front (what is 
 not in its way: two vehicles parked side by side do not hold each other). The clearance is the
 free distance along the heading from the vehicle's front to the entity's near side: ahead less
 the vehicle's half length and the entity's half extent along the heading (boxes by their
-footprint, spheres by their radius); negative when they already overlap.
+footprint); negative when they already overlap. A sphere (a site, an aircraft, a wreck of one)
+meets a vehicle where server/collisions.py says they touch, within the sum of their radii (the
+vehicle's the circle round its footprint): it reaches that much less the vehicle's half width
+across the path and less its half length along it.
 
 Broad phase: the entities sorted once on the ECEF axis along which they spread most; each
 vehicle looks at those within its look-ahead on that axis (binary search), so a tick of 2000
@@ -114,8 +117,9 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
                 s = abs(fe * gn - fn * ge)
                 ext_along = half_l[j] * c + half_w[j] * s
                 ext_across = half_l[j] * s + half_w[j] * c
-            else:
-                ext_along = ext_across = radius[j]
+            else:  # a sphere touches i where the collision test says: within their two radii
+                ext_along = radius[j] + radius[i] - half_l[i]
+                ext_across = radius[j] + radius[i] - half_w[i]
             if abs(across - offset[k]) > half_w[i] + ext_across + PATH_MARGIN_M:
                 continue
             clear = ahead - half_l[i] - ext_along

@@ -82,7 +82,7 @@ Schema (``*`` required; everything else has the default shown)::
     fewest bytes at the same error in bench/dr.py: a route's turns are what a
     fixed orientation misses); observer cameras glide (FPW); statics never move.
 
-    [[agents]]                 0..10,000; the order is kept (a convoy's first member leads)
+    [[agents]]                 0..10,000; the order is kept (a convoy: see convoy below)
     name*                      unique, [A-Za-z0-9][A-Za-z0-9_.-]*, at most 64 characters
     kind*                      "aircraft" | "ground" | "static" (observers join as clients)
     type*                      aircraft: JSBSim catalog name (case-insensitive, stored in
@@ -110,7 +110,9 @@ Schema (``*`` required; everything else has the default shown)::
         ground:                route* = [[lat, lon], ...] (2..1000, consecutive points at
                                least 1 mm apart), cruise_mps* (0, type's top speed],
                                convoy = "name" and spacing_m = 50.0 (0, 1000]: members of a
-                               convoy (at least 2) share route, cruise_mps and spacing_m
+                               convoy (at least 2) share route, cruise_mps and spacing_m;
+                               the member farthest along the route leads, the others
+                               follow in their order along it (listed order where level)
 
     [[target_areas]]           0..256
     name*                      unique (same rule as agent names)

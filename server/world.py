@@ -59,7 +59,7 @@ import numpy as np
 from fdm.aircraft import InitialConditions, validate_controls
 from fdm.convoy import (BACK_OFF_AFTER_S, BACK_OFF_MPS, BACK_OFF_S, OBSTACLE_STANDOFF_M, PASS_AFTER_M,
                         PASS_CRAWL_CLEAR_M, PASS_CRAWL_MPS, Convoy, FollowerSet, Route, RouteFollower,
-                        obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m)
+                        column_order, obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m)
 from fdm.ground import BLOCKED_COLLISION, BLOCKED_NAMES, FREE, GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
 from fdm.vehicle_types import P_BRAKE
@@ -354,7 +354,9 @@ class World(EventLog):
                      controllable: bool = False, route=None, cruise_mps: float | None = None,
                      spacing_m: float | None = None, on_vanish: str = "autopilot") -> list[Entity]:
         """Ground vehicles (one per name); with ``route`` [(lat, lon), ...] they follow it
-        at ``cruise_mps`` (a convoy ``spacing_m`` apart when given, first name leading)."""
+        at ``cruise_mps`` (a convoy ``spacing_m`` apart when given: the one farthest along the
+        route leads, the others follow in their order along it, names given first going first
+        where two stand level)."""
         names = list(names)
         n = len(names)
         types = type_ if isinstance(type_, (list, tuple)) else [type_] * n
@@ -372,7 +374,11 @@ class World(EventLog):
                 out.append(e)
             if route is not None:
                 spec = {"route": [tuple(p) for p in route], "cruise_mps": cruise_mps, "spacing_m": spacing_m}
-                self.routes.append((spec, [e.id for e in out]))
+                ids = [e.id for e in out]
+                if spacing_m and n > 1:
+                    ids = [ids[k] for k in column_order(Route(*np.array(spec["route"], float).T), lat, lon,
+                                                         heading_deg)]
+                self.routes.append((spec, ids))
                 self._scenario_routes.update((e.id, spec) for e in out)
                 self._rebuild_followers()
             for e, la, lo in zip(out, np.atleast_1d(lat), np.atleast_1d(lon)):
@@ -671,7 +677,8 @@ class World(EventLog):
             if self.ground is not None and self.ground.n:
                 fs = self._followers
                 if fs.followers:
-                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, remaining_m=fs.remaining_m()))
+                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, remaining_m=fs.remaining_m()),
+                              step_s=self.dt * self.ground.divisor[fs.index])
                 self._hold_ground_headings()
                 self._heading_before = self.ground.heading_deg.copy()  # turning into another is held too
                 self.ground.step(self.dt)
@@ -1003,6 +1010,8 @@ class World(EventLog):
         if convoy is not None:
             group[rows[rows >= 0]] = convoy[rows >= 0]
         brake = self.ground.table[self.ground.type_id[idx], P_BRAKE]
+        step = self.dt * self.ground.divisor[idx]  # what each one's next integration covers
+        own_speed = self.ground.speed_mps[idx]
 
         def search(asking, reach, headings=heading, **options):
             """server/obstacles.clearance_ahead over this tick's scene, for the snapshot rows asking."""
@@ -1010,14 +1019,14 @@ class World(EventLog):
                                    asking, reach, snap.vel_ecef_mps, **options)
 
         clear, other, across, need, yield_m = search(rows, obstacle_reach_m(self.ground.speed_mps[idx], brake))
-        ceiling = obstacle_speed_ceiling(clear, brake)
+        ceiling = obstacle_speed_ceiling(clear, brake, step, own_speed)
         # What it would not touch driving straight on (beside its path, within the margin) it
         # passes slowly: two vehicles side by side each in the other's margin do not hold each
         # other for good.
         grazing = (other >= 0) & (np.abs(across) > need)
         ceiling = np.where(grazing, np.maximum(ceiling, PASS_CRAWL_MPS), ceiling)
         # Crossing traffic on its right goes first (server/obstacles.py): it stops short.
-        ceiling = np.minimum(ceiling, obstacle_speed_ceiling(yield_m, brake))
+        ceiling = np.minimum(ceiling, obstacle_speed_ceiling(yield_m, brake, step, own_speed))
         seen = np.flatnonzero(other >= 0)
         if not passing or seen.size == 0:
             self._note_waiting(idx, ceiling)
@@ -1046,7 +1055,7 @@ class World(EventLog):
         # touching the obstacle (half its braking, as every ceiling here).
         rolls = ~np.isnan(shift) & (clear > PASS_CRAWL_CLEAR_M)
         crawl = np.minimum(PASS_CRAWL_MPS, obstacle_speed_ceiling(clear + OBSTACLE_STANDOFF_M - PASS_CRAWL_CLEAR_M,
-                                                                  brake))
+                                                                  brake, step, own_speed))
         ceiling = np.where(rolls & (yield_m == np.inf), np.maximum(ceiling, crawl), ceiling)
         self._note_waiting(idx, ceiling)
         backing = self._backing_off(idx, ceiling <= 0.0, ~np.isnan(shift), rows, heading, search)

@@ -41,7 +41,7 @@ def _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
                 ext_along = half_l[j] * abs(np.cos(rel)) + half_w[j] * abs(np.sin(rel))
                 ext_across = half_l[j] * abs(np.sin(rel)) + half_w[j] * abs(np.cos(rel))
             else:
-                ext_along = ext_across = radius[j]
+                ext_along, ext_across = radius[j] + radius[i] - half_l[i], radius[j] + radius[i] - half_w[i]
             c = ahead - half_l[i] - ext_along
             if abs(across) <= half_w[i] + ext_across + PATH_MARGIN_M and ahead >= half_l[i] and c <= reach[k]:
                 if c < clear[k]:
@@ -304,5 +304,46 @@ def test_a_pass_waits_for_the_oncoming_lane_to_clear():
         events = _run(world, 30 * 180)
         assert not [e for e in events if e.kind == "collision"]
         assert _east_m(world, car) > 890.0 and _east_m(world, other) < -290.0
+    finally:
+        world.close()
+
+
+def test_a_convoy_listed_back_to_front_forms_up_by_its_place_on_the_route():
+    """Four Humvees listed rear first (the first name 120 m behind the last) on a road east:
+    the one in front leads and the others follow in their order along the road, with no
+    collision (before, the first name led and drove into the three ahead of it)."""
+    world = World(FlatTerrain(400.0))
+    try:
+        column = world.spawn_ground([f"c{k}" for k in range(4)], "hmmwv", [LAT0] * 4,
+                                    [LON0 + 40.0 * k / M_PER_DEG_LON for k in range(4)], [90.0] * 4,
+                                    route=_route_east(0, 3000), cruise_mps=10.0, spacing_m=40.0)
+        events = _run(world, 900)  # 30 s
+        assert not [e for e in events if e.kind == "collision"]
+        east = [_east_m(world, e) for e in column]
+        assert east == sorted(east)  # still in column, the last name in front
+        assert east[0] > 200.0  # every one drove on
+        assert np.diff(east) == pytest.approx([40.0] * 3, abs=6.0)
+    finally:
+        world.close()
+
+
+@pytest.mark.parametrize("rate_hz", [1.0, 2.0, 4.0, 30.0])
+def test_followers_stop_at_the_end_and_pass_a_site_whatever_the_world_rate(rate_hz):
+    """A Humvee at 29 m/s on a 3 km road stops within 0.5 m of the road's end at a 1-30 Hz
+    world tick (it stopped 4.4 m past it at 1 Hz when its braking did not look one step
+    ahead), and another passes a radar site standing on its road with no collision (at
+    1-4 Hz it clipped the site: the pass kept its half width clear of the site's sphere, the
+    collision test the circle round its footprint)."""
+    world = World(FlatTerrain(400.0), fdm_rate_hz=120.0, world_rate_hz=rate_hz)
+    try:
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 3000),
+                                  cruise_mps=29.0)
+        world.spawn_static("site", "radar", LAT0 + 0.02, LON0 + 1500.0 / M_PER_DEG_LON)
+        truck, = world.spawn_ground(["truck"], "hmmwv", [LAT0 + 0.02], [LON0], [90.0],
+                                    route=_route_east(0, 3000, lat=LAT0 + 0.02), cruise_mps=29.0)
+        events = [e for _ in range(int(200 * rate_hz)) for e in world.tick()]
+        assert not [e for e in events if e.kind == "collision"]
+        assert _east_m(world, car) == pytest.approx(3000.0, abs=0.5)
+        assert _east_m(world, truck) == pytest.approx(3000.0, abs=0.5)
     finally:
         world.close()
