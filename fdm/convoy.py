@@ -129,6 +129,20 @@ def pass_offset_m(across_m, need_m, oncoming):
     return np.where(np.abs(shift) <= PASS_MAX_OFFSET_M, shift, np.nan)
 
 
+def swing_room_m(shift_m, turn_radius_m):
+    """How far behind an obstacle a driver waiting to pass it stops, to have room to swing
+    out by ``shift_m`` from a standstill: the length of an S-bend of two arcs of its least
+    turning radius R, 2 sqrt(R d - d^2 / 4) for a sideways step d <= 2R (each arc turns by
+    theta, d = 2R(1 - cos theta), length 2R sin theta), and at least pure pursuit's least
+    look-ahead, over which its path converges on the shifted one. A vehicle that pivots
+    (R = 0) needs only the standoff. From the 4 m standoff a Humvee (R = 7.6 m) could not
+    step 2.8 m aside and stopped against the corner of the truck it meant to pass."""
+    d = np.minimum(np.abs(np.asarray(shift_m, np.float64)), 2.0 * np.asarray(turn_radius_m, np.float64))
+    r = np.asarray(turn_radius_m, np.float64)
+    bend = 2.0 * np.sqrt(np.maximum(r * d - 0.25 * d * d, 0.0))
+    return np.where(r > 0.0, np.maximum(bend, LOOKAHEAD_MIN_M), OBSTACLE_STANDOFF_M)
+
+
 def obstacle_reach_m(speed_mps, brake_mps2):
     """How far ahead (m of clearance) a driver at ``speed_mps`` looks for obstacles: its stopping
     distance at STOP_BRAKE_FRAC of ``brake_mps2``, the standoff, two seconds of travel and 10 m."""

@@ -59,10 +59,10 @@ import numpy as np
 from fdm.aircraft import InitialConditions, validate_controls
 from fdm.convoy import (BACK_OFF_AFTER_S, BACK_OFF_MPS, BACK_OFF_S, OBSTACLE_STANDOFF_M, PASS_AFTER_M,
                         PASS_CRAWL_CLEAR_M, PASS_CRAWL_MPS, Convoy, FollowerSet, Route, RouteFollower,
-                        column_order, obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m)
+                        column_order, obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m, swing_room_m)
 from fdm.ground import BLOCKED_COLLISION, BLOCKED_NAMES, FREE, GroundVehicles
 from fdm.state import euler_to_quaternion, state_arrays
-from fdm.vehicle_types import P_BRAKE
+from fdm.vehicle_types import P_BRAKE, P_RMIN
 from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
 from server.obstacles import MOVING_MPS, clearance_ahead
@@ -1050,7 +1050,15 @@ class World(EventLog):
         length = clear + 2.0 * (half_l[rows] + radius[np.maximum(other, 0)]) + PASS_AFTER_M
         if remaining_m is not None:
             shift = np.where(remaining_m < length, np.nan, shift)
+        wanted = shift
         shift = self._lane_clear(shift, length, idx, rows, oncoming, seen, search)
+        # One waiting for the lane to clear stops where it has room to swing out from a standstill.
+        waits = ~np.isnan(wanted) & np.isnan(shift)
+        if waits.any():
+            room = swing_room_m(wanted[waits], self.ground.table[self.ground.type_id[idx[waits]], P_RMIN])
+            ceiling[waits] = np.minimum(ceiling[waits], obstacle_speed_ceiling(
+                clear[waits] - np.maximum(room - OBSTACLE_STANDOFF_M, 0.0), brake[waits], step[waits],
+                own_speed[waits]))
         # It rolls out to pass at up to PASS_CRAWL_MPS, slower where it could not stop short of
         # touching the obstacle (half its braking, as every ceiling here).
         rolls = ~np.isnan(shift) & (clear > PASS_CRAWL_CLEAR_M)

@@ -347,3 +347,22 @@ def test_followers_stop_at_the_end_and_pass_a_site_whatever_the_world_rate(rate_
         assert _east_m(world, truck) == pytest.approx(3000.0, abs=0.5)
     finally:
         world.close()
+
+
+def test_a_follower_waiting_to_pass_keeps_room_to_swing_out():
+    """A truck parked 1 m right of the road; a Humvee going east must pass it on the left,
+    but a truck coming west reaches it first. The Humvee waits where it has room to swing
+    out from a standstill (fdm.convoy.swing_room_m), then passes and reaches its road's
+    end (it had waited at the 4 m standoff, then stood against the parked truck's corner)."""
+    world = World(FlatTerrain(400.0))
+    try:
+        world.spawn_ground(["parked"], "m1083", [LAT0 - 1.0 / 111_200.0], [LON0 + 300.0 / M_PER_DEG_LON], [90.0])
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=_route_east(0, 900),
+                                  cruise_mps=12.0)
+        world.spawn_ground(["oncoming"], "m1083", [LAT0], [LON0 + 620.0 / M_PER_DEG_LON], [270.0],
+                           route=_route_east(620, -300), cruise_mps=12.0)
+        events = _run(world, 30 * 120)
+        assert not [e for e in events if e.kind == "collision"]
+        assert _east_m(world, car) == pytest.approx(900.0, abs=1.0)
+    finally:
+        world.close()
