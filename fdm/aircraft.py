@@ -28,7 +28,15 @@ is near the ground:
 
 Limitation: the ground JSBSim sees is still level, so on a slope the other
 wheels meet it at the height of the first contact, not the slope's; an
-aircraft at rest on a 10 % cross-slope sits level. A contact deeper than
+aircraft at rest on a 10 % cross-slope sits level. And JSBSim's strut damping
+takes the wheel's vertical speed against a ground that never moves (FGLGear
+subtracts a terrain velocity its default callback leaves at 0): rolling up a
+5 % slope at 20 m/s the aircraft climbs 1 m/s, which the struts read as
+extending; a c172x's nose strut's rebound damping then cancels its spring, and
+landing or taxiing fast up a slope of 5 % or more can nose it over (an
+acceptance probe's touchdown at 0.87 m/s sink crashed 16 s later; 3 % and
+flat roll out). The Python API offers no callback with a ground velocity or
+normal to fix it with. A contact deeper than
 ``max_penetration_m`` below its own terrain (flying into a cliff face), or any
 structure point below its terrain, is a crash; the aircraft then freezes where
 it hit (``crashed`` is set, ``step`` does nothing more).
@@ -56,9 +64,12 @@ service (one round trip per step for the fleet).
 
 from __future__ import annotations
 
+import logging
 import math
 import operator
+import os
 import re
+import threading
 import warnings
 from dataclasses import dataclass, fields, replace
 
@@ -129,16 +140,85 @@ GLIDE_TOLERANCE = np.array([1e-4, 1e-4, 1e-5])
 
 _quiet = False
 
+# JSBSim's messages ("Sorry, udot doesn't appear to be trimmable", file errors) go through its
+# logger (FGLogger, JSBSim 1.3.3), whose default prints them on stdout: into a host's logs, a
+# CLI's JSON. They are routed to this Python logger instead, at their JSBSim severity.
+log = logging.getLogger("jsbsim")
+_LOG_LEVELS = {0: logging.DEBUG, 1: logging.DEBUG, 2: logging.INFO, 3: logging.WARNING, 4: logging.ERROR,
+               5: logging.CRITICAL, 6: logging.INFO}  # jsbsim.LogLevel: BULK .. FATAL, STDOUT
+_log_thread = threading.local()  # JSBSim's logger is per thread: whether this one's is routed
+_log_routers: list = []  # every router handed to JSBSim (it keeps a pointer: they must stay alive)
+_Router = None
+
 
 def _jsbsim():
-    """The jsbsim module, its start-up banner and debug output silenced once."""
+    """The jsbsim module, its start-up banner and debug output silenced once, and its
+    messages routed to the ``jsbsim`` Python logger in this thread."""
     global _quiet
     import jsbsim
 
     if not _quiet:
         jsbsim.FGJSBBase().debug_lvl = 0
         _quiet = True
+    if not getattr(_log_thread, "routed", False):
+        router = _log_router(jsbsim)()
+        jsbsim.set_logger(router)
+        _log_routers.append(router)
+        _log_thread.routed = True
     return jsbsim
+
+
+def _log_router(jsbsim):
+    """The FGLogger subclass that hands each JSBSim log record to :data:`log`."""
+    global _Router
+    if _Router is None:
+        class Router(jsbsim.FGLogger):
+            # One record: set_level, message fragments, flush (jsbsim.FGLogger's documentation).
+            def __init__(self):
+                super().__init__()
+                self._level = logging.INFO
+                self._parts = []
+
+            def set_level(self, level):
+                self._level = _LOG_LEVELS.get(int(level), logging.INFO)
+                self._parts = []
+
+            def file_location(self, filename, line):
+                self._parts.append(f"{filename}:{line}: ")
+
+            def message(self, message):
+                self._parts.append(message)
+
+            def format(self, format):
+                pass
+
+            def flush(self):
+                text = "".join(self._parts).strip()
+                self._parts = []
+                if not text:
+                    return
+                level = self._level
+                if os.devnull in text:  # a model's output file reopened on the null device (_discard_outputs)
+                    level = logging.DEBUG
+                log.log(level, "%s", text)
+
+        _Router = Router
+    return _Router
+
+
+def _discard_outputs(fdm) -> None:
+    """Point every output a model declares (c172x: its CSV file JSBout172B.csv) at the null
+    device. ``disable_output`` stops the writing but not the opening: each run_ic (start, trim,
+    retries) opens the files again (FGOutput::InitModel), by default in the jsbsim package's
+    own directory, truncating them. The host records the flight itself."""
+    n = 0
+    while fdm.get_output_filename(n):
+        n += 1
+    if n:
+        directory, name = os.path.split(os.devnull)
+        fdm.set_output_path(directory)  # output names are resolved against it (FGOutputFile::SetOutputName)
+        for i in range(n):
+            fdm.set_output_filename(i, name)
 
 
 def _spans_a_plane(points_in: np.ndarray) -> bool:
@@ -338,6 +418,7 @@ class Aircraft:
             if not fdm.load_model(self.name):
                 raise SortieError(f"JSBSim could not load aircraft {self.name!r}")
             fdm.disable_output()  # models may declare CSV outputs (c172x: JSBout172B.csv); the host records
+            _discard_outputs(fdm)
             fdm.set_dt(self.dt)
             pm = fdm.get_property_manager()
             for name in _undefined.get(self.name, ()):
@@ -474,11 +555,28 @@ class Aircraft:
             raise InvalidArgument("on_ground", f"aircraft {self.name!r} has no landing gear")
         return (self._get_cg_in[2]() - min(gear)) / 12.0
 
+    def _set_ic(self, ic: InitialConditions, lon: float, terrain_m: float, agl_ft: float) -> None:
+        """JSBSim's initial conditions of ``ic`` at ``agl_ft`` above ``terrain_m`` (m MSL)."""
+        fdm = self.fdm
+        fdm["ic/lat-geod-deg"] = ic.lat_deg
+        fdm["ic/long-gc-deg"] = lon
+        fdm["ic/terrain-elevation-ft"] = terrain_m / FT_M
+        fdm["ic/h-agl-ft"] = agl_ft
+        fdm["ic/psi-true-deg"] = ic.heading_deg
+        fdm["ic/vt-fps"] = ic.speed_mps / FT_M
+
     def _start(self, ic: InitialConditions) -> None:
         fdm = self.fdm
         lon = float(wrap_lon_deg(ic.lon_deg))
         t_m = float(self._terrain_msl_m([ic.lat_deg], [lon])[0])
         if ic.on_ground:
+            # JSBSim computes the CG (inertia/cg-*-in) only when its models run (FGMassBalance::Run,
+            # first called by run_ic): after load_model it reads 0, which would shift every contact
+            # by the CG's structural offset (a 737's 15.5 m). One run_ic where the aircraft starts
+            # sets it; the CG does not depend on position or attitude, so the placement below holds.
+            self._set_ic(ic, lon, t_m, 0.0)
+            if not fdm.run_ic():
+                raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
             # Level, on the highest terrain under any wheel; no structure point may be below its terrain.
             agl_ft = self._rest_height_ft()
             cg_in = [g() for g in self._get_cg_in]
@@ -498,12 +596,7 @@ class Aircraft:
                 raise InvalidArgument("alt_m", f"an airborne start must be above the terrain ({t_m:.1f} m MSL "
                                                "here); use on_ground=True to start on the ground", value=ic.alt_m)
             agl_ft = (alt_msl - t_m) / FT_M
-        fdm["ic/lat-geod-deg"] = ic.lat_deg
-        fdm["ic/long-gc-deg"] = lon
-        fdm["ic/terrain-elevation-ft"] = t_m / FT_M
-        fdm["ic/h-agl-ft"] = agl_ft
-        fdm["ic/psi-true-deg"] = ic.heading_deg
-        fdm["ic/vt-fps"] = ic.speed_mps / FT_M
+        self._set_ic(ic, lon, t_m, agl_ft)
         gear_down = ic.on_ground if ic.gear_down is None else ic.gear_down
         throttle = 0.0 if ic.on_ground else self._controls.throttle
 

@@ -8,8 +8,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import json
 import math
+import os
+import sys
 
 
 def add_parser(sub) -> None:
@@ -102,6 +106,24 @@ def fly(aircraft: str, ic, seconds: float, terrain=None, dt: float = 1.0 / 120.0
     }
 
 
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """File descriptor 1 is 2 inside: whatever the flight's native code prints on stdout (JSBSim
+    writes some messages with C++ streams, past its logger, which fdm.aircraft routes to Python's
+    logging) goes to stderr, and stdout holds only the summary (``--json``: one JSON document)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        with contextlib.suppress(OSError, AttributeError, TypeError):  # no C library to flush (not POSIX)
+            ctypes.CDLL(None).fflush(None)  # C stdio's buffer, written while fd 1 was stderr
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def _point(s) -> dict:
     return {"time_s": s.time_s, "lat_deg": s.lat_deg, "lon_deg": s.lon_deg, "alt_msl_m": s.alt_msl_m,
             "agl_m": s.agl_m, "heading_deg": s.heading_deg, "airspeed_mps": s.airspeed_true_mps}
@@ -117,7 +139,8 @@ def fly_command(args) -> int:
         terrain = build_terrain(args.dem)
     ic = InitialConditions(args.lat, args.lon, args.alt_m, "agl" if args.agl else "msl", args.heading_deg,
                            0.0 if args.ground else args.speed_mps, on_ground=args.ground)
-    summary = fly(args.aircraft, ic, args.seconds, terrain, args.dt, args.hold)
+    with _stdout_to_stderr():
+        summary = fly(args.aircraft, ic, args.seconds, terrain, args.dt, args.hold)
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0

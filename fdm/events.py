@@ -74,8 +74,9 @@ class EventDetector:
     """Transitions of gear contact, crash conditions and fuel, step by step.
 
     Take-off is reported once the gear has been clear of the ground for
-    ``takeoff_clear_s`` (a bounce is not a take-off); touchdown on the first
-    step with weight on any wheel after being airborne.
+    ``takeoff_clear_s`` (a bounce is not a take-off), with the time and place
+    the wheels left; touchdown on the first step with weight on any wheel
+    after being airborne.
     """
 
     def __init__(self, limits: CrashLimits, on_ground: bool, takeoff_clear_s: float = 0.5):
@@ -86,6 +87,7 @@ class EventDetector:
         self.crashed = False
         self.out_of_fuel = False
         self._clear_since = None
+        self._clear_where = None  # (lat, lon, alt) when the gear left the ground
         self._g_since = None
 
     def update(self, t, lat, lon, alt, wow, structure_contact, sink_rate_mps, nz_g,
@@ -111,9 +113,11 @@ class EventDetector:
             if not self.airborne:
                 if self._clear_since is None:
                     self._clear_since = t
+                    self._clear_where = (lat, lon, alt)
                 elif t - self._clear_since >= self.takeoff_clear_s:
+                    # Reported takeoff_clear_s late, as of when and where the wheels left.
                     self.airborne = True
-                    events.append(Event(TAKEOFF, self._clear_since, lat, lon, alt))
+                    events.append(Event(TAKEOFF, self._clear_since, *self._clear_where))
         if structure_contact and not self.crashed and (ground_speed_mps > STRUCTURE_REST_SPEED_MPS
                                                        or sink_rate_mps > self.limits.sink_rate_mps):
             events.append(self._crash(t, lat, lon, alt, "structure contact", ground_speed_mps=ground_speed_mps,

@@ -434,6 +434,13 @@ class ProceduralTerrain:
                       vertical_datum="mean sea level (procedural)", source="procedural",
                       meta={"seed": self.seed, "first_post_row": r0, "first_post_col": c0})
 
+    covers_globe = True  # every (lat, lon) has a height: nothing is OUTSIDE
+
+    @property
+    def height_range_m(self) -> tuple[float, float]:
+        """(lowest, highest) height the generator can make (:func:`height_bounds_m`), metres."""
+        return height_bounds_m(self.max_height_m, self.level_exponent, self.water, self.block_cells)
+
     def describe(self) -> dict:
         """Metadata: bounds (the whole globe), spacing, datum and generation parameters."""
         mx, my = metres_per_index(CRS_GEOGRAPHIC, self.spacing_deg, self.spacing_deg, 0.0)

@@ -451,6 +451,14 @@ class Raster:
         return build_pyramid(self.heights, self.filled)
 
     @cached_property
+    def height_range_m(self) -> tuple[float, float] | None:
+        """(lowest, highest) post height in metres (the bilinear surface stays between them;
+        None when no post has data)."""
+        if not np.isfinite(self.heights).any():
+            return None
+        return float(np.nanmin(self.heights)), float(np.nanmax(self.heights))
+
+    @cached_property
     def bounds(self) -> tuple[float, float, float, float]:
         """(lat_min, lon_min, lat_max, lon_max) in degrees of the outermost posts."""
         return grid_bounds(self.georef, self.shape)

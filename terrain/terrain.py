@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sortie.errors import LimitExceeded
-from terrain.geodesy import WGS84_A_M, WGS84_E2, ecef_to_geodetic, geodetic_to_ecef
+from terrain.geodesy import WGS84_A_M, WGS84_B_M, WGS84_E2, ecef_to_geodetic, geodetic_to_ecef
 from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster, metres_per_index
 from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
 
@@ -51,6 +51,36 @@ RAY_PART_CUT = (3.0 - math.sqrt(5.0)) / 2.0
 # Source kinds (describe()["kind"]) whose heights are made up, not measured: a
 # filled void of a DEM is not handed to them.
 SYNTHETIC_KINDS = ("procedural",)
+# The shell every surface of a stack lies in (Terrain._shell): what a segment does above it or
+# below it is known without tracing. Metres of margin on either radius, far above rounding.
+SHELL_MARGIN_M = 1.0
+
+
+def shell_stretch(a: np.ndarray, b: np.ndarray, r_out: float, r_in: float):
+    """Where each ECEF segment a + s (b - a), s in [0, 1], meets the shell between two spheres
+    about the Earth's centre: (s_lo, s_hi, dives). [s_lo, s_hi] is the stretch inside the
+    outer sphere (s_lo > s_hi: none), cut short where the segment enters the inner sphere from
+    outside it, and ``dives`` marks those that do enter it within the segment. Roots of
+    |a + s d|^2 = r^2, a quadratic in s."""
+    d = b - a
+    qa = np.einsum("ij,ij->i", d, d)
+    qb = 2.0 * np.einsum("ij,ij->i", a, d)
+    aa = np.einsum("ij,ij->i", a, a)
+    safe = np.where(qa > 0.0, qa, 1.0)
+
+    def roots(r):
+        disc = qb * qb - 4.0 * qa * (aa - r * r)
+        root = np.sqrt(np.maximum(disc, 0.0))
+        return (-qb - root) / (2.0 * safe), (-qb + root) / (2.0 * safe), (disc >= 0.0) & (qa > 0.0)
+
+    o1, o2, o_hit = roots(r_out)
+    inside_out = aa <= r_out * r_out
+    s_lo = np.where(inside_out, 0.0, np.where(o_hit, np.maximum(o1, 0.0), 2.0))
+    s_hi = np.where(o_hit, np.minimum(o2, 1.0), np.where(inside_out, 1.0, -1.0))
+    i1, _, i_hit = roots(r_in)
+    dives = i_hit & (aa > r_in * r_in) & (i1 > 0.0) & (i1 < 1.0)
+    s_hi = np.where(dives, np.minimum(s_hi, i1), s_hi)
+    return s_lo, s_hi, dives
 
 
 @dataclass(frozen=True)
@@ -336,7 +366,24 @@ class Terrain:
         a = geodetic_to_ecef(rays[0], rays[1], rays[2])
         b = geodetic_to_ecef(rays[3], rays[4], rays[5])
         n = rays[0].size
-        s, de, dn, status = self._trace(rays, a, b, np.zeros(n), np.ones(n))
+        shell = self._shell_cut(rays, a, b)
+        if shell is None:
+            s, de, dn, status = self._trace(rays, a, b, np.zeros(n), np.ones(n))
+        else:  # only the stretches inside the shell, up to where a segment dives below it
+            cut, s_lo, s_hi, dives, above = shell
+            s, de, dn = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+            status = np.full(n, STATUS_OK, np.uint8)
+            go = np.flatnonzero(~above)
+            got = self._trace(tuple(x[go] for x in cut[0]), a[go], b[go], s_lo[go], s_hi[go],
+                              chord=(cut[1][go], cut[2][go]))
+            s[go], de[go], dn[go], status[go] = got
+            # A segment that dives below every surface meets one before; should rounding put
+            # that contact past the cut, its whole length is traced.
+            again = np.flatnonzero(dives & np.isnan(s))
+            if again.size:
+                got = self._trace(tuple(x[again] for x in rays), a[again], b[again], np.zeros(again.size),
+                                  np.ones(again.size))
+                s[again], de[again], dn[again], status[again] = got
         lat, lon, h = ecef_to_geodetic(a + s[:, None] * (b - a))
         normal = np.stack([-de, -dn, np.ones(n)], axis=-1)
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -358,8 +405,18 @@ class Terrain:
         a = geodetic_to_ecef(rays[0], rays[1], rays[2])
         b = geodetic_to_ecef(rays[3], rays[4], rays[5])
         visible, status = np.zeros(n, bool), np.full(n, STATUS_OUTSIDE, np.uint8)
+        todo_all = np.arange(n)
+        shell = self._shell_cut(rays, a, b)
+        if shell is not None:
+            # Below every surface somewhere: blocked; above every one all along: clear. The rest
+            # are traced between the ends of their stretch inside the shell (nothing outside it
+            # can block, and contacts at those ends, far from any surface, do not arise).
+            (rays, a, b), _, _, dives, above = shell
+            status[dives | above] = STATUS_OK
+            visible[above] = True
+            todo_all = np.flatnonzero(~(dives | above))
         parted = []
-        for first, idx in self._groups(0, rays, a, b, np.arange(n), parted=parted):
+        for first, idx in self._groups(0, rays, a, b, todo_all, parted=parted):
             sub = tuple(x[idx] for x in rays)
             if first is not None:
                 visible[idx], status[idx] = line_of_sight(first, *sub)
@@ -379,6 +436,46 @@ class Terrain:
 
             visible[idx], status[idx] = _both_ways(trace, a[idx], b[idx])
         return LosResult(visible, status)
+
+    def _shell(self):
+        """(r_out, r_in): radii (m, about the Earth's centre) between which every surface of the
+        stack lies, for a stack that covers the globe (a procedural world: nothing is OUTSIDE, so
+        cutting a segment short changes no status) and whose every source knows its heights'
+        range; else None. A point at height h (the terrain's ECEF heights are these metres on the
+        ellipsoid) is within a + h of the centre, and at least b + min(h, 0) from it."""
+        if not any(getattr(src, "covers_globe", False) for src in self.sources):
+            return None
+        ranges = [getattr(src, "height_range_m", False) for src in self.sources]
+        if any(r is False for r in ranges):
+            return None
+        lo = min(r[0] for r in ranges if r is not None)
+        hi = max(r[1] for r in ranges if r is not None)
+        return (WGS84_A_M + max(hi, 0.0) + SHELL_MARGIN_M, WGS84_B_M + min(lo, 0.0) - SHELL_MARGIN_M)
+
+    def _shell_cut(self, rays, a, b):
+        """Segments against :meth:`_shell`, or None (no shell, or no segment reaches out of it):
+        ((rays, a, b) of the stretches' ends: a cut segment's moved to its stretch's, the others'
+        as given; s_lo, s_hi: the stretches on the whole segments, 0 and 1 where not cut; dives;
+        above: the segments with no stretch inside the shell, clear of every surface)."""
+        shell = self._shell()
+        if shell is None:
+            return None
+        s_lo, s_hi, dives = shell_stretch(a, b, *shell)
+        cut = (s_lo > 0.0) | (s_hi < 1.0)
+        if not cut.any():
+            return None
+        above = ~dives & (s_lo > s_hi)
+        s_lo, s_hi = np.where(cut & ~above, s_lo, 0.0), np.where(cut & ~above, s_hi, 1.0)
+        move = cut & ~above
+        pa = np.where(move[:, None], a + s_lo[:, None] * (b - a), a)
+        pb = np.where(move[:, None], a + s_hi[:, None] * (b - a), b)
+        ends = list(rays)
+        if move.any():
+            ga, gb = ecef_to_geodetic(pa[move]), ecef_to_geodetic(pb[move])
+            for k, v in enumerate(ga + gb):
+                ends[k] = np.array(ends[k], dtype=np.float64, copy=True)
+                ends[k][move] = v
+        return (tuple(ends), pa, pb), s_lo, s_hi, dives, above
 
     def _trace(self, rays, a, b, s_lo, s_hi, chord=None):
         """First contact s in [s_lo, s_hi] of each segment a + s (b - a) with the stack's surface:

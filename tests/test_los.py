@@ -505,3 +505,66 @@ def test_los_agrees_with_intersect_across_the_dem_edge(alps_over_procedural, lat
         res = t.line_of_sight(*[[v] for v in p + q])
         assert res.status[0] != STATUS_OUTSIDE
         assert (not res.visible[0]) == blocked, (p, q, hit.distance_m[0], length)
+
+
+# ----------------------------------------------------------------------------- the shell of every surface
+
+def test_a_ray_through_the_earth_is_answered_from_its_stretch_in_the_shell():
+    """The acceptance probe's ray over a procedural world, from 10,000 km over (0, 0) to
+    10,000 km over (0, 179): its chord passes 143 km from the Earth's centre. Only its stretch
+    between the shell every surface lies in (Terrain._shell) and the point where it dives
+    below it is traced (8 s before, for the rasters along 19,000 km of ground track): the same
+    first contact as tracing all of it, and blocked either way round."""
+    from terrain.procedural import ProceduralTerrain
+    from terrain.terrain import Terrain
+
+    t = Terrain([ProceduralTerrain(seed=42)])
+    a, b = (0.0, 0.0, 1e7), (0.0, 179.0, 1e7)
+    hit = t.intersect(*[[v] for v in a + b])
+    assert hit.hit[0] and hit.status[0] == STATUS_OK
+    assert 0.5 < hit.lon_deg[0] < 1.0  # where it comes down, near the start's side
+    ground = t.heights(hit.lat_deg, hit.lon_deg).height_msl_m[0]
+    assert hit.height_msl_m[0] == pytest.approx(ground, abs=0.01)
+    for p, q in ((a, b), (b, a)):
+        res = t.line_of_sight(*[[v] for v in p + q])
+        assert not res.visible[0] and res.status[0] == STATUS_OK
+
+
+def test_cut_segments_answer_as_traced_whole(monkeypatch):
+    """Segments from 30-500 km up to points 0-2 km over a procedural world (each cut to its
+    stretch in the shell) or wholly above it (clear): intersect and line of sight as with the
+    shell turned off, to rounding (and 30 times faster: 0.5 s against 14 s for 40 such segments
+    from up to 3,000 km)."""
+    from terrain.procedural import ProceduralTerrain
+    from terrain.terrain import Terrain
+
+    rng = np.random.default_rng(5)
+    n = 24
+    lat_a, lon_a = rng.uniform(-60, 60, n), rng.uniform(-179, 179, n)
+    lat_b = np.clip(lat_a + rng.uniform(-1, 1, n), -89, 89)
+    lon_b = lon_a + rng.uniform(-1, 1, n)
+    h_a = rng.uniform(3e4, 5e5, n)
+    h_b = np.where(np.arange(n) % 4 == 0, rng.uniform(6e4, 9e4, n), rng.uniform(0.0, 2000.0, n))
+    t = Terrain([ProceduralTerrain(seed=7, max_height_m=800.0)])
+    got = t.intersect(lat_a, lon_a, h_a, lat_b, lon_b, h_b)
+    seen = [t.line_of_sight(lat_a, lon_a, h_a, lat_b, lon_b, h_b),
+            t.line_of_sight(lat_b, lon_b, h_b, lat_a, lon_a, h_a)]
+    assert t._shell_cut(*_ends(lat_a, lon_a, h_a, lat_b, lon_b, h_b)) is not None  # the cut is taken
+    monkeypatch.setattr(Terrain, "_shell", lambda self: None)
+    whole = t.intersect(lat_a, lon_a, h_a, lat_b, lon_b, h_b)
+    np.testing.assert_array_equal(got.hit, whole.hit)
+    np.testing.assert_array_equal(got.status, whole.status)
+    np.testing.assert_allclose(got.distance_m, whole.distance_m, rtol=1e-9, atol=1e-6)
+    assert got.hit.any() and not got.hit.all()
+    for res in seen:
+        ref = t.line_of_sight(lat_a, lon_a, h_a, lat_b, lon_b, h_b)
+        np.testing.assert_array_equal(res.visible, ref.visible)
+        np.testing.assert_array_equal(res.status, ref.status)
+
+
+def _ends(lat_a, lon_a, h_a, lat_b, lon_b, h_b):
+    """(rays, a, b) as Terrain's ray methods make them."""
+    from terrain.los import check_segments
+
+    rays = check_segments(lat_a, lon_a, h_a, lat_b, lon_b, h_b)
+    return rays, geodetic_to_ecef(rays[0], rays[1], rays[2]), geodetic_to_ecef(rays[3], rays[4], rays[5])
