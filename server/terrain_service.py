@@ -217,13 +217,20 @@ class TerrainServicer:
         return height_grid(store, raster, level, int(request.cell_id), request.encoding)
 
     def GetRegion(self, request: pb.GetRegionRequest) -> pb.HeightGrid:
-        from terrain.validate import check_latlon
+        from terrain.validate import LON_ABS_MAX_DEG
 
         store = self._store()
         if request.level >= store.levels:
             raise InvalidArgument("level", f"must be below the store's {store.levels} levels", value=request.level)
-        lat, lon = check_latlon(np.array([request.lat_min_deg, request.lat_max_deg]),
-                                np.array([request.lon_min_deg, request.lon_max_deg]))
+        # Each edge checked on its own, so the error names the request's field (not lat[0]).
+        for name, limit in (("lat_min_deg", 90.0), ("lat_max_deg", 90.0),
+                            ("lon_min_deg", LON_ABS_MAX_DEG), ("lon_max_deg", LON_ABS_MAX_DEG)):
+            value = getattr(request, name)
+            if not (math.isfinite(value) and abs(value) <= limit):
+                raise InvalidArgument(name, f"must be a finite number of degrees within [-{limit:g}, {limit:g}]",
+                                      value=value)
+        lat = np.array([request.lat_min_deg, request.lat_max_deg])
+        lon = np.array([request.lon_min_deg, request.lon_max_deg])
         if not lat[0] <= lat[1]:
             raise InvalidArgument("lat_min_deg", "the box is inverted: above lat_max_deg",
                                   value=(float(lat[0]), float(lat[1])))

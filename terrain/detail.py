@@ -31,6 +31,23 @@ Here, in a raster's index space (row, col; posts at integers):
   Lattice coordinates are global where the raster is aligned to its own
   spacing (SRTM tiles are), so neighbouring tiles draw the same values on
   their shared edge.
+* Water stays water: the detail is scaled by a weight of the undetailed
+  (bilinear) height h at the point, w = clip((h - sea_level_m) / taper_m, 0, 1),
+  with taper_m = SEA_TAPER_STDS times the detail's total std. No detail where the
+  source is at or below sea level (SRTM writes the sea as 0 m; terrain/texture.py
+  draws h <= 0 as water), full detail from taper_m above it, and a linear ramp
+  between, so the surface stays continuous at the coastline, and land goes
+  below sea level only where the noise is below -taper_m (-3 sigma: 0.13 % of
+  the points) instead of wherever it is below -h. The weight is our rule, not
+  the thesis's (whose terrain has no sea). ``sea_level_m=None`` turns it off.
+  Near the coast (0 < h - sea_level_m < taper_m) the densified rasters of
+  :meth:`DetailedRaster.raster_for` interpolate the weighted posts, so rays
+  there meet the surface to within the weight's curvature over a finest cell;
+  elsewhere exactly.
+* The detail's amplitude is one fit per raster (its whole pyramid's residual
+  variance), so a flat plain beside mountains in the same raster gets the
+  mountains' detail: the thesis's rule (noise variance "equal that in actual
+  terrain", taken over the data the detail is synthesised for).
 """
 
 from __future__ import annotations
@@ -55,6 +72,26 @@ DETAIL_RASTER_MAX_POSTS = 1 << 22
 # A raster origin within this many posts of a whole multiple of its spacing is
 # taken as aligned to the global lattice of that spacing.
 ALIGNMENT_TOLERANCE_POSTS = 1e-6
+# Sea level (m, the source's datum): no detail at or below it (SRTM writes the sea as 0 m).
+SEA_LEVEL_M = 0.0
+# The detail ramps in over this many of its total standard deviations above sea level.
+SEA_TAPER_STDS = 3.0
+
+
+def sea_taper(base_m, sea_level_m: float | None, taper_m: float):
+    """(weight, d weight / d height) of synthetic detail over undetailed heights ``base_m``:
+    clip((h - sea_level_m) / taper_m, 0, 1) and its slope (0 outside the ramp); (1, 0) when
+    sea_level_m is None; a step (0 at or below sea level, 1 above) when taper_m is 0."""
+    base = np.asarray(base_m, dtype=np.float64)
+    if sea_level_m is None:
+        return np.ones(base.shape), np.zeros(base.shape)
+    above = base - sea_level_m
+    if taper_m <= 0.0:
+        return (above > 0.0).astype(np.float64), np.zeros(base.shape)
+    t = above / taper_m
+    with np.errstate(invalid="ignore"):
+        slope = np.where((t > 0.0) & (t < 1.0), 1.0 / taper_m, 0.0)
+    return np.clip(t, 0.0, 1.0), slope
 
 
 def noise_table(size: int = NOISE_TABLE_SIZE) -> np.ndarray:
@@ -234,11 +271,12 @@ class DetailedRaster:
     spacing 2^-k posts, the finest at or below ``finest_spacing_m``) add
     Gaussian noise whose std per level comes from the raster's own pyramid
     residuals (or ``level_std_m`` when given, e.g. one fit shared by a
-    mosaic's tiles).
+    mosaic's tiles). Heights at or below ``sea_level_m`` get no detail, and it
+    ramps in above (:func:`sea_taper`, the module docstring); None: detail everywhere.
     """
 
     def __init__(self, raster: Raster, seed: int, finest_spacing_m: float = 1.0, fit_levels: int = FIT_LEVELS,
-                 level_std_m=None, name: str | None = None):
+                 level_std_m=None, name: str | None = None, sea_level_m: float | None = SEA_LEVEL_M):
         if not isinstance(raster, Raster):
             raise TypeError(f"raster must be a terrain.raster.Raster, got {type(raster).__name__}")
         if not (math.isfinite(finest_spacing_m) and finest_spacing_m > 0):
@@ -262,6 +300,10 @@ class DetailedRaster:
             self.fit_alpha, self.fit_beta = math.nan, math.nan
         std.flags.writeable = False
         self.level_std_m = std
+        if sea_level_m is not None and not math.isfinite(sea_level_m):
+            raise InvalidArgument("sea_level_m", "must be a finite height (m) or None", value=sea_level_m)
+        self.sea_level_m = None if sea_level_m is None else float(sea_level_m)
+        self.sea_taper_m = SEA_TAPER_STDS * float(np.sqrt(np.sum(std ** 2)))
         g = raster.georef
         self.row_offset = _aligned_offset(g.y0, g.dy)
         self.col_offset = _aligned_offset(g.x0, g.dx)
@@ -291,8 +333,11 @@ class DetailedRaster:
         self.raster.heights_into(lat, lon, out_h, out_status)
         hit = np.flatnonzero(todo & (out_status != STATUS_OUTSIDE))
         if hit.size and self.sub_levels:
+            weight, _ = sea_taper(out_h[hit], self.sea_level_m, self.sea_taper_m)
+            keep = weight > 0.0  # at or below sea level: the source's own height
+            hit, weight = hit[keep], weight[keep]
             rows, cols = self._indices(lat[hit], lon[hit])
-            out_h[hit] += self.detail_at_index(rows, cols)[0]
+            out_h[hit] += weight * self.detail_at_index(rows, cols)[0]
 
     def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
         """dh/d(east metre), dh/d(north metre) of the detailed surface for points still OUTSIDE."""
@@ -300,12 +345,21 @@ class DetailedRaster:
         self.raster.gradient_into(lat, lon, out_de, out_dn, out_status)
         hit = np.flatnonzero(todo & (out_status != STATUS_OUTSIDE))
         if hit.size and self.sub_levels:
+            weight, slope = np.ones(hit.size), np.zeros(hit.size)
+            if self.sea_level_m is not None:
+                base = np.full(hit.size, np.nan)
+                self.raster.heights_into(lat[hit], lon[hit], base, np.full(hit.size, STATUS_OUTSIDE, np.uint8))
+                weight, slope = sea_taper(base, self.sea_level_m, self.sea_taper_m)
+                keep = weight > 0.0
+                hit, weight, slope = hit[keep], weight[keep], slope[keep]
             rows, cols = self._indices(lat[hit], lon[hit])
-            _, d_row, d_col = self.detail_at_index(rows, cols)
+            detail, d_row, d_col = self.detail_at_index(rows, cols)
             g = self.raster.georef
             mx, my = metres_per_index(g.crs, g.dx, g.dy, lat[hit])
-            out_de[hit] += d_col / mx
-            out_dn[hit] += d_row / my
+            # d(w detail) = w d(detail) + detail dw/dh d(base): the product rule over the ramp.
+            de, dn = out_de[hit], out_dn[hit]
+            out_de[hit] = de + weight * d_col / mx + detail * slope * de
+            out_dn[hit] = dn + weight * d_row / my + detail * slope * dn
 
     def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float):
         """A densified Raster of the detailed surface over the box, or None if not covered.
@@ -366,7 +420,9 @@ class DetailedRaster:
         scale = float(1 << level)
         rows, cols = np.meshgrid(np.arange(i0, i1 + 1) / scale, np.arange(j0, j1 + 1) / scale, indexing="ij")
         rows, cols = rows.ravel(), cols.ravel()
-        dense = _bilinear_at_index(self.raster.heights, rows, cols) + self.detail_at_index(rows, cols, level)[0]
+        base = _bilinear_at_index(self.raster.heights, rows, cols)
+        weight, _ = sea_taper(base, self.sea_level_m, self.sea_taper_m)
+        dense = base + weight * self.detail_at_index(rows, cols, level)[0]
         omitted = float(np.sqrt(np.sum(self.level_std_m[level:] ** 2)))
         return Raster(dense.reshape(i1 - i0 + 1, j1 - j0 + 1),
                       Georef(g.crs, g.x0 + j0 * g.dx / scale, g.y0 + i0 * g.dy / scale, g.dx / scale, g.dy / scale),
@@ -383,6 +439,8 @@ class DetailedRaster:
             "detail_levels": self.sub_levels,
             "detail_finest_spacing_m": self.finest_spacing_m,
             "detail_level_std_m": [float(s) for s in self.level_std_m],
+            "detail_sea_level_m": self.sea_level_m,
+            "detail_sea_taper_m": self.sea_taper_m,
             "residual_variance_m2": [float(v) for v in self.residual_variance_m2],
             "fit_log2_variance_alpha": self.fit_alpha,
             "fit_log2_variance_beta": self.fit_beta,

@@ -72,6 +72,7 @@ import numba
 import numpy as np
 import zstandard
 
+from sortie.errors import DataFormatError
 from terrain.threads import cpu_count, map_shared
 
 # Four-point interpolatory subdivision mask (-1, 9, 9, -1) / 16 (Dyn, Levin &
@@ -258,11 +259,24 @@ def decode_tile(blob: bytes, coarse: np.ndarray, tile: int, tile_r0: int, tile_c
     half = tile // 2
     raw, offs = _decompress_parts(blob, 2, half * tile)
     out = _tile_buffer(out, (tile, tile))
-    _decode_tile_kernel(coarse, tile_r0 // 2 - cr0, tile_c0 // 2 - cc0, rect.row0 // 2 - cr0,
-                        rect.row1 // 2 - 1 - cr0, rect.col0 // 2 - cc0, rect.col1 // 2 - 1 - cc0, step,
-                        raw, offs, np.empty(2 * half * half, np.int32), np.empty(2 * half * tile, np.int32),
-                        out, tile if rows is None else rows)
+    try:
+        _decode_tile_kernel(coarse, tile_r0 // 2 - cr0, tile_c0 // 2 - cc0, rect.row0 // 2 - cr0,
+                            rect.row1 // 2 - 1 - cr0, rect.col0 // 2 - cc0, rect.col1 // 2 - 1 - cc0, step,
+                            raw, offs, np.empty(2 * half * half, np.int32), np.empty(2 * half * tile, np.int32),
+                            out, tile if rows is None else rows)
+    except ValueError as e:
+        raise _blob_error(e, " (or the coarser tiles it is predicted from, whose values set its contexts, "
+                             "are damaged)") from None
     return out
+
+
+def _blob_error(error: ValueError, note: str = "") -> Exception:
+    """A decoding kernel's ValueError as raised to the caller: its checks of a blob's residual
+    streams ("tile blob: ...", numba raises builtin exceptions only) as DataFormatError, any other
+    (a caller's mistake) as it is."""
+    if str(error).startswith("tile blob"):
+        return DataFormatError(f"{error}{note}")
+    return error
 
 
 def _tile_buffer(out: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
@@ -448,7 +462,11 @@ def decode_top(blob: bytes, shape: tuple[int, int], step: int, rows: int | None 
     rest of the array is left unset); out as in :func:`decode_tile`."""
     raw, offs = _decompress_parts(blob, 1, shape[0] * shape[1])
     out = _tile_buffer(out, shape)
-    _decode_top_kernel(raw, offs, np.empty(2 * out.size, np.int32), step, out, shape[0] if rows is None else rows)
+    try:
+        _decode_top_kernel(raw, offs, np.empty(2 * out.size, np.int32), step, out,
+                           shape[0] if rows is None else rows)
+    except ValueError as e:
+        raise _blob_error(e) from None
     return out
 
 
@@ -505,17 +523,23 @@ def _decompress_parts(blob, n_streams: int, max_symbols: int) -> tuple[np.ndarra
     """Every bucket of a blob of n_streams bucket streams, decompressed into one byte
     array, with the offsets of the buckets in it (n_streams * N_BUCKETS + 1 of them).
     A frame that claims more than max_symbols residuals' bytes (a damaged header) is
-    refused before anything is allocated for it."""
+    refused before anything is allocated for it. A damaged blob raises DataFormatError
+    saying what is wrong (zstd's own errors included), which the reader prefixes with the tile."""
     dctx = _decompressor()
     limit = 5 + 5 * max_symbols  # escape count, escapes and symbols of a full bucket
     chunks = []
-    for part in _unpack_parts(blob, n_streams * N_BUCKETS):
+    for k, part in enumerate(_unpack_parts(blob, n_streams * N_BUCKETS)):
         if not len(part):
             chunks.append(b"")
             continue
-        if not 0 <= zstandard.get_frame_parameters(part, _MAGICLESS).content_size <= limit:
-            raise ValueError("tile blob: a bucket's frame claims an impossible size")
-        chunks.append(dctx.decompress(part))
+        try:
+            size = zstandard.get_frame_parameters(part, _MAGICLESS).content_size
+            if not 0 <= size <= limit:
+                raise DataFormatError(f"tile blob: bucket {k}'s zstd frame claims {size} bytes, "
+                                      f"more than its {limit}")
+            chunks.append(dctx.decompress(part))
+        except zstandard.ZstdError as e:
+            raise DataFormatError(f"tile blob: bucket {k}'s zstd frame is damaged ({e})") from None
     offs = np.fromiter(itertools.accumulate(map(len, chunks), initial=0), np.int64, len(chunks) + 1)
     return np.frombuffer(b"".join(chunks), np.uint8), offs
 
@@ -641,22 +665,24 @@ def _pack_parts(parts: list[bytes]) -> bytes:
 
 
 def _unpack_parts(blob, n: int) -> list[memoryview]:
-    """The n parts of a :func:`_pack_parts` blob, as views into it (no copies)."""
+    """The n parts of a :func:`_pack_parts` blob, as views into it (no copies); DataFormatError
+    when its header is damaged."""
     if len(blob) < 2:
-        raise ValueError(f"tile blob of {len(blob)} bytes is shorter than its header")
+        raise DataFormatError(f"tile blob of {len(blob)} bytes is shorter than its header")
     version, width = blob[0], blob[1]
     if version != BLOB_VERSION:
-        raise ValueError(f"tile blob version {version}, this build reads {BLOB_VERSION}")
+        raise DataFormatError(f"tile blob version {version}, this build reads {BLOB_VERSION}")
     head = _heads.get((n, width))
     if head is None:
         if width not in (2, 4):
-            raise ValueError(f"tile blob: size fields of {width} bytes")
+            raise DataFormatError(f"tile blob: size fields of {width} bytes (2 or 4)")
         head = _heads[n, width] = struct.Struct(f"<2x{n}{'H' if width == 2 else 'I'}")
     if len(blob) < head.size:
-        raise ValueError(f"tile blob of {len(blob)} bytes is shorter than its {head.size}-byte header")
+        raise DataFormatError(f"tile blob of {len(blob)} bytes is shorter than its {head.size}-byte header")
     sizes = head.unpack_from(blob)
     if head.size + sum(sizes) != len(blob):
-        raise ValueError(f"tile blob part sizes {sizes} do not add up to its {len(blob)} bytes")
+        raise DataFormatError(f"tile blob: part sizes {sizes} add up to {head.size + sum(sizes)} bytes with "
+                              f"the header, not its {len(blob)}")
     view = memoryview(blob)
     out, at = [], head.size
     for size in sizes:
@@ -737,6 +763,10 @@ class PyramidReader:
     called from the caller's thread. A reader may be shared between threads:
     one lock serialises its decodes.
 
+    A damaged blob raises DataFormatError prefixed by ``describe_tile(level, tile_row,
+    tile_col)`` (default "level K tile (row, col)"; the store names the level file), and
+    leaves the reader as it was: it decodes other tiles as before.
+
     A tile leaving the cache leaves its array for the next tile decoded (up to
     ``cache_tiles`` spare arrays): decoding into memory already mapped instead
     of fresh pages saved a third of a tile's decode time (0.455 -> 0.294 ms, 25
@@ -745,9 +775,10 @@ class PyramidReader:
     """
 
     def __init__(self, rects: list[LevelRect], tile: int, step: int, get_blob, cache_tiles: int = 256,
-                 threads: int | None = None):
+                 threads: int | None = None, describe_tile=None):
         from collections import OrderedDict
 
+        self._describe_tile = describe_tile or (lambda level, ti, tj: f"level {level} tile ({ti}, {tj})")
         self.rects = list(rects)
         self.tile = tile
         self.step = step
@@ -844,11 +875,14 @@ class PyramidReader:
 
         def decode(job):
             t, blob, buf = job
-            if top:
-                dec = decode_top(blob, (T, T), self.step, need[t], out=buf)
-            else:
-                dec = decode_tile(blob, coarse, T, t[0] * T, t[1] * T, rect, cr0, cc0, self.step, need[t],
-                                  out=buf)
+            try:
+                if top:
+                    dec = decode_top(blob, (T, T), self.step, need[t], out=buf)
+                else:
+                    dec = decode_tile(blob, coarse, T, t[0] * T, t[1] * T, rect, cr0, cc0, self.step, need[t],
+                                      out=buf)
+            except DataFormatError as e:
+                raise DataFormatError(f"{self._describe_tile(level, *t)}: {e}") from None
             place(t, dec)
             return dec
 

@@ -128,10 +128,11 @@ class TerrainStore:
                         for r in m["regions"]]
         self.name = m.get("name", self.path.name)
         self._lock = threading.RLock()
-        self._index: dict[tuple[int, int], tuple[np.ndarray, dict]] = {}
+        self._index: dict[tuple[int, int], tuple[np.ndarray, dict, int]] = {}  # entries, lookup, file size
         self._files: dict[tuple[int, int], object] = {}
         self._readers = [PyramidReader(list(r.rects), self.tile, self.step_units,
-                                       self._blob_getter(r.index), cache_tiles=cache_tiles)
+                                       self._blob_getter(r.index), cache_tiles=cache_tiles,
+                                       describe_tile=self._tile_namer(r.index))
                          for r in self.regions]
         self._class_cache: OrderedDict = OrderedDict()
         self._uniform_classes: dict[int, np.ndarray] = {}  # class -> a read-only tile of it
@@ -151,6 +152,13 @@ class TerrainStore:
         """Bound on |decoded - resampled source| at every post of every level: half a
         step of quantisation plus half a unit of rounding to the unit."""
         return (self.step_units // 2 + 0.5) * self.unit_m
+
+    @property
+    def quantisation_bound_m(self) -> float:
+        """Bound on |decoded - imported| at every post from quantisation alone: half a step
+        (floor(step_units / 2) units; 0 for a lossless store). The store cannot tell heights
+        this close apart, e.g. a sea at 0 m from ground at step / 2 (terrain/texture.py's water)."""
+        return (self.step_units // 2) * self.unit_m
 
     def spacing_deg(self, level: int) -> tuple[float, float]:
         return self.dlat * (1 << level), self.dlon * (1 << level)
@@ -361,14 +369,42 @@ class TerrainStore:
         blob = self._read_tile(region, level, ti, tj, classes=True)
         if len(blob) <= 1:  # every post of one class: one shared read-only tile per class
             value = CLASS_MEASURED if len(blob) == 0 else blob[0]
+            if value > CLASS_FILLED:
+                raise self._tile_error(region, level, ti, tj, f"class blob: class {value} (classes are 0, 1 and 2)")
             tile = self._uniform_classes.get(value)
             if tile is None:
                 tile = self._uniform_classes[value] = np.full((self.tile, self.tile), value, np.uint8)
                 tile.setflags(write=False)
             return tile
-        return np.frombuffer(self._dctx.decompress(blob), np.uint8).reshape(self.tile, self.tile)
+        n = self.tile * self.tile
+        try:
+            size = zstandard.get_frame_parameters(blob).content_size
+            if size != n:  # checked before decompressing: a damaged size is not allocated
+                raise self._tile_error(region, level, ti, tj, f"class blob: its zstd frame holds {size} bytes, "
+                                                              f"not {n}")
+            classes = np.frombuffer(self._dctx.decompress(blob), np.uint8).reshape(self.tile, self.tile)
+        except (zstandard.ZstdError, ValueError) as e:  # ValueError: a frame longer than its header says
+            raise self._tile_error(region, level, ti, tj, f"class blob: damaged zstd frame ({e})") from None
+        if classes.max() > CLASS_FILLED:
+            raise self._tile_error(region, level, ti, tj, f"class blob: class {int(classes.max())} (classes are "
+                                                          "0, 1 and 2)")
+        return classes
 
     # ------------------------------------------------------------------ files
+
+    def _level_path(self, region: int, level: int) -> Path:
+        return self.path / f"region-{region:03d}" / f"level-{level:02d}.tiles"
+
+    def _tile_name(self, region: int, level: int, ti: int, tj: int) -> str:
+        """How errors name a tile: its level file and the tile's (row, col) in the level's lattice."""
+        return f"{self._level_path(region, level)}: tile ({ti}, {tj})"
+
+    def _tile_error(self, region: int, level: int, ti: int, tj: int, what: str) -> DataFormatError:
+        return DataFormatError(f"{self._tile_name(region, level, ti, tj)}: {what}")
+
+    def _tile_namer(self, region: int):
+        """:meth:`_tile_name` of one region: (level, tile row, tile col) -> name (the reader's describe_tile)."""
+        return lambda level, ti, tj: self._tile_name(region, level, ti, tj)
 
     def _blob_getter(self, region: int):
         def get(level, ti, tj):
@@ -376,45 +412,71 @@ class TerrainStore:
         return get
 
     def _level_index(self, region: int, level: int):
+        """(index entries, (tile row, col) -> entry, file size) of a level file, read once and
+        checked: DataFormatError naming the file when its header or index is damaged."""
         key = (region, level)
         hit = self._index.get(key)
         if hit is None:
-            path = self.path / f"region-{region:03d}" / f"level-{level:02d}.tiles"
+            path = self._level_path(region, level)
             try:
                 f = open(path, "rb")
             except OSError as e:
-                raise DataFormatError(f"terrain store {self.path}: {e}") from None
-            head = f.read(_LEVEL_HEAD.size)
-            if len(head) < _LEVEL_HEAD.size:
-                raise DataFormatError(f"{path}: truncated header")
-            magic, version, lvl, count = _LEVEL_HEAD.unpack(head)
-            if magic != LEVEL_MAGIC or version != FORMAT_VERSION or lvl != level:
-                raise DataFormatError(f"{path}: not a level-{level} tile file of version {FORMAT_VERSION}")
-            raw = f.read(count * _INDEX_ENTRY.itemsize)
-            if len(raw) != count * _INDEX_ENTRY.itemsize:
-                raise DataFormatError(f"{path}: truncated index ({len(raw)} of {count * _INDEX_ENTRY.itemsize} bytes)")
-            entries = np.frombuffer(raw, _INDEX_ENTRY)
-            lookup = {(int(e["row"]), int(e["col"])): i for i, e in enumerate(entries)}
-            hit = self._index[key] = (entries, lookup)
+                raise DataFormatError(f"terrain store {self.path}: cannot open {path}: {e.strerror or e}") from None
+            try:
+                hit = self._read_index(f, path, level)
+            except OSError as e:
+                f.close()
+                raise DataFormatError(f"{path}: cannot be read: {e.strerror or e}") from None
+            except BaseException:
+                f.close()
+                raise
+            self._index[key] = hit
             self._files[key] = f
         return hit
 
+    @staticmethod
+    def _read_index(f, path: Path, level: int):
+        size = os.fstat(f.fileno()).st_size
+        head = f.read(_LEVEL_HEAD.size)
+        if len(head) < _LEVEL_HEAD.size:
+            raise DataFormatError(f"{path}: truncated header ({len(head)} of {_LEVEL_HEAD.size} bytes)")
+        magic, version, lvl, count = _LEVEL_HEAD.unpack(head)
+        if magic != LEVEL_MAGIC or version != FORMAT_VERSION or lvl != level:
+            raise DataFormatError(f"{path}: not a level-{level} tile file of version {FORMAT_VERSION} (magic "
+                                  f"{magic!r}, version {version}, level {lvl})")
+        n_bytes = count * _INDEX_ENTRY.itemsize
+        if _LEVEL_HEAD.size + n_bytes > size:  # checked before reading: a damaged count is not allocated
+            raise DataFormatError(f"{path}: truncated index ({size - _LEVEL_HEAD.size} bytes after the header, "
+                                  f"{count:,} tiles need {n_bytes:,})")
+        entries = np.frombuffer(f.read(n_bytes), _INDEX_ENTRY)
+        lookup = {(int(e["row"]), int(e["col"])): i for i, e in enumerate(entries)}
+        return entries, lookup, size
+
     def _read_tile(self, region: int, level: int, ti: int, tj: int, classes: bool) -> bytes:
-        """One tile's height blob, or its class blob when ``classes``."""
+        """One tile's height blob, or its class blob when ``classes``; DataFormatError naming the
+        level file and the tile when the index lacks it or points outside the file's blobs."""
         with self._lock:
-            entries, lookup = self._level_index(region, level)
+            entries, lookup, file_size = self._level_index(region, level)
             i = lookup.get((ti, tj))
             if i is None:
-                raise DataFormatError(f"terrain store {self.path}: region {region} level {level} has no tile "
-                                      f"({ti}, {tj})")
+                raise self._tile_error(region, level, ti, tj, f"missing from the file's index (region {region} "
+                                                              "needs it)")
             e = entries[i]
             f = self._files[(region, level)]
-            offset, size = (int(e["offset"]) + int(e["hlen"]), int(e["clen"])) if classes \
-                else (int(e["offset"]), int(e["hlen"]))
-            f.seek(offset)
-            data = f.read(size)
+            start, hlen, clen = int(e["offset"]), int(e["hlen"]), int(e["clen"])
+            blobs_start = _LEVEL_HEAD.size + entries.nbytes
+            if not blobs_start <= start <= file_size or start + hlen + clen > file_size:
+                raise self._tile_error(region, level, ti, tj, f"its index entry (offset {start:,}, {hlen:,} + "
+                                       f"{clen:,} bytes) points outside the file's blobs (bytes {blobs_start:,} to "
+                                       f"{file_size:,}; truncated or damaged)")
+            offset, size = (start + hlen, clen) if classes else (start, hlen)
+            try:
+                f.seek(offset)
+                data = f.read(size)
+            except OSError as exc:
+                raise self._tile_error(region, level, ti, tj, f"cannot be read: {exc.strerror or exc}") from None
             if len(data) != size:
-                raise DataFormatError(f"terrain store {self.path}: tile ({ti}, {tj}) of level {level} is truncated")
+                raise self._tile_error(region, level, ti, tj, f"truncated ({len(data)} of {size} bytes)")
             return data
 
     def stored_bytes(self) -> int:
@@ -689,7 +751,9 @@ class StoreSource:
                 "resolution_lat_deg": dlat, "resolution_lon_deg": dlon,
                 "vertical_datum": s.manifest.get("vertical_datum", "EGM96"),
                 "source": str(s.path), "store_levels": s.levels, "store_depth": s.depth,
-                "max_error_m": s.max_error_m}
+                "max_error_m": s.max_error_m,
+                # Half the step, 0 when lossless (GetMetadata: TerrainSource.details, as text).
+                "store_quantisation_m": s.quantisation_bound_m}
 
 
 # Point statuses of the classes (tests and the service map through this).

@@ -166,15 +166,32 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
     return summary
 
 
+# How far from a whole number of units a step may be and still be that number: float noise of
+# the decimal value (0.07 / 0.01 = 7.000000000000001), relative.
+STEP_UNITS_REL_TOL = 1e-9
+
+
 def _step_units(step_m: float, lossless: bool, unit_m: float) -> int:
-    """The quantisation step in units, checked against the codec's range (InvalidArgument naming step)."""
+    """The quantisation step in units, checked against the codec's range and refused unless it
+    is a whole number of units (InvalidArgument naming step and --step, with the nearest steps
+    allowed). The codec quantises whole units, and the unit stays 1 cm whatever the step (the
+    range of 2^29 units and GetRegion's centimetre encoding assume it), so a step of 0.015 m
+    would have been 0.02 m, silently."""
     if lossless:
         return 1
     top_m = heightcodec.MAX_ABS_UNITS * unit_m
     if not (math.isfinite(step_m) and unit_m <= step_m <= top_m):
         raise InvalidArgument("step", f"must be a number of metres from the unit {unit_m} m up to {top_m:,.0f} m "
                               f"(2^29 units, the codec's range)", value=step_m)
-    return max(1, int(round(step_m / unit_m)))
+    units = step_m / unit_m
+    whole = round(units)
+    if abs(units - whole) > STEP_UNITS_REL_TOL * units:
+        near = sorted({max(1, math.floor(units)), math.ceil(units)})
+        shown = " or ".join(f"--step {round(k * unit_m, 12):g}" for k in near)
+        raise InvalidArgument("step", f"--step must be a whole number of the store's height unit, {unit_m:g} m "
+                              f"(the codec quantises whole units), which {step_m!r} m is not: take {shown}",
+                              value=step_m)
+    return max(1, int(whole))
 
 
 def _check_height_range(r: Raster, unit_m: float) -> None:
@@ -292,7 +309,9 @@ class CellularDetail:
     """Cellular (Worley F1) bumps added below a raster's post spacing (thesis §3.3.3's
     "cellular noise"): feature points hashed on a lattice of ``cell_m`` (4 store
     posts), amplitude the raster's finest pyramid residual std / 2, zero at the
-    raster's own posts' scale on average (the mean of F1 is removed)."""
+    raster's own posts' scale on average (the mean of F1 is removed). As the fractal
+    detail (terrain.detail.sea_taper): none at or below sea level, ramping in over the
+    amplitude above it (F1 - 0.5 >= -0.5, so land stays above sea level: h - 0.5 h at worst)."""
 
     def __init__(self, raster: Raster, seed: int, finest_m: float):
         from terrain.detail import pyramid_residual_variance
@@ -305,9 +324,14 @@ class CellularDetail:
         self.name = f"{raster.name}+cellular"
 
     def heights_into(self, lat, lon, out_h, out_status) -> None:
+        from terrain.detail import SEA_LEVEL_M, sea_taper
+
         self.raster.heights_into(lat, lon, out_h, out_status)
-        ok = out_status != STATUS_OUTSIDE
-        out_h[ok] += self.amplitude_m * self._f1(lat[ok], lon[ok])
+        ok = np.flatnonzero(out_status != STATUS_OUTSIDE)
+        weight, _ = sea_taper(out_h[ok], SEA_LEVEL_M, self.amplitude_m)
+        keep = weight > 0.0  # at or below sea level: the source's own height
+        ok, weight = ok[keep], weight[keep]
+        out_h[ok] += weight * self.amplitude_m * self._f1(lat[ok], lon[ok])
 
     def _f1(self, lat, lon):
         from terrain.procedural import lattice_hash
@@ -336,13 +360,20 @@ class CellularDetail:
 
 def _regions(rasters, dlat, dlon, tile):
     """Group sources whose level-0 post boxes come within one tile of each other:
-    (row0, col0, rows, cols, member indices) per group."""
+    (row0, col0, rows, cols, member indices) per group.
+
+    Rows stop at the lattice's last one, 2 2^D T - 1, one spacing north of the South Pole: the
+    pole's own row (2 2^D T) is the southern edge of the last row of quad-tree cells, which no
+    cell owns (a cell owns its northern and western edges), so a tile holding it could not be
+    addressed, and a region's pyramid would never shrink to one tile (at every level the pole
+    row starts a tile row of its own). The store therefore answers down to that last row."""
+    last_row = int(round(180.0 / dlat)) - 1
     boxes = []
     for r in rasters:
         lat_min, lon_min, lat_max, lon_max = r.bounds
         lon_max = lon_min + (lon_max - lon_min) % 360.0 if lon_max < lon_min else lon_max
-        row0 = int(math.floor((90.0 - lat_max) / dlat))
-        row1 = int(math.ceil((90.0 - lat_min) / dlat)) + 1
+        row0 = min(int(math.floor((90.0 - lat_max) / dlat)), last_row)
+        row1 = min(int(math.ceil((90.0 - lat_min) / dlat)) + 1, last_row + 1)
         col0 = int(math.floor((lon_min + 180.0) / dlon))
         col1 = int(math.ceil((lon_max + 180.0) / dlon)) + 1
         boxes.append([row0, col0, row1, col1])

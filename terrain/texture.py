@@ -17,6 +17,20 @@ WEST edge; ``dx_m`` is the east-west and ``dy_m`` the north-south post
 spacing in metres (both positive). NaN heights mean "no data". A lat/lon grid
 gets its metre spacings from :func:`metre_spacing`.
 
+Water and quantised heights: water is where the height is at or below
+ClassParams.sea_level_m plus a height tolerance, the quantisation bound of the
+grid's source (``water_tolerance_m`` of :func:`base_classes`, :func:`class_map`
+and :func:`synthesize`). A DEM, a lossless store and a procedural world have
+bound 0: water is exactly ``h <= sea_level_m``, as before. A lossy terrain
+store of step s (docs/STORE.md) decodes every post within s/2 of its imported
+value (closed-loop quantisation), so it cannot tell a sea at 0 m from ground
+at s/2: sea posts come back anywhere in [-s/2, s/2], and bilinear samples
+between them too. Posts within s/2 of sea level are therefore water
+(``h <= sea_level_m + s/2``); the price is that low shore ground within s/2 of
+sea level is drawn as water as well. ``sortie terrain texture`` takes the
+bound from its terrain's sources (terrain/texture_cli.py), locally or over
+the terrain service's metadata.
+
 Everything is a plain numpy array function; :func:`synthesize` strings them
 together. Determinism: the same inputs and seed give bit-identical arrays
 (noise comes from the SplitMix64 lattice hash of terrain/procedural.py, not
@@ -91,7 +105,7 @@ class ClassParams:
     aspect, continentality and precipitation move real lines by hundreds of metres.
     """
 
-    sea_level_m: float = 0.0  # height <= this is water (SRTM writes the sea as 0 m)
+    sea_level_m: float = 0.0  # height <= this (plus the source's quantisation bound) is water (SRTM: sea at 0 m)
     shore_width_m: float = 90.0  # land this close to water (along rows and columns) is shore ...
     shore_max_height_m: float = 6.0  # ... when it is no higher than this
     forest_min_m: float = 800.0  # lowland farmland below, forest above (to the tree line)
@@ -266,8 +280,16 @@ def slope_bins(slope, params: ClassParams = ClassParams()) -> np.ndarray:
     return out
 
 
+def check_water_tolerance(water_tolerance_m) -> float:
+    """A water tolerance (metres) as float: finite and 0 or more, else ValueError naming it."""
+    tol = float(water_tolerance_m)
+    if not (np.isfinite(tol) and tol >= 0.0):
+        raise ValueError(f"water_tolerance_m must be a finite number of metres, 0 or more, got {water_tolerance_m!r}")
+    return tol
+
+
 def base_classes(heights, dx_m: float, dy_m: float, lat_deg=45.0, *, params: ClassParams = ClassParams(),
-                 seed: int = 0, noise_en_m=None) -> np.ndarray:
+                 seed: int = 0, noise_en_m=None, water_tolerance_m: float = 0.0) -> np.ndarray:
     """The class of each post from height, latitude and water alone (before slope), uint8.
 
     Rules, first match wins (h: height m MSL, jitter: band noise of amplitude
@@ -277,7 +299,9 @@ def base_classes(heights, dx_m: float, dy_m: float, lat_deg=45.0, *, params: Cla
     class           rule
     ==============  ==========================================================
     nodata (0)      h is NaN
-    water (1)       h <= sea_level_m (0 m: SRTM writes the sea as 0)
+    water (1)       h <= sea_level_m + water_tolerance_m (0 m: SRTM
+                    writes the sea as 0; the tolerance is the source's
+                    quantisation bound, see the module docstring)
     beach (2)       h <= shore_max_height_m and water within shore_width_m
                     along rows and columns (a box, not a disc)
     snow (8)        h >= snow line(lat) + jitter
@@ -293,7 +317,10 @@ def base_classes(heights, dx_m: float, dy_m: float, lat_deg=45.0, *, params: Cla
     (rows, 1) column). noise_en_m: (east_m, north_m) arrays broadcastable to
     heights placing each post for the noise (give world positions so that
     neighbouring grids agree); default: the grid's own (col dx, -row dy).
+    water_tolerance_m: the quantisation bound of the heights' source (0 for a
+    DEM or a lossless store, half the step for a lossy store).
     """
+    tol = check_water_tolerance(water_tolerance_m)
     z = np.asarray(heights, dtype=np.float64)
     rows, cols = z.shape
     if noise_en_m is None:
@@ -312,7 +339,8 @@ def base_classes(heights, dx_m: float, dy_m: float, lat_deg=45.0, *, params: Cla
     forest_min = np.minimum(p.forest_min_m, tree_line)
 
     nodata = np.isnan(z)
-    water = z <= p.sea_level_m  # False for NaN
+    # False for NaN. A tolerance of 0.0 leaves sea_level_m as it is: a DEM's classes are unchanged.
+    water = z <= p.sea_level_m + tol
     out = np.full(z.shape, FARMLAND, dtype=np.uint8)
     out[woodlot < stretch_fraction(p.woodlot_fraction)] = FOREST
     zj = z - jitter
@@ -343,7 +371,7 @@ def stretch_fraction(fraction: float) -> float:
 
 
 def class_map(heights, slope, dx_m: float, dy_m: float, lat_deg=45.0, *, params: ClassParams = ClassParams(),
-              seed: int = 0, noise_en_m=None) -> np.ndarray:
+              seed: int = 0, noise_en_m=None, water_tolerance_m: float = 0.0) -> np.ndarray:
     """uint8 land class of each post: :func:`base_classes`, then the slope lookup table (§7.1).
 
     slope: degrees, (rows, cols) (from :func:`slope_deg`). The table
@@ -364,10 +392,12 @@ def class_map(heights, slope, dx_m: float, dy_m: float, lat_deg=45.0, *, params:
     snow            snow      snow      snow      rock
     ==============  ========  ========  ========  ======
 
-    So: water is exactly where height <= sea_level_m; every land post at
-    cliff slope or steeper is rock; farmland only on flat ground.
+    So: water is exactly where height <= sea_level_m + water_tolerance_m (the
+    source's quantisation bound, 0 for a DEM: see the module docstring); every
+    land post at cliff slope or steeper is rock; farmland only on flat ground.
     """
-    base = base_classes(heights, dx_m, dy_m, lat_deg, params=params, seed=seed, noise_en_m=noise_en_m)
+    base = base_classes(heights, dx_m, dy_m, lat_deg, params=params, seed=seed, noise_en_m=noise_en_m,
+                        water_tolerance_m=water_tolerance_m)
     lut = np.asarray(params.slope_lut, dtype=np.uint8)
     return lut[base, slope_bins(slope, params)]
 
@@ -836,14 +866,15 @@ class Texture:
 
 def synthesize(heights, dx_m: float, dy_m: float, sun_az_deg, sun_el_deg, lat_deg=45.0, *,
                class_params: ClassParams = ClassParams(), light_params: LightParams = LightParams(),
-               seed: int = 0, soft_px: int = 0, noise_en_m=None) -> Texture:
+               seed: int = 0, soft_px: int = 0, noise_en_m=None, water_tolerance_m: float = 0.0) -> Texture:
     """slope -> class map -> diffuse -> light map -> image, for one height grid.
 
     sun_az_deg, sun_el_deg: one sun (scalars) or each post's own (arrays broadcastable to
-    the grid), as :func:`light_map` takes them."""
+    the grid), as :func:`light_map` takes them. water_tolerance_m: the heights' source's
+    quantisation bound (:func:`base_classes`; 0 for a DEM)."""
     slope = slope_deg(heights, dx_m, dy_m)
     classes = class_map(heights, slope, dx_m, dy_m, lat_deg, params=class_params, seed=seed,
-                        noise_en_m=noise_en_m)
+                        noise_en_m=noise_en_m, water_tolerance_m=water_tolerance_m)
     rgb = diffuse(classes, soft_px=soft_px, seed=seed)
     light = light_map(heights, dx_m, dy_m, sun_az_deg, sun_el_deg, params=light_params)
     return Texture(slope, classes, rgb, light, compose(rgb, light.light))

@@ -27,6 +27,14 @@ whatever the box's width; no box is refused or tiled for its width.
 texture.json gives the sun at the box's centre, whether it was per pixel,
 and the range of its elevation over the pixels.
 
+Water over a lossy terrain store: the class map counts as water every pixel
+within the store's quantisation bound (half its step) of sea level
+(terrain/texture.py's module docstring). The bound comes from the terrain's
+sources (:func:`water_tolerance_m`): a local store's, or the terrain
+service's metadata (TerrainSource.details ``store_quantisation_m``) with
+--address. DEMs, lossless stores and procedural worlds have bound 0.
+texture.json gives it as ``water_tolerance_m``.
+
 -o names a folder: it is created if missing; an existing file there, or a
 path that cannot be made or written, is an error naming -o (exit status 2,
 like every invalid input), as is a box with no terrain data under any pixel
@@ -231,10 +239,35 @@ def sample_heights(terrain, req: TextureRequest):
     return heights, lat, lon
 
 
+# The store format's height unit (terrain.store.DEFAULT_UNIT_M, not imported here: it loads numba),
+# for a terrain service whose metadata predates store_quantisation_m.
+_STORE_UNIT_M = 0.01
+
+
+def water_tolerance_m(terrain) -> float:
+    """The height tolerance of the class map's water test for a terrain: the largest
+    quantisation bound of its sources. A store source (``describe()`` kind "store", local or a
+    TerrainClient's metadata, whose details are text) gives ``store_quantisation_m`` (half its
+    step, 0 when lossless), else its ``store_step_m`` halved in whole units; any other source 0.
+    A terrain of several sources takes the largest bound for every pixel (pixels a DEM answers
+    too: those within it of sea level are drawn as water). No terrain (heights given as such): 0."""
+    bound = 0.0
+    for source in (terrain.describe() if terrain is not None else ()):
+        if source.get("kind") != "store":
+            continue
+        value = source.get("store_quantisation_m")
+        if value is None and source.get("store_step_m") is not None:
+            value = (round(float(source["store_step_m"]) / _STORE_UNIT_M) // 2) * _STORE_UNIT_M
+        if value is not None and math.isfinite(float(value)):
+            bound = max(bound, float(value))
+    return bound
+
+
 def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 0, refraction: bool = True,
                  sampled=None):
     """(Texture, summary dict) for a request over a Terrain (see terrain.texture.synthesize);
-    ``sampled``: :func:`sample_heights`'s result for the request, if the caller has it."""
+    ``sampled``: :func:`sample_heights`'s result for the request, if the caller has it. Water takes the
+    terrain's quantisation bound as its height tolerance (:func:`water_tolerance_m`)."""
     import numpy as np
 
     from terrain.geodesy import radii_of_curvature
@@ -261,8 +294,9 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
     m, n = radii_of_curvature(lat_c)
     east = (np.radians(lon) * n * np.cos(np.radians(lat_c)))[None, :]
     north = (np.radians(lat) * m)[:, None]
+    water_tol = water_tolerance_m(terrain)
     tex = synthesize(heights, dx, dy, az_lit, el_lit, lat[:, None], seed=seed, soft_px=soft_px,
-                     noise_en_m=(east, north))
+                     noise_en_m=(east, north), water_tolerance_m=water_tol)
     finite = heights[np.isfinite(heights)]
     hist = class_histogram(tex.classes)
     summary = {
@@ -278,6 +312,7 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
                          "max": float(finite.max()) if finite.size else None,
                          "nodata_pixels": int(heights.size - finite.size)},
         "class_histogram": hist,
+        "water_tolerance_m": water_tol,
         "classes": [{"code": k, "name": name, "rgb": CLASS_COLOURS_RGB[k].tolist()}
                     for k, name in enumerate(CLASS_NAMES)],
         "shadow_fraction": float(tex.light.shadow.mean()),
