@@ -203,7 +203,9 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
                                       + (f"export at {fits:g} Hz or less" if fits > 0 else "too many entities"),
                               value=rate_hz)
     box = track_box(tracks, margin_m)
-    frame = LocalFrame.at(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3]), 0.0)
+    centre_lon = 0.5 * (box[1] + box[3])  # the box's longitudes run on past +-180 across the antimeridian
+    frame = LocalFrame.at(0.5 * (box[0] + box[2]), (centre_lon + 180.0) % 360.0 - 180.0 if abs(centre_lon) > 180.0
+                          else centre_lon, 0.0)
     undulation = float(r.header.geoid_undulation_m)
     scene = trimesh.Scene()
     extras: dict = {"recording": Path(r.path).name, "exercise": r.header.exercise_name,
@@ -446,17 +448,25 @@ def _target_areas(r) -> tuple:
 def _outline(polygon, step_m: float) -> np.ndarray:
     """(k, 2) (lat, lon) degrees round a polygon's (lat, lon) vertices and back to the first,
     each edge cut into pieces of at most ``step_m`` (linear in degrees: a target area is a few
-    kilometres across)."""
+    kilometres across). Each edge goes the short way in longitude, as the scenario measures an
+    area (its longitude differences wrapped into [-180, 180)): an area across the antimeridian
+    is drawn across it, not round the world; longitudes come back within [-180, 180)."""
     v = np.asarray(polygon, dtype=np.float64)
     closed = np.vstack([v, v[:1]])
     m, n = radii_of_curvature(float(v[:, 0].mean()))
     out = [closed[:1]]
     for a, b in zip(closed[:-1], closed[1:]):
-        length = math.hypot(math.radians(b[0] - a[0]) * m, math.radians(b[1] - a[1]) * n * math.cos(math.radians(a[0])))
+        d = np.array([b[0] - a[0], (b[1] - a[1] + 180.0) % 360.0 - 180.0])
+        length = math.hypot(math.radians(d[0]) * m, math.radians(d[1]) * n * math.cos(math.radians(a[0])))
         pieces = max(1, math.ceil(length / step_m))
         t = np.arange(1, pieces + 1)[:, None] / pieces
-        out.append(a + t * (b - a))
-    return np.vstack(out)
+        piece = a + t * d
+        piece[-1] = b  # the vertex itself, not its sum
+        out.append(piece)
+    lat_lon = np.vstack(out)
+    lon = lat_lon[:, 1]
+    lat_lon[:, 1] = np.where(lon >= 180.0, lon - 360.0, np.where(lon < -180.0, lon + 360.0, lon))
+    return lat_lon
 
 
 def _json_number(v: float) -> float | None:

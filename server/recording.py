@@ -4,6 +4,8 @@ Layout (format version 1; proto/sortie/v1/recording.proto has the messages,
 docs/RECORDING.md the whole description)::
 
     "SORTREC1" | u32 n | RecordingHeader (n bytes)
+             RecordingHeader's first 6 bytes: its header_crc32 field, crc32(n + the header after it, but the
+             scenario text, which its SHA-256 checks)
     chunk*:  "CHNK" | u32 head | u32 body | u32 crc32(head bytes + body bytes) | ChunkHead | zstd(ChunkBody)
              ChunkHead's last 5 bytes: its head_crc32 field, crc32(the two lengths + the head before it)
     footer:  "INDX" | u32 n | u32 0 | u32 crc32(index) | RecordingIndex | u64 offset of "INDX" | "SORTEND1"
@@ -37,6 +39,13 @@ files) reads with an empty description, listed in :attr:`Recording.undescribed`.
 Recordings written before the head CRC and the repeats read as before: their
 heads are trusted through the chunk's CRC alone.
 
+The header. Its CRC (header_crc32, field 17) is written before its other fields, so
+that a header without it is told apart: one from before header CRCs starts with its
+format version and reads unchecked (:attr:`Recording.notes`); any other is damaged. A
+damaged header (CRC, fields, or fields beyond a recording's ranges,
+:func:`header_range_problems`) is a DataFormatError naming the file: no reader goes on
+with a start time, geoid undulation, rate or quantisation step it cannot trust.
+
 Seeking is a bisection in the index and the decoding of one chunk.
 
 Limits: a header or chunk head of at most 64 MiB, a chunk body of at most
@@ -56,6 +65,7 @@ import threading
 import zlib
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +84,20 @@ INDEX_MAGIC = b"INDX"
 FRAME = struct.Struct("<4sIII")  # magic, head length, body length, crc32
 HEAD_CRC_TAG = (15 << 3) | 5  # ChunkHead.head_crc32: field 15, fixed32, appended last
 HEAD_CRC = struct.Struct("<BI")  # its 5 bytes: the tag, the CRC
+# RecordingHeader.header_crc32: field 17, fixed32, written first (protobuf reads fields in any order; its tag
+# is two varint bytes, 0x8d 0x01). Recordings from before it have none: their headers start with their
+# format_version field (OLD_HEADER_START) and are unchecked but for their ranges and the scenario's hash.
+HEADER_CRC_FIELD = 17
+HEADER_CRC_TAG = b"\x8d\x01"  # (17 << 3) | 5 = 141 as a varint
+HEADER_CRC = struct.Struct("<2sI")  # its 6 bytes: the tag, the CRC
+OLD_HEADER_START = b"\x08\x01"  # format_version = 1: field 1, varint, first as protobuf writes fields
+SCENARIO_TEXT_FIELD = 9  # RecordingHeader.scenario_toml: its text is checked by its SHA-256, not the CRC
 # Chunk heads after the one that introduced an entity that describe it again (recent_entities).
 RECENT_CHUNKS = 4
+# The quantisation steps a header may hold (server/recording_codec.py's defaults are 1e-4 .. 1e-2):
+# finer, and QUANTUM_LIMIT steps would not span the Earth's ECEF positions; coarser, and replay is useless.
+MIN_STEP = 1e-8
+MAX_STEP = 1.0
 SCAN_BLOCK = 1 << 20  # bytes read at a time when looking for the next chunk after a damaged one
 MAX_HEAD_BYTES = 64 << 20
 MAX_BODY_BYTES = 1 << 30
@@ -125,6 +147,76 @@ def sealed_head(head_bytes: bytes, body_length: int) -> bytes:
     return head_bytes + HEAD_CRC.pack(HEAD_CRC_TAG, crc)
 
 
+def _wire_fields(data: bytes) -> list[tuple[int, int, int, int, int]]:
+    """The top-level fields of a serialised protobuf message: (number, wire type, offset, start,
+    end) of each, in order (the offset of its tag, then of its value's bytes and past them);
+    ValueError when the bytes are no such fields (wire types 0, 1, 2 and 5 only: what the
+    RecordingHeader's fields are written as)."""
+    out, pos, size = [], 0, len(data)
+
+    def varint(pos: int) -> tuple[int, int]:
+        value, shift = 0, 0
+        while pos < size and shift < 70:
+            b = data[pos]
+            value |= (b & 0x7F) << shift
+            pos += 1
+            if b < 0x80:
+                return value, pos
+            shift += 7
+        raise ValueError(f"a varint cut short or too long at byte {pos}")
+
+    while pos < size:
+        key, start = varint(pos)
+        number, wire = key >> 3, key & 7
+        if number == 0:
+            raise ValueError(f"field number 0 at byte {pos}")
+        if wire == 0:
+            _, end = varint(start)
+        elif wire == 1:
+            end = start + 8
+        elif wire == 5:
+            end = start + 4
+        elif wire == 2:
+            length, start = varint(start)
+            end = start + length
+        else:
+            raise ValueError(f"wire type {wire} (field {number}) at byte {pos}")
+        if end > size:
+            raise ValueError(f"field {number} at byte {pos} runs past the header's end")
+        out.append((number, wire, pos, start, end))
+        pos = end
+    return out
+
+
+def header_crc(n: int, body: bytes, fields: list | None = None) -> int:
+    """CRC-32 of a RecordingHeader of ``n`` bytes whose ``body`` (its bytes after the 6 of the
+    header_crc32 field) are ``fields`` (:func:`_wire_fields`): over "u32 n" and the body but the
+    scenario text's bytes (field 9's value; its tag and length are covered), which its SHA-256
+    (scenario_sha256) checks, so a damaged scenario text reads as before (a problem, not a lost
+    recording)."""
+    crc, pos = zlib.crc32(struct.pack("<I", n)), 0
+    for number, wire, _, start, end in _wire_fields(body) if fields is None else fields:
+        if number == SCENARIO_TEXT_FIELD and wire == 2:
+            crc, pos = zlib.crc32(body[pos:start], crc), end
+    return zlib.crc32(body[pos:], crc)
+
+
+def sealed_header(header: rpb.RecordingHeader) -> bytes:
+    """A RecordingHeader's bytes as the writer writes them: its header_crc32 field
+    (:func:`header_crc`), then its other fields (the scenario's SHA-256 filled in when missing).
+    First, so that a header that does not start with it is one from before it (or damaged)."""
+    h = rpb.RecordingHeader()
+    h.CopyFrom(header)
+    h.DiscardUnknownFields()  # a header read from a file: no second header_crc32
+    if "header_crc32" in h.DESCRIPTOR.fields_by_name:  # once recording.proto declares it
+        h.ClearField("header_crc32")
+    if h.scenario_toml and not h.scenario_sha256:
+        h.scenario_sha256 = hashlib.sha256(h.scenario_toml.encode("utf-8")).hexdigest()
+    body = h.SerializeToString()
+    n = len(body) + HEADER_CRC.size
+    return HEADER_CRC.pack(HEADER_CRC_TAG, header_crc(n, body)) + body
+
+
 def head_checks(lengths: bytes, head_bytes: bytes) -> bool:
     """Whether a chunk head (its bytes, after the frame's 8 bytes of ``lengths``) ends with a
     head_crc32 that matches: then its fields and the lengths are as written."""
@@ -145,7 +237,11 @@ class RecordingWriter:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(self.path, "xb")  # never overwrite a recording
-        data = header.SerializeToString()
+        data = sealed_header(header)
+        if len(data) > MAX_HEAD_BYTES:
+            self._f.close()
+            self.path.unlink()
+            raise DataFormatError(f"header of {len(data)} bytes is over the format's limit ({MAX_HEAD_BYTES})")
         self._f.write(MAGIC + struct.pack("<I", len(data)) + data)
         self._f.flush()
         self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
@@ -190,6 +286,7 @@ class RecordingWriter:
                       + struct.pack("<Q", offset) + END_MAGIC)
         self._f.flush()
         self.sync()
+        self.bytes_written = self._f.tell()  # the whole file, its footer included
         self._f.close()
         self.closed = True
 
@@ -210,6 +307,45 @@ def scenario_problems(header: rpb.RecordingHeader) -> list[str]:
         return []
     return [f"scenario SHA-256 mismatch: the header's scenario text is damaged (stored "
             f"{header.scenario_sha256[:16]}..., the text's {actual[:16]}...)"]
+
+
+def header_range_problems(header: rpb.RecordingHeader) -> list[str]:
+    """The header's fields outside the ranges a recording can have (those the scenario allows,
+    server/scenario.py, and the recorder writes): each "field value: why". A field left unset
+    (0 or empty: hand-made headers, older writers) is not checked, but the world rate and the
+    quantisation steps, which every reader needs."""
+    from server.scenario import FDM_RATE_MAX_HZ, GEOID_UNDULATION_ABS_MAX_M, MAX_EXERCISE_NAME_CHARS
+
+    out = []
+    slack = 1.0 + 1e-9  # the recorder writes 1 / dt: within an ulp or so of the scenario's integer
+    world, fdm = header.world_rate_hz, header.fdm_rate_hz
+    if not (math.isfinite(world) and 0.0 < world <= FDM_RATE_MAX_HZ * slack):
+        out.append(f"world_rate_hz {world!r}: must be within (0, {FDM_RATE_MAX_HZ}] Hz")
+    if fdm and not (math.isfinite(fdm) and 0.0 < fdm <= FDM_RATE_MAX_HZ * slack and fdm * slack >= world):
+        out.append(f"fdm_rate_hz {fdm!r}: must be within [world_rate_hz, {FDM_RATE_MAX_HZ}] Hz")
+    g = header.geoid_undulation_m
+    if not (math.isfinite(g) and abs(g) <= GEOID_UNDULATION_ABS_MAX_M):
+        out.append(f"geoid_undulation_m {g!r}: must be within [-{GEOID_UNDULATION_ABS_MAX_M:g}, "
+                   f"{GEOID_UNDULATION_ABS_MAX_M:g}] m")
+    for name in ("position_m", "velocity_mps", "acceleration_mps2", "quaternion", "body_rate_rps"):
+        v = getattr(header.quantization, name)
+        if not (math.isfinite(v) and MIN_STEP <= v <= MAX_STEP):
+            out.append(f"quantization.{name} {v!r}: must be within [{MIN_STEP:g}, {MAX_STEP:g}]")
+    if not (math.isfinite(header.chunk_s) and header.chunk_s >= 0.0):
+        out.append(f"chunk_s {header.chunk_s!r}: must be a finite number of seconds")
+    if not (math.isfinite(header.created_unix_s) and header.created_unix_s >= 0.0):
+        out.append(f"created_unix_s {header.created_unix_s!r}: must be a finite Unix time")
+    name = header.exercise_name
+    if len(name) > MAX_EXERCISE_NAME_CHARS or not name.isprintable():
+        out.append(f"exercise_name {name[:40]!r}: must be at most {MAX_EXERCISE_NAME_CHARS} printable characters")
+    if header.start_time:
+        try:
+            start = datetime.fromisoformat(header.start_time)
+        except ValueError:
+            start = None
+        if start is None or start.utcoffset() is None:
+            out.append(f"start_time {header.start_time[:40]!r}: must be an ISO 8601 date-time with an offset")
+    return out
 
 
 @dataclass
@@ -256,6 +392,8 @@ class CheckReport:
     damaged_chunks: int = 0  # indexed chunks that do not decode (lost ones only, without decode)
     replays: list = field(default_factory=list)  # (first, last) world times of the stretches that replay
     lost_ticks: int = 0  # ticks in chunks that do not read, and those lost before the first chunk
+    notes: list = field(default_factory=list)  # not problems: a header from before header CRCs (unchecked)
+    header_checked: bool = True  # the header's CRC checked (False: a recording from before header CRCs)
 
     @property
     def ok(self) -> bool:
@@ -276,6 +414,10 @@ class Recording:
     def __init__(self, path):
         self.path = Path(path)
         if not self.path.is_file():
+            if self.path.is_dir():
+                raise DataFormatError(f"recording {str(self.path)!r} is a directory, not a recording file")
+            if self.path.exists():
+                raise DataFormatError(f"recording {str(self.path)!r} is not a regular file")
             raise NotFound(f"recording {str(self.path)!r} does not exist")
         self._f = open(self.path, "rb")
         try:
@@ -290,15 +432,17 @@ class Recording:
         self.lost: dict[int, str] = {}
         self.lost_before = 0  # ticks before the first chunk that the walk found lost (out of index.ticks)
         self.undescribed: dict[int, str] = {}
+        self.notes: list[str] = []  # not problems: a header from before header CRCs
         self.header = self._read_header()
-        self.problems += scenario_problems(self.header)
         if self.header.format_version != FORMAT_VERSION:
             raise DataFormatError(f"{self.path}: format version {self.header.format_version}; this build reads "
                                   f"version {FORMAT_VERSION}")
+        bad = header_range_problems(self.header)
+        if bad:
+            raise DataFormatError(f"{self.path}: damaged header: " + "; ".join(bad))
+        self.problems += scenario_problems(self.header)
         self.steps = steps_of(self.header)
         self.rate_hz = self.header.world_rate_hz
-        if not self.rate_hz > 0:
-            raise DataFormatError(f"{self.path}: header world_rate_hz must be > 0 (got {self.rate_hz})")
         self.dt = 1.0 / self.rate_hz
         self.index, self.recovered = self._read_footer(), False
         if self.index is None:
@@ -337,18 +481,79 @@ class Recording:
         return b"".join(out)
 
     def _read_header(self) -> rpb.RecordingHeader:
+        """The header, its CRC checked (:func:`header_crc`; a recording from before header CRCs
+        gets a note, :attr:`header_checked` False). DataFormatError naming the file and the
+        header when it is damaged: its CRC does not match, its fields do not decode, or it starts
+        with neither its CRC nor (older recordings) its format version."""
         start = self._read_at(0, 12)
         if len(start) < 12 or start[:8] != MAGIC:
             raise DataFormatError(f"{self.path}: not a Sortie recording (no {MAGIC.decode()} magic)")
         (n,) = struct.unpack("<I", start[8:])
+        damaged = f"{self.path}: damaged header (bytes 12..{12 + n} of the file)"
         if n > MAX_HEAD_BYTES or 12 + n > self.size:
             raise DataFormatError(f"{self.path}: header of {n} bytes does not fit the file ({self.size} bytes)")
+        data = self._read_at(12, n)
+        self.header_checked = data[:2] == HEADER_CRC_TAG and n >= HEADER_CRC.size
+        if self.header_checked:
+            _, stored = HEADER_CRC.unpack(data[:HEADER_CRC.size])
+            data = data[HEADER_CRC.size:]
+        else:
+            self._unchecked_header(n, data, damaged)
         try:
-            header = rpb.RecordingHeader.FromString(self._read_at(12, n))
+            fields = _wire_fields(data)
+        except ValueError as exc:
+            raise DataFormatError(f"{damaged}: its fields do not decode ({exc})") from None
+        if self.header_checked:
+            actual = header_crc(n, data, fields)
+            if actual != stored:
+                raise DataFormatError(f"{damaged}: CRC-32 mismatch (stored {stored:08x}, the bytes' {actual:08x})")
+        try:
+            header = rpb.RecordingHeader.FromString(data)
         except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError and friends
-            raise DataFormatError(f"{self.path}: damaged header: {exc}") from None
+            header = self._header_of_damaged_text(data, fields)
+            if header is None:
+                raise DataFormatError(f"{damaged}: {exc}") from None
         self._data_start = 12 + n
         return header
+
+    @staticmethod
+    def _header_of_damaged_text(data: bytes, fields: list) -> rpb.RecordingHeader | None:
+        """The header whose bytes (``data``, walked into ``fields``) do not decode because its
+        scenario text is not UTF-8 (damaged): the text decoded with replacement characters, so
+        its SHA-256 mismatch is the problem it is when the text is valid UTF-8; None when the
+        rest does not decode either."""
+        text, rest, pos = b"", [], 0
+        for number, wire, at, start, end in fields:
+            if number == SCENARIO_TEXT_FIELD and wire == 2:
+                rest.append(data[pos:at])
+                text, pos = data[start:end], end
+        if not rest:
+            return None
+        rest.append(data[pos:])
+        try:
+            header = rpb.RecordingHeader.FromString(b"".join(rest))
+        except Exception:  # noqa: BLE001 - the damage is elsewhere too
+            return None
+        header.scenario_toml = text.decode("utf-8", "replace")
+        return header
+
+    def _unchecked_header(self, n: int, data: bytes, damaged: str) -> None:
+        """A header of ``n`` bytes (``data``) that does not start with its CRC: one from before
+        header CRCs (a note) when it starts with its format version, as those did. Else it is
+        damaged (DataFormatError): its CRC's tag, when the 4 bytes after it are still the CRC
+        of the rest, or its first field."""
+        if n >= HEADER_CRC.size:
+            try:
+                crc = header_crc(n, data[HEADER_CRC.size:])
+            except ValueError:
+                crc = None
+            if crc is not None and struct.pack("<I", crc) == data[2:HEADER_CRC.size]:
+                raise DataFormatError(f"{damaged}: its CRC field's tag is damaged")
+        if data[:2] != OLD_HEADER_START:
+            raise DataFormatError(f"{damaged}: it starts with neither its CRC (field {HEADER_CRC_FIELD}) nor, as "
+                                  "recordings from before header CRCs do, its format version (field 1)")
+        self.notes.append("the header has no CRC (recorded before header CRCs): its fields are unchecked but "
+                          "for their ranges (the scenario text is checked by its SHA-256)")
 
     def _read_footer(self) -> rpb.RecordingIndex | None:
         if self.size < self._data_start + FRAME.size + 16:
@@ -900,4 +1105,5 @@ class Recording:
         lost_ticks = self.lost_ticks(unreadable)
         return CheckReport(str(self.path), self.size, not self.recovered, self.chunk_count, self.index.ticks,
                            self.first_time_s, self.last_time_s, len(self.entities), self.index.event_count,
-                           self.index.input_count, problems, end, len(unreadable), replays, lost_ticks)
+                           self.index.input_count, problems, end, len(unreadable), replays, lost_ticks,
+                           list(self.notes), self.header_checked)

@@ -107,7 +107,7 @@ def summary(rec) -> dict:
             "lost_ticks": rec.lost_ticks(unreadable),
             "damaged_chunks": [{"chunk": k, "offset": rec.index.chunk_offset[k]} for k in sorted(unreadable)],
             "sortie_version": h.sortie_version, "jsbsim_version": h.jsbsim_version,
-            "terrain": h.terrain.description}
+            "terrain": h.terrain.description, "header_crc": rec.header_checked, "notes": list(rec.notes)}
 
 
 def info_command(args) -> int:
@@ -130,6 +130,8 @@ def info_command(args) -> int:
         lost = f"{s['lost_ticks']} ticks lost; " if s["lost_ticks"] else ""
         print(f"  replays {_spans(s['replays_s'])}; {lost}damaged: "
               + ", ".join(f"chunk {d['chunk']} at offset {d['offset']}" for d in s["damaged_chunks"]))
+    for n in s["notes"]:
+        print(f"  note: {n}")
     for p in s["problems"]:
         print(f"  problem: {p}")
     return 0
@@ -142,10 +144,13 @@ def check_command(args) -> int:
           f"  {report.chunks - report.damaged_chunks} of {report.chunks} chunks replay: {report.ticks} ticks, "
           f"world time {report.first_time_s:.2f} .. {report.last_time_s:.2f} s; {report.entities} entities, "
           f"{report.events} events, "
-          f"{report.inputs} inputs\n  readable up to byte {report.readable_bytes:,}")
+          f"{report.inputs} inputs\n  readable up to byte {report.readable_bytes:,}; header "
+          + ("CRC checked" if report.header_checked else "unchecked (no CRC: recorded before header CRCs)"))
     if report.damaged_chunks:
         lost = f"; {report.lost_ticks} ticks lost" if report.lost_ticks else ""
         print(f"  replays {_spans(report.replays)}{lost}")
+    for n in report.notes:
+        print(f"  note: {n}")
     for p in report.problems:
         print(f"  problem: {p}")
     print("  OK" if report.ok else f"  {len(report.problems)} problem(s)")
@@ -240,6 +245,6 @@ def take_over_command(args, workers: int) -> int:
     world.close()
     print(f"take-over stopped at world time {world.time_s:.1f} s", file=sys.stderr, flush=True)
     if recorder is not None:
-        state = f"failed: {recorder.error}" if recorder.error else f"{recorder.bytes_written:,} bytes"
+        state = f"failed: {recorder.error}" if recorder.error else f"{recording['path'].stat().st_size:,} bytes"
         print(f"recording {recording['path']}: {state}", file=sys.stderr, flush=True)
     return 0

@@ -33,7 +33,8 @@ Schema (``*`` required; everything else has the default shown)::
     fdm_rate_hz = 120          integer, [1, 1000]; JSBSim and ground-vehicle steps
     world_rate_hz = 30         integer, fdm_rate_hz must be a whole multiple of it (a world
                                tick is fdm_rate_hz / world_rate_hz FDM steps)
-    network_rate_hz = 20       (0, world_rate_hz]; state streamed to clients
+    network_rate_hz = 20       (0, world_rate_hz]; state streamed to clients (default: 20, or
+                               world_rate_hz when that is lower)
     clock = "realtime"         "realtime" | "fast" | "paused" (starts frozen; resumes in real time
                                on SIGUSR1 to `sortie server`, SIGUSR2 pauses any clock)
     time_scale                 simulated seconds per wall second: 1.0 (and only 1.0) for
@@ -751,7 +752,8 @@ def _exercise(value) -> Exercise:
     return Exercise(
         name=name, start_time=_start_time(t.raw("start_time"), t.key("start_time")), fdm_rate_hz=fdm,
         world_rate_hz=world,
-        network_rate_hz=t.number("network_rate_hz", DEFAULT_NETWORK_RATE_HZ, lo=0.0, hi=float(world), lo_open=True),
+        network_rate_hz=t.number("network_rate_hz", min(DEFAULT_NETWORK_RATE_HZ, float(world)), lo=0.0,
+                                 hi=float(world), lo_open=True),  # the default no faster than the world
         clock=clock, time_scale=scale,
         duration_s=t.number("duration_s", None, lo=0.0, hi=DURATION_MAX_S, lo_open=True),
         vanished_client_timeout_s=t.number("vanished_client_timeout_s", DEFAULT_VANISH_TIMEOUT_S, lo=0.0,

@@ -194,7 +194,7 @@ def server_command(args) -> int:
     print(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
           f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", flush=True)
     if recorder is not None:
-        state = f"failed: {recorder.error}" if recorder.error else f"{recorder.bytes_written:,} bytes"
+        state = f"failed: {recorder.error}" if recorder.error else f"{path.stat().st_size:,} bytes"  # the footer too
         print(f"recording {path}: {state}", flush=True)
     if server.error is not None:  # the world's clock died: not a clean end of the exercise
         print(f"sortie server: error: the world clock stopped: {type(server.error).__name__}: {server.error}",

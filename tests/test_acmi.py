@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import hashlib
 import io
 import subprocess
 import sys
@@ -193,14 +194,19 @@ def record_alps(path, ticks: int = TICKS) -> None:
         world.close()
 
 
-def write_synthetic(path, tracks: dict, ticks: int, rate_hz: float = 30.0, events=(), terrain=None) -> None:
+def write_synthetic(path, tracks: dict, ticks: int, rate_hz: float = 30.0, events=(), terrain=None,
+                    scenario: tuple[str, str] | None = None) -> None:
     """A recording of made-up entities: tracks {id: (EntityInfo or None for none,
     f(tick) -> (lat, lon, h_msl, roll, pitch, yaw) degrees / m, or None when absent)},
-    one chunk per second; ``terrain``: the header's TerrainIdentity (default none)."""
+    one chunk per second; ``terrain``: the header's TerrainIdentity (default none);
+    ``scenario``: the header's scenario (text, path; default none)."""
     header = rpb.RecordingHeader(format_version=1, sortie_version="test", exercise_name="synthetic, made up",
                                  start_time="2026-01-02T03:04:05.250Z", world_rate_hz=rate_hz,
                                  quantization=quantization_of(codec.DEFAULT_STEPS), geoid_undulation_m=10.0,
                                  terrain=terrain)
+    if scenario is not None:
+        header.scenario_toml, header.scenario_path = scenario
+        header.scenario_sha256 = hashlib.sha256(scenario[0].encode("utf-8")).hexdigest()
     writer = RecordingWriter(path, header)
     per_chunk = int(rate_hz)
     for first in range(1, ticks + 1, per_chunk):

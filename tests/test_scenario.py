@@ -300,6 +300,18 @@ def test_exercise_defaults_and_clock():
         parse_scenario(doc, EXAMPLE.parent)
 
 
+
+def test_network_rate_defaults_to_the_world_rate_below_20_hz():
+    """A scenario that slows the world below 20 Hz and says nothing of network_rate_hz is valid: the
+    default is no faster than the world (it was 20, refused under a key the user never wrote)."""
+    for world, expected in ((10, 10.0), (1, 1.0), (20, 20.0), (30, 20.0)):
+        e = parse_scenario(mutated("exercise.world_rate_hz", world), EXAMPLE.parent).exercise
+        assert (e.world_rate_hz, e.network_rate_hz) == (world, expected)
+    doc = mutated("exercise.world_rate_hz", 10)
+    doc["exercise"]["network_rate_hz"] = 20.0  # written by the user: still refused
+    with pytest.raises(ScenarioError, match=r"^exercise\.network_rate_hz: must be within \(0, 10\] \(got 20\.0\)"):
+        parse_scenario(doc, EXAMPLE.parent)
+
 def test_start_time_is_utc_from_any_offset():
     doc = mutated("exercise.start_time", datetime.fromisoformat("2026-06-15T09:00:00+02:00"))
     assert parse_scenario(doc, EXAMPLE.parent).exercise.start_time == datetime(2026, 6, 15, 7, tzinfo=timezone.utc)

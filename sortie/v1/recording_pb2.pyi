@@ -42,7 +42,7 @@ class Quantization(_message.Message):
     def __init__(self, position_m: _Optional[float] = ..., velocity_mps: _Optional[float] = ..., acceleration_mps2: _Optional[float] = ..., quaternion: _Optional[float] = ..., body_rate_rps: _Optional[float] = ...) -> None: ...
 
 class RecordingHeader(_message.Message):
-    __slots__ = ("format_version", "sortie_version", "jsbsim_version", "build_id", "exercise_name", "start_time", "world_rate_hz", "fdm_rate_hz", "scenario_toml", "scenario_path", "scenario_sha256", "terrain", "created_unix_s", "quantization", "chunk_s", "geoid_undulation_m")
+    __slots__ = ("format_version", "sortie_version", "jsbsim_version", "build_id", "exercise_name", "start_time", "world_rate_hz", "fdm_rate_hz", "scenario_toml", "scenario_path", "scenario_sha256", "terrain", "created_unix_s", "quantization", "chunk_s", "geoid_undulation_m", "header_crc32")
     FORMAT_VERSION_FIELD_NUMBER: _ClassVar[int]
     SORTIE_VERSION_FIELD_NUMBER: _ClassVar[int]
     JSBSIM_VERSION_FIELD_NUMBER: _ClassVar[int]
@@ -59,6 +59,7 @@ class RecordingHeader(_message.Message):
     QUANTIZATION_FIELD_NUMBER: _ClassVar[int]
     CHUNK_S_FIELD_NUMBER: _ClassVar[int]
     GEOID_UNDULATION_M_FIELD_NUMBER: _ClassVar[int]
+    HEADER_CRC32_FIELD_NUMBER: _ClassVar[int]
     format_version: int
     sortie_version: str
     jsbsim_version: str
@@ -75,7 +76,8 @@ class RecordingHeader(_message.Message):
     quantization: Quantization
     chunk_s: float
     geoid_undulation_m: float
-    def __init__(self, format_version: _Optional[int] = ..., sortie_version: _Optional[str] = ..., jsbsim_version: _Optional[str] = ..., build_id: _Optional[str] = ..., exercise_name: _Optional[str] = ..., start_time: _Optional[str] = ..., world_rate_hz: _Optional[float] = ..., fdm_rate_hz: _Optional[float] = ..., scenario_toml: _Optional[str] = ..., scenario_path: _Optional[str] = ..., scenario_sha256: _Optional[str] = ..., terrain: _Optional[_Union[TerrainIdentity, _Mapping]] = ..., created_unix_s: _Optional[float] = ..., quantization: _Optional[_Union[Quantization, _Mapping]] = ..., chunk_s: _Optional[float] = ..., geoid_undulation_m: _Optional[float] = ...) -> None: ...
+    header_crc32: int
+    def __init__(self, format_version: _Optional[int] = ..., sortie_version: _Optional[str] = ..., jsbsim_version: _Optional[str] = ..., build_id: _Optional[str] = ..., exercise_name: _Optional[str] = ..., start_time: _Optional[str] = ..., world_rate_hz: _Optional[float] = ..., fdm_rate_hz: _Optional[float] = ..., scenario_toml: _Optional[str] = ..., scenario_path: _Optional[str] = ..., scenario_sha256: _Optional[str] = ..., terrain: _Optional[_Union[TerrainIdentity, _Mapping]] = ..., created_unix_s: _Optional[float] = ..., quantization: _Optional[_Union[Quantization, _Mapping]] = ..., chunk_s: _Optional[float] = ..., geoid_undulation_m: _Optional[float] = ..., header_crc32: _Optional[int] = ...) -> None: ...
 
 class InputRecord(_message.Message):
     __slots__ = ("tick", "kind", "entity_id", "command", "values_json", "client", "vanished", "reason")
