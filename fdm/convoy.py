@@ -569,6 +569,7 @@ class FollowerSet:
         self.convoy_of = np.repeat(np.where(convoy, np.arange(convoy.size), -1), sizes).astype(np.int64)
         self._pass_offset = self._pass_until = None  # passes in progress (see update), made on the first
         self._s = None  # each vehicle's arc length along its route at the last update
+        self._x = None  # and its cross-track (m, right of the route)
 
     def remaining_m(self) -> np.ndarray:
         """Per vehicle of :attr:`index`, the route still ahead of it (m) as of the last update, for
@@ -576,6 +577,16 @@ class FollowerSet:
         if self._s is None:
             return np.full(self.index.size, np.inf)
         return np.where(self._stops, np.maximum(self._length - self._s, 0.0), np.inf)
+
+    def cross_track_m(self) -> np.ndarray:
+        """Per vehicle of :attr:`index`, how far it is right of its route (m, negative: left) as
+        of the last update, where it is not passing (0 where it is, and before the first
+        update): off its route by a corner it cut, not by a pass it is making."""
+        if self._x is None:
+            return np.zeros(self.index.size)
+        if self._pass_offset is None:
+            return self._x.copy()
+        return np.where(self._s < self._pass_until, 0.0, self._x)
 
     def update(self, ceiling_mps=None, pass_offset=None, pass_length=None, backing=None, step_s=None) -> None:
         """Every follower's update (locate, speed law, pure pursuit), applied at once;
@@ -597,7 +608,7 @@ class FollowerSet:
                      self._v0, v.lat[idx], v.lon[idx], hint, v.heading_deg[idx], s, x, seg)
         for f, a, b in zip(fs, self._v0[:-1].tolist(), self._v0[1:].tolist()):
             f.s, f.cross_track_m, f._hint = s[a:b], x[a:b], seg[a:b]
-        self._s = s
+        self._s, self._x = s, x
         speed = v.speed_mps[idx]
         lookahead = np.clip(LOOKAHEAD_GAIN_S * np.abs(speed), LOOKAHEAD_MIN_M, LOOKAHEAD_MAX_M)
         t = v.table[v.type_id[idx]]

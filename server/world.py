@@ -677,7 +677,8 @@ class World(EventLog):
             if self.ground is not None and self.ground.n:
                 fs = self._followers
                 if fs.followers:
-                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, remaining_m=fs.remaining_m()),
+                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, remaining_m=fs.remaining_m(),
+                                                     cross_track_m=fs.cross_track_m()),
                               step_s=self.dt * self.ground.divisor[fs.index])
                 self._hold_ground_headings()
                 self._heading_before = self.ground.heading_deg.copy()  # turning into another is held too
@@ -984,7 +985,7 @@ class World(EventLog):
         self.ground.set_controls(speed if ceiling is None else np.minimum(speed, ceiling), rate, index=idx)
 
     def _obstacles_ahead(self, idx: np.ndarray, convoy: np.ndarray | None = None, passing: bool = True,
-                         remaining_m: np.ndarray | None = None) -> tuple:
+                         remaining_m: np.ndarray | None = None, cross_track_m: np.ndarray | None = None) -> tuple:
         """What the autopilot-driven ground vehicles ``idx`` (rows of self.ground) do about the
         nearest entity in their path (server/obstacles.py: vehicles, wrecks, static sites,
         aircraft on the ground, as the last snapshot has them): (speed ceilings (m/s), so each
@@ -996,7 +997,9 @@ class World(EventLog):
         none), whose members do not brake for each other; ``remaining_m``: per vehicle the
         route still ahead of it (m): one whose route ends before it would be past the obstacle
         does not pass it (it queues: vehicles bound for one place do not jostle round each
-        other there). A human driver's commands are not capped: braking is his."""
+        other there); ``cross_track_m``: per vehicle how far right of its route it is (m), for
+        the shift is of its route's path, not of where it stands (one that cut a corner is off
+        its route). A human driver's commands are not capped: braking is his."""
         snap = self.snapshot
         if snap.ids.size < 2 or idx.size == 0:
             return None, None, None, None
@@ -1044,18 +1047,22 @@ class World(EventLog):
             en_route[rows] = remaining_m > 1.0
             facing = np.cos(np.radians(heading[j] - heading[rows[seen]])) < 0.0  # nose to nose: not a queue
             stopped &= ~en_route[j] | facing
+        # The shift moves the route's path (fdm.convoy.FollowerSet._shift_goals): the obstacle's
+        # place across the route is its place across the vehicle plus the vehicle's off the route.
+        off = np.zeros(idx.size) if cross_track_m is None else np.asarray(cross_track_m, np.float64)
         shift = np.full(idx.size, np.nan)
-        shift[seen] = np.where(stopped | oncoming, pass_offset_m(across[seen], need[seen], oncoming), np.nan)
+        place = across[seen] + np.where(stopped & ~oncoming, off[seen], 0.0)
+        shift[seen] = np.where(stopped | oncoming, pass_offset_m(place, need[seen], oncoming), np.nan)
         # Route to get past: its own length, the obstacle's reach along and PASS_AFTER_M.
         length = clear + 2.0 * (half_l[rows] + radius[np.maximum(other, 0)]) + PASS_AFTER_M
         if remaining_m is not None:
             shift = np.where(remaining_m < length, np.nan, shift)
         wanted = shift
-        shift = self._lane_clear(shift, length, idx, rows, oncoming, seen, search)
+        shift = self._lane_clear(shift, length, idx, rows, oncoming, seen, search, off)
         # One waiting for the lane to clear stops where it has room to swing out from a standstill.
         waits = ~np.isnan(wanted) & np.isnan(shift)
         if waits.any():
-            room = swing_room_m(wanted[waits], self.ground.table[self.ground.type_id[idx[waits]], P_RMIN])
+            room = swing_room_m(wanted[waits] - off[waits], self.ground.table[self.ground.type_id[idx[waits]], P_RMIN])
             ceiling[waits] = np.minimum(ceiling[waits], obstacle_speed_ceiling(
                 clear[waits] - np.maximum(room - OBSTACLE_STANDOFF_M, 0.0), brake[waits], step[waits],
                 own_speed[waits]))
@@ -1069,14 +1076,16 @@ class World(EventLog):
         backing = self._backing_off(idx, ceiling <= 0.0, ~np.isnan(shift), rows, heading, search)
         return ceiling, shift, length, backing
 
-    def _lane_clear(self, shift, length, idx, rows, oncoming, seen, search):
+    def _lane_clear(self, shift, length, idx, rows, oncoming, seen, search, off):
         """``shift`` with the passes of parked obstacles whose lane is not clear withdrawn (NaN):
         one whose lane (the path ``shift`` to the side, server/obstacles.py) holds a mover
         within the pass and the way oncoming traffic at PASS_LANE_ONCOMING_MPS covers meanwhile
         waits behind the obstacle instead of swinging into it (what stands in the lane it brakes
         for as for anything in its path; two each waiting for the other's lane would wait for
         good). Passes of oncoming vehicles (each keeping right) are left as they are. ``search``:
-        :meth:`_obstacles_ahead`'s path search over this tick's scene."""
+        :meth:`_obstacles_ahead`'s path search over this tick's scene; ``off``: each vehicle's
+        place right of its route (the shifts are of the route's path, the lane is searched from
+        where the vehicle is)."""
         cand = np.flatnonzero(~np.isnan(shift))
         if cand.size == 0:
             return shift
@@ -1087,7 +1096,7 @@ class World(EventLog):
             return shift
         v = np.maximum(np.abs(self.ground.speed_mps[idx[cand]]), PASS_CRAWL_MPS)
         reach = np.minimum(length[cand] * (1.0 + PASS_LANE_ONCOMING_MPS / v), PASS_LANE_MAX_M)
-        busy = search(rows[cand], reach, offset_m=shift[cand], min_speed_mps=MOVING_MPS)[1] >= 0
+        busy = search(rows[cand], reach, offset_m=shift[cand] - off[cand], min_speed_mps=MOVING_MPS)[1] >= 0
         shift = shift.copy()
         shift[cand[busy]] = np.nan
         return shift

@@ -366,3 +366,30 @@ def test_a_follower_waiting_to_pass_keeps_room_to_swing_out():
         assert _east_m(world, car) == pytest.approx(900.0, abs=1.0)
     finally:
         world.close()
+
+
+@pytest.mark.parametrize("turn_deg", [90.0, -90.0])
+def test_a_truck_parked_just_after_a_corner_is_passed(turn_deg):
+    """A truck parked on the road 50 m after a 90-degree corner: the Humvee, off its road by
+    the corner it cut (pure pursuit), passes it and reaches its road's end (it took the shift
+    from where it stood, not from the road, passed 1.9 m too close and stood behind the truck
+    for good)."""
+    from fdm.convoy import Route
+
+    turn = math.radians(turn_deg)
+    corner = (300.0, 0.0)
+    end = (corner[0] + 400.0 * math.cos(-turn), corner[1] + 400.0 * math.sin(-turn))
+    pts = [(LAT0 + n / 111_200.0, LON0 + e / M_PER_DEG_LON) for e, n in [(0.0, 0.0), corner, end]]
+    route = Route(*np.array(pts).T)
+    world = World(FlatTerrain(400.0))
+    try:
+        lat, lon, hdg = route.point_at(350.0)
+        world.spawn_ground(["parked"], "m1083", lat, lon, hdg)
+        car, = world.spawn_ground(["car"], "hmmwv", [LAT0], [LON0], [90.0], route=pts, cruise_mps=12.0)
+        events = _run(world, 30 * 90)
+        assert not [e for e in events if e.kind in ("collision", "blocked")]
+        i = world.ground.index_of([car.ground_id])
+        s, _, _ = route.project(world.ground.lat[i], world.ground.lon[i])
+        assert s[0] == pytest.approx(route.length_m, abs=1.0)
+    finally:
+        world.close()
