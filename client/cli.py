@@ -166,6 +166,17 @@ def client_command(args) -> int:
         return stream_end(sim, picture)
 
 
+def _mean_lon_deg(lon_deg) -> float:
+    """The mean of longitudes (degrees) taken the short way round: the mean of their offsets,
+    wrapped into [-180, 180), from the first, in [-180, 180) (an area across the antimeridian,
+    179.97 .. -179.97, is at 180, not 0)."""
+    lon = np.asarray(lon_deg, np.float64)
+    if lon.size == 0:
+        return 0.0
+    offsets = (lon - lon[0] + 180.0) % 360.0 - 180.0
+    return float((lon[0] + offsets.mean() + 180.0) % 360.0 - 180.0)
+
+
 def default_observe(w) -> tuple[float, float, float]:
     """(lat, lon, radius_m) an observer watches without --observe: the centre of the world's
     (a WorldInfo) first target area, else where its entities are (entity_count,
@@ -176,7 +187,7 @@ def default_observe(w) -> tuple[float, float, float]:
         radius = min(radius, w.observer_radius_max_m)
     if w.target_areas:
         a = w.target_areas[0]
-        return float(np.mean(a.lat_deg)), float(np.mean(a.lon_deg)), radius
+        return float(np.mean(a.lat_deg)), _mean_lon_deg(a.lon_deg), radius
     if w.entity_count > 0:
         return float(w.centre_lat_deg), float(w.centre_lon_deg), radius
     return 0.0, 0.0, radius
@@ -235,6 +246,8 @@ def _fly_bot(address: str, k: int, profile: str, leg_s: float, duration_s: float
         info = picture.infos.get(agent)
         aircraft = info is not None and info.kind == 1
         controls = sim.controls()
+        info_w = getattr(sim, "world_info", None)
+        undulation = float(info_w.geoid_undulation_m) if info_w is not None else 0.0
         legs = 0
         end = _until(duration_s)
         heading = None
@@ -247,9 +260,10 @@ def _fly_bot(address: str, k: int, profile: str, leg_s: float, duration_s: float
                 continue
             heading = _wrap360(heading + turn) if legs else heading
             targets = {"heading_deg": heading}
-            if aircraft:
+            if aircraft:  # the state's height is above the ellipsoid; the autopilot holds MSL
                 _, _, h = _geodetic(pos)
-                targets["alt_msl_m"] = float(h[0]) + (300.0 if legs % 2 == 0 else -300.0)
+                msl = float(h[0]) - undulation
+                targets["alt_msl_m"] = msl + (300.0 if legs % 2 == 0 else -300.0)
             else:
                 targets["speed_mps"] = 8.0
             controls.autopilot(**targets)

@@ -206,8 +206,14 @@ class ReplayServer:
         self.error: BaseException | None = None  # what stopped the clock thread, if anything did
         self._thread = threading.Thread(target=self._run, name="replay-clock", daemon=True)
         servicer = functools.partial(SimulationServicer, self.sessions, self.world_info)
-        self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
-                                     max_rpcs=512, extra_services=[(REPLAY_SERVICE, lambda pool: self._handlers())])
+        self.servicer = None  # made by the gRPC server's start, with its thread pool
+
+        def handlers(pool):
+            self.servicer = servicer(pool)
+            return method_handlers(self.servicer)
+
+        self.grpc = AioManagedServer(SERVICE_NAME, handlers, address, max_rpcs=512,
+                                     extra_services=[(REPLAY_SERVICE, lambda pool: self._handlers())])
         self.port = self.grpc.port
         self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"
 
@@ -228,6 +234,8 @@ class ReplayServer:
         self._thread.join(timeout=10.0)
         for s in self.sessions.watching():
             s.queue.close()
+        if self.servicer is not None:  # events and client streams end OK too, now
+            self.servicer.close()
         self.grpc.stop(grace_s).wait()
         self.rec.close()
 

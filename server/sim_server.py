@@ -173,8 +173,14 @@ class SimulationServer:
         self.started_monotonic = time.monotonic()
         servicer = functools.partial(SimulationServicer, self.sessions, self.world_info,
                                      stream_stats=self.stream_stats)
-        self.grpc = AioManagedServer(SERVICE_NAME, lambda pool: method_handlers(servicer(pool)), address,
-                                     max_rpcs=max_workers)  # SortieError when it cannot listen
+        self.servicer = None  # made by the gRPC server's start, with its thread pool
+
+        def handlers(pool):
+            self.servicer = servicer(pool)
+            return method_handlers(self.servicer)
+
+        # SortieError when it cannot listen
+        self.grpc = AioManagedServer(SERVICE_NAME, handlers, address, max_rpcs=max_workers)
         self.port = self.grpc.port
         self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"
         self.finished = threading.Event()  # set when the clock thread ends (duration reached, or an error)
@@ -205,6 +211,8 @@ class SimulationServer:
         self._thread.join(timeout=10.0)
         for s in self.sessions.watching():
             s.queue.close()
+        if self.servicer is not None:  # events and client streams end OK too, now
+            self.servicer.close()
         self.grpc.stop(grace_s).wait()
         if self.recorder is not None:
             self.recorder.close()

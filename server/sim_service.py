@@ -3,9 +3,11 @@
 Sessions. Join returns an unguessable token (``secrets.token_urlsafe``, 128
 bits); every later call presents it. An unknown token is UNAUTHENTICATED; a
 command for an agent the session does not hold is PERMISSION_DENIED. A
-session is alive while it has a Watch or events stream open or has called
-within ``vanished_timeout_s``; after that its agent is released (to its
-autopilot or removed, per the scenario) and the token stops working.
+session is alive while it has a stream open (Watch, events, or a controls or
+external stream that has carried one of its messages) or has called within
+``vanished_timeout_s``; after that its agent is released (to its autopilot or
+removed, per the scenario) and the token stops working. A client frozen or cut
+off with a stream open is found by HTTP/2 keepalive pings, which end its streams.
 
 Limits (all explicit): MAX_SESSIONS sessions; client names of 1-64 printable
 characters, agent names of at most 64 (a scenario's limit); MAX_EVENT_STREAMS
@@ -243,6 +245,15 @@ class EventBell:
         with self._lock:
             self._events.pop(event, None)
 
+    def ring_all(self) -> None:
+        """Wake every stream now (the server is stopping: they see it and end)."""
+        with self._lock:
+            for event, loop in list(self._events.items()):
+                try:
+                    loop.call_soon_threadsafe(event.set)
+                except RuntimeError:  # its loop has closed
+                    pass
+
     def _run(self) -> None:
         log = self.log
         seen = log.events_total
@@ -303,6 +314,41 @@ class SimulationServicer:
         self.world_info = world_info
         self.blocking = blocking  # concurrent.futures executor for calls that may block (None: the loop's default)
         self.bell = EventBell(self.world)
+        # Set by close() (the server stops): events and client streams end OK at once, as Watch
+        # streams do when their queues close, not when gRPC's grace runs out (UNAVAILABLE after 5 s).
+        self.closed = False
+        self._closing: asyncio.Event | None = None
+        self._loop = None
+
+    def close(self) -> None:
+        """The server is stopping: every stream this servicer serves ends now, OK (thread-safe)."""
+        self.closed = True
+        self.bell.ring_all()
+        if self._loop is not None and self._closing is not None:
+            try:
+                self._loop.call_soon_threadsafe(self._closing.set)
+            except RuntimeError:  # the loop has closed
+                pass
+
+    async def _messages(self, request_iterator):
+        """A client stream's messages until it ends or the server closes (:meth:`close`)."""
+        if self._closing is None:
+            self._loop, self._closing = asyncio.get_running_loop(), asyncio.Event()
+        closing = asyncio.ensure_future(self._closing.wait())
+        it = request_iterator.__aiter__()
+        try:
+            while not self.closed:
+                nxt = asyncio.ensure_future(it.__anext__())
+                done, _ = await asyncio.wait({nxt, closing}, return_when=asyncio.FIRST_COMPLETED)
+                if nxt not in done:
+                    nxt.cancel()
+                    return
+                try:
+                    yield nxt.result()
+                except StopAsyncIteration:
+                    return
+        finally:
+            closing.cancel()
 
     async def _offload(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.blocking, fn, *args)
@@ -346,13 +392,22 @@ class SimulationServicer:
         failure ends the stream with its status; else ``response_class(accepted=n)``."""
         accepted = 0
         what = f"{response_class.DESCRIPTOR.name.removesuffix('Response')} message"
+        held: dict = {}  # the sessions whose messages this stream carried: alive while it is open
         try:
-            async for msg in request_iterator:
+            async for msg in self._messages(request_iterator):
                 await self._offload(handle, _decoded(msg, what))
                 accepted += 1
+                if msg.session_token not in held:
+                    s = self.sessions.get(msg.session_token)  # handled: a session that exists
+                    s.open_streams += 1
+                    held[msg.session_token] = s
             return response_class(accepted=accepted)
         except Exception as exc:  # noqa: BLE001 - every error becomes a status
             await self._fail(context, exc)
+        finally:
+            for s in held.values():
+                s.open_streams -= 1
+                s.last_seen = time.monotonic()  # its timeout runs from the stream's end
 
     async def SendControls(self, request_iterator, context):
         return await self._consume(request_iterator, context, self._command, pb.SendControlsResponse)
@@ -430,7 +485,7 @@ class SimulationServicer:
         bell = self.bell.add(asyncio.get_running_loop())
         count = log.events_total  # events from now on
         try:
-            while not context.done() and not s.left:
+            while not context.done() and not s.left and not self.closed:
                 bell.clear()
                 s.last_seen = time.monotonic()
                 if log.events_total != count:

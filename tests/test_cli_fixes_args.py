@@ -125,6 +125,17 @@ def test_default_observe():
     assert cli.default_observe(pb.WorldInfo(observer_radius_max_m=20_000.0)) == (0.0, 0.0, 20_000.0)
 
 
+def test_default_observe_centres_an_area_across_the_antimeridian_on_it():
+    """An acceptance probe: an area from 179.97 to -179.97 was watched from longitude 0, the
+    arithmetic mean of its longitudes, and the client saw nothing."""
+    area = pb.TargetArea(name="am", lat_deg=[-16.7, -16.7, -16.5, -16.5], lon_deg=[179.97, -179.97, -179.97, 179.97])
+    lat, lon, _ = cli.default_observe(pb.WorldInfo(target_areas=[area]))
+    assert lat == pytest.approx(-16.6)
+    assert abs(lon) == pytest.approx(180.0, abs=1e-9)  # on the antimeridian, not at 0
+    area = pb.TargetArea(name="a", lat_deg=[1.0, 3.0], lon_deg=[10.0, 12.0])
+    assert cli.default_observe(pb.WorldInfo(target_areas=[area]))[1] == pytest.approx(11.0)
+
+
 # -- a bot's pace ----------------------------------------------------------------------------------
 
 class _Controls:
@@ -275,3 +286,50 @@ def test_reference_point_and_offsets_across_the_antimeridian():
     assert lon_offset_deg([179.75, -179.75], -180).tolist() == [-0.25, 0.25]
     v = pose_integers(np.array([[-179.75, -16.5, 0.0, 0.0, 0.0, 0.0]]), 180, -16)
     assert v[0, 0] == 2_500_000  # +0.25 degrees in units of the 7th decimal
+
+
+class _AircraftPicture(_BotPicture):
+    def __init__(self, agent):
+        self.infos = {agent: pb.EntityInfo(entity_id=agent, kind=pb.ENTITY_KIND_AIRCRAFT)}
+
+    def state(self, ids=None):
+        from terrain.geodesy import geodetic_to_ecef
+
+        return np.array([7]), geodetic_to_ecef([47.0], [9.0], [3048.0]), np.array([[1.0, 0.0, 0.0, 0.0]])
+
+
+class _TargetsControls(_Controls):
+    def __init__(self):
+        super().__init__()
+        self.targets = []
+
+    def autopilot(self, **targets):
+        super().autopilot(**targets)
+        self.targets.append(targets)
+
+
+class _AircraftBot(_Bot):
+    def __init__(self, address):
+        self.world_info = pb.WorldInfo(exercise_name="x", geoid_undulation_m=48.0)
+
+    def watch(self):
+        return _AircraftPicture(7)
+
+    def controls(self):
+        c = _TargetsControls()
+        _Bot.controls_made.append(c)
+        return c
+
+
+def test_a_bot_aircrafts_legs_are_about_its_altitude_above_the_geoid(monkeypatch):
+    """An acceptance probe: a bot took the state's height above the ellipsoid for its altitude
+    above sea level, and climbed by the geoid's undulation (48 m there) every leg. At 3048 m
+    above the ellipsoid, 3000 m MSL, its first leg is 3300 m MSL."""
+    import client.sim_client
+
+    monkeypatch.setattr(client.sim_client, "SimClient", _AircraftBot)
+    _Bot.controls_made.clear()
+    results = []
+    cli._fly_bot("h:1", 0, "patrol", 1.0, 0.5, results, threading.Event())
+    targets = _Bot.controls_made[0].targets
+    assert targets[0]["alt_msl_m"] == pytest.approx(3300.0, abs=1e-6)

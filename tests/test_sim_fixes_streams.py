@@ -292,6 +292,59 @@ def test_a_server_that_stops_ends_the_watch_with_no_error(alps):
         assert not pic.alive and pic.error is None  # the end of the exercise
 
 
+def test_a_server_that_stops_ends_events_and_controls_streams_at_once_with_no_error(alps):
+    """An acceptance probe: with an events stream and a pilot's controls stream open, SIGTERM
+    took gRPC's whole grace (5 s) and ended both UNAVAILABLE. Now they end OK, at once."""
+    srv = serve(alps, clock="fast", time_scale=2.0)
+    ended = {}
+    with SimClient(srv.address) as c, SimClient(srv.address) as pilot:
+        c.join("w", "observer", observer=WIDE)
+        events = c.events()
+        pilot.join("p", "pilot", agent_name="viper1")
+        controls = pilot.controls()
+        controls.autopilot(heading_deg=10.0)
+
+        def read():
+            try:
+                for _ in events:
+                    pass
+                ended["events"] = "OK"
+            except Exception as exc:  # noqa: BLE001 - the test reports it
+                ended["events"] = repr(exc)
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        srv.stop(5.0)
+        assert time.monotonic() - t0 < 2.0
+        reader.join(3.0)
+        assert ended.get("events") == "OK"
+        assert controls.close() == 1  # the stream's response: the one command accepted
+
+
+def test_a_session_whose_only_stream_is_its_controls_is_alive_while_it_is_open(alps):
+    """An acceptance probe: drivers with only a controls stream open were declared vanished
+    (and their agents removed) 3 s after their last message, their connection alive. An open
+    controls stream that has carried the session's messages keeps it; once closed, the
+    timeout runs."""
+    srv = serve(alps, clock="fast", time_scale=2.0, vanished_timeout_s=1.0)
+    try:
+        with SimClient(srv.address) as pilot:
+            pilot.join("p", "pilot", agent_name="viper1")
+            controls = pilot.controls()
+            controls.autopilot(heading_deg=10.0)
+            time.sleep(3.0)
+            assert len(srv.sessions) == 1  # still there, 3 s after its last message
+            assert controls.close() == 1
+            deadline = time.monotonic() + 6.0
+            while len(srv.sessions) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert len(srv.sessions) == 0  # closed: it vanished after the timeout
+    finally:
+        srv.stop(0.5)
+
+
 def test_world_info_says_the_observer_radius_a_join_accepts(alps):
     """WorldInfo.observer_radius_max_m is the scenario's observer area limit, and `sortie client`'s
     default area (client.cli.default_observe) keeps within it; a Join at that radius is accepted."""
