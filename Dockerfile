@@ -52,7 +52,7 @@ FROM ${PYTHON_IMAGE} AS runtime
 # Mesa's EGL and GL drivers: headless OpenGL (llvmpipe where there is no GPU).
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
-        libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libglx-mesa0 \
+        libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libgles2 libglx-mesa0 \
     && rm -rf /var/lib/apt/lists/*
 
 RUN groupadd --system sortie \

@@ -6,12 +6,14 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 SYS_STAMP := $(VENV)/.sysdeps
-# Debian packages: Mesa's EGL/GL for headless OpenGL (llvmpipe where no GPU);
+# Debian packages: Mesa's EGL/GL for headless OpenGL (llvmpipe where no GPU; libgl1 is the
+# libGL.so.1 moderngl's EGL backend loads, which nothing else here pulls in for certain);
 # tshark (Wireshark's DIS dissector checks our PDUs); docker-compose (CI validates
 # docker-compose.yml with `docker-compose config`; there is no Docker engine here).
-SYS_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libglx-mesa0 tshark docker-compose
+SYS_PACKAGES := libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libgles2 libglx-mesa0 tshark docker-compose
 # The Khronos glTF validator (npm), an independent check of the glTF files we write
-# (tests/test_gltf.py); skipped with a note where the machine has no npm.
+# (tests/test_gltf.py). Where the machine has no npm, Debian's nodejs and npm are installed
+# first; where that fails too, its test skips with a note.
 TOOLS := .tools
 TOOLS_STAMP := $(TOOLS)/.installed
 GLTF_VALIDATOR := gltf-validator@2.0.0-dev.3.10
@@ -28,7 +30,7 @@ $(VENV)/bin/python:
 	@if ! $(PYTHON) -c 'import ensurepip, venv' >/dev/null 2>&1; then \
 	  echo "installing python3-venv (this python has no venv/ensurepip)"; \
 	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
-	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq python3-venv python3-pip >/dev/null; \
+	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv python3-pip >/dev/null; \
 	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
@@ -44,13 +46,20 @@ $(SYS_STAMP): Makefile | $(VENV)/bin/python
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
 	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
-	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
 	fi
 	touch $@
 
 $(TOOLS_STAMP): Makefile
-	@if command -v npm >/dev/null 2>&1; then \
-	  npm install --silent --no-audit --no-fund --prefix $(TOOLS) $(GLTF_VALIDATOR) && touch $@; \
+	@if ! command -v npm >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing nodejs and npm (for the Khronos glTF validator)"; \
+	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
+	  ($$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm \
+	    >/dev/null) || echo "note: nodejs and npm could not be installed"; \
+	fi; \
+	if command -v npm >/dev/null 2>&1; then \
+	  (npm install --silent --no-audit --no-fund --prefix $(TOOLS) $(GLTF_VALIDATOR) && touch $@) \
+	    || echo "note: the Khronos glTF validator could not be installed (its test skips)"; \
 	else \
 	  echo "note: no npm here, so the Khronos glTF validator is not installed (its test skips)"; \
 	fi

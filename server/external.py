@@ -15,9 +15,13 @@ import numpy as np
 
 from server.dead_reckoning import check_algorithms
 from sortie.errors import InvalidArgument
+from terrain.geodesy import WGS84_A_M, WGS84_B_M, ecef_to_geodetic
 
 COALITIONS = ("blue", "red", "neutral")
 MAX_TEXT_CHARS = 64  # external ids, names and types
+# - position: within 100 km of the WGS84 ellipsoid, geodetic height (the Karman line; a
+#   simulation's entities fly, drive or sail well inside it).
+MAX_HEIGHT_M = 100_000.0
 # Plausibility bounds, far above anything that moves within 100 km of the surface, so that
 # no real entity is refused and garbage (a float32 1e30 from a DIS sender) never reaches the
 # world's dead reckoning and the recording:
@@ -68,15 +72,20 @@ def _bounded_vector(name: str, values, limit: float, unit: str) -> tuple:
 def external_state(t0_s: float, ecef_m, vel_ecef_mps, acc_ecef_mps2, quat_ecef2body, body_rates_rps,
                    algorithm: int) -> ExternalState:
     """A validated :class:`ExternalState` (InvalidArgument naming the field): finite values,
-    a position within 100 km of the WGS84 surface band (|r| in [6.25e6, 6.5e6] m), a
+    a position within MAX_HEIGHT_M of the WGS84 ellipsoid (its geodetic height), a
     quaternion of norm 0.5-2 (normalised here), a DIS world-coordinate algorithm (1-5), and
     magnitudes of velocity, acceleration and body rates within MAX_SPEED_MPS,
     MAX_ACCELERATION_MPS2 and MAX_BODY_RATE_RPS."""
     pos = _finite_vector("state.ecef_m", ecef_m, 3)
     r = math.sqrt(sum(x * x for x in pos))
-    if not 6.25e6 <= r <= 6.5e6:
-        raise InvalidArgument("state.ecef_m", "must be within 100 km of the Earth's surface (|r| in "
-                                              "[6250, 6500] km)", value=[round(x, 3) for x in pos])
+    # A cheap bound first (every point within MAX_HEIGHT_M of the ellipsoid is within
+    # [b - MAX_HEIGHT_M, a + MAX_HEIGHT_M] of the centre), then the geodetic height itself.
+    height = math.inf
+    if WGS84_B_M - MAX_HEIGHT_M <= r <= WGS84_A_M + MAX_HEIGHT_M:
+        height = float(ecef_to_geodetic(np.array([pos], np.float64))[2][0])
+    if not abs(height) <= MAX_HEIGHT_M:
+        raise InvalidArgument("state.ecef_m", f"must be within {MAX_HEIGHT_M / 1000:g} km of the WGS84 ellipsoid "
+                                              "(geodetic height)", value=[round(x, 3) for x in pos])
     q = np.array(_finite_vector("state.orientation_wxyz", quat_ecef2body, 4))
     norm = float(np.linalg.norm(q))
     if not 0.5 <= norm <= 2.0:

@@ -201,6 +201,21 @@ def test_external_inputs_are_journaled_and_resimulate_bit_exact(alps, tmp_path):
     assert abs(lat - 47.3) < 0.01 and abs(h - 3000.0) < 5.0
 
 
+@pytest.mark.parametrize("lat", [0.0, 47.3, 89.9])
+def test_positions_within_100_km_of_the_ellipsoid_are_accepted_and_beyond_refused(lat):
+    """The limit is the geodetic height, as documented: an acceptance probe found +-100.1 km
+    accepted at 47.3 N (the old test was a distance from the centre, 6,250-6,500 km)."""
+    def state(h):
+        return external_state(0.0, geodetic_to_ecef([lat], [9.0], [h])[0], (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
+                              (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 2)
+
+    for h in (99_900.0, -99_900.0, 0.0):
+        state(h)
+    for h in (100_100.0, -100_100.0, 1e6):
+        with pytest.raises(InvalidArgument, match="state.ecef_m"):
+            state(h)
+
+
 def test_implausible_velocity_acceleration_and_rates_are_refused_naming_the_field():
     from server.external import MAX_ACCELERATION_MPS2, MAX_BODY_RATE_RPS, MAX_SPEED_MPS
 
