@@ -329,3 +329,42 @@ def test_border_segments_cover_every_border_cell_from_even_posts(i0, j0, i1, j1)
     for j in (0, w):
         line = {(i, j) for i in range(i0 % 2, h)}
         assert line <= covered if (j0 + j) % 2 == 0 else not (line & covered)
+
+
+# -- a coarse global lattice -------------------------------------------------------------------------
+
+def _global_quarter_degree():
+    """A global grid of 0.25-degree posts (1441 x 721) rising gently eastwards, as a Terrain."""
+    from terrain.raster import CRS_GEOGRAPHIC, Georef, Raster
+    from terrain.terrain import Terrain
+
+    lon = -180.0 + 0.25 * np.arange(1441)
+    h = np.broadcast_to(100.0 + 10.0 * np.cos(np.radians(lon))[None, :], (721, 1441)).astype(np.float32)
+    return Terrain([Raster(np.ascontiguousarray(h), Georef(CRS_GEOGRAPHIC, -180.0, -90.0, 0.25, 0.25),
+                           name="global")])
+
+
+def test_globe_levels_stop_before_a_level_spans_the_globe():
+    from client.render.clipmap import globe_levels
+
+    assert globe_levels(0.25, 255) == 3  # 63.5, 127, 254 degrees; the next would be 508
+    assert globe_levels(1.0 / 1200.0, 255) == 11  # 1700 x a level-0 span of 0.21 degrees: 2^10 < 1700 < 2^11
+    assert globe_levels(2.0, 255) == 1  # 508 degrees already: one level
+    for dlon, n in ((0.25, 255), (0.01, 63), (1.0 / 3600.0, 511)):
+        k = globe_levels(dlon, n)
+        assert (n - 1) * dlon * 2 ** (k - 1) <= 360.0 < (n - 1) * dlon * 2 ** k
+
+
+def test_a_global_quarter_degree_grid_renders_near_the_antimeridian():
+    """An acceptance probe: the default clipmap failed on a global 0.25-degree grid ("lon[0]: must
+    be within [-540, 540] (got -1364)"): its coarse levels spanned the globe several times. The
+    levels stop at the globe's span, and posts are asked within [-180, 180)."""
+    terrain = _global_quarter_degree()
+    for lon in (9.0, 179.9, -179.9):
+        cam = Camera.from_geodetic(47.0, lon, 3000.0, 90.0, -10.0)
+        with Renderer(terrain, W, H, flat_sky_rgb=MAGENTA, sea=False,
+                      terrain_layer_factory=clipmap_factory(terrain, levels=10, n=255, budget=10 ** 9)) as r:
+            frame = r.render(cam)
+            assert len(r.terrain_layer.clipmap.levels) == 3
+        ground = ~np.all(frame == MAGENTA, axis=-1)
+        assert ground[H // 2 + 10:].mean() > 0.99  # ground below the horizon, no hole

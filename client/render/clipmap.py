@@ -268,6 +268,16 @@ class UpdateStats:
     origins_moved: int = 0
 
 
+def globe_levels(dlon_deg: float, n: int) -> int:
+    """How many levels of n posts a lattice of ``dlon_deg`` spacing has before a level's n - 1
+    cells span more than the globe's 360 degrees of longitude (at least 1): level k spans
+    (n - 1) 2^k dlon."""
+    span = (n - 1) * float(dlon_deg)
+    if not (span > 0.0 and math.isfinite(span)):
+        return 1
+    return max(1, int(math.floor(math.log2(360.0 / span) + 1e-12)) + 1)
+
+
 class Clipmap:
     """L levels of n x n posts on ``lattice`` (terrain_mesh.Lattice of the finest level's spacing
     over 2^finest_exponent... see the module docstring), filled from ``terrain`` (heights(lat, lon)
@@ -332,6 +342,9 @@ class Clipmap:
         """(ECEF positions (rows, cols, 3) float64, heights MSL (rows, cols)) of a rectangle of posts."""
         lat_rows, lon_cols = self.latlon(k, np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1))
         lat_rows = np.clip(lat_rows, -90.0, 90.0)
+        # Asked of the terrain within [-180, 180): a coarse level reaches past +-540 (the query's
+        # limit) from a camera near the antimeridian; the geometry below is periodic either way.
+        lon_cols = np.where((lon_cols >= -180.0) & (lon_cols < 180.0), lon_cols, (lon_cols + 180.0) % 360.0 - 180.0)
         lat, lon = np.broadcast_arrays(lat_rows[:, None], lon_cols[None, :])
         h = self._store_posts(k, r)
         if h is None and hasattr(self.terrain, "height_grid"):  # in process: one index a row and a column

@@ -118,7 +118,8 @@ import numba
 import numpy as np
 
 from client.render.camera import Camera, LocalOrigin
-from client.render.clipmap import Clipmap, Rect, active_origin, blocks, clip_region, drawn_regions, ring_rects
+from client.render.clipmap import (Clipmap, Rect, active_origin, blocks, clip_region, drawn_regions, globe_levels,
+                                   ring_rects)
 from client.render.gl import check_gl_error
 from client.render.shading import GLSL_COMMON, Frame
 from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
@@ -1556,6 +1557,9 @@ class ClipmapLayer:
             base = lattice_for(self.terrain.describe(), lat, lon)
             f = self._finest_factor
             lattice = type(base)(base.lat0, base.lon0, base.dlat * f, base.dlon * f, base.exact and f >= 1)
+        # A coarse lattice (a global 0.25-degree grid) would give coarse levels spanning the globe
+        # more than once: the levels stop at the first whose n - 1 cells span 360 degrees of longitude.
+        levels = max(1, min(levels, globe_levels(lattice.dlon, n)))
         self.clipmap = Clipmap(self.terrain, lattice, levels, n, budget, undulation)
         self.clipmap.land_classes = self._land_classes
         if self.insets:
