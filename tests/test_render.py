@@ -450,3 +450,18 @@ def test_the_catalogs_helicopter_gets_the_helicopter_profile():
     assert "ah1s" in [n for n in list_aircraft() if is_rotorcraft(n)] and not is_rotorcraft("f16")
     assert profile_for("aircraft", "ah1s").name == "helicopter"
     assert profile_for("aircraft", "f16").name == "fast_jet" and profile_for("aircraft", "uh60").name == "helicopter"
+
+
+def test_fog_leaves_the_earth_visible_from_high_above(alps):
+    """An acceptance probe: from 10,000 km up (and 150 km) the fog, set to hide where the
+    terrain ends, hid the whole Earth: 3 colours in the frame. Fog now goes by horizontal
+    distance and thins with the camera's height over the terrain's range."""
+    from client.render.camera import Camera
+    from client.render.clipmap_layer import clipmap_factory
+    from client.render.renderer import Renderer
+
+    for alt in (1e7, 1.5e5):
+        with Renderer(alps, 160, 90, terrain_layer_factory=clipmap_factory(alps, levels=8, n=127, budget=10 ** 9)) as r:
+            frame = r.render(Camera.from_geodetic(47.15, 9.25, alt, 45.0, -90.0))
+        colours = np.unique(frame.reshape(-1, 3), axis=0)
+        assert len(colours) > 200, (alt, len(colours))

@@ -341,10 +341,15 @@ class Renderer:
 
     def _frame(self, camera: Camera) -> Frame:
         o = self.origin
-        lat, lon, _ = camera.geodetic()
+        lat, lon, alt = camera.geodetic()
         fog_density = 0.0
         if self.fog and self.terrain_layer is not None:
-            fog_density = fog_density_per_m(self.terrain_layer.fog_range_m)
+            # The fog hides where the terrain ends round the camera (shading.py). From as high as that
+            # edge is far, it is seen from above, and haze is a low layer: the fog thins with the
+            # camera's height h over that range, as 1 / (1 + (h / range)^2) (under 0.4 % at a
+            # twentieth of it; none to speak of from orbit, where fog hid the whole Earth).
+            edge = self.terrain_layer.fog_range_m
+            fog_density = fog_density_per_m(edge) / (1.0 + (max(float(alt), 0.0) / edge) ** 2)
         return Frame(camera=camera, origin=o, width=self.width, height=self.height, view=camera.view_matrix(o),
                      projection=camera.projection(self.width, self.height),
                      camera_local=o.to_local(camera.position_ecef),

@@ -21,9 +21,12 @@ water at sea level; a DEM has no water mask).
 
 Fog: squared exponential, f = exp(-(density x distance)^2) (OpenGL 2.1
 specification, §3.10 "Fog", GL_EXP2), colour = mix(fog colour, lit colour,
-f), distance the Euclidean eye distance. The density makes the mesh's
-nearest far edge invisible to 8 bits (f = 1/255 there: density =
-sqrt(ln 255) / distance). GL_EXP2 rather than GL_EXP: hiding an edge at
+f), distance the horizontal distance from the camera (the eye-to-point vector
+less its part along the camera's local vertical): the fog hides where the
+terrain ends round the camera, and the ground straight below a camera high up
+stays clear (with the Euclidean distance, a camera 10,000 km up saw only fog).
+The density makes the mesh's nearest far edge invisible to 8 bits (f = 1/255
+there: density = sqrt(ln 255) / distance). GL_EXP2 rather than GL_EXP: hiding an edge at
 distance D with exp(-k d) already costs 25 % of the contrast at D / 4 and
 63 % at D / 2.3; exp(-(k d)^2) keeps 92 % at D / 4 and fades over the last
 half. The fog colour is the sky's horizon colour, so fogged terrain meets
@@ -112,6 +115,7 @@ class Frame:
             "u_sun": self.sun_local.astype("f4").tobytes(),
             "u_fog_density": np.float32(self.fog_density).tobytes(),
             "u_fog_rgb": np.array(self.fog_rgb, "f4").tobytes(),
+            "u_vertical": np.asarray(self.up_local, "f4").tobytes(),
         }
         for name, data in values.items():
             member = program.get(name, None)  # one lookup (``name in program`` walks every member)
@@ -126,6 +130,7 @@ uniform vec3 u_camera;       // camera offset, local ENU metres
 uniform vec3 u_sun;          // unit vector to the sun, local ENU
 uniform float u_fog_density; // 1/m; 0 turns fog off
 uniform vec3 u_fog_rgb;
+uniform vec3 u_vertical;     // the camera's local vertical, local ENU (fog is by horizontal distance)
 
 const float AMBIENT = {AMBIENT};
 const float SUN = {SUN};
@@ -135,7 +140,8 @@ vec3 lambert(vec3 albedo, vec3 n) {{
 }}
 
 vec3 fogged(vec3 colour, vec3 world) {{
-    float kd = u_fog_density * length(world - u_camera);
+    vec3 d = world - u_camera;
+    float kd = u_fog_density * length(d - dot(d, u_vertical) * u_vertical);
     float f = exp(-kd * kd);
     return mix(u_fog_rgb, colour, f);
 }}
