@@ -413,6 +413,34 @@ class ManagedServer:
         self.stop(grace_s).wait()
 
 
+def listen_error(address: str, exc: Exception) -> SortieError:
+    """The start-up error of a server that cannot listen on ``address`` (HOST:PORT): gRPC's own
+    message says only "Failed to bind" (its reason goes to gRPC's log, which JSON logging turns
+    off), so the reason is asked of the operating system by binding a plain socket there."""
+    return SortieError(f"cannot listen on {address}: {listen_cause(address) or exc}")
+
+
+def listen_cause(address: str) -> str | None:
+    """Why a TCP socket cannot listen on ``address`` ("Address already in use", "Cannot assign
+    requested address", a host name that does not resolve); None when one can."""
+    import socket
+
+    host, _, port = address.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    try:
+        infos = socket.getaddrinfo(host or None, int(port), type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, ValueError, UnicodeError) as exc:
+        return f"no such host {host!r} ({getattr(exc, 'strerror', None) or exc})"
+    for family, kind, proto, _, sockaddr in infos:
+        try:
+            with socket.socket(family, kind, proto) as s:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as gRPC binds
+                s.bind(sockaddr)
+        except OSError as exc:
+            return exc.strerror or str(exc)
+    return None
+
+
 def wait_for_signal(finished: threading.Event | None = None, signals=(signal.SIGTERM, signal.SIGINT)) -> None:
     """Block (main thread only) until one of ``signals`` arrives or ``finished`` is set."""
     stop = threading.Event()
@@ -472,7 +500,7 @@ class AioManagedServer:
         try:
             return self.grpc_server.add_insecure_port(address)
         except RuntimeError as exc:  # in use, or no such interface: a start-up error, one line
-            raise SortieError(f"cannot listen on {address}: {exc}") from None
+            raise listen_error(address, exc) from None
 
     async def _start(self) -> None:
         await self.grpc_server.start()

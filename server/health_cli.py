@@ -4,7 +4,8 @@
 
 Exit status 0 when the service answers SERVING, 1 otherwise (NOT_SERVING while
 it drains after SIGTERM, SERVICE_UNKNOWN, an unknown service name, no answer
-within the timeout, nothing listening); one line saying which is printed
+within the timeout, nothing listening, and a bad option or environment value
+too: Docker reserves a health check's status 2); one line saying which is printed
 either way. This is the health check of the container image and of
 docker-compose.yml (docs/DEPLOYMENT.md), so it makes exactly one call, within
 ``--timeout-s``, connection included.
@@ -17,7 +18,15 @@ sortie resim --take-over), ``sortie.v1.ReplayService`` (sortie replay).
 
 from __future__ import annotations
 
+import math
+import re
+
+from sortie.errors import InvalidArgument
+
 DEFAULT_TIMEOUT_S = 3.0
+# HOST:PORT, the host a name, an IPv4 address or a bracketed IPv6 one (a gRPC target with a
+# scheme, such as unix:PATH or dns:///HOST:PORT, is passed on as it is).
+_HOST_PORT = re.compile(r"^(\[[^\]]*\]|[^\[\]:/]*):([^:]*)$")
 
 
 def add_parser(sub) -> None:
@@ -42,10 +51,9 @@ def check(address: str, service: str = "", timeout_s: float = DEFAULT_TIMEOUT_S)
     import grpc
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-    from sortie.errors import InvalidArgument
-
-    if not timeout_s > 0:
-        raise InvalidArgument("timeout_s", "must be > 0", value=timeout_s)
+    if not (math.isfinite(timeout_s) and timeout_s > 0):
+        raise InvalidArgument("timeout_s", "must be a finite number > 0", value=timeout_s)
+    check_address(address)
     with grpc.insecure_channel(address) as channel:
         try:
             # Fail fast: a refused connection is reported as UNAVAILABLE with its reason
@@ -56,6 +64,17 @@ def check(address: str, service: str = "", timeout_s: float = DEFAULT_TIMEOUT_S)
             return False, f"{exc.code().name}: {exc.details()}"
     return (reply.status == health_pb2.HealthCheckResponse.SERVING,
             health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status))
+
+
+def check_address(address: str) -> None:
+    """HOST:PORT with a port 1..65535 (gRPC takes any number and keeps its low 16 bits: port
+    99999 would probe 34463); InvalidArgument otherwise."""
+    if "://" in address or address.startswith(("unix:", "unix-abstract:", "vsock:", "ipv4:", "ipv6:")):
+        return
+    m = _HOST_PORT.match(address)
+    port = m[2] if m else ""
+    if not (port.isascii() and port.isdigit() and 1 <= int(port) <= 65535):
+        raise InvalidArgument("address", "must be HOST:PORT with a port 1..65535", value=address)
 
 
 def health_command(args) -> int:

@@ -18,6 +18,7 @@ the world clock (a "paused" exercise resumes in real time), SIGUSR2 pauses it.
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import re
@@ -29,7 +30,11 @@ from pathlib import Path
 from server.grpc_common import DEFAULT_GRACE_S, wait_for_signal
 from server.scenario import DURATION_MAX_S, TIME_SCALE_MAX
 from server.sim_server import CLOCKS
+from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.errors import InvalidArgument
+from sortie.logs import line
+
+logger = logging.getLogger(__name__)
 
 
 def add_parser(sub) -> None:
@@ -55,8 +60,8 @@ def add_parser(sub) -> None:
                         "(default: server.aircraft_host.WORKER_NICE, 3); higher lowers stream latency "
                         "on a busy machine but lets other processes stall the physics")
     add_recording_options(p)
-    p.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
-                   help="seconds in-flight calls get on shutdown (default %(default)s)")
+    p.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
+                   help=f"seconds in-flight calls get on shutdown, 0-{MAX_GRACE_S:g} (default %(default)s)")
     p.add_argument("--metrics-port", type=int, metavar="N",
                    help="serve Prometheus metrics on http://HOST:N/metrics (tick time, sessions, entities, "
                         "bytes sent; see docs/DEPLOYMENT.md); 0 picks a free port")
@@ -125,65 +130,130 @@ def recording_path(args, exercise_name: str) -> Path | None:
     return Path(args.record_dir) / f"{slug}-{stamp}.sortie"
 
 
-def open_recorder(args, exercise_name: str, header):
-    """(Recorder, path) of the options of :func:`add_recording_options`, or (None, None) with
-    --no-record: --record-chunk-s checked and an existing file refused before ``header()``
-    (the RecordingHeader) is made."""
-    from server.recorder import Recorder
-
+def check_recording(args, exercise_name: str) -> Path | None:
+    """Where the options of :func:`add_recording_options` record a sortie (None: --no-record),
+    checked: --record-chunk-s, and no file there already (recordings are never overwritten)."""
     path = recording_path(args, exercise_name)
     if path is None:
-        return None, None
+        return None
     if not (math.isfinite(args.record_chunk_s) and args.record_chunk_s > 0):
         raise InvalidArgument("record_chunk_s", "must be a finite number > 0", value=args.record_chunk_s)
     if path.exists():
         raise InvalidArgument("record", "the file exists (recordings are never overwritten)", value=str(path))
+    return path
+
+
+def open_recorder(args, exercise_name: str, header):
+    """(Recorder, path) of the options of :func:`add_recording_options`, or (None, None) with
+    --no-record: checked by :func:`check_recording` before ``header()`` (the RecordingHeader)
+    is made."""
+    from server.recorder import Recorder
+
+    path = check_recording(args, exercise_name)
+    if path is None:
+        return None, None
     return Recorder(path, header(), args.record_chunk_s), path
 
 
+def new_recording(path: Path, header, chunk_s: float):
+    """A Recorder into ``path`` (checked by :func:`check_recording`); when it cannot be made, the
+    file and the folders it made are removed before its error is raised."""
+    from server.recorder import Recorder
+
+    made = _missing_folders(path)
+    try:
+        return Recorder(path, header(), chunk_s)
+    except FileExistsError:  # someone else's, made since it was checked
+        raise
+    except BaseException:
+        remove_recording(path, made)
+        raise
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """The folders above ``path`` that do not exist yet, deepest first."""
+    out = []
+    for folder in path.parents:
+        if folder.exists():
+            break
+        out.append(folder)
+    return out
+
+
+def remove_recording(path: Path, folders=()) -> None:
+    """Remove a recording this run made (and ``folders``, the folders made for it, where empty):
+    a server that fails to start leaves nothing behind for `sortie replay` to pick."""
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            break
+
+
+def check_run_options(args) -> None:
+    """--time-scale and --duration, before anything is built (--grace-s is checked by argparse)."""
+    if args.time_scale is not None and not (math.isfinite(args.time_scale)
+                                            and 0.0 < args.time_scale <= TIME_SCALE_MAX):
+        raise InvalidArgument("time_scale", f"must be within (0, {TIME_SCALE_MAX:g}]", value=args.time_scale)
+    if args.duration is not None and not (math.isfinite(args.duration) and 0.0 < args.duration <= DURATION_MAX_S):
+        raise InvalidArgument("duration", f"must be within (0, {DURATION_MAX_S:g}] s", value=args.duration)
+
+
 def server_command(args) -> int:
+    """Start-up in an order that leaves nothing behind when it fails: every option checked, the
+    scenario and its world built, the gRPC port and the metrics port bound, and only then the
+    recording made; a failure on the way closes what was opened and removes that recording."""
     from server.recorder import recording_header
     from server.scenario import load_scenario
     from server.sim_server import (SimulationServer, aircraft_host, build_world, open_terrain, server_config,
                                    terrain_spec)
 
     workers = aircraft_workers(args.aircraft_workers)
+    check_run_options(args)
     scenario = load_scenario(args.scenario)
+    check_recording(args, scenario.exercise.name)  # before the world is built; again when it is, for the time
     terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
     world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers,
                                                          args.aircraft_worker_nice))
-    recorder, path = open_recorder(args, scenario.exercise.name, lambda: recording_header(
-        args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain), terrain))
-    config = server_config(scenario, desc)
-    if args.clock:
-        config.clock = args.clock
-    if args.time_scale is not None:
-        if not (math.isfinite(args.time_scale) and 0.0 < args.time_scale <= TIME_SCALE_MAX):
-            raise InvalidArgument("time_scale", f"must be within (0, {TIME_SCALE_MAX:g}]", value=args.time_scale)
-        config.time_scale = args.time_scale
-    if args.duration is not None:
-        if not (math.isfinite(args.duration) and 0.0 < args.duration <= DURATION_MAX_S):
-            raise InvalidArgument("duration", f"must be within (0, {DURATION_MAX_S:g}] s", value=args.duration)
-        config.duration_s = args.duration
+    server = metrics = recorder = path = None
+    made: list[Path] = []
+    metrics_started = False
     try:
-        server = SimulationServer(world, config, f"{args.host}:{args.port}", recorder=recorder)
-    except BaseException:
-        world.close()
-        if recorder is not None:
-            recorder.close()
-        raise
-    metrics = None
-    if args.metrics_port is not None:
-        from server.metrics import MetricsServer, simulation_metrics
+        path = check_recording(args, scenario.exercise.name)
+        config = server_config(scenario, desc)
+        if args.clock:
+            config.clock = args.clock
+        if args.time_scale is not None:
+            config.time_scale = args.time_scale
+        if args.duration is not None:
+            config.duration_s = args.duration
+        server = SimulationServer(world, config, f"{args.host}:{args.port}")  # SortieError when it cannot listen
+        if args.metrics_port is not None:
+            from server.metrics import MetricsServer, simulation_metrics
 
-        metrics = MetricsServer(lambda: simulation_metrics(server), args.host, args.metrics_port).start()
-    server.start()
-    print(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
-          f"clock {config.clock})", flush=True)
+            metrics = MetricsServer(lambda: simulation_metrics(server), args.host, args.metrics_port)
+        if path is not None:
+            made = _missing_folders(path)
+            recorder = new_recording(path, lambda: recording_header(
+                args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain), terrain),
+                args.record_chunk_s)
+            server.recorder = recorder  # closed by server.stop()
+            world.attach_recorder(recorder)
+        if metrics is not None:
+            metrics.start()
+            metrics_started = True
+        server.start()
+    except BaseException:
+        _abandon_start(server, metrics, metrics_started, recorder, path, made, world)
+        raise
+    line(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
+         f"clock {config.clock})", logger=__name__)
     if metrics is not None:
-        print(f"metrics on http://{metrics.address}/metrics", flush=True)
+        line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
     if recorder is not None:
-        print(f"recording to {path}", flush=True)
+        line(f"recording to {path}", logger=__name__)
     with clock_signals(server, config.clock):
         wait_for_signal(server.finished)
     server.stop(args.grace_s)
@@ -191,13 +261,32 @@ def server_command(args) -> int:
     if metrics is not None:
         metrics.stop()
     stats = server.tick_stats()
-    print(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
-          f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", flush=True)
+    line(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
+         f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", logger=__name__)
     if recorder is not None:
         state = f"failed: {recorder.error}" if recorder.error else f"{path.stat().st_size:,} bytes"  # the footer too
-        print(f"recording {path}: {state}", flush=True)
+        line(f"recording {path}: {state}", logger=__name__)
     if server.error is not None:  # the world's clock died: not a clean end of the exercise
-        print(f"sortie server: error: the world clock stopped: {type(server.error).__name__}: {server.error}",
-              file=sys.stderr, flush=True)
+        line(f"sortie server: error: the world clock stopped: {type(server.error).__name__}: {server.error}",
+             stream=sys.stderr, level=logging.ERROR, logger=__name__)
         return 1
     return 0
+
+
+def _abandon_start(server, metrics, metrics_started: bool, recorder, path, made, world) -> None:
+    """Undo a start that failed (see :func:`server_command`); errors on the way are logged, the
+    start-up error is the one reported."""
+    steps = []
+    if metrics is not None:
+        steps.append(metrics.stop if metrics_started else metrics.httpd.server_close)
+    if server is not None:
+        steps.append(lambda: server.grpc.stop(0).wait(10.0))
+    steps.append(world.close)
+    if recorder is not None:
+        steps.append(recorder.close)
+        steps.append(lambda: remove_recording(path, made))
+    for step in steps:
+        try:
+            step()
+        except Exception:  # noqa: BLE001 - the start-up error matters, not this one
+            logger.warning("while abandoning the start", exc_info=True)

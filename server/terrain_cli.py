@@ -15,7 +15,9 @@ import json
 
 from server.grpc_common import DEFAULT_GRACE_S
 from server.terrain_service import DEFAULT_MAX_WORKERS
-from sortie.errors import InvalidArgument
+from sortie.config import MAX_GRACE_S, grace_seconds
+from sortie.errors import InvalidArgument, SortieError
+from sortie.logs import line
 from terrain.mesh_cli import add_mesh_parser
 from terrain.store_cli import add_import_parser
 from terrain.texture_cli import add_texture_parser
@@ -68,7 +70,8 @@ def terrain_source(args):
 
 
 def add_parser(sub) -> None:
-    terrain = sub.add_parser("terrain", help="terrain query service and store: serve, info, query, import, texture, mesh",
+    terrain = sub.add_parser("terrain",
+                             help="terrain query service and store: serve, info, query, import, texture, mesh",
                              description="Serve, describe or query the terrain query service.")
     commands = terrain.add_subparsers(dest="terrain_command", metavar="SUBCOMMAND", required=True)
 
@@ -80,8 +83,9 @@ def add_parser(sub) -> None:
     serve.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
     serve.add_argument("--max-workers", type=_positive_int, default=DEFAULT_MAX_WORKERS,
                        help="threads answering calls (default %(default)s)")
-    serve.add_argument("--grace-s", type=float, default=DEFAULT_GRACE_S,
-                       help="seconds in-flight calls get to finish on shutdown (default %(default)s)")
+    serve.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
+                       help=f"seconds in-flight calls get to finish on shutdown, 0-{MAX_GRACE_S:g} "
+                            "(default %(default)s)")
     serve.add_argument("--insets", nargs="+", metavar="SCENARIO",
                        help="answer inside these scenarios' target areas from their high-detail insets "
                             "(terrain/inset.py), as a server with [terrain] insets = true does")
@@ -138,22 +142,29 @@ def serve_command(args) -> int:
 
         areas = [a for path in args.insets for a in load_scenario(path).target_areas]
         terrain = with_insets(terrain, areas, INSET_SEED)
-        print(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", flush=True)
-    server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers,
-                                 dem_paths=args.dem)
+        line(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", logger=__name__)
+    address = f"{args.host}:{args.port}"
+    try:
+        server, port = create_server(terrain, address, max_workers=args.max_workers, dem_paths=args.dem)
+    except SortieError as exc:
+        if isinstance(exc.__cause__, RuntimeError):  # gRPC could not bind: say why, as the system does
+            from server.grpc_common import listen_error
+
+            raise listen_error(address, exc.__cause__) from None
+        raise
     metrics = None
     if args.metrics_port is not None:
         from server.metrics import MetricsServer, terrain_metrics
 
         metrics = MetricsServer(lambda: terrain_metrics(server.stats), args.host, args.metrics_port).start()
     server.start()
-    print(f"sortie terrain service listening on {args.host}:{port}", flush=True)
+    line(f"sortie terrain service listening on {args.host}:{port}", logger=__name__)
     if metrics is not None:
-        print(f"metrics on http://{metrics.address}/metrics", flush=True)
+        line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
     server.serve_until_signalled(grace_s=args.grace_s)
     if metrics is not None:
         metrics.stop()
-    print("sortie terrain service stopped", flush=True)
+    line("sortie terrain service stopped", logger=__name__)
     return 0
 
 

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import re
 import sys
 
 from sortie import __version__, config
 from sortie.errors import SortieError
-from sortie.logs import FORMATS, configure
+from sortie.logs import FORMATS, configure, line
 
 # Modules that contribute sub-commands, in --help order.
 COMMAND_MODULES = (
@@ -96,32 +97,98 @@ def bind_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
+# Commands whose every failure exits 1, not 2: `sortie health` is a container health check, and
+# Docker reserves exit status 2 of a health check (docs/DEPLOYMENT.md).
+FAILURE_STATUS = {"health": 1}
+
+
+def _log_format(pre: argparse.Namespace, environ) -> str:
+    """The log format asked for before the command's options are parsed (for an error in them):
+    the command line's, the environment's, the config file's top level, or text."""
+    if pre.log_format:
+        return pre.log_format
+    if environ.get(config.ENV_PREFIX + "LOG_FORMAT"):
+        return environ[config.ENV_PREFIX + "LOG_FORMAT"]
+    path = pre.config or environ.get(config.ENV_PREFIX + "CONFIG")
+    if path:
+        try:
+            table = config.read_config_file(path)
+        except SortieError:  # reported as what it is by config.apply
+            return "text"
+        value = table.get("log-format", table.get("log_format"))
+        return value if isinstance(value, str) else "text"
+    return "text"
+
+
+def _error(text: str, json_logs: bool) -> None:
+    """The one line saying why a command failed, on stderr (a JSON record in json logging)."""
+    line(text, stream=sys.stderr, level=logging.ERROR, fmt="json" if json_logs else "text")
+
+
+def _report_usage_errors(parser: argparse.ArgumentParser, status: int, json_logs: bool) -> None:
+    """argparse's errors (an unknown option, a missing one) exit ``status``, as one JSON record in
+    json logging (usage and error line as argparse prints them otherwise)."""
+    def handler(p):
+        def error(message):
+            if not json_logs:
+                p.print_usage(sys.stderr)
+            _error(f"{p.prog}: error: {message}", json_logs)
+            sys.exit(status)
+        return error
+
+    for p in [parser, *(sub for _, sub in config.command_parsers(parser))]:
+        p.error = handler(p)
+
+
+def _source_of(parser, argv: list[str], exc: SortieError) -> str | None:
+    """The environment variable or config key that set the option an error is about; None when
+    the error is about something else (a key of a scenario file: its ``file`` is set)."""
+    field = getattr(exc, "field", None)
+    if not isinstance(field, str) or getattr(exc, "file", None):
+        return None
+    return config.source_of(parser, argv, field, getattr(exc, "value", None))
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = bind_negative_values(sys.argv[1:] if argv is None else list(argv))
     pre = _pre_parse(argv)
+    status = FAILURE_STATUS.get(pre.command, 2)
+    json_logs = _log_format(pre, os.environ) == "json"
+    if json_logs:  # gRPC's C core logs to stderr in its own format; it reads this when grpc is imported
+        os.environ.setdefault("GRPC_VERBOSITY", "NONE")
     light = LIGHT_COMMANDS.get(pre.command)
     parser = build_parser((light,) if light else COMMAND_MODULES)
+    _report_usage_errors(parser, status, json_logs)
     try:
         config.apply(parser, pre.config, strict=light is None)
+        args = parser.parse_args(argv)
+        config.settle_exclusive(parser, args, argv)
     except SortieError as exc:
-        print(f"sortie: configuration error: {exc}", file=sys.stderr)
-        return 2
-    args = parser.parse_args(argv)
-    config.settle_exclusive(parser, args, argv)
+        _error(f"sortie: configuration error: {exc}", json_logs)
+        return status
+    json_logs = args.log_format == "json"
     configure(logging.WARNING - 10 * min(args.verbose, 2), args.log_format)
     try:
         return int(args.func(args) or 0)
     except SortieError as exc:
-        source = config.source_of(parser, argv, exc.field) if getattr(exc, "field", None) else None
-        print(f"sortie {args.command}: error: {exc}" + (f" (set by {source})" if source else ""), file=sys.stderr)
-        return 2
+        source = _source_of(parser, argv, exc)
+        _error(f"sortie {args.command}: error: {exc}" + (f" (set by {source})" if source else ""), json_logs)
+        return status
     except OSError as exc:  # a path that cannot be written or read, a socket refused: one line (-v: the traceback)
-        if args.verbose:
+        if args.verbose and not json_logs:
             raise
-        print(f"sortie {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        if args.verbose:
+            logging.getLogger("sortie").exception("sortie %s: error: %s", args.command, exc)
+        else:
+            _error(f"sortie {args.command}: error: {exc}", json_logs)
+        return status
     except KeyboardInterrupt:
         return 130
+    except Exception:  # a bug: its traceback, as one JSON record in json logging
+        if not json_logs:
+            raise
+        logging.getLogger("sortie").exception("sortie %s: unexpected error", args.command)
+        return 1
 
 
 if __name__ == "__main__":

@@ -13,7 +13,12 @@ Each long option of each command may also come from
   global options (``log-format``, ``verbose``) at the top level.
 
 Precedence, as in most Unix daemons: the command line, then the environment,
-then the file, then the built-in default. Values are checked like command-line
+then the file, then the built-in default; within a group of alternatives
+(``--dem | --terrain``) too: the alternative of the highest of these wins, and
+two alternatives of a required group (``--cell | --bbox``) from the same one
+are an error naming both and where each came from. An option abbreviated on
+the command line (``--de`` for ``--dem``, as argparse allows) counts as given
+there. Values are checked like command-line
 ones (the option's type and choices); a bad one, an unknown table or an unknown
 key is an error naming where it came from, so a typo in a deployment fails at
 start rather than being ignored. This is what docker-compose.yml's
@@ -23,6 +28,7 @@ start rather than being ignored. This is what docker-compose.yml's
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shlex
 import tomllib
@@ -33,6 +39,11 @@ from sortie.errors import InvalidArgument
 ENV_PREFIX = "SORTIE_"
 TRUE_WORDS = ("1", "true", "yes", "on")
 FALSE_WORDS = ("0", "false", "no", "off")
+# The longest --grace-s a service takes: seconds in-flight calls get after SIGTERM (Docker's
+# stop_grace_period of 15-30 s is what bounds it in practice).
+MAX_GRACE_S = 600.0
+# Where an option's value came from when not from the command line (action.sortie_layer).
+ENVIRONMENT, FILE = "environment", "file"
 
 
 def env_name(command_path: tuple[str, ...], dest: str) -> str:
@@ -60,6 +71,19 @@ def port_number(text: str) -> int:
         raise argparse.ArgumentTypeError(f"a port is an integer 0 ..= 65535, got {text!r}") from None
     if not 0 <= value <= 65535:
         raise argparse.ArgumentTypeError(f"a port is 0 ..= 65535, got {value}")
+    return value
+
+
+def grace_seconds(text: str) -> float:
+    """An argparse type: --grace-s, the seconds in-flight calls get on shutdown, a finite
+    number in [0, MAX_GRACE_S] (gRPC's stop takes any float: inf overflowed at SIGTERM, nan
+    and negative values passed)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds (got {text!r})") from None
+    if not (math.isfinite(value) and 0.0 <= value <= MAX_GRACE_S):
+        raise argparse.ArgumentTypeError(f"must be within [0, {MAX_GRACE_S:g}] s (got {text!r})")
     return value
 
 
@@ -187,49 +211,114 @@ def apply(parser: argparse.ArgumentParser, config_path: str | None = None, envir
             name = env_name(path, dest)
             if name in environ:
                 value = _converted(action, environ[name], name)
+                source, layer = name, ENVIRONMENT
             else:
                 key = next((k for k in (dest, dest.replace("_", "-")) if k in table and not isinstance(table[k], dict)),
                            None)
                 if key is None:
                     continue
-                value = _converted(action, table[key], f"{config_path}: {'.'.join(path)}.{key}")
+                source, layer = f"{config_path}: {'.'.join(path)}.{key}", FILE
+                value = _converted(action, table[key], source)
             if not hasattr(action, "sortie_builtin_default"):
                 action.sortie_builtin_default = action.default
             action.default = value
             action.required = False
-            action.sortie_source = name if name in environ else f"{config_path}: {'.'.join(path)}.{key}"
+            action.sortie_source = source
+            action.sortie_layer = layer
+        # argparse checks a required group of alternatives (--cell | --bbox) against the command
+        # line alone: one given here satisfies it (settle_exclusive then sees to the rest).
+        for group in sub._mutually_exclusive_groups:  # noqa: SLF001 - argparse keeps no public list
+            if group.required and any(_configured(a) for a in group._group_actions):  # noqa: SLF001
+                group.required = False
+                group.sortie_required = True
 
 
-def source_of(parser: argparse.ArgumentParser, argv: list[str], field: str) -> str | None:
+def _configured(action: argparse.Action) -> bool:
+    """Whether the environment or the config file gave ``action`` a value of its own (a flag
+    set to its default, SORTIE_..._NO_RECORD=0, gives none)."""
+    return bool(getattr(action, "sortie_source", None)) and action.default != action.sortie_builtin_default
+
+
+def source_of(parser: argparse.ArgumentParser, argv: list[str], field: str, value=None) -> str | None:
     """Where option ``field`` (its dest, or its --name) got its value when not from the command
-    line: the environment variable or the config file's key; None otherwise. A value a command
-    checks after parsing is then named by its source, as argparse's own checks name it."""
+    line: the environment variable or the config file's key; None otherwise (and None when
+    ``value``, the value an error is about, is not the option's value: the error is about
+    something else of the same name). A value a command checks after parsing is then named by
+    its source, as argparse's own checks name it."""
     name = field.lstrip("-").replace("-", "_")
+    given = command_line_actions(parser, argv)
     for sub in _active_parsers(parser, argv):
         for action in sub._actions:  # noqa: SLF001
-            if action.dest == name and getattr(action, "sortie_source", None) and not _on_command_line(action, argv):
+            if (action.dest == name and getattr(action, "sortie_source", None) and action not in given
+                    and not getattr(action, "sortie_overridden", False)
+                    and (value is None or _same_value(value, action.default))):
                 return action.sortie_source
     return None
 
 
+def _same_value(value, option_value) -> bool:
+    """Whether an error's ``value`` is the option's value (or one of a list option's)."""
+    candidates = option_value if isinstance(option_value, (list, tuple)) else [option_value]
+    return value == option_value or any(
+        value == c or str(value) == str(c) or isinstance(c, str) and os.path.normpath(str(value)) == os.path.normpath(c)
+        for c in candidates)
+
+
 def settle_exclusive(parser: argparse.ArgumentParser, args: argparse.Namespace, argv: list[str]) -> None:
-    """The command line wins within a group of alternatives too (``--dem`` over a
-    ``SORTIE_SERVER_TERRAIN`` from the environment): where the command line gives one
-    member of a mutually exclusive group, the others lose what the environment or the
-    config file set, back to their built-in defaults."""
+    """Precedence within a group of alternatives: the command line's member (``--dem`` over a
+    ``SORTIE_SERVER_TERRAIN`` from the environment), else the environment's (over a config
+    file's); the other members go back to their built-in defaults. Two members of a required
+    group from the same environment or file are an InvalidArgument naming both and where each
+    came from (the command line's two are argparse's own error)."""
+    given = command_line_actions(parser, argv)
     for sub in _active_parsers(parser, argv):
         for group in sub._mutually_exclusive_groups:  # noqa: SLF001 - argparse keeps no public list
-            given = [a for a in group._group_actions if _on_command_line(a, argv)]  # noqa: SLF001
-            if not given:
-                continue
-            for a in group._group_actions:  # noqa: SLF001
-                if a not in given and hasattr(a, "sortie_builtin_default"):
+            members = group._group_actions  # noqa: SLF001
+            chosen = [a for a in members if a in given]
+            if not chosen:
+                configured = [a for a in members if _configured(a)]
+                layer = ENVIRONMENT if any(a.sortie_layer == ENVIRONMENT for a in configured) else FILE
+                chosen = [a for a in configured if a.sortie_layer == layer]
+                if len(chosen) > 1 and getattr(group, "sortie_required", False):
+                    a, b = chosen[:2]
+                    raise InvalidArgument(f"{_option_name(a)} (set by {a.sortie_source})",
+                                          f"not allowed with {_option_name(b)} (set by {b.sortie_source}): "
+                                          "give one of them")
+            for a in members:
+                if a not in chosen and hasattr(a, "sortie_builtin_default"):
                     setattr(args, a.dest, a.sortie_builtin_default)
+                    a.sortie_overridden = True
 
 
-def _on_command_line(action: argparse.Action, argv: list[str]) -> bool:
-    return any(word == o or word.startswith(o + "=") for o in action.option_strings for word in argv
-               if o.startswith("--"))
+def _option_name(action: argparse.Action) -> str:
+    return next((o for o in action.option_strings if o.startswith("--")), action.dest)
+
+
+_NOT_GIVEN = object()
+
+
+def command_line_actions(parser: argparse.ArgumentParser, argv: list[str]) -> set:
+    """The actions the command line ``argv`` gives, as argparse itself reads it (an option
+    abbreviated, ``--de`` for ``--dem``, or as ``--dem=FILE``, included): ``argv`` parsed once
+    more with every long option's default set to a marker, which any value given replaces."""
+    parsers = _active_parsers(parser, argv)
+    actions = [a for sub in parsers for a in _options(sub).values()]
+    saved = [(a, a.default) for a in actions]
+    try:
+        for a in actions:  # a count or an append starts from None, not from a marker
+            counted = isinstance(a, (argparse._CountAction, argparse._AppendAction))  # noqa: SLF001
+            a.default = None if counted else _NOT_GIVEN
+        namespace, _ = parser.parse_known_args(argv)
+    finally:
+        for a, default in saved:
+            a.default = default
+    out = set()
+    for a in actions:
+        got = getattr(namespace, a.dest, _NOT_GIVEN)
+        counted = isinstance(a, (argparse._CountAction, argparse._AppendAction))  # noqa: SLF001
+        if got is not (None if counted else _NOT_GIVEN) and got is not _NOT_GIVEN:
+            out.add(a)
+    return out
 
 
 def _active_parsers(parser: argparse.ArgumentParser, argv: list[str]) -> list:
