@@ -137,9 +137,27 @@ def parse_pose(text: str) -> tuple[float, ...]:
         values = [float(v) for v in text.split(",")]
     except ValueError:
         values = []
-    if len(values) not in (5, 6) or not all(math.isfinite(v) for v in values):
+    if len(values) not in (5, 6):
         raise InvalidArgument("--camera", "expected LAT,LON,ALT_MSL_M,HEADING_DEG,PITCH_DEG[,ROLL_DEG]", value=text)
+    for name, v in zip(("LAT", "LON", "ALT_MSL_M", "HEADING_DEG", "PITCH_DEG", "ROLL_DEG"), values):
+        if not math.isfinite(v):
+            raise InvalidArgument("--camera", f"{name} must be a finite number (LAT,LON,ALT_MSL_M,HEADING_DEG,"
+                                              "PITCH_DEG[,ROLL_DEG])", value=text)
     return tuple(values + [0.0] * (6 - len(values)))
+
+
+def check_render_options(args) -> None:
+    """The numeric options of render and view, each named as given on the command line (a
+    renderer's own check names its parameter, window_m, not --window-km)."""
+    if args.geoid_undulation_m is not None and not (math.isfinite(args.geoid_undulation_m)
+                                                    and abs(args.geoid_undulation_m) <= 200.0):
+        raise InvalidArgument("--geoid-undulation-m", "must be finite and within [-200, 200] m (the geoid departs "
+                                                     "from WGS84 by -107 to +86 m)", value=args.geoid_undulation_m)
+    window, horizon = args.window_km, args.horizon_km  # client/render/terrain_mesh.py's bounds, in km
+    if not (math.isfinite(window) and 0.0 < window <= 1000.0):
+        raise InvalidArgument("--window-km", "must be in (0, 1000] km", value=window)
+    if not (horizon == 0.0 or (math.isfinite(horizon) and window < horizon <= 2000.0)):
+        raise InvalidArgument("--horizon-km", "must be 0 (none) or in (--window-km, 2000] km", value=horizon)
 
 
 def open_terrain(dem=None, service: str | None = None, world_terrain: str = "", store: str | None = None):
@@ -220,6 +238,7 @@ def render_command(args) -> int:
     from client.render.camera import Camera
 
     lat, lon, alt, heading, pitch, roll = parse_pose(args.camera)
+    check_render_options(args)
     undulation = args.geoid_undulation_m or 0.0
     camera = Camera.from_geodetic(lat, lon, alt, heading, pitch, roll, geoid_undulation_m=undulation,
                                   fov_x_deg=args.fov_deg)
@@ -281,6 +300,7 @@ def view_command(args) -> int:
     if not (args.fps > 0):
         raise InvalidArgument("--fps", "must be > 0", value=args.fps)
     parse_size(args.size)
+    check_render_options(args)
     kind = None if args.agent_type is None else kind_from_name(args.agent_type)
     stop = threading.Event()
     previous = {}

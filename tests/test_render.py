@@ -465,3 +465,29 @@ def test_fog_leaves_the_earth_visible_from_high_above(alps):
             frame = r.render(Camera.from_geodetic(47.15, 9.25, alt, 45.0, -90.0))
         colours = np.unique(frame.reshape(-1, 3), axis=0)
         assert len(colours) > 200, (alt, len(colours))
+
+
+def test_render_options_are_checked_naming_the_option():
+    """An acceptance probe: a NaN geoid undulation came back as 'position_ecef: must be finite',
+    --window-km 0 as 'window_m', and a NaN in --camera did not say which field."""
+    import argparse
+
+    from client.render_cli import check_render_options, parse_pose
+    from sortie.errors import InvalidArgument
+
+    def options(**kw):
+        base = dict(geoid_undulation_m=None, window_km=20.0, horizon_km=80.0)
+        base.update(kw)
+        return argparse.Namespace(**base)
+
+    check_render_options(options())
+    check_render_options(options(geoid_undulation_m=-50.0, horizon_km=0.0))
+    for kw, name in ((dict(geoid_undulation_m=float("nan")), "--geoid-undulation-m"),
+                     (dict(geoid_undulation_m=500.0), "--geoid-undulation-m"),
+                     (dict(window_km=0.0), "--window-km"), (dict(window_km=float("inf")), "--window-km"),
+                     (dict(horizon_km=10.0), "--horizon-km"), (dict(horizon_km=float("nan")), "--horizon-km")):
+        with pytest.raises(InvalidArgument, match=name):
+            check_render_options(options(**kw))
+    with pytest.raises(InvalidArgument, match="LON must be a finite number"):
+        parse_pose("47.2,nan,3000,0,-5")
+    assert parse_pose("47.2,9.5,3000,0,-5") == (47.2, 9.5, 3000.0, 0.0, -5.0, 0.0)
