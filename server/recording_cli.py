@@ -206,7 +206,7 @@ def resim_command(args) -> int:
 def take_over_command(args, workers: int) -> int:
     from server.grpc_common import wait_for_signal
     from server.resim import take_over, take_over_header
-    from server.sim_cli import open_recorder
+    from server.sim_cli import _missing_folders, check_recording, new_recording, remove_recording
     from server.sim_server import SimulationServer, server_config
     from sortie.errors import InvalidArgument
 
@@ -215,9 +215,13 @@ def take_over_command(args, workers: int) -> int:
     recording = {}
 
     def record(rec, world, scenario, spec):  # recorded as `sortie server` records, from the world's start
-        recorder, path = open_recorder(args, f"{scenario.exercise.name} take-over", lambda: take_over_header(
-            rec, scenario, world, spec, bool(args.dem or args.terrain)))
-        recording.update(recorder=recorder, path=path)
+        path = check_recording(args, f"{scenario.exercise.name} take-over")
+        if path is None:
+            return None
+        made = _missing_folders(path)
+        recorder = new_recording(path, lambda: take_over_header(rec, scenario, world, spec,
+                                                                bool(args.dem or args.terrain)), args.record_chunk_s)
+        recording.update(recorder=recorder, path=path, made=made)
         return recorder
 
     world, inputs, scenario = take_over(args.file, args.take_over, args.agent, args.dem, args.terrain, workers,
@@ -227,10 +231,11 @@ def take_over_command(args, workers: int) -> int:
     config.clock = "realtime"
     try:
         server = SimulationServer(world, config, f"{args.host}:{args.port}", before_tick=inputs.apply)
-    except BaseException:
+    except BaseException:  # it cannot listen: nothing is left behind for `sortie replay` to pick
         world.close()
         if recorder is not None:
             recorder.close()
+            remove_recording(recording["path"], recording["made"])
         raise
     server.start()
     print(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}", flush=True)

@@ -143,18 +143,6 @@ def check_recording(args, exercise_name: str) -> Path | None:
     return path
 
 
-def open_recorder(args, exercise_name: str, header):
-    """(Recorder, path) of the options of :func:`add_recording_options`, or (None, None) with
-    --no-record: checked by :func:`check_recording` before ``header()`` (the RecordingHeader)
-    is made."""
-    from server.recorder import Recorder
-
-    path = check_recording(args, exercise_name)
-    if path is None:
-        return None, None
-    return Recorder(path, header(), args.record_chunk_s), path
-
-
 def new_recording(path: Path, header, chunk_s: float):
     """A Recorder into ``path`` (checked by :func:`check_recording`); when it cannot be made, the
     file and the folders it made are removed before its error is raised."""

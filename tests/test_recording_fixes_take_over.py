@@ -81,3 +81,18 @@ def test_the_recording_options_are_the_take_overs(recorded, tmp_path):
     out = sortie("resim", "--help")
     assert all(option in out.stdout for option in ("--record FILE", "--record-dir DIR", "--no-record",
                                                    "--record-chunk-s S"))
+
+
+def test_a_take_over_that_cannot_listen_leaves_no_recording(recorded, tmp_path):
+    """An acceptance probe: with its port taken, a take-over exited 2 but left its recording (the
+    re-simulated history, no footer) for `sortie replay` to pick up."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        out = sortie("resim", recorded, "--take-over", "1", "--agent", "tank1", "--port", port,
+                     "--record", tmp_path / "rec" / "x.sortie")
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert not (tmp_path / "rec").exists()
