@@ -22,21 +22,12 @@ import pytest
 from server.process import free_port, sortie_command
 from sortie import config
 from sortie.cli import build_parser, main
+from test_operations import parse
 from sortie.errors import InvalidArgument, SortieError
 
 DEM = "data/dem/N47E009.hgt"
 
 
-def parse(argv, environ=None, config_text=None, tmp_path=None):
-    parser = build_parser()
-    path = None
-    if config_text is not None:
-        path = tmp_path / "sortie.toml"
-        path.write_text(config_text)
-    config.apply(parser, str(path) if path else None, environ or {})
-    args = parser.parse_args(argv)
-    config.settle_exclusive(parser, args, argv)
-    return args
 
 
 def scenario(tmp_path, terrain: bool = True):
