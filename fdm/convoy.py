@@ -359,6 +359,22 @@ def column_order(route: Route, lat, lon, heading_deg) -> np.ndarray:
     return np.argsort(-s, kind="stable")
 
 
+@numba.njit(cache=True, nogil=True)
+def _follow_kernel(members, gaps, spacing, gain, speed, speed_cmd, cap):
+    """The convoy speed law, in place, for rows ``members`` (ascending; each follows row - 1):
+    speed_cmd = the one ahead's speed + gain (gap - spacing), in [0, cap]. The one ahead's speed
+    is the lower of its speed and its command this tick, worked out just before (rows ascend):
+    a follower reacts to the one ahead braking in the same tick, not a tick later (at a 1 Hz
+    world, trucks following at 21 m/s a leader slowing to 6 m/s for a corner ran into it).
+    ``gaps[p]``: the gap behind row p."""
+    for i in range(members.size):
+        m = members[i]
+        p = m - 1
+        ahead = min(max(speed[p], 0.0), speed_cmd[p])
+        follow = ahead + gain[m] * (gaps[p] - spacing[m])
+        speed_cmd[m] = min(max(follow, 0.0), cap[i])
+
+
 class RouteFollower:
     """Pure-pursuit steering and a cruise/stop speed law for vehicles on one route.
 
@@ -469,14 +485,15 @@ class Convoy(RouteFollower):
         # The leader eases off while the column is strung out (after a corner or a climb).
         excess = max(float((self.gaps_m - self.spacing_m).max()), 0.0)
         speed_cmd[0] *= min(max(1.0 - excess / WAIT_DISTANCE_M, WAIT_MIN_FRAC), 1.0)
-        pred_speed = np.maximum(v.speed_mps[self.index[:-1]], 0.0)
-        follow = pred_speed + self.gain_per_s * (self.gaps_m - self.spacing_m)
         # A follower may exceed the cruise speed by CATCH_UP_FRAC to close a gap, within its own
         # limits and the corners'; when the leader stops, its predecessor's speed 0 brings it to
-        # rest spacing_m behind.
+        # rest spacing_m behind (_follow_kernel: each follows the one ahead's speed or command).
         cap = np.minimum(np.minimum(vmax[self.index[1:]], (1.0 + CATCH_UP_FRAC) * self.cruise_mps),
                          corner[1:])
-        speed_cmd[1:] = np.clip(follow, 0.0, cap)
+        n = self.index.size
+        _follow_kernel(np.arange(1, n), np.append(self.gaps_m, -np.inf), np.full(n, self.spacing_m),
+                       np.full(n, self.gain_per_s), np.ascontiguousarray(v.speed_mps[self.index]), speed_cmd,
+                       np.ascontiguousarray(cap))
         return self.steer(speed_cmd, lookahead)
 
 
@@ -683,6 +700,5 @@ class FollowerSet:
         speed_cmd[lead] = np.minimum(speed_cmd[lead], corner_min)
         speed_cmd[lead] *= np.minimum(np.maximum(1.0 - excess / WAIT_DISTANCE_M, WAIT_MIN_FRAC), 1.0)
         m = self._members
-        follow = np.maximum(speed[m - 1], 0.0) + self._gain[m] * (gaps[m - 1] - self._spacing[m])
         cap = np.minimum(np.minimum(t[m, P_VMAX], (1.0 + CATCH_UP_FRAC) * self._cruise[m]), corner[m])
-        speed_cmd[m] = np.clip(follow, 0.0, cap)
+        _follow_kernel(m, gaps, self._spacing, self._gain, np.ascontiguousarray(speed), speed_cmd, cap)

@@ -393,3 +393,34 @@ def test_a_truck_parked_just_after_a_corner_is_passed(turn_deg):
         assert s[0] == pytest.approx(route.length_m, abs=1.0)
     finally:
         world.close()
+
+
+@pytest.mark.parametrize("rate_hz", [1.0, 30.0])
+def test_a_convoy_slowing_for_a_corner_keeps_its_spacing_at_any_world_rate(rate_hz):
+    """Six trucks 30 m apart at 20 m/s round a 90-degree corner to their road's end. An
+    acceptance probe: at a 1 Hz world followers read the one ahead's speed a tick late, ran at
+    21 m/s into leaders slowing to 6 m/s for the corner, and rear-ended them. Each now follows
+    the lower of the one ahead's speed and its command this tick: no collision, no gap under
+    half the spacing, and all 30 m apart at the end."""
+    from fdm.convoy import Route
+
+    pts = [(LAT0 + n / 111_200.0, LON0 + e / M_PER_DEG_LON) for e, n in [(0.0, 0.0), (0.0, 400.0), (300.0, 400.0)]]
+    route = Route(*np.array(pts).T)
+    world = World(FlatTerrain(400.0), fdm_rate_hz=120.0, world_rate_hz=rate_hz)
+    try:
+        column = world.spawn_ground([f"c{k}" for k in range(6)], "m1083",
+                                    [LAT0 + 30.0 * k / 111_200.0 for k in range(6)], [LON0] * 6, [0.0] * 6,
+                                    route=pts, cruise_mps=20.0, spacing_m=30.0)
+        idx = world.ground.index_of([e.ground_id for e in column])
+        least = np.inf
+        events = []
+        for _ in range(int(150 * rate_hz)):
+            events += world.tick()
+            s, _, _ = route.project(world.ground.lat[idx], world.ground.lon[idx])
+            least = min(least, float(np.min(np.diff(np.sort(s)))))
+        assert not [e for e in events if e.kind == "collision"]
+        assert least > 15.0
+        s, _, _ = route.project(world.ground.lat[idx], world.ground.lon[idx])
+        assert np.diff(np.sort(s)) == pytest.approx([30.0] * 5, abs=1.0)
+    finally:
+        world.close()
