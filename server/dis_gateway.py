@@ -71,6 +71,7 @@ import grpc
 from server import dis
 from server.external import external_state
 from sortie.errors import DataFormatError, InvalidArgument, SortieError
+from sortie.logs import line
 from sortie.v1 import simulation_pb2 as pb
 
 log = logging.getLogger(__name__)
@@ -561,8 +562,8 @@ def dis_command(args) -> int:
                          application=args.application, remote_timeout_s=args.remote_timeout_s,
                          heartbeat_s=args.heartbeat_s)
     gateway.start()
-    print(f"sortie dis: exercise {gateway.exercise} on {gateway.host}:{gateway.port} as site {gateway.site} "
-          f"application {gateway.application}, server {args.server}", flush=True)
+    line(f"sortie dis: exercise {gateway.exercise} on {gateway.host}:{gateway.port} as site {gateway.site} "
+         f"application {gateway.application}, server {args.server}", logger=__name__)
     try:
         wait_for_signal(gateway.finished)
     finally:
@@ -570,12 +571,12 @@ def dis_command(args) -> int:
         ended = gateway.finished.is_set()
         gateway.stop()
     s = gateway.stats()
-    print(f"sortie dis: stopped; {s['pdus_sent']} PDUs sent, {s['pdus_received']} received "
-          f"({s['pdus_ignored']} ignored, {s['pdus_malformed']} malformed)", flush=True)
+    line(f"sortie dis: stopped; {s['pdus_sent']} PDUs sent, {s['pdus_received']} received "
+         f"({s['pdus_ignored']} ignored, {s['pdus_malformed']} malformed)", logger=__name__)
     if ended and picture is not None and picture.error is not None:  # as sortie tacview: 1 when the server went
-        print(f"sortie dis: the simulation server at {args.server} went away: {picture.error}", file=sys.stderr,
-              flush=True)
+        line(f"sortie dis: the simulation server at {args.server} went away: {picture.error}", stream=sys.stderr,
+             level=logging.ERROR, logger=__name__)
         return 1
     if ended:
-        print(f"sortie dis: the simulation server at {args.server} ended the exercise", flush=True)
+        line(f"sortie dis: the simulation server at {args.server} ended the exercise", logger=__name__)
     return 0

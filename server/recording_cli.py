@@ -11,9 +11,12 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import sys
 from collections import Counter
+
+from sortie.logs import line
 
 
 def add_parser(sub) -> None:
@@ -238,18 +241,20 @@ def take_over_command(args, workers: int) -> int:
             remove_recording(recording["path"], recording["made"])
         raise
     server.start()
-    print(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}", flush=True)
+    line(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}",
+         logger=__name__)
     if recorder is not None:
-        print(f"recording to {recording['path']}", flush=True)
+        line(f"recording to {recording['path']}", logger=__name__)
     for lost in inputs.lost:
-        print(f"note: the others' recorded inputs are incomplete: {lost}", file=sys.stderr, flush=True)
+        line(f"note: the others' recorded inputs are incomplete: {lost}", stream=sys.stderr, level=logging.WARNING,
+             logger=__name__)
     wait_for_signal(server.finished)
     server.stop()
     if recorder is not None:
         recorder.close()
     world.close()
-    print(f"take-over stopped at world time {world.time_s:.1f} s", file=sys.stderr, flush=True)
+    line(f"take-over stopped at world time {world.time_s:.1f} s", stream=sys.stderr, logger=__name__)
     if recorder is not None:
         state = f"failed: {recorder.error}" if recorder.error else f"{recording['path'].stat().st_size:,} bytes"
-        print(f"recording {recording['path']}: {state}", file=sys.stderr, flush=True)
+        line(f"recording {recording['path']}: {state}", stream=sys.stderr, logger=__name__)
     return 0

@@ -41,6 +41,7 @@ from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, metho
 from server.streaming import Publisher
 from server.world import KIND_NAMES, STATIC, Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
 from sortie.errors import DataFormatError, InvalidArgument, PermissionDenied
+from sortie.logs import line
 from sortie.v1 import recording_pb2 as rpb
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic
@@ -407,11 +408,12 @@ def replay_command(args) -> int:
     server = ReplayServer(args.file, f"{args.host}:{args.port}", args.speed, not args.paused, args.start)
     server.start()
     r = server.rec
-    print(f"sortie replay of {r.path.name} ({r.first_time_s:.1f} .. {r.last_time_s:.1f} s, {len(r.entities)} "
-          f"entities) listening on {server.address}", flush=True)
+    line(f"sortie replay of {r.path.name} ({r.first_time_s:.1f} .. {r.last_time_s:.1f} s, {len(r.entities)} "
+         f"entities) listening on {server.address}", logger=__name__)
     wait_for_signal(server.finished)
     server.stop()
     if server.error is not None:
-        print(f"sortie replay: error: the replay clock stopped: {server.error}", file=sys.stderr, flush=True)
+        line(f"sortie replay: error: the replay clock stopped: {server.error}", stream=sys.stderr,
+             level=logging.ERROR, logger=__name__)
         return 1
     return 0

@@ -100,6 +100,7 @@ from server.acmi import (FILE_HEADER, T_DECIMALS, attitude_deg, escape, event_li
                          object_properties, pose_integers, reference_point, text_table, time_decimals, time_text)
 from sortie import __version__
 from sortie.errors import InvalidArgument, SortieError
+from sortie.logs import line
 from sortie.v1 import simulation_pb2 as pb
 from terrain.geodesy import ecef_to_geodetic
 
@@ -700,15 +701,15 @@ def tacview_command(args) -> int:
     telemetry = TacviewTelemetry(args.server, host=args.host, port=args.port, password=args.password,
                                  rate_hz=args.rate_hz, name=args.name, geoid_undulation_m=args.geoid_undulation_m)
     port = telemetry.start()
-    print(f"sortie tacview: Tacview real-time telemetry on {args.host}:{port} for {args.server} "
-          f"({telemetry.entities} entities, {telemetry.rate_hz:g} Hz"
-          f"{', password set' if args.password else ''})", flush=True)
+    line(f"sortie tacview: Tacview real-time telemetry on {args.host}:{port} for {args.server} "
+         f"({telemetry.entities} entities, {telemetry.rate_hz:g} Hz"
+         f"{', password set' if args.password else ''})", logger=__name__)
     try:
         wait_for_signal(telemetry.finished)
     finally:
         lost = telemetry.finished.is_set()
         telemetry.stop()
     s = telemetry.stats()
-    print(f"sortie tacview stopped: {s['accepted']} clients served, {s['rejected']} refused, "
-          f"{s['dropped_slow']} dropped as too slow, {s['frames']} frames, {s['bytes_sent']:,} bytes", flush=True)
+    line(f"sortie tacview stopped: {s['accepted']} clients served, {s['rejected']} refused, "
+         f"{s['dropped_slow']} dropped as too slow, {s['frames']} frames, {s['bytes_sent']:,} bytes", logger=__name__)
     return 1 if lost else 0

@@ -96,3 +96,22 @@ def test_a_take_over_that_cannot_listen_leaves_no_recording(recorded, tmp_path):
                      "--record", tmp_path / "rec" / "x.sortie")
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
     assert not (tmp_path / "rec").exists()
+
+
+def test_sortie_replay_status_lines_are_json_records_in_json_logging(recorded):
+    """The services' status lines are log records in JSON logging (docs/DEPLOYMENT.md):
+    `sortie replay`'s first line is one JSON object naming where it listens."""
+    import signal
+
+    from server.process import sortie_command
+
+    proc = subprocess.Popen([*sortie_command(), "--log-format", "json", "replay", str(recorded), "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stdout.readline()
+        record = json.loads(first)
+        assert "listening on" in record["message"] and record["level"].lower() == "info", record
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)
+    assert proc.returncode == 0
