@@ -16,7 +16,7 @@ import json
 from server.grpc_common import DEFAULT_GRACE_S
 from server.terrain_service import DEFAULT_MAX_WORKERS
 from sortie.config import MAX_GRACE_S, grace_seconds
-from sortie.errors import InvalidArgument, SortieError
+from sortie.errors import InvalidArgument
 from sortie.logs import line
 from terrain.mesh_cli import add_mesh_parser
 from terrain.store_cli import add_import_parser
@@ -143,15 +143,8 @@ def serve_command(args) -> int:
         areas = [a for path in args.insets for a in load_scenario(path).target_areas]
         terrain = with_insets(terrain, areas, INSET_SEED)
         line(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", logger=__name__)
-    address = f"{args.host}:{args.port}"
-    try:
-        server, port = create_server(terrain, address, max_workers=args.max_workers, dem_paths=args.dem)
-    except SortieError as exc:
-        if isinstance(exc.__cause__, RuntimeError):  # gRPC could not bind: say why, as the system does
-            from server.grpc_common import listen_error
-
-            raise listen_error(address, exc.__cause__) from None
-        raise
+    server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers,
+                                 dem_paths=args.dem)  # SortieError naming the system's reason when it cannot listen
     metrics = None
     if args.metrics_port is not None:
         from server.metrics import MetricsServer, terrain_metrics

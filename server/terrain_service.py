@@ -29,6 +29,7 @@ from server.grpc_common import (
     ManagedServer,
     PackedCodec,
     check_batch,
+    listen_error,
     server_options,
     tolerant_decoder,
     unary_handler,
@@ -217,18 +218,14 @@ class TerrainServicer:
         return height_grid(store, raster, level, int(request.cell_id), request.encoding)
 
     def GetRegion(self, request: pb.GetRegionRequest) -> pb.HeightGrid:
-        from terrain.validate import LON_ABS_MAX_DEG
+        from terrain.profile import check_point
 
         store = self._store()
         if request.level >= store.levels:
             raise InvalidArgument("level", f"must be below the store's {store.levels} levels", value=request.level)
-        # Each edge checked on its own, so the error names the request's field (not lat[0]).
-        for name, limit in (("lat_min_deg", 90.0), ("lat_max_deg", 90.0),
-                            ("lon_min_deg", LON_ABS_MAX_DEG), ("lon_max_deg", LON_ABS_MAX_DEG)):
-            value = getattr(request, name)
-            if not (math.isfinite(value) and abs(value) <= limit):
-                raise InvalidArgument(name, f"must be a finite number of degrees within [-{limit:g}, {limit:g}]",
-                                      value=value)
+        # Each corner checked on its own, so the error names the request's field (not lat[0]).
+        check_point("lat_min_deg", request.lat_min_deg, "lon_min_deg", request.lon_min_deg)
+        check_point("lat_max_deg", request.lat_max_deg, "lon_max_deg", request.lon_max_deg)
         lat = np.array([request.lat_min_deg, request.lat_max_deg])
         lon = np.array([request.lon_min_deg, request.lon_max_deg])
         if not lat[0] <= lat[1]:
@@ -366,7 +363,7 @@ def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFA
     managed.stats = stats
     try:
         port = server.add_insecure_port(address)
-    except RuntimeError as exc:
-        raise SortieError(f"cannot listen on {address}: {exc}") from exc
+    except RuntimeError as exc:  # in use, or no such interface: with the system's reason
+        raise listen_error(address, exc) from exc
     logger.info("terrain service bound to %s (port %d), %d workers", address, port, max_workers)
     return managed, port
