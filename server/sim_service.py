@@ -317,38 +317,22 @@ class SimulationServicer:
         # Set by close() (the server stops): events and client streams end OK at once, as Watch
         # streams do when their queues close, not when gRPC's grace runs out (UNAVAILABLE after 5 s).
         self.closed = False
-        self._closing: asyncio.Event | None = None
-        self._loop = None
+        self._client_streams: dict = {}  # the tasks of the client streams open now -> their loops
+        self._streams_lock = threading.Lock()
 
     def close(self) -> None:
-        """The server is stopping: every stream this servicer serves ends now, OK (thread-safe)."""
+        """The server is stopping: every stream this servicer serves ends now, OK (thread-safe):
+        events streams see ``closed`` when the bell wakes them; client streams are cancelled where
+        they wait for their next message, and answer with what they accepted (:meth:`_consume`)."""
         self.closed = True
         self.bell.ring_all()
-        if self._loop is not None and self._closing is not None:
+        with self._streams_lock:
+            streams = list(self._client_streams.items())
+        for task, loop in streams:
             try:
-                self._loop.call_soon_threadsafe(self._closing.set)
+                loop.call_soon_threadsafe(task.cancel)
             except RuntimeError:  # the loop has closed
                 pass
-
-    async def _messages(self, request_iterator):
-        """A client stream's messages until it ends or the server closes (:meth:`close`)."""
-        if self._closing is None:
-            self._loop, self._closing = asyncio.get_running_loop(), asyncio.Event()
-        closing = asyncio.ensure_future(self._closing.wait())
-        it = request_iterator.__aiter__()
-        try:
-            while not self.closed:
-                nxt = asyncio.ensure_future(it.__anext__())
-                done, _ = await asyncio.wait({nxt, closing}, return_when=asyncio.FIRST_COMPLETED)
-                if nxt not in done:
-                    nxt.cancel()
-                    return
-                try:
-                    yield nxt.result()
-                except StopAsyncIteration:
-                    return
-        finally:
-            closing.cancel()
 
     async def _offload(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.blocking, fn, *args)
@@ -393,8 +377,13 @@ class SimulationServicer:
         accepted = 0
         what = f"{response_class.DESCRIPTOR.name.removesuffix('Response')} message"
         held: dict = {}  # the sessions whose messages this stream carried: alive while it is open
+        task = asyncio.current_task()
+        with self._streams_lock:
+            self._client_streams[task] = asyncio.get_running_loop()
         try:
-            async for msg in self._messages(request_iterator):
+            if self.closed:
+                return response_class(accepted=0)
+            async for msg in request_iterator:
                 await self._offload(handle, _decoded(msg, what))
                 accepted += 1
                 if msg.session_token not in held:
@@ -402,9 +391,15 @@ class SimulationServicer:
                     s.open_streams += 1
                     held[msg.session_token] = s
             return response_class(accepted=accepted)
+        except asyncio.CancelledError:
+            if not self.closed:
+                raise
+            return response_class(accepted=accepted)  # the server stops (close): the stream ends OK
         except Exception as exc:  # noqa: BLE001 - every error becomes a status
             await self._fail(context, exc)
         finally:
+            with self._streams_lock:
+                self._client_streams.pop(task, None)
             for s in held.values():
                 s.open_streams -= 1
                 s.last_seen = time.monotonic()  # its timeout runs from the stream's end
