@@ -1021,7 +1021,7 @@ class World(EventLog):
             return clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, headings, radius, half_l, half_w, group,
                                    asking, reach, snap.vel_ecef_mps, **options)
 
-        clear, other, across, need, yield_m = search(rows, obstacle_reach_m(self.ground.speed_mps[idx], brake))
+        clear, other, across, need, yield_m = search(rows, obstacle_reach_m(own_speed, brake))
         ceiling = obstacle_speed_ceiling(clear, brake, step, own_speed)
         # What it would not touch driving straight on (beside its path, within the margin) it
         # passes slowly: two vehicles side by side each in the other's margin do not hold each
