@@ -342,8 +342,9 @@ class ReplayServer:
         if seeked:  # every watcher starts over from a full snapshot at the new time
             self.publisher.reset()
             for session in self.sessions.watching():
-                session.reset_visible()
-                session.queue.resnapshot()
+                with session.view_lock:  # not half-way through a new Watch's take-over
+                    session.reset_visible()
+                    session.queue.resnapshot()
         if tick != self.world.tick_count or seeked:
             try:
                 self.world.show(tick, events=not seeked)

@@ -87,10 +87,30 @@ class Session:
     visible_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     visible_mask: np.ndarray | None = None
     visible_layout: int | None = None
+    # Held while a new stream takes over the session (begin_stream, on the event loop) and
+    # while the publisher (on the clock thread) records and queues what the session sees,
+    # so neither sees half of the other: see begin_stream.
+    view_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     def reset_visible(self) -> None:
         """A new stream starts from nothing seen (its first update is the full snapshot)."""
         self.visible_ids, self.visible_mask, self.visible_layout = np.zeros(0, np.int64), None, None
+
+    def begin_stream(self, queue: ClientQueue) -> ClientQueue | None:
+        """Make ``queue`` the session's stream, starting from nothing seen; returns the queue
+        it replaces (None if none).
+
+        The publisher decides a session's view from what it saw before and then records and
+        queues the new view (server.streaming.Publisher.publish); a Watch arriving in between
+        (the event loop runs whenever the clock thread lets go of the interpreter) used to
+        have its reset overwritten, and its first update was a snapshot with no entities
+        entered, the entities it saw never entered later. Under ``view_lock`` the publisher
+        queues only to the queue whose view it decided, so a new stream's first update is
+        always its whole picture."""
+        with self.view_lock:
+            old, self.queue = self.queue, queue
+            self.reset_visible()
+        return old
 
 
 class Sessions:
@@ -437,11 +457,10 @@ class SimulationServicer:
         except Exception as exc:  # noqa: BLE001
             await self._fail(context, exc)
             return
-        if s.queue is not None:
-            s.queue.close(SUPERSEDED)
         queue = ClientQueue(asyncio.get_running_loop())
-        s.reset_visible()
-        s.queue = queue
+        old = s.begin_stream(queue)
+        if old is not None:
+            old.close(SUPERSEDED)
         s.open_streams += 1
         try:
             while not queue.closed and not context.done():

@@ -237,12 +237,16 @@ class Publisher:
     ``thresholds_of(entity_id)`` gives an entity's
     :class:`server.dead_reckoning.Thresholds` when it first appears. Sessions
     are :class:`server.sim_service.Session` objects (queue, centre, radius,
-    own agent, visible ids).
+    own agent, visible ids, view lock).
 
     Every receiver's view is decided at once, as (sessions x entities) boolean
     matrices: relevant now, visible before, entered, left, updated. Each
     session keeps the ids it sees, and its row of the last matrix while the
-    snapshot's entity layout stays the same (the usual tick).
+    snapshot's entity layout stays the same (the usual tick). A session's
+    view and queue are read, and later recorded and pushed to, under its
+    ``view_lock``; a session whose queue changed in between (a new Watch,
+    :meth:`server.sim_service.Session.begin_stream`) is left for the next
+    publish, where its new stream starts from nothing seen.
     """
 
     def __init__(self, reckoner, thresholds_of):
@@ -279,18 +283,22 @@ class Publisher:
         for thresholds, new in groups.items():
             self.reckoner.add(new, thresholds)
 
-    def _previous(self, sessions: list, ids: np.ndarray) -> tuple[np.ndarray, list]:
-        """(sessions x entities) visible before this publish, and per session the
-        visible ids no longer in the world (removed: they leave)."""
+    def _previous(self, sessions: list, ids: np.ndarray) -> tuple[np.ndarray, list, list]:
+        """(sessions x entities) visible before this publish, per session the visible ids
+        no longer in the world (removed: they leave), and per session the queue that view
+        belongs to (read together under the session's view_lock; see publish)."""
         prev = np.zeros((len(sessions), ids.size), bool)
         gone = [()] * len(sessions)
+        queues = [None] * len(sessions)
         for s_k, s in enumerate(sessions):
-            if s.visible_layout == self._layout and s.visible_mask is not None:
-                prev[s_k] = s.visible_mask
-            elif s.visible_ids.size:
-                prev[s_k] = np.isin(ids, s.visible_ids)
-                gone[s_k] = np.setdiff1d(s.visible_ids, ids).tolist()
-        return prev, gone
+            with s.view_lock:
+                queues[s_k] = s.queue
+                if s.visible_layout == self._layout and s.visible_mask is not None:
+                    prev[s_k] = s.visible_mask
+                elif s.visible_ids.size:
+                    prev[s_k] = np.isin(ids, s.visible_ids)
+                    gone[s_k] = np.setdiff1d(s.visible_ids, ids).tolist()
+        return prev, gone, queues
 
     def publish(self, snap, infos: dict, sessions: list, time_scale: float = 1.0, wrecks=frozenset()) -> None:
         """Decide and queue the updates of ``snap`` for ``sessions``; ``time_scale``: world
@@ -327,7 +335,7 @@ class Publisher:
             if c is not None:
                 centres[s_k] = c
                 radii[s_k] = s.radius_m
-        prev, gone = self._previous(sessions, snap.ids)
+        prev, gone, queues = self._previous(sessions, snap.ids)
         # Each session's view, with the hysteresis at its area's edge: who enters, leaves, updates.
         now, counts, ptr, idx = changes(centres, radii, snap.ecef_m, prev, agent_k, due)
 
@@ -353,15 +361,19 @@ class Publisher:
         pushed = []
         busy = counts.any(axis=1).tolist()
         for s_k, s in enumerate(sessions):
-            s.visible_mask = now[s_k]
-            s.visible_ids = snap.ids[now[s_k]]
-            s.visible_layout = self._layout
-            if not (busy[s_k] or gone[s_k] or s.queue.needs_snapshot or rescaled):
-                continue
-            (e0, l0, u0), (ne, nl, nu) = ptr[s_k].tolist(), counts[s_k].tolist()
-            ent = {ids_list[k]: enter_of[k] for k in idx_list[e0:e0 + ne] if k in enter_of}
-            states = {ids_list[k]: state_of[k] for k in idx_list[u0:u0 + nu]}
-            left_ids = [ids_list[k] for k in idx_list[l0:l0 + nl]] + list(gone[s_k])
-            s.queue.push(snap.time_s, ent, left_ids, states, wake=False, time_scale=time_scale)
-            pushed.append(s.queue)
+            with s.view_lock:
+                queue = queues[s_k]
+                if s.queue is not queue:  # a new stream took the session over since _previous:
+                    continue  # it starts from nothing seen, at the next publish
+                s.visible_mask = now[s_k]
+                s.visible_ids = snap.ids[now[s_k]]
+                s.visible_layout = self._layout
+                if not (busy[s_k] or gone[s_k] or queue.needs_snapshot or rescaled):
+                    continue
+                (e0, l0, u0), (ne, nl, nu) = ptr[s_k].tolist(), counts[s_k].tolist()
+                ent = {ids_list[k]: enter_of[k] for k in idx_list[e0:e0 + ne] if k in enter_of}
+                states = {ids_list[k]: state_of[k] for k in idx_list[u0:u0 + nu]}
+                left_ids = [ids_list[k] for k in idx_list[l0:l0 + nl]] + list(gone[s_k])
+                queue.push(snap.time_s, ent, left_ids, states, wake=False, time_scale=time_scale)
+            pushed.append(queue)
         wake_all(pushed)
