@@ -202,28 +202,38 @@ class LocalAircraftHost:
         return pilot
 
     def autopilot(self, entity_id: int, targets: dict) -> None:
-        """Autopilot targets (heading_deg, alt_msl_m, speed_mps; None keeps none); an
-        aircraft without an autopilot first gets one holding its present state."""
+        """Autopilot targets (heading_deg, alt_msl_m, speed_mps); one not given keeps the
+        autopilot's present target (as StickControls' unset fields and a ground vehicle's
+        commands do: a heading alone turns the aircraft and keeps its altitude and speed
+        held). An aircraft without an autopilot first gets one holding its present state."""
         pilot = self._pilots.get(entity_id)
         if not isinstance(pilot, Autopilot):
             pilot = self._hold_present(entity_id)
-        pilot.set_targets(targets.get("heading_deg"), targets.get("alt_msl_m"), targets.get("speed_mps"))
+        now = pilot.targets
+        pilot.set_targets(*(now_v if targets.get(name) is None else targets[name] for name, now_v in
+                            (("heading_deg", now.heading_deg), ("alt_msl_m", now.alt_msl_m),
+                             ("speed_mps", now.speed_mps))))
 
     def hand_to_autopilot(self, entity_id: int) -> None:
-        """An aircraft left by its pilot returns to its scenario autopilot: its route, from
-        the waypoint it was making for when the pilot took it, or its scenario hold; it holds
-        its present heading, altitude and speed when it had neither or its route is flown.
-        No change when it already has an autopilot or has crashed."""
+        """An aircraft left by its pilot returns to its scenario autopilot, whatever the
+        pilot last flew it with (as a ground vehicle returns to its route): its route, from
+        the waypoint it was making for when the pilot took it, or its scenario hold. With
+        neither, or its route flown, it keeps the autopilot the pilot last set, else holds its
+        present heading, altitude and speed. No change when it has crashed."""
         ac = self._get(entity_id)
-        if self._pilots.get(entity_id) is not None or ac.crashed:
+        if ac.crashed:
             return
         spawned = self._scenario_pilots.get(entity_id)
         if isinstance(spawned, WaypointFollower) and not spawned.done:
-            self._pilots[entity_id] = WaypointFollower(ac, spawned.waypoints[spawned.active:], spawned.speed_mps,
-                                                       spawned.capture_radius_m)
+            if self._pilots.get(entity_id) is not spawned:  # (else the pilot never took it off its route)
+                resumed = WaypointFollower(ac, spawned.waypoints[spawned.active:], spawned.speed_mps,
+                                           spawned.capture_radius_m)
+                # The next pilot to leave it hands it back to where this one got to.
+                self._pilots[entity_id] = self._scenario_pilots[entity_id] = resumed
         elif isinstance(spawned, Targets):
-            self._pilots[entity_id] = Autopilot(ac, spawned)
-        else:
+            if getattr(self._pilots.get(entity_id), "targets", None) is not spawned:
+                self._pilots[entity_id] = Autopilot(ac, spawned)
+        elif not isinstance(self._pilots.get(entity_id), Autopilot):
             self._hold_present(entity_id)
 
     def crash(self, entity_id: int, t: float, lat: float, lon: float, alt_m: float, reason: str) -> None:
