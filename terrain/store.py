@@ -393,7 +393,7 @@ class TerrainStore:
     # ------------------------------------------------------------------ files
 
     def _level_path(self, region: int, level: int) -> Path:
-        return self.path / f"region-{region:03d}" / f"level-{level:02d}.tiles"
+        return level_file(self.path, region, level)
 
     def _tile_name(self, region: int, level: int, ti: int, tj: int) -> str:
         """How errors name a tile: its level file and the tile's (row, col) in the level's lattice."""
@@ -480,7 +480,8 @@ class TerrainStore:
             return data
 
     def stored_bytes(self) -> int:
-        return sum(p.stat().st_size for p in self.path.rglob("*.tiles"))
+        """Bytes of the level files the manifest lists (not of other files in the directory)."""
+        return sum(p.stat().st_size for p in level_files(self.path, self.manifest["regions"]))
 
     def cache_tiles_held(self) -> int:
         return sum(len(r.cached()) for r in self._readers)
@@ -758,6 +759,16 @@ class StoreSource:
 
 # Point statuses of the classes (tests and the service map through this).
 CLASS_STATUS = {CLASS_OUTSIDE: STATUS_OUTSIDE, CLASS_MEASURED: STATUS_OK, CLASS_FILLED: STATUS_FILLED}
+
+
+def level_file(path, region: int, level: int) -> Path:
+    """A region's level file in the store directory ``path`` (docs/STORE.md, Files)."""
+    return Path(path) / f"region-{region:03d}" / f"level-{level:02d}.tiles"
+
+
+def level_files(path, regions) -> list[Path]:
+    """The level files a manifest's ``regions`` list: one per region and level of its ``rects``."""
+    return [level_file(path, r["index"], k) for r in regions for k in range(len(r["rects"]))]
 
 
 def write_level_file(path: Path, level: int, tiles: dict[tuple[int, int], tuple[bytes, bytes]]) -> None:

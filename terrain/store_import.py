@@ -4,12 +4,14 @@ converter grown up).
 Pipeline: read and mosaic the DEMs (:mod:`terrain.mosaic`); group them into
 regions (sources whose boxes come within a tile of each other code together);
 for each region sample the store's level-0 lattice over the region's box —
-bilinear on the sources, anti-aliased by averaging a k x k block of bilinear
-samples when the store is coarser than a source (k = the ratio, rounded up),
-optionally with synthetic detail below the sources' spacing; classify posts
-(measured, filled void, outside); fill the outside by nearest value (it only
-shapes the residuals: outside posts answer "outside"); code the pyramid
-(:mod:`terrain.heightcodec`); write level files; write the manifest last.
+bilinear on the sources, anti-aliased by averaging a kx x ky block of bilinear
+samples when the store is coarser than a source (kx and ky = the longitude and
+the latitude spacing ratios, rounded up), optionally with synthetic detail
+below the sources' spacing; classify posts (measured, filled void, outside);
+fill the outside by nearest value (it only shapes the residuals: outside posts
+answer "outside"); code the pyramid (:mod:`terrain.heightcodec`); write level
+files; remove an earlier store's level files that the new manifest does not
+list; write the manifest last.
 
 Resumable: sampling is the slow step for large imports, and is done in bands
 of tile rows saved under ``STORE/.import/``; an interrupted import re-run with
@@ -19,6 +21,11 @@ manifest is written once, when every region is coded: an interrupted import
 leaves no ``store.json`` (an earlier store's is removed before its level files
 are overwritten), so nothing opens it as complete. A finished import removes
 ``.import``.
+
+Re-importing into an existing store: once every new level file is written, the
+earlier store's level files and region directories that the new manifest will
+not list are removed (only those names, :func:`_remove_unlisted`), and the
+stored bytes count the listed files alone.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import time
 from dataclasses import dataclass
@@ -47,7 +55,12 @@ MAX_REGION_POSTS = 400_000_000  # level-0 posts one region may hold, whatever th
 # padded levels and decoded copies.
 IMPORT_BYTES_PER_POST = 40
 SAMPLE_CHUNK = 1 << 20  # points per Terrain.heights call
+# In the bands' key: bands sampled by an importer of another version (2: kx x ky anti-aliasing) are
+# sampled again, not mixed into a store with new ones.
+SAMPLING_VERSION = 2
 WORK_DIR = ".import"  # resumable bands, removed when the import finishes
+REGION_DIR = re.compile(r"region-[0-9]{3,}")  # the store's own names (docs/STORE.md, Files): what a
+LEVEL_FILE = re.compile(r"level-[0-9]{2,}\.tiles")  # re-import may remove when its manifest does not list it
 
 
 @dataclass
@@ -85,6 +98,7 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
     t_start = time.perf_counter()
     if not paths:
         raise InvalidArgument("files", "give at least one DEM file")
+    _check_seed(detail_seed)
     step_units = _step_units(step_m, lossless, unit_m)
     if add_detail not in (None, "fractal", "cellular"):
         raise InvalidArgument("add_detail", "must be 'fractal' or 'cellular'", value=add_detail)
@@ -116,8 +130,7 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
         if index == 0:
             # The level files below overwrite an earlier store's: its manifest no longer describes them.
             (out / st.MANIFEST).unlink(missing_ok=True)
-        region_dir = out / f"region-{index:03d}"
-        region_dir.mkdir(exist_ok=True)
+        (out / f"region-{index:03d}").mkdir(exist_ok=True)
         for level, rect in enumerate(rects):
             tiles = {}
             for (k, ti, tj), blob in blobs.items():
@@ -126,7 +139,7 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
                 c = class_levels[level][ti * tile - rect.row0:(ti + 1) * tile - rect.row0,
                                         tj * tile - rect.col0:(tj + 1) * tile - rect.col0]
                 tiles[(ti, tj)] = (blob, st.code_classes(c))
-            st.write_level_file(region_dir / f"level-{level:02d}.tiles", level, tiles)
+            st.write_level_file(st.level_file(out, index, level), level, tiles)
         del blobs, class_levels
         regions.append({"index": index, "rects": [[r.row0, r.col0, r.rows, r.cols] for r in rects],
                         "bounds": _data_bounds(classes, row0, col0, dlat, dlon),
@@ -147,7 +160,9 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
         totals["ssq"] += src[1]
         totals["sn"] += src[2]
         store.close()
-    stored = sum(p.stat().st_size for p in out.rglob("*.tiles"))
+    listed = st.level_files(out, regions)
+    _remove_unlisted(out, listed)
+    stored = sum(p.stat().st_size for p in listed)
     seconds = time.perf_counter() - t_start
     summary = ImportSummary(
         store=str(out), regions=len(regions), depth=depth, levels=max(len(r["rects"]) for r in regions),
@@ -210,6 +225,30 @@ def _check_height_range(r: Raster, unit_m: float) -> None:
                           f"({int(beyond.sum())} such posts); is the file damaged or in other units?")
 
 
+def _check_seed(seed) -> None:
+    """InvalidArgument naming --detail-seed and the value unless it is an integer within [0, 2^64)
+    (the detail's lattice hash takes it as a uint64), before anything is read or written."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**64:
+        raise InvalidArgument("--detail-seed", "must be an integer within [0, 2^64)", value=seed)
+
+
+def _remove_unlisted(out: Path, listed) -> None:
+    """Remove what an earlier store in ``out`` left that the new manifest will not list: level files
+    (``level-KK.tiles``) in region directories (``region-NNN``), then such directories left empty.
+    Nothing else there is touched (a user's files, other names, symbolic links). Runs once every new
+    level file is written and before the manifest: an import interrupted here has no manifest yet, and
+    its re-run (from its bands) removes the rest."""
+    keep = {Path(p) for p in listed}
+    for d in sorted(out.iterdir()):
+        if not (REGION_DIR.fullmatch(d.name) and d.is_dir() and not d.is_symlink()):
+            continue
+        for f in sorted(d.iterdir()):
+            if LEVEL_FILE.fullmatch(f.name) and f.is_file() and not f.is_symlink() and f not in keep:
+                f.unlink()
+        if not any(d.iterdir()):
+            d.rmdir()
+
+
 def _output_dir(out: Path) -> Path:
     """The store directory, created (InvalidArgument naming output and the path when it cannot be)."""
     if out.exists() and not out.is_dir():
@@ -233,7 +272,8 @@ def _import_key(paths, depth, tile, unit_m, add_detail, detail_seed) -> str:
         p = Path(p).resolve()
         with open(p, "rb") as f:
             files.append([str(p), hashlib.file_digest(f, "sha256").hexdigest()])
-    return hashlib.sha256(json.dumps([files, depth, tile, unit_m, add_detail, detail_seed]).encode()).hexdigest()[:16]
+    return hashlib.sha256(json.dumps([files, depth, tile, unit_m, add_detail, detail_seed,
+                                      SAMPLING_VERSION]).encode()).hexdigest()[:16]
 
 
 def _drop_stale_bands(work: Path, key: str) -> None:
@@ -445,8 +485,10 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
     work.mkdir(exist_ok=True)
     heights = np.empty((rows, cols), np.float64)
     classes = np.empty((rows, cols), np.uint8)
-    # Anti-aliasing: average factor^2 samples a post when the store is coarser than a source.
-    factor = max(1, math.ceil(max(dlat / _lat_spacing_deg(r) for r in members) - 1e-9))
+    # Anti-aliasing: average kx x ky samples a post when the store is coarser than a source, each
+    # axis by its own spacing ratio (a store post is 4/3 as wide in degrees as it is tall).
+    ky = _aa_factor(dlat, [_lat_spacing_deg(r) for r in members])
+    kx = _aa_factor(dlon, [_lon_spacing_deg(r) for r in members])
     band_rows = BAND_TILES * tile
     for b0 in range(0, rows, band_rows):
         b1 = min(rows, b0 + band_rows)
@@ -455,7 +497,7 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
             with np.load(path) as z:
                 heights[b0:b1], classes[b0:b1] = z["h"], z["c"]
         else:
-            h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, factor, edges)
+            h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, (ky, kx), edges)
             heights[b0:b1], classes[b0:b1] = h, c
             tmp = path.with_name(path.name + ".tmp.npz")
             np.savez(tmp, h=h, c=c)
@@ -472,20 +514,29 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
     return heights, classes
 
 
-def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factor, edges=()):
-    """Posts of rows [r_a, r_b): the mean of factor^2 bilinear samples spread over
-    each post's cell (factor 1: the bilinear value at the post). A post with no sample
+def _aa_factor(store_spacing: float, source_spacings) -> int:
+    """Samples per post along one axis: the store's spacing over the finest source's, rounded up (1
+    where the store is no coarser)."""
+    return max(1, math.ceil(max(store_spacing / s for s in source_spacings) - 1e-9))
+
+
+def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factors=(1, 1), edges=()):
+    """Posts of rows [r_a, r_b): the mean of ky x kx bilinear samples (factors (ky, kx):
+    latitude, longitude) spread over each post's cell ((1, 1): the bilinear value at
+    the post). A post with no sample
     on the data but within one spacing of a source's edge takes the source's height at
     the nearest point of its edge (:func:`_edge_samples`), so that the store answers
     all the way to the sources' edges."""
     rows = np.arange(r_a, r_b, dtype=np.float64)
     cs = np.arange(col0, col0 + cols, dtype=np.float64)
-    offsets = (np.arange(factor) - (factor - 1) / 2.0) / factor
+    ky, kx = factors
+    offsets_y = (np.arange(ky) - (ky - 1) / 2.0) / ky
+    offsets_x = (np.arange(kx) - (kx - 1) / 2.0) / kx
     acc = np.zeros((rows.size, cs.size))
     n_ok = np.zeros((rows.size, cs.size), np.int64)
     filled = np.zeros((rows.size, cs.size), bool)
-    for oy in offsets:
-        for ox in offsets:
+    for oy in offsets_y:
+        for ox in offsets_x:
             lat = np.clip(90.0 - (rows + oy) * dlat, -90.0, 90.0)
             lon = ((cs + ox) * dlon) % 360.0 - 180.0
             la, lo = np.meshgrid(lat, lon, indexing="ij")

@@ -306,7 +306,9 @@ def base_classes(heights, dx_m: float, dy_m: float, lat_deg=45.0, *, params: Cla
                     along rows and columns (a box, not a disc)
     snow (8)        h >= snow line(lat) + jitter
     rock (7)        h >= tree line(lat) + alpine_band_m + jitter
-    alpine (6)      h >= tree line(lat) + jitter
+    alpine (6)      h >= tree line(lat) + jitter, or tree line(lat) <= 0
+                    (no trees at all: Svalbard and north of it, all land is
+                    above the tree line whatever the jitter)
     forest (5)      h >= min(forest_min_m, tree line) + jitter, or a woodlot
                     (woodlot noise < woodlot_fraction) below that
     farmland (3)    everything else (lowland)
@@ -345,7 +347,7 @@ def base_classes(heights, dx_m: float, dy_m: float, lat_deg=45.0, *, params: Cla
     out[woodlot < stretch_fraction(p.woodlot_fraction)] = FOREST
     zj = z - jitter
     out[zj >= forest_min] = FOREST
-    out[zj >= tree_line] = ALPINE
+    out[(zj >= tree_line) | (tree_line <= 0.0)] = ALPINE  # no woodlot or farmland where no tree grows
     out[zj >= tree_line + p.alpine_band_m] = ROCK
     out[zj >= snow_line] = SNOW
     if water.any() and p.shore_width_m > 0:

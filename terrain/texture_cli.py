@@ -413,8 +413,11 @@ def texture_command(args) -> int:
                                 refraction=not args.no_refraction, sampled=sampled)
     write_texture(tex, summary, args.output)
     sun = summary["sun"]
+    # As make_texture lit it (texture.json's sun.per_pixel): each pixel's sun, or the centre's for the box.
+    which = ("each pixel its own" if sun["per_pixel"] else
+             f"the centre's sun for the whole box, within {SUN_UNIFORM_DEG} deg of each pixel's")
     print(f"{req.cols}x{req.rows} texture in {args.output}: sun at the centre azimuth {sun['azimuth_deg']:.1f} deg, "
-          f"elevation {sun['elevation_deg']:.1f} deg (each pixel its own: {sun['elevation_deg_min']:.1f} to "
+          f"elevation {sun['elevation_deg']:.1f} deg ({which}: {sun['elevation_deg_min']:.1f} to "
           f"{sun['elevation_deg_max']:.1f} deg, {sun['daylit_fraction']:.1%} of the box in daylight), "
           f"{summary['shadow_fraction']:.1%} in shadow")
     return 0
