@@ -236,6 +236,10 @@ class TrimFailed(SortieError):
     """JSBSim's trim found no steady state for the requested conditions."""
 
 
+# The last advice of a TrimFailed message (what the API can do; server.sim_server says what a scenario can).
+TRIM_OFF_HINT = ", or start with trim=False"
+
+
 @dataclass(frozen=True)
 class InitialConditions:
     """Where and how an aircraft starts. Degrees, metres, m/s; (lat, lon) order.
@@ -737,7 +741,7 @@ class Aircraft:
         speed = fdm["ic/vt-fps"] * FT_M
         alt = (fdm["ic/h-agl-ft"] + fdm["ic/terrain-elevation-ft"]) * FT_M
         return (f"{self.name}: JSBSim trim failed for {what} at {speed:.1f} m/s, {alt:.0f} m MSL ({why}); "
-                f"{catalog.trim_hint(self.name, alt)}, or start with trim=False")
+                f"{catalog.trim_hint(self.name, alt)}{TRIM_OFF_HINT}")
 
     def _glide_residual(self, alpha_deg: float, pitch_trim: float, gamma_deg: float) -> np.ndarray:
         """(udot, wdot ft/s², qdot rad/s²) at the initial conditions with this angle of attack,

@@ -90,7 +90,10 @@ def external_state(t0_s: float, ecef_m, vel_ecef_mps, acc_ecef_mps2, quat_ecef2b
     norm = float(np.linalg.norm(q))
     if not 0.5 <= norm <= 2.0:
         raise InvalidArgument("state.orientation_wxyz", "must be a unit quaternion", value=q.tolist())
-    code = int(check_algorithms(int(algorithm), 1)[0])
+    try:
+        code = int(check_algorithms(int(algorithm), 1)[0])
+    except InvalidArgument as exc:  # the request's field, not the library's parameter
+        raise exc.with_field("state.dead_reckoning") from None
     return ExternalState(float(t0_s), pos,
                          _bounded_vector("state.velocity_ecef_mps", vel_ecef_mps, MAX_SPEED_MPS, "m/s"),
                          _bounded_vector("state.acceleration_ecef_mps2", acc_ecef_mps2, MAX_ACCELERATION_MPS2,

@@ -138,7 +138,7 @@ import functools
 import math
 import re
 import tomllib
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from datetime import date, datetime, time, timezone
 from pathlib import Path
 from types import MappingProxyType
@@ -372,12 +372,19 @@ class Scenario:
     kind_params: dict[str, AgentTypeParams]  # every kind of TYPE_KINDS, resolved; read-only
     type_overrides: dict[str, dict[str, Any]]  # [agent_types.<type>] as given; read-only
     base_dir: Path
+    # The file it was loaded from (load_scenario): errors found later name it. Not part of its value.
+    file: str | None = field(default=None, compare=False)
 
     def type_params(self, kind: str, type_name: str | None = None) -> AgentTypeParams:
         """Parameters of ``type_name`` of ``kind``: kind defaults < kind table < type table."""
         if kind not in self.kind_params:
             raise InvalidArgument("kind", f"must be one of {', '.join(TYPE_KINDS)}", value=kind)
         return replace(self.kind_params[kind], **self.type_overrides.get(type_name, {}))
+
+    def in_file(self, error: ScenarioError) -> ScenarioError:
+        """``error`` (found after loading: building the terrain or the world) prefixed with the
+        scenario file's name, as :func:`load_scenario`'s own are; as it is without a file."""
+        return error if self.file is None else error.in_file(self.file)
 
     def agent_type(self, agent: Agent) -> AgentTypeParams:
         """The resolved parameters of one agent (its type's table over its kind's)."""
@@ -413,9 +420,10 @@ def load_scenario(path, option: str = "--scenario") -> Scenario:
     except UnicodeDecodeError as e:
         raise ScenarioError("file", f"is not UTF-8 text (byte {e.start})", file=str(path)) from None
     try:
-        return parse_scenario(scenario_data(text, path), path.resolve().parent)
+        scenario = parse_scenario(scenario_data(text, path), path.resolve().parent)
     except ScenarioError as e:
         raise e.in_file(path) from None
+    return replace(scenario, file=str(path))
 
 
 SCENARIO_FORMATS = MappingProxyType({".toml": "TOML", ".yaml": "YAML", ".yml": "YAML"})

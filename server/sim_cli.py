@@ -50,7 +50,8 @@ def add_parser(sub) -> None:
     p.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
     p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")
-    p.add_argument("--time-scale", type=float, help="world seconds per wall second (realtime clock)")
+    p.add_argument("--time-scale", type=float,
+                   help="world seconds per wall second of the fast clock (realtime and paused: 1 only)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S world seconds")
     p.add_argument("--aircraft-workers", default="auto", metavar="N|auto",
                    help="processes the aircraft's JSBSim runs in: 0 = in the server's process; auto = "
@@ -189,6 +190,25 @@ def check_run_options(args) -> None:
         raise InvalidArgument("duration", f"must be within (0, {DURATION_MAX_S:g}] s", value=args.duration)
 
 
+def run_clock(clock: str, time_scale: float, clock_opt: str | None, time_scale_opt: float | None):
+    """The (clock, time_scale) a server runs: the scenario's, overridden by --clock and
+    --time-scale. A --clock other than the scenario's brings its own rate, as a scenario's
+    clock does (fast x DEFAULT_FAST_TIME_SCALE, realtime and paused x1: the scenario's x10
+    of a fast exercise run with --clock realtime ran ten times real time, labelled
+    "realtime"), unless --time-scale gives one; realtime and paused (which resumes in real
+    time) run only at x1, as in a scenario. InvalidArgument naming the option otherwise."""
+    from server.scenario import DEFAULT_FAST_TIME_SCALE
+
+    if clock_opt is not None and clock_opt != clock:
+        clock, time_scale = clock_opt, DEFAULT_FAST_TIME_SCALE if clock_opt == "fast" else 1.0
+    if time_scale_opt is not None:
+        time_scale = time_scale_opt
+    if clock != "fast" and time_scale != 1.0:
+        raise InvalidArgument("time_scale", f'must be 1.0 with the {clock} clock (use --clock fast)',
+                              value=time_scale)
+    return clock, time_scale
+
+
 def server_command(args) -> int:
     """Start-up in an order that leaves nothing behind when it fails: every option checked, the
     scenario and its world built, the gRPC port and the metrics port bound, and only then the
@@ -201,6 +221,7 @@ def server_command(args) -> int:
     workers = aircraft_workers(args.aircraft_workers)
     check_run_options(args)
     scenario = load_scenario(args.scenario)
+    clock = run_clock(scenario.exercise.clock, scenario.exercise.time_scale, args.clock, args.time_scale)
     check_recording(args, scenario.exercise.name)  # before the world is built; again when it is, for the time
     terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
     world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers,
@@ -211,10 +232,7 @@ def server_command(args) -> int:
     try:
         path = check_recording(args, scenario.exercise.name)
         config = server_config(scenario, desc)
-        if args.clock:
-            config.clock = args.clock
-        if args.time_scale is not None:
-            config.time_scale = args.time_scale
+        config.clock, config.time_scale = clock
         if args.duration is not None:
             config.duration_s = args.duration
         server = SimulationServer(world, config, f"{args.host}:{args.port}")  # SortieError when it cannot listen

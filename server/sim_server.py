@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fdm.aircraft import TRIM_OFF_HINT
 from server.dead_reckoning import DeadReckoner, Thresholds, THRESHOLDS_BY_KIND, ALGORITHM_NAMES
 from server.grpc_common import AioManagedServer
 from server.scenario import ScenarioError
@@ -235,7 +236,8 @@ class SimulationServer:
         return self.config.time_scale if self._achieved is None else self._achieved
 
     def world_info(self) -> pb.WorldInfo:
-        return world_info(self.config, self.world.time_s, self._clock, self.time_scale, 1.0 / self.world.dt,
+        rate = 0.0 if self._clock == "paused" else self.time_scale  # world s per wall s (as Watch says)
+        return world_info(self.config, self.world.time_s, self._clock, rate, 1.0 / self.world.dt,
                           self.world.geoid_undulation_m, self.world.snapshot)
 
     def _measure_rate(self, wall: float) -> None:
@@ -354,8 +356,25 @@ def open_terrain_source(dem=None, service: str | None = None, target_areas=(), s
     if target_areas:
         from terrain.inset import INSET_SEED, with_insets
 
+        _check_areas_covered(terrain, target_areas)
         terrain = with_insets(terrain, target_areas, INSET_SEED)
     return terrain
+
+
+def _check_areas_covered(terrain, target_areas) -> None:
+    """Every target area's inset has terrain under it to refine, checked before any inset is
+    built (seconds each): else a ScenarioError naming ``target_areas[i].polygon`` and the area."""
+    from terrain.inset import check_covered
+
+    sources = terrain.describe()
+    for i, (name, polygon, _) in enumerate(target_areas):
+        try:
+            check_covered(sources, (name, polygon, 0.0))
+        except InvalidArgument as exc:
+            raise ScenarioError(f"target_areas[{i}].polygon", f"target area {name!r} is off the terrain, so "
+                                f"its inset has nothing to refine: {exc.message} (the centre of its box); "
+                                "move it onto the terrain or set [terrain] insets = false",
+                                value=[list(p) for p in polygon]) from None
 
 
 def terrain_spec(scenario, dem=None, service: str | None = None) -> dict:
@@ -379,7 +398,11 @@ def open_terrain(scenario, dem=None, service: str | None = None):
     """(terrain source, description, picklable factory opening the same terrain)."""
     spec = terrain_spec(scenario, dem, service)
     desc = f"service:{spec['service']}" if "service" in spec else "dem:" + ",".join(spec["dem"])
-    return open_terrain_source(**spec), desc, functools.partial(open_terrain_source, **spec)
+    try:
+        terrain = open_terrain_source(**spec)
+    except ScenarioError as exc:
+        raise scenario.in_file(exc) from None
+    return terrain, desc, functools.partial(open_terrain_source, **spec)
 
 
 def aircraft_host(scenario, terrain, terrain_factory, workers: int, nice: int | None = None):
@@ -397,8 +420,15 @@ def aircraft_host(scenario, terrain, terrain_factory, workers: int, nice: int | 
 
 def build_world(scenario, terrain, host=None) -> World:
     """A world holding every agent of a validated scenario (server.scenario.Scenario);
-    its aircraft on ``host`` (see :func:`aircraft_host`; in process by default)."""
+    its aircraft on ``host`` (see :func:`aircraft_host`; in process by default). An agent
+    that cannot start is a ScenarioError naming it (and the scenario's file)."""
+    try:
+        return _build_world(scenario, terrain, host)
+    except ScenarioError as exc:
+        raise scenario.in_file(exc) from exc.__cause__
 
+
+def _build_world(scenario, terrain, host) -> World:
     ex = scenario.exercise
     _check_ground_references(scenario, terrain)
     world = World(terrain, ex.fdm_rate_hz, ex.world_rate_hz, scenario.terrain.geoid_undulation_m, host)
@@ -417,8 +447,10 @@ def build_world(scenario, terrain, host=None) -> World:
             results = world.spawn_aircraft_many([_aircraft_spec(agents[k], ex.on_vanish) for k in run])
             for k, r in zip(run, results):
                 if isinstance(r, SortieError):  # valid values the model cannot start at (its trim)
+                    why = str(r).replace(TRIM_OFF_HINT, "; in the scenario, give it a speed_mps or alt_m it trims "
+                                                        "at, or start it on the ground (on_ground = true)")
                     raise ScenarioError(f"agents[{k}]", f"{agents[k].name!r} ({agents[k].type}) cannot start: "
-                                                        f"{r}") from r
+                                                        f"{why}") from r
                 if isinstance(r, BaseException):
                     raise r
                 done.add(agents[k].name)
@@ -435,25 +467,28 @@ def build_world(scenario, terrain, host=None) -> World:
 
 def _check_ground_references(scenario, terrain) -> None:
     """Agents placed by the ground under them need terrain data there: an aircraft on its
-    wheels or at an altitude above ground, a static without an altitude (ground vehicles
+    wheels or at an altitude above ground, a static (it has no altitude; ground vehicles
     are checked by the vehicle model). ScenarioError naming the agent where there is none,
     instead of a silent sea level."""
     from terrain.raster import STATUS_OUTSIDE
 
     needs = [(i, a) for i, a in enumerate(scenario.agents)
              if (a.kind == "aircraft" and (a.on_ground or a.alt_ref == "agl"))
-             or (a.kind == "static" and a.alt_m is None)]
+             or a.kind == "static"]
     if not needs:
         return
     status = np.asarray(terrain.heights(np.array([a.lat_deg for _, a in needs], float),
                                         np.array([a.lon_deg for _, a in needs], float)).status)
     for (i, a), st in zip(needs, status):
         if st == STATUS_OUTSIDE:
-            what = ("on the ground" if a.on_ground else "at an altitude above ground") if a.kind == "aircraft" \
-                else "on the ground (no alt_m)"
+            if a.kind == "static":
+                what, instead = "on the ground", " (a static stands on the ground: it takes no alt_m)"
+            elif a.on_ground:
+                what, instead = "on the ground", " or start it airborne (alt_m above mean sea level, no on_ground)"
+            else:
+                what, instead = "at an altitude above ground", ' or give alt_m above mean sea level (alt_ref = "msl")'
             raise ScenarioError(f"agents[{i}]", f"{a.name!r} is placed {what} outside the terrain: no terrain data "
-                                                f"at ({a.lat_deg}, {a.lon_deg}); move it onto the terrain or give an "
-                                                f"altitude above mean sea level")
+                                                f"at ({a.lat_deg}, {a.lon_deg}); move it onto the terrain{instead}")
 
 
 def _aircraft_spec(a, on_vanish: str) -> dict:

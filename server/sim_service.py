@@ -183,7 +183,7 @@ class Sessions:
                         raise InvalidArgument("agent_name", "is not free to control", value=agent_name)
                     return e
             raise InvalidArgument("agent_name", "no agent of this name", value=agent_name)
-        fit = [e for e in entities if e.kind in kinds and e.controllable]
+        fit = [e for e in entities if e.kind in kinds and e.controllable and not self.world.is_wreck(e)]
         for e in fit:
             if e.owner is None:
                 return e

@@ -508,6 +508,11 @@ class World(EventLog):
 
     # -- control --------------------------------------------------------------------------------
 
+    def is_wreck(self, e: Entity) -> bool:
+        """Whether ``e`` has crashed (an aircraft) or been destroyed (a ground vehicle or a
+        static): it takes no owner and no commands (a crash found this tick included)."""
+        return e.destroyed or e.crashed or e.id in self.wrecks
+
     def claim(self, entity_id: int, owner: str, client: str = "") -> Entity:
         """Give control of a controllable entity to ``owner`` (a session token; the
         recording keeps the ``client`` name instead); NotFound/InvalidArgument otherwise."""
@@ -517,8 +522,8 @@ class World(EventLog):
                 raise NotFound(f"entity {entity_id} does not exist")
             if not e.controllable or e.owner is not None:
                 raise InvalidArgument("agent", "is not free to control", value=e.name)
-            if e.destroyed:
-                raise InvalidArgument("agent", "is destroyed", value=e.name)
+            if self.is_wreck(e):  # nothing to fly or drive
+                raise InvalidArgument("agent", "is destroyed" if e.destroyed else "has crashed", value=e.name)
             e.owner = owner
             self._journal("claim", entity_id, client=client)
             return e
@@ -570,13 +575,17 @@ class World(EventLog):
         e = self.entities.get(entity_id)
         if e is None:
             raise NotFound(f"entity {entity_id} does not exist")
-        if e.destroyed:
-            raise InvalidArgument("command", f"{e.name} is destroyed", value=kind)
+        if self.is_wreck(e):
+            raise InvalidArgument("command", f"{e.name} {'is destroyed' if e.destroyed else 'has crashed'}",
+                                  value=kind)
         if kind == "stick":
             if e.kind != AIRCRAFT:
                 raise InvalidArgument("stick", f"only aircraft take stick controls; {e.name} is "
                                                f"{KIND_NAMES[e.kind]}")
-            values = validate_controls(values)
+            try:
+                values = validate_controls(values)
+            except InvalidArgument as exc:
+                raise exc.with_field(f"stick.{exc.field}") from None
         elif kind == "autopilot":
             if e.kind == STATIC:
                 raise InvalidArgument("autopilot", f"{e.name} is static")

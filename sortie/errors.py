@@ -61,6 +61,11 @@ class InvalidArgument(SortieError, ValueError):
     def __reduce__(self):  # picklable (an aircraft worker's errors reach the server's caller)
         return type(self), (self.field, self.message, self.index, self.value)
 
+    def with_field(self, field: str) -> "InvalidArgument":
+        """The same error naming ``field`` instead (a request's own field path for a library
+        function's parameter: ``stick.pitch`` for ``pitch``)."""
+        return InvalidArgument(field, self.message, self.index, self.value)
+
 
 class LimitExceeded(SortieError):
     """A request is larger than a documented limit (batch size, rate, queue length)."""

@@ -381,6 +381,24 @@ def _fetch(terrain, lat: np.ndarray, lon: np.ndarray):
     return h, (np.asarray(res.status) == STATUS_FILLED).reshape(lat.shape)
 
 
+def _centre_lattice(sources, plane: PolygonPlane, lat_v):
+    """(base lattice, lat_c, lon_c, lon_un): the lattice of the source of ``sources`` under the
+    centre (lat_c, lon_c) of the polygon's box, the one its inset refines (base_lattice), with
+    lon_c and the vertex longitudes lon_un unwrapped about the first vertex."""
+    lon_un = plane.lon_ref + plane.x / plane.k_x
+    lat_c, lon_c = 0.5 * (lat_v.min() + lat_v.max()), 0.5 * (lon_un.min() + lon_un.max())
+    return base_lattice(sources, lat_c, (lon_c + 180.0) % 360.0 - 180.0), lat_c, lon_c, lon_un
+
+
+def check_covered(sources, area) -> None:
+    """What InsetSource refuses first, checked without building the inset: InvalidArgument
+    unless a source of ``sources`` (the terrain's ``describe()``) lies under the centre of target
+    area ``area`` (a TargetArea or a (name, polygon, detail_m) tuple)."""
+    name, polygon, _ = _area_fields(area)
+    lat_v, lon_v = _check_polygon(polygon, name)
+    _centre_lattice(sources, PolygonPlane.of(lat_v, lon_v), lat_v)
+
+
 class InsetSource(Raster):
     """A target area's high-detail heights: a :class:`Terrain` source covering the polygon.
 
@@ -411,9 +429,7 @@ class InsetSource(Raster):
         self.seed = int(seed)
         self.border_band_m = float(border_band_m)
 
-        lon_un = self.plane.lon_ref + self.plane.x / self.plane.k_x  # unwrapped about the first vertex
-        lat_c, lon_c = 0.5 * (lat_v.min() + lat_v.max()), 0.5 * (lon_un.min() + lon_un.max())
-        base = base_lattice(terrain_below.describe(), lat_c, (lon_c + 180.0) % 360.0 - 180.0)
+        base, lat_c, lon_c, lon_un = _centre_lattice(terrain_below.describe(), self.plane, lat_v)
         self.base = base
         m, n = radii_of_curvature(lat_c)
         post_n_m = math.radians(base.dlat) * float(m)

@@ -67,3 +67,26 @@ def test_a_pilot_leaving_hands_the_aircraft_back_to_its_scenario_autopilot(world
     r = _state(w, routed)
     assert abs(r.alt_msl_m - ALT) < 150.0
     assert r.lon_deg > 9.0 and abs((np.degrees(r.euler_rad[2]) - 90.0 + 180.0) % 360.0 - 180.0) < 20.0  # east again
+
+
+def test_a_wreck_is_not_handed_out_claimed_or_commanded(world):
+    """(Acceptance probe: a Join naming no agent got a crashed aircraft while a flyable one
+    was free, and its commands were accepted.)"""
+    from server.sim_server import type_params
+    from server.sim_service import Sessions
+    from sortie.errors import InvalidArgument
+    from sortie.v1 import simulation_pb2 as pb
+
+    w, held, routed = world
+    w.tick()
+    s = _state(w, held)
+    w.air.crash(held, w.time_s, s.lat_deg, s.lon_deg, s.alt_msl_m, "the test")
+    for _ in range(3):  # the crash is flown in the tick after the one under way
+        w.tick()
+    assert w.is_wreck(w.entities[held])
+    sessions = Sessions(w, lambda i, kind=None: type_params({}, w.entities, i, kind))
+    assert sessions.join("p1", pb.ROLE_PILOT).agent_id == routed  # the free aircraft that flies
+    with pytest.raises(InvalidArgument, match="has crashed"):
+        w.claim(held, "token")
+    with pytest.raises(InvalidArgument, match="held has crashed"):
+        w.command(held, "autopilot", {"heading_deg": 10.0})

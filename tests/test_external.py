@@ -59,7 +59,7 @@ def test_external_state_is_validated_naming_the_field():
         external_state(0.0, pos, (math.nan, 0, 0), (0, 0, 0), q, (0, 0, 0), 2)
     with pytest.raises(InvalidArgument, match="orientation"):
         external_state(0.0, pos, vel, (0, 0, 0), (0, 0, 0, 0), (0, 0, 0), 2)
-    with pytest.raises(InvalidArgument, match="algorithm"):
+    with pytest.raises(InvalidArgument, match=r"^state\.dead_reckoning: "):
         external_state(0.0, pos, vel, (0, 0, 0), q, (0, 0, 0), 7)
 
 

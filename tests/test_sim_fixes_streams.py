@@ -154,6 +154,7 @@ def test_a_server_started_paused_shows_every_entity_and_the_pilots_own_agent(alp
             assert t == pytest.approx(world.dt)  # the first tick only: the clock stands still
             time.sleep(0.5)
             assert world.time_s == t and obs.world().clock == "paused"
+            assert obs.world().time_scale == 0.0  # world seconds per wall second, as the stream says
             srv.set_clock("fast")
             deadline = time.monotonic() + 10.0
             while world.time_s < t + 1.0 and time.monotonic() < deadline:
