@@ -84,6 +84,8 @@ WORKER_START_TIMEOUT_S = 120.0
 # increment, 0-19; see the module docstring for the measured trade-off).
 # Lowering one's own priority needs no privilege.
 WORKER_NICE = 3
+# An aircraft on its wheels slower than this when its pilot leaves is parked, not flown (m/s).
+PARKED_MPS = 2.0
 
 
 @dataclass
@@ -207,7 +209,9 @@ class LocalAircraftHost:
         commands do: a heading alone turns the aircraft and keeps its altitude and speed
         held). An aircraft without an autopilot first gets one holding its present state."""
         pilot = self._pilots.get(entity_id)
-        if not isinstance(pilot, Autopilot):
+        if isinstance(pilot, WaypointFollower):  # off its route, from what its route had it fly
+            pilot = self._pilots[entity_id] = pilot.autopilot  # (a climb to the next waypoint goes on)
+        elif not isinstance(pilot, Autopilot):
             pilot = self._hold_present(entity_id)
         now = pilot.targets
         pilot.set_targets(*(now_v if targets.get(name) is None else targets[name] for name, now_v in
@@ -219,7 +223,8 @@ class LocalAircraftHost:
         pilot last flew it with (as a ground vehicle returns to its route): its route, from
         the waypoint it was making for when the pilot took it, or its scenario hold. With
         neither, or its route flown, it keeps the autopilot the pilot last set, else holds its
-        present heading, altitude and speed. No change when it has crashed."""
+        present heading, altitude and speed; one at rest on the ground stays there, idle with its
+        brakes on (an airborne hold of 1 m/s had it taxi off). No change when it has crashed."""
         ac = self._get(entity_id)
         if ac.crashed:
             return
@@ -233,7 +238,11 @@ class LocalAircraftHost:
         elif isinstance(spawned, Targets):
             if getattr(self._pilots.get(entity_id), "targets", None) is not spawned:
                 self._pilots[entity_id] = Autopilot(ac, spawned)
-        elif not isinstance(self._pilots.get(entity_id), Autopilot):
+        elif isinstance(self._pilots.get(entity_id), Autopilot):
+            pass
+        elif ac.on_ground and ac.state().ground_speed_mps < PARKED_MPS:
+            self.stick(entity_id, {"throttle": 0.0, "brakes": 1.0})
+        else:
             self._hold_present(entity_id)
 
     def crash(self, entity_id: int, t: float, lat: float, lon: float, alt_m: float, reason: str) -> None:

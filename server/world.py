@@ -73,6 +73,8 @@ from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
 AIRCRAFT, GROUND, STATIC = 1, 2, 3  # = sortie.v1.EntityKind values
 KIND_NAMES = {AIRCRAFT: "aircraft", GROUND: "ground", STATIC: "static"}
+# Commands that set only the fields they give (the others keep their values): see World.command.
+PARTIAL_COMMANDS = frozenset({"stick", "autopilot"})
 KIND_OF_NAME = {v: k for k, v in KIND_NAMES.items()}
 MAX_ENTITIES = 10_000
 # Events kept for late readers of the events stream (a ring; readers that fall
@@ -547,6 +549,13 @@ class World(EventLog):
             elif e.kind == GROUND and not e.external_id and not e.destroyed:
                 self._resume_ground(e)
 
+    def _present_hold(self, e: Entity) -> dict:
+        """A ground vehicle's heading-and-speed hold of what it does now: its heading, and its
+        forward speed within its type's limits."""
+        i = self.ground.index_of([e.ground_id])[0]
+        speed = min(max(float(self.ground.speed_mps[i]), 0.0), float(self.ground.speed_limits_mps[1][i]))
+        return {"heading_deg": float(self.ground.heading_deg[i]) % 360.0, "speed_mps": speed}
+
     def _resume_ground(self, e: Entity) -> None:
         """A ground vehicle left by its driver returns to its scenario route (alone: a convoy
         does not wait for it), or holds its present heading at its present forward speed."""
@@ -559,14 +568,14 @@ class World(EventLog):
             self.routes.append((spec, [e.id]))
             self._rebuild_followers()
             return
-        i = self.ground.index_of([e.ground_id])[0]
-        speed = min(max(float(self.ground.speed_mps[i]), 0.0), float(self.ground.speed_limits_mps[1][i]))
-        self._ground_heading_hold[e.id] = {"heading_deg": float(self.ground.heading_deg[i]) % 360.0,
-                                           "speed_mps": speed}
+        self._ground_heading_hold[e.id] = self._present_hold(e)
 
     def command(self, entity_id: int, kind: str, values: dict) -> None:
         """Validate a command now (InvalidArgument naming the field; nothing kept) and
-        keep it for the next tick, replacing any earlier one (latest wins).
+        keep it for the next tick, replacing any earlier one (latest wins); but stick and
+        autopilot commands set only the fields they give, so two of the same kind in one
+        tick add up, the later one's value winning field by field (a heading and then an
+        altitude both hold, as they do a tick apart).
 
         kind "stick": aircraft controls (fdm.aircraft.CONTROL_RANGES names);
         "autopilot": heading_deg / alt_msl_m / speed_mps targets; "drive":
@@ -602,7 +611,9 @@ class World(EventLog):
         else:
             raise InvalidArgument("command", 'must be "stick", "autopilot" or "drive"', value=kind)
         with self._lock:
-            self._pending[entity_id] = (kind, values)
+            was = self._pending.get(entity_id)
+            merged = {**was[1], **values} if was is not None and was[0] == kind and kind in PARTIAL_COMMANDS else values
+            self._pending[entity_id] = (kind, merged)
             self._journal("command", entity_id, command=kind, values=values)
 
     def _check_autopilot(self, e: Entity, values: dict) -> None:
@@ -670,8 +681,13 @@ class World(EventLog):
         if kind == "drive":
             self.ground.set_controls(values.get("speed_mps", 0.0), values.get("yaw_rate_dps", 0.0), index=idx)
             self._ground_heading_hold.pop(e.id, None)
-        else:  # autopilot: hold a heading (proportional heading-rate command) and a speed
-            hold = self._ground_heading_hold.setdefault(e.id, {})
+        else:  # autopilot: hold a heading (proportional heading-rate command) and a speed;
+            # a target not given keeps the hold's, or what the vehicle does now (a heading
+            # alone stopped it: a missing speed read as 0, and a wheeled vehicle cannot turn
+            # standing)
+            hold = self._ground_heading_hold.get(e.id)
+            if hold is None:
+                hold = self._ground_heading_hold[e.id] = self._present_hold(e)
             hold.update({k: v for k, v in values.items() if v is not None})
         self._hold_version += 1
 

@@ -90,3 +90,75 @@ def test_a_wreck_is_not_handed_out_claimed_or_commanded(world):
         w.claim(held, "token")
     with pytest.raises(InvalidArgument, match="held has crashed"):
         w.command(held, "autopilot", {"heading_deg": 10.0})
+
+
+def test_partial_commands_in_one_tick_add_up(world):
+    """(Acceptance probe: a heading and then an altitude sent within one tick kept only the
+    altitude; flaps then throttle lost the flaps.)"""
+    w, held, routed = world
+    w.claim(held, "token")
+    w.command(held, "autopilot", {"heading_deg": 270.0})
+    w.command(held, "autopilot", {"alt_msl_m": ALT + 200.0})
+    w.tick()
+    w.tick()
+    t = w.air._pilots[held].targets
+    assert (t.heading_deg, t.alt_msl_m, t.speed_mps) == (270.0, ALT + 200.0, SPEED)
+    w.claim(routed, "token")
+    w.command(routed, "stick", {"flaps": 1.0})
+    w.command(routed, "stick", {"throttle": 0.2})
+    w.tick()
+    w.tick()
+    c = w.air.controls(routed)
+    assert (c.flaps, c.throttle) == (1.0, 0.2)
+
+
+def test_a_partial_command_off_a_route_keeps_what_the_route_flew(world):
+    """(Acceptance probe: a speed alone given to an f16 climbing on its route to its next
+    waypoint levelled it off where it was: the hold came from its state, not its targets.)"""
+    w, _, routed = world
+    w.air._pilots[routed].waypoints[0] = (47.2, 10.0, ALT + 1500.0)  # a climb to the first waypoint
+    _fly(w, 3.0)
+    w.claim(routed, "token")
+    w.command(routed, "autopilot", {"speed_mps": 180.0})
+    _fly(w, 2.0)
+    t = w.air._pilots[routed].targets
+    assert t.alt_msl_m == ALT + 1500.0 and t.speed_mps == 180.0
+    assert abs(t.heading_deg - 90.0) < 5.0  # the heading to the waypoint
+
+
+def test_a_parked_aircraft_its_pilot_leaves_stays_parked():
+    """(Acceptance probe: the fallback hold of 1 m/s had a c172x at rest taxi off, 15 m in 60 s.)"""
+    w = World(FlatTerrain(400.0), aircraft_host=LocalAircraftHost(FlatTerrain(400.0), DT))
+    try:
+        e = w.spawn_aircraft("parked", "c172x", InitialConditions(47.0, 9.0, 0.0, heading_deg=0.0, speed_mps=0.0,
+                                                                 on_ground=True), controllable=True)
+        _fly(w, 2.0)
+        w.claim(e.id, "token")
+        w.command(e.id, "stick", {"throttle": 0.0, "brakes": 0.0})
+        _fly(w, 2.0)
+        start = _state(w, e.id).ecef_m.copy()
+        w.release(e.id, vanished=True)
+        _fly(w, 30.0)
+        s = _state(w, e.id)
+        assert np.linalg.norm(s.ecef_m - start) < 0.5 and s.ground_speed_mps < 0.1
+        assert w.air.controls(e.id).throttle == 0.0
+    finally:
+        w.close()
+
+
+def test_a_ground_vehicle_given_a_heading_alone_keeps_its_speed():
+    """(Acceptance probe: a Humvee on its route at 10 m/s given a heading alone stopped,
+    half-way through the turn: its hold's missing speed read as 0.)"""
+    w = World(FlatTerrain(400.0))
+    try:
+        (e,) = w.spawn_ground(["jeep"], ["hmmwv"], np.array([47.0]), np.array([9.0]), np.array([0.0]),
+                              controllable=True, route=[(47.0, 9.0), (47.2, 9.0)], cruise_mps=10.0)
+        _fly(w, 10.0)
+        w.claim(e.id, "token")
+        w.command(e.id, "autopilot", {"heading_deg": 90.0})
+        _fly(w, 20.0)
+        i = w.ground.index_of([e.ground_id])[0]
+        assert w.ground.speed_mps[i] > 8.0
+        assert abs((w.ground.heading_deg[i] - 90.0 + 180.0) % 360.0 - 180.0) < 3.0
+    finally:
+        w.close()
