@@ -992,6 +992,8 @@ def _storage_dtype(values: np.ndarray) -> np.dtype:
 
 def _existing(path) -> Path:
     path = Path(path)
+    if path.is_dir():  # it exists: "does not exist" would send the user looking for a typo
+        raise DataFormatError(f"{path}: is a directory, not a DEM file")
     if not path.is_file():
         raise NotFound(f"DEM file {path} does not exist")
     return path

@@ -57,7 +57,10 @@ def ecef_to_geodetic(points_ecef):
     beta = np.arctan2(z, (1.0 - WGS84_F) * p)
     for _ in range(3):
         sb, cb = np.sin(beta), np.cos(beta)
-        lat = np.arctan2(z + WGS84_EP2 * WGS84_B_M * sb**3, p - WGS84_E2 * WGS84_A_M * cb**3)
+        num, den = z + WGS84_EP2 * WGS84_B_M * sb**3, p - WGS84_E2 * WGS84_A_M * cb**3
+        # den < 0 only within about e2 * a (43 km) of the centre, nearer the axis than the
+        # centre of curvature: the same normal, taken outwards (cos(lat) >= 0, |lat| <= 90).
+        lat = np.arctan2(np.where(den < 0.0, -num, num), np.abs(den)) + 0.0  # -0.0 into 0.0
         beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
     sin_lat, cos_lat = np.sin(lat), np.cos(lat)
     # Height without the 1/cos(lat) blow-up near the poles.
@@ -109,3 +112,14 @@ def wrap_lon_deg(lon_deg):
     """Longitude wrapped into [-180, 180)."""
     lon = np.asarray(lon_deg, dtype=np.float64)
     return (lon + 180.0) % 360.0 - 180.0
+
+
+def wrap_lon_exact_deg(lon):
+    """Longitude reduced exactly into [-180, 180): one already there is returned as it is, bit
+    for bit, and any other moved by an exact multiple of 360 (wrap_lon_deg rounds both)."""
+    # fmod is exact in IEEE 754; the +-360 shifts are exact by Sterbenz's lemma
+    # (the operands are within a factor of two of each other).
+    x = np.fmod(lon, 360.0)
+    x = np.where(x >= 180.0, x - 360.0, x)
+    x = np.where(x < -180.0, x + 360.0, x)
+    return x + 0.0  # turn -0.0 into 0.0

@@ -126,8 +126,16 @@ def _geodetic(x, y, z):
     geodesy.ecef_to_geodetic, but carrying each angle as an unnormalised
     (sin, cos) pair: square roots instead of six trigonometric calls a round
     (4x faster; agreement with geodesy.ecef_to_geodetic is tested).
+    Deep inside (within about e2 * a = 43 km of the Earth's centre, which a
+    segment end may be: lat 0, h = -a) the normal is kept pointing outwards
+    (cos(lat) >= 0), as geodesy.ecef_to_geodetic keeps it, and on the
+    equatorial plane latitude 0 is returned at once: the equator's normal
+    passes through every point there, and the iteration would divide by zero
+    at the centre itself.
     """
     p = math.sqrt(x * x + y * y)
+    if z == 0.0:
+        return 0.0, math.degrees(math.atan2(y, x)), p - WGS84_A_M
     sb, cb = z, (1.0 - WGS84_F) * p
     num, den = z, p
     for _ in range(3):
@@ -135,6 +143,8 @@ def _geodetic(x, y, z):
         sb, cb = sb / norm, cb / norm
         num = z + WGS84_EP2 * WGS84_B_M * sb * sb * sb
         den = p - WGS84_E2 * WGS84_A_M * cb * cb * cb
+        if den < 0.0:  # nearer the axis than the centre of curvature: the same normal, outwards
+            num, den = -num, -den
         sb, cb = (1.0 - WGS84_F) * num, den
     norm = math.sqrt(num * num + den * den)
     sin_lat, cos_lat = num / norm, den / norm

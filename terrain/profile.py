@@ -17,6 +17,7 @@ import numpy as np
 from geographiclib.geodesic import Geodesic
 
 from sortie.errors import InvalidArgument, LimitExceeded
+from terrain.geodesy import wrap_lon_exact_deg
 from terrain.validate import LON_ABS_MAX_DEG
 
 PROFILE_MIN_SAMPLES = 2
@@ -83,12 +84,16 @@ def geodesic_profile(source_heights: Callable, lat1: float, lon1: float, lat2: f
     height query. Arguments in degrees, (lat, lon) order; n_samples an int in
     [2, 100000] (InvalidArgument below, LimitExceeded above).
     Returns, in the field order of terrain.terrain.ProfileResult: lat_deg,
-    lon_deg, distance_m (metres along the geodesic from point 1), height_m,
-    each (n_samples,) float64, and status (n_samples,) uint8.
+    lon_deg (continuous along the line, as :func:`geodesic_points` gives them),
+    distance_m (metres along the geodesic from point 1), height_m, each
+    (n_samples,) float64, and status (n_samples,) uint8.
     """
     n = check_n_samples(n_samples)
     lat1, lon1 = check_point("lat1", lat1, "lon1", lon1)
     lat2, lon2 = check_point("lat2", lat2, "lon2", lon2)
     lat, lon, distance = geodesic_points(lat1, lon1, lat2, lon2, n)
-    height, status = source_heights(lat, lon)
+    # Unrolled, a line that starts near the +-540 limit runs past it (530 -> 550), which the
+    # height query rejects as a unit mix-up: ask at the same longitudes wrapped into [-180, 180)
+    # (exactly, so a sample already there is asked as it is returned).
+    height, status = source_heights(lat, wrap_lon_exact_deg(lon))
     return lat, lon, distance, np.asarray(height, dtype=np.float64), np.asarray(status, dtype=np.uint8)

@@ -59,6 +59,7 @@ import math
 import numpy as np
 
 from sortie.errors import InvalidArgument
+from terrain.geodesy import wrap_lon_exact_deg as _wrap_lon
 
 # Deepest level whose packed id fits the layout above in an int64: depth 26
 # needs 27 row bits and 28 column bits; cells there are 90/2**26 degrees
@@ -355,16 +356,6 @@ def is_ancestor(a, b):
 
 
 # --- points ------------------------------------------------------------------
-
-
-def _wrap_lon(lon: np.ndarray) -> np.ndarray:
-    """Longitude reduced exactly into [-180, 180)."""
-    # fmod is exact in IEEE 754; the +-360 shifts are exact by Sterbenz's lemma
-    # (the operands are within a factor of two of each other).
-    x = np.fmod(lon, 360.0)
-    x = np.where(x >= 180.0, x - 360.0, x)
-    x = np.where(x < -180.0, x + 360.0, x)
-    return x + 0.0  # turn -0.0 into 0.0
 
 
 def cell_at(lat, lon, depth):

@@ -98,7 +98,11 @@ def fractional_index(lat, lon, crs, x0, y0, dx, dy):
             y = math.nan
         turn = TWO_PI_A_M
     d = x - x0
-    if d < 0.0 or d >= turn:  # only wrapped longitudes pay for the modulo
+    # Only wrapped longitudes pay for the modulo. A hair below a full turn is the
+    # origin's column too, whether d got there by the modulo or by rounding alone
+    # (x0 + 360 - x0 may round just below 360, and a * radians(lon + 360) - x0
+    # below 2 pi a at every west-edge post of a Web Mercator raster).
+    if d < 0.0 or turn - d < POST_SNAP_TOLERANCE * dx:
         d = d % turn
         if turn - d < POST_SNAP_TOLERANCE * dx:
             d -= turn

@@ -60,8 +60,9 @@ def shell_stretch(a: np.ndarray, b: np.ndarray, r_out: float, r_in: float):
     """Where each ECEF segment a + s (b - a), s in [0, 1], meets the shell between two spheres
     about the Earth's centre: (s_lo, s_hi, dives). [s_lo, s_hi] is the stretch inside the
     outer sphere (s_lo > s_hi: none), cut short where the segment enters the inner sphere from
-    outside it, and ``dives`` marks those that do enter it within the segment. Roots of
-    |a + s d|^2 = r^2, a quadratic in s."""
+    outside it, and ``dives`` marks those that do enter it within the segment, or start inside
+    it (their stretch is s = 0 alone: a is below every surface, so it is the first contact).
+    Roots of |a + s d|^2 = r^2, a quadratic in s."""
     d = b - a
     qa = np.einsum("ij,ij->i", d, d)
     qb = 2.0 * np.einsum("ij,ij->i", a, d)
@@ -80,7 +81,10 @@ def shell_stretch(a: np.ndarray, b: np.ndarray, r_out: float, r_in: float):
     i1, _, i_hit = roots(r_in)
     dives = i_hit & (aa > r_in * r_in) & (i1 > 0.0) & (i1 < 1.0)
     s_hi = np.where(dives, np.minimum(s_hi, i1), s_hi)
-    return s_lo, s_hi, dives
+    # Not traced past a: from near the Earth's centre (a valid end: lat 0, h = -a) the rest of
+    # the track spans every latitude and longitude, a box no synthetic source serves.
+    below = aa < r_in * r_in
+    return s_lo, np.where(below, 0.0, s_hi), dives | below
 
 
 @dataclass(frozen=True)
@@ -718,7 +722,10 @@ def ray_box(rays, a_ecef, b_ecef, idx) -> tuple[float, float, float, float]:
         s_axis = -B / (2.0 * A)  # nearest the axis: the distance of the line x, y from the origin
         rho_min = np.where((s_axis > 0.0) & (s_axis < 1.0), np.abs(a[:, 0] * d[:, 1] - a[:, 1] * d[:, 0])
                            / np.sqrt(A), np.sqrt(np.minimum(C, C + B + A)))
-        pad_lon = np.degrees(RAY_BOX_PAD_M / rho_min)
+        # A track with no horizontal extent (A = 0: one point, as a stretch that starts below every
+        # surface is) has the one longitude atan2(y, x): the pad as at the equator is ample for
+        # rounding, also on the axis (rho 0), where the pad over rho would be every longitude.
+        pad_lon = np.degrees(RAY_BOX_PAD_M / np.where(A > 0.0, rho_min, WGS84_A_M))
     lat_lo = max(lats.min() - pad_lat, -90.0)
     lat_hi = min(lats.max() + pad_lat, 90.0)
     a_lon_near = a_lon[idx[0]] + (a_lon[idx] - a_lon[idx[0]] + 180.0) % 360.0 - 180.0

@@ -49,6 +49,18 @@ def check_finite(name: str, arr: np.ndarray) -> None:
         raise InvalidArgument(name, "must be finite", index=i, value=float(arr[i]))
 
 
+def raise_first_bad(checks) -> None:
+    """Raise InvalidArgument at the lowest index any check fails, naming the first check (in the
+    order given) that fails there; checks: (name, values, bad mask, message) each, masks alike.
+    One index across all the checks, so an error names the first bad point, not the first bad
+    point of whichever check runs first."""
+    bad = np.logical_or.reduce([mask for _, _, mask, _ in checks])
+    if bad.any():
+        i = first_bad(bad)
+        name, values, _, message = next(c for c in checks if c[2][i])
+        raise InvalidArgument(name, message, index=i, value=float(values[i]))
+
+
 def check_latlon(lat, lon, prefix: str = "", max_points: int | None = None):
     """Validated (lat, lon) float64 (n,) arrays in degrees; argument order (lat, lon)."""
     lat_name, lon_name = f"{prefix}lat", f"{prefix}lon"
@@ -61,17 +73,11 @@ def check_latlon(lat, lon, prefix: str = "", max_points: int | None = None):
     if latlon_all_valid(lat, lon, LON_ABS_MAX_DEG):
         return lat, lon
     # Something is wrong: find the first culprit, and name it.
-    check_finite(lat_name, lat)
-    check_finite(lon_name, lon)
-    bad = np.abs(lat) > 90.0
-    if bad.any():
-        i = first_bad(bad)
-        raise InvalidArgument(lat_name, "must be within [-90, 90] degrees", index=i, value=float(lat[i]))
-    bad = np.abs(lon) > LON_ABS_MAX_DEG
-    if bad.any():
-        i = first_bad(bad)
-        raise InvalidArgument(lon_name, f"must be within [-{LON_ABS_MAX_DEG:g}, {LON_ABS_MAX_DEG:g}] degrees",
-                              index=i, value=float(lon[i]))
+    raise_first_bad([(lat_name, lat, ~np.isfinite(lat), "must be finite"),
+                     (lon_name, lon, ~np.isfinite(lon), "must be finite"),
+                     (lat_name, lat, np.abs(lat) > 90.0, "must be within [-90, 90] degrees"),
+                     (lon_name, lon, np.abs(lon) > LON_ABS_MAX_DEG,
+                      f"must be within [-{LON_ABS_MAX_DEG:g}, {LON_ABS_MAX_DEG:g}] degrees")])
     return lat, lon
 
 
@@ -80,9 +86,7 @@ def check_heights(name: str, h, n: int) -> np.ndarray:
     h = as_1d_f64(name, h)
     if h.size != n:
         raise InvalidArgument(name, f"must have {n} values, got {h.size}")
-    check_finite(name, h)
-    bad = np.abs(h) > 1.0e8
-    if bad.any():
-        i = first_bad(bad)
-        raise InvalidArgument(name, "must be within +-1e8 m", index=i, value=float(h[i]))
+    if not (np.abs(h) <= 1.0e8).all():  # one pass when all is well (NaN compares false too)
+        raise_first_bad([(name, h, ~np.isfinite(h), "must be finite"),
+                         (name, h, np.abs(h) > 1.0e8, "must be within +-1e8 m")])
     return h
