@@ -41,6 +41,14 @@ normal to fix it with. A contact deeper than
 structure point below its terrain, is a crash; the aircraft then freezes where
 it hit (``crashed`` is set, ``step`` does nothing more).
 
+Water: terrain at or below sea level is water by the ground vehicles' rule
+(fdm.ground: ``WATER_LEVEL_MSL_M``; no data counts as sea level). A landplane
+cannot start on it (``on_ground``: InvalidArgument), and its wheels touching it
+are a crash, "ditched": a wheel with weight on it (JSBSim's per-unit WOW) whose
+terrain is water. The catalog's flying boats (fdm.catalog.lands_on_water) are
+exempt, and so is a terrain source without water (``has_water`` False:
+:class:`FlatTerrain`, land at any height).
+
 Far from the ground (CG more than ``near_ground_m`` plus twice the distance
 flown between refreshes above the last terrain height) nothing touches the
 terrain and ground effect is nil, so the elevation under the CG is refreshed
@@ -78,6 +86,7 @@ import numpy as np
 from fdm import catalog
 from fdm.contacts import contact_points, ground_clearance, place_contacts
 from fdm.events import LIMITS, EventDetector
+from fdm.ground import WATER_LEVEL_MSL_M
 from fdm.state import FT_M, RAW_COLUMNS, RAW_PROPERTIES, RAW_WIDTH, AircraftState
 from sortie.errors import InvalidArgument, SortieError
 from terrain.geodesy import wrap_lon_deg
@@ -346,7 +355,10 @@ class Contact:
 
 
 class FlatTerrain:
-    """A world of constant height (m MSL) with the terrain API (``heights(lat, lon)``)."""
+    """A world of constant height (m MSL) with the terrain API (``heights(lat, lon)``).
+    It is land at any height, sea level included: it holds no water (``has_water``)."""
+
+    has_water = False
 
     def __init__(self, height_msl_m: float = 0.0):
         self.height_msl_m = float(height_msl_m)
@@ -356,6 +368,12 @@ class FlatTerrain:
 
         lat = np.asarray(lat, dtype=np.float64)
         return HeightResult(np.full(lat.shape, self.height_msl_m), np.ones(lat.shape, np.uint8))
+
+
+def _wet(heights_m: np.ndarray) -> np.ndarray:
+    """Which terrain heights are water: the ground vehicles' rule (fdm.ground.GroundVehicles stands
+    a vehicle only where every contact has ``h > WATER_LEVEL_MSL_M``)."""
+    return ~(heights_m > WATER_LEVEL_MSL_M)
 
 
 def terrain_msl_m(terrain, lat_deg, lon_deg) -> np.ndarray:
@@ -529,6 +547,11 @@ class Aircraft:
         self._q_alt = np.empty(len(contacts))  # contact altitudes, m
         self._terr = np.empty(len(contacts) + 1)  # their terrain heights (see _terrain_msl_m)
         self._structure = np.array([c.kind == "structure" for c in contacts], dtype=bool)
+        # Water under the wheels ends a landplane's roll (see the module docstring): the gear
+        # contacts (their indices among the contacts, their weight-on-wheels readings).
+        self._ditches = getattr(self.terrain, "has_water", True) and not catalog.lands_on_water(self.name)
+        self._gear_at = np.flatnonzero(~self._structure)
+        self._gear_wow = [n(f"gear/unit[{contacts[i].index}]/WOW").get_double_value for i in self._gear_at]
         self._detector_limits = LIMITS[self.aircraft_class]
         self._nz_min = self._detector_limits.nz_min_g
         self._nz_max = self._detector_limits.nz_max_g
@@ -594,6 +617,10 @@ class Aircraft:
                 raise InvalidArgument("lat_deg", f"the ground at ({ic.lat_deg}, {ic.lon_deg}) is too steep for "
                                                  f"{self.name} to stand on (a wing tip or the tail is below "
                                                  "the terrain)", value=ic.lat_deg)
+            if self._ditches and _wet(terr[1:][gear]).any():
+                raise InvalidArgument("lat_deg", f"the ground at ({ic.lat_deg}, {ic.lon_deg}) is water (height <= "
+                                                 f"sea level, {WATER_LEVEL_MSL_M:g} m): {self.name} is a "
+                                                 "landplane and cannot stand on it", value=ic.lat_deg)
         else:
             alt_msl = ic.alt_m if ic.alt_ref == "msl" else t_m + ic.alt_m
             if alt_msl <= t_m:
@@ -1008,6 +1035,19 @@ class Aircraft:
         self.raw_values = row.copy  # shadows the method: the frozen row, a fresh list each call
         return self._record([self._detector._crash(t, lat, lon, alt_m, "state diverged")])
 
+    def _ditch(self, t, lat, lon, alt_m, terr) -> list:
+        """The ditching crash when a wheel with weight on it has water under it (else nothing)."""
+        under = terr[1:][self._gear_at]
+        wet = _wet(under)
+        if not wet.any():
+            return []
+        wheels = [k for k in np.flatnonzero(wet) if self._gear_wow[k]() > 0.5]
+        if not wheels:
+            return []
+        return self._detector.ditched(t, lat, lon, alt_m, gear_units=[self.contacts[self._gear_at[k]].index
+                                                                      for k in wheels],
+                                      terrain_msl_m=float(under[wheels].max()), sink_rate_mps=self._get_vd() * FT_M)
+
     def _check_g(self) -> list:
         """Far from the ground between refreshes only the load factor can end the flight."""
         nz = self._get_nz()
@@ -1034,10 +1074,13 @@ class Aircraft:
             self._set_terrain_ft(self._terrain_ft)
             if c_min < -self.max_penetration_m:
                 events += self._detector.terrain_crash(t, lat, lon, alt_m, -c_min)
-            events += self._detector.update(t, lat, lon, alt_m, self._get_wow() > 0.5, struct_hit,
+            wow = self._get_wow() > 0.5
+            events += self._detector.update(t, lat, lon, alt_m, wow, struct_hit,
                                             self._get_vd() * FT_M, self._get_nz(),
                                             math.hypot(self._get_vn(), self._get_ve()) * FT_M if struct_hit
                                             else math.inf)
+            if wow and self._ditches:
+                events += self._ditch(t, lat, lon, alt_m, terr)
         else:
             self._terrain_ft = self._terrain_cg_ft
             self._set_terrain_ft(self._terrain_ft)

@@ -242,9 +242,25 @@ class WaypointFollower:
     """Fly a route of (lat, lon, alt_msl_m) waypoints at a speed, holding altitude per leg.
 
     The heading target is the geodesic azimuth to the active waypoint
-    (Karney 2013: :func:`geodesic_inverse`); a waypoint is passed within
-    ``capture_radius_m`` (default: three seconds of flight), then the next one
-    becomes active; after the last one the aircraft holds its last heading.
+    (Karney 2013: :func:`geodesic_inverse`). A waypoint is passed, and the next
+    one becomes active, when the aircraft comes within ``capture_radius_m``
+    (default: three seconds of flight) or when it passes it abeam: its
+    along-track distance past the waypoint turns positive, i.e. it crosses the
+    geodesic through the waypoint perpendicular to the leg there. That is how a
+    flight management system sequences a waypoint it does not fly over: on
+    "passing abeam" it, when the along-track distance to go on the leg turns
+    negative (the RNAV along-track/cross-track frame of the leg).
+    The leg runs from the previous waypoint, or for the first one from where
+    the aircraft was when it became active (this follower's first update).
+    Without it, a waypoint inside the turning circle (an f16's 4 km at 45
+    degrees of bank) was circled for good. Along-track is signed by the
+    azimuths at the waypoint, from it back along the leg and from it to the
+    aircraft (the geodesic's reverse azimuths): their difference beyond 90
+    degrees is past. Geodesic azimuths hold across the antimeridian and at a
+    waypoint on a pole (GeographicLib's limit convention for a pole's azimuth).
+    A pass abeam is reported like a capture, in ``passed``, its miss distance
+    beyond the capture radius. After the last waypoint the aircraft holds its
+    last heading.
     """
 
     def __init__(self, aircraft, waypoints, speed_mps: float, capture_radius_m: float | None = None,
@@ -265,6 +281,7 @@ class WaypointFollower:
         self.autopilot = Autopilot(aircraft, gains=gains)
         self.speed_mps = speed_mps
         self.passed: list = []  # (index, time_s, miss distance m)
+        self._leg_back_azi = None  # the active leg's azimuth at its waypoint, back to its start (deg)
 
     @property
     def done(self) -> bool:
@@ -277,13 +294,20 @@ class WaypointFollower:
             r = row = _row_values(self.autopilot.aircraft, row)
             lat, lon, alt = self.waypoints[self.active]
             here = math.degrees(r[_LAT]), math.degrees(r[_LON])
-            azi1, s12 = geodesic_inverse(*here, lat, lon)
-            if s12 < self.capture_radius_m:
+            azi1, back, s12 = _GEOD.inv(here[1], here[0], lon, lat)
+            if self._leg_back_azi is None:  # the first waypoint (or after a repeated one): its leg starts here
+                self._leg_back_azi = back if s12 > 0.0 else None
+            if s12 < self.capture_radius_m or (self._leg_back_azi is not None
+                                               and math.cos(math.radians(back - self._leg_back_azi)) < 0.0):
                 self.passed.append((self.active, r[_TIME], s12))
                 self.active += 1
                 if not self.done:
+                    prev = lat, lon
                     lat, lon, alt = self.waypoints[self.active]
-                    azi1, s12 = geodesic_inverse(*here, lat, lon)
+                    azi1, _, s12 = _GEOD.inv(here[1], here[0], lon, lat)
+                    _, back, leg = _GEOD.inv(prev[1], prev[0], lon, lat)
+                    # A repeated waypoint (a leg of 0 m): its leg starts at the aircraft's next update.
+                    self._leg_back_azi = back if leg > 0.0 else None
             if not self.done:
                 self.autopilot.set_targets(azi1 % 360.0, alt, self.speed_mps)
         self.autopilot.update(row)

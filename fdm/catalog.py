@@ -82,6 +82,21 @@ def is_rotorcraft(name: str, root: str | None = None) -> bool:
     return any(re.search(r"<rotor\b", t) for t in texts)
 
 
+# The catalog's flying boats: water is their ground, so they are exempt from ditching (a
+# landplane's wheels on water, fdm.aircraft). JSBSim has no contact type or flag for water (its
+# contacts are BOGEY or STRUCTURE): a model says it only in its text, so they are listed by
+# name, found in the jsbsim 1.3.3 wheel's catalog by "flying boat", "seaplane", "amphibian",
+# "hull" and "float": the Boeing314 (its hull and sponsons are BOGEY contacts, "hull in water")
+# and the Short_S23 ("flying boat", the hull's forces in a hydrodynamics system). No
+# amphibian (wheels and hull) or floatplane is in it.
+WATER_AIRCRAFT = frozenset({"Boeing314", "Short_S23"})
+
+
+def lands_on_water(name: str) -> bool:
+    """Whether a catalog model (its catalog spelling) alights on water: a flying boat."""
+    return name in WATER_AIRCRAFT
+
+
 def aircraft_class(name: str) -> str:
     """'light', 'fighter' or 'transport' (unknown models count as 'light')."""
     return CLASS_OF.get(name, "light")

@@ -17,6 +17,9 @@ Crash limits come per aircraft class (:data:`LIMITS`):
   (14 CFR 25.337). A crash is an excursion beyond the ultimate load sustained
   for ``g_hold_s`` (a one-step spike of the numerical acceleration is not a
   structural failure).
+- Wheels touching water (a landplane: not a flying boat of the catalog) are a
+  crash, "ditched": the host tells water by the ground vehicles' rule
+  (fdm.ground.WATER_LEVEL_MSL_M) and calls :meth:`EventDetector.ditched`.
 - A STRUCTURE contact (wing tip, tail skid, radome touching the ground) is a
   crash when it comes at more than STRUCTURE_REST_SPEED_MPS over the ground or
   sinking faster than the class's touchdown limit: those points are not meant
@@ -36,6 +39,8 @@ OUT_OF_FUEL = "out_of_fuel"
 EVENT_KINDS = (TOUCHDOWN, TAKEOFF, CRASH, OUT_OF_FUEL)
 
 FT_S = 0.3048
+# The crash reason of a landplane's wheels touching water.
+DITCHED = "ditched"
 # Ground speed (m/s) up to which a structure contact is coming to rest, not a crash: a
 # walking pace, below a glider's end of ground run, where a wing drops onto its tip.
 STRUCTURE_REST_SPEED_MPS = 3.0
@@ -144,6 +149,12 @@ class EventDetector:
         if self.crashed:
             return []
         return [self._crash(t, lat, lon, alt, "terrain penetration", penetration_m=penetration_m)]
+
+    def ditched(self, t, lat, lon, alt, **detail) -> list:
+        """A landplane's wheels on water (the host's test, fdm.aircraft): a crash."""
+        if self.crashed:
+            return []
+        return [self._crash(t, lat, lon, alt, DITCHED, **detail)]
 
     def _crash(self, t, lat, lon, alt, reason, **detail) -> Event:
         self.crashed = True
