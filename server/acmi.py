@@ -583,10 +583,21 @@ class _AcmiText:
         return data
 
     def header(self) -> bytes:
-        if self.r.index.ticks:
-            lat, lon, _ = ecef_to_geodetic(self.r.frame(self.r.first_tick).states[:, codec.POS])
+        """The header, its reference point from the first tick that reads (a damaged first
+        chunk is left out of the export, as any other: the chunks are named by the export)."""
+        r = self.r
+        for k in range(r.chunk_count if r.index.ticks else 0):
+            first, last = r.chunk_ticks(k)
+            if last < first:
+                continue
+            try:
+                states = r.frame(first).states
+            except DataFormatError:
+                continue
+            lat, lon, _ = ecef_to_geodetic(states[:, codec.POS])
             self.ref = reference_point(lat, lon)
-        return self._emit([header_text(self.r, *self.ref).encode()])
+            break
+        return self._emit([header_text(r, *self.ref).encode()])
 
     def chunk(self, c) -> bytes:
         """The frames of a decoded chunk (server.recording.Chunk) at the export rate."""

@@ -1089,7 +1089,9 @@ class Recording:
         """What the file holds and what is wrong with it; with ``decode`` every chunk is
         decoded (and its CRC checked), not only walked."""
         problems, unreadable = list(self.problems), set(self.lost)
-        if decode:
+        events, inputs = self.index.event_count, self.index.input_count  # the index's, unless decoded
+        if decode:  # then those of the chunks that read (a damaged chunk is left out of the counts)
+            events = inputs = 0
             for k in range(self.chunk_count):
                 try:
                     c = self.chunk(k)
@@ -1099,11 +1101,11 @@ class Recording:
                         problems.append(str(exc))
                     continue
                 problems += self._range_problems(k, c)
+                events, inputs = events + len(c.events), inputs + len(c.inputs)
         end = getattr(self, "_index_end", self._data_start)
         spans = self.spans(unreadable)
         replays = [(a * self.dt, b * self.dt) for a, b in spans]
         lost_ticks = self.lost_ticks(unreadable)
         return CheckReport(str(self.path), self.size, not self.recovered, self.chunk_count, self.index.ticks,
-                           self.first_time_s, self.last_time_s, len(self.entities), self.index.event_count,
-                           self.index.input_count, problems, end, len(unreadable), replays, lost_ticks,
-                           list(self.notes), self.header_checked)
+                           self.first_time_s, self.last_time_s, len(self.entities), events, inputs,
+                           problems, end, len(unreadable), replays, lost_ticks, list(self.notes), self.header_checked)

@@ -84,7 +84,7 @@ def summary(rec) -> dict:
     from sortie.errors import DataFormatError
 
     kinds = Counter({1: "aircraft", 2: "ground", 3: "static"}.get(e.kind, "?") for e in rec.entities.values())
-    events, damaged, unreadable = Counter(), [], set()
+    events, damaged, unreadable, inputs = Counter(), [], set(), 0
     # Entity seconds from the chunk heads (entities x ticks of each chunk; an entity that
     # comes or goes within a chunk counts for the whole chunk).
     entity_s = 0.0
@@ -97,13 +97,14 @@ def summary(rec) -> dict:
                 damaged.append(str(exc))
             continue
         events.update(r.event.kind for r in body.events)
+        inputs += len(body.inputs)
         entity_s += head.entity_count * head.ticks * rec.dt
     h = rec.header
     return {"file": str(rec.path), "size_bytes": rec.size, "exercise": h.exercise_name, "start_time": h.start_time,
             "first_time_s": rec.first_time_s, "last_time_s": rec.last_time_s, "duration_s": rec.duration_s,
             "ticks": rec.index.ticks, "world_rate_hz": rec.rate_hz, "chunks": rec.chunk_count,
-            "entities": len(rec.entities), "entities_by_kind": dict(kinds), "events": rec.index.event_count,
-            "events_by_kind": dict(events), "inputs": rec.index.input_count,
+            "entities": len(rec.entities), "entities_by_kind": dict(kinds), "events": sum(events.values()),
+            "events_by_kind": dict(events), "inputs": inputs,
             "bytes_per_entity_second": rec.size / entity_s if entity_s else None,
             "footer": not rec.recovered, "problems": list(rec.problems) + damaged, "build_id": h.build_id,
             "replays_s": [[a * rec.dt, b * rec.dt] for a, b in rec.spans(unreadable)],
@@ -193,7 +194,7 @@ def resim_command(args) -> int:
     d = report.as_dict()
     print(f"{report.recording}: {report.ticks} ticks compared in {report.wall_s:.1f} s: "
           f"{'bit-exact' if report.bit_exact else 'DIVERGED'} ({report.bit_exact_ticks} bit-exact ticks), "
-          f"max position difference {report.max_abs_diff_m:.4f} m"
+          f"max position difference {report.max_position_diff_m:.4f} m"
           + (f"; {report.ticks_not_compared} ticks of damaged chunks not compared" if report.ticks_not_compared
              else ""))
     if report.first_divergence:
@@ -227,8 +228,11 @@ def take_over_command(args, workers: int) -> int:
         recording.update(recorder=recorder, path=path, made=made)
         return recorder
 
-    world, inputs, scenario = take_over(args.file, args.take_over, args.agent, args.dem, args.terrain, workers,
-                                        recorder=record)
+    try:
+        world, inputs, scenario = take_over(args.file, args.take_over, args.agent, args.dem, args.terrain, workers,
+                                            recorder=record)
+    except InvalidArgument as exc:  # an agent that is gone, crashed or unknown: name the option
+        raise exc.with_field("--agent") if exc.field == "agent" else exc from None
     recorder = recording.get("recorder")
     config = server_config(scenario, "take-over:" + str(args.file))
     config.clock = "realtime"

@@ -16,10 +16,11 @@ elapsed, shows the recorded tick at that position (one chunk decoded per
 second of world time; seeking is the index's bisection and one chunk) and
 publishes, so at 64x each update jumps 3.2 world seconds and dead reckoning
 decides what changed enough to send. Events recorded between the ticks shown
-go out on WatchEvents as they are passed while playing forward (not when
-seeking). After a seek every Watch stream starts over: its next update is a
-full snapshot (``snapshot = true``, which a client takes in place of what it
-holds), with every visible entity's state at the new time. Only observers may join: a
+go out on WatchEvents as they are passed while playing or stepping forward
+(not when seeking). After a seek or a step, forward or back, every Watch
+stream starts over: its next update is a full snapshot (``snapshot = true``,
+which a client takes in place of what it holds), with every visible entity's
+state at the new time. Only observers may join: a
 replay has no agents to command (take-over is ``sortie resim --take-over``).
 """
 
@@ -199,6 +200,7 @@ class ReplayServer:
         self._position_s = self.rec.first_time_s if start_s is None else self._clamp(start_s)
         self._last_wall = time.monotonic()  # when the position was last advanced
         self._seeked = True
+        self._step_events = False  # with _seeked: a forward step, whose events go out as played
         self.sessions = ReplaySessions(self.world, self.params_of, self.config.vanished_timeout_s)
         self.publisher = Publisher(DeadReckoner(), lambda i: self.params_of(i).thresholds)
         self._stop = threading.Event()
@@ -269,7 +271,7 @@ class ReplayServer:
                     raise InvalidArgument("seek_time_s", "must be a finite number", value=msg.seek_time_s)
                 position_s = self._clamp(msg.seek_time_s)
                 self._check_readable(self.rec.tick_at(position_s))
-                self._position_s, self._seeked = position_s, True
+                self._position_s, self._seeked, self._step_events = position_s, True, False
             else:
                 n = msg.step_ticks
                 if not 0 < abs(n) <= MAX_STEP_TICKS:
@@ -279,7 +281,13 @@ class ReplayServer:
                 self._check_readable(tick)
                 self.playing = False
                 self._position_s = tick * self.rec.dt
-                self._seeked = n < 0
+                # Any step resnapshots, as a seek does: paused, a client's picture does not
+                # extrapolate (time scale 0) and dead reckoning sends only what passes its
+                # threshold, so after a forward step a renderer or debrief tool would keep
+                # the old time and positions. A full picture at the new tick is what a
+                # Tacview-like frame step shows; a forward step still emits the events it
+                # passes (as playing does), a backward one none.
+                self._seeked, self._step_events = True, n > 0
             self._wake_clock()
         return self.status()
 
@@ -337,8 +345,8 @@ class ReplayServer:
                 if self._position_s >= self.rec.last_time_s:
                     self._position_s, self.playing = self.rec.last_time_s, False
             self._last_wall = now
-            tick, seeked = self.rec.tick_at(self._position_s), self._seeked
-            self._seeked = False
+            tick, seeked, step_events = self.rec.tick_at(self._position_s), self._seeked, self._step_events
+            self._seeked = self._step_events = False
         if seeked:  # every watcher starts over from a full snapshot at the new time
             self.publisher.reset()
             for session in self.sessions.watching():
@@ -347,7 +355,7 @@ class ReplayServer:
                     session.queue.resnapshot()
         if tick != self.world.tick_count or seeked:
             try:
-                self.world.show(tick, events=not seeked)
+                self.world.show(tick, events=not seeked or step_events)
             except DataFormatError as exc:
                 self._pass_damaged(tick, exc)
         self.publisher.publish(self.world.snapshot, self.world.infos, self.sessions.watching(),

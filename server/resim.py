@@ -74,7 +74,8 @@ class ResimReport:
     recording: str
     ticks: int = 0
     bit_exact_ticks: int = 0
-    max_abs_diff_m: float = 0.0  # largest position difference, on the recording's grid
+    max_position_diff_m: float = 0.0  # largest position difference (a distance), on the recording's grid
+    max_abs_diff_m: float = 0.0  # largest difference along one ECEF axis (kept for older readers of the JSON)
     first_divergence: Divergence | None = None
     same_build: bool = True
     same_terrain: bool = True
@@ -87,7 +88,8 @@ class ResimReport:
         return self.ticks > 0 and self.bit_exact_ticks == self.ticks
 
     def as_dict(self) -> dict:
-        d = {k: getattr(self, k) for k in ("recording", "ticks", "bit_exact_ticks", "max_abs_diff_m", "same_build",
+        d = {k: getattr(self, k) for k in ("recording", "ticks", "bit_exact_ticks", "max_position_diff_m",
+                                           "max_abs_diff_m", "same_build",
                                            "same_terrain", "notes", "wall_s", "ticks_not_compared")}
         d["bit_exact"] = self.bit_exact
         d["first_divergence"] = str(self.first_divergence) if self.first_divergence else None
@@ -370,8 +372,10 @@ def _compare(rec: Recording, report: ResimReport, tick: int, ids: np.ndarray, st
         rq = frame.q
     q = codec.quantize(states, rec.steps)
     diff = q - rq
-    pos = np.abs(diff[:, codec.POS]).max(initial=0) * rec.steps.position_m
-    report.max_abs_diff_m = max(report.max_abs_diff_m, float(pos))
+    d_pos = diff[:, codec.POS] * rec.steps.position_m
+    report.max_position_diff_m = max(report.max_position_diff_m,
+                                     float(np.linalg.norm(d_pos, axis=1).max(initial=0)))
+    report.max_abs_diff_m = max(report.max_abs_diff_m, float(np.abs(d_pos).max(initial=0)))
     if report.first_divergence is None:
         rows, cols = np.nonzero(diff)
         if rows.size:
@@ -460,6 +464,7 @@ def take_over(path, at_s: float, agent: str, dem=None, service: str | None = Non
             gone = False
         if gone:
             raise InvalidArgument("agent", f"is gone by t = {at_s} s", value=agent)
+        _refuse_wreck(rec, target.id, last, at_s, agent)  # a wreck takes no owner (World.claim)
         if recorder is not None:
             attached = recorder(rec, world, scenario, spec)
             if attached is not None:
@@ -469,6 +474,9 @@ def take_over(path, at_s: float, agent: str, dem=None, service: str | None = Non
             world.tick()
         if target.id not in world.entities:
             raise InvalidArgument("agent", f"is gone by t = {at_s} s", value=agent)
+        if world.is_wreck(target):  # its crash event in a chunk that does not read
+            raise InvalidArgument("agent", f"{'is destroyed' if target.destroyed else 'has crashed'} by "
+                                           f"t = {at_s} s", value=agent)
         if world.recorder is not None:  # an input: a re-simulation of this sortie makes it too
             world.recorder.on_input(world.tick_count, "take_over", target.id,
                                     {"controllable": True, "on_vanish": "autopilot"})
@@ -485,6 +493,17 @@ def take_over(path, at_s: float, agent: str, dem=None, service: str | None = Non
         raise
     finally:
         rec.close()
+
+
+def _refuse_wreck(rec: Recording, entity_id: int, last: int, at_s: float, agent: str) -> None:
+    """InvalidArgument when the recording has ``entity_id`` crashed or destroyed by tick
+    ``last``, saying when (the events of chunks that do not read are passed over)."""
+    for r in rec.events(skipped=[]):
+        if r.tick > last:
+            return
+        if r.event.entity_id == entity_id and r.event.kind in ("crash", "destroyed"):
+            what = "has crashed" if r.event.kind == "crash" else "is destroyed"
+            raise InvalidArgument("agent", f"{what} by t = {at_s} s (at t = {r.event.time_s:.2f} s)", value=agent)
 
 
 def take_over_header(rec: Recording, scenario, world, spec: dict, terrain_given: bool):

@@ -56,6 +56,17 @@ functions build it):
   them), ``Title``, ``DataSource``, ``DataRecorder``, ``RecordingTime``) and
   a key frame: the last frame's time and a full line of every object as last
   written; from the next frame on it gets the same bytes as everyone else.
+- A new full snapshot (``WatchUpdate.snapshot``: a replay's seek or step,
+  ``sortie replay``) restarts the frame clock at its world time: the next
+  frame is at the new time, its positions the new picture's. Forward, that is
+  one more frame. Backward it cannot be streamed: an ACMI stream is a file
+  being written, its frame times only increase (Tacview appends what it
+  receives to the timeline it shows; the real-time protocol has no message
+  to rewind or to start a recording over on the same connection). So every
+  client streaming then is told the end of its stream (what it was sent is
+  flushed, then the connection is closed, logged), as a simulator that
+  restarts ends its stream; on reconnecting it gets a new header and a key
+  frame at the new time, as any newcomer does.
 - Altitude is metres above MSL: the ellipsoid height minus the geoid
   undulation the server states (WorldInfo ``geoid_undulation_m``), unless
   ``--geoid-undulation-m`` overrides it.
@@ -409,6 +420,7 @@ class TacviewTelemetry:
         self._builder: FrameBuilder | None = None
         self._header = b""
         self._last_t = -math.inf
+        self._snapshot_times: collections.deque = collections.deque()  # of full snapshots not yet framed
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread: threading.Thread | None = None
         self._build_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tacview-frame")
@@ -508,6 +520,8 @@ class TacviewTelemetry:
         """Picture listener (the Watch thread, under the picture's lock): the entity infos."""
         if not (update.snapshot or update.left or update.entered):
             return
+        if update.snapshot:  # the frame clock restarts at its time (see the module docstring)
+            self._snapshot_times.append(update.time_s)
         infos = {} if update.snapshot else dict(self._infos)
         for i in update.left:
             infos.pop(i, None)
@@ -528,9 +542,14 @@ class TacviewTelemetry:
 
     # -- frames (the loop, the build thread) ----------------------------------------------------
 
-    def _build(self, emit: bool, want_key: bool) -> tuple[bytes, bytes | None]:
-        """Sample the picture now and build the frame (and a key frame when asked)."""
+    def _build(self, emit: bool, want_key: bool) -> tuple[bytes, bytes | None, bool]:
+        """Sample the picture now and build the frame (and a key frame when asked); whether
+        world time went back (a new snapshot earlier than the last frame: the streams end)."""
         t0 = time.perf_counter()
+        snapshots = [self._snapshot_times.popleft() for _ in range(len(self._snapshot_times))]
+        back = any(t < self._last_t - 0.5 * 10.0 ** -self._builder.decimals for t in snapshots)
+        if snapshots:  # a new picture at its own time: the frame clock starts over there
+            self._last_t = -math.inf
         t = self._picture.now_s()
         # The estimate of world time steps back when an update arrives late: frames still
         # advance (by more than a written time unit) while the clock runs, and stay put
@@ -543,7 +562,7 @@ class TacviewTelemetry:
         delta = self._builder.frame(t, ids, pos, quat, self._infos, events, emit=emit)
         key = self._builder.keyframe() if want_key else None
         self.build_ms.append((time.perf_counter() - t0) * 1e3)
-        return delta, key
+        return delta, key, back
 
     async def _frames(self) -> None:
         loop = asyncio.get_running_loop()
@@ -561,8 +580,14 @@ class TacviewTelemetry:
                     self.finished.set()
                     return
                 newcomers = list(self._newcomers)
-                delta, key = await loop.run_in_executor(self._build_pool, self._build, bool(self._streaming),
-                                                        bool(newcomers))
+                delta, key, back = await loop.run_in_executor(self._build_pool, self._build,
+                                                              bool(self._streaming), bool(newcomers))
+                if back:  # an ACMI stream cannot go back in time: end those streaming (docstring)
+                    for c in list(self._streaming):
+                        log.info("Tacview client %r at %s: world time went back (a replay's seek): its stream "
+                                 "ends; reconnecting starts a new one at the new time", c.name, c.peer)
+                        self._drop(c)
+                    delta = b""
                 if delta:
                     for c in list(self._streaming):
                         self._send(c, delta)
