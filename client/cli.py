@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 import signal
 import threading
 import time
 
 import numpy as np
+
+from sortie.errors import InvalidArgument
 
 PROFILES = ("patrol", "racetrack")
 MAX_BOTS = 256  # a server's sessions (server/sim_service.py MAX_SESSIONS)
@@ -266,7 +269,15 @@ def _fly_bot(address: str, k: int, profile: str, leg_s: float, duration_s: float
                 targets["alt_msl_m"] = msl + (300.0 if legs % 2 == 0 else -300.0)
             else:
                 targets["speed_mps"] = 8.0
-            controls.autopilot(**targets)
+            try:
+                controls.autopilot(**targets)
+            except InvalidArgument as exc:
+                lost = _agent_lost(exc)
+                if lost is None:
+                    raise
+                sim.leave()  # its agent crashed or was destroyed: its flight is over, not failed
+                results.append((k, agent, f"{legs} legs, then its agent {lost}; {picture.updates} updates"))
+                return
             legs += 1
             wait_end = time.monotonic() + max(leg_s / max(picture.time_scale, 1e-6), MIN_LEG_WALL_S)
             while time.monotonic() < min(wait_end, end) and not stop.is_set():
@@ -274,6 +285,16 @@ def _fly_bot(address: str, k: int, profile: str, leg_s: float, duration_s: float
         accepted = controls.close()
         sim.leave()
         results.append((k, agent, f"{legs} legs, {accepted} commands accepted, {picture.updates} updates"))
+
+
+_WRECK = re.compile(r" (has crashed|is destroyed)\b")
+
+
+def _agent_lost(exc: InvalidArgument) -> str | None:
+    """"crashed" or "was destroyed" when a refused command says the bot's agent is a wreck
+    (server.world.World.command: "command: NAME has crashed (got ...)"), else None."""
+    m = _WRECK.search(exc.message) if exc.field == "command" else None
+    return None if m is None else "crashed" if m[1] == "has crashed" else "was destroyed"
 
 
 def _heading_deg(pos, quat) -> float:

@@ -162,3 +162,37 @@ def test_a_ground_vehicle_given_a_heading_alone_keeps_its_speed():
         assert abs((w.ground.heading_deg[i] - 90.0 + 180.0) % 360.0 - 180.0) < 3.0
     finally:
         w.close()
+
+
+def test_a_bot_whose_aircraft_crashes_says_so_and_leaves(hgt_alps):
+    """A bot's aircraft that crashes takes no more commands (above): the bot ends its flight
+    with a line saying so, not as a failure ("stopped: command: viper1 has crashed")."""
+    import threading
+
+    from client import cli
+    from server.sim_server import ServerConfig, SimulationServer
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    alps = Terrain([read_dem(hgt_alps)])
+    w = World(alps)
+    jet = w.spawn_aircraft("viper1", "f16", InitialConditions(47.30, 9.30, 3500.0, heading_deg=90.0, speed_mps=200.0),
+                           controllable=True)
+
+    def crash_once_flown(world):  # on the clock thread, before a tick
+        e = world.entities[jet.id]
+        if e.owner is not None and world.time_s > 2.0 and not world.is_wreck(e):
+            s = world.air._get(jet.id).state()
+            world.air.crash(jet.id, world.time_s, s.lat_deg, s.lon_deg, s.alt_msl_m, "the test")
+
+    srv = SimulationServer(w, ServerConfig(clock="fast", time_scale=4.0), before_tick=crash_once_flown)
+    srv.start()
+    try:
+        results = []
+        cli._fly_bot(srv.address, 0, "patrol", 1.0, 30.0, results, threading.Event())
+        (k, agent, what), = results
+        assert agent == jet.id and "then its agent crashed" in what, what
+        assert srv.world.entities[jet.id].owner is None  # it left
+    finally:
+        srv.stop(0.5)
+        w.close()
