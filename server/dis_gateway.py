@@ -556,20 +556,21 @@ def add_parser(sub) -> None:
 
 
 def dis_command(args) -> int:
-    from server.grpc_common import wait_for_signal
+    from server.grpc_common import stop_signals, wait_for_signal
 
     gateway = DisGateway(args.server, port=args.port, exercise=args.exercise, host=args.host, site=args.site,
                          application=args.application, remote_timeout_s=args.remote_timeout_s,
                          heartbeat_s=args.heartbeat_s)
-    gateway.start()
-    line(f"sortie dis: exercise {gateway.exercise} on {gateway.host}:{gateway.port} as site {gateway.site} "
-         f"application {gateway.application}, server {args.server}", logger=__name__)
-    try:
-        wait_for_signal(gateway.finished)
-    finally:
-        picture = gateway._picture  # noqa: SLF001 - why it finished, before stop() lets it go
-        ended = gateway.finished.is_set()
-        gateway.stop()
+    with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
+        gateway.start()
+        line(f"sortie dis: exercise {gateway.exercise} on {gateway.host}:{gateway.port} as site {gateway.site} "
+             f"application {gateway.application}, server {args.server}", logger=__name__)
+        try:
+            wait_for_signal(gateway.finished, stop=stop)
+        finally:
+            picture = gateway._picture  # noqa: SLF001 - why it finished, before stop() lets it go
+            ended = gateway.finished.is_set()
+            gateway.stop()
     s = gateway.stats()
     line(f"sortie dis: stopped; {s['pdus_sent']} PDUs sent, {s['pdus_received']} received "
          f"({s['pdus_ignored']} ignored, {s['pdus_malformed']} malformed)", logger=__name__)

@@ -19,6 +19,7 @@ unknown field, a multi-byte enum varint) falls back to the generated class.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
 import signal
@@ -406,9 +407,10 @@ class ManagedServer:
         return self.grpc_server.wait_for_termination(timeout)
 
     def serve_until_signalled(self, grace_s: float = DEFAULT_GRACE_S,
-                              signals=(signal.SIGTERM, signal.SIGINT)) -> None:
-        """Block (main thread only) until one of ``signals``, then stop gracefully."""
-        wait_for_signal(signals=signals)
+                              signals=(signal.SIGTERM, signal.SIGINT), stop: threading.Event | None = None) -> None:
+        """Block (main thread only) until one of ``signals`` (``stop``: as in
+        :func:`wait_for_signal`), then stop gracefully."""
+        wait_for_signal(signals=signals, stop=stop)
         logger.info("signal received: NOT_SERVING, stopping with %.1f s grace", grace_s)
         self.stop(grace_s).wait()
 
@@ -441,16 +443,33 @@ def listen_cause(address: str) -> str | None:
     return None
 
 
-def wait_for_signal(finished: threading.Event | None = None, signals=(signal.SIGTERM, signal.SIGINT)) -> None:
-    """Block (main thread only) until one of ``signals`` arrives or ``finished`` is set."""
+@contextlib.contextmanager
+def stop_signals(signals=(signal.SIGTERM, signal.SIGINT)):
+    """While in the block (main thread only), ``signals`` set the event it yields instead of
+    ending the process; the previous handlers are back after it (a second Ctrl-C during a
+    stuck shutdown still interrupts). A service enters it before it says where it listens:
+    a supervisor (or a test) that sends SIGTERM as soon as it reads that line then stops it
+    cleanly (exit 0), where before the handlers came only after the line, and a SIGTERM in
+    between killed it (-15)."""
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in signals}
     try:
-        while not stop.is_set() and not (finished is not None and finished.is_set()):
-            stop.wait(0.2)
+        yield stop
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def wait_for_signal(finished: threading.Event | None = None, signals=(signal.SIGTERM, signal.SIGINT),
+                    stop: threading.Event | None = None) -> None:
+    """Block (main thread only) until one of ``signals`` arrives or ``finished`` is set;
+    ``stop``: the event of an enclosing :func:`stop_signals` (its signals), else its own."""
+    if stop is None:
+        with stop_signals(signals) as stop:
+            wait_for_signal(finished, stop=stop)
+        return
+    while not stop.is_set() and not (finished is not None and finished.is_set()):
+        stop.wait(0.2)
 
 
 class AioManagedServer:

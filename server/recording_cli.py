@@ -208,7 +208,7 @@ def resim_command(args) -> int:
 
 
 def take_over_command(args, workers: int) -> int:
-    from server.grpc_common import wait_for_signal
+    from server.grpc_common import stop_signals, wait_for_signal
     from server.resim import take_over, take_over_header
     from server.sim_cli import _missing_folders, check_recording, new_recording, remove_recording
     from server.sim_server import SimulationServer, server_config
@@ -244,15 +244,16 @@ def take_over_command(args, workers: int) -> int:
             recorder.close()
             remove_recording(recording["path"], recording["made"])
         raise
-    server.start()
-    line(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}",
-         logger=__name__)
-    if recorder is not None:
-        line(f"recording to {recording['path']}", logger=__name__)
-    for lost in inputs.lost:
-        line(f"note: the others' recorded inputs are incomplete: {lost}", stream=sys.stderr, level=logging.WARNING,
+    with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
+        server.start()
+        line(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}",
              logger=__name__)
-    wait_for_signal(server.finished)
+        if recorder is not None:
+            line(f"recording to {recording['path']}", logger=__name__)
+        for lost in inputs.lost:
+            line(f"note: the others' recorded inputs are incomplete: {lost}", stream=sys.stderr,
+                 level=logging.WARNING, logger=__name__)
+        wait_for_signal(server.finished, stop=stop)
     server.stop()
     if recorder is not None:
         recorder.close()

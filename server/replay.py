@@ -36,7 +36,7 @@ import time
 import grpc
 import numpy as np
 
-from server.grpc_common import AioManagedServer, wait_for_signal
+from server.grpc_common import AioManagedServer, stop_signals, wait_for_signal
 from server.recording import Recording
 from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers, status_of
 from server.streaming import Publisher
@@ -415,11 +415,12 @@ def replay_command(args) -> int:
     if args.start is not None and math.isnan(args.start):
         raise InvalidArgument("--start", "must be a number of seconds", value=args.start)
     server = ReplayServer(args.file, f"{args.host}:{args.port}", args.speed, not args.paused, args.start)
-    server.start()
-    r = server.rec
-    line(f"sortie replay of {r.path.name} ({r.first_time_s:.1f} .. {r.last_time_s:.1f} s, {len(r.entities)} "
-         f"entities) listening on {server.address}", logger=__name__)
-    wait_for_signal(server.finished)
+    with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
+        server.start()
+        r = server.rec
+        line(f"sortie replay of {r.path.name} ({r.first_time_s:.1f} .. {r.last_time_s:.1f} s, {len(r.entities)} "
+             f"entities) listening on {server.address}", logger=__name__)
+        wait_for_signal(server.finished, stop=stop)
     server.stop()
     if server.error is not None:
         line(f"sortie replay: error: the replay clock stopped: {server.error}", stream=sys.stderr,

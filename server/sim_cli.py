@@ -27,7 +27,7 @@ import sys
 import time
 from pathlib import Path
 
-from server.grpc_common import DEFAULT_GRACE_S, wait_for_signal
+from server.grpc_common import DEFAULT_GRACE_S, stop_signals, wait_for_signal
 from server.scenario import DURATION_MAX_S, TIME_SCALE_MAX
 from server.sim_server import CLOCKS
 from sortie.config import MAX_GRACE_S, grace_seconds
@@ -254,14 +254,14 @@ def server_command(args) -> int:
     except BaseException:
         _abandon_start(server, metrics, metrics_started, recorder, path, made, world)
         raise
-    line(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
-         f"clock {config.clock})", logger=__name__)
-    if metrics is not None:
-        line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
-    if recorder is not None:
-        line(f"recording to {path}", logger=__name__)
-    with clock_signals(server, config.clock):
-        wait_for_signal(server.finished)
+    with stop_signals() as stop, clock_signals(server, config.clock):  # (grpc_common.stop_signals)
+        line(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
+             f"clock {config.clock})", logger=__name__)
+        if metrics is not None:
+            line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
+        if recorder is not None:
+            line(f"recording to {path}", logger=__name__)
+        wait_for_signal(server.finished, stop=stop)
     server.stop(args.grace_s)
     world.close()
     if metrics is not None:

@@ -721,19 +721,20 @@ def add_parser(sub) -> None:
 
 
 def tacview_command(args) -> int:
-    from server.grpc_common import wait_for_signal
+    from server.grpc_common import stop_signals, wait_for_signal
 
     telemetry = TacviewTelemetry(args.server, host=args.host, port=args.port, password=args.password,
                                  rate_hz=args.rate_hz, name=args.name, geoid_undulation_m=args.geoid_undulation_m)
-    port = telemetry.start()
-    line(f"sortie tacview: Tacview real-time telemetry on {args.host}:{port} for {args.server} "
-         f"({telemetry.entities} entities, {telemetry.rate_hz:g} Hz"
-         f"{', password set' if args.password else ''})", logger=__name__)
-    try:
-        wait_for_signal(telemetry.finished)
-    finally:
-        lost = telemetry.finished.is_set()
-        telemetry.stop()
+    with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
+        port = telemetry.start()
+        line(f"sortie tacview: Tacview real-time telemetry on {args.host}:{port} for {args.server} "
+             f"({telemetry.entities} entities, {telemetry.rate_hz:g} Hz"
+             f"{', password set' if args.password else ''})", logger=__name__)
+        try:
+            wait_for_signal(telemetry.finished, stop=stop)
+        finally:
+            lost = telemetry.finished.is_set()
+            telemetry.stop()
     s = telemetry.stats()
     line(f"sortie tacview stopped: {s['accepted']} clients served, {s['rejected']} refused, "
          f"{s['dropped_slow']} dropped as too slow, {s['frames']} frames, {s['bytes_sent']:,} bytes", logger=__name__)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from server.grpc_common import DEFAULT_GRACE_S
+from server.grpc_common import DEFAULT_GRACE_S, stop_signals
 from server.terrain_service import DEFAULT_MAX_WORKERS
 from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.errors import InvalidArgument
@@ -150,11 +150,12 @@ def serve_command(args) -> int:
         from server.metrics import MetricsServer, terrain_metrics
 
         metrics = MetricsServer(lambda: terrain_metrics(server.stats), args.host, args.metrics_port).start()
-    server.start()
-    line(f"sortie terrain service listening on {args.host}:{port}", logger=__name__)
-    if metrics is not None:
-        line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
-    server.serve_until_signalled(grace_s=args.grace_s)
+    with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
+        server.start()
+        line(f"sortie terrain service listening on {args.host}:{port}", logger=__name__)
+        if metrics is not None:
+            line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
+        server.serve_until_signalled(grace_s=args.grace_s, stop=stop)
     if metrics is not None:
         metrics.stop()
     line("sortie terrain service stopped", logger=__name__)
