@@ -38,7 +38,8 @@ import numpy as np
 
 from server.grpc_common import AioManagedServer, stop_signals, wait_for_signal
 from server.recording import Recording
-from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, method_handlers, status_of
+from server.sim_service import (MAX_CONCURRENT_RPCS, SERVICE_NAME, Sessions, SimulationServicer, method_handlers,
+                                status_of)
 from server.streaming import Publisher
 from server.world import KIND_NAMES, STATIC, Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
 from sortie.errors import DataFormatError, InvalidArgument, PermissionDenied
@@ -215,7 +216,7 @@ class ReplayServer:
             self.servicer = servicer(pool)
             return method_handlers(self.servicer)
 
-        self.grpc = AioManagedServer(SERVICE_NAME, handlers, address, max_rpcs=512,
+        self.grpc = AioManagedServer(SERVICE_NAME, handlers, address, max_rpcs=MAX_CONCURRENT_RPCS,
                                      extra_services=[(REPLAY_SERVICE, lambda pool: self._handlers())])
         self.port = self.grpc.port
         self.address = f"{address.rsplit(':', 1)[0]}:{self.port}"

@@ -38,7 +38,8 @@ from fdm.aircraft import TRIM_OFF_HINT
 from server.dead_reckoning import DeadReckoner, Thresholds, THRESHOLDS_BY_KIND, ALGORITHM_NAMES
 from server.grpc_common import AioManagedServer
 from server.scenario import ScenarioError
-from server.sim_service import SERVICE_NAME, Sessions, SimulationServicer, StreamStats, method_handlers
+from server.sim_service import (MAX_CONCURRENT_RPCS, SERVICE_NAME, Sessions, SimulationServicer, StreamStats,
+                                method_handlers)
 from server.streaming import Publisher
 from server.world import KIND_NAMES, World
 from sortie.errors import InvalidArgument, SortieError
@@ -47,7 +48,7 @@ from sortie.v1 import simulation_pb2 as pb
 logger = logging.getLogger(__name__)
 
 CLOCKS = ("realtime", "fast", "paused")
-DEFAULT_MAX_WORKERS = 512  # concurrent RPCs (streams are coroutines, not threads)
+DEFAULT_MAX_WORKERS = MAX_CONCURRENT_RPCS  # concurrent RPCs (server.sim_service: sessions x their calls)
 EXPIRE_EVERY_S = 1.0
 # A realtime clock more than this far behind resynchronises instead of bursting.
 MAX_LAG_S = 0.25

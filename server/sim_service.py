@@ -58,6 +58,13 @@ SERVICE_NAME = "sortie.v1.SimulationService"
 MAX_SESSIONS = 256
 MAX_NAME_CHARS = 64  # client names, and agent names (a scenario's agent names are at most 64 characters)
 MAX_EVENT_STREAMS = 4  # WatchEvents streams open at once per session
+# Calls one session holds open at once within its limits: a Watch, its events streams, a
+# controls and an external-entities stream, and one call (Join, Leave, GetWorld, health) in
+# flight. The servers admit MAX_SESSIONS of them (MAX_CONCURRENT_RPCS): at 512, 256 observers
+# with a Watch and an events stream each filled the limit, and health, Join and Leave were
+# refused with gRPC's "Concurrent RPC limit exceeded!" (a busy server failed its health check).
+CALLS_PER_SESSION = 1 + MAX_EVENT_STREAMS + 2 + 1
+MAX_CONCURRENT_RPCS = MAX_SESSIONS * CALLS_PER_SESSION  # (streams are coroutines: cheap)
 # How long a stream waits for changes before checking that it is still wanted (on the event
 # loop: the wait holds no thread).
 STREAM_POLL_S = 0.25
