@@ -121,13 +121,15 @@ def _view_args(p) -> None:
 # -- argument parsing ----------------------------------------------------------------------------
 
 def parse_size(text: str) -> tuple[int, int]:
-    """"960x540" -> (960, 540)."""
+    """"960x540" -> (960, 540), each side in [1, the renderer's MAX_IMAGE_SIDE]."""
+    from client.render.renderer import MAX_IMAGE_SIDE
+
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise InvalidArgument("--size", "expected WIDTHxHEIGHT in pixels, e.g. 960x540", value=text) from None
-    if not (w > 0 and h > 0):
-        raise InvalidArgument("--size", "width and height must be > 0", value=text)
+    if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
+        raise InvalidArgument("--size", f"width and height must be in [1, {MAX_IMAGE_SIDE}] pixels", value=text)
     return w, h
 
 
@@ -139,20 +141,38 @@ def parse_pose(text: str) -> tuple[float, ...]:
         values = []
     if len(values) not in (5, 6):
         raise InvalidArgument("--camera", "expected LAT,LON,ALT_MSL_M,HEADING_DEG,PITCH_DEG[,ROLL_DEG]", value=text)
+    from terrain.validate import LON_ABS_MAX_DEG
+
+    # (Camera.from_geodetic's and the terrain's own checks name their parameters, lat_deg, lon[0].)
+    bounds = {"LAT": 90.0, "LON": LON_ABS_MAX_DEG, "PITCH_DEG": 90.0}
     for name, v in zip(("LAT", "LON", "ALT_MSL_M", "HEADING_DEG", "PITCH_DEG", "ROLL_DEG"), values):
         if not math.isfinite(v):
             raise InvalidArgument("--camera", f"{name} must be a finite number (LAT,LON,ALT_MSL_M,HEADING_DEG,"
                                               "PITCH_DEG[,ROLL_DEG])", value=text)
+        if name in bounds and abs(v) > bounds[name]:
+            raise InvalidArgument("--camera", f"{name} {v:g} must be within [-{bounds[name]:g}, {bounds[name]:g}] "
+                                              "degrees", value=text)
     return tuple(values + [0.0] * (6 - len(values)))
 
 
 def check_render_options(args) -> None:
     """The numeric options of render and view, each named as given on the command line (a
-    renderer's own check names its parameter, window_m, not --window-km)."""
+    renderer's own check names its parameter, window_m, not --window-km), with the camera's and
+    the renderer's own bounds."""
+    from client.render.camera import FOV_X_RANGE_DEG
+    from server.scenario import GEOID_UNDULATION_ABS_MAX_M  # the renderer's bound (a scenario's too)
+
+    if getattr(args, "size", None) is not None:  # (a namespace of some options only: those)
+        parse_size(args.size)
+    lo, hi = FOV_X_RANGE_DEG
+    if not (lo <= getattr(args, "fov_deg", lo) <= hi):  # NaN fails too
+        raise InvalidArgument("--fov-deg", f"must be within [{lo:g}, {hi:g}] degrees", value=args.fov_deg)
+    n_max = GEOID_UNDULATION_ABS_MAX_M
     if args.geoid_undulation_m is not None and not (math.isfinite(args.geoid_undulation_m)
-                                                    and abs(args.geoid_undulation_m) <= 200.0):
-        raise InvalidArgument("--geoid-undulation-m", "must be finite and within [-200, 200] m (the geoid departs "
-                                                     "from WGS84 by -107 to +86 m)", value=args.geoid_undulation_m)
+                                                    and abs(args.geoid_undulation_m) <= n_max):
+        raise InvalidArgument("--geoid-undulation-m", f"must be finite and within [-{n_max:g}, {n_max:g}] m (the "
+                                                     "geoid departs from WGS84 by -107 to +86 m)",
+                              value=args.geoid_undulation_m)
     window, horizon = args.window_km, args.horizon_km  # client/render/terrain_mesh.py's bounds, in km
     if not (math.isfinite(window) and 0.0 < window <= 1000.0):
         raise InvalidArgument("--window-km", "must be in (0, 1000] km", value=window)
@@ -299,7 +319,6 @@ def view_command(args) -> int:
         raise InvalidArgument("--frames", "must be >= 1", value=args.frames)
     if not (args.fps > 0):
         raise InvalidArgument("--fps", "must be > 0", value=args.fps)
-    parse_size(args.size)
     check_render_options(args)
     kind = None if args.agent_type is None else kind_from_name(args.agent_type)
     stop = threading.Event()

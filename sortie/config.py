@@ -15,8 +15,9 @@ Each long option of each command may also come from
 Precedence, as in most Unix daemons: the command line, then the environment,
 then the file, then the built-in default; within a group of alternatives
 (``--dem | --terrain``) too: the alternative of the highest of these wins, and
-two alternatives of a required group (``--cell | --bbox``) from the same one
-are an error naming both and where each came from. An option abbreviated on
+two alternatives of one group (``--cell | --bbox``, ``--record | --no-record``)
+from the same one are an error naming both and where each came from, as the
+command line's "not allowed with". An option abbreviated on
 the command line (``--de`` for ``--dem``, as argparse allows) counts as given
 there. Values are checked like command-line
 ones (the option's type and choices); a bad one, an unknown table or an unknown
@@ -230,7 +231,6 @@ def apply(parser: argparse.ArgumentParser, config_path: str | None = None, envir
         for group in sub._mutually_exclusive_groups:  # noqa: SLF001 - argparse keeps no public list
             if group.required and any(_configured(a) for a in group._group_actions):  # noqa: SLF001
                 group.required = False
-                group.sortie_required = True
 
 
 def _configured(action: argparse.Action) -> bool:
@@ -267,9 +267,10 @@ def _same_value(value, option_value) -> bool:
 def settle_exclusive(parser: argparse.ArgumentParser, args: argparse.Namespace, argv: list[str]) -> None:
     """Precedence within a group of alternatives: the command line's member (``--dem`` over a
     ``SORTIE_SERVER_TERRAIN`` from the environment), else the environment's (over a config
-    file's); the other members go back to their built-in defaults. Two members of a required
-    group from the same environment or file are an InvalidArgument naming both and where each
-    came from (the command line's two are argparse's own error)."""
+    file's); the other members go back to their built-in defaults. Two members of a group, required
+    or not (``--dem`` and ``--terrain``, ``--record`` and ``--no-record``), from the same environment
+    or file are an InvalidArgument naming both and where each came from (the command line's two
+    are argparse's own error); one from a lower layer is overridden, not an error."""
     given = command_line_actions(parser, argv)
     for sub in _active_parsers(parser, argv):
         for group in sub._mutually_exclusive_groups:  # noqa: SLF001 - argparse keeps no public list
@@ -279,7 +280,7 @@ def settle_exclusive(parser: argparse.ArgumentParser, args: argparse.Namespace, 
                 configured = [a for a in members if _configured(a)]
                 layer = ENVIRONMENT if any(a.sortie_layer == ENVIRONMENT for a in configured) else FILE
                 chosen = [a for a in configured if a.sortie_layer == layer]
-                if len(chosen) > 1 and getattr(group, "sortie_required", False):
+                if len(chosen) > 1:  # argparse's "not allowed with", as the command line would say it
                     a, b = chosen[:2]
                     raise InvalidArgument(f"{_option_name(a)} (set by {a.sortie_source})",
                                           f"not allowed with {_option_name(b)} (set by {b.sortie_source}): "

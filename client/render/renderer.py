@@ -258,8 +258,11 @@ class Renderer:
         for name, v in (("width", width), ("height", height)):
             if not (isinstance(v, int) and 1 <= v <= MAX_IMAGE_SIDE):
                 raise InvalidArgument(name, f"must be an integer in [1, {MAX_IMAGE_SIDE}] pixels", value=v)
-        if not (math.isfinite(geoid_undulation_m) and abs(geoid_undulation_m) <= 120.0):
-            raise InvalidArgument("geoid_undulation_m", "must be within [-120, 120] m", value=geoid_undulation_m)
+        from server.scenario import GEOID_UNDULATION_ABS_MAX_M as limit  # the scenario's bound, one constant
+
+        if not (math.isfinite(geoid_undulation_m) and abs(geoid_undulation_m) <= limit):
+            raise InvalidArgument("geoid_undulation_m", f"must be within [-{limit:g}, {limit:g}] m",
+                                  value=geoid_undulation_m)
         if not (-90.0 <= sun_elevation_deg <= 90.0):
             raise InvalidArgument("sun_elevation_deg", "must be within [-90, 90]", value=sun_elevation_deg)
         if flat_sky_rgb is not None and (len(flat_sky_rgb) != 3 or not all(0 <= c <= 255 for c in flat_sky_rgb)):
