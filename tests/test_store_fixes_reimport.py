@@ -18,15 +18,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import shared_or_embedded
 from sortie.cli import main
 from terrain import store as st
 from terrain.store_import import import_dems
 
-DEM = Path("/work/shared/data/dem")
-ALPS = DEM / "N47E009.hgt"
-BOULDER = DEM / "landlab_SRTMGL3_BoulderCO_553x553.asc"
-
-needs_dems = pytest.mark.skipif(not (ALPS.is_file() and BOULDER.is_file()), reason="shared DEMs not present")
+# ../shared/data/dem, or the project's embedded copies (data/dem); a test fails when neither has them.
+ALPS = shared_or_embedded("N47E009.hgt")
+BOULDER = shared_or_embedded("landlab_SRTMGL3_BoulderCO_553x553.asc")
 
 
 def _tiles(store: Path) -> list[Path]:
@@ -36,7 +35,6 @@ def _tiles(store: Path) -> list[Path]:
 # --------------------------------------------------------------------------- 1: re-import
 
 
-@needs_dems
 def test_a_reimport_leaves_only_what_its_manifest_lists(tmp_path):
     """The Alps and Boulder (2 regions, 7 levels), then Boulder alone (1 region, 5 levels) into the
     same directory: the old region-001 and region-000's levels 5 and 6 go, a user's files stay,
@@ -74,7 +72,6 @@ def test_a_reimport_leaves_only_what_its_manifest_lists(tmp_path):
 # --------------------------------------------------------------------------- 2: --detail-seed
 
 
-@needs_dems
 @pytest.mark.parametrize("kind", ["fractal", "cellular"])
 @pytest.mark.parametrize("seed", ["-5", str(2**64)])
 def test_an_out_of_range_detail_seed_is_refused_naming_the_option(tmp_path, capsys, kind, seed):
@@ -90,7 +87,6 @@ def test_an_out_of_range_detail_seed_is_refused_naming_the_option(tmp_path, caps
 # --------------------------------------------------------------------------- 3: arctic classes
 
 
-@needs_dems
 def test_no_forest_or_farmland_where_the_tree_line_is_at_or_below_the_ground():
     """Flat lowland and the Alps' relief moved north of 78 N (tree line 0 m) are tundra, rock or snow;
     at mid latitudes the classes are unchanged (the histogram recorded before the fix)."""
