@@ -475,8 +475,7 @@ def take_over(path, at_s: float, agent: str, dem=None, service: str | None = Non
         if target.id not in world.entities:
             raise InvalidArgument("agent", f"is gone by t = {at_s} s", value=agent)
         if world.is_wreck(target):  # its crash event in a chunk that does not read
-            raise InvalidArgument("agent", f"{'is destroyed' if target.destroyed else 'has crashed'} by "
-                                           f"t = {at_s} s", value=agent)
+            raise InvalidArgument("agent", f"{world.wreck_state(target)} by t = {at_s} s", value=agent)
         if world.recorder is not None:  # an input: a re-simulation of this sortie makes it too
             world.recorder.on_input(world.tick_count, "take_over", target.id,
                                     {"controllable": True, "on_vanish": "autopilot"})

@@ -515,6 +515,10 @@ class World(EventLog):
         static): it takes no owner and no commands (a crash found this tick included)."""
         return e.destroyed or e.crashed or e.id in self.wrecks
 
+    def wreck_state(self, e: Entity) -> str | None:
+        """How a refusal says ``e`` is a wreck ("is destroyed", "has crashed"), None if it is not."""
+        return None if not self.is_wreck(e) else "is destroyed" if e.destroyed else "has crashed"
+
     def claim(self, entity_id: int, owner: str, client: str = "") -> Entity:
         """Give control of a controllable entity to ``owner`` (a session token; the
         recording keeps the ``client`` name instead); NotFound/InvalidArgument otherwise."""
@@ -525,7 +529,7 @@ class World(EventLog):
             if not e.controllable or e.owner is not None:
                 raise InvalidArgument("agent", "is not free to control", value=e.name)
             if self.is_wreck(e):  # nothing to fly or drive
-                raise InvalidArgument("agent", "is destroyed" if e.destroyed else "has crashed", value=e.name)
+                raise InvalidArgument("agent", self.wreck_state(e), value=e.name)
             e.owner = owner
             self._journal("claim", entity_id, client=client)
             return e
@@ -585,8 +589,7 @@ class World(EventLog):
         if e is None:
             raise NotFound(f"entity {entity_id} does not exist")
         if self.is_wreck(e):
-            raise InvalidArgument("command", f"{e.name} {'is destroyed' if e.destroyed else 'has crashed'}",
-                                  value=kind)
+            raise InvalidArgument("command", f"{e.name} {self.wreck_state(e)}", value=kind)
         if kind == "stick":
             if e.kind != AIRCRAFT:
                 raise InvalidArgument("stick", f"only aircraft take stick controls; {e.name} is "

@@ -55,12 +55,17 @@ def ecef_to_geodetic(points_ecef):
     lon = np.arctan2(y, x)
     p = np.hypot(x, y)
     beta = np.arctan2(z, (1.0 - WGS84_F) * p)
+    # den < 0 only nearer the axis than e2 * a (43 km: deep inside, near the centre), nearer
+    # than the centre of curvature: there the same normal is taken outwards (cos(lat) >= 0,
+    # |lat| <= 90). Checked once, so the usual call pays nothing for it.
+    deep = bool((p < WGS84_E2 * WGS84_A_M).any())
     for _ in range(3):
         sb, cb = np.sin(beta), np.cos(beta)
         num, den = z + WGS84_EP2 * WGS84_B_M * sb**3, p - WGS84_E2 * WGS84_A_M * cb**3
-        # den < 0 only within about e2 * a (43 km) of the centre, nearer the axis than the
-        # centre of curvature: the same normal, taken outwards (cos(lat) >= 0, |lat| <= 90).
-        lat = np.arctan2(np.where(den < 0.0, -num, num), np.abs(den)) + 0.0  # -0.0 into 0.0
+        if deep:
+            lat = np.arctan2(np.where(den < 0.0, -num, num), np.abs(den)) + 0.0  # -0.0 into 0.0
+        else:
+            lat = np.arctan2(num, den)
         beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
     sin_lat, cos_lat = np.sin(lat), np.cos(lat)
     # Height without the 1/cos(lat) blow-up near the poles.
