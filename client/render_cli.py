@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import signal
 import threading
 import time
@@ -155,6 +156,20 @@ def parse_pose(text: str) -> tuple[float, ...]:
     return tuple(values + [0.0] * (6 - len(values)))
 
 
+def check_image_path(option: str, path: Path) -> None:
+    """An image file to write: not a directory, and named with an extension Pillow writes
+    (.png, .jpg, ...), which picks the format; checked before a frame is rendered."""
+    from PIL import Image
+
+    if path.is_dir():
+        raise InvalidArgument(option, "is a directory: give an image file to write, e.g. frame.png", value=str(path))
+    Image.init()
+    fmt = Image.registered_extensions().get(path.suffix.lower())
+    if fmt is None or fmt not in Image.SAVE:
+        raise InvalidArgument(option, "must name an image file with an extension the format is taken from, e.g. "
+                                      ".png or .jpg", value=str(path))
+
+
 def check_render_options(args) -> None:
     """The numeric options of render and view, each named as given on the command line (a
     renderer's own check names its parameter, window_m, not --window-km), with the camera's and
@@ -259,14 +274,18 @@ def render_command(args) -> int:
 
     lat, lon, alt, heading, pitch, roll = parse_pose(args.camera)
     check_render_options(args)
+    check_image_path("--out", args.out)
     undulation = args.geoid_undulation_m or 0.0
     camera = Camera.from_geodetic(lat, lon, alt, heading, pitch, roll, geoid_undulation_m=undulation,
                                   fov_x_deg=args.fov_deg)
     terrain, desc = open_terrain(args.dem, args.terrain, store=args.store)
     try:
         ground = float(np.asarray(terrain.heights(np.array([lat]), np.array([lon])).height_msl_m)[0])
+        what = "the terrain there"
+        if math.isnan(ground):  # no data: the renderer draws the sea at 0 m MSL there
+            ground, what = 0.0, "sea level there (no terrain data: the sea is drawn)"
         if alt < ground:  # a frame from inside the terrain shows nothing meaningful
-            raise InvalidArgument("--camera", f"altitude {alt:g} m MSL is below the terrain there "
+            raise InvalidArgument("--camera", f"altitude {alt:g} m MSL is below {what} "
                                               f"({ground:.1f} m MSL at {lat:g}, {lon:g})", value=args.camera)
         with _renderer(args, terrain, undulation) as r:
             image = r.render(camera)
@@ -319,6 +338,8 @@ def view_command(args) -> int:
         raise InvalidArgument("--frames", "must be >= 1", value=args.frames)
     if not (args.fps > 0):
         raise InvalidArgument("--fps", "must be > 0", value=args.fps)
+    if args.role == "observer":
+        check_observe_radius(args)
     check_render_options(args)
     kind = None if args.agent_type is None else kind_from_name(args.agent_type)
     stop = threading.Event()
@@ -333,6 +354,18 @@ def view_command(args) -> int:
             signal.signal(sig, handler)
 
 
+def check_observe_radius(args) -> None:
+    """--observe-radius-km as the observer role's area needs it: a finite number of km above 0
+    (the server's observer_radius_m bound, in km; its upper bound is the scenario's, which
+    WorldInfo does not carry: the server checks it on join, :func:`_join`)."""
+    radius = args.observe_radius_km
+    if not (math.isfinite(radius) and radius > 0.0):
+        raise InvalidArgument("--observe-radius-km", "must be a finite number of km > 0", value=radius)
+
+
+_SERVER_RADIUS_BOUND = re.compile(r"must be in \(0, (?P<limit_m>[0-9.e+]+)\] m")
+
+
 def _join(sim, args) -> None:
     sim.wait_ready()
     if args.role == "gateway":
@@ -341,7 +374,15 @@ def _join(sim, args) -> None:
     w = sim.world()
     centre = ((float(np.mean(w.target_areas[0].lat_deg)), float(np.mean(w.target_areas[0].lon_deg)))
               if w.target_areas else (0.0, 0.0))
-    sim.join(args.name, "observer", observer=(*centre, args.observe_radius_km * 1000.0))
+    try:
+        sim.join(args.name, "observer", observer=(*centre, args.observe_radius_km * 1000.0))
+    except InvalidArgument as exc:  # over the scenario's observer radius: named as given, in km
+        m = _SERVER_RADIUS_BOUND.search(exc.message) if exc.field == "observer_radius_m" else None
+        if m is None:
+            raise
+        raise InvalidArgument("--observe-radius-km", f"must be in (0, {float(m['limit_m']) / 1000.0:g}] km (the "
+                                                     "scenario's observer radius)",
+                              value=args.observe_radius_km) from None
 
 
 def _view(args, kind: int | None, stop: threading.Event) -> int:

@@ -19,7 +19,8 @@ Frames (the conventions of ``proto/sortie/v1/simulation.proto``):
 
 Projection: reversed-Z with an infinite far plane (client/render/gl.py says
 why): window depth = near_m / d, where d is the view depth (metres along the
-optical axis, -z_view). Nothing is clipped far away.
+optical axis, -z_view). Nothing is clipped far away. The renderer brings the
+near plane in from near_m as the camera nears the ground (:func:`near_plane_m`).
 
 Precision of the float32 path (tested): a vertex at distance r from the
 origin is stored within r x 2^-24 (1 mm at 24 km), the view matrix's
@@ -47,6 +48,10 @@ from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 REBASE_DISTANCE_M = 4000.0  # the local origin follows the camera once it is farther than this
 DEFAULT_FOV_X_DEG = 60.0  # horizontal field of view
 DEFAULT_NEAR_M = 1.0
+# The renderer brings the near plane in near the ground (near_plane_m): to this fraction of the
+# least view depth the ground under the camera can have in the frame, never under NEAR_FLOOR_M.
+NEAR_GROUND_FRACTION = 0.5
+NEAR_FLOOR_M = 0.01
 FOV_X_RANGE_DEG = (1.0, 170.0)
 _ORTHONORMAL_TOL = 1e-6
 
@@ -293,6 +298,28 @@ class Camera:
     def pixel_footprint_rad(self, width: int) -> float:
         """Angle one pixel subtends at the image centre, radians."""
         return 2.0 * math.tan(math.radians(0.5 * self.fov_x_deg)) / width
+
+
+def near_plane_m(camera: Camera, width: int, height: int, height_above_ground_m: float) -> float:
+    """The near plane for a frame of ``camera`` at height_above_ground_m (metres, above the highest
+    surface drawn under it; NaN: unknown): the camera's own near_m, brought in near the ground to
+    NEAR_GROUND_FRACTION of the least view depth that ground can have, clamped to NEAR_FLOOR_M.
+
+    Every point of a surface h below the camera is at least h away, and a point seen at angle
+    theta off the optical axis has view depth (distance x cos theta); theta is at most the
+    frustum's corner angle, cos = 1 / sqrt(1 + 1/fx^2 + 1/fy^2) (fx, fy: :meth:`Camera.focal`).
+    So nothing of that ground lies nearer than h cos(corner) along the axis, and the plane at half
+    that clips none of it, also where the drawn triangles stand somewhat above the posts' height or
+    the ground slopes. Reversed-Z with a float depth buffer resolves depths relative to the
+    distance whatever the near plane (client/render/gl.py), so a near plane of 1 cm costs no
+    precision; with a fixed 1 m one, a camera 0.5 m above the ground saw through it."""
+    near = camera.near_m
+    h = float(height_above_ground_m)
+    if math.isnan(h):
+        return near
+    fx, fy = camera.focal(width, height)
+    cos_corner = 1.0 / math.sqrt(1.0 + 1.0 / (fx * fx) + 1.0 / (fy * fy))
+    return min(near, max(NEAR_FLOOR_M, NEAR_GROUND_FRACTION * cos_corner * h))
 
 
 def chase_camera(target_ecef, r_ecef_body, back_m: float, up_m: float, **kw) -> Camera:

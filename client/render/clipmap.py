@@ -310,7 +310,7 @@ class Clipmap:
         # Land classes (terrain/texture.py, global-terrain-flight-sim §7.1) in the normal map's
         # fourth channel, one per normal texel, when asked for: the base colour of the terrain.
         self.land_classes = False
-        self._water_tolerance_m = None  # the class map's water tolerance: the terrain's quantisation bound
+        self._water_tolerance_m = None  # the water level (water_level_m): the terrain's quantisation bound
         self._trimmed_at = -math.inf
         self.store_blocks = 0  # level blocks read straight from the store
 
@@ -451,13 +451,19 @@ class Clipmap:
         north = np.radians(lat_rows)[:, None] * 6_371_000.0
         east = np.radians(lon_cols)[None, :] * 6_371_000.0 * cl
         east, north = np.broadcast_arrays(east, north)
-        if self._water_tolerance_m is None:  # a lossy store's sea decodes within step/2 of 0 m (terrain/texture.py)
-            from terrain.texture_cli import water_tolerance_m
-
-            described = callable(getattr(self.terrain, "describe", None))
-            self._water_tolerance_m = water_tolerance_m(self.terrain) if described else 0.0
         return class_map(heights, slope, dx, dy, lat_rows[:, None], noise_en_m=(east, north),
-                         water_tolerance_m=self._water_tolerance_m).astype(np.float64)
+                         water_tolerance_m=self.water_level_m).astype(np.float64)
+
+    @property
+    def water_level_m(self) -> float:
+        """Posts at or below this height MSL are water: 0, or over a lossy store half its step (its
+        sea decodes within step/2 of 0 m; client/render/shading.water_level_m, terrain/texture.py).
+        The class map's water test and the decimation's coastline rule take it."""
+        if self._water_tolerance_m is None:
+            from client.render.shading import water_level_m
+
+            self._water_tolerance_m = water_level_m(self.terrain)
+        return self._water_tolerance_m
 
     @staticmethod
     def cost(r: Rect) -> int:

@@ -288,7 +288,7 @@ vec4 planar(vec3 p, vec3 w, float period) {  // three planar projections along t
 }
 
 vec3 detailed(vec3 c, vec3 ne, float cos_slope, float height, vec3 ecef_mod) {
-    if (u_detail_strength > 0.0 && height > 0.0) {
+    if (u_detail_strength > 0.0 && height > u_water_level) {  // land only (water: terrain_colour)
         vec3 w = ne * ne;
         w *= w;  // |ne|^4, without pow (three exp2/log2 a fragment on llvmpipe)
         w /= (w.x + w.y + w.z);
@@ -372,7 +372,7 @@ void main() {
     float cos_slope = dot(n, normalize(v_up));
     vec3 c = terrain_colour(v_world, n, v_height, cos_slope);
 #ifdef CLASSES
-    if (v_height > 0.0) {
+    if (v_height > u_water_level) {
         // The land-class map is the base colour (FSX §7.1, §7.2): the colours of the four
         // nearest normal texels' classes, blended bilinearly (classes themselves do not
         // interpolate), fine and coarse blended by the morph.
@@ -823,15 +823,16 @@ def block_triangles(blk: np.ndarray) -> np.ndarray:
     return SHAPE_TRIANGLES[blk[:, 2] - blk[:, 0], blk[:, 3] - blk[:, 1]]
 
 
-def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
+def decimation_errors(blk: np.ndarray, level, n: int, water_level_m: float = 0.0) -> np.ndarray:
     """(m, len(DECIMATION_STRIDES)) metres: for each block (m, 4) of a level and each stride, the
     largest distance between the level's full surface over the block and what
     :func:`decimated_grid` draws (exact: over the vertices of the two meshes' overlay,
     :func:`overlay_rows`). A block a ring's edge cuts short is measured as the clamp draws it.
-    For a block whose posts straddle sea level (:func:`straddles_sea_level`), when the level holds
-    heights (``texel``; ``pos_ecef`` alone: distances only), at least how far a stride can move
-    the coastline (:func:`coastline_shift_m`), so it is decimated only where that is within the
-    pixel bound too."""
+    For a block whose posts straddle the water level (:func:`straddles_sea_level`;
+    ``water_level_m``: the clipmap's, 0 m MSL or a lossy store's quantisation bound), when the
+    level holds heights (``texel``; ``pos_ecef`` alone: distances only), at least how far a stride
+    can move the coastline (:func:`coastline_shift_m`), so it is decimated only where that is
+    within the pixel bound too."""
     out = np.empty((len(blk), len(DECIMATION_STRIDES)))
     if len(blk) == 0:
         return out
@@ -845,7 +846,7 @@ def decimation_errors(blk: np.ndarray, level, n: int) -> np.ndarray:
             _overlay_errors(level.pos_ecef, sub, n, BLOCK, *_overlay(s, h, w), errs, s_i)
         out[sel] = errs
     if getattr(level, "texel", None) is not None:
-        wet = straddles_sea_level(blk, level, n)
+        wet = straddles_sea_level(blk, level, n, water_level_m)
         if wet.any():
             out[wet] = np.maximum(out[wet], coastline_shift_m(blk[wet], level, n))
     return out
@@ -865,29 +866,32 @@ def coastline_shift_m(blk: np.ndarray, level, n: int) -> np.ndarray:
     return spacing[:, None] * (math.sqrt(2.0) * np.asarray(DECIMATION_STRIDES, np.float64))[None, :]
 
 
-def straddles_sea_level(blk: np.ndarray, level, n: int) -> np.ndarray:
-    """(m,) bool: block (m, 4)'s posts hold heights both at or below 0 m MSL and above. Such a
-    block is decimated only where the coastline's shift is within the pixel bound too
+def straddles_sea_level(blk: np.ndarray, level, n: int, water_level_m: float = 0.0) -> np.ndarray:
+    """(m,) bool: block (m, 4)'s posts hold heights both at or below the water level
+    (``water_level_m``: 0 m MSL; over a lossy store half its step, shading.water_level_m) and
+    above. Such a block is decimated only where the coastline's shift is within the pixel bound too
     (:func:`decimation_errors`, :func:`coastline_shift_m`): colour tells land from water by the
-    interpolated height's sign (terrain_mesh TERRAIN_COLOUR_GLSL), and a coarser mesh there moves
+    interpolated height against the water level (terrain_mesh TERRAIN_COLOUR_GLSL), and a coarser mesh there moves
     the coastline by up to the stride's span whatever its vertical error (the Kattegat's
     skerries, 0-20 m high, merged into kilometres of land at 2 px when only height counted).
     Elsewhere every post of a block, and so every convex combination of them a coarser mesh or
-    its morph draws, has one sign: decimation never turns land into water or back."""
+    its morph draws, lies on one side of the water level: decimation never turns land into
+    water or back."""
     if len(blk) == 0:
         return np.zeros(0, bool)
-    return _straddles_kernel(level.texel, np.ascontiguousarray(blk, dtype=np.int64), n)
+    return _straddles_kernel(level.texel, np.ascontiguousarray(blk, dtype=np.int64), n, float(water_level_m))
 
 
 @numba.njit(cache=True, nogil=True)
-def _straddles_kernel(texel, blk, n):
-    """(m,) bool: block b's posts (its heights MSL, texel[..., 3]) hold both h <= 0 and h > 0."""
+def _straddles_kernel(texel, blk, n, water_level_m):
+    """(m,) bool: block b's posts (its heights MSL, texel[..., 3]) hold both h <= water_level_m
+    and h > water_level_m."""
     out = np.zeros(blk.shape[0], np.bool_)
     for b in range(blk.shape[0]):
         wet = dry = False
         for i in range(blk[b, 0], blk[b, 2] + 1):
             for j in range(blk[b, 1], blk[b, 3] + 1):
-                if texel[i % n, j % n, 3] <= 0.0:
+                if texel[i % n, j % n, 3] <= water_level_m:
                     wet = True
                 else:
                     dry = True
@@ -1636,6 +1640,31 @@ class ClipmapLayer:
                 return float(level.texel[i % c.n, j % c.n, 3])
         return 0.0
 
+    def ground_height_msl(self, lat: float, lon: float) -> float:
+        """At least the height MSL of the surface drawn at (lat, lon), for the renderer's near plane
+        (renderer.Renderer): the highest corner of the cell holding it in the finest level that
+        does, and in the next coarser (a morph moves the finer surface towards it), since every
+        point drawn there is a convex combination of those posts. NaN before the first update or
+        where no level holds it."""
+        c = self.clipmap
+        if c is None:
+            return math.nan
+        top, found = math.nan, 0
+        for level in c.levels:
+            if not level.valid:
+                continue
+            fi, fj = c.focus_index(level.k, lat, lon)
+            i, j = math.floor(fi), math.floor(fj)
+            r = level.region
+            if not (r.i0 <= i and i + 1 <= r.i1 and r.j0 <= j and j + 1 <= r.j1):
+                continue
+            corners = level.texel[np.array([i, i, i + 1, i + 1]) % c.n, np.array([j, j + 1, j, j + 1]) % c.n, 3]
+            top = float(np.max(corners)) if found == 0 else max(top, float(np.max(corners)))
+            found += 1
+            if found == 2:
+                break
+        return top
+
     def _upload(self, u) -> None:
         level = self.clipmap.levels[u.k]
         tex, nmap = self._tex[u.k]
@@ -1679,7 +1708,7 @@ class ClipmapLayer:
                 cached = self._errors.get(k)
                 if cached is None or cached[0] != key:
                     def measure(b, level=level):
-                        return decimation_errors(b, level, c.n), edge_deviations(b, level, c.n)
+                        return decimation_errors(b, level, c.n, c.water_level_m), edge_deviations(b, level, c.n)
 
                     previous = None if cached is None else (
                         cached[3], cached[1:3], lambda b, since=cached[0][1]: posts_unchanged(b, level, since))

@@ -163,7 +163,7 @@ void main() {
     vec3 n = normalize(v_normal);
     vec3 c = terrain_colour(v_world, n, v_height, v_cos_slope);
 #ifdef CLASSES
-    if (v_height > 0.0) c = fogged(lambert(v_class, n), v_world);
+    if (v_height > u_water_level) c = fogged(lambert(v_class, n), v_world);
 #endif
 #ifdef DETAIL
     c = detailed(c, transpose(u_rot) * n, v_cos_slope, v_height, v_ecef_mod);
@@ -604,6 +604,20 @@ class GeomipmapInset:
     @property
     def vertices(self) -> int:
         return self.stats.vertices
+
+    def ground_height_msl(self, lat: float, lon: float) -> float:
+        """At least the height MSL of the inset's surface at (lat, lon), for the renderer's near
+        plane: the highest corner of the lattice cell holding it (a coarser patch level departs from
+        it by at most its tabulated error, under tau_px pixels: a few millimetres a metre of the
+        distance to the patch, less than the near plane's margin). NaN off the lattice or its data."""
+        g, (rows, cols) = self.inset.georef, self.inset.shape
+        fr = (lat - g.y0) / g.dy
+        fc = ((lon - g.x0 + 180.0) % 360.0 - 180.0) / g.dx
+        if not (0.0 <= fr <= rows - 1 and 0.0 <= fc <= cols - 1):
+            return math.nan
+        r, c = min(int(fr), rows - 2), min(int(fc), cols - 2)
+        corners = np.asarray(self.inset.heights, dtype=np.float64)[r:r + 2, c:c + 2]
+        return float(corners.max()) if np.isfinite(corners).all() else math.nan
 
     def update(self, camera: Camera) -> None:
         """Re-upload the vertices after a rebase of the local origin (levels are chosen in draw,

@@ -19,7 +19,8 @@ A frame, in draw order (reversed-Z float depth, client/render/gl.py):
    there anyway, it would cost llvmpipe a third of the frame in rejected
    fragments.
    It is the water wherever the terrain has no data or ends, and the horizon
-   line; terrain at or below 0 m MSL is itself shaded as water;
+   line; terrain at or below the water level (0 m MSL; half the step over a lossy
+   terrain store, client/render/shading.py) is itself shaded as water;
 3. **entities** (client/render/entities.py), instanced;
 4. **sky**: one full-screen triangle at depth 0 (infinitely far) that only
    fills the pixels nothing else covered (depth test >=, early-rejected
@@ -32,6 +33,7 @@ with the renderer's context current, and a GL error after a frame raises
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -39,11 +41,12 @@ from typing import Protocol
 
 import numpy as np
 
-from client.render.camera import REBASE_DISTANCE_M, Camera, LocalOrigin
+from client.render.camera import REBASE_DISTANCE_M, Camera, LocalOrigin, near_plane_m
 from client.render.entities import EntityLayer, EntitySet
 from client.render.gl import check_gl_error, create_context, enable_reversed_z, float_depth_texture
 from client.render.shading import (DEFAULT_SUN_AZIMUTH_DEG, DEFAULT_SUN_ELEVATION_DEG, SKY_EXPONENT, SKY_HORIZON_RGB,
-                                   SKY_ZENITH_RGB, SUN_RGB, Frame, fog_density_per_m, rgb, sun_direction_local)
+                                   SKY_ZENITH_RGB, SUN_RGB, Frame, fog_density_per_m, rgb, sun_direction_local,
+                                   water_level_m)
 from client.render.terrain_mesh import (DEFAULT_HORIZON_M, DEFAULT_HORIZON_STRIDE, DEFAULT_WINDOW_M,
                                         TERRAIN_FRAGMENT_SHADER, TERRAIN_VERTEX_SHADER, TerrainMeshLayer, interleave)
 from sortie.errors import InvalidArgument
@@ -292,6 +295,10 @@ class Renderer:
                                                           spacing_m=spacing_m, geoid_undulation_m=geoid_undulation_m)
                 else:
                     self.terrain_layer = None
+                # Terrain at or below this height MSL is water: 0, or over a lossy store half its
+                # step (shading.water_level_m; its sea decodes anywhere within that of 0 m).
+                self._terrain = terrain if terrain is not None else getattr(self.terrain_layer, "terrain", None)
+                self.water_level_m = water_level_m(self._terrain)
                 from client.render.geomipmap import GeomipmapInset
 
                 # Shaded as the terrain layer beside them (the clipmap's detail textures and land
@@ -358,7 +365,8 @@ class Renderer:
                      camera_local=o.to_local(camera.position_ecef),
                      up_local=o.vectors_to_local(enu_basis(lat, lon)[2]),
                      sun_local=sun_direction_local(self.sun_azimuth_deg, self.sun_elevation_deg),
-                     fog_density=fog_density, fog_rgb=rgb(SKY_HORIZON_RGB), flat_sky_rgb=self.flat_sky_rgb)
+                     fog_density=fog_density, fog_rgb=rgb(SKY_HORIZON_RGB), flat_sky_rgb=self.flat_sky_rgb,
+                     water_level_m=self.water_level_m)
 
     def render(self, camera: Camera, entities: EntitySet | None = None) -> np.ndarray:
         """One frame -> (height, width, 3) uint8 RGB, row 0 at the top. Stats in ``self.stats``."""
@@ -368,9 +376,12 @@ class Renderer:
         t0 = time.perf_counter()
         with self.ctx:
             rebased = self.origin.rebase_if_far(camera.position_ecef)
-            self._last_near = camera.near_m
             if self.terrain_layer is not None:
-                self.terrain_layer.update(camera)
+                self.terrain_layer.update(camera)  # (where its levels or mesh lie: not the near plane)
+            near = near_plane_m(camera, self.width, self.height, self.height_above_ground_m(camera))
+            if near != camera.near_m:
+                camera = dataclasses.replace(camera, near_m=near)
+            self._last_near = camera.near_m
             for layer in self.inset_layers:
                 layer.update(camera)
             if self.sea_layer is not None:
@@ -402,6 +413,21 @@ class Renderer:
                                 terrain_samples=getattr(self.terrain_layer, "samples", 0),
                                 levels_active=getattr(self.terrain_layer, "levels_active", 0))
         return image
+
+    def height_above_ground_m(self, camera: Camera) -> float:
+        """The camera's height above the highest surface drawn under it (metres; negative
+        below it), for the near plane (camera.near_plane_m): each layer's ``ground_height_msl``
+        (the clipmap's and the insets': the highest post of the cell under the camera), else, or
+        where the layer holds no post there, the terrain's height there; where nothing has data,
+        sea level (the sea shell and no-data posts are drawn at 0 m MSL, the shell a metre lower)."""
+        lat, lon, h = camera.geodetic()
+        ground_of = getattr(self.terrain_layer, "ground_height_msl", None)
+        ground = math.nan if ground_of is None else float(ground_of(lat, lon))
+        if math.isnan(ground) and self._terrain is not None:
+            ground = float(np.asarray(self._terrain.heights(np.array([lat]), np.array([lon])).height_msl_m)[0])
+        grounds = [ground] + [layer.ground_height_msl(lat, lon) for layer in self.inset_layers]
+        grounds = [g for g in grounds if math.isfinite(g)]
+        return h - self.geoid_undulation_m - (max(grounds) if grounds else 0.0)
 
     def depth_m(self) -> np.ndarray:
         """(height, width) float64 view depth of the last frame (metres along the optical axis,

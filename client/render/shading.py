@@ -16,8 +16,13 @@ Colour by height and slope (virtual-terrain-generation: "points located
 above a limit and parts of steep mountains are colored like rocks, the rest
 like grass"): sortie/demo.py's hypsometric tint (green, brown, snow) on
 absolute heights MSL, blended to rock on slopes between ROCK_SLOPE_DEG. A
-fragment whose interpolated height is <= 0 m MSL is water (the seeds' rule:
-water at sea level; a DEM has no water mask).
+fragment whose interpolated height is <= the water level (``Frame.water_level_m``)
+is water (the seeds' rule: water at sea level; a DEM has no water mask). The
+water level is 0 m MSL over a DEM, a lossless store or a procedural world, and
+half the step over a lossy terrain store (:func:`water_level_m`): such a store
+decodes a sea at 0 m anywhere within s/2 of it, so it cannot tell the sea from
+ground at s/2 (docs/STORE.md), and ``sortie terrain texture`` draws posts within
+s/2 of sea level as water (terrain/texture.py) for the same reason.
 
 Fog: squared exponential, f = exp(-(density x distance)^2) (OpenGL 2.1
 specification, §3.10 "Fog", GL_EXP2), colour = mix(fog colour, lit colour,
@@ -78,6 +83,19 @@ def sun_direction_local(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
 
 
+def water_level_m(terrain) -> float:
+    """The height MSL at or below which the terrain is drawn as water: the quantisation bound of
+    its sources (terrain.texture_cli.water_tolerance_m, the tolerance of ``sortie terrain
+    texture``'s water test: half the step of a lossy store, local or behind a terrain service;
+    0 for a DEM, a lossless store, a procedural world). 0 without a terrain, or one that does
+    not describe its sources."""
+    if terrain is None or not callable(getattr(terrain, "describe", None)):
+        return 0.0
+    from terrain.texture_cli import water_tolerance_m
+
+    return float(water_tolerance_m(terrain))
+
+
 def fog_density_per_m(edge_distance_m: float) -> float:
     """GL_EXP2 fog density (1/m) whose transmittance is FOG_EDGE_TRANSMITTANCE at edge_distance_m."""
     return math.sqrt(-math.log(FOG_EDGE_TRANSMITTANCE)) / edge_distance_m
@@ -90,7 +108,8 @@ class Frame:
     view: (4, 4) float64, local ENU -> view; projection: (4, 4) float64 reversed-Z;
     camera_local: (3,) float64, the camera's local offset; up_local: (3,) the camera's
     local vertical in the local frame; sun_local: (3,) unit vector to the sun; fog_density
-    1/m (0: no fog); fog_rgb and the sky colours 0-1 floats; flat_sky: test mode.
+    1/m (0: no fog); fog_rgb and the sky colours 0-1 floats; flat_sky: test mode;
+    water_level_m: terrain at or below this height MSL is water (:func:`water_level_m`).
     """
 
     camera: Camera
@@ -105,6 +124,7 @@ class Frame:
     fog_density: float
     fog_rgb: tuple
     flat_sky_rgb: tuple | None
+    water_level_m: float = 0.0
 
     def write_common(self, program) -> None:
         """Set the uniforms of GLSL_COMMON (those the program uses) and its matrices."""
@@ -116,6 +136,7 @@ class Frame:
             "u_fog_density": np.float32(self.fog_density).tobytes(),
             "u_fog_rgb": np.array(self.fog_rgb, "f4").tobytes(),
             "u_vertical": np.asarray(self.up_local, "f4").tobytes(),
+            "u_water_level": np.float32(self.water_level_m).tobytes(),
         }
         for name, data in values.items():
             member = program.get(name, None)  # one lookup (``name in program`` walks every member)

@@ -342,9 +342,10 @@ const float MID_M = {TINT_MID_M};
 const float HIGH_M = {TINT_HIGH_M};
 const float ROCK_COS_START = {math.cos(math.radians(ROCK_SLOPE_DEG[0]))};
 const float ROCK_COS_FULL = {math.cos(math.radians(ROCK_SLOPE_DEG[1]))};
+uniform float u_water_level;  // m MSL: 0, or a lossy store's quantisation bound (shading.water_level_m)
 vec3 terrain_colour(vec3 world, vec3 n, float height, float cos_slope) {{
     vec3 colour;
-    if (height <= 0.0) {{  // water at sea level
+    if (height <= u_water_level) {{  // water at sea level
         vec3 to_eye = normalize(u_camera - world);
         float spec = pow(max(dot(n, normalize(u_sun + to_eye)), 0.0), {WATER_SHININESS});
         colour = lambert(WATER, n) + {WATER_SPECULAR} * spec;
