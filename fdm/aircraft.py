@@ -36,10 +36,12 @@ extending; a c172x's nose strut's rebound damping then cancels its spring, and
 landing or taxiing fast up a slope of 5 % or more can nose it over (an
 acceptance probe's touchdown at 0.87 m/s sink crashed 16 s later; 3 % and
 flat roll out). The Python API offers no callback with a ground velocity or
-normal to fix it with. A contact deeper than
-``max_penetration_m`` below its own terrain (flying into a cliff face), or any
-structure point below its terrain, is a crash; the aircraft then freezes where
-it hit (``crashed`` is set, ``step`` does nothing more).
+normal to fix it with. A contact deeper below its own terrain than its limit
+(flying into a cliff face: ``max_penetration_m`` for a structure point, for a
+wheel also what its strut compresses at the ultimate load factor,
+:meth:`Aircraft._set_penetration_limits`), or any structure point below its
+terrain at speed, is a crash; the aircraft then freezes where it hit
+(``crashed`` is set, ``step`` does nothing more).
 
 Water: terrain at or below sea level is water by the ground vehicles' rule
 (fdm.ground: ``WATER_LEVEL_MSL_M``; no data counts as sea level). A landplane
@@ -47,7 +49,11 @@ cannot start on it (``on_ground``: InvalidArgument), and its wheels touching it
 are a crash, "ditched": a wheel with weight on it (JSBSim's per-unit WOW) whose
 terrain is water. The catalog's flying boats (fdm.catalog.lands_on_water) are
 exempt, and so is a terrain source without water (``has_water`` False:
-:class:`FlatTerrain`, land at any height).
+:class:`FlatTerrain`, land at any height). Over water the surface an aircraft
+meets is the sea's, not a DEM's sea floor (:func:`terrain_msl_m`): the
+elevation fed to JSBSim, the clearances, AGL and an airborne start's floor; a
+dive into the sea ends at its surface (ditched, or the structure's crash) and a
+flying boat floats on it.
 
 Far from the ground (CG more than ``near_ground_m`` plus twice the distance
 flown between refreshes above the last terrain height) nothing touches the
@@ -92,11 +98,11 @@ from sortie.errors import InvalidArgument, SortieError
 from terrain.geodesy import wrap_lon_deg
 
 LB_KG = 0.45359237  # international avoirdupois pound, exact (NIST SP 811, B.8)
-DT_MIN_S = 1e-4
-DT_MAX_S = 0.1
+DT_MIN_S = catalog.DT_MIN_S
+DT_MAX_S = catalog.DT_MAX_S  # where the catalog's gear is stable (see fdm.catalog)
 DEFAULT_DT_S = 1.0 / 120.0
-# Deeper than this below its own terrain a contact is inside the ground, not on it
-# (gear compressions of the catalog's models stay well below 1 m).
+# Deeper than this below its own terrain a structure contact is inside the ground, not on it;
+# a wheel may sink deeper where its strut is that soft (see _penetration_limits_m).
 MAX_PENETRATION_M = 1.0
 # Far above the terrain its height is refreshed at least this often (AGL in the state stays fresh).
 MAX_REFRESH_S = 1.0
@@ -120,10 +126,14 @@ FG_CONTROL_INPUTS = (
     (re.compile(r"/?controls/flight/elevator"), "pitch"),
     (re.compile(r"/?controls/flight/aileron"), "roll"),
     (re.compile(r"/?controls/flight/rudder"), "yaw"),
-    (re.compile(r"/?controls/flight/flaps"), "flaps"),
+    (re.compile(r"/?controls/flight/flaps(-cond)?"), "flaps"),
     (re.compile(r"/?controls/gear/brake-(left|right)"), "brakes"),
-    (re.compile(r"/?controls/gear/gear-down"), "gear_down"),
+    (re.compile(r"/?controls/gear/wheel(\[[01]\])?/brake-cmd-cond"), "brakes"),
+    (re.compile(r"/?controls/gear/gear-down(-cond)?"), "gear_down"),
 )
+# The "-cond" inputs are FlightGear's conditioned pilot inputs (the L410's: its Nasal copies
+# the pilot's gear, flaps and wheel-brake commands there while its systems allow): the host's
+# systems always do. Left undriven, the L410's gear read 0, retracted, on the ground.
 
 
 def _fg_input_paths(engines: int) -> tuple[str, ...]:
@@ -133,7 +143,8 @@ def _fg_input_paths(engines: int) -> tuple[str, ...]:
     engine = [f"/controls/engines/engine[{i}]/{x}" for x in ("throttle", "mixture") for i in range(engines)]
     return (*engine, "/controls/flight/elevator", "/controls/flight/aileron", "/controls/flight/rudder",
             "/controls/flight/flaps", "/controls/gear/brake-left", "/controls/gear/brake-right",
-            "/controls/gear/gear-down")
+            "/controls/gear/gear-down", "/controls/flight/flaps-cond", "/controls/gear/wheel[0]/brake-cmd-cond",
+            "/controls/gear/wheel[1]/brake-cmd-cond", "/controls/gear/gear-down-cond")
 
 
 # An airborne start whose trim fails at full rich is tried again leaned (Aircraft._start)
@@ -377,10 +388,48 @@ def _wet(heights_m: np.ndarray) -> np.ndarray:
 
 
 def terrain_msl_m(terrain, lat_deg, lon_deg) -> np.ndarray:
-    """Heights (m MSL) from any terrain source; no data (NaN) is sea level, 0 m."""
+    """The surface an aircraft meets (m MSL) from any terrain source: the terrain, and the sea
+    surface where that is water (at or below WATER_LEVEL_MSL_M: a DEM's bathymetry lies under
+    the sea); no data (NaN) is sea level, 0 m. A source without water (``has_water`` False:
+    FlatTerrain) is land at any height."""
     h = np.asarray(terrain.heights(np.asarray(lat_deg, np.float64), np.asarray(lon_deg, np.float64)).height_msl_m,
                    np.float64)
-    return np.where(np.isnan(h), 0.0, h)
+    h = np.where(np.isnan(h), 0.0, h)
+    return np.maximum(h, WATER_LEVEL_MSL_M) if getattr(terrain, "has_water", True) else h
+
+
+def static_compressions_m(locations_in: np.ndarray, springs_lbs_ft, cg_in, weight_lbs: float) -> np.ndarray:
+    """Each contact's strut compression (m) at rest on level ground: the contacts with a
+    spring (``springs_lbs_ft[i]``, None or 0 for none) carry ``weight_lbs`` at the CG.
+
+    JSBSim's strut force is k * compression (FGLGear). With small pitch a and roll b the
+    compressions are d_i = h + a dx_i + b dy_i - dz_i (dx, dy from the CG, dz above the
+    lowest contact), and rest is vertical force and pitch and roll moments in balance:
+    sum k_i d_i (1, dx_i, dy_i) = (W, 0, 0), three linear equations; a contact the solution
+    lifts off (d_i < 0) carries nothing and the rest are solved again. Contacts on one line
+    or one point (minisgs) take the least-squares solution. Each is at most W / k_i (that
+    contact alone carrying the aircraft): the bound where the balance needs a structure
+    point (a tail skid) that has no spring."""
+    loc = np.asarray(locations_in, np.float64).reshape(-1, 3) / 12.0  # ft
+    k = np.array([0.0 if v is None else float(v) for v in springs_lbs_ft], np.float64)
+    d = np.zeros(len(k))
+    if len(k) != len(loc) or not (weight_lbs > 0.0) or not (k > 0).any():
+        return d
+    g = np.column_stack([np.ones(len(k)), loc[:, 0] - cg_in[0] / 12.0, loc[:, 1] - cg_in[1] / 12.0])
+    dz = loc[:, 2] - loc[:, 2].min()
+    active = k > 0
+    for _ in range(len(k)):
+        ka = k[active][:, None]
+        a_mat = g[active].T @ (ka * g[active])
+        rhs = np.array([weight_lbs, 0.0, 0.0]) + g[active].T @ (k[active] * dz[active])
+        u = np.linalg.lstsq(a_mat, rhs, rcond=None)[0]
+        d = np.where(active, g @ u - dz, 0.0)
+        if (d[active] >= 0.0).all() or active.sum() == 1:
+            break
+        active &= d > d[active].min()  # the contact lifted most leaves the set
+    with np.errstate(divide="ignore"):
+        cap = np.where(k > 0, weight_lbs / np.where(k > 0, k, 1.0), 0.0)
+    return np.clip(d, 0.0, cap) * FT_M
 
 
 class Aircraft:
@@ -530,6 +579,11 @@ class Aircraft:
         self._set_elevator = self._set["pitch"][0]
         self._set_aileron = self._set["roll"][0]
         self._set_rudder = self._set["yaw"][0]
+        # The pedals also steer the nose (or tail) wheel, as FlightGear's JSBSim interface does
+        # (fcs/steer-cmd-norm = the pedals, +1 right, unnegated): without it a model rolls where
+        # its propeller's torque takes it, the rudder alone being weak below flying speed.
+        self._set_steer = n("fcs/steer-cmd-norm").set_double_value if self._pm.hasNode("fcs/steer-cmd-norm") \
+            else (lambda v: None)
         self._set_throttles = tuple(self._set["throttle"])
 
         gr = self.fdm.get_ground_reactions()
@@ -549,7 +603,8 @@ class Aircraft:
         self._structure = np.array([c.kind == "structure" for c in contacts], dtype=bool)
         # Water under the wheels ends a landplane's roll (see the module docstring): the gear
         # contacts (their indices among the contacts, their weight-on-wheels readings).
-        self._ditches = getattr(self.terrain, "has_water", True) and not catalog.lands_on_water(self.name)
+        self._has_water = getattr(self.terrain, "has_water", True)
+        self._ditches = self._has_water and not catalog.lands_on_water(self.name)
         self._gear_at = np.flatnonzero(~self._structure)
         self._gear_wow = [n(f"gear/unit[{contacts[i].index}]/WOW").get_double_value for i in self._gear_at]
         self._detector_limits = LIMITS[self.aircraft_class]
@@ -557,11 +612,14 @@ class Aircraft:
         self._nz_max = self._detector_limits.nz_max_g
 
     def _terrain_msl_m(self, lat_deg, lon_deg) -> np.ndarray:
-        """Terrain heights (m MSL; no data is sea level) of the query points; the result may
-        be this aircraft's own buffer, valid until the next query."""
+        """The surface (m MSL: the terrain, the sea surface over water, no data is sea level;
+        :func:`terrain_msl_m`) at the query points; the result may be this aircraft's own
+        buffer, valid until the next query."""
         if self._heights_of is not None and isinstance(lat_deg, np.ndarray) and lat_deg.size <= self._terr.size:
             out = self._terr[:lat_deg.size]  # the CG alone far from the ground; every contact near it
             np.copyto(out, 0.0, where=np.isnan(self._heights_of(lat_deg, lon_deg, out)))
+            if self._has_water:
+                np.maximum(out, WATER_LEVEL_MSL_M, out=out)
             return out
         return terrain_msl_m(self.terrain, lat_deg, lon_deg)
 
@@ -624,7 +682,8 @@ class Aircraft:
         else:
             alt_msl = ic.alt_m if ic.alt_ref == "msl" else t_m + ic.alt_m
             if alt_msl <= t_m:
-                raise InvalidArgument("alt_m", f"an airborne start must be above the terrain ({t_m:.1f} m MSL "
+                surface = "the sea surface" if self._has_water and _wet(np.array([t_m]))[0] else "the terrain"
+                raise InvalidArgument("alt_m", f"an airborne start must be above {surface} ({t_m:.1f} m MSL "
                                                "here); use on_ground=True to start on the ground", value=ic.alt_m)
             agl_ft = (alt_msl - t_m) / FT_M
         self._set_ic(ic, lon, t_m, agl_ft)
@@ -679,6 +738,22 @@ class Aircraft:
                 initialise(sigma)
                 self.trim()
         self._detector = EventDetector(self._detector_limits, on_ground=ic.on_ground)
+        self._set_penetration_limits()
+
+    def _set_penetration_limits(self, weight_lbs: float | None = None) -> None:
+        """How deep below its terrain each contact may be before it is inside the ground (a
+        crash): ``max_penetration_m`` for a structure point; for a wheel also its strut's
+        compression at rest (static_compressions_m) times the class's ultimate load factor, the
+        most its strut compresses short of failing (ultimate load, 14 CFR 23.303 / 25.303,
+        on the wheel's share of the weight). The catalog's B747 nose strut (22000 lbs/ft under
+        some 100000 lbs) rests 1.56 m compressed; a c172's wheels stay under the 1 m floor."""
+        springs = catalog.contact_springs_lbs_ft(self.name)
+        if len(springs) != len(self.contacts):
+            springs = (None,) * len(self.contacts)
+        springs = [None if c.kind == "structure" else v for c, v in zip(self.contacts, springs)]
+        rest = static_compressions_m(self._contact_locations_in, springs, [g() for g in self._get_cg_in],
+                                     self.fdm["inertia/weight-lbs"] if weight_lbs is None else weight_lbs)
+        self.penetration_limits_m = np.maximum(self.max_penetration_m, self._nz_max * rest)
 
     # -- controls -------------------------------------------------------------------------------
 
@@ -699,6 +774,8 @@ class Aircraft:
             x = (1.0 if v else 0.0) if name == "gear_down" else v * self._sign.get(name, 1.0)
             for setter in self._set[name]:
                 setter(x)
+            if name == "yaw":
+                self._set_steer(v)
         self._controls = replace(self._controls, **values)
 
     def _set_controls_trusted(self, pitch=None, roll=None, yaw=None, throttle=None) -> None:
@@ -715,6 +792,7 @@ class Aircraft:
             self._set_aileron(roll)
         if yaw is not None:
             self._set_rudder(-yaw)
+            self._set_steer(yaw)
         if throttle is not None:
             for setter in self._set_throttles:
                 setter(throttle)
@@ -939,7 +1017,11 @@ class Aircraft:
             if -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0:
                 # Floats throughout, no array: numpy's code is as cold as ours here.
                 h = self._point_height(lat, lon)
-                return self._finish([0.0 if h != h else h])  # no data is sea level, as _terrain_msl_m
+                if h != h:
+                    h = 0.0  # no data is sea level, as _terrain_msl_m
+                if self._has_water and h < WATER_LEVEL_MSL_M:
+                    h = WATER_LEVEL_MSL_M  # the sea's surface over its floor
+                return self._finish([h])
         return self._finish(None if n == 0 else self._terrain_msl_m(self._q_lat[:n], self._q_lon[:n]))
 
     def _where(self, alt_ft):
@@ -1072,8 +1154,14 @@ class Aircraft:
                 c_min, elevation_m, struct_hit = alt_m - terr[0], float(terr[0]), False
             self._terrain_ft = elevation_m / FT_M
             self._set_terrain_ft(self._terrain_ft)
-            if c_min < -self.max_penetration_m:
-                events += self._detector.terrain_crash(t, lat, lon, alt_m, -c_min)
+            if c_min < -self.max_penetration_m:  # every contact's limit is at least that
+                if terr.size > 1:
+                    depth = terr[1:] - self._q_alt
+                    k = int(np.argmax(depth - self.penetration_limits_m))
+                    if depth[k] > self.penetration_limits_m[k]:
+                        events += self._detector.terrain_crash(t, lat, lon, alt_m, float(depth[k]))
+                else:
+                    events += self._detector.terrain_crash(t, lat, lon, alt_m, -c_min)
             wow = self._get_wow() > 0.5
             events += self._detector.update(t, lat, lon, alt_m, wow, struct_hit,
                                             self._get_vd() * FT_M, self._get_nz(),
@@ -1142,8 +1230,11 @@ class Aircraft:
             tanks += 1
         if tanks == 0 and kg > 0:
             raise InvalidArgument("fuel_kg", f"aircraft {self.name!r} has no fuel tanks", value=kg)
+        before_lbs = self._get_fuel_lbs() if self.has_fuel else 0.0
         for i in range(tanks):
             self.fdm[f"propulsion/tank[{i}]/contents-lbs"] = kg / LB_KG / tanks
+        # JSBSim's weight follows at its next step; the struts' limits follow the fuel now.
+        self._set_penetration_limits(self.fdm["inertia/weight-lbs"] - before_lbs + kg / LB_KG)
 
 
 # Speeds tried by trim_speeds (m/s): the catalog survey's grid, from a paraglider's to a jet's.

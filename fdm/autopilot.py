@@ -87,6 +87,10 @@ GAINS = {
                        max_alpha_rad=math.radians(10)),
 }
 
+# On the ground the heading is steered with the pedals: full pedal at this many radians of
+# heading error and more (a pedal of 1 per 0.5 rad, 29 degrees: tuned here on the c172x).
+G_STEER = 2.0
+
 # Raw row columns read each update, looked up once.
 _TIME, _LAT, _LON, _ALT = _C["time_s"], _C["lat_rad"], _C["lon_rad"], _C["alt_ft"]
 _VN, _VE, _VD, _VT = _C["v_north_fps"], _C["v_east_fps"], _C["v_down_fps"], _C["vt_fps"]
@@ -166,9 +170,14 @@ class Autopilot:
         phi, psi, p, q = r[_PHI], r[_PSI], r[_P], r[_Q]
         pitch = roll = yaw = throttle = None
         tg = self.targets
+        # Weight on wheels: the take-off roll (or a landing's). Banking into a turn there drops
+        # a wing tip onto the runway: wings are held level and the heading is steered with the
+        # pedals (rudder and nose wheel), and the pitch loop's integrator waits (it would wind up
+        # to full aft stick before the elevator can act, and over-rotate into a tail strike).
+        rolling = ac.on_ground
         if tg.heading_deg is not None:
             err = wrap_pi(math.radians(tg.heading_deg) - psi)
-            bank_cmd = _clamp(g.k_heading * err, -g.max_bank_rad, g.max_bank_rad)
+            bank_cmd = 0.0 if rolling else _clamp(g.k_heading * err, -g.max_bank_rad, g.max_bank_rad)
             if g.max_bank_rate_rad_s < math.inf:
                 last = phi if self._bank_cmd is None else self._bank_cmd
                 step = g.max_bank_rate_rad_s * dt
@@ -178,7 +187,7 @@ class Autopilot:
             if -1.0 < u < 1.0:
                 self._i_bank = _clamp(self._i_bank + g.ki_bank * e * dt, -0.5, 0.5)
             roll = _clamp(u, -1.0, 1.0)
-            yaw = _clamp(-g.k_beta * r[_BETA], -1.0, 1.0)
+            yaw = _clamp(G_STEER * err if rolling else -g.k_beta * r[_BETA], -1.0, 1.0)
         if tg.alt_msl_m is not None:
             vn, ve, vd = r[_VN], r[_VE], r[_VD]
             v = max(math.sqrt(vn * vn + ve * ve + vd * vd), 1.0)
@@ -196,7 +205,7 @@ class Autopilot:
             stalling = alpha > g.max_alpha_rad
             if stalling:  # no further aft than now: forward, faster the deeper into the stall
                 u = min(u, ac.controls.pitch - _STALL_PUSH_PER_RAD_S * (alpha - g.max_alpha_rad) * dt)
-            if -1.0 < u < 1.0 and not (stalling and e > 0.0):  # anti-windup: not while saturated
+            if -1.0 < u < 1.0 and not (stalling and e > 0.0) and not rolling:  # anti-windup: not while saturated
                 self._i_pitch = _clamp(self._i_pitch + g.ki_pitch * e * dt, -1.0, 1.0)
             pitch = _clamp(u, -1.0, 1.0)
         if tg.speed_mps is not None:
@@ -205,6 +214,10 @@ class Autopilot:
             if 0.0 < u < 1.0:
                 self._i_speed = _clamp(self._i_speed + g.ki_speed * e * dt, 0.0, 1.0)
             throttle = _clamp(u, 0.0, 1.0)
+            if ac.controls.brakes and throttle > 0.0:
+                # Holding a speed it has not reached, a pilot lets the brakes off (a ground
+                # start sets them, fdm.aircraft): a route from the ground is a take-off.
+                ac.set_controls(brakes=0.0)
         if pitch != pitch or roll != roll or yaw != yaw or throttle != throttle:
             # A NaN state: set_controls rejects it, naming the control, as it always has.
             ac.set_controls(**{k: v for k, v in (("roll", roll), ("yaw", yaw), ("pitch", pitch),

@@ -29,6 +29,18 @@ CLASS_OF = {
 }
 
 
+# The JSBSim step (s) an aircraft may run at. Up to DT_MAX_S every model of the catalog whose
+# gear holds it at rest at 120 Hz stays at rest on flat ground (10 s after a ground start:
+# no take-off, crash, drift or bounce). Measured on the catalog (JSBSim 1.3.3): at 1/50 s all
+# stay; at 1/40 s the J3Cub creeps 1 m; at 1/30 s the Pterosaur and the t6texan2 hop off their
+# gear; at 1/15 s the A4, B747, c310 and J3Cub crash, at 1/10 s most of the catalog. JSBSim's
+# gear is an explicit spring and damper: too long a step for its stiffness and it pumps energy in.
+# (Not at rest even at 120 Hz, whatever the bound: minisgs (stable at 1e-4 s only), SGS, paraglider,
+# ball, ballx, F450, wrightFlyer1903; the dr1 and ZLT-NT creep.)
+DT_MIN_S = 1e-4
+DT_MAX_S = 1.0 / 50.0
+
+
 def root_dir() -> Path:
     import jsbsim
 
@@ -364,3 +376,40 @@ def body_radius_m(name: str, root: str | None = None) -> float:
                     sizes.append(math.dist(p, cg))
     sizes = [s for s in sizes if math.isfinite(s)]
     return max(sizes) if sizes and max(sizes) > 0 else DEFAULT_BODY_RADIUS_M
+
+
+# Spring coefficients of JSBSim's contacts (FGLGear reads <spring_coeff> in LBS/FT; the
+# catalog writes LBS/FT or N/M). Exact: 1 lbf = 4.4482216152605 N, 1 ft = 0.3048 m.
+_TO_LBS_FT = {"LBS/FT": 1.0, "N/M": 0.3048 / 4.4482216152605}
+
+
+@lru_cache(maxsize=256)
+def contact_springs_lbs_ft(name: str, root: str | None = None) -> tuple:
+    """Each contact's spring coefficient (lbs/ft) in the model file's order (JSBSim's
+    gear/unit[i] order), None where the file gives none in a unit it knows (a contact
+    with a <strut_force> function alone). Empty for a name or file that cannot be read."""
+    import xml.etree.ElementTree as ET
+
+    base = Path(root) if root else root_dir()
+    try:
+        folder = base / "aircraft" / resolve(name, root)
+        tree = ET.parse(folder / f"{folder.name}.xml").getroot()
+        section = tree.find("ground_reactions")
+        ref = section.get("file") if section is not None else None
+        if ref:  # <ground_reactions file="Gear"/>: the section in a file of its own
+            path = next((p for p in (folder / ref, folder / f"{ref}.xml", folder / "Systems" / f"{ref}.xml")
+                         if p.is_file()), None)
+            section = ET.parse(path).getroot() if path is not None else None
+    except (NotFound, OSError, ET.ParseError):
+        return ()
+    if section is None:
+        return ()
+    springs = []
+    for contact in section.iter("contact"):
+        el = contact.find("spring_coeff")
+        try:
+            k = float(el.text) * _TO_LBS_FT[el.get("unit", "LBS/FT").upper()]
+        except (AttributeError, TypeError, ValueError, KeyError):
+            k = None
+        springs.append(k if k is not None and math.isfinite(k) and k > 0 else None)
+    return tuple(springs)
