@@ -298,17 +298,22 @@ def _add_target_areas(scene, stats: GltfStats, r, terrain, frame: LocalFrame) ->
         stats.target_areas += 1
 
 
+UNPLACED_EVENTS = ("join", "leave")  # a session's, not something that happened at a place
+
+
 def _add_events(scene, extras: dict, stats: GltfStats, r, frame: LocalFrame) -> None:
     """The events: a point each where it has a position (node "events"); all of them in the
     scene's extras."""
     import trimesh
 
     undulation = float(r.header.geoid_undulation_m)
-    # Events where something happened to an entity (sessions joining and leaving are not placed).
+    # Every event is listed; those where something happened to an entity have a point (sessions
+    # joining and leaving are not placed, nor an event without a whole position).
     skipped: list = []
-    events = [ev.event for ev in r.events(skipped) if ev.event.kind not in ("join", "leave")]
+    events = [ev.event for ev in r.events(skipped)]
     stats.skipped += [s for s in skipped if s not in stats.skipped]
-    is_placed = [all(map(math.isfinite, (e.lat_deg, e.lon_deg, e.alt_msl_m))) for e in events]
+    is_placed = [e.kind not in UNPLACED_EVENTS and all(map(math.isfinite, (e.lat_deg, e.lon_deg, e.alt_msl_m)))
+                 for e in events]
     placed = [e for e, p in zip(events, is_placed) if p]
     if placed:
         where = geodetic_to_ecef([e.lat_deg for e in placed], [e.lon_deg for e in placed],

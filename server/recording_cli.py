@@ -4,6 +4,7 @@
     sortie recording check FILE            # exit 1 when anything is wrong (what is readable is listed)
     sortie resim FILE [--dem FILE... | --terrain HOST:PORT] [--until S] [--json OUT]
     sortie resim FILE --take-over S --agent NAME --port N   # live from instant S, NAME free to claim
+                 [--duration S]                      # live for S world seconds (default: to the exercise's end)
                  [--record FILE | --record-dir DIR | --no-record]  # recorded as sortie server records
     sortie replay FILE --port N [--speed X] [--paused]
 """
@@ -50,7 +51,11 @@ def add_parser(sub) -> None:
                    help="processes for the aircraft (default %(default)s: in process; results are identical)")
     r.add_argument("--json", metavar="OUT", help="write the report as JSON")
     r.add_argument("--take-over", type=float, metavar="S", help="go live from world time S")
-    r.add_argument("--agent", metavar="NAME", help="with --take-over: the agent a client takes")
+    r.add_argument("--agent", metavar="NAME", help="with --take-over: the agent a client takes (an aircraft or a "
+                                                   "ground vehicle)")
+    r.add_argument("--duration", type=float, metavar="S",
+                   help="with --take-over: stop after S world seconds live (default: at the exercise's end, the "
+                        "later of the scenario's duration_s and the recording's end; none: until stopped)")
     r.add_argument("--port", type=int, default=0, help="with --take-over: TCP port (0: a free one)")
     r.add_argument("--host", default="127.0.0.1", help="with --take-over: interface (default %(default)s)")
     from server.sim_cli import add_recording_options
@@ -174,10 +179,10 @@ def resim_command(args) -> int:
     workers = aircraft_workers(args.aircraft_workers)
     if args.take_over is not None:
         return take_over_command(args, workers)
-    if args.agent or args.record:
+    if args.agent or args.record or args.duration is not None:
         from sortie.errors import InvalidArgument
 
-        option = "agent" if args.agent else "record"
+        option = "agent" if args.agent else "record" if args.record else "duration"
         raise InvalidArgument(option, "only with --take-over", value=getattr(args, option))
     with _open(args.file) as rec:
         if not rec.index.ticks:  # a server killed before its first chunk: no DIVERGED, nothing ran
@@ -210,12 +215,16 @@ def resim_command(args) -> int:
 def take_over_command(args, workers: int) -> int:
     from server.grpc_common import stop_signals, wait_for_signal
     from server.resim import take_over, take_over_header
-    from server.sim_cli import _missing_folders, check_recording, new_recording, remove_recording
+    from server.sim_cli import (_missing_folders, check_recording, new_recording, recording_option,
+                                remove_recording)
+    from server.scenario import DURATION_MAX_S
     from server.sim_server import SimulationServer, server_config
     from sortie.errors import InvalidArgument
 
     if not args.agent:
         raise InvalidArgument("agent", "--take-over needs --agent NAME")
+    if args.duration is not None and not (math.isfinite(args.duration) and 0.0 < args.duration <= DURATION_MAX_S):
+        raise InvalidArgument("duration", f"must be within (0, {DURATION_MAX_S:g}] s", value=args.duration)
     recording = {}
 
     def record(rec, world, scenario, spec):  # recorded as `sortie server` records, from the world's start
@@ -224,15 +233,17 @@ def take_over_command(args, workers: int) -> int:
             return None
         made = _missing_folders(path)
         recorder = new_recording(path, lambda: take_over_header(rec, scenario, world, spec,
-                                                                bool(args.dem or args.terrain)), args.record_chunk_s)
-        recording.update(recorder=recorder, path=path, made=made)
+                                                                bool(args.dem or args.terrain)), args.record_chunk_s,
+                                 recording_option(args))
+        recording.update(recorder=recorder, path=recorder.path, made=made)  # a chosen name may take a suffix
         return recorder
 
     try:
         world, inputs, scenario = take_over(args.file, args.take_over, args.agent, args.dem, args.terrain, workers,
-                                            recorder=record)
-    except InvalidArgument as exc:  # an agent that is gone, crashed or unknown: name the option
-        raise exc.with_field("--agent") if exc.field == "agent" else exc from None
+                                            recorder=record, duration_s=args.duration)
+    except InvalidArgument as exc:  # an agent that is gone, crashed, static or unknown; no live phase: the option
+        option = {"agent": "--agent", "take_over": "--take-over"}.get(exc.field)
+        raise exc.with_field(option) if option else exc from None
     recorder = recording.get("recorder")
     config = server_config(scenario, "take-over:" + str(args.file))
     config.clock = "realtime"
@@ -246,8 +257,9 @@ def take_over_command(args, workers: int) -> int:
         raise
     with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
         server.start()
-        line(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s listening on {server.address}",
-             logger=__name__)
+        until = "until stopped" if config.duration_s is None else f"until t = {config.duration_s:.2f} s"
+        line(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s ({until}) listening on "
+             f"{server.address}", logger=__name__)
         if recorder is not None:
             line(f"recording to {recording['path']}", logger=__name__)
         for lost in inputs.lost:

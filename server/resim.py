@@ -21,7 +21,13 @@ agent keeps receiving its recorded inputs after the same ticks
 (:class:`RecordedInputs` as the server's ``before_tick``). The take-over is
 a sortie like any other and is recorded from its world's start (the
 re-simulated ticks, then the live ones); making the agent claimable is an
-input of its own ("take_over"), so its recording re-simulates too.
+input of its own ("take_over"), so its recording re-simulates too. It runs
+live for ``--duration`` world seconds or to the exercise's end: the later of
+the scenario's duration_s and the recording's end (a server run with
+``--duration`` past its scenario's end recorded past it), so an instant of
+the recording always has a live phase; only its last instant, with no
+--duration, has none, and is refused. Only aircraft and ground vehicles can
+be taken over (no client role takes a static site).
 
 A damaged chunk (server/recording.py) loses its ticks' states, which are not
 compared, and its inputs: a re-simulation that would need them is refused
@@ -34,7 +40,7 @@ import functools
 import json
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +49,7 @@ from server import recording_codec as codec
 from server.external import ExternalState
 from server.recorder import build_id
 from server.recording import Recording
+from server.world import AIRCRAFT, GROUND, KIND_NAMES
 from sortie.errors import DataFormatError, InvalidArgument, NotFound
 from terrain.dem import file_identity
 
@@ -440,13 +447,16 @@ def resimulate(path, dem=None, service: str | None = None, workers: int = 0, unt
 
 
 def take_over(path, at_s: float, agent: str, dem=None, service: str | None = None, workers: int = 0,
-              recorder=None):
+              recorder=None, duration_s: float | None = None):
     """(world re-simulated to ``at_s`` with ``agent`` free to claim, RecordedInputs for the
-    others, scenario): what ``sortie resim --take-over`` serves live.
+    others, scenario as the take-over runs it): what ``sortie resim --take-over`` serves live.
 
-    ``recorder(rec, world, scenario, terrain_spec)``: a server.recorder.Recorder (or None)
-    to record the sortie with, attached to the world before it is re-simulated (so its
-    recording holds the whole sortie); closed here if the take-over fails."""
+    The live phase lasts ``duration_s`` world seconds, by default until the exercise's end
+    (:func:`take_over_end`): the returned scenario's ``exercise.duration_s`` is the world time
+    it ends at (None: until stopped). ``recorder(rec, world, scenario, terrain_spec)``: a
+    server.recorder.Recorder (or None) to record the sortie with, attached to the world
+    before it is re-simulated (so its recording holds the whole sortie); closed here if the
+    take-over fails."""
     rec = Recording(path)
     world = attached = None
     try:
@@ -456,7 +466,11 @@ def take_over(path, at_s: float, agent: str, dem=None, service: str | None = Non
             names = sorted(e.name for e in world.entities.values())
             raise InvalidArgument("agent", f"no agent of this name in the recording (agents: {', '.join(names)})",
                                   value=agent)
+        if target.kind not in (AIRCRAFT, GROUND):  # no role flies or drives a static site (World.claim's roles)
+            raise InvalidArgument("agent", f"is a {KIND_NAMES.get(target.kind, 'static')} agent: no client can take it "
+                                           "over (aircraft and ground vehicles only)", value=agent)
         last = rec.tick_at(at_s)
+        end_s = take_over_end(rec, scenario, last, at_s, duration_s)
         inputs = RecordedInputs(rec, skip=[target.id], skip_from_tick=last, until=last)
         try:  # known before re-simulating (and recording) when the recorded instant reads
             gone = target.id not in rec.frame(last).ids
@@ -483,7 +497,7 @@ def take_over(path, at_s: float, agent: str, dem=None, service: str | None = Non
         target.on_vanish = "autopilot"
         if target.owner is not None:  # the recorded client lets go; the agent flies on its autopilot
             world.release(target.id)
-        return world, inputs, scenario
+        return world, inputs, replace(scenario, exercise=replace(scenario.exercise, duration_s=end_s))
     except BaseException:
         if world is not None:
             world.close()
@@ -492,6 +506,26 @@ def take_over(path, at_s: float, agent: str, dem=None, service: str | None = Non
         raise
     finally:
         rec.close()
+
+
+def take_over_end(rec: Recording, scenario, tick: int, at_s: float, duration_s: float | None) -> float | None:
+    """World time a take-over at ``tick`` (asked for at ``at_s``) runs to: ``duration_s`` world
+    seconds after it when given, else the exercise's end, the later of the scenario's
+    duration_s and the recording's last instant (a server run with --duration past the
+    scenario's end recorded past it); None: until stopped. InvalidArgument naming
+    "take_over" when that leaves no live phase."""
+    start = tick * rec.dt
+    if duration_s is not None:
+        return start + duration_s
+    end = scenario.exercise.duration_s
+    if end is None:
+        return None
+    end = max(end, rec.last_time_s)
+    if end <= start + 1e-9:
+        raise InvalidArgument("take_over", f"leaves no live phase: the exercise ends at t = {end:g} s (the later of "
+                                           "the scenario's duration_s and the recording's end); give --duration S "
+                                           "to run S world seconds live", value=at_s)
+    return end
 
 
 def _refuse_wreck(rec: Recording, entity_id: int, last: int, at_s: float, agent: str) -> None:

@@ -30,7 +30,8 @@ Schema (``*`` required; everything else has the default shown)::
                                the recording's time stamps and replays, so it must never be
                                "now", and no fixed default is given because midnight UTC
                                would silently light the scene for night.
-    fdm_rate_hz = 120          integer, [1, 1000]; JSBSim and ground-vehicle steps
+    fdm_rate_hz = 120          integer, [50, 1000]; JSBSim and ground-vehicle steps (50 Hz:
+                               fdm.catalog.DT_MAX_S, the longest step the catalog's gear holds)
     world_rate_hz = 30         integer, fdm_rate_hz must be a whole multiple of it (a world
                                tick is fdm_rate_hz / world_rate_hz FDM steps)
     network_rate_hz = 20       (0, world_rate_hz]; state streamed to clients (default: 20, or
@@ -126,7 +127,9 @@ Schema (``*`` required; everything else has the default shown)::
 Polygons are checked in a local plane around their first vertex (north and
 east metres with WGS84 radii of curvature at that latitude, longitude
 differences wrapped, so an area may straddle the antimeridian); the bounding
-box limit keeps areas far below the size where that plane distorts topology.
+box limit keeps areas far below the size where that plane distorts topology. Edges run
+straight in latitude and longitude (as the insets' lattice and the drawn outlines take
+them), so an area cannot contain a pole: one whose longitudes wind a full turn is refused.
 
 Limits are the module constants below (``MAX_*``, ``*_MAX_*``, ``*_MIN_*``).
 """
@@ -137,6 +140,7 @@ import difflib
 import functools
 import math
 import re
+import sys
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from datetime import date, datetime, time, timezone
@@ -162,6 +166,7 @@ MAX_AGENT_TYPES = 512
 MAX_NAME_CHARS = 64
 MAX_EXERCISE_NAME_CHARS = 128
 FDM_RATE_MAX_HZ = 1_000
+FDM_RATE_MIN_HZ = math.ceil(1.0 / catalog.DT_MAX_S - 1e-9)  # the aircraft's longest step (50 Hz)
 TIME_SCALE_MAX = 1_000.0
 DURATION_MAX_S = 7 * 86_400.0
 VANISH_TIMEOUT_MAX_S = 3_600.0
@@ -449,7 +454,26 @@ def scenario_data(text: str, path) -> dict:
             return tomllib.loads(text)
         except tomllib.TOMLDecodeError as e:
             raise _syntax_error(e) from None
+        except ValueError:  # int() refusing an integer of more than sys.get_int_max_str_digits() digits
+            raise _long_integer(text) from None
     return _yaml_data(text)
+
+
+def _long_integer(text: str) -> ScenarioError:
+    """The error of a TOML integer longer than Python converts (sys.get_int_max_str_digits(),
+    4300 by default: tomllib raises a bare ValueError without its place): the first such run
+    of digits, with its line, column and the key on that line where there is one."""
+    limit = sys.get_int_max_str_digits()
+    for m in re.finditer(r"\d(?:_?\d)*", text):
+        digits = len(m.group()) - m.group().count("_")
+        if digits > limit:
+            line = text.count("\n", 0, m.start()) + 1
+            column = m.start() - text.rfind("\n", 0, m.start())
+            key = re.match(r"\s*([A-Za-z0-9_.\-\"']+)\s*=", text[m.start() - column + 1:m.start()])
+            what = f"{key.group(1)} is an integer" if key else "an integer"
+            return ScenarioError(f"line {line}, column {column}", f"TOML value error: {what} of {digits} digits "
+                                 f"(at most {limit})", line=line, column=column)
+    return ScenarioError("file", f"TOML value error: an integer of more than {limit} digits")
 
 
 def _syntax_error(error: tomllib.TOMLDecodeError) -> ScenarioError:
@@ -497,7 +521,11 @@ def _yaml_loader():
             text = self.construct_scalar(node)
             if text.startswith(("0o", "0x")):
                 return int(text[2:], 8 if text[1] == "o" else 16)
-            return int(text, 10)
+            try:
+                return int(text, 10)
+            except ValueError:  # more digits than sys.get_int_max_str_digits() (4300 by default)
+                raise ConstructorError(None, None, f"found an integer of {len(text.lstrip('+-'))} digits (at most "
+                                                   f"{sys.get_int_max_str_digits()})", node.start_mark) from None
 
     resolvers = (
         ("null", r"~|null|Null|NULL|", "~nN"),
@@ -745,7 +773,7 @@ def _exercise(value) -> Exercise:
     name = t.string("name")
     if not 1 <= len(name) <= MAX_EXERCISE_NAME_CHARS or not name.isprintable():
         raise ScenarioError(t.key("name"), f"must be 1..{MAX_EXERCISE_NAME_CHARS} printable characters", value=name)
-    fdm = t.integer("fdm_rate_hz", DEFAULT_FDM_RATE_HZ, 1, FDM_RATE_MAX_HZ)
+    fdm = t.integer("fdm_rate_hz", DEFAULT_FDM_RATE_HZ, FDM_RATE_MIN_HZ, FDM_RATE_MAX_HZ)
     world = t.integer("world_rate_hz", DEFAULT_WORLD_RATE_HZ, 1, fdm)
     if fdm % world:
         raise ScenarioError(t.key("fdm_rate_hz"), f"must be a whole multiple of world_rate_hz ({world})", value=fdm)
@@ -783,7 +811,11 @@ def _start_time(value, path: str) -> datetime:
         raise ScenarioError(path, 'must be an ISO 8601 date-time like "2026-06-15T08:00:00Z"', value=_shown(value))
     if parsed.tzinfo is None or parsed.utcoffset() is None:
         raise ScenarioError(path, "needs a UTC offset (end it with Z for UTC)", value=_shown(value))
-    return parsed.astimezone(timezone.utc)
+    try:
+        return parsed.astimezone(timezone.utc)
+    except OverflowError:  # 9999-12-31T23:59:59-05:00 is in year 10000 UTC
+        raise ScenarioError(path, "must be within years 1..9999 in UTC (its offset takes it past them)",
+                            value=_shown(value)) from None
 
 
 def _terrain(value, base_dir: Path) -> TerrainSpec:
@@ -1045,6 +1077,14 @@ def _target_area(entry) -> TargetArea:
         raise ScenarioError(poly_path, f"must have 3..{MAX_POLYGON_VERTICES} vertices, a closing vertex not "
                                        "counted", value=len(vertices))
     lat, lon = np.array(vertices).T
+    # Edges run straight in (lat, lon), the short way in longitude (the inset's lattice, its
+    # PolygonPlane, the drawn outlines): longitudes winding a full turn circle a pole, which
+    # such a polygon cannot contain (it would be a band along the parallels, not an area).
+    winding = float(np.sum((np.roll(lon, -1) - lon + 180.0) % 360.0 - 180.0))
+    if abs(winding) > 180.0:
+        raise ScenarioError(poly_path, "circles a pole: a target area's edges run straight in latitude and "
+                                       "longitude (as its inset's lattice does), so it cannot contain a pole; "
+                                       "keep the area off the pole", value=_shown(vertices))
     north, east = _local_m(lat, lon, float(lat[0]), float(lon[0]))
     _check_simple_polygon(north, east, poly_path, vertices)
     posts = (np.ptp(north) / detail + 1.0) * (np.ptp(east) / detail + 1.0)

@@ -21,10 +21,10 @@ import contextlib
 import logging
 import math
 import os
-import re
 import signal
 import sys
 import time
+import unicodedata
 from pathlib import Path
 
 from server.grpc_common import DEFAULT_GRACE_S, stop_signals, wait_for_signal
@@ -51,7 +51,8 @@ def add_parser(sub) -> None:
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
     p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")
     p.add_argument("--time-scale", type=float,
-                   help="world seconds per wall second of the fast clock (realtime and paused: 1 only)")
+                   help=f"world seconds per wall second of the fast clock, (1, {TIME_SCALE_MAX:g}] "
+                        "(realtime and paused: 1 only)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S world seconds")
     p.add_argument("--aircraft-workers", default="auto", metavar="N|auto",
                    help="processes the aircraft's JSBSim runs in: 0 = in the server's process; auto = "
@@ -119,43 +120,100 @@ def add_recording_options(p, only: str = "") -> None:
                         "(default %(default)s)")
 
 
+MAX_SLUG_BYTES = 120  # of a recording's default file name (UTF-8): with its time, suffix and ".sortie", under 255
+MAX_NAME_SUFFIX = 999  # "-2" .. "-999" after a default name already taken
+
+
+def recording_slug(exercise_name: str) -> str:
+    """The exercise's name as the start of a file name: accents dropped (NFKD, combining marks
+    removed), letters and digits kept (any script's: str.isalnum), every other run a hyphen,
+    lower case, at most MAX_SLUG_BYTES of UTF-8; "sortie" if nothing is left."""
+    bare = "".join(c for c in unicodedata.normalize("NFKD", exercise_name) if not unicodedata.combining(c))
+    words = "".join(c if c.isalnum() else " " for c in bare).lower().split()
+    slug = unicodedata.normalize("NFC", "-".join(words))  # Hangul and the like recomposed
+    slug = slug.encode("utf-8")[:MAX_SLUG_BYTES].decode("utf-8", "ignore")
+    return slug.strip("-") or "sortie"
+
+
 def recording_path(args, exercise_name: str) -> Path | None:
     """Where a sortie is recorded by the options of :func:`add_recording_options` (None:
-    --no-record)."""
+    --no-record): --record's file, or a name chosen in --record-dir (:func:`new_recording`
+    makes it unique)."""
     if args.no_record:
         return None
     if args.record:
         return Path(args.record)
-    slug = re.sub(r"[^A-Za-z0-9]+", "-", exercise_name).strip("-").lower() or "sortie"
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    return Path(args.record_dir) / f"{slug}-{stamp}.sortie"
+    return Path(args.record_dir) / f"{recording_slug(exercise_name)}-{stamp}.sortie"
+
+
+def recording_option(args) -> str:
+    """The option that said where the sortie is recorded: "record" (a file of the user's, never
+    renamed) or "record_dir" (a name the server chooses)."""
+    return "record" if args.record else "record_dir"
 
 
 def check_recording(args, exercise_name: str) -> Path | None:
     """Where the options of :func:`add_recording_options` record a sortie (None: --no-record),
-    checked: --record-chunk-s, and no file there already (recordings are never overwritten)."""
+    checked: --record-chunk-s, the folder (or what is there of it) a folder, and no file at a
+    --record path already (recordings are never overwritten; a chosen name takes a suffix)."""
     path = recording_path(args, exercise_name)
     if path is None:
         return None
     if not (math.isfinite(args.record_chunk_s) and args.record_chunk_s > 0):
         raise InvalidArgument("record_chunk_s", "must be a finite number > 0", value=args.record_chunk_s)
-    if path.exists():
+    option = recording_option(args)
+    _check_folder(path.parent, option, args.record if args.record else args.record_dir)
+    if args.record and path.exists():
         raise InvalidArgument("record", "the file exists (recordings are never overwritten)", value=str(path))
     return path
 
 
-def new_recording(path: Path, header, chunk_s: float):
-    """A Recorder into ``path`` (checked by :func:`check_recording`); when it cannot be made, the
-    file and the folders it made are removed before its error is raised."""
+def _check_folder(folder: Path, option: str, value) -> None:
+    """InvalidArgument naming ``option`` unless the nearest existing folder of ``folder`` (itself
+    or an ancestor: the others are made) is a folder."""
+    for f in (folder, *folder.parents):
+        if f.exists():
+            if not f.is_dir():
+                where = "" if f == folder else f" ({f} is not a folder)"
+                raise InvalidArgument(option, f"is not a folder{where}" if option == "record_dir"
+                                      else f"cannot be made: {f} is not a folder", value=str(value))
+            return
+
+
+def new_recording(path: Path, header, chunk_s: float, option: str = "record"):
+    """A Recorder into ``path`` (checked by :func:`check_recording`), created exclusively. A
+    name the server chose (``option`` "record_dir") that exists (another server of the same
+    exercise started in the same second) takes the first free suffix -2, -3, ... (the
+    Recorder's ``path`` is the one made); a --record file made since it was checked is an
+    error as one there before. When it cannot be made, the file and the folders it made are
+    removed before its error is raised; an OSError is an InvalidArgument naming ``option``."""
     from server.recorder import Recorder
 
     made = _missing_folders(path)
+    candidates = [path] if option == "record" else [path] + [path.with_name(f"{path.stem}-{k}{path.suffix}")
+                                                             for k in range(2, MAX_NAME_SUFFIX + 1)]
+    candidate = None  # the file being made (removed if this fails), once the header is built
     try:
-        return Recorder(path, header(), chunk_s)
-    except FileExistsError:  # someone else's, made since it was checked
-        raise
-    except BaseException:
-        remove_recording(path, made)
+        h = header()
+        for candidate in candidates:
+            try:
+                return Recorder(candidate, h, chunk_s)
+            except FileExistsError:
+                if option == "record" or not candidate.parent.is_dir():
+                    candidate = None  # someone else's, made since it was checked: not removed
+                    raise
+        candidate = None
+        raise InvalidArgument("record_dir", f"holds recordings of this name and every suffix up to "
+                                            f"-{MAX_NAME_SUFFIX}", value=str(path))
+    except BaseException as exc:
+        remove_recording(candidate, made)
+        if isinstance(exc, FileExistsError) and option == "record":
+            raise InvalidArgument("record", "the file exists (recordings are never overwritten)",
+                                  value=str(path)) from None
+        if isinstance(exc, OSError):
+            raise InvalidArgument(option, f"cannot be written: {exc.strerror or exc}",
+                                  value=str(exc.filename or path)) from None
         raise
 
 
@@ -169,11 +227,12 @@ def _missing_folders(path: Path) -> list[Path]:
     return out
 
 
-def remove_recording(path: Path, folders=()) -> None:
+def remove_recording(path: Path | None, folders=()) -> None:
     """Remove a recording this run made (and ``folders``, the folders made for it, where empty):
     a server that fails to start leaves nothing behind for `sortie replay` to pick."""
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()
+    if path is not None:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
     for folder in folders:
         try:
             folder.rmdir()
@@ -196,7 +255,8 @@ def run_clock(clock: str, time_scale: float, clock_opt: str | None, time_scale_o
     clock does (fast x DEFAULT_FAST_TIME_SCALE, realtime and paused x1: the scenario's x10
     of a fast exercise run with --clock realtime ran ten times real time, labelled
     "realtime"), unless --time-scale gives one; realtime and paused (which resumes in real
-    time) run only at x1, as in a scenario. InvalidArgument naming the option otherwise."""
+    time) run only at x1 and fast only faster, within (1, TIME_SCALE_MAX], as in a scenario.
+    InvalidArgument naming the option otherwise."""
     from server.scenario import DEFAULT_FAST_TIME_SCALE
 
     if clock_opt is not None and clock_opt != clock:
@@ -206,6 +266,9 @@ def run_clock(clock: str, time_scale: float, clock_opt: str | None, time_scale_o
     if clock != "fast" and time_scale != 1.0:
         raise InvalidArgument("time_scale", f'must be 1.0 with the {clock} clock (use --clock fast)',
                               value=time_scale)
+    if clock == "fast" and not 1.0 < time_scale <= TIME_SCALE_MAX:  # the scenario's rule (server.scenario)
+        raise InvalidArgument("time_scale", f"must be within (1, {TIME_SCALE_MAX:g}] with the fast clock "
+                                            "(1.0: use --clock realtime)", value=time_scale)
     return clock, time_scale
 
 
@@ -244,7 +307,8 @@ def server_command(args) -> int:
             made = _missing_folders(path)
             recorder = new_recording(path, lambda: recording_header(
                 args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain), terrain),
-                args.record_chunk_s)
+                args.record_chunk_s, recording_option(args))
+            path = recorder.path  # a chosen name may have taken a suffix
             server.recorder = recorder  # closed by server.stop()
             world.attach_recorder(recorder)
         if metrics is not None:

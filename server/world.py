@@ -632,17 +632,26 @@ class World(EventLog):
         heading, alt, speed = values.get("heading_deg"), values.get("alt_msl_m"), values.get("speed_mps")
         if heading is not None and not 0.0 <= heading < 360.0:
             raise InvalidArgument("autopilot.heading_deg", "must be within [0, 360) degrees true", value=heading)
-        if speed is not None and (speed < 0.0 or (e.kind == AIRCRAFT and speed <= 0.0) or speed > SPEED_MAX_MPS):
-            raise InvalidArgument("autopilot.speed_mps", f"must be within (0, {SPEED_MAX_MPS:g}] m/s for aircraft, "
-                                  "[0, the type's top speed] for ground vehicles", value=speed)
         if e.kind == GROUND:
             if alt is not None:
                 raise InvalidArgument("autopilot.alt_msl_m", "ground vehicles have no altitude to hold")
-            if speed is not None:
-                self._check_ground_command(e, "autopilot", speed, None)
+            if speed is not None:  # forward only, up to its type's top speed (a drive command may reverse)
+                top, type_name = self._ground_top_speed(e)
+                if not 0.0 <= speed <= top:
+                    raise InvalidArgument("autopilot.speed_mps", f"must be within [0, {top:.3g}] m/s for {e.name} "
+                                          f"({type_name}: its top speed)", value=speed)
+        elif speed is not None and not 0.0 < speed <= SPEED_MAX_MPS:
+            raise InvalidArgument("autopilot.speed_mps", f"must be within (0, {SPEED_MAX_MPS:g}] m/s for aircraft",
+                                  value=speed)
         elif alt is not None and not ALT_MSL_MIN_M <= alt <= ALT_MAX_M:
             raise InvalidArgument("autopilot.alt_msl_m", f"must be within [{ALT_MSL_MIN_M:g}, {ALT_MAX_M:g}] m MSL",
                                   value=alt)
+
+    def _ground_top_speed(self, e: Entity) -> tuple[float, str]:
+        """(top speed m/s, type name) of a ground vehicle, as its model has them."""
+        with self._lock:
+            t = self.ground.types[int(self.ground.type_id[self.ground.index_of([e.ground_id])[0]])]
+        return float(t.max_speed_mps), t.name
 
     def _check_ground_command(self, e: Entity, command: str, speed_mps, yaw_rate_dps) -> None:
         """The vehicle model's own checks of a speed/heading-rate command (its type's limits),
