@@ -124,7 +124,7 @@ class TerrainStore:
         self.unit_m = float(m["unit_m"])
         self.step_units = int(m["step_units"])
         self.dlat, self.dlon = lattice_spacing_deg(self.depth, self.tile)
-        self.regions = [Region(r["index"], tuple(LevelRect(*x) for x in r["rects"]), tuple(r["bounds"]))
+        self.regions = [Region(r["index"], tuple(LevelRect(*x) for x in r["rects"]), _wrapped_bounds(r["bounds"]))
                         for r in m["regions"]]
         self.name = m.get("name", self.path.name)
         self._lock = threading.RLock()
@@ -329,7 +329,9 @@ class TerrainStore:
 
     def block_raster(self, region: Region, level: int, block_row: int, block_col: int) -> Raster:
         """BLOCK_TILES^2 tiles with their east and south edge posts as one Raster
-        (what point queries read); the last CACHE_BLOCKS are kept."""
+        (what point queries read); the last CACHE_BLOCKS are kept. Blocks count from the
+        region's rectangle's first post (block (0, 0) starts at (row0, col0), tile-aligned), so
+        their indices are small and never negative, whatever turn the rectangle's columns lie in."""
         key = (region.index, level, block_row, block_col)
         with self._lock:
             hit = self._block_cache.get(key)
@@ -338,9 +340,9 @@ class TerrainStore:
                 return hit
             n = BLOCK_TILES * self.tile
             rect = region.rects[level]
-            r0, c0 = block_row * n, block_col * n
-            raster = self._block_raster(region, level, max(r0, rect.row0), min(r0 + n + 1, rect.row1),
-                                        max(c0, rect.col0), min(c0 + n + 1, rect.col1))
+            r0, c0 = rect.row0 + block_row * n, rect.col0 + block_col * n
+            raster = self._block_raster(region, level, r0, min(r0 + n + 1, rect.row1),
+                                        c0, min(c0 + n + 1, rect.col1))
             self._block_cache[key] = raster
             while len(self._block_cache) > CACHE_BLOCKS:
                 self._block_cache.popitem(last=False)
@@ -554,12 +556,30 @@ def read_manifest(path) -> dict:
     return m
 
 
+def _wrapped_bounds(bounds) -> tuple[float, float, float, float]:
+    """A region's bounds with lon_min moved by whole turns into [-180, 180) (lon_max with it, so
+    it passes 180 for a region across the antimeridian), as importers now write them: stores
+    imported before col0 was normalised may have lon_min below -180 or turns east."""
+    lat_min, lon_min, lat_max, lon_max = (float(v) for v in bounds)
+    shift = 360.0 * math.floor((lon_min + 180.0) / 360.0)
+    return lat_min, lon_min - shift, lat_max, lon_max - shift
+
+
 def _unwrap_col(col: float, rect: LevelRect, per_turn: int) -> float:
-    """A column index moved by whole turns to lie at or after the rectangle's first column."""
-    if col < rect.col0:
-        col += per_turn * math.ceil((rect.col0 - col) / per_turn)
-    elif col >= rect.col0 + per_turn:
-        col -= per_turn * math.floor((col - rect.col0) / per_turn)
+    """A column index moved by whole turns into [rect.col0, rect.col0 + per_turn): the copy of a
+    lattice column that the rectangle's own columns count. Whatever turn the rectangle's col0 lies
+    in: stores imported before col0 was normalised have negative ones (a source west of -180) and
+    ones turns east (a source at longitude 1000); :func:`_block_keys` does the same arithmetic."""
+    return _unwrap(float(col), rect.col0, per_turn)
+
+
+@numba.njit(cache=True, nogil=True)
+def _unwrap(col, col0, per_turn):
+    """:func:`_unwrap_col` on numbers (compiled, shared with :func:`_block_keys`)."""
+    if col < col0:
+        col += per_turn * math.ceil((col0 - col) / per_turn)
+    elif col >= col0 + per_turn:
+        col -= per_turn * math.floor((col - col0) / per_turn)
     return col
 
 
@@ -577,7 +597,8 @@ def open_store(path) -> TerrainStore:
         return store
 
 
-# Block keys of StoreSource._groups: (region, block row, block column) packed in one int64.
+# Block keys of StoreSource._groups: (region, block row, block column) packed in one int64; blocks
+# count from the rectangle's first post, so a rectangle a turn wide at depth 20 has < 2^20 of them.
 KEY_STRIDE = 1 << 21
 
 
@@ -585,6 +606,7 @@ KEY_STRIDE = 1 << 21
 def _block_keys(lat, lon, dlat, dlon, per_turn, rects, n, out_key):
     """Each point's block key ((region * KEY_STRIDE + block row) * KEY_STRIDE + block
     column, or -1 outside every region) at one level; True when all keys are equal.
+    Blocks count from the region's rectangle's first post (TerrainStore.block_raster).
 
     rects: (regions, 4) int64 rows of (row0, row1, col0, col1) of the level's
     rectangles; n: posts a block side. The later region holding a point wins,
@@ -597,10 +619,10 @@ def _block_keys(lat, lon, dlat, dlon, per_turn, rects, n, out_key):
         key = -1
         for r in range(rects.shape[0] - 1, -1, -1):
             row0, row1, col0, col1 = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3]
-            c = col + per_turn if col < col0 else col
+            c = _unwrap(col, col0, per_turn)
             if row >= row0 and row <= row1 - 1 and c >= col0 and c <= col1 - 1:
-                bi = min(int(math.floor(row)), row1 - 2) // n
-                bj = min(int(math.floor(c)), col1 - 2) // n
+                bi = (min(int(math.floor(row)), row1 - 2) - row0) // n
+                bj = (min(int(math.floor(c)), col1 - 2) - col0) // n
                 key = (r * KEY_STRIDE + bi) * KEY_STRIDE + bj
                 break
         out_key[i] = key

@@ -40,11 +40,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from sortie.errors import DataFormatError, InvalidArgument
 from terrain import heightcodec, store as st
-from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster
+from terrain.raster import (CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, TWO_PI_A_M, Raster,
+                            fractional_index)
 from terrain.terrain import Terrain
 
 BAND_TILES = 4  # tile rows sampled per resumable band
@@ -55,9 +57,9 @@ MAX_REGION_POSTS = 400_000_000  # level-0 posts one region may hold, whatever th
 # padded levels and decoded copies.
 IMPORT_BYTES_PER_POST = 40
 SAMPLE_CHUNK = 1 << 20  # points per Terrain.heights call
-# In the bands' key: bands sampled by an importer of another version (2: kx x ky anti-aliasing) are
-# sampled again, not mixed into a store with new ones.
-SAMPLING_VERSION = 2
+# In the bands' key: bands sampled by an importer of another version (2: kx x ky anti-aliasing; 3: edge
+# posts also at the edges of a source's voids) are sampled again, not mixed into a store with new ones.
+SAMPLING_VERSION = 3
 WORK_DIR = ".import"  # resumable bands, removed when the import finishes
 REGION_DIR = re.compile(r"region-[0-9]{3,}")  # the store's own names (docs/STORE.md, Files): what a
 LEVEL_FILE = re.compile(r"level-[0-9]{2,}\.tiles")  # re-import may remove when its manifest does not list it
@@ -107,8 +109,8 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
         _check_height_range(r, unit_m)
     # Default lattice: no coarser than any source along either axis (store posts are
     # 4/3 as wide in degrees of longitude as they are tall in latitude).
-    finest = min(min(_lat_spacing_deg(r), 0.75 * _lon_spacing_deg(r)) for r in rasters)
-    depth = st.depth_for_spacing(finest if resolution_arcsec is None else resolution_arcsec / 3600.0, tile)
+    depth = (_default_depth(rasters, tile) if resolution_arcsec is None
+             else st.depth_for_spacing(resolution_arcsec / 3600.0, tile))
     dlat, dlon = st.lattice_spacing_deg(depth, tile)
     sources = _with_detail(rasters, add_detail, detail_seed, dlat) if add_detail else rasters
     terrain = Terrain(sources)
@@ -120,7 +122,7 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
                            "ssq": 0.0, "sn": 0}
     progress_bar = _Progress(progress, sum(_region_posts(g) for g in groups))
     for index, (row0, col0, rows, cols, members) in enumerate(groups):
-        edges = [(sources[m], rasters[m].bounds) for m in members]
+        edges = [(sources[m], rasters[m]) for m in members]
         heights, classes = _sample_region(terrain, out, key, index, row0, col0, rows, cols, dlat, dlon, tile,
                                           [rasters[m] for m in members], edges, progress_bar)
         units = _to_units(heights, unit_m, [rasters[m] for m in members])
@@ -207,6 +209,25 @@ def _step_units(step_m: float, lossless: bool, unit_m: float) -> int:
                               f"(the codec quantises whole units), which {step_m!r} m is not: take {shown}",
                               value=step_m)
     return max(1, int(whole))
+
+
+def _default_depth(rasters, tile: int) -> int:
+    """The lattice depth without --resolution: the least whose spacing is no coarser than any
+    source's along either axis (store posts are 4/3 as wide in degrees of longitude as they are
+    tall in latitude). A source finer than the finest lattice (depth MAX_DEPTH, ~4 cm) is refused
+    naming the file and its post spacing, the cause: not ``resolution``, which the user did not give."""
+    spacing = [min(_lat_spacing_deg(r), 0.75 * _lon_spacing_deg(r)) for r in rasters]
+    k = int(np.argmin(spacing))
+    try:
+        return st.depth_for_spacing(spacing[k], tile)
+    except InvalidArgument:
+        r = rasters[k]
+        finest_deg = st.lattice_spacing_deg(st.MAX_DEPTH, tile)[0]
+        raise InvalidArgument("files", f"{r.source}: its posts {_lat_spacing_deg(r) * 3600:.3g} x "
+                                       f"{_lon_spacing_deg(r) * 3600:.3g} arc-seconds apart (latitude x longitude) "
+                                       f"are finer than the store's finest lattice ({finest_deg * 3600:.3g} "
+                                       f"arc-seconds of latitude, depth {st.MAX_DEPTH}): is its cell size right? "
+                                       f"To import it anyway, give --resolution ARCSEC") from None
 
 
 def _check_height_range(r: Raster, unit_m: float) -> None:
@@ -408,6 +429,7 @@ def _regions(rasters, dlat, dlon, tile):
     addressed, and a region's pyramid would never shrink to one tile (at every level the pole
     row starts a tile row of its own). The store therefore answers down to that last row."""
     last_row = int(round(180.0 / dlat)) - 1
+    per_turn = int(round(360.0 / dlon))
     boxes = []
     for r in rasters:
         lat_min, lon_min, lat_max, lon_max = r.bounds
@@ -416,7 +438,11 @@ def _regions(rasters, dlat, dlon, tile):
         row1 = min(int(math.ceil((90.0 - lat_min) / dlat)) + 1, last_row + 1)
         col0 = int(math.floor((lon_min + 180.0) / dlon))
         col1 = int(math.ceil((lon_max + 180.0) / dlon)) + 1
-        boxes.append([row0, col0, row1, col1])
+        # col0 into the lattice's first turn [0, per_turn), col1 with it (past per_turn across the
+        # antimeridian): a source west of -180 (xllcorner -180.05) or turns east (1000) would
+        # otherwise give a rectangle of negative columns or columns turns away.
+        shift = per_turn * (col0 // per_turn)
+        boxes.append([row0, col0 - shift, row1, col1 - shift])
     groups = [[i] for i in range(len(boxes))]
     merged = True
     while merged:
@@ -480,7 +506,7 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
                    members, edges, progress_bar):
     """Heights (m) and classes of a region's level-0 posts, band by band (resumable).
 
-    edges: (source, its bounds) of the region's members, priority order (see _edge_samples)."""
+    edges: (source, its raster) of the region's members, priority order (see _edge_samples)."""
     work = out / WORK_DIR
     work.mkdir(exist_ok=True)
     heights = np.empty((rows, cols), np.float64)
@@ -524,9 +550,9 @@ def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factors=(1, 1), edge
     """Posts of rows [r_a, r_b): the mean of ky x kx bilinear samples (factors (ky, kx):
     latitude, longitude) spread over each post's cell ((1, 1): the bilinear value at
     the post). A post with no sample
-    on the data but within one spacing of a source's edge takes the source's height at
-    the nearest point of its edge (:func:`_edge_samples`), so that the store answers
-    all the way to the sources' edges."""
+    on the data but within one spacing of a point a source answers (its box's edges, its voids'
+    edges) takes the source's height at the nearest such point (:func:`_edge_samples`), so that
+    the store answers all the way to the sources' edges."""
     rows = np.arange(r_a, r_b, dtype=np.float64)
     cs = np.arange(col0, col0 + cols, dtype=np.float64)
     ky, kx = factors
@@ -564,33 +590,98 @@ def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factors=(1, 1), edge
 
 
 def _edge_samples(edges, lat, lon, dlat, dlon):
-    """(heights m, statuses) of points (lat, lon degrees, (n,)) less than one store spacing
-    (dlat, dlon) outside a source's box, answered by that source at the nearest point of
-    its box (the first source in priority order that answers); OUTSIDE for the rest.
+    """(heights m, statuses) of points (lat, lon degrees, (n,)) that no source answers but that lie
+    less than one store spacing (dlat, dlon) from a point where a source does: each takes that
+    source's height at the nearest such point (the first source in priority order that has one);
+    OUTSIDE for the rest.
 
-    The store's lattice is not aligned with the sources: without this, the store posts just
-    beyond a source's edge would be outside, and so would every bilinear cell between the
-    edge and the first post inside it."""
+    A source answers on its cells whose corners all hold data, on the edges between two posts
+    with data, and at its posts with data (terrain.raster's bilinear rule: a corner of zero weight
+    is not read), so it answers all the way to its box's edges and to the edges of its voids
+    (NODATA left unfilled, reaching the file's edge). The store's lattice is not aligned with the
+    sources: without this, the store posts just beyond such an edge would be outside, and so would
+    every bilinear cell between the edge and the first post inside it (the source's first valid
+    column of posts lost, its answers there OUTSIDE from the store)."""
     h = np.full(lat.size, np.nan)
     s = np.full(lat.size, STATUS_OUTSIDE, np.uint8)
-    for source, (lat0, lon0, lat1, lon1) in edges:
+    for source, raster in edges:
         todo = np.flatnonzero(s == STATUS_OUTSIDE)
-        la = np.clip(lat[todo], lat0, lat1)
-        # Longitudes east of the box's west edge, modulo a turn (boxes may cross 180°).
-        east = (lon[todo] - lon0) % 360.0
-        width = lon1 - lon0
-        past = east - width  # beyond the east edge
-        before = 360.0 - east  # short of the west edge
-        lo = np.where(east <= width, east, np.where(past <= before, width, 0.0)) + lon0
-        off_lon = np.where(east <= width, 0.0, np.minimum(past, before))
-        near = np.flatnonzero((np.abs(la - lat[todo]) < dlat) & (off_lon < dlon))
+        if todo.size == 0:
+            break
+        g = raster.georef
+        rc = np.empty(todo.size)
+        cc = np.empty(todo.size)
+        _nearest_answering(np.ascontiguousarray(raster.heights), lat[todo], lon[todo], dlat, dlon, g.crs, g.x0, g.y0,
+                           g.dx, g.dy, rc, cc)
+        near = np.flatnonzero(np.isfinite(rc))
         if near.size == 0:
             continue
+        la, lo = _post_latlon(raster, rc[near], cc[near])
         hh = np.full(near.size, np.nan)
         ss = np.full(near.size, STATUS_OUTSIDE, np.uint8)
-        source.heights_into(la[near], (lo[near] + 180.0) % 360.0 - 180.0, hh, ss)
+        source.heights_into(la, lo, hh, ss)
         h[todo[near]], s[todo[near]] = hh, ss
     return h, s
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_answering(heights, lat, lon, dlat, dlon, crs, x0, y0, dx, dy, out_r, out_c):
+    """For each point, the fractional (row, col) of a raster (georef crs, x0, y0, dx, dy; heights
+    NaN where no data) of the nearest point where the raster answers, less than dlat degrees of
+    latitude and dlon of longitude away (distances in those units); NaN where there is none.
+
+    Candidates: each cell's point nearest the query (clamped into the cell), answered when every
+    corner of non-zero weight holds data (a whole cell, or the edge it lands on), and each post
+    with data; between them they hold the nearest point of every part of the answered set."""
+    ny, nx = heights.shape
+    turn = 360.0 if crs == CRS_GEOGRAPHIC else TWO_PI_A_M
+    turn_cols = turn / dx
+    reach_c = dlon / 360.0 * turn_cols  # columns within dlon of the point
+    for k in range(lat.shape[0]):
+        out_r[k] = np.nan
+        out_c[k] = np.nan
+        r, c = fractional_index(lat[k], lon[k], crs, x0, y0, dx, dy)
+        # Rows less than dlat away (unclamped at the poles: a pole's post reaches as far as any).
+        r_lo, _ = fractional_index(lat[k] - dlat, lon[k], crs, x0, y0, dx, dy)
+        r_hi, _ = fractional_index(lat[k] + dlat, lon[k], crs, x0, y0, dx, dy)
+        if r != r:
+            continue  # beyond a Web Mercator raster's latitudes
+        if r_lo != r_lo:
+            r_lo = -1.0 - 1.0 * ny  # past the raster's south: no bound inside it
+        if r_hi != r_hi:
+            r_hi = 2.0 * ny
+        # Longitude wraps (fractional_index takes it east of x0): west of the raster's west edge
+        # is the column a turn less, where that is nearer to the raster's columns.
+        if c > nx - 1 and c - turn_cols < 0.0 and turn_cols - c < c - (nx - 1):
+            c -= turn_cols
+        reach_r = 0.5 * (r_hi - r_lo)
+        best = np.inf
+        i_a, i_b = max(0, int(math.floor(r_lo))), min(ny - 1, int(math.floor(r_hi)) + 1)
+        j_a, j_b = max(0, int(math.floor(c - reach_c))), min(nx - 1, int(math.floor(c + reach_c)) + 1)
+        for i in range(i_a, i_b + 1):
+            for j in range(j_a, j_b + 1):
+                for cell in range(2):
+                    if cell == 0:  # the post itself
+                        pr, pc = float(i), float(j)
+                        ok = heights[i, j] == heights[i, j]
+                    else:  # the cell whose south-west corner it is: the query clamped into it
+                        if i >= ny - 1 or j >= nx - 1:
+                            continue
+                        pr, pc = min(max(r, float(i)), i + 1.0), min(max(c, float(j)), j + 1.0)
+                        fy, fx = pr - i, pc - j
+                        i0 = i + 1 if fy == 1.0 else i
+                        i1 = i if fy == 0.0 else i + 1
+                        j0 = j + 1 if fx == 1.0 else j
+                        j1 = j if fx == 0.0 else j + 1
+                        ok = (heights[i0, j0] == heights[i0, j0] and heights[i0, j1] == heights[i0, j1]
+                              and heights[i1, j0] == heights[i1, j0] and heights[i1, j1] == heights[i1, j1])
+                    if not ok or not (r_lo < pr < r_hi and abs(pc - c) < reach_c):
+                        continue
+                    d = ((pr - r) / reach_r) ** 2 + ((pc - c) / reach_c) ** 2
+                    if d < best:
+                        best = d
+                        out_r[k] = pr
+                        out_c[k] = pc
 
 
 def _class_pyramid(classes, row0, col0, rects):

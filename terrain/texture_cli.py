@@ -191,6 +191,12 @@ def grid_size(bbox, size: str | None, spacing_m: float | None,
     elif spacing_m is not None:
         if not (math.isfinite(spacing_m) and spacing_m > 0.0):
             raise InvalidArgument("--spacing-m", "must be a positive number of metres", value=spacing_m)
+        # In floats first: a tiny spacing makes counts thousands of digits long, or infinite.
+        across, down = width_m / spacing_m, height_m / spacing_m
+        if not across * down <= 2 * MAX_PIXELS:
+            raise InvalidArgument("--spacing-m", f"{spacing_m:g} m makes about {across:.3g} x {down:.3g} pixels over "
+                                                 f"the box, over the limit of {MAX_PIXELS:,} (16 Mpixel)",
+                                  value=spacing_m)
         cols = max(MIN_SIDE_PX, round(width_m / spacing_m))
         rows = max(MIN_SIDE_PX, round(height_m / spacing_m))
         field = "--spacing-m"
