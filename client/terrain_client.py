@@ -84,7 +84,8 @@ class ServiceError(SortieError):
 
 
 _INVALID = re.compile(r"^(?P<field>[A-Za-z_][\w.]*)(?:\[(?P<index>\d+)\])?: (?P<message>.*)$", re.S)
-_LIMIT = re.compile(r"^(?P<field>[A-Za-z_][\w.]*): (?P<size>\d+) exceeds the limit of (?P<limit>\d+)"
+# A limit's field may say what it counts: "segments (procedural raster posts)".
+_LIMIT = re.compile(r"^(?P<field>[A-Za-z_][\w.]*(?: \([^()]*\))?): (?P<size>\d+) exceeds the limit of (?P<limit>\d+)"
                     r"(?: \((?P<why>.*)\))?$", re.S)
 
 

@@ -9,7 +9,11 @@ parallel arrays of equal, non-zero length, and the batch limits.
 The limits are the ``MAX_*`` constants below (and
 ``server.grpc_common.MAX_MESSAGE_BYTES``); the proto comments state them and
 GetMetadata returns them. A request over one fails with RESOURCE_EXHAUSTED
-and a message naming the field.
+and a message naming the field. LineOfSight and IntersectSegments also keep to
+a per-call cost over synthetic sources (:class:`terrain.terrain.RayBudget`:
+raster posts and new procedural blocks, checked before any work and as the
+rasters are made), and stop between chunks of their work once the caller's
+deadline has passed or it has cancelled (:func:`stoppable_handler`).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import logging
 import math
 import os
 import threading
+import time
 from concurrent import futures
 
 import grpc
@@ -40,6 +45,7 @@ from sortie.v1 import terrain_pb2 as pb
 from terrain.dem import file_identity
 from terrain.profile import PROFILE_MAX_SAMPLES
 from terrain.raster import STATUS_OK
+from terrain.terrain import RayBudget
 
 logger = logging.getLogger(__name__)
 
@@ -187,14 +193,17 @@ class TerrainServicer:
         return {"lat_deg": result.lat_deg, "lon_deg": result.lon_deg, "distance_m": result.distance_m,
                 "height_msl_m": result.height_msl_m, "status": sent_status(result.status)}
 
-    def LineOfSight(self, request: dict) -> dict:
+    # LineOfSight and IntersectSegments take ``check`` (see stoppable_handler): called between
+    # chunks of the work, it raises CallEnded once the caller is gone.
+
+    def LineOfSight(self, request: dict, check=None) -> dict:
         check_batch(request, _RAY_NAMES, MAX_LOS_RAYS)
-        result = self.terrain.line_of_sight(*(request[name] for name in _RAY_NAMES))
+        result = self.terrain.line_of_sight(*(request[name] for name in _RAY_NAMES), budget=RayBudget(check=check))
         return {"visible": result.visible, "status": sent_status(result.status)}
 
-    def IntersectSegments(self, request: dict) -> dict:
+    def IntersectSegments(self, request: dict, check=None) -> dict:
         check_batch(request, _RAY_NAMES, MAX_SEGMENTS)
-        result = self.terrain.intersect(*(request[name] for name in _RAY_NAMES))
+        result = self.terrain.intersect(*(request[name] for name in _RAY_NAMES), budget=RayBudget(check=check))
         n = result.normal_enu
         return {"hit": result.hit, "distance_m": result.distance_m, "lat_deg": result.lat_deg,
                 "lon_deg": result.lon_deg, "height_msl_m": result.height_msl_m,
@@ -204,25 +213,42 @@ class TerrainServicer:
 
     # ------------------------------------------------------------ store streaming
 
-    def _store(self):
+    def _stores(self) -> list:
+        """The TerrainStores of the terrain's StoreSources, in the terrain's priority order."""
         from terrain.store import StoreSource
 
-        for source in self.terrain.sources:
-            if isinstance(source, StoreSource):
-                return source.store
-        raise NotFound("this terrain service has no terrain store (serve it with --store)")
+        stores = [source.store for source in self.terrain.sources if isinstance(source, StoreSource)]
+        if not stores:
+            raise NotFound("this terrain service has no terrain store (serve it with --store)")
+        return stores
 
     def GetTile(self, request: pb.GetTileRequest) -> pb.HeightGrid:
-        store = self._store()
-        level, raster = store.cell_raster(int(request.cell_id))
-        return height_grid(store, raster, level, int(request.cell_id), request.encoding)
+        # The first store (in the terrain's order) holding the cell answers, as heights do.
+        cell_id = int(request.cell_id)
+        missing = []
+        for store in self._stores():
+            try:
+                level, raster = store.cell_raster(cell_id)
+            except NotFound as exc:
+                missing.append(str(exc))
+                continue
+            return height_grid(store, raster, level, cell_id, request.encoding)
+        raise NotFound(missing[0] if len(missing) == 1 else
+                       f"cell_id: no store holds cell {cell_id} ({'; '.join(missing)})")
 
     def GetRegion(self, request: pb.GetRegionRequest) -> pb.HeightGrid:
+        """The level's posts over the box from every store on one lattice: the first store (in
+        the terrain's order) holding part of the box sets the lattice (its level's spacing and
+        cell depth), and each later store on the same lattice at that level fills the posts the
+        stores before it leave outside (:func:`merge_store_rasters`; the first store's data wins
+        where two hold a post, as heights take the first source). A store whose level lies on
+        another lattice is not merged (its posts would not line up)."""
         from terrain.profile import check_point
 
-        store = self._store()
-        if request.level >= store.levels:
-            raise InvalidArgument("level", f"must be below the store's {store.levels} levels", value=request.level)
+        stores = self._stores()
+        levels = max(store.levels for store in stores)
+        if request.level >= levels:
+            raise InvalidArgument("level", f"must be below the store's {levels} levels", value=request.level)
         # Each corner checked on its own, so the error names the request's field (not lat[0]).
         check_point("lat_min_deg", request.lat_min_deg, "lon_min_deg", request.lon_min_deg)
         check_point("lat_max_deg", request.lat_max_deg, "lon_max_deg", request.lon_max_deg)
@@ -234,18 +260,67 @@ class TerrainServicer:
         if not lon[0] <= lon[1]:
             raise InvalidArgument("lon_min_deg", "the box is inverted: east of lon_max_deg (a box across the "
                                   "antimeridian takes lon_max_deg above 180)", value=(float(lon[0]), float(lon[1])))
-        dlat, dlon = store.spacing_deg(request.level)
-        posts = ((lat[1] - lat[0]) / dlat + 2) * ((lon[1] - lon[0]) / dlon + 2)
-        if posts > MAX_REGION_POSTS:
-            raise LimitExceeded("region_posts", int(posts), MAX_REGION_POSTS)
-        raster = store.raster(request.level, float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1]))
-        if raster is None:
-            raise NotFound(f"no region of the store overlaps the box at level {request.level}")
-        return height_grid(store, raster, request.level, 0, request.encoding)
+        level = request.level
+        first, lattice, rasters = None, None, []
+        for store in stores:
+            if level >= store.levels:
+                continue
+            key = (store.spacing_deg(level), store.cell_depth(level))
+            if lattice is not None and key != lattice:
+                continue
+            dlat, dlon = key[0]
+            posts = ((lat[1] - lat[0]) / dlat + 2) * ((lon[1] - lon[0]) / dlon + 2)
+            if posts > MAX_REGION_POSTS:
+                raise LimitExceeded("region_posts", int(posts), MAX_REGION_POSTS)
+            raster = store.raster(level, float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1]))
+            if raster is None:
+                continue
+            if first is None:
+                first, lattice = store, key
+            rasters.append((store, raster))
+        if first is None:
+            raise NotFound(f"no region of the {'store' if len(stores) == 1 else f'{len(stores)} stores'} "
+                           f"overlaps the box at level {level}")
+        raster = merge_store_rasters([r for _, r in rasters])
+        return height_grid(first, raster, level, 0, request.encoding,
+                           max_error_m=max(st.max_error_m for st, _ in rasters))
 
 
-def height_grid(store, raster, level: int, cell_id: int, encoding: int = pb.HEIGHT_ENCODING_FLOAT32) -> pb.HeightGrid:
-    """A store raster (row 0 south) as the wire's HeightGrid (row 0 north)."""
+def merge_store_rasters(rasters: list):
+    """Store rasters of one level's lattice (equal spacing, posts on the same lattice lines; each
+    cropped to where its store has data) as one Raster over all of them: each post from the first
+    raster that holds it (not NaN), NaN where none does. One raster is returned as it is."""
+    from terrain.raster import Georef, Raster
+
+    if len(rasters) == 1:
+        return rasters[0]
+    g0 = rasters[0].georef
+    # Integer offsets of each raster's first post from the first raster's (same lattice: whole
+    # numbers up to rounding). Longitudes stay as the stores unrolled them: every store unrolls
+    # the box's columns from the same western edge.
+    offs = [(int(round((r.georef.y0 - g0.y0) / g0.dy)), int(round((r.georef.x0 - g0.x0) / g0.dx))) for r in rasters]
+    r0 = min(o[0] for o in offs)
+    c0 = min(o[1] for o in offs)
+    r1 = max(o[0] + r.shape[0] for o, r in zip(offs, rasters))
+    c1 = max(o[1] + r.shape[1] for o, r in zip(offs, rasters))
+    heights = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+    filled = np.zeros(heights.shape, bool)
+    for (dr, dc), r in zip(offs, rasters):
+        rows, cols = slice(dr - r0, dr - r0 + r.shape[0]), slice(dc - c0, dc - c0 + r.shape[1])
+        take = np.isnan(heights[rows, cols]) & ~np.isnan(r.heights)
+        heights[rows, cols][take] = r.heights[take]
+        if r.filled is not None:
+            filled[rows, cols][take] = r.filled[take].astype(bool)
+    georef = Georef(g0.crs, g0.x0 + c0 * g0.dx, g0.y0 + r0 * g0.dy, g0.dx, g0.dy)
+    return Raster(heights, georef, name=rasters[0].name, vertical_datum=rasters[0].vertical_datum,
+                  filled=filled if filled.any() else None, source=rasters[0].source,
+                  meta={**rasters[0].meta, "stores": len(rasters)})
+
+
+def height_grid(store, raster, level: int, cell_id: int, encoding: int = pb.HEIGHT_ENCODING_FLOAT32,
+                max_error_m: float | None = None) -> pb.HeightGrid:
+    """A store raster (row 0 south) as the wire's HeightGrid (row 0 north); ``max_error_m``: the
+    bound its heights keep (None: the store's; a grid merged from several stores, the largest)."""
     g = raster.georef
     rows, cols = raster.shape
     heights = np.ascontiguousarray(raster.heights[::-1])
@@ -256,7 +331,7 @@ def height_grid(store, raster, level: int, cell_id: int, encoding: int = pb.HEIG
     grid = pb.HeightGrid(level=level, depth=store.cell_depth(level), rows=rows, cols=cols,
                          lat_north_deg=g.y0 + (rows - 1) * g.dy, lon_west_deg=(g.x0 + 180.0) % 360.0 - 180.0,
                          dlat_deg=g.dy, dlon_deg=g.dx, post_class=np.ascontiguousarray(classes[::-1]).tobytes(),
-                         max_error_m=store.max_error_m, cell_id=cell_id)
+                         max_error_m=store.max_error_m if max_error_m is None else max_error_m, cell_id=cell_id)
     if encoding == pb.HEIGHT_ENCODING_ZSTD_CM:
         import zstandard
 
@@ -327,14 +402,84 @@ def serializers(rpc: str):
     return req.encode, req.decode, resp.encode, decode_response
 
 
+# RPCs whose work stops once the caller is gone (their servicer methods take ``check``).
+STOPPABLE_RPCS = frozenset({"LineOfSight", "IntersectSegments"})
+
+
+class CallEnded(BaseException):
+    """The caller of a call in progress is gone (its deadline passed, or it cancelled): raised by
+    :func:`call_check`'s check to unwind the call's work. A BaseException, so that no handler
+    of failures (grpc_common.unary_handler's ``except Exception``) reports it as one."""
+
+    def __init__(self, code: grpc.StatusCode, why: str):
+        super().__init__(why)
+        self.code = code
+
+
+def call_check(context):
+    """A check for :class:`terrain.terrain.RayBudget`: raises CallEnded (DEADLINE_EXCEEDED once the
+    call's deadline has passed, CANCELLED when the client cancelled or went away) and returns
+    otherwise."""
+    def check() -> None:
+        remaining = context.time_remaining()
+        if remaining is not None and remaining <= 0.0:
+            raise CallEnded(grpc.StatusCode.DEADLINE_EXCEEDED, "the call's deadline passed; its work was stopped")
+        if not context.is_active():
+            raise CallEnded(grpc.StatusCode.CANCELLED, "the call was cancelled; its work was stopped")
+
+    return check
+
+
+class _AbortSeen:
+    """A ServicerContext that remembers the code it was aborted with (for the call's stats)."""
+
+    def __init__(self, context):
+        self._context = context
+        self.code = None
+
+    def abort(self, code, details):
+        self.code = code
+        self._context.abort(code, details)
+
+    def __getattr__(self, name):
+        return getattr(self._context, name)
+
+
+def stoppable_handler(name: str, method, field_names, stats: CallStats | None = None):
+    """grpc_common.unary_handler for ``method(request, check)``: ``check`` (:func:`call_check`)
+    raises CallEnded once the caller is gone, which ends the call with DEADLINE_EXCEEDED or
+    CANCELLED (the client has that status already; the point is that the work stops) and counts
+    it under that code; everything else is unary_handler's."""
+    short = name.rsplit("/", 1)[-1]
+
+    def behaviour(request, context):
+        t0 = time.perf_counter()
+        seen = _AbortSeen(context)
+        check = call_check(context)
+        code = None
+        try:
+            return unary_handler(name, lambda req: method(req, check), field_names)(request, seen)
+        except CallEnded as ended:
+            code = ended.code
+            logger.debug("%s: %s", name, ended)
+            context.abort(ended.code, f"{short}: {ended}")
+        finally:
+            code = seen.code if seen.code is not None else code
+            if stats is not None:
+                stats.record(short, time.perf_counter() - t0, None if code is None else code.name)
+
+    return behaviour
+
+
 def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None) -> dict:
     """gRPC method handlers for every RPC of the service, fast-path codecs included;
     ``stats`` counts the calls (the service's metrics)."""
     handlers = {}
     for rpc, (_, _, field_names) in RPCS.items():
         _, request_deserializer, response_serializer, _ = serializers(rpc)
+        make = stoppable_handler if rpc in STOPPABLE_RPCS else unary_handler
         handlers[rpc] = grpc.unary_unary_rpc_method_handler(
-            unary_handler(f"{SERVICE_NAME}/{rpc}", getattr(servicer, rpc), field_names, stats),
+            make(f"{SERVICE_NAME}/{rpc}", getattr(servicer, rpc), field_names, stats),
             request_deserializer=tolerant_decoder(request_deserializer),
             response_serializer=response_serializer,
         )

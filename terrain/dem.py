@@ -101,10 +101,28 @@ KEY_GT_MODEL_TYPE = 1024
 KEY_GT_RASTER_TYPE = 1025
 KEY_GEOGRAPHIC_TYPE = 2048  # GeodeticCRSGeoKey in GeoTIFF 1.1
 KEY_PROJECTED_CS_TYPE = 3072  # ProjectedCRSGeoKey in GeoTIFF 1.1
+KEY_GEOG_ANGULAR_UNITS = 2054
+KEY_PROJ_LINEAR_UNITS = 3076
 KEY_VERTICAL_CS_TYPE = 4096
 KEY_VERTICAL_UNITS = 4099
-# VerticalUnitsGeoKey codes (EPSG unit of measure): metre, international foot, US survey foot.
+# VerticalUnitsGeoKey and ProjLinearUnitsGeoKey codes (EPSG units of measure, GeoTIFF 1.0 section
+# 6.3.1.3; OGC 19-008r4 7.4.4 and Annex C): metre, international foot (0.3048 m exactly), US
+# survey foot (1200/3937 m). Values: (name, metres per unit).
 VERTICAL_UNITS_M = {9001: ("metre", 1.0), 9002: ("foot", 0.3048), 9003: ("US survey foot", 1200.0 / 3937.0)}
+LINEAR_UNITS_M = VERTICAL_UNITS_M
+# GeogAngularUnitsGeoKey codes (EPSG units of measure, GeoTIFF 1.0 section 6.3.1.4; OGC 19-008r4
+# 7.4.3): radian, degree, arc-minute, arc-second, grad, gon, and 9122 "degree (supplier to
+# define representation)", the unit of EPSG:4326 itself. Values: (name, degrees per unit).
+ANGULAR_UNITS_DEG = {9101: ("radian", 180.0 / math.pi), 9102: ("degree", 1.0), 9103: ("arc-minute", 1.0 / 60.0),
+                     9104: ("arc-second", 1.0 / 3600.0), 9105: ("grad", 0.9), 9106: ("gon", 0.9),
+                     9122: ("degree", 1.0)}
+# GDAL's band unit type (GDAL_METADATA <Item role="unittype">, GDALRasterBand::GetUnitType) for
+# heights, lower-cased: the names GDAL and PROJ write for metre, foot and US survey foot. Values:
+# (name, metres per unit).
+GDAL_UNIT_TYPES_M = {**{u: ("metre", 1.0) for u in ("m", "metre", "meter", "metres", "meters")},
+                     **{u: ("foot", 0.3048) for u in ("ft", "foot", "feet", "international foot")},
+                     **{u: ("US survey foot", 1200.0 / 3937.0)
+                        for u in ("us survey foot", "us-ft", "ftus", "us_survey_foot", "foot_us", "us-foot")}}
 
 # GTModelTypeGeoKey codes (GeoTIFF 1.0 section 6.3.1.1).
 MODEL_TYPE_PROJECTED = 1
@@ -458,7 +476,10 @@ def read_geotiff(path) -> Raster:
     GDAL writes DEMs (LZW, DEFLATE, ZSTD, PackBits; horizontal or
     floating-point predictor): tifffile decodes them with imagecodecs. Heights
     stored scaled (GDAL_METADATA's band scale and offset, e.g. decimetres in
-    int16) or in feet (VerticalUnitsGeoKey 9002, 9003) come out in metres.
+    int16) or in feet (VerticalUnitsGeoKey 9002, 9003, or GDAL_METADATA's band unit
+    type "ft", "US survey foot", ...) come out in metres. Coordinates in other units than
+    the CRS's own (GeogAngularUnitsGeoKey radian, grad, ...; ProjLinearUnitsGeoKey foot, US
+    survey foot) are converted to degrees / metres; a unit it does not know is refused.
     """
     path = _existing(path)
     try:
@@ -483,7 +504,7 @@ def read_geotiff(path) -> Raster:
     if raster_type not in (RASTER_PIXEL_IS_AREA, RASTER_PIXEL_IS_POINT):
         raise DataFormatError(f"{path}: GTRasterTypeGeoKey ({KEY_GT_RASTER_TYPE}) = {raster_type!r} "
                               "is neither 1 (PixelIsArea) nor 2 (PixelIsPoint)")
-    ax, sx, ay, sy = _raster_to_model(path, tags)
+    ax, sx, ay, sy = (v * _model_units(path, crs, keys) for v in _raster_to_model(path, tags))
     # Raster space puts pixel (0, 0)'s outer corner at (0, 0) and its centre at
     # (0.5, 0.5) (GeoTIFF 1.0 section 2.5.2.2; OGC 19-008r4 Annex B).
     half = 0.5 if raster_type == RASTER_PIXEL_IS_AREA else 0.0
@@ -506,12 +527,8 @@ def read_geotiff(path) -> Raster:
         meta["horizontal_datum"] = name if transformation is None else (
             f"{name} (EPSG:{keys[KEY_GEOGRAPHIC_TYPE]}) read as WGS 84: EPSG:{transformation} null "
             f"transformation, accurate to {accuracy_m:g} m")
-    scale, offset = _gdal_scale_offset(path, tags.get(TAG_GDAL_METADATA))
-    unit_code = keys.get(KEY_VERTICAL_UNITS, 9001)
-    if unit_code not in VERTICAL_UNITS_M:
-        raise DataFormatError(f"{path}: VerticalUnitsGeoKey ({KEY_VERTICAL_UNITS}) = {unit_code!r}; read are "
-                              + ", ".join(f"{c} ({name})" for c, (name, _) in VERTICAL_UNITS_M.items()))
-    unit_name, to_m = VERTICAL_UNITS_M[unit_code]
+    scale, offset, unit_type = _gdal_band_metadata(path, tags.get(TAG_GDAL_METADATA))
+    unit_name, to_m = _vertical_units(path, keys, unit_type)
     if (scale, offset, to_m) != (1.0, 0.0, 1.0):  # stored values -> metres (GDAL's unscaling, then units)
         data = (data.astype(np.float64) * scale + offset) * to_m
         meta.update(scale=scale, offset=offset, vertical_units=unit_name)
@@ -519,11 +536,58 @@ def read_geotiff(path) -> Raster:
     return _finish(path, data, voids, _make_georef(path, crs, x0, y0, abs(sx), abs(sy)), datum, meta)
 
 
+def _model_units(path: Path, crs: int, keys: dict) -> float:
+    """Factor from the file's model coordinates to the Georef's (degrees, or metres of Web
+    Mercator): GeogAngularUnitsGeoKey (2054, default degree) of a geographic raster,
+    ProjLinearUnitsGeoKey (3076, default metre) of a projected one. A unit not in
+    ANGULAR_UNITS_DEG / LINEAR_UNITS_M (a user-defined 32767 among them) is refused, naming
+    the key and its value."""
+    if crs == CRS_GEOGRAPHIC:
+        key, units, what = KEY_GEOG_ANGULAR_UNITS, ANGULAR_UNITS_DEG, "GeogAngularUnitsGeoKey"
+        code = keys.get(key, 9102)
+    else:
+        key, units, what = KEY_PROJ_LINEAR_UNITS, LINEAR_UNITS_M, "ProjLinearUnitsGeoKey"
+        code = keys.get(key, 9001)
+    if code not in units:
+        raise DataFormatError(f"{path}: {what} ({key}) = {code!r}; read are "
+                              + ", ".join(f"{c} ({name})" for c, (name, _) in units.items()))
+    return units[code][1]
+
+
+def _vertical_units(path: Path, keys: dict, unit_type: str | None) -> tuple[str, float]:
+    """(name, metres per unit) of the heights: VerticalUnitsGeoKey (4099) and GDAL's band unit
+    type (GDAL_METADATA role "unittype", GDAL_UNIT_TYPES_M), metre when neither is given. An
+    unknown unit, or the two naming different units, is refused."""
+    unit_code = keys.get(KEY_VERTICAL_UNITS)
+    if unit_code is not None and unit_code not in VERTICAL_UNITS_M:
+        raise DataFormatError(f"{path}: VerticalUnitsGeoKey ({KEY_VERTICAL_UNITS}) = {unit_code!r}; read are "
+                              + ", ".join(f"{c} ({name})" for c, (name, _) in VERTICAL_UNITS_M.items()))
+    by_key = VERTICAL_UNITS_M[unit_code] if unit_code is not None else None
+    by_type = None
+    if unit_type:
+        by_type = GDAL_UNIT_TYPES_M.get(unit_type.strip().lower())
+        if by_type is None:
+            raise DataFormatError(f"{path}: GDAL_METADATA ({TAG_GDAL_METADATA}) unittype = {unit_type!r}; read are "
+                                  + ", ".join(repr(u) for u in GDAL_UNIT_TYPES_M))
+    if by_key is not None and by_type is not None and by_key[1] != by_type[1]:
+        raise DataFormatError(f"{path}: VerticalUnitsGeoKey ({KEY_VERTICAL_UNITS}) = {unit_code} ({by_key[0]}) "
+                              f"and GDAL_METADATA unittype = {unit_type!r} ({by_type[0]}) disagree")
+    return by_key or by_type or VERTICAL_UNITS_M[9001]
+
+
 def _gdal_scale_offset(path: Path, text) -> tuple[float, float]:
     """(scale, offset) of band 1 from the GDAL_METADATA tag's XML (``<Item name="SCALE"
     sample="0" role="scale">``); (1, 0) without them. Heights are value * scale + offset."""
+    return _gdal_band_metadata(path, text)[:2]
+
+
+def _gdal_band_metadata(path: Path, text) -> tuple[float, float, str | None]:
+    """(scale, offset, unit type) of band 1 from the GDAL_METADATA tag's XML (``<Item
+    name="SCALE" sample="0" role="scale">``, ``role="offset"``, ``role="unittype"``: GDAL's
+    GDALRasterBand::GetScale/GetOffset/GetUnitType); (1, 0, None) without them. Heights are
+    (value * scale + offset) in the unit type."""
     if not text:
-        return 1.0, 0.0
+        return 1.0, 0.0, None
     import xml.etree.ElementTree as ET
 
     try:
@@ -531,16 +595,19 @@ def _gdal_scale_offset(path: Path, text) -> tuple[float, float]:
     except ET.ParseError as e:
         raise DataFormatError(f"{path}: GDAL_METADATA ({TAG_GDAL_METADATA}) is not XML ({e})") from None
     found = {"scale": 1.0, "offset": 0.0}
+    unit_type = None
     for item in root.iter("Item"):
         role = (item.get("role") or "").lower()
-        if role in found and item.get("sample", "0") == "0":
+        if role == "unittype" and item.get("sample", "0") == "0":
+            unit_type = (item.text or "").strip() or None
+        elif role in found and item.get("sample", "0") == "0":
             try:
                 found[role] = float((item.text or "").strip())
             except ValueError:
                 raise DataFormatError(f"{path}: GDAL_METADATA {role} must be a number, got {item.text!r}") from None
             if not math.isfinite(found[role]) or (role == "scale" and found[role] == 0.0):
                 raise DataFormatError(f"{path}: GDAL_METADATA {role} = {found[role]!r} cannot scale heights")
-    return found["scale"], found["offset"]
+    return found["scale"], found["offset"], unit_type
 
 
 def parse_geokeys(path, directory, doubles=(), ascii_params: str = "") -> dict[int, object]:

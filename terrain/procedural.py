@@ -83,6 +83,11 @@ RASTER_FOR_MAX_POSTS = 1 << 23
 # query over one full ring of block columns (rays over a pole: every longitude, a few rows) is
 # always allowed: the cap is max(MAX_NEW_BLOCKS_PER_CALL, block columns per turn).
 MAX_NEW_BLOCKS_PER_CALL = 4096
+# ProceduralTerrain.boxes_cost: boxes whose posts sum to more than this are counted once where they
+# overlap, on a grid of at most COST_GRID_CELLS cells a turn of longitude (1024 x 512 cells over the
+# globe at most: a few milliseconds a pass).
+COST_UNION_POSTS = 1 << 22
+COST_GRID_CELLS = 1024
 # Upper bound of level_exponent: L^-E for L >= 2 is then at most 2^-64 (heights change by less than
 # a part in 1e19 beyond it), and L**E stays finite (2^20 levels at most: 20^64 ~ 1e83).
 LEVEL_EXPONENT_MAX = 64.0
@@ -401,27 +406,11 @@ class ProceduralTerrain:
         than MAX_NEW_BLOCKS_PER_CALL new blocks (a box of every longitude: a full ring of block
         columns, if more: rays over a pole).
         """
-        for nm, v in (("lat_min", lat_min), ("lon_min", lon_min), ("lat_max", lat_max), ("lon_max", lon_max)):
-            _check_real(nm, v, lambda x: abs(x) <= 540.0, "within +-540 degrees")
-        if not -90.0 <= lat_min <= lat_max <= 90.0:
-            raise InvalidArgument("lat_min", f"must satisfy -90 <= lat_min <= lat_max={lat_max} <= 90",
-                                  value=lat_min)
-        span = lon_max - lon_min if lon_max >= lon_min else lon_max - lon_min + 360.0
-        sp = self.spacing_deg
-        r0 = max(0, math.floor((lat_min + 90.0) / sp))
-        r1 = min(self.pole_row, math.ceil((lat_max + 90.0) / sp))
-        if r1 == r0:
-            r0, r1 = (r0, r0 + 1) if r0 < self.pole_row else (r0 - 1, r0)
-        c0 = math.floor((lon_min + 180.0) / sp)
-        c1 = max(c0 + 1, math.ceil((lon_min + 180.0 + span) / sp))
-        posts = (r1 - r0 + 1) * (c1 - c0 + 1)
+        r0, r1, c0, c1, posts, keys, limit = self._box(lat_min, lon_min, lat_max, lon_max)
         if posts > RASTER_FOR_MAX_POSTS:
             raise LimitExceeded("box posts", posts, RASTER_FOR_MAX_POSTS)
-        n = self.block_cells
-        rows, cols = np.arange(r0 // n, (r1 - 1) // n + 1), np.arange(c0 // n, (c1 - 1) // n + 1)
-        keys = np.repeat(rows, cols.size) * self.block_cols + np.tile(cols % self.block_cols, rows.size)
-        self._check_new_blocks(keys, max(MAX_NEW_BLOCKS_PER_CALL, self.block_cols) if span >= 360.0 else
-                               MAX_NEW_BLOCKS_PER_CALL)
+        self._check_new_blocks(keys, limit)
+        sp, n = self.spacing_deg, self.block_cells
         out = np.zeros((r1 - r0 + 1, c1 - c0 + 1))
         for br in range(r0 // n, (r1 - 1) // n + 1):
             for bc in range(c0 // n, (c1 - 1) // n + 1):
@@ -433,6 +422,51 @@ class ProceduralTerrain:
         return Raster(out, Georef(CRS_GEOGRAPHIC, -180.0 + c0 * sp, -90.0 + r0 * sp, sp, sp), name=self.name,
                       vertical_datum="mean sea level (procedural)", source="procedural",
                       meta={"seed": self.seed, "first_post_row": r0, "first_post_col": c0})
+
+    def box_cost(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float) -> tuple[int, int] | None:
+        """(posts, blocks not cached) of the raster :meth:`raster_for` would make for the box,
+        before making it; None where it would refuse the box (LimitExceeded)."""
+        _, _, _, _, posts, keys, limit = self._box(lat_min, lon_min, lat_max, lon_max)
+        if posts > RASTER_FOR_MAX_POSTS:
+            return None
+        new = self._new_count(keys)
+        return None if new > limit else (posts, new)
+
+    def boxes_cost(self, lat_min, lon_min, lat_max, lon_max) -> tuple[int, int]:
+        """(posts, blocks not cached) under a set of boxes ((k,) degrees each, lon_min in [-180,
+        180), lon_max above it, possibly past 180), without generating any: a work estimate for
+        :class:`terrain.terrain.RayBudget`. Posts are the boxes' posts summed, or, when that sum
+        passes COST_UNION_POSTS, the posts of the union of the boxes on a grid of COST_GRID_CELLS
+        cells a turn (whole blocks or more), if fewer; blocks likewise (the blocks each box
+        touches, summed, or those of the union's cells less the cached ones). Constant work
+        beyond the sums: one pass over a grid of the boxes' rows."""
+        sp, n = self.spacing_deg, self.block_cells
+        lat_min, lat_max = np.clip(lat_min, -90.0, 90.0), np.clip(lat_max, -90.0, 90.0)
+        span = np.minimum(np.maximum(lon_max - lon_min, 0.0), 360.0)
+        r0 = np.floor((lat_min + 90.0) / sp).astype(np.int64)
+        r1 = np.maximum(np.minimum(np.ceil((lat_max + 90.0) / sp).astype(np.int64), self.pole_row - 1), r0)
+        c0 = np.floor((lon_min + 180.0) / sp).astype(np.int64)
+        c1 = np.minimum(np.maximum(np.ceil((lon_min + 180.0 + span) / sp).astype(np.int64), c0),
+                        c0 + self.posts_per_turn - 1)
+        posts = int(((r1 - r0 + 1) * (c1 - c0 + 1)).sum())
+        blocks = int(((r1 // n - r0 // n + 1) * (c1 // n - c0 // n + 1)).sum())
+        if posts <= COST_UNION_POSTS and blocks <= COST_UNION_POSTS // (n * n):
+            return posts, blocks
+        g = max(n, self.posts_per_turn // COST_GRID_CELLS)  # posts a grid cell side: whole blocks
+        cols = self.posts_per_turn // g
+        g0, g1 = int(r0.min() // g), int(r1.max() // g)
+        diff = np.zeros((g1 - g0 + 2, 2 * cols + 1), np.int32)  # a difference array of the boxes
+        for rr, cc, sign in ((r0 // g - g0, c0 // g, 1), (r0 // g - g0, c1 // g + 1, -1),
+                             (r1 // g - g0 + 1, c0 // g, -1), (r1 // g - g0 + 1, c1 // g + 1, 1)):
+            np.add.at(diff, (rr, cc), sign)
+        cover = np.cumsum(np.cumsum(diff, axis=0, dtype=np.int32), axis=1, dtype=np.int32)[:-1, :2 * cols] > 0
+        cover = cover[:, :cols] | cover[:, cols:]  # columns past the turn wrap
+        cells = int(cover.sum())
+        per_cell = (g // n) ** 2
+        with self._lock:
+            cached = list(self._cache)
+        held = sum(1 for br, bc in cached if 0 <= br * n // g - g0 < cover.shape[0] and cover[br * n // g - g0, bc * n // g])
+        return min(posts, cells * g * g), min(blocks, cells * per_cell - held)
 
     covers_globe = True  # every (lat, lon) has a height: nothing is OUTSIDE
 
@@ -466,14 +500,47 @@ class ProceduralTerrain:
 
     # -- internals ------------------------------------------------------------
 
+    def _box(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float):
+        """(r0, r1, c0, c1, posts, block keys, new-block limit) of :meth:`raster_for`'s box: its
+        global post rows [r0, r1] and columns [c0, c1] (unwrapped), their count, the distinct
+        blocks (row * block_cols + col) holding them, and how many of those it may generate."""
+        for nm, v in (("lat_min", lat_min), ("lon_min", lon_min), ("lat_max", lat_max), ("lon_max", lon_max)):
+            _check_real(nm, v, lambda x: abs(x) <= 540.0, "within +-540 degrees")
+        if not -90.0 <= lat_min <= lat_max <= 90.0:
+            raise InvalidArgument("lat_min", f"must satisfy -90 <= lat_min <= lat_max={lat_max} <= 90",
+                                  value=lat_min)
+        span = lon_max - lon_min if lon_max >= lon_min else lon_max - lon_min + 360.0
+        sp = self.spacing_deg
+        r0 = max(0, math.floor((lat_min + 90.0) / sp))
+        r1 = min(self.pole_row, math.ceil((lat_max + 90.0) / sp))
+        if r1 == r0:
+            r0, r1 = (r0, r0 + 1) if r0 < self.pole_row else (r0 - 1, r0)
+        c0 = math.floor((lon_min + 180.0) / sp)
+        c1 = max(c0 + 1, math.ceil((lon_min + 180.0 + span) / sp))
+        posts = (r1 - r0 + 1) * (c1 - c0 + 1)
+        n = self.block_cells
+        rows, cols = np.arange(r0 // n, (r1 - 1) // n + 1), np.arange(c0 // n, (c1 - 1) // n + 1)
+        if posts > RASTER_FOR_MAX_POSTS:
+            keys = np.zeros(0, np.int64)  # refused on its posts: no need to list them
+        else:
+            keys = np.unique(np.repeat(rows, cols.size) * self.block_cols + np.tile(cols % self.block_cols, rows.size))
+        limit = max(MAX_NEW_BLOCKS_PER_CALL, self.block_cols) if span >= 360.0 else MAX_NEW_BLOCKS_PER_CALL
+        return r0, r1, c0, c1, posts, keys, limit
+
+    def _new_count(self, keys) -> int:
+        """How many of the distinct blocks ``keys`` ((k,) int64, row * block_cols + col) are not cached."""
+        if keys.size == 0:
+            return 0
+        with self._lock:
+            cached = np.array([r * self.block_cols + c for r, c in self._cache], np.int64)
+        return int(keys.size - np.isin(keys, cached).sum())
+
     def _check_new_blocks(self, keys, limit: int) -> None:
         """Raise LimitExceeded when more of the distinct blocks ``keys`` ((k,) int64, row *
         block_cols + col) than ``limit`` are not cached: before any is generated."""
         if keys.size <= limit:
             return
-        with self._lock:
-            cached = np.array([r * self.block_cols + c for r, c in self._cache], np.int64)
-        new = int(keys.size - np.isin(keys, cached).sum())
+        new = self._new_count(keys)
         if new > limit:
             raise LimitExceeded("points (new procedural blocks)", new, limit,
                                 f"each new block of {self.block_cells + 1}^2 posts is generated, about 1.5-4 ms; "

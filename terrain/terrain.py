@@ -54,6 +54,18 @@ SYNTHETIC_KINDS = ("procedural",)
 # The shell every surface of a stack lies in (Terrain._shell): what a segment does above it or
 # below it is known without tracing. Metres of margin on either radius, far above rounding.
 SHELL_MARGIN_M = 1.0
+# Most posts of synthetic-source rasters (the procedural world's, terrain.procedural.ProceduralTerrain.raster_for)
+# one segment call (intersect, line_of_sight) may assemble for its segments, over every raster it
+# makes (groups, stack partitions, parts of long segments): a raster and its min/max pyramid cost
+# about 100 ns a post (measured), so 2^25 posts is 3-4 s of work. One raster holds at most
+# terrain.procedural.RASTER_FOR_MAX_POSTS (2^23) posts, so a batch over one area stays far below; a
+# long segment is traced in parts of about that many posts each (about 10 M posts for a 3-degree
+# diagonal at the default spacing). Its new blocks are held to terrain.procedural.MAX_NEW_BLOCKS_PER_CALL,
+# as a heights query's are. See RayBudget.
+RAY_MAX_POSTS_PER_CALL = 1 << 25
+# Segments traced on one raster between two checks of a RayBudget's ``check`` (the caller's deadline):
+# 4096 rays of 10 km over a DEM take a few milliseconds.
+RAY_CHUNK = 4096
 
 
 def shell_stretch(a: np.ndarray, b: np.ndarray, r_out: float, r_in: float):
@@ -103,6 +115,126 @@ class NormalResult:
     normal_enu: np.ndarray
     slope_deg: np.ndarray
     status: np.ndarray
+
+
+class RayBudget:
+    """What one segment call (:meth:`Terrain.intersect`, :meth:`Terrain.line_of_sight`) may spend on
+    the rasters synthetic sources make for its segments, and how it learns that its caller is gone.
+
+    Checked twice. Before any work (:meth:`estimate`): the posts and new blocks under the boxes of
+    the segments' stretches that are traced (each segment's box, or a long one's pieces' boxes,
+    about the parts it is traced in; shared posts counted once) over every source with
+    ``boxes_cost`` (the procedural world); a call over ``max_posts`` or ``max_new_blocks`` there is
+    refused at once. While tracing (:meth:`charge`): every raster such a source makes for the call
+    (``box_cost``, before it is made) adds its posts and new blocks, and the call is refused
+    (LimitExceeded) at the raster that would pass either limit, however it was split (groups,
+    parts): the new-block limit is per call, not per raster. ``check``: None, or a callable called
+    between chunks of work (before each raster a source makes, between chunks of RAY_CHUNK
+    segments traced on one raster) that raises to end the call (the terrain service's does when
+    the caller's deadline passes or it cancels). Not thread-safe: one per call.
+    """
+
+    def __init__(self, max_posts: int = RAY_MAX_POSTS_PER_CALL, max_new_blocks: int | None = None, check=None):
+        from terrain.procedural import MAX_NEW_BLOCKS_PER_CALL
+
+        self.max_posts = int(max_posts)
+        self.max_new_blocks = MAX_NEW_BLOCKS_PER_CALL if max_new_blocks is None else int(max_new_blocks)
+        self.check = check
+        self.posts = 0
+        self.new_blocks = 0
+        self._ring = False  # a raster of every longitude was made: a ring of blocks is allowed
+
+    def tick(self) -> None:
+        """Call ``check`` (it raises to end the call)."""
+        if self.check is not None:
+            self.check()
+
+    def chunks(self, idx: np.ndarray):
+        """idx in chunks of RAY_CHUNK, ``check`` called before each; idx whole without a check."""
+        if self.check is None or idx.size <= RAY_CHUNK:
+            self.tick()
+            yield idx
+            return
+        for start in range(0, idx.size, RAY_CHUNK):
+            self.tick()
+            yield idx[start:start + RAY_CHUNK]
+
+    def estimate(self, sources, a_ecef: np.ndarray, b_ecef: np.ndarray) -> None:
+        """Refuse (LimitExceeded), before any work, segments a -> b ((n, 3) ECEF: the stretches
+        to be traced) whose boxes hold more posts or new blocks of a source with ``boxes_cost``
+        than the limits. A segment whose box would hold more than RASTER_FOR_MAX_POSTS posts is
+        cut into pieces of about that many (m pieces for m^2 times too many: its parts)."""
+        from terrain.procedural import RASTER_FOR_MAX_POSTS
+
+        costly = [i for i, src in enumerate(sources) if hasattr(src, "boxes_cost")]
+        if not costly or a_ecef.shape[0] == 0:
+            return
+        self.tick()
+        lat_a, lon_a, _ = ecef_to_geodetic(a_ecef)
+        lat_b, lon_b, _ = ecef_to_geodetic(b_ecef)
+        d_lon = np.abs((lon_b - lon_a + 180.0) % 360.0 - 180.0)
+        for i in costly:
+            src = sources[i]
+            sp = src.spacing_deg
+            posts = (np.abs(lat_b - lat_a) / sp + 2.0) * (d_lon / sp + 2.0)
+            m = np.clip(np.ceil(np.sqrt(posts / RASTER_FOR_MAX_POSTS)), 1, RAY_ESTIMATE_MAX_PIECES).astype(np.int64)
+            seg = np.repeat(np.arange(m.size), m)
+            k = np.arange(seg.size) - np.repeat(np.cumsum(m) - m, m)
+            d = b_ecef - a_ecef
+            p0 = a_ecef[seg] + (k / m[seg])[:, None] * d[seg]
+            p1 = a_ecef[seg] + ((k + 1) / m[seg])[:, None] * d[seg]
+            la0, lo0, _ = ecef_to_geodetic(p0)
+            la1, lo1, _ = ecef_to_geodetic(p1)
+            # Pieces a DEM before the source holds end to end are left to it (it answers them; should
+            # one leave it after all, through a hole, the rasters made are counted as they are).
+            left = np.ones(seg.size, bool)
+            for dem in (s_ for s_ in sources[:i] if isinstance(s_, Raster)):
+                left &= ~(_inside(dem.bounds, la0, lo0) & _inside(dem.bounds, la1, lo1))
+            la0, lo0, la1, lo1 = la0[left], lo0[left], la1[left], lo1[left]
+            if la0.size == 0:
+                continue
+            lo1 = lo0 + (lo1 - lo0 + 180.0) % 360.0 - 180.0
+            west = np.minimum(lo0, lo1)
+            turns = 360.0 * np.floor((west + 180.0) / 360.0)
+            posts, new = src.boxes_cost(np.minimum(la0, la1), west - turns, np.maximum(la0, la1),
+                                        np.maximum(lo0, lo1) - turns)
+            self._over(posts, new, src, "under the boxes of the segments' stretches traced, before any work")
+
+    def charge(self, source, box) -> None:
+        """Count the raster ``source`` is about to make for ``box`` (lat_min, lon_min, lat_max,
+        lon_max), if it says what one costs (``box_cost``; None: it will refuse the box, and the
+        caller splits it); LimitExceeded when the call would pass a limit. Calls ``check`` first."""
+        self.tick()
+        cost = getattr(source, "box_cost", None)
+        got = None if cost is None else cost(*box)
+        if got is None:
+            return
+        self._ring = self._ring or (box[3] - box[1]) % 360.0 == 0.0 and box[3] > box[1]
+        self.posts += got[0]
+        self.new_blocks += got[1]
+        self._over(self.posts, self.new_blocks, source, "made for the call's segments so far")
+
+    def _over(self, posts: int, new: int, source, what: str) -> None:
+        # As raster_for: a full ring of block columns (a segment over a pole) is always allowed.
+        new_limit = max(self.max_new_blocks, getattr(source, "block_cols", 0)) if self._ring else self.max_new_blocks
+        why = (f"{what}; ask about fewer or shorter segments per call, each long segment over "
+               f"{getattr(source, 'name', 'a synthetic source')} costs posts along its length")
+        if posts > self.max_posts:
+            raise LimitExceeded("segments (procedural raster posts)", int(posts), self.max_posts, why)
+        if new > new_limit:
+            raise LimitExceeded("segments (new procedural blocks)", int(new), new_limit, why)
+
+
+def _inside(bounds, lat, lon) -> np.ndarray:
+    """(n,) bool: points (degrees) inside a raster's bounds (lat_min, lon_min, lat_max, lon_max; lon_max
+    may pass 180)."""
+    lat0, lon0, lat1, lon1 = bounds
+    return (lat >= lat0) & (lat <= lat1) & ((lon - lon0) % 360.0 <= lon1 - lon0)
+
+
+# Most pieces RayBudget.estimate cuts one segment into (a stretch 10^4 pieces long would be
+# over the posts limit on its own).
+RAY_ESTIMATE_MAX_PIECES = 4096
 
 
 def _warm_cache(source, n_points: int) -> None:
@@ -351,7 +483,7 @@ class Terrain:
 
         return ProfileResult(*geodesic_profile(source_heights, lat1, lon1, lat2, lon2, n_samples))
 
-    def intersect(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> SegmentResult:
+    def intersect(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl, *, budget: RayBudget | None = None) -> SegmentResult:
         """First contact of each straight (ECEF) segment a -> b with the surface.
 
         Arrays (n,) float64: (lat, lon) degrees, heights metres MSL. The surface is, at every
@@ -362,7 +494,8 @@ class Terrain:
         collision"). A segment that reaches a stretch no
         source covers before any hit is OUTSIDE. Each segment is answered as it is alone: a batch
         too wide for one raster of a procedural or store source is split into groups whose boxes
-        it serves; LimitExceeded only for a single segment whose box it cannot serve.
+        it serves; LimitExceeded only for a single segment whose box it cannot serve, or for a call
+        over its :class:`RayBudget` (``budget``; None: the default limits, no check).
         """
         from terrain.los import check_segments
 
@@ -370,37 +503,41 @@ class Terrain:
         a = geodetic_to_ecef(rays[0], rays[1], rays[2])
         b = geodetic_to_ecef(rays[3], rays[4], rays[5])
         n = rays[0].size
+        budget = RayBudget() if budget is None else budget
         shell = self._shell_cut(rays, a, b)
         if shell is None:
-            s, de, dn, status = self._trace(rays, a, b, np.zeros(n), np.ones(n))
+            budget.estimate(self.sources, a, b)
+            s, de, dn, status = self._trace(rays, a, b, np.zeros(n), np.ones(n), budget=budget)
         else:  # only the stretches inside the shell, up to where a segment dives below it
             cut, s_lo, s_hi, dives, above = shell
             s, de, dn = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
             status = np.full(n, STATUS_OK, np.uint8)
             go = np.flatnonzero(~above)
+            budget.estimate(self.sources, cut[1][go], cut[2][go])
             got = self._trace(tuple(x[go] for x in cut[0]), a[go], b[go], s_lo[go], s_hi[go],
-                              chord=(cut[1][go], cut[2][go]))
+                              chord=(cut[1][go], cut[2][go]), budget=budget)
             s[go], de[go], dn[go], status[go] = got
             # A segment that dives below every surface meets one before; should rounding put
             # that contact past the cut, its whole length is traced.
             again = np.flatnonzero(dives & np.isnan(s))
             if again.size:
                 got = self._trace(tuple(x[again] for x in rays), a[again], b[again], np.zeros(again.size),
-                                  np.ones(again.size))
+                                  np.ones(again.size), budget=budget)
                 s[again], de[again], dn[again], status[again] = got
         lat, lon, h = ecef_to_geodetic(a + s[:, None] * (b - a))
         normal = np.stack([-de, -dn, np.ones(n)], axis=-1)
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
         return SegmentResult(~np.isnan(s), s * np.linalg.norm(b - a, axis=1), lat, lon, h, normal, status)
 
-    def line_of_sight(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl) -> LosResult:
+    def line_of_sight(self, a_lat, a_lon, a_h_msl, b_lat, b_lon, b_h_msl, *,
+                      budget: RayBudget | None = None) -> LosResult:
         """Whether each straight (ECEF) segment a -> b clears the surface.
 
         Arrays as :meth:`intersect`, and the same surface. Contacts within 1 mm of an endpoint
         do not block (a point on the ground can see); symmetric in a and b: each segment is
         traced from the endpoint whose ECEF (x, y, z) sorts first, and one that reaches a
         stretch no source covers before any contact from the other as well (blocked when
-        either meets the surface first, else OUTSIDE).
+        either meets the surface first, else OUTSIDE). ``budget`` as :meth:`intersect` takes it.
         """
         from terrain.los import _both_ways, check_segments, line_of_sight, stack_line_of_sight
 
@@ -419,23 +556,25 @@ class Terrain:
             status[dives | above] = STATUS_OK
             visible[above] = True
             todo_all = np.flatnonzero(~(dives | above))
+        budget = RayBudget() if budget is None else budget
+        budget.estimate(self.sources, a[todo_all], b[todo_all])
         parted = []
-        for first, idx in self._groups(0, rays, a, b, todo_all, parted=parted):
-            sub = tuple(x[idx] for x in rays)
+        for first, idx in self._groups(0, rays, a, b, todo_all, parted=parted, budget=budget):
             if first is not None:
-                visible[idx], status[idx] = line_of_sight(first, *sub)
+                for part in budget.chunks(idx):
+                    visible[part], status[part] = line_of_sight(first, *(x[part] for x in rays))
             todo = idx[self._left_to_stack(status[idx])]
             if len(self.sources) == 1 or todo.size == 0:
                 continue
             # Off the first source: the stack of every source's surface, as line_of_sight does on one.
-            visible[todo], status[todo] = stack_line_of_sight(self._stack(first, rays, a, b, todo, parted), a[todo],
-                                                              b[todo], self._measured_flags())
+            visible[todo], status[todo] = stack_line_of_sight(self._stack(first, rays, a, b, todo, parted, budget),
+                                                              a[todo], b[todo], self._measured_flags())
         if parted:
             # Segments whose box a source cannot serve: line_of_sight's rule over their traces in parts.
             idx = np.unique(np.concatenate(parted))
 
             def trace(a_, b_, lo, hi):
-                got = self._trace_in_halves(a_, b_, lo, hi)
+                got = self._trace_in_halves(a_, b_, lo, hi, budget)
                 return got[0], got[3]
 
             visible[idx], status[idx] = _both_ways(trace, a[idx], b[idx])
@@ -481,7 +620,7 @@ class Terrain:
                 ends[k][move] = v
         return (tuple(ends), pa, pb), s_lo, s_hi, dives, above
 
-    def _trace(self, rays, a, b, s_lo, s_hi, chord=None):
+    def _trace(self, rays, a, b, s_lo, s_hi, chord=None, budget: RayBudget | None = None):
         """First contact s in [s_lo, s_hi] of each segment a + s (b - a) with the stack's surface:
         (s (NaN: none), d h / d east metre and d h / d north metre there, status). The first
         source traces every segment on its own (its kernel marks those that leave it); only those
@@ -490,7 +629,7 @@ class Terrain:
         pays nothing more. Sources' boxes are made for the stretches [s_lo, s_hi]: ``rays``
         holds their ends' (lat, lon, h) and ``chord`` their ECEF ends (None: a and b, the
         stretches being the whole segments). A segment whose box a source cannot serve is traced
-        in halves (:meth:`_trace_in_halves`)."""
+        in halves (:meth:`_trace_in_halves`). ``budget`` (:class:`RayBudget`) counts the rasters made."""
         from terrain.los import stack_partitions, stack_trace, trace_segments
 
         n = a.shape[0]
@@ -498,17 +637,19 @@ class Terrain:
         s, de, dn = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
         status = np.full(n, STATUS_OUTSIDE, np.uint8)
         parted = []
-        for first, idx in self._groups(0, rays, ca, cb, np.arange(n), parted=parted):
+        budget = RayBudget() if budget is None else budget
+        for first, idx in self._groups(0, rays, ca, cb, np.arange(n), parted=parted, budget=budget):
             if first is not None:
-                got = trace_segments(first, a[idx], b[idx], s_lo[idx], s_hi[idx])
-                s[idx], status[idx] = got[0], got[3]
-                _slopes_into(first, a, b, s, idx, got[1], got[2], de, dn)
+                for part in budget.chunks(idx):
+                    got = trace_segments(first, a[part], b[part], s_lo[part], s_hi[part])
+                    s[part], status[part] = got[0], got[3]
+                    _slopes_into(first, a, b, s, part, got[1], got[2], de, dn)
             todo = idx[self._left_to_stack(status[idx])]
             if len(self.sources) == 1 or todo.size == 0:
                 continue
             a_t, b_t, lo_t, hi_t = a[todo], b[todo], s_lo[todo], s_hi[todo]
             measured = self._measured_flags()
-            for part, rasters, cov in stack_partitions(self._stack(first, rays, ca, cb, todo, parted), a_t, b_t,
+            for part, rasters, cov in stack_partitions(self._stack(first, rays, ca, cb, todo, parted, budget), a_t, b_t,
                                                        lo_t, hi_t, measured):
                 got_s, dcol, drow, got_st, which = stack_trace(rasters, a_t[part], b_t[part], lo_t[part], hi_t[part],
                                                                cov, measured)
@@ -519,10 +660,11 @@ class Terrain:
                     _slopes_into(rasters[k], a, b, s, where[sel], dcol[sel], drow[sel], de, dn)
         if parted:
             idx = np.unique(np.concatenate(parted))
-            s[idx], de[idx], dn[idx], status[idx] = self._trace_in_halves(a[idx], b[idx], s_lo[idx], s_hi[idx])
+            s[idx], de[idx], dn[idx], status[idx] = self._trace_in_halves(a[idx], b[idx], s_lo[idx], s_hi[idx],
+                                                                          budget)
         return s, de, dn, status
 
-    def _trace_in_halves(self, a, b, s_lo, s_hi):
+    def _trace_in_halves(self, a, b, s_lo, s_hi, budget: RayBudget | None = None):
         """:meth:`_trace` of segments a + s (b - a), s in [s_lo, s_hi] ((n, 3) ECEF, (n,)), each cut at
         RAY_PART_CUT of [s_lo, s_hi] into two stretches traced with boxes of their own (a stretch
         still too big for a source is halved again): near a pole a short stretch spans every
@@ -535,7 +677,7 @@ class Terrain:
         a2, b2 = np.concatenate([a, a]), np.concatenate([b, b])
         pa, pb = a2 + lo[:, None] * (b2 - a2), a2 + hi[:, None] * (b2 - a2)
         rays = ecef_to_geodetic(pa) + ecef_to_geodetic(pb)
-        s, de, dn, status = self._trace(rays, a2, b2, lo, hi, chord=(pa, pb))
+        s, de, dn, status = self._trace(rays, a2, b2, lo, hi, chord=(pa, pb), budget=budget)
         second = np.flatnonzero(np.isnan(s[:n]) & (status[:n] != STATUS_OUTSIDE))
         filled = second[(status[second] == STATUS_FILLED) & (status[n + second] != STATUS_OUTSIDE)]
         got = s[:n].copy(), de[:n].copy(), dn[:n].copy(), status[:n].copy()
@@ -544,7 +686,7 @@ class Terrain:
         got[3][filled] = STATUS_FILLED
         return got
 
-    def _stack(self, first, rays, a, b, todo, parted=None) -> list:
+    def _stack(self, first, rays, a, b, todo, parted=None, budget: RayBudget | None = None) -> list:
         """The sources as :func:`terrain.los.stack_partitions` takes them, for the segments todo
         (indices local to them): the first source's raster ``first`` (None: it has none here),
         then each source's groups (lone segments whose box a source cannot serve go to
@@ -553,11 +695,11 @@ class Terrain:
             return [(first, idx)]
 
         def later(k):
-            return lambda idx: self._groups(k, rays, a, b, todo[idx], base=todo, parted=parted)
+            return lambda idx: self._groups(k, rays, a, b, todo[idx], base=todo, parted=parted, budget=budget)
 
         return [first_groups] + [later(k) for k in range(1, len(self.sources))]
 
-    def _groups(self, k: int, rays, a, b, idx, base=None, parted=None):
+    def _groups(self, k: int, rays, a, b, idx, base=None, parted=None, budget: RayBudget | None = None):
         """Yield (raster or None, indices) for source k and the segments idx: a Raster source is
         its own raster for them all; any other hands out a raster for the segments' box
         (:func:`ray_box`; None where it has none), and when it cannot serve that box (it raises
@@ -570,7 +712,8 @@ class Terrain:
         a lone segment whose box is not served, longer than RAY_PART_MIN_M, is not yielded but its
         (global) index appended there, for the caller to trace in parts
         (:meth:`_trace_in_halves`); rays, a and b are then the ends of the stretches boxes are
-        made for."""
+        made for. ``budget`` (:class:`RayBudget`) is charged for each raster before it is made (a
+        call over it raises LimitExceeded, which no split answers)."""
         source = self.sources[k]
         if isinstance(source, Raster) or idx.size == 0:
             yield (source if isinstance(source, Raster) else None), _relative(idx, base)
@@ -580,6 +723,8 @@ class Terrain:
         while pending:
             grp = pending.pop()
             box = ray_box(rays, a, b, grp)
+            if budget is not None:
+                budget.charge(source, box)
             try:
                 raster = strict(*box)
             except LimitExceeded:
