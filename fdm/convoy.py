@@ -18,7 +18,9 @@ distance), and the heading-rate command is v kappa. A tracked vehicle whose
 goal lies more than PIVOT_ALPHA_DEG off its heading stops and pivots.
 
 Speed: a route follower cruises, slows for each corner ahead (pure pursuit
-turns through a corner of angle theta over about one lookahead, so the corner
+turns through a corner of angle theta over about one lookahead (theta the heading
+change between the route's chords over LOOKAHEAD_MIN_M either side of the
+waypoint: a jog of centimetres is no corner), so the corner
 speed is v_c = sqrt(a_lat Ld / theta), reached by braking at a before the
 turn starts: v <= sqrt(v_c^2 + 2 a d)) and brakes to stop at the route's end
 (v <= sqrt(2 a (s_end - s))); a and a_lat are half the type's limits. A convoy's leader follows the route; each
@@ -236,6 +238,42 @@ def _corner_ceiling_kernel(corner_at, corner_turn, s, lookahead_m, lat_accel, br
         out[j] = best
 
 
+@numba.njit(cache=True, nogil=True)
+def _chord_heading(seg_dn, seg_de, seg_len, k, step, length_m):
+    """Heading (rad) of the chord over ``length_m`` of route from the waypoint at the near end
+    of segment k, walking segments k, k + step, ... (step -1: backwards, the chord then taken
+    towards the waypoint); NaN when segment k alone is that long (its own heading stands)."""
+    if seg_len[k] >= length_m:
+        return math.nan
+    dn = 0.0
+    de = 0.0
+    left = length_m
+    while 0 <= k < seg_len.shape[0]:
+        f = min(left / seg_len[k], 1.0)
+        dn += f * seg_dn[k]
+        de += f * seg_de[k]
+        left -= seg_len[k]
+        if left <= 0.0:
+            break
+        k += step
+    return math.atan2(de, dn)
+
+
+@numba.njit(cache=True, nogil=True)
+def _chord_headings(seg_dn, seg_de, seg_len, length_m, before, after):
+    """For each inner waypoint i (1 .. n-2): the headings of the chords over ``length_m`` before
+    it (into ``before[i - 1]``) and after it (``after[i - 1]``), each to the route's end where
+    it is shorter; left as they are (the adjacent segments' headings) where a segment is
+    itself that long."""
+    for i in range(before.shape[0]):
+        h = _chord_heading(seg_dn, seg_de, seg_len, i, -1, length_m)
+        if not math.isnan(h):
+            before[i] = h
+        h = _chord_heading(seg_dn, seg_de, seg_len, i + 1, 1, length_m)
+        if not math.isnan(h):
+            after[i] = h
+
+
 def pursue(v: GroundVehicles, idx: np.ndarray, g_lat, g_lon, speed_cmd):
     """(speed_cmd, yaw_rate_cmd_dps) of pure pursuit (Coulter 1992: curvature 2 sin(alpha) / L
     towards the goal point at distance L) for vehicles ``idx`` of ``v`` towards goal points
@@ -289,9 +327,17 @@ class Route:
         self.seg_dn = dn
         self.seg_de = de
         self.cum = np.concatenate([[0.0], np.cumsum(self.seg_len)])
-        # The corners (waypoints 1 .. n-2 where the route turns): where, and by how much.
+        # The corners (waypoints 1 .. n-2 where the route turns): where, and by how much. The turn
+        # is the heading change between the chords over LOOKAHEAD_MIN_M before and after the
+        # waypoint (the length the corner speed's curvature theta / Ld is taken over), so a jog
+        # of a centimetre between long legs is no corner (it braked 25 m/s to 4 as at a right
+        # angle), a finely digitised curve of radius R turns by about Ld / R, and where both
+        # legs are at least that long the chords are the legs themselves (their headings).
         psi = np.arctan2(self.seg_de, self.seg_dn)
-        turn = np.abs((np.diff(psi) + np.pi) % (2 * np.pi) - np.pi)
+        before = psi[:-1].copy()
+        after = psi[1:].copy()
+        _chord_headings(self.seg_dn, self.seg_de, self.seg_len, LOOKAHEAD_MIN_M, before, after)
+        turn = np.abs((after - before + np.pi) % (2 * np.pi) - np.pi)
         corner = np.flatnonzero(turn >= 1e-6)
         self.corner_at = self.cum[corner + 1]
         self.corner_turn = turn[corner]

@@ -20,6 +20,13 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Upper bounds of the options. An altitude beyond the Karman line (server.scenario.ALT_MAX_M,
+# the most any start of a scenario may be given) is no flight a trim answers; a time limit past
+# an hour per model is a unit mix-up (the default is 120 s, past any trim that ends), and an
+# infinite one overflowed subprocess's wait (OverflowError).
+ALT_MAX_M = 100_000.0
+TIMEOUT_MAX_S = 3_600.0
+
 _CHILD = r"""
 import json, sys, time
 from fdm.aircraft import Aircraft, FlatTerrain, InitialConditions
@@ -70,9 +77,10 @@ def trims_command(args) -> int:
 
     names = [resolve(n) for n in args.aircraft] or list(list_aircraft())
     speeds = tuple(args.speeds) if args.speeds else TRIM_SURVEY_SPEEDS
-    for field, v in (("alt_m", args.alt_m), ("timeout_s", args.timeout_s)):
-        if not v == v or v < 0:
-            raise InvalidArgument(field, "must be a number >= 0", value=v)
+    for field, v, high, unit in (("alt_m", args.alt_m, ALT_MAX_M, "m MSL"),
+                                 ("timeout_s", args.timeout_s, TIMEOUT_MAX_S, "s")):
+        if not 0.0 <= v <= high:  # NaN too
+            raise InvalidArgument(field, f"must be a number within [0, {high:g}] {unit}", value=v)
     if any(not (0 < s < 1000) for s in speeds):
         raise InvalidArgument("speeds", "must be within (0, 1000) m/s", value=list(speeds))
 
