@@ -9,7 +9,8 @@ normalised pilot controls (:class:`fdm.aircraft.Controls`), like a pilot would:
   pitch stick (PI on flight-path angle with pitch-rate damping); the
   integrator finds the stick that holds the trim, turns included, so the
   altitude settles without a steady error;
-- speed: airspeed error -> throttle (PI, anti-windup by clamping);
+- speed: airspeed error -> throttle (PI, anti-windup by clamping); the error the
+  throttle's range cannot correct moves the flight-path command (speed protection);
 - yaw: sideslip damper on the pedals.
 
 This is the classic successive-loop-closure structure (Beard & McLain, *Small
@@ -102,6 +103,31 @@ _ALPHA = _C["alpha_rad"]
 _STALL_PUSH_PER_RAD_S = 2.0
 
 
+# Speed protection: the time constant (s) in which the flight path gives back a speed error the
+# throttle cannot (tuned here on the c172x climb-out and the 787-8 / MD11 descents).
+SPEED_PROTECTION_TAU_S = 5.0
+# The fraction of a climb's angle that speed protection leaves.
+CLIMB_KEPT = 0.5
+
+
+def _speed_protected(gamma_cmd: float, speed_excess_mps: float) -> float:
+    """The flight-path angle command (rad) that gives way to a speed error the throttle cannot
+    correct (``speed_excess_mps`` > 0 too slow at full power, < 0 too fast at idle).
+
+    Along the flight path dV/dt = g (T - D) / W - g sin(gamma) (the point-mass energy equation;
+    Lambregts, "Vertical flight path and speed control autopilot design using total energy
+    principles", AIAA 83-2239, 1983, the basis of TECS), so an acceleration a asks the path for
+    a / g radians less. The error is given back in SPEED_PROTECTION_TAU_S. A descent is traded
+    down to level flight and never further; a climb down to CLIMB_KEPT of its angle: the altitude
+    loop's direction stands, and a too slow aircraft still climbs away from the terrain (from a
+    lift-off well below its target speed, a level path would hold it in ground effect).
+    """
+    gamma = gamma_cmd - speed_excess_mps / (SPEED_PROTECTION_TAU_S * G)
+    if gamma_cmd >= 0.0:
+        return _clamp(gamma, CLIMB_KEPT * gamma_cmd, gamma_cmd)
+    return _clamp(gamma, gamma_cmd, 0.0)
+
+
 def _clamp(x: float, lo: float, hi: float) -> float:
     return lo if x < lo else hi if x > hi else x
 
@@ -188,12 +214,29 @@ class Autopilot:
                 self._i_bank = _clamp(self._i_bank + g.ki_bank * e * dt, -0.5, 0.5)
             roll = _clamp(u, -1.0, 1.0)
             yaw = _clamp(G_STEER * err if rolling else -g.k_beta * r[_BETA], -1.0, 1.0)
+        # Speed first: where the throttle cannot hold the speed (at idle too fast, at full power
+        # too slow), the flight-path command below gives way to it.
+        speed_excess = 0.0
+        if tg.speed_mps is not None:
+            e = tg.speed_mps - r[_VT] * FT_M
+            u = g.kp_speed * e + self._i_speed
+            if 0.0 < u < 1.0:
+                self._i_speed = _clamp(self._i_speed + g.ki_speed * e * dt, 0.0, 1.0)
+            throttle = _clamp(u, 0.0, 1.0)
+            # The speed error the throttle's range leaves uncorrected (m/s, > 0 too slow).
+            speed_excess = (u - throttle) / g.kp_speed
+            if ac.controls.brakes and throttle > 0.0:
+                # Holding a speed it has not reached, a pilot lets the brakes off (a ground
+                # start sets them, fdm.aircraft): a route from the ground is a take-off.
+                ac.set_controls(brakes=0.0)
         if tg.alt_msl_m is not None:
             vn, ve, vd = r[_VN], r[_VE], r[_VD]
             v = max(math.sqrt(vn * vn + ve * ve + vd * vd), 1.0)
             gamma = math.asin(_clamp(-vd / v, -1.0, 1.0))
             gamma_cmd = _clamp(g.k_alt * (tg.alt_msl_m - r[_ALT] * FT_M), g.max_descent_rad,
                                g.max_climb_rad)
+            if speed_excess and not rolling:
+                gamma_cmd = _speed_protected(gamma_cmd, speed_excess)
             e = gamma_cmd - gamma
             u = g.kp_pitch * e + self._i_pitch - g.kd_pitch_rate * q
             alpha = r[_ALPHA]
@@ -208,16 +251,6 @@ class Autopilot:
             if -1.0 < u < 1.0 and not (stalling and e > 0.0) and not rolling:  # anti-windup: not while saturated
                 self._i_pitch = _clamp(self._i_pitch + g.ki_pitch * e * dt, -1.0, 1.0)
             pitch = _clamp(u, -1.0, 1.0)
-        if tg.speed_mps is not None:
-            e = tg.speed_mps - r[_VT] * FT_M
-            u = g.kp_speed * e + self._i_speed
-            if 0.0 < u < 1.0:
-                self._i_speed = _clamp(self._i_speed + g.ki_speed * e * dt, 0.0, 1.0)
-            throttle = _clamp(u, 0.0, 1.0)
-            if ac.controls.brakes and throttle > 0.0:
-                # Holding a speed it has not reached, a pilot lets the brakes off (a ground
-                # start sets them, fdm.aircraft): a route from the ground is a take-off.
-                ac.set_controls(brakes=0.0)
         if pitch != pitch or roll != roll or yaw != yaw or throttle != throttle:
             # A NaN state: set_controls rejects it, naming the control, as it always has.
             ac.set_controls(**{k: v for k, v in (("roll", roll), ("yaw", yaw), ("pitch", pitch),
