@@ -103,11 +103,16 @@ _ALPHA = _C["alpha_rad"]
 _STALL_PUSH_PER_RAD_S = 2.0
 
 
+# Heading error (rad) beyond which a turn keeps the way it began (170 degrees).
+REVERSAL_RAD = math.radians(170.0)
+
 # Speed protection: the time constant (s) in which the flight path gives back a speed error the
 # throttle cannot (tuned here on the c172x climb-out and the 787-8 / MD11 descents).
 SPEED_PROTECTION_TAU_S = 5.0
 # The fraction of a climb's angle that speed protection leaves.
 CLIMB_KEPT = 0.5
+# The time constant (s) of the low-pass on the speed error the throttle cannot correct.
+PROTECTION_LAG_S = 2.0
 
 
 def _speed_protected(gamma_cmd: float, speed_excess_mps: float) -> float:
@@ -126,6 +131,13 @@ def _speed_protected(gamma_cmd: float, speed_excess_mps: float) -> float:
     if gamma_cmd >= 0.0:
         return _clamp(gamma, CLIMB_KEPT * gamma_cmd, gamma_cmd)
     return _clamp(gamma, gamma_cmd, 0.0)
+
+
+def _check_positive(name: str, v) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InvalidArgument(name, "must be a finite number", value=v)
+    if v <= 0:
+        raise InvalidArgument(name, "must be positive", value=v)
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:
@@ -173,13 +185,15 @@ class Autopilot:
         self._i_speed = aircraft.controls.throttle
         self._alpha_lp = None  # low-passed angle of attack, rad (set on the first update)
         self._bank_cmd = None  # slew-limited bank command, rad
+        self._stuck_mps = 0.0  # low-passed speed error the throttle cannot correct, m/s
+        self._turn_sign = 0.0  # the way a reversal turns (+1 right, -1 left), 0 outside one
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
         for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
                 raise InvalidArgument(name, "must be a finite number", value=v)
-        if speed_mps is not None and speed_mps <= 0:
-            raise InvalidArgument("speed_mps", "must be positive", value=speed_mps)
+        if speed_mps is not None:
+            _check_positive("speed_mps", speed_mps)
         self.targets = Targets(heading_deg, alt_msl_m, speed_mps)
 
     def update(self, row=None) -> None:
@@ -203,6 +217,15 @@ class Autopilot:
         rolling = ac.on_ground
         if tg.heading_deg is not None:
             err = wrap_pi(math.radians(tg.heading_deg) - psi)
+            # A reversal: near 180 degrees the shorter way round flips with every jitter of the
+            # heading, and the wings rocked from one bank to the other. Beyond REVERSAL_RAD the
+            # turn keeps the way it took on entering that zone until it is out of it.
+            if abs(err) <= REVERSAL_RAD:
+                self._turn_sign = 0.0
+            elif not self._turn_sign:
+                self._turn_sign = 1.0 if err > 0.0 else -1.0
+            elif err * self._turn_sign < 0.0:
+                err = math.copysign(2.0 * math.pi - abs(err), self._turn_sign)
             bank_cmd = 0.0 if rolling else _clamp(g.k_heading * err, -g.max_bank_rad, g.max_bank_rad)
             if g.max_bank_rate_rad_s < math.inf:
                 last = phi if self._bank_cmd is None else self._bank_cmd
@@ -223,8 +246,13 @@ class Autopilot:
             if 0.0 < u < 1.0:
                 self._i_speed = _clamp(self._i_speed + g.ki_speed * e * dt, 0.0, 1.0)
             throttle = _clamp(u, 0.0, 1.0)
-            # The speed error the throttle's range leaves uncorrected (m/s, > 0 too slow).
-            speed_excess = (u - throttle) / g.kp_speed
+            # The speed error the throttle cannot correct from where it stands (m/s): too slow
+            # at full power, too fast at idle; low-passed, so that the path command does not
+            # step when the throttle reaches a stop. None on the runway: a take-off roll is slow
+            # by nature, and the climb-out starts from where lift-off leaves it.
+            stuck = e if not rolling and ((throttle >= 1.0 and e > 0.0) or (throttle <= 0.0 and e < 0.0)) else 0.0
+            self._stuck_mps += (stuck - self._stuck_mps) * min(dt / PROTECTION_LAG_S, 1.0)
+            speed_excess = self._stuck_mps
             if ac.controls.brakes and throttle > 0.0:
                 # Holding a speed it has not reached, a pilot lets the brakes off (a ground
                 # start sets them, fdm.aircraft): a route from the ground is a take-off.
@@ -321,6 +349,9 @@ class WaypointFollower:
             pts.append(tuple(float(v) for v in w))
         if not pts:
             raise InvalidArgument("waypoints", "need at least one waypoint")
+        _check_positive("speed_mps", speed_mps)
+        if capture_radius_m is not None:
+            _check_positive("capture_radius_m", capture_radius_m)
         self.waypoints = pts
         self.active = 0
         self.capture_radius_m = capture_radius_m if capture_radius_m is not None else 3.0 * speed_mps
