@@ -96,7 +96,7 @@ G_STEER = 2.0
 _TIME, _LAT, _LON, _ALT = _C["time_s"], _C["lat_rad"], _C["lon_rad"], _C["alt_ft"]
 _VN, _VE, _VD, _VT = _C["v_north_fps"], _C["v_east_fps"], _C["v_down_fps"], _C["vt_fps"]
 _PHI, _PSI, _P, _Q, _BETA = _C["phi_rad"], _C["psi_rad"], _C["p_rps"], _C["q_rps"], _C["beta_rad"]
-_ALPHA = _C["alpha_rad"]
+_ALPHA, _THETA = _C["alpha_rad"], _C["theta_rad"]
 
 # Stall protection: pitch stick per second, per rad of angle of attack beyond max_alpha_rad,
 # by which the stick is walked forward (tuned here: 1 deg beyond moves it 0.035 a second).
@@ -131,6 +131,29 @@ def _speed_protected(gamma_cmd: float, speed_excess_mps: float) -> float:
     if gamma_cmd >= 0.0:
         return _clamp(gamma, CLIMB_KEPT * gamma_cmd, gamma_cmd)
     return _clamp(gamma, gamma_cmd, 0.0)
+
+
+# With weight on wheels and an altitude target this far (m) above, the roll is a take-off.
+TAKE_OFF_ABOVE_M = 10.0
+
+# On the runway the pitch attitude stays this far (rad, 3 degrees) below the tail strike's.
+TAIL_STRIKE_MARGIN_RAD = math.radians(3.0)
+
+
+def tail_strike_pitch_rad(contacts) -> float:
+    """The pitch attitude (rad) at which a structure contact aft of the aft-most wheels meets level
+    ground while those wheels stay on it: the least angle up from the wheels to such a point in
+    the structural frame (JSBSim: x aft, z up; ``contacts`` as fdm.aircraft.Aircraft.contacts).
+    Strut compression is left out, so the true angle is a little less. Infinite where no structure
+    contact lies aft of the wheels (a tail wheel is aft-most: its tail cannot strike)."""
+    wheels = [c.location_in for c in contacts if c.kind != "structure"]
+    if not wheels:
+        return math.inf
+    xb = max(w[0] for w in wheels)
+    zb = min(w[2] for w in wheels if w[0] == xb)
+    angles = [math.atan2(c.location_in[2] - zb, c.location_in[0] - xb) for c in contacts
+              if c.kind == "structure" and c.location_in[0] > xb]
+    return min(angles, default=math.inf)
 
 
 def _check_positive(name: str, v) -> None:
@@ -187,6 +210,9 @@ class Autopilot:
         self._bank_cmd = None  # slew-limited bank command, rad
         self._stuck_mps = 0.0  # low-passed speed error the throttle cannot correct, m/s
         self._turn_sign = 0.0  # the way a reversal turns (+1 right, -1 left), 0 outside one
+        # The highest pitch attitude on the runway (rad): a pull from standstill struck the
+        # c172p's tail skid (10 degrees up from its main wheels) at 3 m/s.
+        self._max_ground_pitch = tail_strike_pitch_rad(getattr(aircraft, "contacts", ())) - TAIL_STRIKE_MARGIN_RAD
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
         for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
@@ -246,6 +272,10 @@ class Autopilot:
             if 0.0 < u < 1.0:
                 self._i_speed = _clamp(self._i_speed + g.ki_speed * e * dt, 0.0, 1.0)
             throttle = _clamp(u, 0.0, 1.0)
+            if rolling and tg.alt_msl_m is not None and tg.alt_msl_m > r[_ALT] * FT_M + TAKE_OFF_ABOVE_M:
+                # A take-off: full power on the roll, whatever the target speed (one at or below the
+                # lift-off speed held on the runway never lifted off under the attitude limit below).
+                throttle = 1.0
             # The speed error the throttle cannot correct from where it stands (m/s): too slow
             # at full power, too fast at idle; low-passed, so that the path command does not
             # step when the throttle reaches a stop. None on the runway: a take-off roll is slow
@@ -278,6 +308,9 @@ class Autopilot:
                 u = min(u, ac.controls.pitch - _STALL_PUSH_PER_RAD_S * (alpha - g.max_alpha_rad) * dt)
             if -1.0 < u < 1.0 and not (stalling and e > 0.0) and not rolling:  # anti-windup: not while saturated
                 self._i_pitch = _clamp(self._i_pitch + g.ki_pitch * e * dt, -1.0, 1.0)
+            if rolling and self._max_ground_pitch < math.inf:
+                # Attitude limit: the stick that holds the pitch below the limit, rate-damped.
+                u = min(u, g.kp_pitch * (self._max_ground_pitch - r[_THETA]) - g.kd_pitch_rate * q)
             pitch = _clamp(u, -1.0, 1.0)
         if pitch != pitch or roll != roll or yaw != yaw or throttle != throttle:
             # A NaN state: set_controls rejects it, naming the control, as it always has.

@@ -116,3 +116,38 @@ def test_a_waypoint_follower_refuses_a_bad_speed_or_radius_up_front(field, value
     kwargs = {"speed_mps": 50.0, field: value}
     with pytest.raises(InvalidArgument, match=field):
         WaypointFollower(ac, [(47.6, 9.5, 1000.0)], **kwargs)
+
+
+def test_tail_strike_angle_from_the_contacts():
+    # c172p.xml: main wheels at x 58.2 in, z -15.5 in; tail skid at x 188, z 8 (structural frame,
+    # x aft, z up): atan(23.5 / 129.8) = 10.26 deg. A tail-wheel aircraft has none.
+    from fdm.autopilot import tail_strike_pitch_rad
+    ac = Aircraft("c172p", FlatTerrain(0.0), InitialConditions(-16.5, -68.2, 0.0, "msl", 100.0, 0.0, on_ground=True))
+    assert math.degrees(tail_strike_pitch_rad(ac.contacts)) == pytest.approx(math.degrees(math.atan2(23.5, 129.8)),
+                                                                              abs=1e-6)
+    cub = Aircraft("J3Cub", FlatTerrain(0.0), InitialConditions(-16.5, -68.2, 0.0, "msl", 100.0, 0.0, on_ground=True))
+    assert tail_strike_pitch_rad(cub.contacts) == math.inf
+
+
+@pytest.mark.parametrize("name, speed", [("c172p", 45.0), ("c172p", 30.0), ("c172x", 25.0), ("787-8", 130.0)])
+def test_an_autopilot_take_off_keeps_its_tail_off_the_runway(name, speed):
+    # Stated bounds: from a ground start with targets +300 m and a speed, the aircraft lifts off
+    # within 60 s, crashes nowhere, keeps its pitch on the runway 2 deg below the tail strike angle
+    # and is 250 m up after 150 s. Old: the c172p pulled from standstill and struck its tail at
+    # 1.6 s; the c172x holding 25 m/s on the roll never lifted off under the attitude limit.
+    from fdm.autopilot import tail_strike_pitch_rad
+    ac = Aircraft(name, FlatTerrain(0.0), InitialConditions(-16.5, -68.2, 0.0, "msl", 100.0, 0.0, on_ground=True))
+    strike = tail_strike_pitch_rad(ac.contacts)
+    ap = Autopilot(ac)
+    ap.set_targets(100.0, 300.0, speed)
+    worst = -math.inf
+    for _ in range(int(150.0 / ac.dt)):
+        ap.update()
+        ac.step()
+        assert not ac.crashed, ac.events
+        if ac.on_ground:
+            worst = max(worst, ac.state().euler_rad[1])
+    lift = [e.time_s for e in ac.events if e.kind == "takeoff"]
+    assert lift and lift[0] < 60.0, ac.events
+    assert worst < strike - math.radians(2.0), (math.degrees(worst), math.degrees(strike))
+    assert ac.state().agl_m > 250.0
