@@ -148,8 +148,28 @@ def _fg_input_paths(engines: int) -> tuple[str, ...]:
 
 
 # An airborne start whose trim fails at full rich is tried again leaned (Aircraft._start)
-# where the air's density ratio is below this (about 500 m and higher).
+# where the air's density ratio is below this (about 500 m and higher); a ground start there
+# with a piston engine starts leaned.
 LEAN_BELOW_SIGMA = 0.95
+
+# Engine kinds (fdm.catalog.EngineSpec.kind) whose JSBSim model makes power only while it runs
+# (FGEngine's Running: a piston engine stopped, a turbine or turboprop in its off phase). An
+# electric engine (FGElectric: the Pterosaur's dummy, whose thrust is an external force) turns
+# whatever its flag reads; rockets and other kinds are left as set-running leaves them.
+RUNNING_KINDS = frozenset({"piston_engine", "turbine_engine", "turboprop_engine"})
+# JSBSim's set-running can leave an engine dead: it searches the engine's steady state in 0.5 s
+# time steps (FGPropulsion::GetSteadyState), in which a propeller at rest on the ground stops
+# and a stopped piston engine is not running (FGPiston::doEngineStartup): the c310, c182 and
+# Boeing314 on the ground, the p51d anywhere. Such an engine is started as a pilot does
+# (Aircraft._crank): both magnetos on, fuel on, on the starter, the throttle cracked open, then
+# wide open, for at most CRANK_S each. FGPiston fires once the starter has turned it for 175
+# frames and past 0.8 x its idle rpm; at a closed throttle the c182's starter turns it at
+# 690 rpm, short of its 720 (its pumping losses), wide open it fires. It has started when it
+# still runs CRANK_SETTLE_S off the starter (the p51d at 3000 m and 60 m/s fires cracked open,
+# at 400 rpm, and stops at once; wide open it runs).
+CRANK_THROTTLES = (0.1, 1.0)
+CRANK_S = 8.0
+CRANK_SETTLE_S = 1.0
 
 # Glide trim (Aircraft._trim_glide). Steeper than this is a dive, not a glide (L/D below 1).
 GLIDE_GAMMA_MIN_DEG = -45.0
@@ -164,6 +184,7 @@ _quiet = False
 # logger (FGLogger, JSBSim 1.3.3), whose default prints them on stdout: into a host's logs, a
 # CLI's JSON. They are routed to this Python logger instead, at their JSBSim severity.
 log = logging.getLogger("jsbsim")
+_log = logging.getLogger(__name__)
 _LOG_LEVELS = {0: logging.DEBUG, 1: logging.DEBUG, 2: logging.INFO, 3: logging.WARNING, 4: logging.ERROR,
                5: logging.CRITICAL, 6: logging.INFO}  # jsbsim.LogLevel: BULK .. FATAL, STDOUT
 _log_thread = threading.local()  # JSBSim's logger is per thread: whether this one's is routed
@@ -272,6 +293,10 @@ class InitialConditions:
     ``engines_running`` False in its steady glide at ``speed_mps``,
     descending (:meth:`Aircraft.trim`, ``trim_gamma_deg``).
     ``gear_down`` None means down on the ground, up in the air.
+    ``engines_running`` starts every engine (JSBSim's set-running; an engine that leaves stopped
+    is started on its starter, :meth:`Aircraft._crank`): a ground start whose engine still does
+    not run is refused (InvalidArgument ``engines_running``). A ground start at a high field
+    leans its piston engines (:meth:`Aircraft._field_mixture`).
     """
 
     lat_deg: float
@@ -554,6 +579,7 @@ class Aircraft:
         while self._pm.hasNode(f"fcs/throttle-cmd-norm[{engines}]"):
             engines += 1
         self.n_engines = engines
+        self._bind_propulsion(engines)
         self._set = {
             "pitch": [n("fcs/elevator-cmd-norm").set_double_value],
             "roll": [n("fcs/aileron-cmd-norm").set_double_value],
@@ -611,6 +637,130 @@ class Aircraft:
         self._nz_min = self._detector_limits.nz_min_g
         self._nz_max = self._detector_limits.nz_max_g
 
+    def _bind_propulsion(self, engines: int) -> None:
+        """The engines that must run when started running (RUNNING_KINDS) and the fuel the host
+        moves between tanks (:meth:`_transfer_fuel`), from the model's files (fdm.catalog.propulsion)."""
+        spec = catalog.propulsion(self.name)
+        known = len(spec.engines) == engines
+        self.engine_kinds = tuple(e.kind for e in spec.engines) if known else ("",) * engines
+        self._must_run = tuple(i for i, k in enumerate(self.engine_kinds) if k in RUNNING_KINDS)
+        self._get_running = [self._node(f"propulsion/engine[{i}]/set-running").get_double_value
+                             for i in self._must_run]
+        self._get_thrust = [self._node(f"propulsion/engine[{i}]/thrust-lbs").get_double_value
+                            for i in self._must_run]
+        # JSBSim burns fuel only from the tanks an engine's <feed> names. The aircraft's fuel system
+        # empties the other fuel tanks into them, and the catalog's models leave that system to
+        # FlightGear: the Concorde's engines feed from four 46 lb collector tanks that its Nasal
+        # refills every second; without it they starve in 5 s at full reheat. Unless a model moves
+        # fuel itself (a system driving a tank's external flow: the Short_S23), the host keeps each
+        # feed tank at what it held at the start from the tanks no engine feeds from.
+        fuel = [i for i, t in enumerate(spec.tank_types) if t == "FUEL"
+                and self._pm.hasNode(f"propulsion/tank[{i}]/contents-lbs")]
+        fed = {t for e in spec.engines for t in e.feeds} if known else set()
+        feed = [i for i in fuel if i in fed]
+        reserve = [i for i in fuel if i not in fed]
+        if not (feed and reserve) or spec.moves_fuel:
+            feed = reserve = []
+        self._feed_tanks = [self._node(f"propulsion/tank[{i}]/contents-lbs") for i in feed]
+        self._reserve_tanks = [self._node(f"propulsion/tank[{i}]/contents-lbs") for i in reserve]
+        self._feed_target_lbs = [0.0] * len(feed)
+
+    def _field_mixture(self) -> float:
+        """The mixture command a ground start takes (JSBSim's initial conditions run at the field).
+
+        A pilot leans a piston engine before taking off from a high field (FAA-H-8083-25, Pilot's
+        Handbook of Aeronautical Knowledge, ch. 7 "Mixture Control": the mixture is leaned as the
+        air thins); full rich, a c172p made 81 of its 204 hp at a 2500 m field and none at 3000 m.
+        Leaned to the air's density ratio sigma, as an airborne start's retry (LEAN_BELOW_SIGMA):
+        the fuel-air ratio of full rich at sea level. A model whose own systems lean (the c310's
+        automatic mixture control sets the mixture's position to about sigma at full rich) is
+        leaned only what they leave: the command is sigma over the position full rich gives.
+        1.0 below about 500 m and for a model without piston engines."""
+        fdm = self.fdm
+        sigma = fdm["atmosphere/sigma"]
+        pistons = [i for i, kind in enumerate(self.engine_kinds) if kind == "piston_engine"]
+        if not (pistons and math.isfinite(sigma) and 0.0 < sigma < LEAN_BELOW_SIGMA):
+            return 1.0
+        self._apply({"mixture": 1.0})
+        if not fdm.run_ic():
+            raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
+        full_rich = min(fdm[f"fcs/mixture-pos-norm[{i}]"] for i in pistons)
+        return sigma / full_rich if math.isfinite(full_rich) and full_rich > sigma else 1.0
+
+    def _engines_run(self) -> list:
+        """The engines of RUNNING_KINDS that are not running (engine indices)."""
+        return [i for i, running in zip(self._must_run, self._get_running) if not running() > 0.5]
+
+    def _crank(self, throttle: float, on_ground: bool) -> None:
+        """Start the engines JSBSim's set-running left dead, as a pilot does (see CRANK_THROTTLES),
+        then restore the start: the tanks' fuel, time 0 and the initial conditions (JSBSim's run_ic
+        leaves the engines as they are). An engine that still does not run refuses a ground start
+        (InvalidArgument ``engines_running`` naming the aircraft and the engine: it would sit there
+        for good); in the air the aircraft glides, as with its engines off, and a warning says so
+        (the p51d at 3000 m and 60 m/s: its throttle is a manifold-pressure loop that holds the
+        throttle shut while the engine does not run, and its starter cannot turn it fast enough
+        in that thin air)."""
+        fdm, pm = self.fdm, self._pm
+        tanks = []
+        while pm.hasNode(f"propulsion/tank[{len(tanks)}]/contents-lbs"):
+            tanks.append(f"propulsion/tank[{len(tanks)}]/contents-lbs")
+        fuel_lbs = [fdm[t] for t in tanks]
+        if pm.hasNode("propulsion/magneto_cmd"):
+            fdm["propulsion/magneto_cmd"] = 3  # both (FGPiston: 0 off, 1 left, 2 right, 3 both)
+        if pm.hasNode("propulsion/cutoff_cmd"):
+            fdm["propulsion/cutoff_cmd"] = 0  # fuel on (FGTurbine, FGTurboProp)
+        dead = self._engines_run()
+        for opening in CRANK_THROTTLES:
+            self._apply({"throttle": opening})
+            fdm["propulsion/starter_cmd"] = 1
+            for _ in range(max(1, round(CRANK_S / self.dt))):
+                fdm.run()
+                if not self._engines_run():
+                    break
+            fdm["propulsion/starter_cmd"] = 0
+            for _ in range(round(CRANK_SETTLE_S / self.dt)):  # it runs once it runs off the starter
+                fdm.run()
+            dead = self._engines_run()
+            if not dead:
+                break
+        if dead:
+            spec = catalog.propulsion(self.name).engines
+            which = ", ".join(f"engine {i} ({spec[i].kind} {spec[i].file})" for i in dead)
+            why = (f"{self.name}'s {which} does not run: JSBSim's set-running leaves it stopped, and {CRANK_S:g} s "
+                   f"on its starter at each of throttle {', '.join(f'{t:g}' for t in CRANK_THROTTLES)} does not "
+                   "start it")
+            if on_ground:
+                raise InvalidArgument("engines_running", f"{why}; start {self.name} airborne or with its engines "
+                                                         "off (engines_running false), or fly another aircraft",
+                                      value=True)
+            _log.warning("%s; it starts airborne with it stopped, gliding", why)
+        # The start's throttle from here on, its engine as it ran (as set-running leaves one: at
+        # the steady state of full throttle), to settle in the first seconds.
+        self._apply({"throttle": throttle})
+        for t, lbs in zip(tanks, fuel_lbs):
+            fdm[t] = lbs
+        fdm.set_sim_time(0.0)
+        if not fdm.run_ic():
+            raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
+
+    def _transfer_fuel(self) -> None:
+        """Keep the feed tanks at their start's fuel from the other fuel tanks (see
+        _bind_propulsion), each reserve tank giving in proportion to what it holds."""
+        feed = [t.get_double_value() for t in self._feed_tanks]
+        need = [max(target - lbs, 0.0) for target, lbs in zip(self._feed_target_lbs, feed)]
+        total_need = sum(need)
+        if not total_need > 0.0:
+            return
+        reserve = [max(t.get_double_value(), 0.0) for t in self._reserve_tanks]
+        available = sum(reserve)
+        if not available > 0.0:
+            return
+        move = min(total_need, available)
+        for tank, lbs, d in zip(self._feed_tanks, feed, need):
+            tank.set_double_value(lbs + d * (move / total_need))
+        for tank, lbs in zip(self._reserve_tanks, reserve):
+            tank.set_double_value(lbs - lbs * (move / available))
+
     def _terrain_msl_m(self, lat_deg, lon_deg) -> np.ndarray:
         """The surface (m MSL: the terrain, the sea surface over water, no data is sea level;
         :func:`terrain_msl_m`) at the query points; the result may be this aircraft's own
@@ -654,6 +804,7 @@ class Aircraft:
         fdm = self.fdm
         lon = float(wrap_lon_deg(ic.lon_deg))
         t_m = float(self._terrain_msl_m([ic.lat_deg], [lon])[0])
+        mixture = 1.0
         if ic.on_ground:
             # JSBSim computes the CG (inertia/cg-*-in) only when its models run (FGMassBalance::Run,
             # first called by run_ic): after load_model it reads 0, which would shift every contact
@@ -662,6 +813,7 @@ class Aircraft:
             self._set_ic(ic, lon, t_m, 0.0)
             if not fdm.run_ic():
                 raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
+            mixture = self._field_mixture() if ic.engines_running else 1.0
             # Level, on the highest terrain under any wheel; no structure point may be below its terrain.
             agl_ft = self._rest_height_ft()
             cg_in = [g() for g in self._get_cg_in]
@@ -697,8 +849,12 @@ class Aircraft:
                 fdm["propulsion/set-running"] = -1
             self._apply(validate_controls({"gear_down": gear_down, "mixture": mixture, "throttle": throttle,
                                            "brakes": 1.0 if ic.on_ground and ic.speed_mps == 0 else 0.0}))
+            # Not where a failed trim left an engine's state non-finite (the c182 at 80 m/s): the
+            # trim after a lean retry fails as it did, TrimFailed.
+            if ic.engines_running and self._engines_run() and all(math.isfinite(g()) for g in self._get_thrust):
+                self._crank(throttle, ic.on_ground)
 
-        initialise(1.0)
+        initialise(mixture)
         self._terrain_ft = t_m / FT_M
         self._terrain_cg_ft = self._terrain_ft
         self._steps = 0
@@ -739,6 +895,7 @@ class Aircraft:
                 self.trim()
         self._detector = EventDetector(self._detector_limits, on_ground=ic.on_ground)
         self._set_penetration_limits()
+        self._feed_target_lbs = [t.get_double_value() for t in self._feed_tanks]
 
     def _set_penetration_limits(self, weight_lbs: float | None = None) -> None:
         """How deep below its terrain each contact may be before it is inside the ground (a
@@ -1180,6 +1337,8 @@ class Aircraft:
             if not d.airborne or d.on_ground or d._g_since is not None or not self._nz_min < nz < self._nz_max:
                 events += d.update(t, lat, lon, alt_m, False, False, self._get_vd() * FT_M, nz)
         if self._steps >= self._next_refresh:
+            if self._feed_tanks:  # at least every MAX_REFRESH_S: the Concorde's collectors last 5 s
+                self._transfer_fuel()
             fuel_lbs = self._get_fuel_lbs()
             if fuel_lbs <= 0.0 and not self._detector.out_of_fuel:
                 events += self._detector.fuel(t, lat, lon, alt_m, fuel_lbs * LB_KG)
@@ -1233,6 +1392,7 @@ class Aircraft:
         before_lbs = self._get_fuel_lbs() if self.has_fuel else 0.0
         for i in range(tanks):
             self.fdm[f"propulsion/tank[{i}]/contents-lbs"] = kg / LB_KG / tanks
+        self._feed_target_lbs = [t.get_double_value() for t in self._feed_tanks]  # what JSBSim's tanks took
         # JSBSim's weight follows at its next step; the struts' limits follow the fuel now.
         self._set_penetration_limits(self.fdm["inertia/weight-lbs"] - before_lbs + kg / LB_KG)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import difflib
 import math
 import re
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -107,6 +108,77 @@ WATER_AIRCRAFT = frozenset({"Boeing314", "Short_S23"})
 def lands_on_water(name: str) -> bool:
     """Whether a catalog model (its catalog spelling) alights on water: a flying boat."""
     return name in WATER_AIRCRAFT
+
+
+@dataclass(frozen=True)
+class EngineSpec:
+    """One ``<engine>`` of a model's ``<propulsion>``, in JSBSim's engine order."""
+
+    kind: str  # its file's root element: piston_engine, turbine_engine, turboprop_engine, electric_engine, ...
+    file: str  # the engine file's name as the model gives it
+    feeds: tuple  # the tanks it draws from (<feed>: JSBSim tank indices)
+
+
+@dataclass(frozen=True)
+class PropulsionSpec:
+    """What a model file says of its engines and tanks (:func:`propulsion`)."""
+
+    engines: tuple  # EngineSpec, in JSBSim's engine order
+    tank_types: tuple  # each tank's type attribute ("FUEL", "OXIDIZER"), in JSBSim's tank order
+    moves_fuel: bool  # a system of the model moves fuel between its tanks itself (FGTank external flow)
+
+
+def _model_part(folder: Path, section, ET):
+    """A section of a model file, or the file of its own it names (``<propulsion file="..."/>``:
+    FGModelLoader opens it from the aircraft's folder, ``.xml`` appended when missing)."""
+    ref = section.get("file") if section is not None else None
+    if not ref:
+        return section
+    path = next((p for p in (folder / ref, folder / f"{ref}.xml") if p.is_file()), None)
+    return ET.parse(path).getroot() if path is not None else None
+
+
+@lru_cache(maxsize=256)
+def propulsion(name: str, root: str | None = None) -> PropulsionSpec:
+    """A catalog model's engines (kind, file, feed tanks) and tanks, from its files. An engine
+    file is looked up as JSBSim does (FGPropulsion::FindFullPathName): the aircraft's own
+    ``Engines/`` folder, then the catalog's ``engine/``; a kind it cannot read is ''. Empty
+    for a name or file that cannot be read."""
+    import xml.etree.ElementTree as ET
+
+    base = Path(root) if root else root_dir()
+    empty = PropulsionSpec((), (), False)
+    try:
+        folder = base / "aircraft" / resolve(name, root)
+        section = _model_part(folder, ET.parse(folder / f"{folder.name}.xml").getroot().find("propulsion"), ET)
+    except (NotFound, OSError, ET.ParseError):
+        return empty
+    if section is None:
+        return empty
+    engines = []
+    for el in section.findall("engine"):
+        ref = el.get("file", "")
+        kind = ""
+        for path in (folder / "Engines" / ref, folder / "Engines" / f"{ref}.xml", base / "engine" / ref,
+                     base / "engine" / f"{ref}.xml"):
+            if ref and path.is_file():
+                try:
+                    kind = ET.parse(path).getroot().tag
+                except ET.ParseError:
+                    pass
+                break
+        feeds = []
+        for f in el.findall("feed"):
+            try:
+                feeds.append(int((f.text or "").strip()))
+            except ValueError:
+                pass
+        engines.append(EngineSpec(kind, ref, tuple(feeds)))
+    types = tuple(tank.get("type", "").upper() for tank in section.findall("tank"))
+    # JSBSim moves fuel between tanks only where a model's system drives a tank's external flow
+    # (FGTank: propulsion/tank[i]/external-flow-rate-pps): the Short_S23's fuel system.
+    moves = any("external-flow-rate-pps" in f.read_text(errors="replace") for f in folder.rglob("*.xml"))
+    return PropulsionSpec(tuple(engines), types, moves)
 
 
 def aircraft_class(name: str) -> str:
@@ -269,8 +341,8 @@ TRIM_NEVER = {
     "J246": "a launch vehicle",
     "L410": "its turboprops make no power here (propellers at 83 degrees, feathered)",
     "mk82": "a bomb: no engines and L/D below 1, no glide shallower than 45 degrees",
-    "p51d": "its engine does not run after JSBSim's set-running; its throttle is a FlightGear "
-            "manifold-pressure autothrottle that JSBSim's trim cannot move",
+    "p51d": "its throttle is a FlightGear manifold-pressure autothrottle that JSBSim's trim cannot move "
+            "(its engine, which JSBSim's set-running leaves stopped, is started on its starter)",
     "pa28": "full throttle cannot hold level flight at 1500 m in the model",
     "paraglider": "a parafoil under a suspended pilot (not investigated further)",
     "pc7": "its turboprop gives little thrust here (about 50 lbf at full throttle, 70 m/s)",

@@ -129,8 +129,13 @@ def _point(s) -> dict:
             "agl_m": s.agl_m, "heading_deg": s.heading_deg, "airspeed_mps": s.airspeed_true_mps}
 
 
+# What a trim failure's advice says here instead of the API's (fdm.aircraft.TRIM_OFF_HINT: fly
+# has no untrimmed airborne start); server.sim_server says the same of a scenario.
+FLY_TRIM_HINT = "; here give --speed-mps or --alt-m a value it trims at, or start it on the ground (--ground)"
+
+
 def fly_command(args) -> int:
-    from fdm.aircraft import InitialConditions
+    from fdm.aircraft import TRIM_OFF_HINT, InitialConditions, TrimFailed
 
     terrain = None
     if args.dem:
@@ -139,8 +144,11 @@ def fly_command(args) -> int:
         terrain = build_terrain(args.dem)
     ic = InitialConditions(args.lat, args.lon, args.alt_m, "agl" if args.agl else "msl", args.heading_deg,
                            0.0 if args.ground else args.speed_mps, on_ground=args.ground)
-    with _stdout_to_stderr():
-        summary = fly(args.aircraft, ic, args.seconds, terrain, args.dt, args.hold)
+    try:
+        with _stdout_to_stderr():
+            summary = fly(args.aircraft, ic, args.seconds, terrain, args.dt, args.hold)
+    except TrimFailed as exc:
+        raise TrimFailed(str(exc).replace(TRIM_OFF_HINT, FLY_TRIM_HINT)) from None
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
