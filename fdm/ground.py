@@ -98,7 +98,7 @@ import numpy as np
 from fdm.vehicle_types import (G_MPS2, P_ACCEL, P_ALAT, P_BRAKE, P_FR, P_GRAD, P_KIND, P_LEN,
                                P_PIVOT, P_POWER_PER_KG, P_RMIN, P_SIDE, P_VMAX, P_VREV, P_WID, P_YAWMAX,
                                TRACKED, VehicleType, get_type, type_table)
-from sortie.errors import InvalidArgument
+from sortie.errors import InvalidArgument, bound_text
 from terrain.geodesy import WGS84_A_M, WGS84_E2
 from terrain.raster import STATUS_OUTSIDE
 from terrain.validate import as_1d_f64, check_finite, check_latlon, first_bad
@@ -812,16 +812,17 @@ class GroundVehicles:
             bad = (v > fwd) | (v < -rev)
             if bad.any():
                 i = first_bad(bad)
-                raise InvalidArgument("speed_mps", f"must be within [-{rev[i]:.3g}, {fwd[i]:.3g}] m/s for {which(i)}",
-                                      index=i, value=float(v[i]))
+                lo, hi = -float(rev[i]), float(fwd[i])
+                raise InvalidArgument("speed_mps", f"must be within [{bound_text(lo, v[i])}, {bound_text(hi, v[i])}] "
+                                      f"m/s for {which(i)}", index=i, value=float(v[i]))
         if yaw_rate_dps is not None:
             r = _command("yaw_rate_dps", yaw_rate_dps, m)
             lim = self._type_yaw_limits_dps()[self.type_id[idx]]
             bad = np.abs(r) > lim
             if bad.any():
                 i = first_bad(bad)
-                raise InvalidArgument("yaw_rate_dps", f"must be within +-{lim[i]:.3g} deg/s for {which(i)}", index=i,
-                                      value=float(r[i]))
+                raise InvalidArgument("yaw_rate_dps", f"must be within +-{bound_text(float(lim[i]), abs(float(r[i])))} "
+                                      f"deg/s for {which(i)}", index=i, value=float(r[i]))
         return idx, v, r
 
     # -- level of detail --------------------------------------------------------

@@ -26,7 +26,8 @@ Schema (``*`` required; everything else has the default shown)::
     [exercise]
     name*                      free text, 1..128 printable characters
     start_time*                ISO 8601 with an offset ("2026-06-15T08:00:00Z", or a TOML
-                               offset date-time); stored in UTC. Required: it fixes the sun,
+                               offset date-time; RFC 3339's lower-case "t" and "z" too, in
+                               either format); stored in UTC. Required: it fixes the sun,
                                the recording's time stamps and replays, so it must never be
                                "now", and no fixed default is given because midnight UTC
                                would silently light the scene for night.
@@ -35,7 +36,9 @@ Schema (``*`` required; everything else has the default shown)::
     world_rate_hz = 30         integer, fdm_rate_hz must be a whole multiple of it (a world
                                tick is fdm_rate_hz / world_rate_hz FDM steps)
     network_rate_hz = 20       (0, world_rate_hz]; state streamed to clients (default: 20, or
-                               world_rate_hz when that is lower)
+                               world_rate_hz when that is lower); a joiner's snapshot, entities
+                               coming or going and heartbeats do not wait for it (they go at the
+                               next world tick: server/sim_server.py)
     clock = "realtime"         "realtime" | "fast" | "paused" (starts frozen; resumes in real time
                                on SIGUSR1 to `sortie server`, SIGUSR2 pauses any clock)
     time_scale                 simulated seconds per wall second: 1.0 (and only 1.0) for
@@ -538,11 +541,21 @@ def _yaml_loader():
     for tag, pattern, first in resolvers:
         Loader.add_implicit_resolver(f"tag:yaml.org,2002:{tag}", re.compile(f"^(?:{pattern})$"), list(first))
     Loader.add_implicit_resolver("tag:yaml.org,2002:null", re.compile("^$"), [""])
-    timestamp = next(regexp for tag, regexp in yaml.SafeLoader.yaml_implicit_resolvers["2"]
-                     if tag == "tag:yaml.org,2002:timestamp")  # as TOML's date-times read
-    Loader.add_implicit_resolver("tag:yaml.org,2002:timestamp", timestamp, list("0123456789"))
+    Loader.add_implicit_resolver("tag:yaml.org,2002:timestamp", _YAML_TIMESTAMP, list("0123456789"))
+    Loader.timestamp_regexp = _YAML_TIMESTAMP_PARTS  # what PyYAML's timestamp constructor reads
     Loader.add_constructor("tag:yaml.org,2002:int", Loader.construct_core_int)
     return Loader
+
+
+# YAML's timestamps (https://yaml.org/type/timestamp.html, as PyYAML resolves and reads them), so
+# date-times read as TOML's do, with RFC 3339's lower-case "z" for UTC too (section 5.6; TOML
+# reads 2026-03-01t00:00:00z as a date-time, PyYAML's pattern only an upper-case Z).
+_YAML_TIMESTAMP = re.compile(r"""^(?:[0-9]{4}-[0-9]{2}-[0-9]{2}
+    |[0-9]{4}-[0-9]{1,2}-[0-9]{1,2}(?:[Tt]|[ \t]+)[0-9]{1,2}:[0-9]{2}:[0-9]{2}(?:\.[0-9]*)?
+     (?:[ \t]*(?:[Zz]|[-+][0-9]{1,2}(?::[0-9]{2})?))?)$""", re.X)
+_YAML_TIMESTAMP_PARTS = re.compile(r"""^(?P<year>[0-9]{4})-(?P<month>[0-9]{1,2})-(?P<day>[0-9]{1,2})
+    (?:(?:[Tt]|[ \t]+)(?P<hour>[0-9]{1,2}):(?P<minute>[0-9]{2}):(?P<second>[0-9]{2})(?:\.(?P<fraction>[0-9]*))?
+     (?:[ \t]*(?P<tz>[Zz]|(?P<tz_sign>[-+])(?P<tz_hour>[0-9]{1,2})(?::(?P<tz_minute>[0-9]{2}))?))?)?$""", re.X)
 
 
 def _yaml_data(text: str) -> dict:
@@ -798,10 +811,11 @@ def _exercise(value) -> Exercise:
 
 
 def _start_time(value, path: str) -> datetime:
-    """An aware datetime in UTC from a TOML offset date-time or an ISO 8601 string."""
+    """An aware datetime in UTC from a TOML offset date-time or an ISO 8601 / RFC 3339
+    string (its "T" and "Z" in either case)."""
     if isinstance(value, str):
         try:
-            parsed = datetime.fromisoformat(value)
+            parsed = datetime.fromisoformat(_upper_t_z(value))
         except ValueError:
             raise ScenarioError(path, 'must be an ISO 8601 date-time like "2026-06-15T08:00:00Z"',
                                 value=value) from None
@@ -816,6 +830,19 @@ def _start_time(value, path: str) -> datetime:
     except OverflowError:  # 9999-12-31T23:59:59-05:00 is in year 10000 UTC
         raise ScenarioError(path, "must be within years 1..9999 in UTC (its offset takes it past them)",
                             value=_shown(value)) from None
+
+
+_RFC3339_DATE_TIME = re.compile(r"(?P<date>\d{4}-\d\d-\d\d)(?P<sep>[Tt ])(?P<time>\d\d:\d\d:\d\d(?:\.\d+)?)"
+                                r"(?P<offset>[Zz]|[+-]\d\d:\d\d)", re.ASCII)
+
+
+def _upper_t_z(text: str) -> str:
+    """An RFC 3339 date-time's text with its date-time separator and UTC designator in upper
+    case (section 5.6: "T" and "Z" "may alternatively be lower case"; TOML's offset date-times
+    are RFC 3339's, and tomllib reads them so, but datetime.fromisoformat takes only upper
+    case); any other text as it is."""
+    m = _RFC3339_DATE_TIME.fullmatch(text)
+    return text if m is None else f"{m['date']}{m['sep'].upper()}{m['time']}{m['offset'].upper()}"
 
 
 def _terrain(value, base_dir: Path) -> TerrainSpec:

@@ -20,6 +20,17 @@ A server started paused runs the world's first tick before it stops (world
 time 1 / world rate): until a world has ticked it has no snapshot (its
 aircraft's states come from their first tick), and clients joining the paused
 exercise get the whole picture, as when a running clock is paused.
+
+What cannot wait for the next network tick is published at the next world
+tick (:meth:`SimulationServer._publish_due`): a Watch's first update (its
+full snapshot), an entity that came or went, a change of the advertised
+clock rate, and a dead-reckoning heartbeat falling due. So a network rate as
+low as a scenario allows (anything above 0) still gives a joiner its picture
+within a world tick and every entity's state at least every heartbeat. The
+heartbeats are tracked (one pass over the entities per publish) only where
+the network period is longer than HEARTBEAT_LATE_FRACTION of the shortest
+heartbeat in use; otherwise the network ticks themselves send every heartbeat
+within that fraction of it, and a tick at the usual rates costs what it did.
 """
 
 from __future__ import annotations
@@ -28,6 +39,7 @@ import collections
 import functools
 import gc
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -35,7 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fdm.aircraft import TRIM_OFF_HINT
-from server.dead_reckoning import DeadReckoner, Thresholds, THRESHOLDS_BY_KIND, ALGORITHM_NAMES
+from server.dead_reckoning import ALGORITHM_NAMES, TIME_SLACK_S, THRESHOLDS_BY_KIND, DeadReckoner, Thresholds
 from server.grpc_common import AioManagedServer
 from server.scenario import ScenarioError
 from server.sim_service import (MAX_CONCURRENT_RPCS, SERVICE_NAME, Sessions, SimulationServicer, StreamStats,
@@ -58,6 +70,10 @@ MAX_LAG_S = 0.25
 RATE_WINDOW_S = 2.0
 RATE_SAMPLE_S = 0.1
 RATE_TOLERANCE = 0.03
+# A heartbeat may go out this fraction of itself late (at the first network tick after it falls
+# due); where the network period is longer than that, the clock publishes at the world tick it
+# falls due instead (see the module docstring).
+HEARTBEAT_LATE_FRACTION = 0.1
 
 
 @dataclass(frozen=True)
@@ -77,15 +93,17 @@ DEFAULT_PARAMS = {
 
 
 def type_params(params: dict, entities: dict, entity_id, kind: str | None = None) -> TypeParams:
-    """The parameters of entity ``entity_id`` of ``entities`` (by its type name, else its
-    kind), or of ``kind`` when entity_id is None; ``params``: ServerConfig.params."""
+    """The parameters of entity ``entity_id`` of ``entities`` (by its kind and type name, else
+    its kind), or of ``kind`` when entity_id is None; ``params``: ServerConfig.params. A type
+    table is looked up with the entity's own kind: a static decoy of type "f16" takes the
+    static kind's parameters under the f16 table, not the aircraft's."""
     if entity_id is None:
         return params.get(kind, DEFAULT_PARAMS[kind])
     e = entities.get(entity_id)
     if e is None:
-        return params["static"]
+        return params.get("static", DEFAULT_PARAMS["static"])
     k = KIND_NAMES[e.kind]
-    return params.get(e.type, params.get(k, DEFAULT_PARAMS[k]))
+    return params.get((k, e.type), params.get(k, DEFAULT_PARAMS[k]))
 
 
 def entities_centre(lat_deg, lon_deg) -> tuple[int, float, float]:
@@ -137,7 +155,8 @@ class ServerConfig:
     target_areas: list = field(default_factory=list)  # (name, [(lat, lon)], detail_m)
     insets: bool = False  # the terrain answers inside the target areas from their insets
     terrain: str = ""
-    params: dict = field(default_factory=lambda: dict(DEFAULT_PARAMS))  # kind or type name -> TypeParams
+    # kind name -> TypeParams, and (kind name, type name) -> TypeParams of [agent_types.<type>] over that kind
+    params: dict = field(default_factory=lambda: dict(DEFAULT_PARAMS))
 
 
 class SimulationServer:
@@ -168,6 +187,17 @@ class SimulationServer:
         self._rate_marks: collections.deque = collections.deque()  # (wall monotonic, world time) samples
         self._achieved: float | None = None  # the advertised rate when short of the set one (None: the set one)
         self._rate_reset = False  # set_clock asks the clock thread to measure anew
+        # What the last publish covered (the clock thread's; see _publish_due): the queues it
+        # served, the world's entity layout and the rate it sent, and when a heartbeat falls due.
+        self._served: set = set()
+        self._published_layout = -1
+        self._published_rate: float | None = None
+        self._tick_layout = -1  # the world's layout version just before its last tick
+        self._track_heartbeats = 1.0 / config.network_rate_hz > HEARTBEAT_LATE_FRACTION * _shortest_heartbeat_s(
+            config.params)
+        self._next_heartbeat_s = math.inf
+        self._heartbeat_ids = np.zeros(0, np.int64)  # the ids _heartbeats_s holds the heartbeats of
+        self._heartbeats_s = np.zeros(0)
         self._stop = threading.Event()
         self._resume = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world-clock", daemon=True)
@@ -264,6 +294,42 @@ class SimulationServer:
 
     # -- the clock thread -----------------------------------------------------------------------
 
+    def _publish(self, rate: float) -> None:
+        """Publish the world's snapshot (clock thread), advertising ``rate`` (0: paused), and
+        note what it covered for :meth:`_publish_due`."""
+        world = self.world
+        sessions = self.sessions.watching()
+        # The queues as the publisher will find them: one a new Watch puts in place meanwhile
+        # is skipped by the publisher and is not among these, so it is served at the next tick.
+        served = {s.queue for s in sessions}
+        self.publisher.publish(world.snapshot, world.infos, sessions, rate, world.wrecks)
+        self._served = served
+        self._published_layout = self._tick_layout
+        self._published_rate = rate
+        if self._track_heartbeats:
+            self._next_heartbeat_s = self._next_heartbeat()
+
+    def _publish_due(self, rate: float) -> bool:
+        """Whether something cannot wait for the next network tick (see the module docstring):
+        a heartbeat due, an entity come or gone since the last publish, the advertised rate
+        changed, or a watching session's queue still waiting for its snapshot. O(sessions)."""
+        return (self.world.time_s - self._next_heartbeat_s >= -TIME_SLACK_S
+                or self.world.layout_version != self._published_layout
+                or rate != self._published_rate
+                or any(s.queue.needs_snapshot and s.queue not in self._served for s in self.sessions.watching()))
+
+    def _next_heartbeat(self) -> float:
+        """World time at which the first entity's heartbeat falls due (the dead reckoner's last
+        sent time plus the entity's heartbeat), inf with no entity; O(entities)."""
+        reckoner = self.publisher.reckoner
+        ids = reckoner.ids
+        if ids.size == 0:
+            return math.inf
+        if not np.array_equal(ids, self._heartbeat_ids):  # as the publisher gave them to the reckoner
+            self._heartbeats_s = np.array([self.params_of(i).thresholds.heartbeat_s for i in ids.tolist()])
+            self._heartbeat_ids = ids
+        return float(np.min(reckoner.last_sent(ids)["t0"] + self._heartbeats_s))
+
     def _run(self) -> None:
         world, cfg = self.world, self.config
         net_dt = 1.0 / cfg.network_rate_hz
@@ -275,7 +341,7 @@ class SimulationServer:
                 # Paused: watchers learn the clock stopped; newcomers get their snapshot. A world
                 # that never ticked has none: its first tick runs first (see the module docstring).
                 if self._clock == "paused" and world.tick_count > 0:
-                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(), 0.0, world.wrecks)
+                    self._publish(0.0)
                     self._rate_marks.clear()  # the rate is measured anew when the clock runs again
                     self._resume.clear()
                     self._resume.wait(0.1)
@@ -284,14 +350,17 @@ class SimulationServer:
                 t0 = time.perf_counter()
                 if self.before_tick is not None:
                     self.before_tick(world)
+                self._tick_layout = world.layout_version  # an entity come after this waits for no tick
                 world.tick()
                 running = self._clock != "paused"
                 if running:
                     self._measure_rate(time.monotonic())
-                if world.time_s + 1e-9 >= next_net:
-                    self.publisher.publish(world.snapshot, world.infos, self.sessions.watching(),
-                                           self.time_scale if running else 0.0, world.wrecks)
-                    next_net += net_dt
+                rate = self.time_scale if running else 0.0
+                network_tick = world.time_s + 1e-9 >= next_net
+                if network_tick or self._publish_due(rate):
+                    self._publish(rate)
+                    if network_tick:
+                        next_net += net_dt
                 self.tick_ms.append((time.perf_counter() - t0) * 1e3)
                 if len(self.tick_ms) > 100_000:
                     del self.tick_ms[:50_000]
@@ -321,6 +390,15 @@ class SimulationServer:
                 "tick_p99_ms": float(np.percentile(a, 99)), "overruns": self.overruns}
 
 
+def _shortest_heartbeat_s(params: dict) -> float:
+    """The shortest heartbeat an entity may have under ``params`` (ServerConfig.params: its
+    kinds' and types' entries, the built-in kind defaults where a kind has none)."""
+    kinds = KIND_NAMES.values()
+    used = [p for k, p in params.items() if k in kinds or isinstance(k, tuple)]
+    used += [DEFAULT_PARAMS[k] for k in kinds if k not in params]
+    return min(p.thresholds.heartbeat_s for p in used)
+
+
 def algorithm_name(code: int) -> str:
     return ALGORITHM_NAMES.get(int(code), str(code))
 
@@ -329,8 +407,6 @@ def algorithm_name(code: int) -> str:
 
 def _dr_thresholds(p) -> Thresholds:
     """scenario.AgentTypeParams -> dead_reckoning.Thresholds."""
-    import math
-
     code = {v: k for k, v in ALGORITHM_NAMES.items()}[p.dr_algorithm]
     return Thresholds(p.dr_position_m, math.radians(p.dr_orientation_deg), p.heartbeat_s, code)
 
@@ -532,26 +608,17 @@ def _spawn(world: World, scenario, a, convoy_of: dict, done: set) -> None:
         world.spawn_static(a.name, a.type, a.lat_deg, a.lon_deg, a.alt_m, a.heading_deg, coalition=a.coalition)
 
 
-def _kind_of_type(type_name: str) -> str:
-    """The kind a type name belongs to: a JSBSim catalog aircraft, a vehicle type, else static."""
-    from fdm import catalog
-    from fdm.vehicle_types import VEHICLE_TYPES
-
-    if type_name in VEHICLE_TYPES:
-        return "ground"
-    try:
-        catalog.resolve(type_name)
-        return "aircraft"
-    except SortieError:
-        return "static"
-
-
 def server_config(scenario, terrain_desc: str = "") -> ServerConfig:
+    """The server's configuration of a validated scenario. Each [agent_types.<type>] table is
+    resolved over every entity kind (scenario.Scenario.type_params: kind default < kind table
+    < type table), keyed (kind, type): a type name may be an aircraft's and a static agent's
+    at once, and each takes its own kind's parameters under the type's table."""
     ex = scenario.exercise
-    params = {k: TypeParams(p.aoi_radius_m, _dr_thresholds(p)) for k, p in scenario.kind_params.items()}
+    params: dict = {k: TypeParams(p.aoi_radius_m, _dr_thresholds(p)) for k, p in scenario.kind_params.items()}
     for type_name in scenario.type_overrides:
-        p = scenario.type_params(_kind_of_type(type_name), type_name)
-        params[type_name] = TypeParams(p.aoi_radius_m, _dr_thresholds(p))
+        for kind in KIND_NAMES.values():
+            p = scenario.type_params(kind, type_name)
+            params[(kind, type_name)] = TypeParams(p.aoi_radius_m, _dr_thresholds(p))
     return ServerConfig(exercise_name=ex.name, start_time=ex.start_time.isoformat().replace("+00:00", "Z"),
                         network_rate_hz=ex.network_rate_hz, clock=ex.clock, time_scale=ex.time_scale,
                         duration_s=ex.duration_s, vanished_timeout_s=ex.vanished_client_timeout_s,

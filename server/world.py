@@ -68,7 +68,7 @@ from server.collisions import new_contacts, overlap_depth
 from server.obstacles import MOVING_MPS, clearance_ahead
 from server.dead_reckoning import extrapolate, ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
-from sortie.errors import InvalidArgument, LimitExceeded, NotFound
+from sortie.errors import InvalidArgument, LimitExceeded, NotFound, bound_text
 from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
 AIRCRAFT, GROUND, STATIC = 1, 2, 3  # = sortie.v1.EntityKind values
@@ -275,6 +275,12 @@ class World(EventLog):
         self._prev_vel = (np.zeros(0, np.int64), np.zeros((0, 3)))  # (ids, ECEF velocities) of the last snapshot
         self.snapshot = _empty_snapshot(0.0, 0)
         self.recorder = None  # server.recorder.Recorder: every tick, input and event
+
+    @property
+    def layout_version(self) -> int:
+        """A number that changes whenever an entity comes or goes (the next snapshot's ids
+        differ): the clock publishes such a change without waiting for a network tick."""
+        return self._layout_version
 
     def attach_recorder(self, recorder) -> None:
         """Record from now on (server/recorder.py): the snapshot of every tick, every
@@ -638,8 +644,8 @@ class World(EventLog):
             if speed is not None:  # forward only, up to its type's top speed (a drive command may reverse)
                 top, type_name = self._ground_top_speed(e)
                 if not 0.0 <= speed <= top:
-                    raise InvalidArgument("autopilot.speed_mps", f"must be within [0, {top:.3g}] m/s for {e.name} "
-                                          f"({type_name}: its top speed)", value=speed)
+                    raise InvalidArgument("autopilot.speed_mps", f"must be within [0, {bound_text(top, speed)}] m/s "
+                                          f"for {e.name} ({type_name}: its top speed)", value=speed)
         elif speed is not None and not 0.0 < speed <= SPEED_MAX_MPS:
             raise InvalidArgument("autopilot.speed_mps", f"must be within (0, {SPEED_MAX_MPS:g}] m/s for aircraft",
                                   value=speed)

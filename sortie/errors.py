@@ -114,3 +114,14 @@ def grpc_code(error: BaseException):
     if isinstance(error, PermissionDenied):
         return grpc.StatusCode.PERMISSION_DENIED
     return grpc.StatusCode.INTERNAL
+
+
+def bound_text(bound: float, refused: float) -> str:
+    """A limit as a refusal of ``refused`` shows it: 6 significant digits (as the scenario's
+    errors), or all its digits (the shortest text that reads back as it) where 6 would put
+    the limit on or past the refused value, so that the message never contradicts itself
+    (an m1a2's 18.77568 m/s top speed read "18.8" refusing 18.8, "18.7757" refusing 18.7757)."""
+    text = f"{bound:.6g}"
+    if (refused - float(text)) * (refused - bound) > 0:
+        return text
+    return repr(float(bound))

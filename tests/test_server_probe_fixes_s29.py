@@ -377,7 +377,7 @@ def test_a_ground_autopilot_speed_is_refused_with_its_own_range(tmp_path):
         for speed in (1000.0, -3.0, -0.001, top + 0.01):
             with pytest.raises(InvalidArgument) as exc:
                 world.command(truck, "autopilot", {"speed_mps": speed})
-            assert str(exc.value).startswith(f"autopilot.speed_mps: must be within [0, {top:.3g}] m/s for truck1 "
+            assert str(exc.value).startswith(f"autopilot.speed_mps: must be within [0, {top:.6g}] m/s for truck1 "
                                              "(hmmwv: its top speed)"), exc.value
         for speed in (0.0, top):  # both ends inclusive
             world.command(truck, "autopilot", {"speed_mps": speed})
