@@ -42,7 +42,7 @@ import numba
 import numpy as np
 import zstandard
 
-from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound
+from sortie.errors import DataFormatError, InvalidArgument, LimitExceeded, NotFound, shown
 from terrain import heightcodec
 from terrain.heightcodec import LevelRect, PyramidReader, tile_overlap
 from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Georef, Raster
@@ -118,6 +118,7 @@ class TerrainStore:
             raise DataFormatError(f"{manifest_path}: format {m.get('format')!r} is not {FORMAT_NAME!r}")
         if m.get("version") != FORMAT_VERSION:
             raise DataFormatError(f"{manifest_path}: version {m.get('version')!r}, this build reads {FORMAT_VERSION}")
+        check_manifest(m, manifest_path)
         self.manifest = m
         self.tile = int(m["tile"])
         self.depth = int(m["depth"])
@@ -127,6 +128,7 @@ class TerrainStore:
         self.regions = [Region(r["index"], tuple(LevelRect(*x) for x in r["rects"]), _wrapped_bounds(r["bounds"]))
                         for r in m["regions"]]
         self.name = m.get("name", self.path.name)
+        self._composing: dict[tuple[int, int], list[Region]] = {}  # (region, level) -> regions its tiles read
         self._lock = threading.RLock()
         self._index: dict[tuple[int, int], tuple[np.ndarray, dict, int]] = {}  # entries, lookup, file size
         self._files: dict[tuple[int, int], object] = {}
@@ -222,21 +224,7 @@ class TerrainStore:
         # The posts of the cells holding the box: rows from the north, columns unwrapped east of c_left's.
         row_a, row_b = int(math.floor(r_top)), int(math.floor(r_bot)) + 2
         col_a, col_b = int(math.floor(c_left)), int(math.floor(c_left + span)) + 2
-        per_turn = self.cols_per_turn(level)
-        parts = []  # (region, rows [ra, rb), box columns [ca, cb), the region's columns = box's - shift)
-        for reg in (self.regions if region is None else [region]):
-            if level >= len(reg.rects):
-                continue  # this region's pyramid stops below the level
-            rect = reg.rects[level]
-            ra, rb = max(row_a, rect.row0), min(row_b, rect.row1)
-            if rb <= ra:
-                continue
-            # The rectangle's copies whole turns apart that meet the box's columns (one, unless the
-            # box spans more than a turn less the rectangle's width).
-            for m in range((col_a - rect.col1) // per_turn + 1, -(-(col_b - rect.col0) // per_turn)):
-                ca, cb = max(col_a, rect.col0 + m * per_turn), min(col_b, rect.col1 + m * per_turn)
-                if cb > ca:
-                    parts.append((reg, ra, rb, ca, cb, m * per_turn))
+        parts = self._parts(level, row_a, row_b, col_a, col_b, self.regions if region is None else [region])
         if not parts:
             return None
         merged = (max(p[2] for p in parts) - min(p[1] for p in parts)) * (
@@ -244,37 +232,104 @@ class TerrainStore:
         if max_posts is not None and merged > max_posts and len(parts) > 1:
             if strict:
                 raise LimitExceeded("box posts", merged, max_posts, "regions far apart in one box")
-            parts = [max(parts, key=lambda p: (p[2] - p[1]) * (p[4] - p[3]))]
+            biggest = max(parts, key=lambda p: (p[2] - p[1]) * (p[4] - p[3]))
+            # That rectangle's posts, with whatever other regions hold inside it (coarser levels
+            # of nearby regions share tiles).
+            parts = self._parts(level, *biggest[1:5], self.regions if region is None else [region])
         ga, gb = min(p[1] for p in parts), max(p[2] for p in parts)
         gc, gd = min(p[3] for p in parts), max(p[4] for p in parts)
         if gb - ga < 2 or gd - gc < 2:
             return None
-        heights = np.full((gb - ga, gd - gc), np.nan)
-        classes = np.zeros(heights.shape, np.uint8)
-        for reg, ra, rb, ca, cb, shift in parts:
-            h, cl = self.decode(reg, level, ra, rb, ca - shift, cb - shift)
-            dst_h = heights[ra - ga:rb - ga, ca - gc:cb - gc]
-            dst_c = classes[ra - ga:rb - ga, ca - gc:cb - gc]
-            # Rectangles do not overlap; if they did, the first region's data would win.
-            take = (dst_c == CLASS_OUTSIDE) & (cl != CLASS_OUTSIDE)
-            dst_h[take] = h[take]
-            dst_c[take] = cl[take]
+        heights, classes = self._merge(parts, level, ga, gb, gc, gd)
         regions = tuple(dict.fromkeys(p[0].index for p in parts))
         return self._grid_raster(heights, classes, level, gb, gc,
                                  {"region": regions[0] if len(regions) == 1 else None, "regions": regions})
 
+    def level_posts(self, level: int, row_a: int, row_b: int, col_a: int, col_b: int):
+        """(heights_m float64, NaN outside the data; classes uint8) of a level's lattice rows
+        [row_a, row_b) x columns [col_a, col_b) (rows north to south; columns in any turn), composed
+        from every region whose rectangle at the level holds some of them; None unless the
+        rectangles hold every one (the clipmap then asks the terrain's other sources)."""
+        parts = self._parts(level, row_a, row_b, col_a, col_b, self.regions)
+        covered = np.zeros((row_b - row_a, col_b - col_a), bool)
+        for _, ra, rb, ca, cb, _ in parts:
+            covered[ra - row_a:rb - row_a, ca - col_a:cb - col_a] = True
+        if not parts or not covered.all():
+            return None
+        heights, classes = self._merge(parts, level, row_a, row_b, col_a, col_b)
+        heights[classes == CLASS_OUTSIDE] = np.nan
+        return heights, classes
+
+    def _parts(self, level: int, row_a: int, row_b: int, col_a: int, col_b: int, regions) -> list:
+        """Where each of ``regions``' rectangles at a level meets lattice rows [row_a, row_b) x
+        columns [col_a, col_b) (columns unwrapped: any turn): (region, rows [ra, rb), columns [ca,
+        cb), shift), the region's own columns being these less shift. A rectangle meets the range
+        in each copy of it whole turns apart that overlaps it (one, unless the range spans more than
+        a turn less the rectangle's width); a region whose pyramid stops below the level has none."""
+        per_turn = self.cols_per_turn(level)
+        parts = []
+        for reg in regions:
+            if level >= len(reg.rects):
+                continue
+            rect = reg.rects[level]
+            ra, rb = max(row_a, rect.row0), min(row_b, rect.row1)
+            if rb <= ra:
+                continue
+            for m in range((col_a - rect.col1) // per_turn + 1, -(-(col_b - rect.col0) // per_turn)):
+                ca, cb = max(col_a, rect.col0 + m * per_turn), min(col_b, rect.col1 + m * per_turn)
+                if cb > ca:
+                    parts.append((reg, ra, rb, ca, cb, m * per_turn))
+        return parts
+
+    def _merge(self, parts, level: int, ga: int, gb: int, gc: int, gd: int):
+        """(heights_m, classes) of rows [ga, gb) x columns [gc, gd) decoded from ``parts``
+        (:meth:`_parts`): each post from the first part whose class there is not outside; class
+        outside where none has data, the height there NaN or a region's fill (callers take NaN
+        by the class, as :meth:`_grid_raster` does).
+
+        Regions share no data posts (their level-0 boxes lie more than a tile apart; a store
+        imported before sources across the antimeridian were grouped may have two, and the first
+        region's wins), but their coarser rectangles are rounded out to whole tiles and so may
+        share tiles: such a tile is coded in each region, every post outside the region's own
+        data marked outside, and each post's data is in the one region that has it."""
+        heights = np.full((gb - ga, gd - gc), np.nan)
+        classes = np.zeros(heights.shape, np.uint8)
+        for n, (reg, ra, rb, ca, cb, shift) in enumerate(parts):
+            h, cl = self.decode(reg, level, ra, rb, ca - shift, cb - shift)
+            window = (slice(ra - ga, rb - ga), slice(ca - gc, cb - gc))
+            if n == 0:  # nothing there yet (the common case: one region)
+                heights[window], classes[window] = h, cl
+                continue
+            dst_h, dst_c = heights[window], classes[window]
+            take = (dst_c == CLASS_OUTSIDE) & (cl != CLASS_OUTSIDE)
+            dst_h[take] = h[take]
+            dst_c[take] = cl[take]
+        return heights, classes
+
+    def _composing_regions(self, region: Region, level: int) -> list[Region]:
+        """The regions a tile or block of ``region`` at a level is composed from: the region, then
+        every other whose rectangle there meets the region's grown by its tiles' east and south
+        edge posts (one post; whole turns apart too). Empty but for the region itself unless
+        coarser rectangles of nearby regions share tiles (or touch)."""
+        key = (region.index, level)
+        hit = self._composing.get(key)
+        if hit is None:
+            rect = region.rects[level]
+            hit = [region] + [other for other in self.regions if other is not region and self._parts(
+                level, rect.row0, rect.row1 + 1, rect.col0, rect.col1 + 1, [other])]
+            self._composing[key] = hit
+        return hit
+
     def _block_raster(self, region: Region, level: int, row_a, row_b, col_a, col_b,
                       pad_to: tuple[int, int] | None = None) -> Raster:
-        """Posts [row_a, row_b) x [col_a, col_b) of a level as a Raster (row 0 south); with
-        pad_to (rows, cols), the grid is that size from (row_a, col_a), NaN (outside) past
-        the region's rectangle."""
+        """Posts [row_a, row_b) x [col_a, col_b) of a level as a Raster (row 0 south), in the
+        region's columns; with pad_to (rows, cols), the grid is that size from (row_a, col_a).
+        Each post comes from whichever region has data there (:meth:`_composing_regions`: a tile of
+        a coarser level that two nearby regions share holds the data of both); NaN, outside, where
+        none has, past every rectangle too."""
         r1, c1 = (row_b, col_b) if pad_to is None else (row_a + pad_to[0], col_a + pad_to[1])
-        rect = region.rects[level]
-        heights = np.full((r1 - row_a, c1 - col_a), np.nan)
-        classes = np.zeros(heights.shape, np.uint8)
-        rb, cb = min(r1, rect.row1), min(c1, rect.col1)
-        heights[:rb - row_a, :cb - col_a], classes[:rb - row_a, :cb - col_a] = self.decode(
-            region, level, row_a, rb, col_a, cb)
+        parts = self._parts(level, row_a, r1, col_a, c1, self._composing_regions(region, level))
+        heights, classes = self._merge(parts, level, row_a, r1, col_a, c1)
         return self._grid_raster(heights, classes, level, r1, col_a, {"region": region.index})
 
     def _grid_raster(self, heights, classes, level: int, row_b: int, col_a: int, meta: dict) -> Raster:
@@ -295,8 +350,9 @@ class TerrainStore:
 
     def cell_raster(self, cell_id: int) -> tuple[int, Raster]:
         """(level, tile raster) of a quad-tree cell: the cell at depth d is the tile of level
-        depth - d, in whichever region holds it (its column unwrapped into the region's).
-        NotFound, naming cell_id, when no level or region holds it."""
+        depth - d, from every region holding it (:meth:`tile_raster`; two nearby regions' coarser
+        rectangles may share a tile, each holding part of its data). NotFound, naming cell_id,
+        when no level or region holds it."""
         from terrain import quadtree
 
         depth, row, col = quadtree.unpack(int(cell_id))
@@ -312,9 +368,10 @@ class TerrainStore:
         return level, self.tile_raster(region, level, row, col_in_region)
 
     def tile_raster(self, region: Region, level: int, tile_row: int, tile_col: int) -> Raster:
-        """One tile with its east and south edge posts (T + 1)^2, as a Raster: every
-        point of the cell interpolates inside it. Edge posts past the region's rectangle
-        (its south and east boundary) are NaN, outside. Cached with the tiles."""
+        """One tile of a region's rectangle (tile_row, tile_col in the region's columns) with its
+        east and south edge posts (T + 1)^2, as a Raster: every point of the cell interpolates
+        inside it. Each post is from whichever region has data there (:meth:`_block_raster`); edge
+        posts past every rectangle are NaN, outside. Cached with the tiles."""
         T = self.tile
         key = ("raster", region.index, level, tile_row, tile_col)
         with self._lock:
@@ -556,6 +613,99 @@ def read_manifest(path) -> dict:
     return m
 
 
+# The largest tile side a manifest may give: a decoded tile of 4096^2 int32 posts is 64 MiB (the
+# importer writes DEFAULT_TILE; the codec needs an even side of at least 4, heightcodec.pyramid_rects).
+MAX_TILE = 4096
+# How many whole turns from the lattice's first a rectangle's first column may lie: importers before
+# col0 was normalised kept a source's own turn (longitude 1000 is 3 turns east; queries stop at +-540).
+MAX_COL0_TURNS = 64
+
+
+def check_manifest(m: dict, manifest_path) -> None:
+    """DataFormatError naming ``store.json``, the field and its value for a manifest a reader cannot
+    use (a damaged or hand-edited file): a missing key, a value of the wrong type, a lattice beyond
+    the store's (tile, depth), a step outside the codec's range, a region list that is empty or
+    not numbered in order, a region's rectangles that are not its pyramid's (tile-aligned, inside
+    the lattice, each level the tile-aligned box of the finer one's even posts, up to one tile or
+    depth + 1 levels: what heightcodec.encode_pyramid coded), or bounds that are not a box."""
+
+    def bad(field: str, what: str, value) -> DataFormatError:
+        return DataFormatError(f"{manifest_path}: {field} {shown(value)} {what}")
+
+    def get(obj: dict, key: str, field: str):
+        if key not in obj:
+            raise DataFormatError(f"{manifest_path}: {field} is missing")
+        return obj[key]
+
+    def integer(value, field: str, lo: int, hi: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise bad(field, f"is not an integer from {lo:,} to {hi:,}", value)
+        return value
+
+    def number(value, field: str) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise bad(field, "is not a finite number", value)
+        return float(value)
+
+    tile = integer(get(m, "tile", "tile"), "tile", 4, MAX_TILE)
+    if tile % 2:
+        raise bad("tile", "is not even (the codec's pyramid halves tiles)", tile)
+    depth = integer(get(m, "depth", "depth"), "depth", 0, MAX_DEPTH)
+    unit_m = number(get(m, "unit_m", "unit_m"), "unit_m")
+    if unit_m <= 0:
+        raise bad("unit_m", "is not a positive number of metres", unit_m)
+    integer(get(m, "step_units", "step_units"), "step_units", 1, heightcodec.MAX_ABS_UNITS)
+    for key in ("name", "vertical_datum"):
+        if key in m and not isinstance(m[key], str):
+            raise bad(key, "is not a string", m[key])
+    summary = m.get("summary")
+    if summary is not None and not isinstance(summary, dict):
+        raise bad("summary", "is not a JSON object", summary)
+    if summary is not None and "filled_posts" in summary:
+        integer(summary["filled_posts"], "summary.filled_posts", 0, 2**62)
+    regions = get(m, "regions", "regions")
+    if not isinstance(regions, list) or not regions:
+        raise bad("regions", "is not a list of at least one region", regions)
+    rows_0 = 2 * (1 << depth) * tile  # lattice rows of level 0, North Pole to South Pole
+    turn_0 = 3 * (1 << depth) * tile  # lattice columns of level 0 round the globe
+    for i, r in enumerate(regions):
+        where = f"regions[{i}]"
+        if not isinstance(r, dict):
+            raise bad(where, "is not a JSON object", r)
+        index = get(r, "index", f"{where}.index")
+        if isinstance(index, bool) or not isinstance(index, int) or index != i:
+            raise bad(f"{where}.index", f"is not {i} (regions are listed in order of their index)", index)
+        rects = get(r, "rects", f"{where}.rects")
+        if not isinstance(rects, list) or not rects:
+            raise bad(f"{where}.rects", "is not a list of at least one level's rectangle", rects)
+        for k, rect in enumerate(rects):
+            if (not isinstance(rect, list) or len(rect) != 4
+                    or any(isinstance(v, bool) or not isinstance(v, int) for v in rect)):
+                raise bad(f"{where}.rects[{k}]", "is not [row0, col0, rows, cols] of integers", rect)
+        row0, col0, rows, cols = rects[0]
+        if (row0 % tile or col0 % tile or rows % tile or cols % tile or rows <= 0 or cols <= 0 or row0 < 0
+                or row0 + rows > rows_0 or abs(col0) > MAX_COL0_TURNS * turn_0 or cols > 2 * turn_0):
+            raise bad(f"{where}.rects[0]", f"is not a rectangle of whole {tile}-post tiles inside level 0's "
+                      f"lattice ({rows_0:,} rows, {turn_0:,} columns a turn; col0 within {MAX_COL0_TURNS} turns, "
+                      f"at most 2 turns wide)", rects[0])
+        want = heightcodec.pyramid_rects(row0, col0, rows, cols, tile, depth + 1)
+        for k, (rect, w) in enumerate(zip(rects, want)):
+            if rect != [w.row0, w.col0, w.rows, w.cols]:
+                raise bad(f"{where}.rects[{k}]", f"is not level {k} of the pyramid over rects[0] "
+                          f"([{w.row0}, {w.col0}, {w.rows}, {w.cols}]: the finer level's even posts "
+                          f"in whole tiles)", rect)
+        if len(rects) != len(want):
+            raise bad(f"{where}.rects", f"has {len(rects)} levels, the pyramid over rects[0] {len(want)} "
+                      f"(it stops where one tile holds it, or at depth + 1 levels)", len(rects))
+        bounds = get(r, "bounds", f"{where}.bounds")
+        if not isinstance(bounds, list) or len(bounds) != 4:
+            raise bad(f"{where}.bounds", "is not [lat_min, lon_min, lat_max, lon_max]", bounds)
+        lat_min, lon_min, lat_max, lon_max = (number(v, f"{where}.bounds") for v in bounds)
+        if not (-90.0 <= lat_min <= lat_max <= 90.0 and lon_min <= lon_max):
+            raise bad(f"{where}.bounds", "is not a box [lat_min, lon_min, lat_max, lon_max] (latitudes within "
+                      "+-90, the minima at most the maxima)", bounds)
+
+
 def _wrapped_bounds(bounds) -> tuple[float, float, float, float]:
     """A region's bounds with lon_min moved by whole turns into [-180, 180) (lon_max with it, so
     it passes 180 for a region across the antimeridian), as importers now write them: stores
@@ -610,8 +760,10 @@ def _block_keys(lat, lon, dlat, dlon, per_turn, rects, n, out_key):
 
     rects: (regions, 4) int64 rows of (row0, row1, col0, col1) of the level's
     rectangles; n: posts a block side. The later region holding a point wins,
-    as the group order of StoreSource.heights_into always had it. The same
-    arithmetic as TerrainStore.fractional_post and _unwrap_col, one pass."""
+    as the group order of StoreSource.heights_into always had it: which one does
+    not change the answer, a block holding the data of every region that has
+    some inside it (TerrainStore._block_raster). The same arithmetic as
+    TerrainStore.fractional_post and _unwrap_col, one pass."""
     same = True
     for i in range(lat.shape[0]):
         row = (90.0 - lat[i]) / dlat
@@ -758,11 +910,13 @@ class StoreSource:
                                  strict=True)
 
     def describe(self) -> dict:
+        """Metadata (Terrain.describe, GetMetadata): the bounds hold every region's (longitudes
+        the shortest way round: lon_max passes 180 for regions across the antimeridian);
+        filled_posts is the import's count of level-0 posts in filled voids."""
         s = self.store
         lat_min = min(r.bounds[0] for r in s.regions)
-        lon_min = min(r.bounds[1] for r in s.regions)
         lat_max = max(r.bounds[2] for r in s.regions)
-        lon_max = max(r.bounds[3] for r in s.regions)
+        lon_min, lon_max = lon_cover([(r.bounds[1], r.bounds[3]) for r in s.regions])
         dlat, dlon = s.spacing_deg(self.level)
         # Ground spacing at the first region's centre latitude (the regions may lie anywhere).
         lat_c = math.radians((s.regions[0].bounds[0] + s.regions[0].bounds[2]) / 2)
@@ -770,6 +924,7 @@ class StoreSource:
         return {"name": s.name, "kind": "store", "crs": "EPSG:4326",
                 "spacing_east_m": dlon * metres_per_deg * math.cos(lat_c), "spacing_north_m": dlat * metres_per_deg,
                 "store_regions": len(s.regions), "store_step_m": s.step_units * s.unit_m,
+                "filled_posts": int((s.manifest.get("summary") or {}).get("filled_posts", 0)),
                 "lat_min": lat_min, "lon_min": lon_min, "lat_max": lat_max, "lon_max": lon_max,
                 "resolution_lat_deg": dlat, "resolution_lon_deg": dlon,
                 "vertical_datum": s.manifest.get("vertical_datum", "EGM96"),
@@ -777,6 +932,22 @@ class StoreSource:
                 "max_error_m": s.max_error_m,
                 # Half the step, 0 when lossless (GetMetadata: TerrainSource.details, as text).
                 "store_quantisation_m": s.quantisation_bound_m}
+
+
+def lon_cover(spans) -> tuple[float, float]:
+    """(lon_min, lon_max) degrees of the shortest eastward arc holding every (west, east) span
+    (east >= west, any turn): lon_min in [-180, 180), lon_max up to a turn east of it (past 180
+    for an arc across the antimeridian); (-180, 180) when the spans go round the globe. Plain
+    minima and maxima make regions a few posts apart across the antimeridian span the globe."""
+    spans = [((w + 180.0) % 360.0 - 180.0, e - w) for w, e in spans]
+    best = None
+    for west, _ in spans:  # the arc starts at some span's west end
+        east = max(west + (w - west) % 360.0 + width for w, width in spans)
+        if best is None or east - west < best[1] - best[0]:
+            best = (west, east)
+    if best[1] - best[0] >= 360.0:
+        return -180.0, 180.0
+    return best
 
 
 # Point statuses of the classes (tests and the service map through this).

@@ -58,8 +58,10 @@ MAX_REGION_POSTS = 400_000_000  # level-0 posts one region may hold, whatever th
 IMPORT_BYTES_PER_POST = 40
 SAMPLE_CHUNK = 1 << 20  # points per Terrain.heights call
 # In the bands' key: bands sampled by an importer of another version (2: kx x ky anti-aliasing; 3: edge
-# posts also at the edges of a source's voids) are sampled again, not mixed into a store with new ones.
-SAMPLING_VERSION = 3
+# posts also at the edges of a source's voids; 4: sources either side of the antimeridian grouped into
+# one region, whose bands a band's name, by region index, does not tell apart) are sampled again, not
+# mixed into a store with new ones.
+SAMPLING_VERSION = 4
 WORK_DIR = ".import"  # resumable bands, removed when the import finishes
 REGION_DIR = re.compile(r"region-[0-9]{3,}")  # the store's own names (docs/STORE.md, Files): what a
 LEVEL_FILE = re.compile(r"level-[0-9]{2,}\.tiles")  # re-import may remove when its manifest does not list it
@@ -420,8 +422,9 @@ class CellularDetail:
 
 
 def _regions(rasters, dlat, dlon, tile):
-    """Group sources whose level-0 post boxes come within one tile of each other:
-    (row0, col0, rows, cols, member indices) per group.
+    """Group sources whose level-0 post boxes come within one tile of each other, across the
+    antimeridian too: (row0, col0, rows, cols, member indices) per group, col0 in the lattice's first
+    turn (col0 + cols past a turn for a group across the antimeridian).
 
     Rows stop at the lattice's last one, 2 2^D T - 1, one spacing north of the South Pole: the
     pole's own row (2 2^D T) is the southern edge of the last row of quad-tree cells, which no
@@ -449,9 +452,11 @@ def _regions(rasters, dlat, dlon, tile):
         merged = False
         for a in range(len(groups)):
             for b in range(a + 1, len(groups)):
-                ba, bb = _group_box(boxes, groups[a]), _group_box(boxes, groups[b])
-                if (ba[0] - tile <= bb[2] and bb[0] - tile <= ba[2] and ba[1] - tile <= bb[3]
-                        and bb[1] - tile <= ba[3]):
+                turns = _near_turns(_group_box(boxes, groups[a]), _group_box(boxes, groups[b]), tile, per_turn)
+                if turns is not None:
+                    for m in groups[b]:  # b's columns beside a's: across the antimeridian, a turn away
+                        boxes[m][1] += turns * per_turn
+                        boxes[m][3] += turns * per_turn
                     groups[a] += groups.pop(b)
                     merged = True
                     break
@@ -461,6 +466,8 @@ def _regions(rasters, dlat, dlon, tile):
     limit, why = region_post_limit()
     for g in groups:
         row0, col0, row1, col1 = _group_box(boxes, g)
+        shift = per_turn * (col0 // per_turn)  # col0 into the first turn again, as for one source
+        col0, col1 = col0 - shift, col1 - shift
         if (row1 - row0) * (col1 - col0) > limit:
             raise InvalidArgument("resolution", f"a region of {row1 - row0} x {col1 - col0} posts exceeds the "
                                   f"limit of {limit:,} posts ({why}); import a coarser resolution or fewer files")
@@ -491,6 +498,17 @@ def _available_memory_bytes() -> int | None:
         return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def _near_turns(a, b, tile: int, per_turn: int) -> int | None:
+    """The whole number of turns m, nearest 0, by which box b ([row0, col0, row1, col1] of level-0
+    posts) moved east comes within a tile of box a; None when no copy of b does. Boxes either side
+    of the antimeridian come near a turn apart (m = +-1)."""
+    if not (a[0] - tile <= b[2] and b[0] - tile <= a[2]):
+        return None
+    lo = -(-(a[1] - tile - b[3]) // per_turn)  # b[3] + m per_turn >= a[1] - tile
+    hi = (a[3] + tile - b[1]) // per_turn  # b[1] + m per_turn <= a[3] + tile
+    return min(range(lo, hi + 1), key=abs, default=None)
 
 
 def _group_box(boxes, members):

@@ -360,29 +360,20 @@ class Clipmap:
 
     def _store_posts(self, k: int, r: Rect) -> np.ndarray | None:
         """Heights of a rectangle of level k's posts decoded from the store's own level (NaN
-        outside its data), or None when the store does not hold the whole rectangle there."""
+        outside its data), or None when the store's rectangles there do not hold all of it. The
+        posts come from every region holding some of them (TerrainStore.level_posts): two nearby
+        regions' coarser levels share tiles, each region holding part of their data."""
         if self.remote_store_levels and k + self.remote_level0 < self.remote_store_levels:
             return self._remote_store_posts(k, r)
         if self.store is None or k + self.store_level0 >= self.store.levels:
             return None
-        from terrain.store import CLASS_OUTSIDE
-
-        m = k + self.store_level0
-        # Clipmap row i is at latitude 90 + i dlat: store row -i (rows count south from the pole).
-        row_a, row_b = -r.i1, -r.i0 + 1
-        region = self.store.region_of(m, (row_a + row_b) / 2.0, (r.j0 + r.j1) / 2.0)
-        if region is None:
+        # Clipmap row i is at latitude 90 + i dlat: store row -i (rows count south from the pole);
+        # clipmap column j is lattice column j (from -180, any turn).
+        posts = self.store.level_posts(k + self.store_level0, -r.i1, -r.i0 + 1, r.j0, r.j1 + 1)
+        if posts is None:
             return None
-        rect = region.rects[m]
-        per_turn = self.store.cols_per_turn(m)
-        shift = per_turn * math.floor((r.j0 - rect.col0) / per_turn)
-        col_a, col_b = r.j0 - shift, r.j1 + 1 - shift
-        if not (rect.row0 <= row_a and row_b <= rect.row1 and rect.col0 <= col_a and col_b <= rect.col1):
-            return None
-        h, classes = self.store.decode(region, m, row_a, row_b, col_a, col_b)
-        h = np.where(classes == CLASS_OUTSIDE, np.nan, h)[::-1]
         self.store_blocks += 1
-        return h
+        return posts[0][::-1]
 
     def _remote_store_posts(self, k: int, r: Rect) -> np.ndarray | None:
         """As :meth:`_store_posts` through a terrain service over a store (GetRegion of the
