@@ -1,13 +1,26 @@
 """Route following and convoy spacing for ground vehicles (:mod:`fdm.ground`).
 
 A :class:`Route` is a polyline of (lat, lon) waypoints, degrees, (lat, lon)
-order. Each segment is measured in its own local north/east metres (radii of
-curvature at the segment's mid-latitude, longitude difference wrapped, so a
-route may cross the antimeridian): over legs of a few km the straight line in
-that frame and the vehicle's great-circle track part by d^2 tan(lat) / 8R,
-under 0.1 m for a 2 km leg at 47 degrees; offsets across a leg take the
-leg's mid-latitude east scale, a relative error of at most (dlat / 2) tan(lat)
-(0.13 % at the ends of a 15 km north-south leg at 47 degrees).
+order. Each leg is the shorter great-circle arc of the ellipsoid's unit normals
+(n-vectors: Gade, "A Non-singular Horizontal Position Representation", J.
+Navigation 63(3), 2010) between its waypoints, measured with the radii of
+curvature at its midpoint (M north, N east): no longitude arithmetic, so a leg
+crosses the antimeridian or a pole as it crosses anywhere else. Arc length along
+a leg is the angle its normal turns times the metres per radian along it there
+(exact on the leg); offsets across it are metres in the plane tangent at its
+midpoint (the normals projected orthographically). A leg is then the geodesic
+(GeographicLib, Karney 2013) to within 1e-7 of its length and 0.2 m sideways
+for legs up to 50 km at any latitude, over a pole included (tests/
+test_fdm_route_probe_fixes_s30.py); a leg straight in latitude and longitude,
+as they were, went round a pole along its parallel (57 % long). A leg must span
+less than LEG_MAX_ARC_DEG. ``seg_dn``/``seg_de`` are the legs laid flat in order
+(the route's development): each turned from the one before by the route's turn
+at their waypoint, measured in that waypoint's own tangent plane, the first
+along its compass heading at its midpoint; the corners and the chords over short
+legs are taken from them, so a corner near a pole is the corner it is, not that
+plus the meridians' convergence between two legs' midpoints. Goal points and
+their offsets from a vehicle are unit normals and metres in the plane tangent at
+the vehicle, pole-safe as well.
 
 Steering is pure pursuit (Coulter, "Implementation of the Pure Pursuit Path
 Tracking Algorithm", CMU-RI-TR-92-01, 1992): the goal point lies a lookahead
@@ -45,7 +58,7 @@ import numpy as np
 from fdm.ground import GroundVehicles
 from fdm.vehicle_types import P_ALAT, P_BRAKE, P_KIND, P_VMAX, P_VREV, TRACKED
 from sortie.errors import InvalidArgument
-from terrain.geodesy import radii_of_curvature
+from terrain.geodesy import WGS84_A_M, WGS84_E2, enu_basis, radii_of_curvature
 from terrain.validate import check_latlon
 
 PIVOT_ALPHA_DEG = 60.0
@@ -152,18 +165,66 @@ def obstacle_reach_m(speed_mps, brake_mps2):
     return v * v / (2.0 * STOP_BRAKE_FRAC * np.asarray(brake_mps2, np.float64)) + OBSTACLE_STANDOFF_M + 2.0 * v + 10.0
 
 
-@numba.njit(cache=True, nogil=True)
-def _local(lat0, lon0, lat, lon, m, n_cos):
-    """North/east metres of (lat, lon) from (lat0, lon0) with the given scale."""
-    dlon = lon - lon0
-    if dlon >= 180.0 or dlon < -180.0:
-        dlon = (dlon + 180.0) % 360.0 - 180.0
-    return math.radians(lat - lat0) * m, math.radians(dlon) * n_cos
+# A leg's geometry, per leg of a route (Route.seg_axes rows, Route.seg_arc columns).
+AX_MID, AX_TANGENT, AX_ALONG, AX_RIGHT = 0, 1, 2, 3
+ARC_RADIUS, ARC_START, ARC_LO, ARC_HI = 0, 1, 2, 3
+# A leg spans at most this arc of the globe (degrees): its midpoint's plane holds the points within
+# 90 degrees of that midpoint, and at 180 degrees which way round is not defined.
+LEG_MAX_ARC_DEG = 90.0
 
 
 @numba.njit(cache=True, nogil=True)
-def _project_kernel(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, lat, lon, hint, heading_deg, out_s, out_x,
-                    out_seg):
+def _normal(lat_deg, lon_deg):
+    """The ellipsoid's unit normal (n-vector, ECEF axes) at geodetic (lat, lon) degrees, and
+    the sines and cosines it is made of: (x, y, z, sin lat, cos lat, sin lon, cos lon)."""
+    phi, lam = math.radians(lat_deg), math.radians(lon_deg)
+    sp, cp, sl, cl = math.sin(phi), math.cos(phi), math.sin(lam), math.cos(lam)
+    return cp * cl, cp * sl, sp, sp, cp, sl, cl
+
+
+@numba.njit(cache=True, nogil=True)
+def _radii(sin_lat):
+    """Meridian radius M and prime-vertical radius N (m) where sin(latitude) is ``sin_lat``."""
+    w2 = 1.0 - WGS84_E2 * sin_lat * sin_lat
+    w = math.sqrt(w2)
+    return WGS84_A_M * (1.0 - WGS84_E2) / (w2 * w), WGS84_A_M / w
+
+
+@numba.njit(cache=True, nogil=True)
+def _latlon(x, y, z):
+    """Geodetic (lat, lon) degrees of the unit normal (x, y, z); lon in [-180, 180)."""
+    lat = math.degrees(math.atan2(z, math.hypot(x, y)))
+    lon = math.degrees(math.atan2(y, x))
+    return lat, (lon - 360.0 if lon >= 180.0 else lon)
+
+
+@numba.njit(cache=True, nogil=True)
+def _north_east_m(sp, cp, sl, cl, dx, dy, dz):
+    """North and east metres of a small change (dx, dy, dz) of the unit normal at the point of
+    latitude and longitude sines and cosines (sp, cp) and (sl, cl): to first order, its
+    components on the local north and east axes times M and N there."""
+    m, n = _radii(sp)
+    return m * (-sp * cl * dx - sp * sl * dy + cp * dz), n * (-sl * dx + cl * dy)
+
+
+@numba.njit(cache=True, nogil=True)
+def _leg_d2(seg_axes, seg_arc, k, px, py, pz):
+    """Squared distance (m^2) from the point of unit normal (px, py, pz) to leg k, in the
+    leg's midpoint plane; a point on the far side of the globe from the leg's midpoint is
+    farther than any on the near side."""
+    ax = seg_axes[k]
+    op = ax[AX_MID, 0] * px + ax[AX_MID, 1] * py + ax[AX_MID, 2] * pz
+    r = seg_arc[k, ARC_RADIUS]
+    if op <= 0.0:
+        return (r * (2.0 - op)) ** 2
+    a = ax[AX_ALONG, 0] * px + ax[AX_ALONG, 1] * py + ax[AX_ALONG, 2] * pz
+    x = ax[AX_RIGHT, 0] * px + ax[AX_RIGHT, 1] * py + ax[AX_RIGHT, 2] * pz
+    da = a - min(max(a, seg_arc[k, ARC_LO]), seg_arc[k, ARC_HI])
+    return da * da + x * x
+
+
+@numba.njit(cache=True, nogil=True)
+def _project_kernel(seg_axes, seg_arc, seg_len, cum, lat, lon, hint, heading_deg, out_s, out_x, out_seg):
     """Closest point of the route for each (lat, lon): arc length, signed cross-track, segment.
 
     hint[j] < 0 searches every segment, else the window around hint[j]. Among points within
@@ -180,44 +241,54 @@ def _project_kernel(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, lat, lon, hint,
         else:
             k0 = max(0, hint[j] - SEARCH_BEHIND)
             k1 = min(nseg, hint[j] + SEARCH_AHEAD + 1)
+        px, py, pz, sp, cp, sl, cl = _normal(lat[j], lon[j])
         best = math.inf
         for k in range(k0, k1):  # the closest distance
-            d2 = _segment_d2(r_lat, r_lon, seg_m, seg_ncos, seg_len, k, lat[j], lon[j])
-            best = min(best, d2)
+            best = min(best, _leg_d2(seg_axes, seg_arc, k, px, py, pz))
         bound = (math.sqrt(best) + PROJECT_TIE_M) ** 2
-        hn, he = math.cos(math.radians(heading_deg[j])), math.sin(math.radians(heading_deg[j]))
+        # The heading as a direction of the unit normal: cos(h) north + sin(h) east.
+        ch, sh = math.cos(math.radians(heading_deg[j])), math.sin(math.radians(heading_deg[j]))
+        hx, hy, hz = -ch * sp * cl - sh * sl, -ch * sp * sl + sh * cl, ch * cp
         align = -math.inf
         for k in range(k0, k1):  # the best aligned of the (nearly) closest
-            d2 = _segment_d2(r_lat, r_lon, seg_m, seg_ncos, seg_len, k, lat[j], lon[j])
-            if d2 > bound:
+            if _leg_d2(seg_axes, seg_arc, k, px, py, pz) > bound:
                 continue
-            en, ee = _local(r_lat[k], r_lon[k], r_lat[k + 1], r_lon[k + 1], seg_m[k], seg_ncos[k])
-            ln = seg_len[k]
-            a = (hn * en + he * ee) / ln
+            ax = seg_axes[k]
+            op = ax[AX_MID, 0] * px + ax[AX_MID, 1] * py + ax[AX_MID, 2] * pz
+            up = ax[AX_TANGENT, 0] * px + ax[AX_TANGENT, 1] * py + ax[AX_TANGENT, 2] * pz
+            # The leg's direction at the point's foot on it: its tangent turned to that angle.
+            tx = ax[AX_TANGENT, 0] * op - ax[AX_MID, 0] * up
+            ty = ax[AX_TANGENT, 1] * op - ax[AX_MID, 1] * up
+            tz = ax[AX_TANGENT, 2] * op - ax[AX_MID, 2] * up
+            a = (hx * tx + hy * ty + hz * tz) / max(math.sqrt(op * op + up * up), 1e-300)
             if not a == a:  # no heading: the first candidate
                 a = 0.0
             if hint[j] >= 0 and k >= hint[j]:  # never back onto an earlier leg it overlaps
                 a += 10.0
             if a > align:
                 align = a
-                pn, pe = _local(r_lat[k], r_lon[k], lat[j], lon[j], seg_m[k], seg_ncos[k])
-                t = min(max((pn * en + pe * ee) / (ln * ln), 0.0), 1.0)
-                out_s[j] = cum[k] + t * ln
-                # Right of the direction (en, ee) is (-ee, en) in (north, east).
-                out_x[j] = (pe * en - pn * ee) / ln
+                r = seg_arc[k, ARC_RADIUS]
+                along = ax[AX_ALONG, 0] * px + ax[AX_ALONG, 1] * py + ax[AX_ALONG, 2] * pz
+                angle = math.atan2(along / r, op)  # exact on the leg, its plane's foot beside it
+                out_s[j] = cum[k] + min(max(r * (angle - seg_arc[k, ARC_START]), 0.0), seg_len[k])
+                out_x[j] = ax[AX_RIGHT, 0] * px + ax[AX_RIGHT, 1] * py + ax[AX_RIGHT, 2] * pz
                 out_seg[j] = k
 
 
 @numba.njit(cache=True, nogil=True)
-def _segment_d2(r_lat, r_lon, seg_m, seg_ncos, seg_len, k, lat, lon):
-    """Squared distance (m^2) from (lat, lon) to segment k, in the segment's local frame."""
-    en, ee = _local(r_lat[k], r_lon[k], r_lat[k + 1], r_lon[k + 1], seg_m[k], seg_ncos[k])
-    pn, pe = _local(r_lat[k], r_lon[k], lat, lon, seg_m[k], seg_ncos[k])
-    ln = seg_len[k]
-    t = min(max((pn * en + pe * ee) / (ln * ln), 0.0), 1.0)
-    dn = pn - t * en
-    de = pe - t * ee
-    return dn * dn + de * de
+def _leg_point(seg_axes, seg_arc, k, along_m):
+    """The unit normal of the point ``along_m`` metres along leg k from its start, and the
+    leg's unit direction there: (px, py, pz, tx, ty, tz)."""
+    ax = seg_axes[k]
+    angle = seg_arc[k, ARC_START] + along_m / seg_arc[k, ARC_RADIUS]
+    c, s = math.cos(angle), math.sin(angle)
+    px = c * ax[AX_MID, 0] + s * ax[AX_TANGENT, 0]
+    py = c * ax[AX_MID, 1] + s * ax[AX_TANGENT, 1]
+    pz = c * ax[AX_MID, 2] + s * ax[AX_TANGENT, 2]
+    tx = c * ax[AX_TANGENT, 0] - s * ax[AX_MID, 0]
+    ty = c * ax[AX_TANGENT, 1] - s * ax[AX_MID, 1]
+    tz = c * ax[AX_TANGENT, 2] - s * ax[AX_MID, 2]
+    return px, py, pz, tx, ty, tz
 
 
 @numba.njit(cache=True, nogil=True)
@@ -274,18 +345,26 @@ def _chord_headings(seg_dn, seg_de, seg_len, length_m, before, after):
             after[i] = h
 
 
-def pursue(v: GroundVehicles, idx: np.ndarray, g_lat, g_lon, speed_cmd):
+@numba.njit(cache=True, nogil=True)
+def _goal_offsets(lat, lon, goal_nv, out_dn, out_de):
+    """North and east metres of each goal (unit normal goal_nv[j]) from its vehicle at (lat,
+    lon), in the plane tangent at the vehicle (pole-safe: the normals' difference on its north
+    and east axes; a goal is a lookahead, at most LOOKAHEAD_MAX_M, away)."""
+    for j in range(lat.shape[0]):
+        px, py, pz, sp, cp, sl, cl = _normal(lat[j], lon[j])
+        out_dn[j], out_de[j] = _north_east_m(sp, cp, sl, cl, goal_nv[j, 0] - px, goal_nv[j, 1] - py,
+                                             goal_nv[j, 2] - pz)
+
+
+def pursue(v: GroundVehicles, idx: np.ndarray, goal_nv: np.ndarray, speed_cmd):
     """(speed_cmd, yaw_rate_cmd_dps) of pure pursuit (Coulter 1992: curvature 2 sin(alpha) / L
-    towards the goal point at distance L) for vehicles ``idx`` of ``v`` towards goal points
-    (g_lat, g_lon); a tracked vehicle whose goal lies more than PIVOT_ALPHA_DEG off its
-    heading stops (speed 0) and pivots at its yaw-rate limit, a wheeled one whose goal lies
-    behind it turns at its limit."""
+    towards the goal point at distance L) for vehicles ``idx`` of ``v`` towards goal points of
+    unit normals ``goal_nv`` ((n, 3) float64, ECEF axes: :meth:`Route.normals_at`); a tracked
+    vehicle whose goal lies more than PIVOT_ALPHA_DEG off its heading stops (speed 0) and
+    pivots at its yaw-rate limit, a wheeled one whose goal lies behind it turns at its limit."""
     speed = v.speed_mps[idx]
-    lat = v.lat[idx]
-    m, n = radii_of_curvature(lat)
-    dn = np.radians(g_lat - lat) * m
-    dlon = (g_lon - v.lon[idx] + 180.0) % 360.0 - 180.0
-    de = np.radians(dlon) * n * np.cos(np.radians(lat))
+    dn, de = np.empty(idx.size), np.empty(idx.size)
+    _goal_offsets(v.lat[idx], v.lon[idx], goal_nv, dn, de)
     dist = np.maximum(np.hypot(dn, de), 1e-6)
     alpha = (np.arctan2(de, dn) - np.radians(v.heading_deg[idx]) + np.pi) % (2 * np.pi) - np.pi
     kappa = 2.0 * np.sin(alpha) / dist
@@ -302,8 +381,76 @@ def pursue(v: GroundVehicles, idx: np.ndarray, g_lat, g_lon, speed_cmd):
     return speed_cmd, np.clip(yaw, -lim, lim)
 
 
+def _unit_normals(lat_deg, lon_deg) -> np.ndarray:
+    """(n, 3) float64 unit normals of the ellipsoid (n-vectors, ECEF axes) at geodetic (lat, lon)
+    degrees, (n,) each."""
+    phi, lam = np.radians(lat_deg), np.radians(lon_deg)
+    return np.stack([np.cos(phi) * np.cos(lam), np.cos(phi) * np.sin(lam), np.sin(phi)], axis=-1)
+
+
+def _dot(a, b) -> np.ndarray:
+    return np.einsum("...i,...i->...", a, b)
+
+
+def leg_geometry(lat_deg, lon_deg):
+    """Each leg of the polyline of waypoints (lat, lon) (n,) degrees, n >= 2, as the leg kernels
+    take it (module doc): (axes (n-1, 4, 3) float64, arc (n-1, 4) float64, length_m (n-1,),
+    heading_rad (n-1,): its compass heading at its midpoint).
+
+    axes[k]: unit vectors, ECEF axes: AX_MID the normal at the leg's midpoint, AX_TANGENT the
+    leg's direction there; AX_ALONG and AX_RIGHT the metres along it and to its right per unit
+    change of a normal there (its north and east components times M and N, turned onto the leg).
+    arc[k]: ARC_RADIUS metres per radian of the normal along the leg; ARC_START the angle (rad)
+    from the midpoint to the start (negative); ARC_LO, ARC_HI the along-metres of its ends in
+    the midpoint's plane. A leg of length 0 comes out NaN: the caller refuses those, and legs
+    of LEG_MAX_ARC_DEG or more."""
+    nv = _unit_normals(lat_deg, lon_deg)
+    a, b = nv[:-1], nv[1:]
+    mid = a + b
+    o = mid / np.linalg.norm(mid, axis=1)[:, None]
+    o_lat = np.degrees(np.arctan2(o[:, 2], np.hypot(o[:, 0], o[:, 1])))
+    o_lon = np.degrees(np.arctan2(o[:, 1], o[:, 0]))
+    east, north, _ = enu_basis(o_lat, o_lon)
+    m, n = radii_of_curvature(o_lat)
+    d = b - a  # tangent at the midpoint (|a| = |b|): the leg's chord
+    en, ee = m * _dot(north, d), n * _dot(east, d)
+    chord = np.hypot(en, ee)
+    un, ue = (en / chord)[:, None], (ee / chord)[:, None]
+    along = un * m[:, None] * north + ue * n[:, None] * east
+    right = -ue * m[:, None] * north + un * n[:, None] * east
+    u = d - _dot(o, d)[:, None] * o
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    radius = _dot(along, u)
+    start, end = np.arctan2(_dot(u, a), _dot(o, a)), np.arctan2(_dot(u, b), _dot(o, b))
+    axes = np.stack([o, u, along, right], axis=1)
+    arc = np.stack([radius, start, _dot(along, a), _dot(along, b)], axis=1)
+    return axes, arc, radius * (end - start), np.arctan2(ee, en)
+
+
+def leg_turns(lat_deg, lon_deg, axes, arc, length_m) -> np.ndarray:
+    """The signed turn (rad, right positive) at each inner waypoint 1 .. n-2 of the route whose
+    legs are ``leg_geometry``'s: between the leg ending there and the one starting there, both
+    taken in the waypoint's own tangent plane (north and east metres)."""
+    east, north, _ = enu_basis(lat_deg[1:-1], lon_deg[1:-1])
+    m, n = radii_of_curvature(lat_deg[1:-1])
+
+    def direction(k, angle):  # the leg's direction at ``angle`` from its midpoint, north/east metres
+        t = np.cos(angle)[:, None] * axes[k, AX_TANGENT] - np.sin(angle)[:, None] * axes[k, AX_MID]
+        return m * _dot(north, t), n * _dot(east, t)
+
+    k = np.arange(length_m.size - 1)
+    in_n, in_e = direction(k, arc[k, ARC_START] + length_m[k] / arc[k, ARC_RADIUS])
+    out_n, out_e = direction(k + 1, arc[k + 1, ARC_START])
+    return np.arctan2(in_n * out_e - in_e * out_n, in_n * out_n + in_e * out_e)
+
+
 class Route:
-    """A polyline of at least two (lat, lon) waypoints, degrees; no zero-length legs."""
+    """A polyline of at least two (lat, lon) waypoints, degrees; no leg under 1 mm or over
+    LEG_MAX_ARC_DEG of arc (module doc).
+
+    seg_axes (n-1, 4, 3), seg_arc (n-1, 4): each leg's geometry (:func:`leg_geometry`);
+    seg_len (n-1,) its length (m); cum (n,) the arc length (m) at each waypoint; seg_dn,
+    seg_de (n-1,) the legs in the route's development (m; module doc)."""
 
     def __init__(self, lat, lon):
         lat, lon = check_latlon(lat, lon, prefix="route_")
@@ -311,22 +458,29 @@ class Route:
             raise InvalidArgument("route_lat", f"a route needs at least 2 waypoints, got {lat.size}")
         self.lat = lat.copy()
         self.lon = lon.copy()
-        mid = 0.5 * (lat[:-1] + lat[1:])
-        m, n = radii_of_curvature(mid)
-        self.seg_m = m
-        self.seg_ncos = n * np.cos(np.radians(mid))
-        dlon = (lon[1:] - lon[:-1] + 180.0) % 360.0 - 180.0
-        dn = np.radians(lat[1:] - lat[:-1]) * m
-        de = np.radians(dlon) * self.seg_ncos
-        self.seg_len = np.hypot(dn, de)
+        nv = _unit_normals(lat, lon)
+        arc_deg = np.degrees(np.arctan2(np.linalg.norm(np.cross(nv[:-1], nv[1:]), axis=1), _dot(nv[:-1], nv[1:])))
+        bad = ~(arc_deg < LEG_MAX_ARC_DEG)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InvalidArgument("route_lat", f"a leg must span less than {LEG_MAX_ARC_DEG:g} degrees of arc; the "
+                                  f"one from waypoint {i} spans {float(arc_deg[i]):.6g}", index=i + 1,
+                                  value=float(lat[i + 1]))
+        with np.errstate(invalid="ignore", divide="ignore"):  # a leg of length 0 is NaN, refused below
+            self.seg_axes, self.seg_arc, self.seg_len, heading = leg_geometry(lat, lon)
         bad = ~(self.seg_len > 1e-3)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise InvalidArgument("route_lat", "consecutive waypoints must be at least 1 mm apart", index=i + 1,
                                   value=float(lat[i + 1]))
-        self.seg_dn = dn
-        self.seg_de = de
         self.cum = np.concatenate([[0.0], np.cumsum(self.seg_len)])
+        # The development: the first leg along its heading, each next one turned by the turn
+        # at its waypoint (in that waypoint's plane, so a corner near a pole is the corner it
+        # is, not that plus the meridians' convergence between the legs' midpoints).
+        turns = leg_turns(lat, lon, self.seg_axes, self.seg_arc, self.seg_len)
+        laid = (heading[0] + np.concatenate([[0.0], np.cumsum(turns)]) + np.pi) % (2 * np.pi) - np.pi
+        self.seg_dn = self.seg_len * np.cos(laid)
+        self.seg_de = self.seg_len * np.sin(laid)
         # The corners (waypoints 1 .. n-2 where the route turns): where, and by how much. The turn
         # is the heading change between the chords over LOOKAHEAD_MIN_M before and after the
         # waypoint (the length the corner speed's curvature theta / Ld is taken over), so a jog
@@ -347,15 +501,21 @@ class Route:
         return float(self.cum[-1])
 
     def point_at(self, s):
-        """(lat, lon, heading_deg) at arc lengths s (m, clipped to the route), arrays."""
-        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length_m)
-        k = np.clip(np.searchsorted(self.cum, s, side="right") - 1, 0, self.seg_len.size - 1)
-        t = (s - self.cum[k]) / self.seg_len[k]
-        lat = self.lat[k] + t * np.degrees(self.seg_dn[k] / self.seg_m[k])
-        lon = self.lon[k] + t * np.degrees(self.seg_de[k] / self.seg_ncos[k])
-        lon = np.where((lon >= -180.0) & (lon < 180.0), lon, (lon + 180.0) % 360.0 - 180.0)
-        heading = np.degrees(np.arctan2(self.seg_de[k], self.seg_dn[k])) % 360.0
-        return lat, lon, heading
+        """(lat, lon, heading_deg) at arc lengths s (m, clipped to the route), arrays of s's
+        shape; heading_deg the route's compass heading there, in [0, 360)."""
+        s = np.asarray(s, dtype=np.float64)
+        nv, direction = self.normals_at(s.reshape(-1))
+        lat, lon, heading = np.empty(nv.shape[0]), np.empty(nv.shape[0]), np.empty(nv.shape[0])
+        _latlon_heading(nv, direction, lat, lon, heading)
+        return lat.reshape(s.shape), lon.reshape(s.shape), heading.reshape(s.shape)
+
+    def normals_at(self, s):
+        """(unit normals (n, 3), unit directions (n, 3)), float64, ECEF axes: the route's points
+        at arc lengths s ((n,) m, clipped to the route) as n-vectors, and its direction there."""
+        s = np.ascontiguousarray(s, dtype=np.float64).reshape(-1)
+        nv, direction = np.empty((s.size, 3)), np.empty((s.size, 3))
+        _points_kernel(self.seg_axes, self.seg_arc, self.seg_len, self.cum, s, nv, direction)
+        return nv, direction
 
     def project(self, lat, lon, hint=None, heading_deg=None):
         """(s, cross_track_m, segment) of each point's closest route point.
@@ -373,8 +533,7 @@ class Route:
         s = np.zeros(n)
         x = np.zeros(n)
         seg = np.zeros(n, np.int64)
-        _project_kernel(self.lat, self.lon, self.seg_m, self.seg_ncos, self.seg_len, self.cum, lat, lon, hint,
-                        heading, s, x, seg)
+        _project_kernel(self.seg_axes, self.seg_arc, self.seg_len, self.cum, lat, lon, hint, heading, s, x, seg)
         return s, x, seg
 
     def corner_speed_ceiling(self, s, lookahead_m, lat_accel_mps2, brake_mps2):
@@ -484,8 +643,8 @@ class RouteFollower:
     def steer(self, speed_cmd: np.ndarray, lookahead=None):
         """(speed_cmd, yaw_rate_cmd_dps) after pure pursuit for the vehicles' current poses
         (``lookahead``: :meth:`_lookahead`'s, when the caller has it)."""
-        g_lat, g_lon, _ = self.route.point_at(self.s + (self._lookahead() if lookahead is None else lookahead))
-        return pursue(self.vehicles, self.index, g_lat, g_lon, speed_cmd)
+        goal, _ = self.route.normals_at(self.s + (self._lookahead() if lookahead is None else lookahead))
+        return pursue(self.vehicles, self.index, goal, speed_cmd)
 
     def commands(self):
         """(speed_cmd, yaw_rate_cmd_dps) for the follower's vehicles, not applied."""
@@ -547,14 +706,13 @@ class Convoy(RouteFollower):
 # -- every follower of a world at once ---------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
-def _project_all(r_lat, r_lon, seg_m, seg_ncos, seg_len, cum, p0, g0, v0, lat, lon, hint, heading_deg, out_s, out_x,
-                 out_seg):
+def _project_all(seg_axes, seg_arc, seg_len, cum, p0, g0, v0, lat, lon, hint, heading_deg, out_s, out_x, out_seg):
     """Route.project of each follower's vehicles (rows v0[f]:v0[f + 1]) on its route (points
     from p0[f], segments from g0[f] of the concatenated arrays): the same kernel on slices."""
     for f in range(v0.shape[0] - 1):
         a, b, p, q, g, h = v0[f], v0[f + 1], p0[f], p0[f + 1], g0[f], g0[f + 1]
-        _project_kernel(r_lat[p:q], r_lon[p:q], seg_m[g:h], seg_ncos[g:h], seg_len[g:h], cum[p:q], lat[a:b],
-                        lon[a:b], hint[a:b], heading_deg[a:b], out_s[a:b], out_x[a:b], out_seg[a:b])
+        _project_kernel(seg_axes[g:h], seg_arc[g:h], seg_len[g:h], cum[p:q], lat[a:b], lon[a:b], hint[a:b],
+                        heading_deg[a:b], out_s[a:b], out_x[a:b], out_seg[a:b])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -567,22 +725,61 @@ def _corners_all(corner_at, corner_turn, c0, v0, s, lookahead_m, lat_accel, brak
 
 
 @numba.njit(cache=True, nogil=True)
-def _points_all(r_lat, r_lon, seg_m, seg_ncos, seg_dn, seg_de, seg_len, cum, p0, g0, v0, s, out_lat, out_lon):
-    """Route.point_at's (lat, lon) for each follower's vehicles at arc lengths s, on its route."""
+def _points_kernel(seg_axes, seg_arc, seg_len, cum, s, out_nv, out_dir):
+    """Route.normals_at: the unit normal (out_nv[j], ECEF axes) of the route's point at arc
+    length s[j] (m, clipped to the route) and the route's unit direction there (out_dir[j])."""
+    nseg = seg_len.shape[0]
+    length = cum[nseg]
+    for j in range(s.shape[0]):
+        sj = s[j]
+        sj = sj if sj > 0.0 else 0.0
+        sj = sj if sj < length else length
+        k = np.searchsorted(cum, sj, side="right") - 1
+        k = min(max(k, 0), nseg - 1)
+        px, py, pz, tx, ty, tz = _leg_point(seg_axes, seg_arc, k, sj - cum[k])
+        out_nv[j, 0], out_nv[j, 1], out_nv[j, 2] = px, py, pz
+        out_dir[j, 0], out_dir[j, 1], out_dir[j, 2] = tx, ty, tz
+
+
+@numba.njit(cache=True, nogil=True)
+def _points_all(seg_axes, seg_arc, seg_len, cum, p0, g0, v0, s, out_nv, out_dir):
+    """Route.normals_at for each follower's vehicles at arc lengths s, on its route: the same
+    kernel on slices."""
     for f in range(v0.shape[0] - 1):
-        p, g = p0[f], g0[f]
-        nseg = g0[f + 1] - g
-        length = cum[p + nseg]
-        for j in range(v0[f], v0[f + 1]):
-            sj = s[j]
-            sj = sj if sj > 0.0 else 0.0  # np.clip's order: max, then min
-            sj = sj if sj < length else length
-            k = np.searchsorted(cum[p:p + nseg + 1], sj, side="right") - 1
-            k = min(max(k, 0), nseg - 1)
-            t = (sj - cum[p + k]) / seg_len[g + k]
-            out_lat[j] = r_lat[p + k] + t * np.degrees(seg_dn[g + k] / seg_m[g + k])
-            lon = r_lon[p + k] + t * np.degrees(seg_de[g + k] / seg_ncos[g + k])
-            out_lon[j] = lon if (lon >= -180.0) and (lon < 180.0) else (lon + 180.0) % 360.0 - 180.0
+        a, b, p, q, g, h = v0[f], v0[f + 1], p0[f], p0[f + 1], g0[f], g0[f + 1]
+        _points_kernel(seg_axes[g:h], seg_arc[g:h], seg_len[g:h], cum[p:q], s[a:b], out_nv[a:b], out_dir[a:b])
+
+
+@numba.njit(cache=True, nogil=True)
+def _latlon_heading(nv, direction, out_lat, out_lon, out_heading):
+    """Geodetic (lat, lon) degrees of each unit normal nv[j], and the compass heading (degrees,
+    [0, 360)) there of the unit tangent direction[j]."""
+    for j in range(nv.shape[0]):
+        lat, lon = _latlon(nv[j, 0], nv[j, 1], nv[j, 2])
+        _, _, _, sp, cp, sl, cl = _normal(lat, lon)
+        dn, de = _north_east_m(sp, cp, sl, cl, direction[j, 0], direction[j, 1], direction[j, 2])
+        h = math.degrees(math.atan2(de, dn)) % 360.0
+        out_lat[j], out_lon[j], out_heading[j] = lat, lon, (h if h < 360.0 else 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _shift_kernel(offset, goal_nv, direction):
+    """Move each goal point (unit normal goal_nv[j], in place) ``offset[j]`` metres (0: left as
+    it is) to the right of the route's direction there (``direction[j]``, a unit tangent), in
+    the plane tangent at the goal: pole-safe, on the normal itself."""
+    for j in range(goal_nv.shape[0]):
+        if offset[j] == 0.0:
+            continue
+        gx, gy, gz = goal_nv[j, 0], goal_nv[j, 1], goal_nv[j, 2]
+        cp = math.hypot(gx, gy)
+        sp, cl, sl = gz, (gx / cp if cp > 0.0 else 1.0), (gy / cp if cp > 0.0 else 0.0)
+        dn, de = _north_east_m(sp, cp, sl, cl, direction[j, 0], direction[j, 1], direction[j, 2])
+        norm = max(math.hypot(dn, de), 1e-300)
+        m, n = _radii(sp)
+        qn, qe = offset[j] * (-de / norm) / m, offset[j] * (dn / norm) / n  # radians north and east
+        x, y, z = gx - qn * sp * cl - qe * sl, gy - qn * sp * sl + qe * cl, gz + qn * cp
+        r = math.sqrt(x * x + y * y + z * z)
+        goal_nv[j, 0], goal_nv[j, 1], goal_nv[j, 2] = x / r, y / r, z / r
 
 
 class FollowerSet:
@@ -609,8 +806,7 @@ class FollowerSet:
         self._g0 = np.concatenate([[0], np.cumsum([r.seg_len.size for r in routes])]).astype(np.int64)
         self._c0 = np.concatenate([[0], np.cumsum([r.corner_at.size for r in routes])]).astype(np.int64)
         self._route = {name: np.concatenate([getattr(r, name) for r in routes])
-                       for name in ("lat", "lon", "seg_m", "seg_ncos", "seg_dn", "seg_de", "seg_len", "cum",
-                                    "corner_at", "corner_turn")}
+                       for name in ("seg_axes", "seg_arc", "seg_len", "cum", "corner_at", "corner_turn")}
 
         def each(values):
             return np.repeat(np.asarray(values, np.float64), sizes)
@@ -667,8 +863,8 @@ class FollowerSet:
         n = idx.size
         hint = np.concatenate([f._hint for f in fs])
         s, x, seg = np.zeros(n), np.zeros(n), np.zeros(n, np.int64)
-        _project_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_len"], r["cum"], self._p0, self._g0,
-                     self._v0, v.lat[idx], v.lon[idx], hint, v.heading_deg[idx], s, x, seg)
+        _project_all(r["seg_axes"], r["seg_arc"], r["seg_len"], r["cum"], self._p0, self._g0, self._v0, v.lat[idx],
+                     v.lon[idx], hint, v.heading_deg[idx], s, x, seg)
         for f, a, b in zip(fs, self._v0[:-1].tolist(), self._v0[1:].tolist()):
             f.s, f.cross_track_m, f._hint = s[a:b], x[a:b], seg[a:b]
         self._s, self._x = s, x
@@ -685,13 +881,13 @@ class FollowerSet:
             self._convoy_law(speed_cmd, corner, s, speed, t)
         if ceiling_mps is not None:
             speed_cmd = np.minimum(speed_cmd, ceiling_mps)
-        g_lat, g_lon = np.empty(n), np.empty(n)
-        _points_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_dn"], r["seg_de"], r["seg_len"], r["cum"],
-                    self._p0, self._g0, self._v0, s + lookahead, g_lat, g_lon)
+        goal, direction = np.empty((n, 3)), np.empty((n, 3))
+        _points_all(r["seg_axes"], r["seg_arc"], r["seg_len"], r["cum"], self._p0, self._g0, self._v0, s + lookahead,
+                    goal, direction)
         offset = self._passing(s, pass_offset, pass_length)
         if offset is not None:
-            self._shift_goals(s + lookahead, offset, g_lat, g_lon)
-        speed_cmd, yaw_cmd = pursue(v, idx, g_lat, g_lon, speed_cmd)
+            self._shift_goals(offset, goal, direction)
+        speed_cmd, yaw_cmd = pursue(v, idx, goal, speed_cmd)
         if backing is not None and backing.any():
             rev = v.table[v.type_id[idx[backing]], P_VREV]
             speed_cmd = np.where(backing, 0.0, speed_cmd)
@@ -718,21 +914,11 @@ class FollowerSet:
         offset = np.where(s < self._pass_until, self._pass_offset, 0.0)
         return offset if offset.any() else None
 
-    def _shift_goals(self, at, offset, g_lat, g_lon) -> None:
-        """Move the goal points (g_lat, g_lon), at route arc lengths ``at``, ``offset`` metres
-        to the right of the route's direction there (in place)."""
-        r = self._route
-        b_lat, b_lon = np.empty(at.size), np.empty(at.size)
-        _points_all(r["lat"], r["lon"], r["seg_m"], r["seg_ncos"], r["seg_dn"], r["seg_de"], r["seg_len"], r["cum"],
-                    self._p0, self._g0, self._v0, at - 1.0, b_lat, b_lon)
-        m, nr = radii_of_curvature(g_lat)
-        cos_lat = np.cos(np.radians(g_lat))
-        dn = np.radians(g_lat - b_lat) * m
-        de = np.radians((g_lon - b_lon + 180.0) % 360.0 - 180.0) * nr * cos_lat
-        norm = np.maximum(np.hypot(dn, de), 1e-9)
-        right_n, right_e = -de / norm, dn / norm
-        g_lat += np.degrees(offset * right_n / m)
-        g_lon[:] = (g_lon + np.degrees(offset * right_e / (nr * cos_lat)) + 180.0) % 360.0 - 180.0
+    @staticmethod
+    def _shift_goals(offset, goal_nv, direction) -> None:
+        """Move the goal points (unit normals goal_nv, in place) ``offset`` metres to the right
+        of the route's direction there (``direction``: :meth:`Route.normals_at`'s)."""
+        _shift_kernel(np.ascontiguousarray(offset, np.float64), goal_nv, direction)
 
     def _convoy_law(self, speed_cmd, corner, s, speed, t) -> None:
         """Convoy.commands' speed law for every convoy, into speed_cmd."""

@@ -156,7 +156,7 @@ import numpy as np
 from fdm import catalog
 from fdm.vehicle_types import VEHICLE_TYPES
 from sortie.errors import InvalidArgument, NotFound
-from terrain.geodesy import radii_of_curvature
+from terrain.geodesy import geodetic_to_ecef, radii_of_curvature
 
 # --- limits ---------------------------------------------------------------------------------------
 MAX_FILE_BYTES = 16 * 1024 * 1024
@@ -1046,13 +1046,27 @@ def _local_m(lat, lon, lat0: float, lon0: float):
 
 
 def _check_separation(points, path: str) -> None:
-    lat, lon = np.array(points).T
-    north, east = _local_m(lat, lon, float(lat[0]), float(lon[0]))
-    close = np.hypot(np.diff(north), np.diff(east)) < WAYPOINT_MIN_SEPARATION_M
+    """Each route point apart from the one before it (their ECEF chord, valid at the poles and
+    across the antimeridian) and less than a leg's arc limit from it (fdm.convoy.LEG_MAX_ARC_DEG:
+    the angle between the points' ellipsoid normals, as fdm.convoy measures a leg)."""
+    from fdm.convoy import LEG_MAX_ARC_DEG
+
+    lat_deg, lon_deg = np.array(points, dtype=np.float64).T
+    chord = np.linalg.norm(np.diff(geodetic_to_ecef(lat_deg, lon_deg, 0.0), axis=0), axis=1)
+    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
+    close = chord < WAYPOINT_MIN_SEPARATION_M
     if close.any():
         i = int(np.flatnonzero(close)[0]) + 1
         raise ScenarioError(f"{path}[{i}]", f"repeats the point before it (closer than {WAYPOINT_MIN_SEPARATION_M} m)",
                             value=list(points[i]))
+    normals = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+    a, b = normals[:-1], normals[1:]
+    arc = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
+    far = arc >= LEG_MAX_ARC_DEG
+    if far.any():
+        i = int(np.flatnonzero(far)[0]) + 1
+        raise ScenarioError(f"{path}[{i}]", f"is {arc[i - 1]:.6g} degrees of arc from the point before it (a leg "
+                            f"must span less than {LEG_MAX_ARC_DEG:g})", value=list(points[i]))
 
 
 def _convoys(agents) -> tuple[ConvoySpec, ...]:

@@ -134,6 +134,8 @@ ERROR_CASES = [
     ("agents[2].autopilot.spacing_m", 80.0, "agents[2].autopilot.spacing_m", "the leader's is 50.0 (got 80.0)"),
     ("agents[2].autopilot.convoy", "rhien", "agents[1].autopilot.convoy", "has no other member"),
     ("agents[1].autopilot.route[1]", [47.24, 9.522], "agents[1].autopilot.route[1]", "repeats the point before it"),
+    ("agents[1].autopilot.route[1]", [-47.0, -170.0], "agents[1].autopilot.route[1]",
+     "degrees of arc from the point before it (a leg must span less than 90)"),
     # aircraft specifics
     ("agents[0].on_ground", True, "agents[0].alt_m", "must be left out when on_ground = true"),
     ("agents[0].autopilot.hold", {"heading_deg": 90.0}, "agents[0].autopilot", "exactly one of route"),
