@@ -103,7 +103,9 @@ Schema (``*`` required; everything else has the default shown)::
       speed_mps*               airborne: (0, 8000] true airspeed; on the ground: 0 (default)
       engines_running = true   false: every engine off (an engine-out exercise); airborne, the
                                aircraft starts trimmed in its steady glide at speed_mps, and
-                               without an autopilot table it holds only its heading
+                               without an autopilot table it holds only its heading; true
+                               on the ground with an engine that does not start, even on its
+                               starter, is refused
     ground only:
       speed_mps = 0.0          [0, the vehicle type's top speed]
     aircraft and ground:
