@@ -21,8 +21,11 @@ this very gateway) are never sent back out. The gateway also reads the
 server's events: an entity that crashes or is destroyed is sent at once, and
 from then on, with the appearance's damage "destroyed"; each collision event of an entity
 it speaks for is issued as a Collision PDU (IEEE 1278.1-2012 §7.2.3) naming
-the other entity (a DIS entity by its own id), so every DIS simulation hears
-of the collision from the owner of each entity in it, as the standard has it.
+the other entity (a DIS entity by its own id) with the issuer's velocity at
+the collision (its last state at or before the event, not the last PDU, which
+may be the wreck's at rest: the events come on a stream of their own), so
+every DIS simulation hears of the collision from the owner of each entity in
+it, as the standard has it.
 
 In. PDUs of our exercise from other (site, application) pairs are decoded
 and each Entity State PDU is published into the exercise through the
@@ -57,6 +60,8 @@ remote and local entities.
 
 from __future__ import annotations
 
+import bisect
+import collections
 import dataclasses
 import datetime as dt
 import json
@@ -69,6 +74,7 @@ import time
 import grpc
 
 from server import dis
+from server.dead_reckoning import FVW, RVW
 from server.external import external_state
 from sortie.errors import DataFormatError, InvalidArgument, SortieError
 from sortie.logs import line
@@ -86,6 +92,11 @@ MAX_ENTITY_NUMBER = 65534  # 0 is NO_ENTITY and 65535 ALL_ENTITIES (IEEE 1278.1-
 RECEIVE_BYTES = 65536  # a UDP datagram's largest payload
 POLL_S = 0.2  # how often the threads look at the stop flag, heartbeats and timeouts
 LOG_EVERY_S = 5.0  # at most one line per kind of receive problem per this many seconds
+# States kept per local entity, newest last, for the velocity of a Collision PDU: the events stream
+# runs on its own, so a collision's event may come after states of later ticks (a wreck's, at rest).
+# The Watch stream brings a state at most per network update (20 Hz by default) and the event
+# follows its tick's states within one: 16 is over half a second of updates.
+STATE_HISTORY = 16
 KINDS = {pb.ENTITY_KIND_AIRCRAFT: "aircraft", pb.ENTITY_KIND_GROUND: "ground", pb.ENTITY_KIND_STATIC: "static"}
 
 
@@ -120,6 +131,9 @@ class _Local:
     wire: bytes = b""
     sent_wall_s: float = 0.0
     appearance: int = 0  # what every PDU of it carries (dis.APPEARANCE_DESTROYED once it crashed)
+    # Its last states received, oldest first: (world time s, velocity ECEF m/s (3,), acceleration
+    # ECEF m/s^2 (3,), dead-reckoning algorithm); see :func:`velocity_at`.
+    history: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=STATE_HISTORY))
 
 
 def _check(name: str, value, lo: float, hi: float, integer: bool = False):
@@ -283,12 +297,20 @@ class DisGateway:
                             info.entity_id, info.name, MAX_ENTITY_NUMBER)
             return False
         wreck = info.destroyed or info.entity_id in self._wrecks
-        self._locals[info.entity_id] = _Local(KINDS.get(info.kind, "static"), info.type, info.coalition, info.name,
-                                              appearance=dis.APPEARANCE_DESTROYED if wreck else 0)
+        local = _Local(KINDS.get(info.kind, "static"), info.type, info.coalition, info.name,
+                       appearance=dis.APPEARANCE_DESTROYED if wreck else 0)
+        old = self._locals.get(info.entity_id)
+        if old is not None:  # in a new full picture (a replay's seek or step): its states so far still count
+            local.history = old.history
+        self._locals[info.entity_id] = local
         return True
 
     def _send_state(self, entity_id: int, state: pb.EntityState) -> None:
         local = self._locals[entity_id]
+        if local.history and state.time_s < local.history[-1][0]:  # a replay went back: another past
+            local.history.clear()
+        local.history.append((state.time_s, tuple(state.velocity_ecef_mps), tuple(state.acceleration_ecef_mps2),
+                              state.dead_reckoning))
         seconds = self._hour_offset_s + state.time_s
         try:
             pdu = dis.entity_state_pdu(
@@ -364,8 +386,12 @@ class DisGateway:
     def _send_collision(self, event: pb.WorldEvent) -> None:
         """A Collision PDU issued by the local entity of a collision event (the other one's
         event issues its own, as every DIS simulation issues one per entity it owns). The
-        velocity is the one its last Entity State PDU carried; the mass and the contact
-        point on the entity are not modelled (0 and its origin)."""
+        velocity is the entity's at the collision (IEEE 1278.1-2012 §7.2.3: the issuing
+        entity's velocity when the collision is detected, world coordinates), from its last
+        state received at or before the event's time (:func:`velocity_at`), not the last one
+        received: the events stream runs on its own, and a wreck's states at rest may come
+        first. The mass and the contact point on the entity are not modelled (0 and its
+        origin)."""
         local = self._locals.get(event.entity_id)
         if local is None:
             return
@@ -378,7 +404,7 @@ class DisGateway:
             exercise_id=self.exercise, issuing_entity_id=(self.site, self.application, event.entity_id),
             colliding_entity_id=self._dis_id(other), event_id=(self.site, self.application, self._event_number),
             collision_type=dis.COLLISION_INELASTIC,
-            velocity=local.pdu.linear_velocity if local.pdu is not None else (0.0, 0.0, 0.0),
+            velocity=velocity_at(local.history, event.time_s),
             timestamp=dis.dis_timestamp(self._hour_offset_s + event.time_s, absolute=False))
         try:
             self._sock.sendto(dis.encode_collision_pdu(pdu), (self.host, self.port))
@@ -513,6 +539,23 @@ class DisGateway:
         self._remotes.clear()
         self._names.clear()
         self._stream = None
+
+
+def velocity_at(history, time_s: float) -> tuple[float, float, float]:
+    """An entity's velocity (ECEF m/s) at world time ``time_s`` from its states ``history``
+    ((time s, velocity (3,), acceleration (3,), algorithm), oldest first): the last state at or
+    before it, extrapolated to it as the receivers dead-reckon it (IEEE 1278.1-2012 Annex E:
+    V0 + A0 dt for RVW and FVW, V0 for the others); the first state after it when none is
+    before; 0 when there is none."""
+    if not history:
+        return (0.0, 0.0, 0.0)
+    times = [h[0] for h in history]
+    k = bisect.bisect_right(times, time_s + 1e-9) - 1  # a state at the event's tick counts as at it
+    t0, vel, acc, algorithm = history[max(k, 0)]
+    dt_s = time_s - t0
+    if k < 0 or dt_s <= 0.0 or algorithm not in (RVW, FVW) or len(acc) != 3:
+        return tuple(float(v) for v in vel) if len(vel) == 3 else (0.0, 0.0, 0.0)
+    return tuple(float(v) + float(a) * dt_s for v, a in zip(vel, acc))
 
 
 def _validate(state: dict) -> None:

@@ -17,15 +17,20 @@ second of world time; seeking is the index's bisection and one chunk) and
 publishes, so at 64x each update jumps 3.2 world seconds and dead reckoning
 decides what changed enough to send. Events recorded between the ticks shown
 go out on WatchEvents as they are passed while playing or stepping forward
-(not when seeking). After a seek or a step, forward or back, every Watch
-stream starts over: its next update is a full snapshot (``snapshot = true``,
-which a client takes in place of what it holds), with every visible entity's
-state at the new time. Only observers may join: a
-replay has no agents to command (take-over is ``sortie resim --take-over``).
+(not when seeking); playing, an update stops at a tick with a crash, a
+destruction or a collision (its states and its events) and goes on past it at
+the next one, so no later state (a wreck's, at rest) is published with the
+event, as live (:meth:`ReplayWorld.next_stop`). After a seek or a step,
+forward or back, every Watch stream starts over: its next update is a full
+snapshot (``snapshot = true``, which a client takes in place of what it
+holds), with every visible entity's state at the new time. Only observers may
+join: a replay has no agents to command (take-over is ``sortie resim
+--take-over``).
 """
 
 from __future__ import annotations
 
+import bisect
 import functools
 import logging
 import math
@@ -51,8 +56,14 @@ from terrain.geodesy import ecef_to_geodetic
 logger = logging.getLogger(__name__)
 
 REPLAY_SERVICE = "sortie.v1.ReplayService"
+# The longest a Watch waits for its snapshot, whatever the recording's network rate (s).
+REPLAY_POLL_S = 0.1
 MIN_SPEED, MAX_SPEED = 0.1, 64.0
 MAX_STEP_TICKS = 1_000_000
+# Events after which an entity's states mean something else (a wreck from then on, at rest; a
+# collision's velocity is the one before it): playback shows each tick of one with its events
+# before any later tick (ReplayWorld.next_stop).
+STOP_EVENT_KINDS = ("crash", "destroyed", "collision")
 
 
 class ReplayWorld(EventLog):
@@ -74,19 +85,43 @@ class ReplayWorld(EventLog):
         self.snapshot = _empty_snapshot(self.time_s, self.tick_count)
         self.damaged: dict[int, str] = {}  # chunk -> why it does not read (each logged once)
         self._wreck_ticks: dict[int, int] | None = None  # entity -> tick of its crash/destruction
+        self._stop_ticks: list[int] = []  # ticks of STOP_EVENT_KINDS events, ascending (with _wreck_ticks)
+
+    def _read_wrecks(self) -> None:
+        """The recording's crash, destroyed and collision events, read once, on first need (one
+        pass over the chunks that read, as ``sortie recording check`` makes)."""
+        if self._wreck_ticks is not None:
+            return
+        ticks: dict[int, int] = {}
+        stops: set[int] = set()
+        for r in self.rec.events(skipped=[]):
+            if r.event.kind in STOP_EVENT_KINDS:
+                stops.add(int(r.tick))
+                if r.event.kind != "collision":
+                    ticks.setdefault(int(r.event.entity_id), int(r.tick))
+        self._stop_ticks = sorted(stops)
+        self._wreck_ticks = ticks
 
     @property
     def wrecks(self) -> frozenset:
         """Entities crashed or destroyed by the tick shown (as World.wrecks: a view they enter is
-        told so). The recording's crash and destroyed events are read once, on first need (one
-        pass over the chunks that read, as ``sortie recording check`` makes)."""
-        if self._wreck_ticks is None:
-            ticks: dict[int, int] = {}
-            for r in self.rec.events(skipped=[]):
-                if r.event.kind in ("crash", "destroyed"):
-                    ticks.setdefault(int(r.event.entity_id), int(r.tick))
-            self._wreck_ticks = ticks
+        told so)."""
+        self._read_wrecks()
         return frozenset(i for i, t in self._wreck_ticks.items() if t <= self.tick_count)
+
+    def next_stop(self, after: int, before: int) -> int | None:
+        """The first tick in (``after``, ``before``) with a crash, destruction or collision
+        event (STOP_EVENT_KINDS), None if none: playing forward, the replay shows that tick
+        (its states and its events) and goes on past it at the next network update, so no
+        state after such an event is published with it. Live, the world publishes each
+        tick's events with its states, and the wreck's states at rest come ticks later; a
+        replay jumping speed x world rate / network rate ticks per update (12 at 8x) would
+        otherwise publish the wreck's states with the event, and a receiver reading the
+        events on their own stream (``sortie dis``) could see the wreck at rest, undamaged,
+        before the crash."""
+        self._read_wrecks()
+        i = bisect.bisect_right(self._stop_ticks, after)
+        return self._stop_ticks[i] if i < len(self._stop_ticks) and self._stop_ticks[i] < before else None
 
     def _damaged(self, k: int, exc: DataFormatError) -> None:
         if k not in self.damaged:
@@ -354,6 +389,9 @@ class ReplayServer:
                 with session.view_lock:  # not half-way through a new Watch's take-over
                     session.reset_visible()
                     session.queue.resnapshot()
+        if not seeked and tick > self.world.tick_count:  # playing on: a tick with a crash or collision first
+            stop = self.world.next_stop(self.world.tick_count, tick)
+            tick = tick if stop is None else stop
         if tick != self.world.tick_count or seeked:
             try:
                 self.world.show(tick, events=not seeked or step_events)
@@ -378,15 +416,24 @@ class ReplayServer:
 
     def _run(self) -> None:
         period = 1.0 / self.config.network_rate_hz
+        next_show = time.monotonic()
         next_expire = time.monotonic() + 1.0
         try:
             while not self._stop.is_set():
-                self._show()
+                now = time.monotonic()
+                # At the network rate, on a control (kick), and as soon as a Watch awaits its
+                # snapshot: a recording's network rate may be as low as its scenario allowed.
+                if (now >= next_show or self._kick.is_set()
+                        or any(s.queue.needs_snapshot for s in self.sessions.watching())):
+                    self._kick.clear()
+                    self._show()
+                    next_show = now + period
                 if time.monotonic() >= next_expire:
                     self.sessions.expire()
                     next_expire = time.monotonic() + 1.0
-                self._kick.wait(period)
-                self._kick.clear()
+                # Bounded: a newcomer's snapshot waits at most REPLAY_POLL_S (and Event.wait
+                # overflows on a 1e300 s period).
+                self._kick.wait(min(max(next_show - time.monotonic(), 0.0), REPLAY_POLL_S))
         except Exception as exc:  # noqa: BLE001 - the clock thread must say why it died
             self.error = exc
             logger.exception("replay clock stopped by an error")
