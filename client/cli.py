@@ -1,5 +1,6 @@
 """``sortie client`` (a headless observer printing the live picture; with ``--follow`` or
-``--agent-type``, the render client of client/render_cli.py, as ``sortie view``) and
+``--agent-type``, the render client of client/render_cli.py, as ``sortie view``, whose options
+--headless, --frames, --fps, --out, --chase are refused without either) and
 ``sortie bot`` (many autopilot agents in one process, as ordinary clients).
 
     sortie client --server HOST:PORT [--observe LAT LON RADIUS_M] [--duration S] [--every S]
@@ -32,6 +33,8 @@ LEG_S = (1.0, 3_600.0)  # --leg-s, world seconds
 EVERY_S = (0.05, 3_600.0)  # --every, wall seconds
 MIN_LEG_WALL_S = 0.2  # a bot commands at most 5 times a wall second, however fast the clock
 DEFAULT_OBSERVE_RADIUS_M = 100_000.0
+# sortie client's render options (with --follow or --agent-type), and what they are when not given.
+RENDER_DEFAULTS = {"headless": False, "frames": 100, "fps": 10.0, "out": "frames", "chase": False}
 
 
 def _finite(text: str) -> float:
@@ -91,12 +94,16 @@ def add_parser(sub) -> None:
     who = render.add_mutually_exclusive_group()
     who.add_argument("--follow", metavar="AGENT", help="render, following this agent (see sortie view --help)")
     who.add_argument("--agent-type", choices=("aircraft", "ground"), help="render, following the first of this kind")
-    render.add_argument("--headless", action="store_true",
+    # (Defaults None, filled in by client_command: given without --follow/--agent-type they are refused.)
+    render.add_argument("--headless", action="store_true", default=None,
                         help="render offscreen (EGL); the only mode on machines without a display")
-    render.add_argument("--frames", type=int, default=100, metavar="N", help="frames to render (default %(default)s)")
-    render.add_argument("--fps", type=float, default=10.0, help="frames per wall second, at most (default %(default)s)")
-    render.add_argument("--out", default="frames", metavar="DIR", help="where the frames go (default %(default)s)")
-    render.add_argument("--chase", action="store_true", help="chase camera (default: cockpit)")
+    render.add_argument("--frames", type=int, default=None, metavar="N",
+                        help=f"frames to render (default {RENDER_DEFAULTS['frames']})")
+    render.add_argument("--fps", type=float, default=None,
+                        help=f"frames per wall second, at most (default {RENDER_DEFAULTS['fps']:g})")
+    render.add_argument("--out", default=None, metavar="DIR",
+                        help=f"where the frames go (default {RENDER_DEFAULTS['out']})")
+    render.add_argument("--chase", action="store_true", default=None, help="chase camera (default: cockpit)")
     c.set_defaults(func=client_command)
 
     b = sub.add_parser("bot", help="run N autopilot bots as clients of a simulation server",
@@ -135,6 +142,15 @@ def _stop_on_signals() -> threading.Event:
 
 
 def client_command(args) -> int:
+    given = [f"--{name}" for name in RENDER_DEFAULTS if getattr(args, name) is not None]
+    if not (args.follow or args.agent_type) and given:  # the text observer would ignore them
+        are = "is a rendering option" if len(given) == 1 else "are rendering options"
+        raise InvalidArgument(given[0], f"{', '.join(given)} {are}: rendering needs --follow AGENT or --agent-type "
+                                        "aircraft|ground (without either, sortie client prints the picture as text)",
+                              value=getattr(args, given[0][2:]))
+    for name, default in RENDER_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     if args.follow or args.agent_type:  # the render client (client/render_cli.py)
         from sortie.cli import main
 

@@ -27,6 +27,7 @@ send it) unless ``--geoid-undulation-m`` is given.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -38,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sortie.errors import InvalidArgument, NotFound
+from sortie.errors import InvalidArgument, LimitExceeded, NotFound
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,11 @@ DEFAULT_SIZE = "960x540"
 COCKPIT_EYE_BODY_M = {1: (0.0, 0.0, -1.0), 2: (0.0, 0.0, -3.0), 3: (0.0, 0.0, -12.0)}
 CHASE_BACK_UP_M = {1: (60.0, 15.0), 2: (30.0, 10.0), 3: (60.0, 30.0)}
 FOLLOW_WAIT_S = 15.0
+# --camera's altitude bound, metres MSL: 100,000 km, from where the whole Earth is 6.9 degrees across
+# (2 asin(6371 / 106371); about 110 pixels of a 960-pixel frame at 60 degrees); float32 offsets from
+# the rebased origin still place its vertices within 6 m there (2^-24 of the distance,
+# client/render/camera.py). Beyond it a frame shows a shrinking dot.
+ALT_MSL_ABS_MAX_M = 1.0e8
 
 
 def add_parser(sub) -> None:
@@ -108,9 +114,11 @@ def _view_args(p) -> None:
                         "pixels, 0 for every post (default: the profile's)")
     p.add_argument("--fov-deg", type=float, default=60.0, help="horizontal field of view (default %(default)s)")
     p.add_argument("--window-km", type=float, default=20.0,
-                   help="mesh: half-width of the full-resolution terrain window (default %(default)s)")
+                   help="mesh (and the clipmap near a pole, where it draws the mesh): half-width of the "
+                        "full-resolution terrain window (default %(default)s)")
     p.add_argument("--horizon-km", type=float, default=80.0,
-                   help="mesh: half-width of the coarser horizon ring, 0 for none (default %(default)s)")
+                   help="mesh (and the clipmap near a pole): half-width of the coarser horizon ring, 0 for none "
+                        "(default %(default)s)")
     p.add_argument("--geoid-undulation-m", type=float, default=None, metavar="N",
                    help="ellipsoid height = MSL + N, metres (render: default 0; view: default the server's)")
     p.add_argument("--no-fog", action="store_true")
@@ -145,20 +153,27 @@ def parse_pose(text: str) -> tuple[float, ...]:
     from terrain.validate import LON_ABS_MAX_DEG
 
     # (Camera.from_geodetic's and the terrain's own checks name their parameters, lat_deg, lon[0].)
-    bounds = {"LAT": 90.0, "LON": LON_ABS_MAX_DEG, "PITCH_DEG": 90.0}
+    bounds = {"LAT": (90.0, "degrees"), "LON": (LON_ABS_MAX_DEG, "degrees"), "ALT_MSL_M": (ALT_MSL_ABS_MAX_M, "m"),
+              "PITCH_DEG": (90.0, "degrees")}
     for name, v in zip(("LAT", "LON", "ALT_MSL_M", "HEADING_DEG", "PITCH_DEG", "ROLL_DEG"), values):
         if not math.isfinite(v):
             raise InvalidArgument("--camera", f"{name} must be a finite number (LAT,LON,ALT_MSL_M,HEADING_DEG,"
                                               "PITCH_DEG[,ROLL_DEG])", value=text)
-        if name in bounds and abs(v) > bounds[name]:
-            raise InvalidArgument("--camera", f"{name} {v:g} must be within [-{bounds[name]:g}, {bounds[name]:g}] "
-                                              "degrees", value=text)
+        if name in bounds and abs(v) > bounds[name][0]:
+            bound, unit = bounds[name]
+            raise InvalidArgument("--camera", f"{name} {v:g} must be within [-{bound:g}, {bound:g}] {unit}",
+                                  value=text)
     return tuple(values + [0.0] * (6 - len(values)))
 
 
 def check_image_path(option: str, path: Path) -> None:
-    """An image file to write: not a directory, and named with an extension Pillow writes
-    (.png, .jpg, ...), which picks the format; checked before a frame is rendered."""
+    """An image file to write: not a directory, in a directory that is or can be made, and named
+    with an extension Pillow writes an RGB image in (.png, .jpg, ...), which picks the format;
+    checked before a frame is rendered. The format is tried on a 1 x 1 RGB image in memory:
+    Pillow registers savers that take only other modes (.xbm: 1-bit, .palm: palette, .blp) or
+    need a plugin it does not ship (.h5, .bufr, .grib), and those fail only on the save."""
+    import io
+
     from PIL import Image
 
     if path.is_dir():
@@ -168,6 +183,26 @@ def check_image_path(option: str, path: Path) -> None:
     if fmt is None or fmt not in Image.SAVE:
         raise InvalidArgument(option, "must name an image file with an extension the format is taken from, e.g. "
                                       ".png or .jpg", value=str(path))
+    try:
+        Image.new("RGB", (1, 1)).save(io.BytesIO(), format=fmt)
+    except Exception as exc:  # noqa: BLE001 - whatever the format's saver raises: it cannot write a frame
+        raise InvalidArgument(option, f"Pillow cannot write an RGB frame as {fmt} ({type(exc).__name__}: {exc}); "
+                                      "give another extension, e.g. .png or .jpg", value=str(path)) from None
+    check_writable_dir(option, path.parent)
+
+
+def check_writable_dir(option: str, directory: Path) -> None:
+    """``directory`` exists and is one this process may write in, or can be made: its nearest
+    existing ancestor is a directory it may write in (the frames are written after rendering)."""
+    import os
+
+    existing = directory
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        raise InvalidArgument(option, f"{str(existing)!r} is a file, not a directory", value=str(directory))
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InvalidArgument(option, f"cannot write in the directory {str(existing)!r}", value=str(directory))
 
 
 def check_render_options(args) -> None:
@@ -237,7 +272,8 @@ def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "obs
     factory = None
     if args.terrain_renderer == "clipmap" and terrain is not None:
         factory = clipmap_factory(terrain, geoid_undulation_m=geoid_undulation_m, insets=insets,
-                                  land_classes=args.land_classes, **layer_args)
+                                  land_classes=args.land_classes, polar_window_m=args.window_km * 1000.0,
+                                  polar_horizon_m=args.horizon_km * 1000.0, **layer_args)
     return Renderer(terrain, w, h, window_m=args.window_km * 1000.0, horizon_m=args.horizon_km * 1000.0,
                     geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog, terrain_layer_factory=factory,
                     insets=insets)
@@ -257,6 +293,24 @@ def world_insets(terrain, world_info):
         return terrain, insets_of(terrain)
     return terrain, [InsetSource.from_inset_terrain(terrain, polygon, detail_m, INSET_SEED, name=name)
                      for name, polygon, detail_m in areas]
+
+
+@contextlib.contextmanager
+def mesh_area_named(args, renderer):
+    """A terrain limit the reference mesh's requests run into (the procedural world's new blocks
+    a call, a service's batch) names the options that set the area it asks for: every post within
+    --window-km and a ring of coarser posts to --horizon-km. (The clipmap's requests are budgeted;
+    near a pole it draws the mesh too, ClipmapLayer.polar.)"""
+    try:
+        yield
+    except LimitExceeded as exc:
+        polar = bool(getattr(renderer.terrain_layer, "polar", False))
+        if args.terrain_renderer != "mesh" and not polar:
+            raise
+        whose = "the clipmap's mesh near a pole" if polar else "the reference mesh"
+        hint = (f"{whose} asks for every post within --window-km {args.window_km:g} and a ring to "
+                f"--horizon-km {args.horizon_km:g} at once: give smaller ones")
+        raise LimitExceeded(exc.field, exc.size, exc.limit, f"{exc.why}; {hint}" if exc.why else hint) from None
 
 
 def _close(terrain) -> None:
@@ -287,16 +341,18 @@ def render_command(args) -> int:
         if alt < ground:  # a frame from inside the terrain shows nothing meaningful
             raise InvalidArgument("--camera", f"altitude {alt:g} m MSL is below {what} "
                                               f"({ground:.1f} m MSL at {lat:g}, {lon:g})", value=args.camera)
-        with _renderer(args, terrain, undulation) as r:
+        with _renderer(args, terrain, undulation) as r, mesh_area_named(args, r):
             image = r.render(camera)
             s = r.stats
     finally:
         _close(terrain)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(image).save(args.out)
+    lifted = (f"; eye raised {s.eye_lift_m:.2f} m to stand over the terrain's triangles there, which rise above its "
+              "surface" if s.eye_lift_m > 0 else "")
     print(f"wrote {args.out} ({image.shape[1]}x{image.shape[0]}) from {desc}: {s.frame_ms:.0f} ms "
           f"(terrain {args.terrain_renderer} update {s.update_ms:.0f} ms), {s.triangles:,} triangles, "
-          f"{s.vertices:,} vertices", flush=True)
+          f"{s.vertices:,} vertices{lifted}", flush=True)
     return 0
 
 
@@ -341,6 +397,7 @@ def view_command(args) -> int:
     if args.role == "observer":
         check_observe_radius(args)
     check_render_options(args)
+    check_writable_dir("--out", Path(args.out))  # a file there, or no way to make it: before joining
     kind = None if args.agent_type is None else kind_from_name(args.agent_type)
     stop = threading.Event()
     previous = {}
@@ -385,6 +442,18 @@ def _join(sim, args) -> None:
                               value=args.observe_radius_km) from None
 
 
+def _not_seen(args) -> str:
+    """Why the agent to follow never showed in the picture: a gateway sees every entity, so it is
+    not in the exercise; an observer sees only its area, so it may be outside it."""
+    what = f"agent {args.follow!r}" if args.follow else f"an agent of kind {args.agent_type}"
+    if args.role == "gateway":
+        return f"{what} is not in the exercise (waited {FOLLOW_WAIT_S:g} s)"
+    return (f"{what} is not within the observed area, --observe-radius-km {args.observe_radius_km:g} km around the "
+            f"first target area (or 0, 0), after {FOLLOW_WAIT_S:g} s: it is outside it or not in the exercise; give "
+            "a larger --observe-radius-km (up to the scenario's observer radius) or --role gateway, which sees "
+            "every entity")
+
+
 def _view(args, kind: int | None, stop: threading.Event) -> int:
     from client.render.entities import KIND_NAMES
     from client.sim_client import SimClient
@@ -396,8 +465,7 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         picture = sim.watch()
         if not picture.wait_for(lambda p: _pick(p, args.follow, kind) is not None, FOLLOW_WAIT_S):
             sim.leave()
-            what = f"agent {args.follow!r}" if args.follow else f"an agent of kind {args.agent_type}"
-            raise NotFound(f"{what} is not in the exercise (waited {FOLLOW_WAIT_S:g} s)")
+            raise NotFound(_not_seen(args))
         target = _pick(picture, args.follow, kind)
         info = picture.infos[target]
         terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain, store=args.store)
@@ -411,8 +479,8 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
               f"{', '.join(_views(args))} camera, terrain {desc} ({args.terrain_renderer}, profile {lod})",
               flush=True)
         try:
-            with _renderer(args, terrain, undulation, lod, insets) as r:
-                frames, stats, wall = _frames(args, picture, target, r, out, stop, undulation)
+            with _renderer(args, terrain, undulation, lod, insets) as r, mesh_area_named(args, r):
+                frames, stats = _frames(args, picture, target, r, out, stop, undulation)
         finally:
             _close(terrain)
         from client.cli import stream_end
@@ -424,9 +492,9 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         "terrain_renderer": args.terrain_renderer, "profile": lod,
         "role": args.role, "terrain": desc, "geoid_undulation_m": undulation, "insets": [s.name for s in insets],
         "size": list(parse_size(args.size)), "fov_x_deg": args.fov_deg,
-        "window_km": args.window_km, "horizon_km": args.horizon_km, "frames": len(frames),
+        "window_km": args.window_km, "horizon_km": args.horizon_km, "frames": len(stats),
         "requested_frames": args.frames, "requested_fps": args.fps,
-        "achieved_fps": len(frames) / wall if frames and wall > 0 else 0.0,
+        "achieved_fps": achieved_fps([s["started_s"] for s in stats]),
         **{key: _percentiles([s[key] for s in stats]) for key in ("frame_ms", "update_ms", "triangles", "vertices",
                                                                   "entities_drawn", "terrain_samples",
                                                                   "levels_active")},
@@ -435,7 +503,7 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         "out": str(out), "pngs": frames, "per_frame": stats,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    print(f"{len(frames)} frames in {out}, summary {out / 'summary.json'}", flush=True)
+    print(f"{len(stats)} frames ({len(frames)} images) in {out}, summary {out / 'summary.json'}", flush=True)
     return code if frames else 1
 
 
@@ -452,10 +520,21 @@ def _views(args) -> list[str]:
     return views
 
 
+def achieved_fps(started_s) -> float | None:
+    """Frames a wall second from the frames' start times (seconds, ascending): (n - 1) intervals
+    over the time from the first start to the last; None for fewer than two frames (no interval).
+    Counting n frames over the run's whole time overstates it: n frames span n - 1 intervals (2
+    frames at --fps 1 read as 2 fps)."""
+    if len(started_s) < 2 or started_s[-1] <= started_s[0]:
+        return None
+    return (len(started_s) - 1) / (started_s[-1] - started_s[0])
+
+
 def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Event, undulation: float):
     """Render up to args.frames frames at most args.fps a wall second, each in every view (one
     renderer: the views share its terrain layer, centred on the followed agent); (png paths,
-    per-frame stats dicts, wall seconds)."""
+    per-frame stats dicts: one a frame, whatever the views, its start ``started_s`` and its end
+    ``wall_s`` in seconds from the first frame's start)."""
     from PIL import Image
 
     from client.render.camera import heading_pitch_roll_deg, quat_to_matrix
@@ -476,6 +555,7 @@ def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Eve
         except NotFound:
             print(f"frame {k:04d}: {info.name!r} left the exercise", flush=True)
             break
+        started = time.monotonic() - t_start
         views = _views(args)
         layer = renderer.terrain_layer
         if hasattr(layer, "focus_lat_lon"):  # every view's terrain is centred on the agent
@@ -493,13 +573,16 @@ def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Eve
         lat, lon, h = (float(v) for v in ecef_to_geodetic(pos[0]))
         hdg, pitch, roll = heading_pitch_roll_deg(pos[0], quat_to_matrix(quat[0]))
         elapsed = time.monotonic() - t_start
-        stats.append({**s.as_dict(), "terrain_samples": samples, "world_time_s": t, "wall_s": elapsed,
-                      "lat_deg": lat, "lon_deg": lon, "alt_msl_m": h - undulation, "heading_deg": hdg})
-        print(f"frame {k:04d} t={t:8.2f} s  fps {(k + 1) / max(elapsed, 1e-9):5.2f}  {s.frame_ms:6.1f} ms  "
+        stats.append({**s.as_dict(), "terrain_samples": samples, "world_time_s": t, "started_s": started,
+                      "wall_s": elapsed, "lat_deg": lat, "lon_deg": lon, "alt_msl_m": h - undulation,
+                      "heading_deg": hdg})
+        span = started - stats[0]["started_s"]  # k intervals between frame starts (achieved_fps)
+        fps = k / span if k and span > 0 else None
+        print(f"frame {k:04d} t={t:8.2f} s  fps {'-' if fps is None else f'{fps:.2f}':>5}  {s.frame_ms:6.1f} ms  "
               f"tri {s.triangles:,}  samples {samples:,}  levels {s.levels_active}  entities {s.entities_drawn}  "
               f"{info.name} {lat:.5f} {lon:.5f} {h - undulation:.0f} m hdg {hdg:.0f} pitch {pitch:.0f} "
               f"roll {roll:.0f}", flush=True)
         next_due = max(next_due + 1.0 / args.fps, time.monotonic())
         if k + 1 < args.frames:
             stop.wait(max(0.0, next_due - time.monotonic()))
-    return frames, stats, time.monotonic() - t_start
+    return frames, stats

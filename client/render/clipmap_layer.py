@@ -122,7 +122,8 @@ from client.render.clipmap import (Clipmap, Rect, active_origin, blocks, clip_re
                                    ring_rects)
 from client.render.gl import check_gl_error
 from client.render.shading import GLSL_COMMON, Frame
-from client.render.terrain_mesh import TERRAIN_COLOUR_GLSL, lattice_for
+from client.render.terrain_mesh import (DEFAULT_HORIZON_M, DEFAULT_WINDOW_M, REBUILD_FRACTION, TERRAIN_COLOUR_GLSL,
+                                        TerrainMeshLayer, cell_corner_weights, lattice_for)
 from terrain.texture import CLASS_COLOURS_RGB, N_CLASSES
 from sortie.errors import InvalidArgument
 from terrain.geodesy import WGS84_A_M, ecef_to_geodetic
@@ -133,6 +134,17 @@ MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
 # Level clipping by height (§3.2.2): a level fades out as the viewer's height above the ground
 # grows from HEIGHT_FADE[0] to HEIGHT_FADE[1] times the level's extent, then is not drawn.
 HEIGHT_FADE = (0.2, 0.4)
+# Near a pole the layer draws the reference mesh (terrain_mesh.TerrainMeshLayer) instead: a level is
+# n x n posts of the lat/lon lattice, so east-west it spans cos(latitude) of its north-south
+# metres, and at 89.99 degrees the coarsest level was a strip some metres wide with open sea
+# beside it. It switches to the mesh where latitude has narrowed the clipmap's cells east-west to
+# less than POLAR_ASPECT of their north-south size (not a clipmap made small on purpose) and it
+# would reach less far (its fog range at the focus) than the mesh does; it switches back where
+# both are POLAR_MESH_HYSTERESIS times over those bounds (no flapping on the boundary). With the
+# default mesh (+-80 km) and fast_jet on a 3" DEM: poleward of about 78 degrees, back equatorward
+# of about 75.
+POLAR_ASPECT = 0.25
+POLAR_MESH_HYSTERESIS = 1.25
 E2_COMPLEMENT_INV = 1.0 / (1.0 - 6.69437999014e-3)  # 1 / (1 - e^2), WGS84: geodetic normal from ECEF
 DETAIL_TILE_M = 1024.0  # texture coordinates are ECEF modulo this; every period below divides it
 DETAIL_PERIODS_M = (128.0, 32.0, 8.0)  # the detail tilings, coarse to fine
@@ -1450,12 +1462,15 @@ class ClipmapLayer:
     terrain's post spacing (a power of two: 1 = the DEM's own posts, 1/2 = twice as fine).
     pixel_error: draw a block with fewer posts (:func:`decimated_grid`) where that moves its
     surface by at most this many pixels on screen (:func:`block_strides`); None: every post.
+    polar_window_m, polar_horizon_m: the reference mesh drawn instead near a pole (the window and
+    horizon ring of terrain_mesh.TerrainMeshLayer; POLAR_MESH_HYSTERESIS says where).
     """
 
     def __init__(self, ctx, terrain, origin: LocalOrigin, *, levels: int = 7, n: int = 127,
                  budget: int = 100_000, finest_spacing_factor: float = 1.0, geoid_undulation_m: float = 0.0,
                  lattice=None, focus_lat_lon=None, insets=(), land_classes: bool = False,
-                 pixel_error: float | None = None):
+                 pixel_error: float | None = None, polar_window_m: float = DEFAULT_WINDOW_M,
+                 polar_horizon_m: float = DEFAULT_HORIZON_M):
         e = math.log2(finest_spacing_factor) if finest_spacing_factor > 0 else math.nan
         if not (math.isfinite(e) and e == round(e) and -8 <= e <= 8):
             raise InvalidArgument("finest_spacing_factor", "must be a power of two in [1/256, 256]",
@@ -1470,6 +1485,16 @@ class ClipmapLayer:
         self.ctx = ctx
         self.terrain = terrain
         self.origin = origin
+        # The polar fallback, made when first needed; its arguments checked now.
+        self._polar_args = dict(window_m=polar_window_m, horizon_m=polar_horizon_m,
+                                geoid_undulation_m=geoid_undulation_m)
+        if not (0 < polar_window_m <= 1_000_000 and (polar_horizon_m == 0 or polar_window_m < polar_horizon_m
+                                                     <= 2_000_000)):
+            raise InvalidArgument("polar_window_m", "must be in (0, 1000 km], and polar_horizon_m 0 or in "
+                                                    "(polar_window_m, 2000 km] (TerrainMeshLayer's window_m, horizon_m)",
+                                  value=(polar_window_m, polar_horizon_m))
+        self.polar_mesh: TerrainMeshLayer | None = None
+        self.polar = False  # drawing the polar mesh this frame
         self._finest_factor = finest_spacing_factor
         self._lattice = lattice
         self._args = (levels, n, budget, geoid_undulation_m)
@@ -1584,19 +1609,43 @@ class ClipmapLayer:
     def fog_range_m(self) -> float:
         """Half the coarsest level's extent, less two posts, along its shorter side: a level
         is n x n posts of the lattice, so east-west it spans cos(latitude) of its north-south
-        metres, and at high latitudes the terrain would end inside the fog there."""
+        metres, and at high latitudes the terrain would end inside the fog there (the polar
+        mesh's own where it is drawn)."""
+        if self.polar:
+            return self.polar_mesh.fog_range_m
         if self.clipmap is None:
             return 1e5
+        return self.reach_m(self._focus[0])
+
+    def reach_m(self, lat: float) -> float:
+        """The clipmap's fog range (:attr:`fog_range_m`) with its focus at latitude ``lat``."""
         k = len(self.clipmap.levels) - 1
-        dlat, dlon = self.clipmap.spacing_deg(k)
-        lat = self._focus[0]
-        east_m = math.radians(dlon) * 6_371_000.0 * math.cos(math.radians(min(abs(lat), 89.999)))
-        return (0.5 * (self.clipmap.n - 1) - 2.0) * min(self.clipmap.spacing_m(k), east_m)
+        return (0.5 * (self.clipmap.n - 1) - 2.0) * min(self.clipmap.spacing_m(k), self._east_spacing_m(k, lat))
+
+    def _east_spacing_m(self, k: int, lat: float) -> float:
+        """Level k's east-west post spacing at latitude ``lat``, metres (the mean Earth radius: for sizes)."""
+        return (math.radians(self.clipmap.spacing_deg(k)[1]) * 6_371_000.0
+                * math.cos(math.radians(min(abs(lat), 89.999))))
+
+    def _is_polar(self, lat: float) -> bool:
+        """Whether to draw the polar mesh with the focus at ``lat`` (POLAR_ASPECT, POLAR_MESH_HYSTERESIS)."""
+        k = len(self.clipmap.levels) - 1
+        aspect = self._east_spacing_m(k, lat) / self.clipmap.spacing_m(k)
+        reach, polar_reach = self.reach_m(lat), self._polar_reach_m()
+        slack = POLAR_MESH_HYSTERESIS if self.polar else 1.0
+        return aspect < slack * POLAR_ASPECT and reach < slack * polar_reach
+
+    def _polar_reach_m(self) -> float:
+        """How far the polar mesh reaches (TerrainMeshLayer.fog_range_m), without building it."""
+        window, horizon = self._polar_args["window_m"], self._polar_args["horizon_m"]
+        return (horizon if horizon > 0 else window) - REBUILD_FRACTION * window
 
     @property
     def solid_bounds(self) -> tuple | None:
         """The coarsest level's region, in (lat_min, lat_max, lon_min, lon_max): the clipmap covers
-        it (no-data posts draw as water at sea level)."""
+        it (no-data posts draw as water at sea level); the polar mesh's where it is drawn."""
+        if self.polar:
+            return self.polar_mesh.solid_bounds
         if self.clipmap is None or not self.clipmap.levels[-1].valid:
             return None
         c = self.clipmap
@@ -1612,6 +1661,13 @@ class ClipmapLayer:
             self._setup(lat, lon)
         flat, flon = self.focus_lat_lon if self.focus_lat_lon is not None else (lat, lon)
         self._focus = (flat, flon)
+        self.polar = self._is_polar(flat)
+        if self.polar:  # the clipmap keeps its levels, to catch up from when it is drawn again
+            if self.polar_mesh is None:
+                self.polar_mesh = TerrainMeshLayer(self.ctx, self.terrain, self.origin, **self._polar_args)
+            self.polar_mesh.update(camera)
+            self.update_ms = (time.perf_counter() - t0) * 1e3
+            return
         first = not any(lv.valid for lv in self.clipmap.levels)
         for u in self.clipmap.update(flat, flon, unlimited=first):
             self._upload(u)
@@ -1620,8 +1676,8 @@ class ClipmapLayer:
 
     @property
     def samples(self) -> int:
-        """Terrain samples taken by the last update."""
-        return 0 if self.clipmap is None else self.clipmap.stats.samples
+        """Terrain samples taken by the last update (none by the polar mesh's)."""
+        return 0 if self.clipmap is None or self.polar else self.clipmap.stats.samples
 
     @property
     def levels_active(self) -> int:
@@ -1644,8 +1700,10 @@ class ClipmapLayer:
         """At least the height MSL of the surface drawn at (lat, lon), for the renderer's near plane
         (renderer.Renderer): the highest corner of the cell holding it in the finest level that
         does, and in the next coarser (a morph moves the finer surface towards it), since every
-        point drawn there is a convex combination of those posts. NaN before the first update or
-        where no level holds it."""
+        point drawn there is a convex combination of those posts (the polar mesh's cell where it
+        is drawn). NaN before the first update or where no level holds it."""
+        if self.polar:
+            return self.polar_mesh.ground_height_msl(lat, lon)
         c = self.clipmap
         if c is None:
             return math.nan
@@ -1665,6 +1723,81 @@ class ClipmapLayer:
                 break
         return top
 
+    def surface_height_msl(self, lat: float, lon: float) -> float:
+        """The height MSL of the surface drawn at (lat, lon), as the vertex shader places it: the
+        finest drawn level holding it (:meth:`drawn_level_regions`), on its cell's triangle there
+        (terrain_mesh.cell_corner_weights: not the bilinear surface, which the triangles part
+        from by up to a quarter of the cell's twist), each corner morphed towards the coarser
+        level by its alpha (:meth:`vertex_alpha`). A block drawn decimated parts from this by at
+        most its pixel_error at the block's distance (block_strides), a small fraction of the
+        height of a camera over it (pixel_error / focal length in pixels: 0.0024 at the profiles'
+        2 px, 60 degrees across 960 px); the renderer keeps the camera clear of this surface. NaN
+        before the first update or where no drawn level holds it."""
+        if self.polar:
+            return self.polar_mesh.surface_height_msl(lat, lon)
+        c = self.clipmap
+        if c is None:
+            return math.nan
+        regions = self.drawn_level_regions()
+        for k in sorted(regions):
+            r = regions[k]
+            fi, fj = c.focus_index(k, lat, lon)
+            i, j = math.floor(fi), math.floor(fj)
+            if not (r.i0 <= i and i + 1 <= r.i1 and r.j0 <= j and j + 1 <= r.j1):
+                continue
+            coarse = c.levels[k + 1] if k + 1 in regions else None
+            weights = cell_corner_weights(fi - i, fj - j)
+            corners = ((i, j), (i, j + 1), (i + 1, j + 1), (i + 1, j))  # SW, SE, NE, NW
+            return float(sum(w * self._vertex_height(k, r, coarse, g) for w, g in zip(weights, corners) if w > 0))
+        return math.nan
+
+    def _vertex_height(self, k: int, region: Rect, coarse, g: tuple[int, int]) -> float:
+        """The vertex shader's height MSL (``surface``) of level k's post g = (i, j) drawn in region."""
+        c = self.clipmap
+        i, j = g
+        h = float(c.levels[k].texel[i % c.n, j % c.n, 3])
+        if coarse is None:
+            return h
+        oi, oj = i & 1, j & 1
+        ci, cj = (i - oi) // 2, (j - oj) // 2
+        posts = [(ci + a, cj + b) for a in range(1 + oi) for b in range(1 + oj)]
+        hc = float(np.mean([coarse.texel[a % c.n, b % c.n, 3] for a, b in posts]))
+        alpha = self.vertex_alpha(k, region, g)
+        return hc if alpha >= 1.0 else h + alpha * (hc - h)
+
+    def vertex_alpha(self, k: int, region: Rect, g: tuple[int, int]) -> float:
+        """The vertex shader's morph alpha of level k's post g = (i, j) drawn in region (with the
+        coarser level): alpha_b from the viewer's distance (the drawn border's, for a lagging
+        level) plus alpha_h (:meth:`level_uniforms` gives the shader the same numbers)."""
+        c = self.clipmap
+        fi, fj = c.focus_index(k, *self._focus)
+        w, half = max(MORPH_WIDTH_FRACTION * c.n, 1.0), (c.n - 1) / 2.0 - 1.0
+        gi, gj = g[0] - region.i0, g[1] - region.j0
+        d = min(gi, gj, region.i1 - region.i0 - gi, region.j1 - region.j0 - gj)
+        if c.levels[k].region != clip_region(*active_origin(fi, fj, c.n), c.n):  # lagging
+            a_b = min(max((w + 1.0 - d) / w, 0.0), 1.0)
+        elif d <= 0:
+            a_b = 1.0
+        else:
+            dv = max(abs(gi - (fi - region.i0)), abs(gj - (fj - region.j0)))
+            a_b = min(max((dv - (half - w)) / w, 0.0), 1.0)
+        return min(max(a_b + self.level_alpha_h(k), 0.0), 1.0)
+
+    def drawn_level_regions(self) -> dict[int, Rect]:
+        """The levels drawn this frame and their regions (posts): every valid level the viewer's
+        height leaves visible (height_alpha < 1; the coarsest always), cropped inside the coarser
+        (clipmap.drawn_regions)."""
+        c = self.clipmap
+        top = len(c.levels) - 1
+        drawn = [lv.k for lv in c.levels if lv.valid and
+                 (lv.k == top or height_alpha(self._height_above_ground, c.extent_m(lv.k)) < 1.0)]
+        return drawn_regions(c, drawn, margin_cells=math.ceil(max(MORPH_WIDTH_FRACTION * c.n, 1.0)) + 2)
+
+    def level_alpha_h(self, k: int) -> float:
+        """Level k's fade by the viewer's height (0 for the coarsest, always drawn)."""
+        c = self.clipmap
+        return 0.0 if k == len(c.levels) - 1 else height_alpha(self._height_above_ground, c.extent_m(k))
+
     def _upload(self, u) -> None:
         level = self.clipmap.levels[u.k]
         tex, nmap = self._tex[u.k]
@@ -1678,10 +1811,7 @@ class ClipmapLayer:
     def plan(self, frame: Frame) -> list[LevelDraw]:
         """What to draw this frame: levels (coarse to fine; drawn in reverse), their regions, alpha_h, visible blocks."""
         c = self.clipmap
-        top = len(c.levels) - 1
-        drawn = [lv.k for lv in c.levels if lv.valid and
-                 (lv.k == top or height_alpha(self._height_above_ground, c.extent_m(lv.k)) < 1.0)]
-        regions = drawn_regions(c, drawn, margin_cells=math.ceil(max(MORPH_WIDTH_FRACTION * c.n, 1.0)) + 2)
+        regions = self.drawn_level_regions()
         view_proj = frame.projection @ frame.view
         out = []
         for k in sorted(regions, reverse=True):
@@ -1737,7 +1867,7 @@ class ClipmapLayer:
             _, lo, hi, _ = bounds
             seen = visible_blocks(lo, hi, view_proj)
             cells = int(((blk[seen, 2] - blk[seen, 0]) * (blk[seen, 3] - blk[seen, 1])).sum())
-            alpha_h = 0.0 if k == top else height_alpha(self._height_above_ground, c.extent_m(k))
+            alpha_h = self.level_alpha_h(k)
             strides = morph = variants = None
             triangles = 2 * cells
             border = None  # draw(): every border segment
@@ -1824,6 +1954,11 @@ class ClipmapLayer:
 
         if self.clipmap is None:
             return
+        if self.polar:
+            self.draws = []
+            self.polar_mesh.draw(frame)
+            self.triangles, self.vertices = self.polar_mesh.triangles, self.polar_mesh.vertices
+            return
         t0 = time.perf_counter()
         self.draws = self.plan(frame)
         self.plan_ms = (time.perf_counter() - t0) * 1e3
@@ -1891,6 +2026,8 @@ class ClipmapLayer:
         check_gl_error(self.ctx, "clipmap draw")
 
     def release(self) -> None:
+        if self.polar_mesh is not None:
+            self.polar_mesh.release()
         self._detail.release()
         for t, nm in self._tex:
             t.release()

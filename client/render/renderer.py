@@ -7,7 +7,9 @@
 A frame, in draw order (reversed-Z float depth, client/render/gl.py):
 
 1. **terrain layer** (``TerrainLayer``: ``update(camera)``, ``draw(frame)``,
-   ``fog_range_m``, ``triangles``, ``vertices``, ``release()``): by default the
+   ``fog_range_m``, ``triangles``, ``vertices``, ``release()``; ``surface_height_msl``
+   and ``ground_height_msl`` where it has them: the eye is kept over the first,
+   :meth:`Renderer.above_drawn_ground`, the near plane clear of the second): by default the
    full-resolution mesh of client/render/terrain_mesh.py; issue #5's geometry
    clipmap plugs in through ``terrain_layer_factory``;
 2. **sea shell**: sea level (MSL 0 = ellipsoid height N, SEA_SHELL_BELOW_M
@@ -60,6 +62,9 @@ SEA_SHELL_MIN_M = 20.0
 SEA_SHELL_MIN_REACH_M = 1000.0
 SEA_SHELL_REBUILD_FRACTION = 0.05
 HORIZON_MARGIN = 1.5  # the shell is built out to this many times the geometric horizon distance
+# The least height of the eye over the terrain surface drawn under it (Renderer.render lifts it
+# there): docs/RENDERING.md's "no see-through from 5 cm up", now of the drawn triangles.
+EYE_CLEARANCE_M = 0.05
 
 
 class TerrainLayer(Protocol):
@@ -83,7 +88,8 @@ class FrameStats:
     updates (mesh rebuilds, uploads) within it; triangles and vertices submitted; entities_drawn; rebased:
     the local origin moved this frame; mesh_rebuilds: the terrain layer's rebuilds so far;
     terrain_samples: terrain samples the layer took this frame (a clipmap's updates); levels_active:
-    the clipmap levels drawn (0 for the mesh)."""
+    the clipmap levels drawn (0 for the mesh); eye_lift_m: how far the eye was raised to stand
+    EYE_CLEARANCE_M over the terrain surface drawn under it (0 where it stood higher)."""
 
     frame_ms: float = 0.0
     update_ms: float = 0.0
@@ -94,6 +100,7 @@ class FrameStats:
     mesh_rebuilds: int = 0
     terrain_samples: int = 0
     levels_active: int = 0
+    eye_lift_m: float = 0.0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -358,8 +365,11 @@ class Renderer:
             # edge is far, it is seen from above, and haze is a low layer: the fog thins with the
             # camera's height h over that range, as 1 / (1 + (h / range)^2) (under 0.4 % at a
             # twentieth of it; none to speak of from orbit, where fog hid the whole Earth).
+            # (h / range) squared by multiplication: inf, hence no fog, for a huge h, where ** raises
+            # OverflowError.
             edge = self.terrain_layer.fog_range_m
-            fog_density = fog_density_per_m(edge) / (1.0 + (max(float(alt), 0.0) / edge) ** 2)
+            ratio = max(float(alt), 0.0) / edge
+            fog_density = fog_density_per_m(edge) / (1.0 + ratio * ratio)
         return Frame(camera=camera, origin=o, width=self.width, height=self.height, view=camera.view_matrix(o),
                      projection=camera.projection(self.width, self.height),
                      camera_local=o.to_local(camera.position_ecef),
@@ -378,6 +388,7 @@ class Renderer:
             rebased = self.origin.rebase_if_far(camera.position_ecef)
             if self.terrain_layer is not None:
                 self.terrain_layer.update(camera)  # (where its levels or mesh lie: not the near plane)
+            camera, lift = self.above_drawn_ground(camera)
             near = near_plane_m(camera, self.width, self.height, self.height_above_ground_m(camera))
             if near != camera.near_m:
                 camera = dataclasses.replace(camera, near_m=near)
@@ -411,13 +422,35 @@ class Renderer:
                                 entities_drawn=self.entity_layer.drawn, rebased=rebased,
                                 mesh_rebuilds=getattr(self.terrain_layer, "rebuilds", 0),
                                 terrain_samples=getattr(self.terrain_layer, "samples", 0),
-                                levels_active=getattr(self.terrain_layer, "levels_active", 0))
+                                levels_active=getattr(self.terrain_layer, "levels_active", 0), eye_lift_m=lift)
         return image
+
+    def above_drawn_ground(self, camera: Camera) -> tuple[Camera, float]:
+        """(camera, lift m): the camera, raised along the vertical to EYE_CLEARANCE_M over the
+        terrain layer's surface drawn under it (``surface_height_msl``) where it is lower. That
+        surface is the cells' triangles, not the terrain's bilinear surface that queries answer and
+        vehicles sit on: a cell split along one diagonal stands above the bilinear surface by up
+        to a quarter of its twist (h_SW + h_NE - h_SE - h_NW) / 4 (terrain_mesh.cell_corner_weights),
+        60 m in a cell of the Alps tile, so an eye a few metres over the terrain could be under
+        the triangles, which face away from it: the frame showed the world from below, sky where
+        the ground is. Raised, the eye sees that surface from above, as the camera over the
+        bilinear one would see the ground. (Insets are drawn as their own triangles, not counted
+        here; the near plane allows for them.)"""
+        surface_of = getattr(self.terrain_layer, "surface_height_msl", None)
+        if surface_of is None:
+            return camera, 0.0
+        lat, lon, h = camera.geodetic()
+        surface = float(surface_of(lat, lon))
+        lift = surface + EYE_CLEARANCE_M - (h - self.geoid_undulation_m)
+        if not (lift > 0.0):  # (NaN: no surface drawn there)
+            return camera, 0.0
+        up = enu_basis(lat, lon)[2]
+        return dataclasses.replace(camera, position_ecef=camera.position_ecef + lift * up), lift
 
     def height_above_ground_m(self, camera: Camera) -> float:
         """The camera's height above the highest surface drawn under it (metres; negative
         below it), for the near plane (camera.near_plane_m): each layer's ``ground_height_msl``
-        (the clipmap's and the insets': the highest post of the cell under the camera), else, or
+        (the clipmap's, the mesh's and the insets': the highest post of the cell under the camera), else, or
         where the layer holds no post there, the terrain's height there; where nothing has data,
         sea level (the sea shell and no-data posts are drawn at 0 m MSL, the shell a metre lower)."""
         lat, lon, h = camera.geodetic()

@@ -180,6 +180,32 @@ def grid_triangles(valid: np.ndarray, skip_cells: np.ndarray | None = None) -> n
     return np.concatenate([np.stack([sw, se, ne], axis=-1), np.stack([sw, ne, nw], axis=-1)])
 
 
+def cell_corner_weights(fy: float, fx: float) -> tuple[float, float, float, float]:
+    """Weights of a cell's corners (SW, SE, NE, NW) at the point a fraction fy north and fx east
+    across it, on the triangles the cell is drawn as: SW-SE-NE where fx >= fy, else SW-NE-NW
+    (:func:`grid_triangles`, and the clipmap's block_grid, split every cell along that diagonal).
+    Not the bilinear surface: the triangles part from it by up to a quarter of the cell's twist,
+    |h_SW + h_NE - h_SE - h_NW| / 4, at its centre, above it where the twist is positive."""
+    if fx >= fy:
+        return 1.0 - fx, fx - fy, fy, 0.0
+    return 1.0 - fy, 0.0, fx, fy - fx
+
+
+def grid_surface_height(heights_m: np.ndarray, fi: float, fj: float, top: bool = False) -> float:
+    """The height of the surface :func:`grid_triangles` draws over a grid of post heights
+    ((ny, nx), metres, rows northwards) at the fractional grid index (fi row, fj column): its
+    cell's triangle there (:func:`cell_corner_weights`); with ``top``, the cell's highest
+    corner, which no point drawn in the cell rises above. NaN outside the grid or on a hole."""
+    ny, nx = heights_m.shape
+    i, j = min(math.floor(fi), ny - 2), min(math.floor(fj), nx - 2)
+    if not (0 <= i and 0 <= j and fi <= ny - 1 and fj <= nx - 1):
+        return math.nan
+    corners = heights_m[(i, i, i + 1, i + 1), (j, j + 1, j + 1, j)]  # SW, SE, NE, NW
+    if top:
+        return float(corners.max())
+    return float(np.dot(cell_corner_weights(fi - i, fj - j), corners))
+
+
 def stitch_edges(points_ecef: np.ndarray, heights_m: np.ndarray, every: int) -> None:
     """Move the boundary posts of a (ny, nx, 3) grid that fall between every ``every``-th post
     onto the straight line (ECEF) between those two, in place; heights (ny, nx) likewise. The
@@ -220,6 +246,8 @@ class MeshData:
     stride: tuple
     bounds: tuple
     solid_bounds: tuple | None
+    window_corner: tuple = (math.nan, math.nan)  # (lat, lon) degrees of the window's first post (row 0, column 0)
+    window_spacing_deg: tuple = (math.nan, math.nan)  # (dlat, dlon) between the window's posts
 
 
 def posts_across(lattice: Lattice, lat: float, half_m: float) -> tuple[float, float]:
@@ -286,7 +314,8 @@ def build_mesh(terrain, lattice: Lattice, lat: float, lon: float, *, window_m: f
                     lats[1].shape if ring else (0, 0), (si, sj),
                     (float(lattice.lat(outer_i[0])), float(lattice.lat(outer_i[-1])),
                      float(lattice.lon(outer_j[0])), float(lattice.lon(outer_j[-1]))),
-                    _solid_bounds(lattice, outer_i, outer_j, np.concatenate(hole_i), np.concatenate(hole_j)))
+                    _solid_bounds(lattice, outer_i, outer_j, np.concatenate(hole_i), np.concatenate(hole_j)),
+                    (float(lattice.lat(fi0)), float(lattice.lon(fj0))), (lattice.dlat * si, lattice.dlon * sj))
 
 
 def _solid_bounds(lattice: Lattice, outer_i: np.ndarray, outer_j: np.ndarray, hole_i: np.ndarray,
@@ -482,6 +511,25 @@ class TerrainMeshLayer:
     def solid_bounds(self) -> tuple | None:
         """(lat_min, lat_max, lon_min, lon_max) where the mesh surely covers the ground, or None."""
         return None if self.mesh is None else self.mesh.solid_bounds
+
+    def surface_height_msl(self, lat: float, lon: float, top: bool = False) -> float:
+        """The height MSL of the surface the mesh draws at (lat, lon): the window's triangle there
+        (:func:`grid_surface_height`), which is not the terrain's bilinear surface (the renderer
+        keeps the camera above this one); with ``top``, the highest corner of its cell. NaN
+        outside the window (the camera never is: the mesh is rebuilt round it first) or on a hole."""
+        m = self.mesh
+        if m is None:
+            return math.nan
+        (lat0, lon0), (dlat, dlon) = m.window_corner, m.window_spacing_deg
+        rows, cols = m.window_shape
+        heights = m.height_msl_m[:rows * cols].reshape(rows, cols)
+        return grid_surface_height(heights, (lat - lat0) / dlat, ((lon - lon0) % 360.0) / dlon, top)
+
+    def ground_height_msl(self, lat: float, lon: float) -> float:
+        """At least the height MSL of the surface drawn at (lat, lon), for the renderer's near plane:
+        the highest corner of the window's cell holding it (every point drawn in the cell is a
+        convex combination of its corners). NaN where :meth:`surface_height_msl` is."""
+        return self.surface_height_msl(lat, lon, top=True)
 
     @property
     def triangles(self) -> int:
