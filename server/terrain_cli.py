@@ -133,8 +133,9 @@ def add_terrain_args(parser: argparse.ArgumentParser) -> None:
 
 
 def serve_command(args) -> int:
-    from server.terrain_service import create_server
+    from server.terrain_service import create_server, file_stat
 
+    stats = [file_stat(p) for p in args.dem] if args.dem else None  # before reading: what is served
     terrain = build_terrain(args.dem, args.procedural, args.store)
     if args.insets:
         from server.scenario import load_scenario
@@ -144,7 +145,7 @@ def serve_command(args) -> int:
         terrain = with_insets(terrain, areas, INSET_SEED)
         line(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", logger=__name__)
     server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers,
-                                 dem_paths=args.dem)  # SortieError naming the system's reason when it cannot listen
+                                 dem_paths=args.dem, dem_stats=stats)  # SortieError naming the system's reason when it cannot listen
     metrics = None
     if args.metrics_port is not None:
         from server.metrics import MetricsServer, terrain_metrics

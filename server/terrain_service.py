@@ -24,6 +24,7 @@ import os
 import threading
 import time
 from concurrent import futures
+from pathlib import Path
 
 import grpc
 import numpy as np
@@ -142,13 +143,66 @@ def received_status(status: np.ndarray, n: int) -> np.ndarray:
     return status
 
 
-def _identity(path) -> dict:
-    """file_identity, or the path alone (no hash) for a file gone since the service read it."""
+def file_stat(path) -> tuple | None:
+    """(size, mtime_ns, inode, device) of a file, None where it cannot be read: what tells a
+    file's bytes changed (a rewrite, a replacement by rename) without reading them. Taken before
+    a service's DEMs are read, it is what :class:`DemIdentities` checks their hashes against."""
     try:
-        return file_identity(path)
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev
+
+
+def _identity(path, loaded: tuple | None) -> dict:
+    """file_identity of a DEM file the service read, whose :func:`file_stat` was ``loaded`` when
+    it started; the path alone (and its size then) where the file is gone or was changed since
+    (its hash now would name bytes the service never served: a mismatch, said in the log)."""
+    try:
+        ident = file_identity(path)
     except (OSError, SortieError) as exc:
         logger.warning("DEM file %s: %s; named without its hash", path, exc)
-        return {"path": str(path)}
+        ident = None
+    now = file_stat(path)
+    if ident is not None and loaded is not None and now == loaded:
+        return ident
+    if ident is not None:
+        logger.warning("DEM file %s changed since the service read it (size, modification time or inode "
+                       "%s -> %s): its SHA-256 now is not that of the terrain served; named without it",
+                       path, loaded, now)
+    bare = {"path": str(Path(path).resolve())}
+    if loaded is not None:
+        bare["size_bytes"] = loaded[0]
+    return bare
+
+
+class DemIdentities:
+    """The identities (path, size, SHA-256) of the DEM files a service read, as GetMetadata names
+    them: each file's :func:`file_stat` (size, modification time, inode) as it was read
+    (``loaded``: taken before reading, by the caller; None: taken now, the service starting right
+    after reading them), and its bytes hashed in a background thread from then on, so start-up
+    does not wait for a large DEM set to be hashed and the hash is of the bytes read, not of
+    whatever the path holds when a client first asks. A file that changed between its stat and its
+    hashing is named without a hash, and the log says so (:func:`_identity`)."""
+
+    def __init__(self, paths, loaded=None):
+        self._paths = list(paths)
+        self._loaded = [file_stat(p) for p in self._paths] if loaded is None else list(loaded)
+        if len(self._loaded) != len(self._paths):
+            raise ValueError(f"{len(self._loaded)} file stats for {len(self._paths)} DEM files")
+        self._identities: list[dict] = []
+        self._thread = threading.Thread(target=self._hash, name="terrain-dem-hash", daemon=True)
+        if self._paths:
+            self._thread.start()
+
+    def _hash(self) -> None:
+        self._identities = [_identity(p, st) for p, st in zip(self._paths, self._loaded)]
+
+    def get(self) -> list[dict]:
+        """The identities, once hashed (waits for the background thread)."""
+        if self._paths:
+            self._thread.join()
+        return self._identities
 
 
 class TerrainServicer:
@@ -161,17 +215,17 @@ class TerrainServicer:
     streaming pass costs far less than missing on them point by point.
     """
 
-    def __init__(self, terrain, dem_paths=()):
+    def __init__(self, terrain, dem_paths=(), dem_stats=None):
         self.terrain = terrain
-        self._dem_paths = list(dem_paths)
+        self._dem_files = DemIdentities(dem_paths, dem_stats)  # hashed in the background from now on
         self._metadata = None
         self._metadata_lock = threading.Lock()
 
     def GetMetadata(self, request: pb.GetMetadataRequest) -> pb.GetMetadataResponse:
-        # Built at the first call, not at start: hashing a large DEM set takes seconds.
+        # Built at the first call, with the hashes taken from start-up on (DemIdentities).
         with self._metadata_lock:
             if self._metadata is None:
-                self._metadata = metadata_message(self.terrain, [_identity(p) for p in self._dem_paths])
+                self._metadata = metadata_message(self.terrain, self._dem_files.get())
             return self._metadata
 
     def GetHeights(self, request: dict) -> dict:
@@ -487,10 +541,11 @@ def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None) -
 
 
 def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFAULT_MAX_WORKERS,
-                  dem_paths=()) -> tuple[ManagedServer, int]:
+                  dem_paths=(), dem_stats=None) -> tuple[ManagedServer, int]:
     """A terrain server bound to ``address`` ("host:port", port 0 for any free one);
     ``dem_paths``, the DEM files ``terrain`` was read from, are named with their SHA-256
-    in GetMetadata (a recording over the service keeps them).
+    in GetMetadata (a recording over the service keeps them), hashed from start-up on and checked
+    against ``dem_stats`` (their :func:`file_stat` before they were read; None: taken now).
 
     Returns the server, not yet started (call ``start()``), and the bound port;
     ``server.stats`` (grpc_common.CallStats) counts its calls.
@@ -503,7 +558,8 @@ def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFA
         maximum_concurrent_rpcs=ADMITTED_CALLS_PER_WORKER * max_workers,
     )
     stats = CallStats()
-    server.add_registered_method_handlers(SERVICE_NAME, method_handlers(TerrainServicer(terrain, dem_paths), stats))
+    server.add_registered_method_handlers(SERVICE_NAME,
+                                          method_handlers(TerrainServicer(terrain, dem_paths, dem_stats), stats))
     managed = ManagedServer(server, (SERVICE_NAME,))
     managed.stats = stats
     try:

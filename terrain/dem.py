@@ -141,7 +141,33 @@ GEOGRAPHIC_AS_WGS84 = {4326: ("WGS 84", 0.0, None), 4979: ("WGS 84 (3D)", 0.0, N
 # EPSG:3857 and its deprecated alias EPSG:3785. The older unofficial code
 # 900913 exceeds 65535, so it cannot appear in a SHORT GeoKey value.
 EPSG_WEB_MERCATOR = (3857, 3785)
-VERTICAL_DATUMS_EPSG = {5773: "EGM96 geoid (EPSG:5773)", 3855: "EGM2008 geoid (EPSG:3855)"}
+# VerticalCSTypeGeoKey (4096; VerticalGeoKey in OGC 19-008r4 7.4.5) codes read as heights above mean
+# sea level: gravity-related heights, whose reference surface is the geoid or a tide-gauge mean sea
+# level (within a metre or two of it). EPSG vertical CRSs with an up axis in metres (checked against
+# the EPSG registry in PROJ's proj.db: CRS type "Vertical CRS", axis up, unit metre), and GeoTIFF
+# 1.0's orthometric codes (section 6.3.4.1, VertCS_Newlyn .. VertCS_Baltic_Sea; their unit is
+# VerticalUnitsGeoKey's). Not among them, so refused: ellipsoidal heights (GeoTIFF 1.0's
+# VertCS_*_ellipsoid 5001-5033, geographic 3D CRSs such as EPSG:4979), which differ from sea
+# level by the geoid undulation (-107 m to +86 m for EGM2008); depths (EPSG:5715 MSL depth, axis
+# down); the Caspian Sea's level (GeoTIFF 5106, EPSG:5611; about 28 m below the ocean's); CRSs in
+# feet (EPSG:5702, 6360, 8228: their unit would be read as metres without VerticalUnitsGeoKey).
+# 32767 (user-defined) and no key at all stay "as supplied" (VERTICAL_DATUM_DEFAULT).
+VERTICAL_DATUMS_EPSG = {5773: "EGM96 geoid (EPSG:5773)", 3855: "EGM2008 geoid (EPSG:3855)",
+                        5798: "EGM84 geoid (EPSG:5798)", 5714: "mean sea level (EPSG:5714)",
+                        5703: "NAVD88 (EPSG:5703)", 5701: "Ordnance Datum Newlyn (EPSG:5701)",
+                        5711: "Australian Height Datum (EPSG:5711)", 5705: "Baltic 1977 (EPSG:5705)",
+                        5709: "Normaal Amsterdams Peil (EPSG:5709)", 5783: "DHHN92 (EPSG:5783)",
+                        7837: "DHHN2016 (EPSG:7837)", 5941: "NN2000 (EPSG:5941)",
+                        5713: "CGVD28 (EPSG:5713)", 6647: "CGVD2013 (EPSG:6647)",
+                        5101: "Newlyn (GeoTIFF VertCS 5101)", 5102: "NGVD 1929 (GeoTIFF VertCS 5102)",
+                        5103: "NAVD 1988 (GeoTIFF VertCS 5103)", 5104: "Yellow Sea 1956 (GeoTIFF VertCS 5104)",
+                        5105: "Baltic Sea (GeoTIFF VertCS 5105)"}
+VERTICAL_CS_USER_DEFINED = 32767
+# GeoTIFF 1.0 section 6.3.4.1: VertCS_Airy_1830_ellipsoid (5001) .. VertCS_OSU91A_ellipsoid (5033).
+VERTICAL_CS_ELLIPSOID_CODES = range(5001, 5034)
+# Geographic 3D CRSs (EPSG, PROJ's proj.db type "Geographic 3D CRS") a file may give as its vertical
+# system: WGS 84, ETRS89, NZGD2000, NAD83(2011), ITRF2014. Their third axis is the ellipsoidal height.
+GEOGRAPHIC_3D_CODES = (4979, 4937, 4959, 6319, 7912)
 
 RAW_SUFFIXES = (".raw", ".r16")
 # read_raw16's georeference: a raw file cannot be read without it.
@@ -532,8 +558,28 @@ def read_geotiff(path) -> Raster:
     if (scale, offset, to_m) != (1.0, 0.0, 1.0):  # stored values -> metres (GDAL's unscaling, then units)
         data = (data.astype(np.float64) * scale + offset) * to_m
         meta.update(scale=scale, offset=offset, vertical_units=unit_name)
-    datum = VERTICAL_DATUMS_EPSG.get(keys.get(KEY_VERTICAL_CS_TYPE), VERTICAL_DATUM_DEFAULT)
+    datum = _vertical_datum(path, keys)
     return _finish(path, data, voids, _make_georef(path, crs, x0, y0, abs(sx), abs(sy)), datum, meta)
+
+
+def _vertical_datum(path: Path, keys: dict) -> str:
+    """The heights' vertical datum from VerticalCSTypeGeoKey (4096): a mean-sea-level type one of
+    VERTICAL_DATUMS_EPSG by name; none, or 32767 (user-defined), "as supplied". Any other code is
+    refused naming the key and the code: ellipsoidal heights (5001-5033, a geographic 3D CRS such as
+    4979) are tens of metres off sea level, and an unknown system cannot be read as it."""
+    code = keys.get(KEY_VERTICAL_CS_TYPE)
+    if code is None or code == VERTICAL_CS_USER_DEFINED:
+        return VERTICAL_DATUM_DEFAULT
+    if code in VERTICAL_DATUMS_EPSG:
+        return VERTICAL_DATUMS_EPSG[code]
+    what = ("ellipsoidal heights (GeoTIFF VertCS_*_ellipsoid), not mean sea level"
+            if isinstance(code, int) and code in VERTICAL_CS_ELLIPSOID_CODES else
+            "ellipsoidal heights (a geographic 3D CRS), not mean sea level" if code in GEOGRAPHIC_3D_CODES
+            else "not a mean-sea-level vertical CRS this reader knows")
+    raise DataFormatError(f"{path}: VerticalCSTypeGeoKey ({KEY_VERTICAL_CS_TYPE}) = {code!r}: {what}; heights "
+                          "are read as metres above mean sea level: convert them with the geoid (e.g. "
+                          "EGM96/EGM2008), or declare 32767 (user-defined) to take them as supplied; read are "
+                          + ", ".join(str(c) for c in VERTICAL_DATUMS_EPSG))
 
 
 def _model_units(path: Path, crs: int, keys: dict) -> float:

@@ -258,6 +258,25 @@ def _bilinear_at_index(heights, rows, cols):
     return south * (1.0 - fy) + north * fy
 
 
+def _filled_at_index(filled, rows, cols):
+    """(n,) bool: whether the bilinear height at each fractional index (rows, cols: (n,) float64,
+    inside the grid) of a raster whose filled-void posts are ``filled`` ((ny, nx) uint8) reads a
+    filled post with non-zero weight: the status its heights give there is FILLED
+    (terrain.raster._bilinear_value, same cell and corner rule). As the filled mask of a densified
+    lattice (:meth:`DetailedRaster._dense`), it gives every point of a fine cell the status the
+    source's heights give it: a fine cell lies in one coarse cell, its four corners together read
+    every corner of that cell (as a point inside it does), and the fine posts on the coarse cell's
+    edge read only that edge's two corners (as a point on it does)."""
+    ny, nx = filled.shape
+    i = np.minimum(np.floor(rows), ny - 2).astype(np.intp)
+    j = np.minimum(np.floor(cols), nx - 2).astype(np.intp)
+    fy, fx = rows - i, cols - j
+    # terrain.raster._weighted_corners: a corner of zero weight is replaced by its neighbour.
+    i0, i1 = np.where(fy == 1.0, i + 1, i), np.where(fy == 0.0, i, i + 1)
+    j0, j1 = np.where(fx == 1.0, j + 1, j), np.where(fx == 0.0, j, j + 1)
+    return (filled[i0, j0] | filled[i0, j1] | filled[i1, j0] | filled[i1, j1]).astype(bool)
+
+
 def _aligned_offset(origin: float, spacing: float) -> int:
     q = origin / spacing
     return int(round(q)) if abs(q - round(q)) < ALIGNMENT_TOLERANCE_POSTS else 0
@@ -424,10 +443,12 @@ class DetailedRaster:
         weight, _ = sea_taper(base, self.sea_level_m, self.sea_taper_m)
         dense = base + weight * self.detail_at_index(rows, cols, level)[0]
         omitted = float(np.sqrt(np.sum(self.level_std_m[level:] ** 2)))
-        return Raster(dense.reshape(i1 - i0 + 1, j1 - j0 + 1),
+        shape = (i1 - i0 + 1, j1 - j0 + 1)
+        filled = None if self.raster.filled is None else _filled_at_index(self.raster.filled, rows, cols).reshape(shape)
+        return Raster(dense.reshape(shape),
                       Georef(g.crs, g.x0 + j0 * g.dx / scale, g.y0 + i0 * g.dy / scale, g.dx / scale, g.dy / scale),
-                      name=self.name, vertical_datum=self.raster.vertical_datum, source=self.raster.source,
-                      meta={"detail_levels": level, "omitted_detail_std_m": omitted})
+                      name=self.name, vertical_datum=self.raster.vertical_datum, filled=filled,
+                      source=self.raster.source, meta={"detail_levels": level, "omitted_detail_std_m": omitted})
 
     def describe(self) -> dict:
         """The raster's description with kind "dem+detail" and the synthesis parameters."""

@@ -49,7 +49,10 @@ Endpoints
 the surface, from a itself (a below the ground hits at distance 0).
 :func:`line_of_sight` ignores contacts within ``ENDPOINT_TOLERANCE_M`` (1 mm,
 straight-line distance) of either endpoint, so a point on the ground can see
-and be seen; a touch elsewhere (clearance exactly 0) blocks.
+and be seen; a touch elsewhere (clearance exactly 0) blocks. A segment no
+longer than twice that has no interior left: it is a point, visible unless it
+lies more than ENDPOINT_TOLERANCE_M under the surface (as a longer segment from
+a buried end is blocked).
 
 Coverage
 --------
@@ -690,9 +693,27 @@ def _both_ways(trace, a, b):
         blocked = ~np.isnan(s_back)
         s[out[blocked]] = 1.0 - s_back[blocked]
         status[out[blocked]] = status_back[blocked]
-    # A segment no longer than twice the tolerance has no interior left to block it.
-    visible = (np.isnan(s) | (length <= 2.0 * ENDPOINT_TOLERANCE_M)) & (status != STATUS_OUTSIDE)
+    # A segment no longer than twice the tolerance has no interior left to block it: it is a point,
+    # which sees unless it lies more than the tolerance under the surface (as a longer segment
+    # from it is blocked within the tolerance of that end; one on the ground, rounding either way,
+    # still sees). Its middle raised by the tolerance, traced as a point, meets the surface iff so.
+    short = length <= 2.0 * ENDPOINT_TOLERANCE_M
+    visible = (np.isnan(s) | short) & (status != STATUS_OUTSIDE)
+    idx = np.flatnonzero(short & visible)
+    if idx.size:
+        q = _raised(0.5 * (a[idx] + b[idx]), ENDPOINT_TOLERANCE_M)
+        s_q, _ = trace(q, q.copy(), np.zeros(idx.size), np.zeros(idx.size))
+        visible[idx[~np.isnan(s_q)]] = False
     return visible, status
+
+
+def _raised(p_ecef: np.ndarray, up_m: float) -> np.ndarray:
+    """(n, 3) ECEF points p_ecef ((n, 3) metres) moved up_m metres along their ellipsoid normal
+    (geodetic up: (cos lat cos lon, cos lat sin lon, sin lat)), so their height grows by up_m."""
+    lat, lon, _ = ecef_to_geodetic(p_ecef)
+    phi, lam = np.radians(lat), np.radians(lon)
+    up = np.stack([np.cos(phi) * np.cos(lam), np.cos(phi) * np.sin(lam), np.sin(phi)], axis=-1)
+    return p_ecef + up_m * up
 
 
 def dense_los_reference(raster: Raster, a_lat, a_lon, a_h, b_lat, b_lon, b_h, samples_per_post: int = 16):

@@ -63,6 +63,14 @@ SHELL_MARGIN_M = 1.0
 # diagonal at the default spacing). Its new blocks are held to terrain.procedural.MAX_NEW_BLOCKS_PER_CALL,
 # as a heights query's are. See RayBudget.
 RAY_MAX_POSTS_PER_CALL = 1 << 25
+# The fixed cost of one ray raster of a synthetic source, in posts of raster (the ~100 ns a post of
+# RAY_MAX_POSTS_PER_CALL's measure): about 0.4 ms whatever its size (measured for a 1 km segment's
+# raster over the procedural world, its blocks cached: ray_box 0.14 ms, box_cost 0.06 ms,
+# raster_for 0.05 ms, pyramid and trace 0.1 ms). A group of segments is split where its raster
+# would hold more posts than its segments' own boxes plus this for each further raster
+# (terrain.terrain._sparse), and RayBudget counts it for every raster made, so splitting cannot
+# hide work from the budget.
+RAY_RASTER_OVERHEAD_POSTS = 4096
 # Segments traced on one raster between two checks of a RayBudget's ``check`` (the caller's deadline):
 # 4096 rays of 10 km over a DEM take a few milliseconds.
 RAY_CHUNK = 4096
@@ -126,7 +134,8 @@ class RayBudget:
     about the parts it is traced in; shared posts counted once) over every source with
     ``boxes_cost`` (the procedural world); a call over ``max_posts`` or ``max_new_blocks`` there is
     refused at once. While tracing (:meth:`charge`): every raster such a source makes for the call
-    (``box_cost``, before it is made) adds its posts and new blocks, and the call is refused
+    (``box_cost``, before it is made) adds its posts (plus RAY_RASTER_OVERHEAD_POSTS, its fixed
+    cost, so many small rasters count as the work they are) and new blocks, and the call is refused
     (LimitExceeded) at the raster that would pass either limit, however it was split (groups,
     parts): the new-block limit is per call, not per raster. ``check``: None, or a callable called
     between chunks of work (before each raster a source makes, between chunks of RAY_CHUNK
@@ -210,7 +219,7 @@ class RayBudget:
         if got is None:
             return
         self._ring = self._ring or (box[3] - box[1]) % 360.0 == 0.0 and box[3] > box[1]
-        self.posts += got[0]
+        self.posts += got[0] + RAY_RASTER_OVERHEAD_POSTS  # a raster's fixed cost counted too
         self.new_blocks += got[1]
         self._over(self.posts, self.new_blocks, source, "made for the call's segments so far")
 
@@ -705,7 +714,11 @@ class Terrain:
         (:func:`ray_box`; None where it has none), and when it cannot serve that box (it raises
         LimitExceeded: more posts than its limit) the segments are split in two (at the widest gap
         between their middles along the box's longer side when that holds most of the box, else
-        at the median) until each group's box is served; a lone segment's box that is not is the
+        at the median) until each group's box is served; a source on a lattice of known spacing
+        (``spacing_deg``: the procedural world) also has a group split where its box holds more
+        posts than its segments' own boxes and a raster's fixed cost for each would
+        (:func:`_sparse`: segments scattered far apart get rasters of about the posts they need,
+        not one over the whole expanse between them); a lone segment's box that is not served is the
         source's own answer (``raster_for``: a store's region holding most of it, a procedural
         world's LimitExceeded). Groups are yielded one at a time (their rasters freed once
         traced). Indices come out relative to ``base`` (None: as given). With ``parted`` (a list),
@@ -719,10 +732,15 @@ class Terrain:
             yield (source if isinstance(source, Raster) else None), _relative(idx, base)
             return
         strict = getattr(source, "ray_raster_for", source.raster_for)
+        spacing = _lattice_spacing_deg(source)
+        own = None if spacing is None else _own_posts(rays, idx, spacing)  # over rays, at idx
         pending = [idx]
         while pending:
             grp = pending.pop()
             box = ray_box(rays, a, b, grp)
+            if own is not None and grp.size > 1 and _sparse(box, own[grp], spacing):
+                pending.extend(_split(rays, grp)[::-1])
+                continue
             if budget is not None:
                 budget.charge(source, box)
             try:
@@ -800,11 +818,49 @@ def _slopes_into(raster, a, b, s, idx, dcol, drow, out_de, out_dn) -> None:
     out_dn[sel] = drow[hit] / m_row
 
 
+def _lattice_spacing_deg(source) -> float | None:
+    """The spacing (degrees, both ways) of the lattice a source makes ray rasters on, where it
+    says (``spacing_deg``: the procedural world); None for others (their groups are split only
+    when a box is refused)."""
+    sp = getattr(source, "spacing_deg", None)
+    return float(sp) if isinstance(sp, (int, float)) and not isinstance(sp, bool) and sp > 0.0 else None
+
+
+def _box_posts(d_lat, d_lon, spacing_deg: float):
+    """Posts of a lattice of ``spacing_deg`` in a box d_lat x d_lon degrees (arrays or numbers): the
+    rows and columns it spans, plus one each way for the cells it cuts at either end."""
+    return (d_lat / spacing_deg + 2.0) * (d_lon / spacing_deg + 2.0)
+
+
+def _own_posts(rays, idx, spacing_deg: float) -> np.ndarray:
+    """(n,) float64 over the n segments of ``rays``, set at idx (0 elsewhere): about how many lattice
+    posts each segment's own box holds (its ends' span of latitude and, the short way, of
+    longitude; without the pads and a chord's poleward reach, which only make a group look
+    sparser than it is)."""
+    a_lat, a_lon, _, b_lat, b_lon, _ = rays
+    out = np.zeros(a_lat.size)
+    d_lon = np.abs((b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0)
+    out[idx] = _box_posts(np.abs(b_lat[idx] - a_lat[idx]), d_lon, spacing_deg)
+    return out
+
+
+def _sparse(box, own_posts: np.ndarray, spacing_deg: float) -> bool:
+    """Whether a group of segments is better split than given one raster for ``box`` (ray_box):
+    when its box holds more posts than its segments' own boxes together plus the fixed cost of a
+    raster for each but one (RAY_RASTER_OVERHEAD_POSTS): what one raster each would cost at most.
+    Segments scattered far apart (200 under 1 km over 6 degrees: a box of 76 M posts, 6,500 posts
+    of their own) come apart, each group's raster holding about the posts its rays need; a batch
+    over one area (a fan of rays from one observer, a convoy's sight lines) keeps its one raster."""
+    lat_min, lon_min, lat_max, lon_max = box
+    posts = _box_posts(lat_max - lat_min, lon_max - lon_min, spacing_deg)
+    return posts > float(own_posts.sum()) + (own_posts.size - 1) * RAY_RASTER_OVERHEAD_POSTS
+
+
 def _split(rays, idx) -> tuple[np.ndarray, np.ndarray]:
     """Two groups of the segments idx, apart along the longer side of their box (degrees of
     latitude or of longitude, unrolled as :func:`ray_box` does): at the widest gap between the
     segments' middles when it holds a quarter of their spread or more (batches over far-apart
-    places come apart as they are), else at the median."""
+    places come apart as they are), else (and where the middles are all alike) at the median."""
     a_lat, a_lon, _, b_lat, b_lon, _ = rays
     a_near = a_lon[idx[0]] + (a_lon[idx] - a_lon[idx[0]] + 180.0) % 360.0 - 180.0
     mid_lon = a_near + 0.5 * ((b_lon[idx] - a_lon[idx] + 180.0) % 360.0 - 180.0)
@@ -813,8 +869,8 @@ def _split(rays, idx) -> tuple[np.ndarray, np.ndarray]:
     order = np.argsort(key, kind="stable")
     gaps = np.diff(key[order])
     cut = int(np.argmax(gaps)) + 1
-    if not gaps[cut - 1] >= 0.25 * np.ptp(key):
-        cut = idx.size // 2
+    if not gaps[cut - 1] > 0.0 or not gaps[cut - 1] >= 0.25 * np.ptp(key):
+        cut = idx.size // 2  # (middles all alike: halves, not one segment peeled off at a time)
     return np.sort(idx[order[:cut]]), np.sort(idx[order[cut:]])
 
 

@@ -73,23 +73,6 @@ def test_a_costly_batch_is_refused_over_the_service():
         server.stop(0)
 
 
-def test_the_block_cap_is_per_call_not_per_raster():
-    """Four 100 m rays at the corners of a 1.5-degree square: each one's own box touches a block or
-    a few (the estimate passes a cap of 40), but the batch's one raster would generate about 80; the
-    budget refuses that raster before it is made. Before, only each raster was held to the cap, so
-    a call split into groups or parts could generate any number of blocks."""
-    world = ProceduralTerrain(1)
-    lat = np.array([10.0, 10.0, 11.5, 11.5])
-    lon = np.array([20.0, 21.5, 20.0, 21.5])
-    h = np.full(4, 3000.0)
-    with pytest.raises(LimitExceeded, match=r"segments \(new procedural blocks\): \d+ exceeds the limit of 40 "
-                                            r"\(made for the call's segments so far"):
-        Terrain([world]).line_of_sight(lat, lon, h, lat + 0.0009, lon, h, budget=RayBudget(max_new_blocks=40))
-    assert world.blocks_generated == 0
-    got = Terrain([world]).line_of_sight(lat, lon, h, lat + 0.0009, lon, h)  # the default cap: answered
-    assert got.visible.shape == (4,)
-
-
 def test_every_part_of_a_long_segment_is_counted():
     """A segment too long for one raster is traced in parts, each with its own raster: the budget
     counts every one (its new blocks are the blocks generated), and the estimate made before any
