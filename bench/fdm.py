@@ -43,9 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import Report
+from bench.harness import Report, data_file
 
-REPO = Path(__file__).resolve().parents[1]
 ALPS_DEM = "N47E009.hgt"
 # Northbound across the tile (the DEM spans 47-48 N): a fresh aircraft for each
 # measurement stays over real terrain for all of it (~65 km).
@@ -57,10 +56,7 @@ DT_REFERENCE_HZ = 1000
 
 
 def alps_dem_path() -> Path:
-    for base in (REPO.parent / "shared" / "data" / "dem", REPO / "data" / "dem"):
-        if (base / ALPS_DEM).exists():
-            return base / ALPS_DEM
-    raise FileNotFoundError(f"{ALPS_DEM} is in neither ../shared/data/dem nor data/dem")
+    return data_file("dem", ALPS_DEM)
 
 
 def alps_terrain():

@@ -40,11 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import Report
+from bench.harness import Report, data_file
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DEM = REPO.parent / "shared" / "data" / "dem"
-EMBEDDED_DEM = REPO / "data" / "dem"
 GROUND_DEM = "N47E009.hgt"
 GROUND_VEHICLES = 10_000
 GROUND_RATE_HZ = 20.0
@@ -54,10 +51,7 @@ BOX = (47.05, 9.05, 47.95, 9.95)
 
 
 def ground_dem_path() -> Path:
-    for base in (SHARED_DEM, EMBEDDED_DEM):
-        if (base / GROUND_DEM).exists():
-            return base / GROUND_DEM
-    raise FileNotFoundError(f"{GROUND_DEM} is in neither {SHARED_DEM} nor {EMBEDDED_DEM}")
+    return data_file("dem", GROUND_DEM)
 
 
 def fleet(terrain, n: int, seed: int = 7):

@@ -1,12 +1,45 @@
-"""What every benchmark suite shares: timing, the report, its table and JSON."""
+"""What every benchmark suite shares: its data files, timing, the report, its table and JSON."""
 
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]  # the checkout; site-packages in an installed copy
+DATA_DIR_ENV = "SORTIE_DATA_DIR"  # a folder laid out as data/ (dem/, scenarios/, ...), searched first
+IMAGE_DATA_DIR = Path("/opt/sortie/data")  # where the Dockerfile copies data/
+
+
+def data_dirs() -> list[Path]:
+    """The folders the benchmarks' data files are looked for in, in order: $SORTIE_DATA_DIR,
+    ../shared/data beside the checkout (the larger shared set), the checkout's data/, and the
+    Docker image's /opt/sortie/data (an installed copy has no checkout around it)."""
+    env = os.environ.get(DATA_DIR_ENV)
+    return ([Path(env)] if env else []) + [REPO.parent / "shared" / "data", REPO / "data", IMAGE_DATA_DIR]
+
+
+def data_file(folder: str, name: str) -> Path:
+    """``folder/name`` (e.g. "dem", "N47E009.hgt") from the first of :func:`data_dirs` holding
+    it; a NotFound naming the file and every folder searched when none does."""
+    return data_files(folder, [name])[0]
+
+
+def data_files(folder: str, names) -> list[Path]:
+    """Those of ``names`` found in ``folder`` of any of :func:`data_dirs` (each from the first
+    holding it), in the order of ``names``; a NotFound naming the folders searched when none is."""
+    from sortie.errors import NotFound
+
+    dirs = [d / folder for d in data_dirs()]
+    found = [next((d / n for d in dirs if (d / n).is_file()), None) for n in names]
+    found = [p for p in found if p is not None]
+    if not found:
+        raise NotFound(f"benchmark data {', '.join(names)}: in none of {', '.join(map(str, dirs))} "
+                       f"(set {DATA_DIR_ENV} to a folder holding {folder}/)")
+    return found
 
 
 @dataclass

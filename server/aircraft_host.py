@@ -58,10 +58,13 @@ own aircraft: the tick reports their ids in ``lost`` and the others go on.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import multiprocessing
 import os
+import signal
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -301,14 +304,24 @@ _REQUESTS = frozenset({"spawn_many", "controls", "pilot_kind", "tick", "close"})
 
 
 def _worker_main(conn, terrain_factory, dt: float, geoid_undulation_m: float, nice: int = 0) -> None:
-    """A worker: a LocalAircraftHost answering (commands, request) messages until closed."""
+    """A worker: a LocalAircraftHost answering (commands, request) messages until closed.
+
+    It leaves SIGINT to the server: a Ctrl-C in a terminal goes to the whole process group,
+    and the server, stopping cleanly, closes its workers (a KeyboardInterrupt here printed a
+    traceback and lost the worker's aircraft before the server's last tick). A parent gone
+    (killed, or stopped while this worker started) ends it quietly: its pipe is broken, so
+    nothing can be answered (a BrokenPipeError traceback before)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         if nice:
             os.nice(nice)
         host = LocalAircraftHost(terrain_factory(), dt, geoid_undulation_m)
         conn.send(("ok", os.getpid()))
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
-        conn.send(("err", _portable(exc)))
+        try:
+            conn.send(("err", _portable(exc)))
+        except OSError:  # the parent has gone
+            pass
         return
     while True:
         try:
@@ -335,7 +348,10 @@ def _worker_main(conn, terrain_factory, dt: float, geoid_undulation_m: float, ni
                 reply = ("ok", getattr(host, name)(*args, **kwargs))
         except BaseException as exc:  # noqa: BLE001 - the parent raises it as the caller's error
             reply = ("err", _portable(exc))
-        conn.send(reply)
+        try:
+            conn.send(reply)
+        except OSError:
+            return  # the parent has gone
 
 
 def _portable(exc: BaseException) -> BaseException:
@@ -349,13 +365,32 @@ def _portable(exc: BaseException) -> BaseException:
         return SortieError(f"{type(exc).__name__}: {exc}")
 
 
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while in the block, on the main thread (the only one that may set a
+    handler; elsewhere nothing changes): a process started in it inherits the ignored
+    disposition, which Python keeps ("SIGINT is translated into a KeyboardInterrupt
+    exception if the parent process has not changed it",
+    https://docs.python.org/3/library/signal.html), so a Ctrl-C while a worker imports
+    interrupts nothing there. A SIGINT to this process inside the block (a few ms) is lost."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
+
+
 class _Worker:
     def __init__(self, ctx, index: int, terrain_factory, dt: float, geoid_undulation_m: float, nice: int):
         self.index = index
         self.conn, child = ctx.Pipe()
         self.process = ctx.Process(target=_worker_main, args=(child, terrain_factory, dt, geoid_undulation_m, nice),
                                    name=f"sortie-aircraft-{index}", daemon=True)
-        self.process.start()
+        with _sigint_ignored():  # from its first instruction, while it imports (see _worker_main)
+            self.process.start()
         child.close()
         self.commands: list = []
         self.ids: set[int] = set()

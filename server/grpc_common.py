@@ -550,3 +550,20 @@ class AioManagedServer:
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.blocking.shutdown(wait=False, cancel_futures=True)
         self._stopped.set()
+
+
+HOST_HELP = "interface to listen on, a name or an address (an IPv6 literal with or without brackets)"
+
+
+def bare_host(host: str) -> str:
+    """``host`` without the brackets of an IPv6 literal ("[::1]" -> "::1"): what sockets,
+    getaddrinfo and HTTP servers take."""
+    return host[1:-1] if host.startswith("[") and host.endswith("]") else host
+
+
+def listen_address(host: str, port: int) -> str:
+    """The HOST:PORT a gRPC server binds: an IPv6 literal in brackets ("::1" or "[::1]" ->
+    "[::1]:50051"), as gRPC's address syntax (and RFC 3986 section 3.2.2) has it, where
+    "::1:50051" would not say where the address ends and the port begins."""
+    host = bare_host(host)
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"

@@ -7,14 +7,18 @@ thread; every scrape calls the service's ``collect()`` for fresh values, so
 nothing is computed between scrapes. Counters end in ``_total`` and only grow
 (rates are the scraper's business: ``rate(sortie_watch_bytes_total[1m])`` is
 the bytes/s the Watch streams send); gauges are values now; tick durations are
-a summary of the last :data:`TICK_WINDOW` ticks. Names and meanings are listed
-in docs/DEPLOYMENT.md.
+a summary whose quantiles cover the last :data:`TICK_WINDOW` ticks and whose
+``_sum`` and ``_count`` every tick since the start (a summary's ``_sum`` and
+``_count`` are counters to Prometheus, which reads a drop as a restart:
+https://prometheus.io/docs/concepts/metric_types/#summary). Names and meanings
+are listed in docs/DEPLOYMENT.md.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -73,21 +77,27 @@ def exposition(metrics: list[Metric]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def summary(name: str, help_text: str, values, quantiles=(0.5, 0.9, 0.99)) -> Metric:
-    """A summary metric of ``values`` (quantiles, _sum, _count)."""
-    a = np.asarray(values, float)
+def summary(name: str, help_text: str, window, count: int, total: float,
+            quantiles=(0.5, 0.9, 0.99)) -> Metric:
+    """A summary metric: quantiles of the recent observations ``window`` (NaN when empty), and
+    ``count`` observations totalling ``total`` since the start as _count and _sum (running
+    totals, never a window's: Prometheus treats them as counters)."""
+    a = np.asarray(window, float)
     m = Metric(name, "summary", help_text)
     for q in quantiles:
         m.add(float(np.quantile(a, q)) if a.size else math.nan, quantile=q)
-    m.add(float(a.sum()), __suffix="_sum")
-    m.add(float(a.size), __suffix="_count")
+    m.add(total, __suffix="_sum")
+    m.add(count, __suffix="_count")
     return m
 
 
 class MetricsServer:
     """``GET /metrics`` on ``host:port`` (port 0: any free one, see :attr:`port`) answered with
     ``exposition(collect())``; other paths are 404. A collect() that fails answers 500
-    and is logged; the service it describes carries on."""
+    and is logged; the service it describes carries on. ``host`` is a name or an address
+    as sockets take it (an IPv6 literal without brackets: the server binds the family
+    ``host`` resolves to, IPv6 included); :attr:`address` is HOST:PORT for a URL
+    (an IPv6 literal in brackets, RFC 3986 section 3.2.2)."""
 
     def __init__(self, collect, host: str = "127.0.0.1", port: int = 0):
         self.collect = collect
@@ -113,13 +123,16 @@ class MetricsServer:
             def log_message(self, fmt, *args):  # scrapes are not news
                 logger.debug("metrics: " + fmt, *args)
 
+        authority = f"[{host}]" if ":" in host else host
         try:
-            self.httpd = ThreadingHTTPServer((host, port), Handler)
+            family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0][0]
+            server_class = type("MetricsHTTPServer", (ThreadingHTTPServer,), {"address_family": family})
+            self.httpd = server_class((host, port), Handler)
         except OSError as exc:
-            raise SortieError(f"cannot serve metrics on {host}:{port}: {exc.strerror or exc}") from None
+            raise SortieError(f"cannot serve metrics on {authority}:{port}: {exc.strerror or exc}") from None
         self.httpd.daemon_threads = True
         self.port = self.httpd.server_address[1]
-        self.address = f"{host}:{self.port}"
+        self.address = f"{authority}:{self.port}"
         self._thread = threading.Thread(target=self.httpd.serve_forever, name="metrics", daemon=True)
 
     def start(self) -> MetricsServer:
@@ -142,11 +155,13 @@ def simulation_metrics(server) -> list[Metric]:
     for (owner, kind), n in sorted(kinds.items()):
         entities.add(n, kind=kind, owner=owner)
     sessions = server.sessions
+    ticks, tick_ms_total = server.tick_totals
     out = [
         Metric("sortie_world_time_seconds", "gauge", "World time (s since the exercise start)").add(world.time_s),
         Metric("sortie_world_ticks_total", "counter", "World ticks run").add(world.tick_count),
-        summary("sortie_tick_duration_milliseconds", f"Wall time of a tick and its publish, last {TICK_WINDOW} ticks",
-                server.tick_ms[-TICK_WINDOW:]),
+        summary("sortie_tick_duration_milliseconds",
+                f"Wall time of a tick and its publish (quantiles: last {TICK_WINDOW} ticks; sum, count: all)",
+                server.tick_ms[-TICK_WINDOW:], ticks, tick_ms_total),
         Metric("sortie_tick_overruns_total", "counter", "Ticks that started late by more than a tick").add(
             server.overruns),
         entities,

@@ -17,6 +17,8 @@ import math
 import sys
 from collections import Counter
 
+from server.grpc_common import DEFAULT_GRACE_S, HOST_HELP, listen_address
+from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.logs import line
 
 
@@ -57,7 +59,10 @@ def add_parser(sub) -> None:
                    help="with --take-over: stop after S world seconds live (default: at the exercise's end, the "
                         "later of the scenario's duration_s and the recording's end; none: until stopped)")
     r.add_argument("--port", type=int, default=0, help="with --take-over: TCP port (0: a free one)")
-    r.add_argument("--host", default="127.0.0.1", help="with --take-over: interface (default %(default)s)")
+    r.add_argument("--host", default="127.0.0.1", help=f"with --take-over: {HOST_HELP} (default %(default)s)")
+    r.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
+                   help=f"with --take-over: seconds in-flight calls get on shutdown, 0-{MAX_GRACE_S:g} "
+                        "(default %(default)s)")
     from server.sim_cli import add_recording_options
 
     add_recording_options(r, only="with --take-over: ")  # a take-over is a sortie: recorded as `sortie server`'s
@@ -248,7 +253,7 @@ def take_over_command(args, workers: int) -> int:
     config = server_config(scenario, "take-over:" + str(args.file))
     config.clock = "realtime"
     try:
-        server = SimulationServer(world, config, f"{args.host}:{args.port}", before_tick=inputs.apply)
+        server = SimulationServer(world, config, listen_address(args.host, args.port), before_tick=inputs.apply)
     except BaseException:  # it cannot listen: nothing is left behind for `sortie replay` to pick
         world.close()
         if recorder is not None:
@@ -266,7 +271,7 @@ def take_over_command(args, workers: int) -> int:
             line(f"note: the others' recorded inputs are incomplete: {lost}", stream=sys.stderr,
                  level=logging.WARNING, logger=__name__)
         wait_for_signal(server.finished, stop=stop)
-    server.stop()
+    server.stop(args.grace_s)
     if recorder is not None:
         recorder.close()
     world.close()

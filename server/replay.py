@@ -41,12 +41,14 @@ import time
 import grpc
 import numpy as np
 
-from server.grpc_common import AioManagedServer, stop_signals, wait_for_signal
+from server.grpc_common import (DEFAULT_GRACE_S, HOST_HELP, AioManagedServer, listen_address, stop_signals,
+                                wait_for_signal)
 from server.recording import Recording
 from server.sim_service import (MAX_CONCURRENT_RPCS, SERVICE_NAME, Sessions, SimulationServicer, method_handlers,
                                 status_of)
 from server.streaming import Publisher
 from server.world import KIND_NAMES, STATIC, Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
+from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.errors import DataFormatError, InvalidArgument, PermissionDenied
 from sortie.logs import line
 from sortie.v1 import recording_pb2 as rpb
@@ -450,10 +452,12 @@ def add_parser(sub) -> None:
                                    "sortie.v1.ReplayService (play, pause, speed 0.1x-64x, seek, step).")
     p.add_argument("file", help="a .sortie recording")
     p.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
-    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
+    p.add_argument("--host", default="127.0.0.1", help=f"{HOST_HELP} (default %(default)s)")
     p.add_argument("--speed", type=float, default=1.0, help="times real time, 0.1-64 (default %(default)s)")
     p.add_argument("--paused", action="store_true", help="start paused")
     p.add_argument("--start", type=float, metavar="S", help="start at world time S")
+    p.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
+                   help=f"seconds in-flight calls get on shutdown, 0-{MAX_GRACE_S:g} (default %(default)s)")
     p.set_defaults(func=replay_command)
 
 
@@ -462,14 +466,14 @@ def replay_command(args) -> int:
     replay is not served)."""
     if args.start is not None and math.isnan(args.start):
         raise InvalidArgument("--start", "must be a number of seconds", value=args.start)
-    server = ReplayServer(args.file, f"{args.host}:{args.port}", args.speed, not args.paused, args.start)
+    server = ReplayServer(args.file, listen_address(args.host, args.port), args.speed, not args.paused, args.start)
     with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
         server.start()
         r = server.rec
         line(f"sortie replay of {r.path.name} ({r.first_time_s:.1f} .. {r.last_time_s:.1f} s, {len(r.entities)} "
              f"entities) listening on {server.address}", logger=__name__)
         wait_for_signal(server.finished, stop=stop)
-    server.stop()
+    server.stop(args.grace_s)
     if server.error is not None:
         line(f"sortie replay: error: the replay clock stopped: {server.error}", stream=sys.stderr,
              level=logging.ERROR, logger=__name__)

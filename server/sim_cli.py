@@ -27,7 +27,7 @@ import time
 import unicodedata
 from pathlib import Path
 
-from server.grpc_common import DEFAULT_GRACE_S, stop_signals, wait_for_signal
+from server.grpc_common import DEFAULT_GRACE_S, HOST_HELP, bare_host, listen_address, stop_signals, wait_for_signal
 from server.scenario import DURATION_MAX_S, TIME_SCALE_MAX
 from server.sim_server import CLOCKS
 from sortie.config import MAX_GRACE_S, grace_seconds
@@ -35,7 +35,6 @@ from sortie.errors import InvalidArgument
 from sortie.logs import line
 
 logger = logging.getLogger(__name__)
-
 
 def add_parser(sub) -> None:
     p = sub.add_parser("server", help="run the simulation server of a scenario",
@@ -48,7 +47,7 @@ def add_parser(sub) -> None:
     terrain.add_argument("--terrain", metavar="HOST:PORT[,HOST:PORT...]",
                          help="a terrain service (or replicas of one, round robin) instead of the scenario's terrain")
     p.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
-    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
+    p.add_argument("--host", default="127.0.0.1", help=f"{HOST_HELP} (default %(default)s)")
     p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")
     p.add_argument("--time-scale", type=float,
                    help=f"world seconds per wall second of the fast clock, (1, {TIME_SCALE_MAX:g}] "
@@ -272,60 +271,35 @@ def run_clock(clock: str, time_scale: float, clock_opt: str | None, time_scale_o
     return clock, time_scale
 
 
+class StoppedWhileStarting(Exception):
+    """SIGTERM/SIGINT came while the server was starting: the start was abandoned (exit 0)."""
+
+
 def server_command(args) -> int:
     """Start-up in an order that leaves nothing behind when it fails: every option checked, the
     scenario and its world built, the gRPC port and the metrics port bound, and only then the
-    recording made; a failure on the way closes what was opened and removes that recording."""
-    from server.recorder import recording_header
-    from server.scenario import load_scenario
-    from server.sim_server import (SimulationServer, aircraft_host, build_world, open_terrain, server_config,
-                                   terrain_spec)
+    recording made; a failure on the way closes what was opened and removes that recording.
 
-    workers = aircraft_workers(args.aircraft_workers)
-    check_run_options(args)
-    scenario = load_scenario(args.scenario)
-    clock = run_clock(scenario.exercise.clock, scenario.exercise.time_scale, args.clock, args.time_scale)
-    check_recording(args, scenario.exercise.name)  # before the world is built; again when it is, for the time
-    terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
-    world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, workers,
-                                                         args.aircraft_worker_nice))
-    server = metrics = recorder = path = None
-    made: list[Path] = []
-    metrics_started = False
-    try:
-        path = check_recording(args, scenario.exercise.name)
-        config = server_config(scenario, desc)
-        config.clock, config.time_scale = clock
-        if args.duration is not None:
-            config.duration_s = args.duration
-        server = SimulationServer(world, config, f"{args.host}:{args.port}")  # SortieError when it cannot listen
-        if args.metrics_port is not None:
-            from server.metrics import MetricsServer, simulation_metrics
-
-            metrics = MetricsServer(lambda: simulation_metrics(server), args.host, args.metrics_port)
-        if path is not None:
-            made = _missing_folders(path)
-            recorder = new_recording(path, lambda: recording_header(
-                args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain), terrain),
-                args.record_chunk_s, recording_option(args))
-            path = recorder.path  # a chosen name may have taken a suffix
-            server.recorder = recorder  # closed by server.stop()
-            world.attach_recorder(recorder)
-        if metrics is not None:
-            metrics.start()
-            metrics_started = True
-        server.start()
-    except BaseException:
-        _abandon_start(server, metrics, metrics_started, recorder, path, made, world)
-        raise
-    with stop_signals() as stop, clock_signals(server, config.clock):  # (grpc_common.stop_signals)
-        line(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
-             f"clock {config.clock})", logger=__name__)
-        if metrics is not None:
-            line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
-        if recorder is not None:
-            line(f"recording to {path}", logger=__name__)
-        wait_for_signal(server.finished, stop=stop)
+    SIGTERM/SIGINT are caught from the first step (grpc_common.stop_signals): one that comes
+    while the server starts (loading the terrain, starting the aircraft workers and trimming
+    the aircraft take seconds) abandons the start after the step under way, as a failure
+    would but exiting 0 with a line, where it killed the process (-15) and left its workers
+    to die on a broken pipe."""
+    with stop_signals() as stop:
+        try:
+            server, world, metrics, recorder, path = _start(args, stop)
+        except StoppedWhileStarting:
+            line("sortie server: stopped while starting (nothing served or recorded)", logger=__name__)
+            return 0
+        config = server.config
+        with clock_signals(server, config.clock):
+            line(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
+                 f"clock {config.clock})", logger=__name__)
+            if metrics is not None:
+                line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
+            if recorder is not None:
+                line(f"recording to {path}", logger=__name__)
+            wait_for_signal(server.finished, stop=stop)
     server.stop(args.grace_s)
     world.close()
     if metrics is not None:
@@ -343,15 +317,77 @@ def server_command(args) -> int:
     return 0
 
 
-def _abandon_start(server, metrics, metrics_started: bool, recorder, path, made, world) -> None:
-    """Undo a start that failed (see :func:`server_command`); errors on the way are logged, the
-    start-up error is the one reported."""
+def _start(args, stop):
+    """(server started, world, metrics server or None, recorder or None, its path) of
+    :func:`server_command`; StoppedWhileStarting, everything opened closed, when ``stop`` is
+    set after any step (before the recording is made, so a stopped start records nothing)."""
+    from server.recorder import recording_header
+    from server.scenario import load_scenario
+    from server.sim_server import (SimulationServer, aircraft_host, build_world, open_terrain, server_config,
+                                   terrain_spec)
+
+    def check_stop() -> None:
+        if stop.is_set():
+            raise StoppedWhileStarting
+
+    workers = aircraft_workers(args.aircraft_workers)
+    check_run_options(args)
+    scenario = load_scenario(args.scenario)
+    clock = run_clock(scenario.exercise.clock, scenario.exercise.time_scale, args.clock, args.time_scale)
+    check_recording(args, scenario.exercise.name)  # before the world is built; again when it is, for the time
+    check_stop()
+    terrain, desc, factory = open_terrain(scenario, args.dem, args.terrain)
+    host = world = server = metrics = recorder = path = None
+    made: list[Path] = []
+    metrics_started = False
+    try:
+        check_stop()
+        host = aircraft_host(scenario, terrain, factory, workers, args.aircraft_worker_nice)
+        check_stop()
+        world = build_world(scenario, terrain, host)
+        check_stop()
+        path = check_recording(args, scenario.exercise.name)
+        config = server_config(scenario, desc)
+        config.clock, config.time_scale = clock
+        if args.duration is not None:
+            config.duration_s = args.duration
+        server = SimulationServer(world, config, listen_address(args.host, args.port))  # SortieError: cannot listen
+        if args.metrics_port is not None:
+            from server.metrics import MetricsServer, simulation_metrics
+
+            metrics = MetricsServer(lambda: simulation_metrics(server), bare_host(args.host), args.metrics_port)
+        check_stop()
+        if path is not None:
+            made = _missing_folders(path)
+            recorder = new_recording(path, lambda: recording_header(
+                args.scenario, scenario, world, desc, terrain_spec(scenario, args.dem, args.terrain), terrain),
+                args.record_chunk_s, recording_option(args))
+            path = recorder.path  # a chosen name may have taken a suffix
+            server.recorder = recorder  # closed by server.stop()
+            world.attach_recorder(recorder)
+        if metrics is not None:
+            metrics.start()
+            metrics_started = True
+        server.start()
+    except BaseException:
+        _abandon_start(server, metrics, metrics_started, recorder, path, made, world, host)
+        raise
+    return server, world, metrics, recorder, path
+
+
+def _abandon_start(server, metrics, metrics_started: bool, recorder, path, made, world, host=None) -> None:
+    """Undo a start that failed or was stopped (see :func:`server_command`); errors on the way
+    are logged, the start-up error is the one reported. ``host``: the aircraft host, closed
+    with the world or alone when no world was built on it (its worker processes reaped)."""
     steps = []
     if metrics is not None:
         steps.append(metrics.stop if metrics_started else metrics.httpd.server_close)
     if server is not None:
         steps.append(lambda: server.grpc.stop(0).wait(10.0))
-    steps.append(world.close)
+    if world is not None:
+        steps.append(world.close)
+    elif host is not None:
+        steps.append(host.close)
     if recorder is not None:
         steps.append(recorder.close)
         steps.append(lambda: remove_recording(path, made))

@@ -182,6 +182,9 @@ class SimulationServer:
         self.sessions = Sessions(world, self.params_of, config.vanished_timeout_s)
         self.publisher = Publisher(DeadReckoner(), lambda i: self.params_of(i).thresholds)
         self.tick_ms: list[float] = []  # wall time of each tick + publish, for benchmarks
+        # (ticks, their milliseconds) since start: the metrics summary's _count and _sum, which
+        # Prometheus reads as counters; one tuple, so a scrape never sees one without the other
+        self.tick_totals: tuple[int, float] = (0, 0.0)
         self.overruns = 0
         self._clock = config.clock
         self._rate_marks: collections.deque = collections.deque()  # (wall monotonic, world time) samples
@@ -361,7 +364,10 @@ class SimulationServer:
                     self._publish(rate)
                     if network_tick:
                         next_net += net_dt
-                self.tick_ms.append((time.perf_counter() - t0) * 1e3)
+                tick_ms = (time.perf_counter() - t0) * 1e3
+                self.tick_ms.append(tick_ms)
+                ticks, total_ms = self.tick_totals
+                self.tick_totals = (ticks + 1, total_ms + tick_ms)
                 if len(self.tick_ms) > 100_000:
                     del self.tick_ms[:50_000]
                 now = time.monotonic()

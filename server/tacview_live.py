@@ -85,9 +85,9 @@ disconnects is dropped quietly.
 Threads: the SimClient's Watch and events streams run on their own threads;
 the TCP server and the frame clock on an asyncio loop in a thread of its own
 (:class:`TacviewTelemetry`), frames are built on one more thread so a large
-batch never holds the loop. ``sortie tacview`` stops on SIGTERM/SIGINT (or
-when the simulation server goes away), closing every client's socket and
-leaving the session.
+batch never holds the loop. ``sortie tacview`` stops on SIGTERM/SIGINT, or
+when the simulation server ends the exercise (exit 0, as ``sortie dis``) or goes
+away (exit 1), closing every client's socket and leaving the session.
 """
 
 from __future__ import annotations
@@ -99,6 +99,7 @@ import logging
 import math
 import re
 import socket
+import sys
 import threading
 import time
 import zlib
@@ -380,8 +381,9 @@ class TacviewTelemetry:
     (``port=0`` picks a free one); ``stop()`` closes every client and leaves. Counters:
     ``clients`` (streaming now), ``frames`` (frames sent), ``bytes_sent``, ``accepted``,
     ``rejected`` (bad handshakes), ``dropped_slow``; ``build_ms`` the time each frame took
-    to sample and build. ``finished`` is set when it stops or its simulation server goes
-    away.
+    to sample and build. ``finished`` is set when it stops or its simulation server ends
+    the exercise or goes away; ``error`` then says which: None for a clean end of the
+    server's streams (the exercise's end, a server stopped by SIGTERM), else the failure.
     """
 
     def __init__(self, server_address: str, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
@@ -411,6 +413,7 @@ class TacviewTelemetry:
         self.dropped_slow = 0
         self.build_ms: collections.deque = collections.deque(maxlen=10_000)
         self.finished = threading.Event()
+        self.error: Exception | None = None  # why the server's streams ended, when they failed
         self.world: pb.WorldInfo | None = None
         self._sim = None  # client.sim_client.SimClient
         self._picture = None
@@ -530,14 +533,16 @@ class TacviewTelemetry:
         self._infos = infos
 
     def _read_events(self) -> None:
+        """The events stream, until it ends: OK when the server ends the exercise (its streams
+        close, as sortie dis and sortie client read them), an error when it goes away."""
         try:
             for ev in self._sim.events():
                 self._events.append(ev)
         except SortieError as exc:
             if not self._stopping:
-                log.error("the simulation server's events stream failed: %s", exc)
+                self.error = exc
+                log.warning("the simulation server's events stream failed: %s", exc)
         if not self._stopping:
-            log.error("the simulation server at %s went away", self.server_address)
             self.finished.set()
 
     # -- frames (the loop, the build thread) ----------------------------------------------------
@@ -576,7 +581,8 @@ class TacviewTelemetry:
                     due = loop.time()
                 await asyncio.sleep(max(wait, 0.0))
                 if self._picture.error is not None:
-                    log.error("the simulation server's Watch stream failed: %s", self._picture.error)
+                    self.error = self.error or self._picture.error
+                    log.warning("the simulation server's Watch stream failed: %s", self._picture.error)
                     self.finished.set()
                     return
                 newcomers = list(self._newcomers)
@@ -601,8 +607,9 @@ class TacviewTelemetry:
                 self.clients = len(self._streaming)
         except asyncio.CancelledError:
             raise
-        except Exception:  # noqa: BLE001 - a broken frame clock must say why and stop the host
+        except Exception as exc:  # noqa: BLE001 - a broken frame clock must say why and stop the host
             log.exception("Tacview frames stopped by an error")
+            self.error = self.error or exc
             self.finished.set()
 
     def _send(self, c: _Client, data: bytes) -> None:
@@ -700,14 +707,17 @@ class TacviewTelemetry:
 # -- sortie tacview -------------------------------------------------------------------------------
 
 def add_parser(sub) -> None:
+    from server.grpc_common import HOST_HELP
+
     p = sub.add_parser("tacview", help="serve a live exercise to Tacview (real-time telemetry)",
                        description="Join a simulation server as a gateway and serve Tacview's real-time "
-                                   "telemetry protocol (ACMI 2.2 over TCP) until SIGTERM/SIGINT or the server "
-                                   "goes away; in Tacview: Record > Real-time telemetry, this address and port.")
+                                   "telemetry protocol (ACMI 2.2 over TCP) until SIGTERM/SIGINT, the server's end "
+                                   "of the exercise (exit 0) or the server going away (exit 1); in Tacview: "
+                                   "Record > Real-time telemetry, this address and port.")
     p.add_argument("--server", required=True, metavar="HOST:PORT", help="the simulation server")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port to listen on (default %(default)s; "
                                                                   "0 picks a free one)")
-    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
+    p.add_argument("--host", default="127.0.0.1", help=f"{HOST_HELP} (default %(default)s)")
     p.add_argument("--password", default="",
                    help="password Tacview clients must give (default none); SORTIE_TACVIEW_PASSWORD in the "
                         "environment keeps it out of the process list (sortie/config.py)")
@@ -722,20 +732,27 @@ def add_parser(sub) -> None:
 
 def tacview_command(args) -> int:
     from server.grpc_common import stop_signals, wait_for_signal
+    from server.grpc_common import bare_host, listen_address
 
-    telemetry = TacviewTelemetry(args.server, host=args.host, port=args.port, password=args.password,
+    telemetry = TacviewTelemetry(args.server, host=bare_host(args.host), port=args.port, password=args.password,
                                  rate_hz=args.rate_hz, name=args.name, geoid_undulation_m=args.geoid_undulation_m)
     with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
         port = telemetry.start()
-        line(f"sortie tacview: Tacview real-time telemetry on {args.host}:{port} for {args.server} "
+        line(f"sortie tacview: Tacview real-time telemetry on {listen_address(args.host, port)} for {args.server} "
              f"({telemetry.entities} entities, {telemetry.rate_hz:g} Hz"
              f"{', password set' if args.password else ''})", logger=__name__)
         try:
             wait_for_signal(telemetry.finished, stop=stop)
         finally:
-            lost = telemetry.finished.is_set()
+            ended = telemetry.finished.is_set()  # by the server, not by a signal
             telemetry.stop()
     s = telemetry.stats()
     line(f"sortie tacview stopped: {s['accepted']} clients served, {s['rejected']} refused, "
          f"{s['dropped_slow']} dropped as too slow, {s['frames']} frames, {s['bytes_sent']:,} bytes", logger=__name__)
-    return 1 if lost else 0
+    if ended and telemetry.error is not None:  # as sortie dis: 1 when the server went away
+        line(f"sortie tacview: the simulation server at {args.server} went away: {telemetry.error}",
+             stream=sys.stderr, level=logging.ERROR, logger=__name__)
+        return 1
+    if ended:
+        line(f"sortie tacview: the simulation server at {args.server} ended the exercise", logger=__name__)
+    return 0

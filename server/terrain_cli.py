@@ -70,6 +70,8 @@ def terrain_source(args):
 
 
 def add_parser(sub) -> None:
+    from server.grpc_common import HOST_HELP  # here, not at the top: aircraft workers import build_terrain alone
+
     terrain = sub.add_parser("terrain",
                              help="terrain query service and store: serve, info, query, import, texture, mesh",
                              description="Serve, describe or query the terrain query service.")
@@ -80,7 +82,7 @@ def add_parser(sub) -> None:
                                             "until SIGTERM or SIGINT; prints the bound address.")
     add_terrain_args(serve)
     serve.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
-    serve.add_argument("--host", default="127.0.0.1", help="interface to listen on (default %(default)s)")
+    serve.add_argument("--host", default="127.0.0.1", help=f"{HOST_HELP} (default %(default)s)")
     serve.add_argument("--max-workers", type=_positive_int, default=DEFAULT_MAX_WORKERS,
                        help="threads answering calls (default %(default)s)")
     serve.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
@@ -133,27 +135,34 @@ def add_terrain_args(parser: argparse.ArgumentParser) -> None:
 
 
 def serve_command(args) -> int:
+    """Serve until SIGTERM/SIGINT, caught from the start: one that comes while the terrain loads
+    (a store, insets: seconds) ends the start there and exits 0, as once serving."""
+    from server.grpc_common import bare_host, listen_address
     from server.terrain_service import create_server, file_stat
 
-    stats = [file_stat(p) for p in args.dem] if args.dem else None  # before reading: what is served
-    terrain = build_terrain(args.dem, args.procedural, args.store)
-    if args.insets:
-        from server.scenario import load_scenario
-        from terrain.inset import INSET_SEED, with_insets
-
-        areas = [a for path in args.insets for a in load_scenario(path).target_areas]
-        terrain = with_insets(terrain, areas, INSET_SEED)
-        line(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", logger=__name__)
-    server, port = create_server(terrain, f"{args.host}:{args.port}", max_workers=args.max_workers,
-                                 dem_paths=args.dem, dem_stats=stats)  # SortieError naming the system's reason when it cannot listen
-    metrics = None
-    if args.metrics_port is not None:
-        from server.metrics import MetricsServer, terrain_metrics
-
-        metrics = MetricsServer(lambda: terrain_metrics(server.stats), args.host, args.metrics_port).start()
     with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
+        stats = [file_stat(p) for p in args.dem] if args.dem else None  # before reading: what is served
+        terrain = build_terrain(args.dem, args.procedural, args.store)
+        if args.insets and not stop.is_set():
+            from server.scenario import load_scenario
+            from terrain.inset import INSET_SEED, with_insets
+
+            areas = [a for path in args.insets for a in load_scenario(path).target_areas]
+            terrain = with_insets(terrain, areas, INSET_SEED)
+            line(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", logger=__name__)
+        if stop.is_set():
+            line("sortie terrain service stopped while starting", logger=__name__)
+            return 0
+        server, port = create_server(terrain, listen_address(args.host, args.port), max_workers=args.max_workers,
+                                     dem_paths=args.dem, dem_stats=stats)  # SortieError naming the system's reason when it cannot listen
+        metrics = None
+        if args.metrics_port is not None:
+            from server.metrics import MetricsServer, terrain_metrics
+
+            metrics = MetricsServer(lambda: terrain_metrics(server.stats), bare_host(args.host),
+                                    args.metrics_port).start()
         server.start()
-        line(f"sortie terrain service listening on {args.host}:{port}", logger=__name__)
+        line(f"sortie terrain service listening on {listen_address(args.host, port)}", logger=__name__)
         if metrics is not None:
             line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
         server.serve_until_signalled(grace_s=args.grace_s, stop=stop)

@@ -150,6 +150,16 @@ def _source_of(parser, argv: list[str], exc: SortieError) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; its exit status. A Ctrl-C (SIGINT) at any point, while the command
+    modules import and the parser is built (the first second or so) as while the command runs,
+    exits 130 (128 + SIGINT, the shell's convention) without a traceback."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     argv = bind_negative_values(sys.argv[1:] if argv is None else list(argv))
     pre = _pre_parse(argv)
     status = FAILURE_STATUS.get(pre.command, 2)
@@ -182,8 +192,6 @@ def main(argv: list[str] | None = None) -> int:
         else:
             _error(f"sortie {args.command}: error: {exc}", json_logs)
         return status
-    except KeyboardInterrupt:
-        return 130
     except Exception:  # a bug: its traceback, as one JSON record in json logging
         if not json_logs:
             raise
