@@ -7,9 +7,14 @@
     sortie bot --server HOST:PORT [--count N] [--profile patrol|racetrack] [--leg-s S] [--duration S]
 
 A bot joins as ROLE_BOT (taking a free controllable agent), watches, and flies
-or drives its profile with autopilot commands: "patrol" turns 90 degrees
-every leg (a box), "racetrack" 180 degrees (out and back); aircraft also step
-their altitude by +-300 m each leg.
+or drives its profile with autopilot commands: "patrol" turns right 90 degrees
+after every leg (a closed box), "racetrack" right 180 degrees (two parallel legs
+joined by half turns); a leg's --leg-s world seconds count from the moment its
+agent is on the leg's heading (an f16 takes ~40 s to turn 90 degrees), so every
+side is flown alike. Aircraft fly their legs 300 m above and below the altitude
+they had at the first one, in turn. A bot ends when its agent is lost, on
+--duration or a signal (leaving the server), or when the server ends the
+exercise, which it reports as ``sortie client`` does.
 """
 
 from __future__ import annotations
@@ -24,14 +29,31 @@ import time
 
 import numpy as np
 
-from sortie.errors import InvalidArgument
+from sortie.errors import InvalidArgument, SortieError
 
 PROFILES = ("patrol", "racetrack")
 MAX_BOTS = 256  # a server's sessions (server/sim_service.py MAX_SESSIONS)
 MAX_DURATION_S = 7 * 86_400.0  # a scenario's longest exercise (server/scenario.py DURATION_MAX_S)
 LEG_S = (1.0, 3_600.0)  # --leg-s, world seconds
 EVERY_S = (0.05, 3_600.0)  # --every, wall seconds
-MIN_LEG_WALL_S = 0.2  # a bot commands at most 5 times a wall second, however fast the clock
+MIN_LEG_WALL_S = 0.2  # a bot looks at its agent (and commands) at most 5 times a wall second, however fast the clock
+# A bot's profile. The autopilot turns the shorter way (fdm/autopilot.py; a ground vehicle's
+# heading hold, server/world.py), so a turn is commanded in steps of at most TURN_STEP_DEG, the
+# next one once the agent is within TURN_STEP_LEAD_DEG of the last (before it rolls out): every
+# turn goes right, and a racetrack's half turns do not alternate sides (which would walk it
+# sideways by a turn diameter a leg).
+TURN_STEP_DEG = 90.0
+TURN_STEP_LEAD_DEG = 45.0
+ON_HEADING_DEG = 5.0  # a leg's clock starts once the agent's heading is within this of the leg's
+# A turn that has not ended after turn / MIN_TURN_RATE_DPS world seconds (a vehicle that cannot
+# turn: stopped at a shore) starts its leg anyway. The catalog's slowest turns are a transport's
+# at its 25 deg bank limit (fdm/autopilot.py GAINS): at 250 m/s, g tan(bank) / v = 1.05 deg/s
+# (a level coordinated turn: Anderson, Introduction to Flight, 7th ed., sec. 6.17); this gives
+# them twice that time.
+MIN_TURN_RATE_DPS = 0.5
+ALT_STEP_M = 300.0  # an aircraft's legs, above and below the altitude of its first leg
+GROUND_SPEED_MPS = 8.0  # a ground bot's speed
+STREAM_END_WAIT_S = 5.0  # a bot whose controls the server ended waits this long for its picture to say why
 DEFAULT_OBSERVE_RADIUS_M = 100_000.0
 # sortie client's render options (with --follow or --agent-type), and what they are when not given.
 RENDER_DEFAULTS = {"headless": False, "frames": 100, "fps": 10.0, "out": "frames", "chase": False}
@@ -114,8 +136,9 @@ def add_parser(sub) -> None:
                    help=f"bots, [1, {MAX_BOTS}] (a server's session limit; default %(default)s)")
     b.add_argument("--profile", choices=PROFILES, default="patrol")
     b.add_argument("--leg-s", type=_seconds_within(*LEG_S), default=20.0, metavar="S",
-                   help=f"world seconds per leg, [{LEG_S[0]:g}, {LEG_S[1]:g}]; a leg lasts at least "
-                        f"{MIN_LEG_WALL_S:g} wall seconds whatever the clock's speed (default %(default)s)")
+                   help=f"world seconds per leg, [{LEG_S[0]:g}, {LEG_S[1]:g}], counted once the agent has turned "
+                        f"onto the leg's heading; a leg lasts at least {MIN_LEG_WALL_S:g} wall seconds whatever "
+                        "the clock's speed (default %(default)s)")
     b.add_argument("--duration", type=_duration_s, default=30.0, metavar="S",
                    help=f"wall seconds, at most {MAX_DURATION_S:g}; 0 runs until SIGTERM/SIGINT "
                         "(default %(default)s)")
@@ -214,93 +237,187 @@ def default_observe(w) -> tuple[float, float, float]:
 
 def stream_end(sim, picture) -> int:
     """Leave the server if it is still there; the exit code: 0 for a stop asked of this
-    client or an exercise the server ended, 1 for a server gone (the stream broke) or a
-    stream its own session ended (ABORTED: superseded, left), each with a line that says
-    so. A picture is no longer extrapolated past the stream's end."""
-    from sortie.errors import SortieError
-
+    client or an exercise the server ended, 1 for a server gone (the stream broke), a
+    stream its own session ended (ABORTED: superseded, left) or this client's own failure
+    (a listener's exception), each with a line that says so (:func:`why_ended`). A picture
+    is no longer extrapolated past the stream's end (client/sim_client.py)."""
     if picture.alive:  # stopped here (duration, signal)
         try:
             sim.leave()
         except SortieError:
             pass
         return 0
-    if picture.error is None:
-        print(f"the server ended the exercise at world time {picture.time_s:.1f} s", flush=True)
-        return 0
-    from client.sim_client import StreamAborted
+    ok, why = why_ended(picture)
+    print(why, file=sys.stdout if ok else sys.stderr, flush=True)
+    return 0 if ok else 1
 
+
+def why_ended(picture) -> tuple[bool, str]:
+    """Why an ended picture's stream ended: (whether that is the exercise's own end, a line
+    saying so)."""
+    from client.sim_client import PictureFailed, StreamAborted
+
+    at = f"at world time {picture.time_s:.1f} s"
+    if picture.error is None:
+        return True, f"the server ended the exercise {at}"
+    if isinstance(picture.error, PictureFailed):
+        return False, f"this client failed {at}: {type(picture.error.cause).__name__}: {picture.error.cause}"
     if isinstance(picture.error, StreamAborted):  # its own session ended it (a new Watch, a leave)
-        print(f"this client's stream was ended at world time {picture.time_s:.1f} s: {picture.error}",
-              file=sys.stderr, flush=True)
-        return 1
-    print(f"the server went away at world time {picture.time_s:.1f} s: {picture.error}", file=sys.stderr,
-          flush=True)
-    return 1
+        return False, f"this client's stream was ended {at}: {picture.error}"
+    return False, f"the server went away {at}: {picture.error}"
+
+
+class BotFailure(str):
+    """A bot's result line that tells of a failure (``sortie bot`` then exits 1)."""
 
 
 def _bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list,
          stop: threading.Event) -> None:
-    """One bot's thread: its result line in ``results`` whatever happens (a server that goes
-    away mid-run is a line, not a traceback)."""
+    """One bot's thread: its result (k, agent id or None, line) in ``results`` whatever
+    happens (a server that goes away mid-run is a line, not a traceback); a failure's line
+    is a :class:`BotFailure`."""
     try:
         _fly_bot(address, k, profile, leg_s, duration_s, results, stop)
     except Exception as exc:  # noqa: BLE001 - reported per bot; the other bots go on
-        results.append((k, None, f"stopped: {exc}"))
+        results.append((k, None, BotFailure(f"stopped: {exc}")))
 
 
 def _fly_bot(address: str, k: int, profile: str, leg_s: float, duration_s: float, results: list,
              stop: threading.Event) -> None:
     from client.sim_client import SimClient
 
-    turn = 90.0 if profile == "patrol" else 180.0
     with SimClient(address) as sim:
+        sim.wait_ready()  # a server still starting, as sortie client waits for it
         try:
             agent = sim.join(f"bot-{k}", "bot")
         except Exception as exc:  # noqa: BLE001 - reported per bot
-            results.append((k, None, f"could not join: {exc}"))
+            results.append((k, None, BotFailure(f"could not join: {exc}")))
             return
-        picture = sim.watch()
-        picture.wait_for(lambda p: agent in p.infos, 10.0)
-        info = picture.infos.get(agent)
-        aircraft = info is not None and info.kind == 1
-        controls = sim.controls()
-        info_w = getattr(sim, "world_info", None)
-        undulation = float(info_w.geoid_undulation_m) if info_w is not None else 0.0
-        legs = 0
-        end = _until(duration_s)
-        heading = None
-        while time.monotonic() < end and not stop.is_set():
-            ids, pos, quat = picture.state(ids=[agent]) if agent in picture.infos else (None, None, None)
-            if pos is not None and heading is None:
-                heading = _heading_deg(pos[0], quat[0])
-            if heading is None:
-                stop.wait(0.1)
-                continue
-            heading = _wrap360(heading + turn) if legs else heading
-            targets = {"heading_deg": heading}
-            if aircraft:  # the state's height is above the ellipsoid; the autopilot holds MSL
-                _, _, h = _geodetic(pos)
-                msl = float(h[0]) - undulation
-                targets["alt_msl_m"] = msl + (300.0 if legs % 2 == 0 else -300.0)
-            else:
-                targets["speed_mps"] = 8.0
+        try:
+            what = _fly_profile(sim, agent, profile, leg_s, duration_s, stop)
+        except Exception as exc:  # noqa: BLE001 - reported per bot, its agent named
+            what = BotFailure(f"stopped: {exc}")
+        results.append((k, agent, what))
+
+
+def _fly_profile(sim, agent: int, profile: str, leg_s: float, duration_s: float, stop: threading.Event) -> str:
+    """Fly or drive ``agent`` (the session's) on ``profile`` until the run ends; the bot's
+    result line."""
+    from client.sim_client import StreamEnded
+
+    picture = sim.watch()
+    picture.wait_for(lambda p: agent in p.infos, 10.0)
+    info = picture.infos.get(agent)
+    pilot = BotPilot(profile, leg_s, aircraft=info is not None and info.kind == 1)
+    controls = sim.controls()
+    info_w = getattr(sim, "world_info", None)
+    undulation = float(info_w.geoid_undulation_m) if info_w is not None else 0.0
+    sent, sent_s = None, -math.inf  # the last command, and its world time
+    end = _until(duration_s)
+    while time.monotonic() < end and not stop.is_set() and picture.alive:
+        if agent in picture.infos:
+            now_s = picture.now_s()
+            _, pos, quat = picture.state(ids=[agent])
+            h_msl = float(_geodetic(pos)[2][0]) - undulation  # the state's height is above the ellipsoid
+            targets = pilot.command(now_s, _heading_deg(pos[0], quat[0]), h_msl)
+            if targets is None and sent is not None and now_s - sent_s >= leg_s:
+                # Sent again after a leg's time without a command (a long turn): a wreck refuses it
+                # (server.world.World.command), so a lost agent is seen within a leg, as before.
+                targets = sent
             try:
-                controls.autopilot(**targets)
+                if targets is not None:
+                    controls.autopilot(**targets)
+                    sent, sent_s = targets, now_s
             except InvalidArgument as exc:
                 lost = _agent_lost(exc)
                 if lost is None:
                     raise
                 sim.leave()  # its agent crashed or was destroyed: its flight is over, not failed
-                results.append((k, agent, f"{legs} legs, then its agent {lost}; {picture.updates} updates"))
-                return
-            legs += 1
-            wait_end = time.monotonic() + max(leg_s / max(picture.time_scale, 1e-6), MIN_LEG_WALL_S)
-            while time.monotonic() < min(wait_end, end) and not stop.is_set():
-                stop.wait(0.2)
-        accepted = controls.close()
-        sim.leave()
-        results.append((k, agent, f"{legs} legs, {accepted} commands accepted, {picture.updates} updates"))
+                return f"{pilot.legs} legs, then its agent {lost}; {picture.updates} updates"
+            except StreamEnded:  # the server ended the exercise: the picture's end says so
+                picture.wait_for(lambda p: not p.alive, STREAM_END_WAIT_S)
+                break
+        stop.wait(min(MIN_LEG_WALL_S, max(end - time.monotonic(), 0.0)))
+    if not picture.alive:  # the server ended the exercise, or went away
+        ok, why = why_ended(picture)
+        accepted = _accepted(controls) if ok else None
+        counts = f"{accepted} commands accepted, " if accepted is not None else ""
+        line = f"{pilot.legs} legs, then {why}; {counts}{picture.updates} updates"
+        return line if ok else BotFailure(f"stopped: {line}")
+    accepted = controls.close()
+    sim.leave()
+    return f"{pilot.legs} legs, {accepted} commands accepted, {picture.updates} updates"
+
+
+def _accepted(controls) -> int | None:
+    """The commands the server accepted on a stream it has ended; None when it cannot say."""
+    try:
+        return controls.close()
+    except SortieError:
+        return None
+
+
+class BotPilot:
+    """What a bot commands, from what its agent does (no I/O: :meth:`command` is fed the
+    agent's world time, heading and altitude). Each leg's heading is the last one's plus the
+    profile's turn (the sides of a closed figure); a leg's ``leg_s`` world seconds run from
+    the moment the agent is within ON_HEADING_DEG of it (or its turn timed out). Aircraft
+    alternate between ALT_STEP_M above and below their altitude at the first leg, changing
+    it once on the leg's heading: every turn is level, at one speed, so all have one radius
+    (one turn climbing and the next descending walked a racetrack ~0.8 km sideways a lap)."""
+
+    def __init__(self, profile: str, leg_s: float, aircraft: bool = False):
+        if profile not in PROFILES:
+            raise InvalidArgument("profile", f"must be one of {', '.join(PROFILES)}", value=profile)
+        self.turn_deg = 90.0 if profile == "patrol" else 180.0
+        self.leg_s = leg_s
+        self.aircraft = aircraft
+        self.legs = 0  # legs begun
+        self.goal_deg: float | None = None  # the heading of the leg being flown (or turned onto)
+        self.short_deg = 0.0  # how far short of it the heading commanded is (the turn's steps)
+        self.turn_start_s = 0.0  # world time the turn onto it began
+        self.leg_start_s: float | None = None  # world time its clock started (None: still turning)
+        self.base_alt_msl_m: float | None = None
+
+    def command(self, now_s: float, heading_deg: float, alt_msl_m: float) -> dict | None:
+        """The autopilot targets to send now (None: nothing new). ``now_s``: world seconds;
+        ``heading_deg``: the agent's true heading; ``alt_msl_m``: its altitude, m MSL."""
+        targets = None
+        if self.goal_deg is None:  # the first leg: on the heading the agent has
+            self.base_alt_msl_m = alt_msl_m
+            targets = self._begin(now_s, heading_deg, 0.0)
+        elif self.leg_start_s is not None and now_s - self.leg_start_s >= self.leg_s:
+            targets = self._begin(now_s, self.goal_deg, self.turn_deg)
+        if self.leg_start_s is not None:
+            return targets
+        if (abs(_wrap180(self.goal_deg - heading_deg)) <= ON_HEADING_DEG
+                or now_s - self.turn_start_s >= self.turn_deg / MIN_TURN_RATE_DPS):
+            self.leg_start_s = now_s  # on the leg: its clock runs, an aircraft takes its altitude
+            return self._leg_altitude() if self.aircraft else targets
+        if self.short_deg > 0.0 and _wrap180(self._step_deg() - heading_deg) <= TURN_STEP_LEAD_DEG:
+            self.short_deg = max(self.short_deg - TURN_STEP_DEG, 0.0)  # the turn's next step
+            return self._turn()
+        return targets
+
+    def _begin(self, now_s: float, from_deg: float, turn_deg: float) -> dict:
+        self.legs += 1
+        self.goal_deg = _wrap360(from_deg + turn_deg)
+        self.short_deg = turn_deg - min(turn_deg, TURN_STEP_DEG)
+        self.turn_start_s, self.leg_start_s = now_s, None
+        return self._turn()
+
+    def _step_deg(self) -> float:
+        """The heading commanded: the goal, or a step of the turn short of it."""
+        return _wrap360(self.goal_deg - self.short_deg)
+
+    def _turn(self) -> dict:
+        if self.aircraft:
+            return {"heading_deg": self._step_deg()}
+        return {"heading_deg": self._step_deg(), "speed_mps": GROUND_SPEED_MPS}
+
+    def _leg_altitude(self) -> dict:
+        up = self.legs % 2 == 1
+        return {"heading_deg": self.goal_deg, "alt_msl_m": self.base_alt_msl_m + (ALT_STEP_M if up else -ALT_STEP_M)}
 
 
 _WRECK = re.compile(r" (has crashed|is destroyed)\b")
@@ -323,6 +440,11 @@ def _heading_deg(pos, quat) -> float:
     q_ned2body = quat_multiply(quat_conjugate(ecef_to_ned_quat(lat[0], lon[0])), quat)
     w, x, y, z = np.asarray(q_ned2body, float).reshape(4)
     return _wrap360(math.degrees(math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))))
+
+
+def _wrap180(deg: float) -> float:
+    """deg in [-180, 180): a heading difference the short way round."""
+    return (deg + 180.0) % 360.0 - 180.0
 
 
 def _wrap360(deg: float) -> float:
@@ -348,5 +470,5 @@ def bot_command(args) -> int:
     ok = 0
     for k, agent, what in sorted(results, key=lambda r: r[0]):
         print(f"bot-{k}: agent {agent}: {what}", flush=True)
-        ok += agent is not None
+        ok += not isinstance(what, BotFailure)
     return 0 if ok == args.count else 1

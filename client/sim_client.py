@@ -19,8 +19,12 @@ clock's scale).
 How a stream ends: the server's end of the exercise ends it with no error
 (:attr:`Picture.error` None); the server ends it with :class:`StreamAborted`
 when it was superseded by a newer Watch of the same session or the session
-left (the exercise goes on); anything else (a server gone) is the error of the
-failed call.
+left (the exercise goes on); :class:`PictureFailed` is this client's own failure
+(a listener that raised: the call is cancelled); anything else (a server gone)
+is the error of the failed call. An ended picture stays at the world time of
+its last update (it is not extrapolated past it). A client stream
+(:meth:`SimClient.controls`, :meth:`SimClient.external`) the server has ended
+refuses further messages with its error, or :class:`StreamEnded`.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ import numpy as np
 from client.terrain_client import ServiceError, error_from_rpc
 from server.dead_reckoning import Extrapolator
 from server.grpc_common import channel_options
-from sortie.errors import InvalidArgument
+from sortie.errors import InvalidArgument, SortieError
 from sortie.v1 import simulation_pb2 as pb
 from sortie.v1 import simulation_pb2_grpc as pb_grpc
 
@@ -51,6 +55,21 @@ DEFAULT_TIMEOUT_S = 10.0
 class StreamAborted(ServiceError):
     """The server ended a stream of this session for the session's own reason (a newer
     Watch of the session superseded it, the session left); the exercise goes on."""
+
+
+class StreamEnded(SortieError):
+    """A message for a client stream that has ended without an error (the server ended it:
+    the exercise is over or the server stops; or this client closed it): it was not sent."""
+
+
+class PictureFailed(SortieError):
+    """A picture stopped by this client's own failure while applying an update (a listener
+    raised, or the update could not be read): the original exception is ``cause``."""
+
+    def __init__(self, time_s: float, cause: Exception):
+        super().__init__(f"the picture stopped at world time {time_s:.1f} s: {type(cause).__name__}: {cause}")
+        self.time_s = time_s
+        self.cause = cause
 
 
 def stream_error(error: grpc.RpcError):
@@ -176,10 +195,14 @@ class SimClient:
 
 class _RequestStream:
     """One client-streaming call fed from a queue: messages go out in order on gRPC's
-    thread; :meth:`close` ends the stream and returns the server's answer."""
+    thread; :meth:`close` ends the stream and returns the server's answer. A message for a
+    stream that has ended raises (the stream's error, else :class:`StreamEnded`): the server
+    reads no more of it, so it would be lost."""
 
-    def __init__(self, client: SimClient, rpc):
+    def __init__(self, client: SimClient, rpc, name: str):
         self.client = client
+        self.name = name  # the RPC, for messages
+        self._closed_here = False  # close() ended the stream, not the server
         self._q: queue.Queue = queue.Queue()
         self._future = rpc.future(self._messages())
 
@@ -191,11 +214,16 @@ class _RequestStream:
             yield msg
 
     def _put(self, msg) -> None:
-        if self._future.done():  # the server ended the stream (e.g. a bad message): say why
-            self.close()
+        if self._future.done():  # ended: a failed stream's error (e.g. a bad message) says why
+            accepted = self.close()
+            who = ("this client closed it" if self._closed_here
+                   else "the server ended it: the exercise is over or the server stops")
+            raise StreamEnded(f"{self.name}: the stream has ended ({who}; {accepted} messages accepted): this "
+                              "message was not sent")
         self._q.put(msg)
 
     def _finish(self):
+        self._closed_here = self._closed_here or not self._future.done()
         self._q.put(None)
         try:
             return self._future.result(timeout=self.client.timeout_s)
@@ -217,7 +245,7 @@ class ControlStream(_RequestStream):
     """Latest-wins commands for the session's agent over one client stream."""
 
     def __init__(self, client: SimClient):
-        super().__init__(client, client.stub.SendControls)
+        super().__init__(client, client.stub.SendControls, "SendControls")
 
     def _send(self, **command) -> None:
         self._put(pb.ControlInput(session_token=self.client.token, agent_id=self.client.agent_id, **command))
@@ -240,7 +268,7 @@ class ExternalStream(_RequestStream):
     :meth:`remove` takes it out."""
 
     def __init__(self, client: SimClient):
-        super().__init__(client, client.stub.PublishExternal)
+        super().__init__(client, client.stub.PublishExternal, "PublishExternal")
 
     def update(self, external_id: str, *, ecef_m, vel_ecef_mps, quat_wxyz, acc_ecef_mps2=(0.0, 0.0, 0.0),
                body_rates_rps=(0.0, 0.0, 0.0), algorithm: int = pb.DEAD_RECKONING_ALGORITHM_FPW, name: str = "",
@@ -280,7 +308,8 @@ class Picture:
         self._wall = time.monotonic()
         self.wall_log: list = []  # (world time of the update, time.time() it arrived): latency measurements
         # Why the stream ended, once it has: None for the server's end of the exercise,
-        # StreamAborted for a newer Watch of the session or the session's Leave, else the error.
+        # StreamAborted for a newer Watch of the session or the session's Leave, PictureFailed
+        # for this client's own failure (a listener's exception), else the call's error.
         self.error: Exception | None = None
         self.snapshot_received = threading.Event()
         # Called as fn(picture, update) on the stream's thread after each WatchUpdate is
@@ -356,8 +385,14 @@ class Picture:
         except grpc.RpcError as exc:
             if exc.code() != grpc.StatusCode.CANCELLED:
                 self.error = stream_error(exc)  # StreamAborted: superseded, or the session left
+        except Exception as exc:  # noqa: BLE001 - this client's own failure ends its picture, said in error
+            self.error = PictureFailed(self.time_s, exc)
+            self._call.cancel()  # the server stops sending to a picture that no longer reads
         finally:
             with self._cond:
+                # Nothing is known past the last update: its world time is the picture's from now on
+                # (now_s() and state() do not extrapolate beyond the stream's end).
+                self.time_scale = 0.0
                 self._cond.notify_all()
 
     @property
@@ -367,7 +402,8 @@ class Picture:
         return self._thread.is_alive()
 
     def now_s(self) -> float:
-        """Estimated world time now (last update's time + scaled wall time since)."""
+        """Estimated world time now (last update's time + scaled wall time since); once the
+        stream has ended, the last update's time."""
         return self.time_s + (time.monotonic() - self._wall) * self.time_scale
 
     def state(self, t: float | None = None, ids=None):

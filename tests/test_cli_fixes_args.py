@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -152,6 +153,10 @@ class _Controls:
 class _BotPicture:
     time_scale = 1000.0  # a fast clock: a 1-s leg is 1 ms of wall time
     updates = 0
+    alive = True  # its stream runs
+
+    def now_s(self):
+        return time.monotonic() * self.time_scale
 
     def __init__(self, agent):
         self.infos = {agent: pb.EntityInfo(entity_id=agent, kind=pb.ENTITY_KIND_GROUND)}
