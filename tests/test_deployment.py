@@ -224,8 +224,16 @@ class EventLog:
         self.client.join("deployment-test", "gateway")
         self.events: list = []
         stream = self.client.events()
-        self._thread = threading.Thread(target=lambda: self.events.extend(stream), daemon=True)
+        self._thread = threading.Thread(target=self._collect, args=(stream,), daemon=True)
         self._thread.start()
+
+    def _collect(self, stream) -> None:
+        from client.sim_client import StreamAborted
+
+        try:
+            self.events.extend(stream)
+        except StreamAborted:  # this session left (the server may end the stream before the channel closes)
+            pass
 
     def wait_for(self, predicate, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
