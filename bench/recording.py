@@ -203,7 +203,7 @@ def synthetic_scenario(terrain, dem_path, n_aircraft: int, n_ground: int, n_stat
         hdg = math.degrees(math.atan2((lo1 - lo0) * math.cos(math.radians(la)), la1 - la0)) % 360.0
         agents.append({"name": f"air-{i}", "kind": "aircraft", "type": type_, "coalition": ("blue", "red")[i % 2],
                        "lat_deg": round(la, 6), "lon_deg": round(lo, 6), "alt_m": route[0][2],
-                       "heading_deg": round(hdg, 3), "speed_mps": speed, "controllable": i < controllable,
+                       "heading_deg": round(hdg, 3) % 360.0, "speed_mps": speed, "controllable": i < controllable,
                        "autopilot": {"route": [list(p) for p in route], "speed_mps": speed}})
     n_convoys = min(n_convoys, n_ground // max(convoy_size, 2))
     n_free = n_ground - n_convoys * convoy_size
@@ -220,7 +220,7 @@ def synthetic_scenario(terrain, dem_path, n_aircraft: int, n_ground: int, n_stat
                            "type": GROUND_TYPES[(c + k) % len(GROUND_TYPES)], "coalition": ("blue", "red")[c % 2],
                            "lat_deg": round(la0 - k * CONVOY_SPACING_M * dn / d / M_PER_DEG_LAT, 7),
                            "lon_deg": round(lo0 - k * CONVOY_SPACING_M * de / d / m_lon, 7),
-                           "heading_deg": round(math.degrees(math.atan2(de, dn)) % 360.0, 3),
+                           "heading_deg": round(math.degrees(math.atan2(de, dn)), 3) % 360.0,
                            "autopilot": {"route": [list(p) for p in route], "cruise_mps": cruise,
                                          "convoy": f"convoy{c}", "spacing_m": CONVOY_SPACING_M}})
     for k, (la, lo) in enumerate(starts[n_convoys + n_static:]):
@@ -283,7 +283,8 @@ class GroundBots:
                     mid_lat, mid_lon = (LAT[0] + LAT[1]) / 2, (LON[0] + LON[1]) / 2
                     hdg = math.degrees(math.atan2((mid_lon - lon) * math.cos(math.radians(lat)), mid_lat - lat)) % 360
             self.heading[j] = hdg
-            w.command(i, "autopilot", {"heading_deg": round(float(hdg), 1),
+            # Rounded, then wrapped: 359.96 rounds to 360.0, which the command refuses ([0, 360)).
+            w.command(i, "autopilot", {"heading_deg": round(float(hdg), 1) % 360.0,
                                        "speed_mps": round(float(self.rng.uniform(3.0, 12.0)), 2)})
             self.commands += 1
 

@@ -564,7 +564,9 @@ class World(EventLog):
         forward speed within its type's limits."""
         i = self.ground.index_of([e.ground_id])[0]
         speed = min(max(float(self.ground.speed_mps[i]), 0.0), float(self.ground.speed_limits_mps[1][i]))
-        return {"heading_deg": float(self.ground.heading_deg[i]) % 360.0, "speed_mps": speed}
+        heading = float(self.ground.heading_deg[i]) % 360.0
+        return {"heading_deg": 0.0 if heading >= 360.0 else heading,  # (-1e-15 % 360 is 360.0)
+                "speed_mps": speed}
 
     def _resume_ground(self, e: Entity) -> None:
         """A ground vehicle left by its driver returns to its scenario route (alone: a convoy

@@ -412,3 +412,18 @@ def test_a_refused_drive_speed_shows_a_limit_below_it(alps):
             assert top - 1e-6 * top <= shown < speed, (speed, str(exc.value))
     finally:
         world.close()
+
+
+def test_a_present_hold_heading_is_within_the_commands_range(alps):
+    """A vehicle's heading a hair below 0 wrapped to 360.0 (-1e-15 % 360 in floating point), a
+    value its own autopilot command refuses ([0, 360)): the hold a partial command completes."""
+    world = _ground_world(alps)
+    try:
+        tank = next(e for e in world.entities.values() if e.name == "tank1")
+        i = world.ground.index_of([tank.ground_id])[0]
+        world.ground.heading_deg[i] = -1e-15
+        hold = world._present_hold(tank)
+        assert 0.0 <= hold["heading_deg"] < 360.0, hold
+        world.command(tank.id, "autopilot", dict(hold))  # accepted as it stands
+    finally:
+        world.close()
