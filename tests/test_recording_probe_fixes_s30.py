@@ -72,27 +72,32 @@ hold = {{heading_deg = {heading}, alt_msl_m = 4000.0, speed_mps = {SPEED_MPS}}}
     return "\n".join(lines)
 
 
-@pytest.fixture(scope="module")
-def head_on(tmp_path_factory):
-    """The recording of the three pairs (path), and its collision events (tick, entity, other)."""
+def _record(path, scenario_path, text: str, ticks: int):
+    """A recording (``path``) of ``ticks`` world ticks of the scenario ``text``, made in process."""
     from server.recorder import Recorder, recording_header
     from server.scenario import load_scenario
     from server.sim_server import build_world, open_terrain, terrain_spec
 
-    d = tmp_path_factory.mktemp("head_on")
-    path, scenario_path = d / "head-on.sortie", d / "head-on.toml"
-    scenario_path.write_text(_scenario_text())
+    scenario_path.write_text(text)
     scenario = load_scenario(scenario_path)
     terrain, desc, _ = open_terrain(scenario)
     world = build_world(scenario, terrain)
     rec = Recorder(path, recording_header(scenario_path, scenario, world, desc, terrain_spec(scenario), terrain), 1.0)
     world.attach_recorder(rec)
     try:
-        for _ in range(TICKS):
+        for _ in range(ticks):
             world.tick()
     finally:
         rec.close()
         world.close()
+    return path
+
+
+@pytest.fixture(scope="module")
+def head_on(tmp_path_factory):
+    """The recording of the three pairs (path), and its collision events (tick, entity, other)."""
+    d = tmp_path_factory.mktemp("head_on")
+    path = _record(d / "head-on.sortie", d / "head-on.toml", _scenario_text(), TICKS)
     with Recording(path) as r:
         collisions = [(int(e.tick), int(e.event.entity_id), int(json.loads(e.event.detail_json)["other_id"]))
                       for e in r.events() if e.event.kind == "collision"]
@@ -285,25 +290,10 @@ def test_a_replay_of_a_low_network_rate_gives_a_joiner_its_snapshot(tmp_path, ra
     period between updates (Event.wait(1e300) raised OverflowError and stopped the clock; at
     0.001 Hz a joiner got no snapshot in 3 s). Bound: the snapshot within 3 wall s."""
     from client.sim_client import SimClient
-    from server.recorder import Recorder, recording_header
     from server.replay import ReplayServer
-    from server.scenario import load_scenario
-    from server.sim_server import build_world, open_terrain, terrain_spec
 
     text = _scenario_text().replace("network_rate_hz = 20", f"network_rate_hz = {rate!r}")
-    path, scenario_path = tmp_path / "low.sortie", tmp_path / "low.toml"
-    scenario_path.write_text(text)
-    scenario = load_scenario(scenario_path)
-    terrain, desc, _ = open_terrain(scenario)
-    world = build_world(scenario, terrain)
-    rec = Recorder(path, recording_header(scenario_path, scenario, world, desc, terrain_spec(scenario), terrain), 1.0)
-    world.attach_recorder(rec)
-    try:
-        for _ in range(30):
-            world.tick()
-    finally:
-        rec.close()
-        world.close()
+    path = _record(tmp_path / "low.sortie", tmp_path / "low.toml", text, 30)
     replay = ReplayServer(path, "127.0.0.1:0", speed=1.0, playing=True)
     replay.start()
     try:
