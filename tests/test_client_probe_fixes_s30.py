@@ -110,6 +110,13 @@ def test_sortie_bot_waits_for_the_server_and_exits_0_when_it_ends_the_exercise(a
     assert out.startswith("bot-0: agent 1: ") and "then the server ended the exercise at world time" in out, out
 
 
+def _wait_for_a_driver(world, timeout_s: float = 10.0) -> None:
+    """Until the bot has taken agent 1 (or the timeout)."""
+    deadline = time.monotonic() + timeout_s
+    while world.entities[1].owner is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
 def test_a_bot_ends_within_seconds_of_the_exercises_end(alps):
     """A bot with no --duration (until a signal) whose server ends the exercise: its thread
     ends within 5 s, its line naming its agent and the end, not a failure (it commanded on
@@ -119,9 +126,7 @@ def test_a_bot_ends_within_seconds_of_the_exercises_end(alps):
     srv.start()
     t, results, stop = _run_bot(srv.address, "patrol", 2.0)
     try:
-        deadline = time.monotonic() + 10.0
-        while w.entities[1].owner is None and time.monotonic() < deadline:
-            time.sleep(0.05)
+        _wait_for_a_driver(w)
         time.sleep(0.5)
         srv.stop(0.5)
         t.join(5.0)
@@ -144,9 +149,7 @@ def test_a_bot_whose_server_goes_away_names_its_agent_and_fails(alps):
     srv.start()
     t, results, stop = _run_bot(srv.address, "patrol", 2.0)
     try:
-        deadline = time.monotonic() + 10.0
-        while w.entities[1].owner is None and time.monotonic() < deadline:
-            time.sleep(0.05)
+        _wait_for_a_driver(w)
         srv.grpc.stop(0).wait()  # no OK end of the streams: the connection drops
         t.join(15.0)
         assert not t.is_alive(), "the bot ran on after its server went away"

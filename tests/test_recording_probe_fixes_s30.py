@@ -28,9 +28,9 @@ import pytest
 from server import dis
 from server.recording import Recording
 from conftest import EMBEDDED_DEM
+from test_dis import dis_socket
 
 REPLAY_PORT, DIS_PORT = 52810, 52811
-LOOPBACK_BROADCAST = "127.255.255.255"
 PAIR_HALF_GAPS_M = (500.0, 700.0, 900.0)  # each pair's aircraft this far either side of its centre
 SPEED_MPS = 250.0
 TICKS = 150  # 5 s at 30 Hz: five 1-s chunks; the last pair collides at about 3.6 s
@@ -105,16 +105,6 @@ def head_on(tmp_path_factory):
     return path, collisions
 
 
-def _dis_socket() -> socket.socket:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-    s.settimeout(0.1)
-    s.bind((LOOPBACK_BROADCAST, DIS_PORT))
-    return s
-
-
 def _receive(sock, seconds: float, until=None) -> list:
     """The PDUs (decoded: Entity State and Collision) that arrive within ``seconds``, in order."""
     out, deadline = [], time.monotonic() + seconds
@@ -150,7 +140,7 @@ def test_dis_over_a_fast_replay_sends_collision_velocities_and_wrecks_as_live(he
             truth[issuer] = f.states[int(np.searchsorted(f.ids, issuer)), 3:6]
         ids = sorted(r.entities)
     replay = ReplayServer(path, f"127.0.0.1:{REPLAY_PORT}", speed=REPLAY_SPEED, playing=False)
-    peer = _dis_socket()
+    peer = dis_socket(DIS_PORT)
     replay.start()
     try:
         with DisGateway(replay.address, port=DIS_PORT, exercise=7, site=5, application=30):
