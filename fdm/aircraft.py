@@ -41,7 +41,9 @@ normal to fix it with. A contact deeper below its own terrain than its limit
 wheel also what its strut compresses at the ultimate load factor,
 :meth:`Aircraft._set_penetration_limits`), or any structure point below its
 terrain at speed, is a crash; the aircraft then freezes where it hit
-(``crashed`` is set, ``step`` does nothing more).
+(``crashed`` is set, JSBSim is stepped no more). A crash clear of the surface (a
+mid-air collision, the load factor) leaves a wreck that falls to the surface and
+rests there (fdm.wreck; :attr:`Aircraft.falling`, event ``wreck_impact``).
 
 Water: terrain at or below sea level is water by the ground vehicles' rule
 (fdm.ground: ``WATER_LEVEL_MSL_M``; no data counts as sea level). A landplane
@@ -91,11 +93,12 @@ import numpy as np
 
 from fdm import catalog
 from fdm.contacts import contact_points, ground_clearance, place_contacts
-from fdm.events import LIMITS, EventDetector
+from fdm.events import LIMITS, SURFACE_CRASH_REASONS, WRECK_IMPACT, Event, EventDetector
 from fdm.ground import WATER_LEVEL_MSL_M
 from fdm.state import FT_M, RAW_COLUMNS, RAW_PROPERTIES, RAW_WIDTH, AircraftState
+from fdm.wreck import FALL_MIN_AGL_M, G0_MPS2, fall, impact_fraction, ned_to_body_matrix
 from sortie.errors import InvalidArgument, SortieError
-from terrain.geodesy import wrap_lon_deg
+from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef, wrap_lon_deg
 
 LB_KG = 0.45359237  # international avoirdupois pound, exact (NIST SP 811, B.8)
 DT_MIN_S = catalog.DT_MIN_S
@@ -487,6 +490,9 @@ class Aircraft:
         self.max_penetration_m = float(max_penetration_m)
         self.events: list = []
         self.crashed = False
+        # A wreck falling (fdm.wreck): [its state row, its height above the surface (m), the
+        # height it fell from (m MSL)]
+        self._fall = None
 
         self._refresh_steps = max(1, round(1.0 / (terrain_refresh_hz * self.dt)))
         self._max_refresh_steps = max(self._refresh_steps, round(MAX_REFRESH_S / self.dt))
@@ -1097,7 +1103,7 @@ class Aircraft:
     def step(self) -> list:
         """One JSBSim step with terrain coupling and event detection; the events of this step."""
         if self.crashed:
-            return []
+            return self._fall_advance(1)
         self._run()
         self._steps += 1
         if self._steps < self._next_check or self._quiet_check():
@@ -1113,6 +1119,8 @@ class Aircraft:
         ticks the world at that interval (a 30 Hz world tick of 4 steps of
         1/120 s) runs each aircraft's tick as one loop and one quiet check.
         """
+        if self.crashed:
+            return self._fall_advance(steps)
         end = self._steps + steps
         if self._quiet_tick(steps):
             return []
@@ -1189,7 +1197,9 @@ class Aircraft:
             self.events.extend(events)
             if self._detector.crashed and not self.crashed:
                 self.crashed = True
-                self._come_to_rest()
+                crash = next(e for e in events if e.kind == "crash")
+                if not self._start_fall(crash):
+                    self._come_to_rest()
         return events
 
     # The state-out columns of motion: a wreck keeps its place and attitude, and these read 0
@@ -1198,6 +1208,94 @@ class Aircraft:
     _MOTION_COLUMNS = tuple(RAW_COLUMNS[name] for name in (
         "v_north_fps", "v_east_fps", "v_down_fps", "p_rps", "q_rps", "r_rps", "udot_fps2", "vdot_fps2",
         "wdot_fps2", "vt_fps", "vc_kts", "alpha_rad", "beta_rad"))
+
+    @property
+    def falling(self) -> bool:
+        """Whether this aircraft is a wreck falling from where it crashed (fdm.wreck)."""
+        return self._fall is not None
+
+    def _start_fall(self, crash: Event) -> bool:
+        """A crash clear of the surface (not one of SURFACE_CRASH_REASONS, more than
+        FALL_MIN_AGL_M above the surface where it happened) leaves a wreck that falls from
+        here with the velocity it has (:meth:`_fall_advance`); True if so. Its state out is
+        then the wreck's: its attitude kept, no rotation, no air data."""
+        if "raw_values" in self.__dict__ or crash.detail.get("reason") in SURFACE_CRASH_REASONS:
+            return False
+        agl = crash.alt_msl_m - self._surface_m(crash.lat_deg, crash.lon_deg)
+        if not agl > FALL_MIN_AGL_M:
+            return False
+        row = self.raw_values()
+        for k in self._MOTION_COLUMNS:
+            if k not in self._VELOCITY_COLUMNS:
+                row[k] = 0.0
+        row[RAW_COLUMNS["wow"]] = 0.0
+        alt_m = row[RAW_COLUMNS["alt_ft"]] * FT_M
+        self._fall = [row, alt_m - self._surface_m(math.degrees(row[RAW_COLUMNS["lat_rad"]]),
+                                                   math.degrees(row[RAW_COLUMNS["lon_rad"]])), alt_m]
+        self.raw_values = row.copy  # shadows the method; the row changes as the wreck falls
+        return True
+
+    def _surface_m(self, lat: float, lon: float) -> float:
+        """The surface (m MSL, :meth:`_terrain_msl_m`) at one point."""
+        return float(self._terrain_msl_m(np.array([lat], np.float64), np.array([lon], np.float64))[0])
+
+    _VELOCITY_COLUMNS = tuple(RAW_COLUMNS[name] for name in ("v_north_fps", "v_east_fps", "v_down_fps"))
+
+    def _fall_advance(self, steps: int) -> list:
+        """``steps`` steps of a falling wreck (fdm.wreck.fall); nothing for a wreck at rest.
+        Where its path meets the surface (checked once per call, between the call's start and
+        end; a wreck falls a few metres a tick) it comes to rest on it, where the path crossed
+        it: the WRECK_IMPACT event (its speed, and how far it fell), and from then on the
+        state of a wreck at rest (:meth:`_come_to_rest`)."""
+        if self._fall is None or steps <= 0:
+            return []
+        row, agl0, _ = self._fall
+        c = RAW_COLUMNS
+        lat0, lon0 = math.degrees(row[c["lat_rad"]]), math.degrees(row[c["lon_rad"]])
+        h0 = row[c["alt_ft"]] * FT_M
+        v0 = [row[k] * FT_M for k in self._VELOCITY_COLUMNS]
+        lat, lon, h, v, a = fall(lat0, lon0, h0, v0, self.dt, steps)
+        t0 = row[c["time_s"]]
+        surface = self._surface_m(lat, lon)
+        if h - surface > 0.0:
+            self._fall[1] = h - surface
+            self._fall_row(row, lat, lon, h, v, a, t0 + steps * self.dt, surface)
+            return []
+        # Where the step's straight path meets the surface (ECEF, so across the antimeridian too).
+        f = float(impact_fraction(agl0, h - surface))
+        p0, p1 = geodetic_to_ecef([lat0, lat], [lon0, lon], [h0, h])
+        lat_i, lon_i, _ = (float(x) for x in ecef_to_geodetic(p0 + f * (p1 - p0)))
+        surface = self._surface_m(lat_i, lon_i)
+        t = t0 + f * steps * self.dt
+        speed = math.sqrt(sum(x * x for x in v))
+        self._fall_row(row, lat_i, lon_i, surface, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), t, surface)
+        for k in self._MOTION_COLUMNS:  # at rest (the row is raw_values' own, as _come_to_rest's)
+            row[k] = 0.0
+        row[c["nz_g"]] = 1.0
+        event = Event(WRECK_IMPACT, t, lat_i, lon_i, surface,
+                      {"speed_mps": round(speed, 3), "fell_m": round(self._fall[2] - surface, 3)})
+        self._fall = None
+        self.events.append(event)
+        return [event]
+
+    def _fall_row(self, row: list, lat: float, lon: float, h: float, v_ned, a_ned, t: float,
+                  surface: float) -> None:
+        """Write a falling wreck's place, velocity and acceleration into its state ``row``:
+        the acceleration as JSBSim's body-axis udot/vdot/wdot (the attitude is fixed, so the
+        body rates are 0 and the body acceleration is the local one rotated into the body),
+        the load factor Nz as the body-z specific force over g (JSBSim's accelerations/Nz)."""
+        c = RAW_COLUMNS
+        row[c["time_s"]] = t
+        row[c["lat_rad"]], row[c["lon_rad"]], row[c["alt_ft"]] = math.radians(lat), math.radians(lon), h / FT_M
+        for k, x in zip(self._VELOCITY_COLUMNS, v_ned):
+            row[k] = x / FT_M
+        row[c["terrain_ft"]] = surface / FT_M
+        body = ned_to_body_matrix(row[c["phi_rad"]], row[c["theta_rad"]], row[c["psi_rad"]])
+        acc = [sum(body[i][j] * a_ned[j] for j in range(3)) for i in range(3)]
+        row[c["udot_fps2"]], row[c["vdot_fps2"]], row[c["wdot_fps2"]] = (x / FT_M for x in acc)
+        # Specific force = acceleration - gravity (gravity is +g down in NED).
+        f_z = acc[2] - body[2][2] * G0_MPS2
+        row[c["nz_g"]] = -f_z / G0_MPS2
 
     def _come_to_rest(self) -> None:
         """From a crash on, the state out is the wreck at rest where it came down (see

@@ -36,7 +36,9 @@ TOUCHDOWN = "touchdown"
 TAKEOFF = "takeoff"
 CRASH = "crash"
 OUT_OF_FUEL = "out_of_fuel"
-EVENT_KINDS = (TOUCHDOWN, TAKEOFF, CRASH, OUT_OF_FUEL)
+# A wreck that fell from where it crashed in the air meeting the surface (fdm.wreck).
+WRECK_IMPACT = "wreck_impact"
+EVENT_KINDS = (TOUCHDOWN, TAKEOFF, CRASH, OUT_OF_FUEL, WRECK_IMPACT)
 
 FT_S = 0.3048
 # The crash reason of a landplane's wheels touching water.
@@ -44,6 +46,11 @@ DITCHED = "ditched"
 # Ground speed (m/s) up to which a structure contact is coming to rest, not a crash: a
 # walking pace, below a glider's end of ground run, where a wing drops onto its tip.
 STRUCTURE_REST_SPEED_MPS = 3.0
+# The crash reasons of an aircraft meeting the surface (or whose state went non-finite): its
+# wreck stays where it crashed. Any other crash (the load factor; a host's, such as a mid-air
+# collision) well clear of the surface leaves a wreck that falls (fdm.wreck).
+SURFACE_CRASH_REASONS = frozenset({"sink rate at touchdown", "structure contact", "terrain penetration",
+                                   DITCHED, "state diverged"})
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,10 @@ class Fleet:
         out = []
         active = []
         for a in self.aircraft:
-            if a.crashed:
+            if a.crashed:  # a wreck: falling (its own terrain point per tick: few fall at once) or at rest
+                events = a._fall_advance(steps)
+                if events:
+                    out.append((a, events))
                 continue
             end = a._steps + steps
             if a._quiet_tick(steps):

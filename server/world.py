@@ -911,7 +911,7 @@ class World(EventLog):
             heading0[gnd_rows] = start[gnd_idx] if start is not None and start.size == self.ground.n else \
                 heading[gnd_rows]
         moving = ~fixed
-        if self.wrecks:  # crashed aircraft and destroyed vehicles move no more
+        if self.wrecks:  # wrecks (crashed aircraft, falling ones too, destroyed vehicles) never meet each other
             rows, found = rows_of(ids, np.fromiter(self.wrecks, np.int64, len(self.wrecks)))
             moving[rows[found]] = False
         ci, cj, t, dist = new_contacts(before.ecef_m[kb], after.ecef_m[ka], radius, heading_deg=heading,

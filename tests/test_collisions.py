@@ -201,7 +201,7 @@ def test_head_on_aircraft_collide_and_crash():
             assert world.entities[me.id].crashed
         for e in (c, d):
             assert not _collisions(events, e.id) and not world.entities[e.id].crashed
-        # The wrecks stay where they stopped: no further collision between them.
+        # The wrecks fall on (fdm.wreck) through each other: no further collision between them.
         assert not [e for e in _run(world, 30) if e.kind == "collision"]
     finally:
         world.close()
