@@ -12,7 +12,9 @@ import argparse
 import logging
 import os
 import re
+import signal
 import sys
+import threading
 
 from sortie import __version__, config
 from sortie.errors import SortieError
@@ -149,14 +151,44 @@ def _source_of(parser, argv: list[str], exc: SortieError) -> str | None:
     return config.source_of(parser, argv, field, getattr(exc, "value", None))
 
 
+# Commands that run until stopped and exit 0 on SIGTERM (README): one stopped before it
+# has taken its own signals (while the modules import, the first second or so) exits 0 too.
+# Any other command stopped by SIGTERM exits 143 (128 + SIGTERM, the shell's convention).
+STOPPED_CLEANLY = frozenset({"server", "resim", "replay", "client", "bot", "dis", "tacview", "view"})
+STOPPED_SERVE = "terrain"  # its "serve" sub-command
+TERMINATED_STATUS = 128 + signal.SIGTERM
+
+
+class Terminated(BaseException):
+    """SIGTERM came before the command took its own signals (or a command that takes none):
+    raised in the main thread by :func:`main`'s handler, so the process unwinds (files closed,
+    nothing half-made left) instead of being killed where it stood."""
+
+
+def _terminated(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; its exit status. A Ctrl-C (SIGINT) at any point, while the command
     modules import and the parser is built (the first second or so) as while the command runs,
-    exits 130 (128 + SIGINT, the shell's convention) without a traceback."""
+    exits 130 (128 + SIGINT, the shell's convention) without a traceback. A SIGTERM the command
+    does not take itself (services take theirs from their start: grpc_common.stop_signals)
+    unwinds the process and exits 0 for a service (STOPPED_CLEANLY), 143 for any other."""
+    words = sys.argv[1:] if argv is None else list(argv)
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if in_main else None
     try:
         return _main(argv)
     except KeyboardInterrupt:
         return 130
+    except Terminated:
+        command = _pre_parse(words).command
+        service = command in STOPPED_CLEANLY or (command == STOPPED_SERVE and "serve" in words)
+        return 0 if service else TERMINATED_STATUS
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _main(argv: list[str] | None) -> int:
