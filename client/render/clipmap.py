@@ -11,7 +11,12 @@ the terrain's own post lattice (its first source's; client/render/terrain_mesh
 ``lattice_for``) scaled by a power of two, so level k + 1's post (i, j) is level
 k's post (2i, 2j) and the levels nest exactly (thesis §3.1.2, "power-of-two
 spacing"). A profile may start finer than the DEM (the terrain's fractal
-detail, or bilinear, answers there).
+detail, or bilinear, answers there). Columns are not wrapped at a fixed
+meridian: a longitude's column is taken on the turn of the globe nearest the
+last update's focus (:meth:`Clipmap.unwrapped_dlon`), so the regions follow
+the focus across every meridian by strips, their columns running on past a
+turn; the terrain is asked, and normals are placed, at the longitude within
+[-180, 180).
 
 **Regions** (thesis §3.1.2). A level's *clip region* is the n x n posts
 (n = 2^m - 1) it holds: rows i0 .. i0 + n - 1, columns j0 .. j0 + n - 1, with
@@ -313,6 +318,9 @@ class Clipmap:
         self._water_tolerance_m = None  # the water level (water_level_m): the terrain's quantisation bound
         self._trimmed_at = -math.inf
         self.store_blocks = 0  # level blocks read straight from the store
+        # The last update's focus in degrees east of lon0, unwrapped (continuous from one update to
+        # the next): lattice columns are taken on the turn nearest it (unwrapped_dlon).
+        self._focus_dlon = 0.0
 
     # -- geometry of the lattice
 
@@ -326,10 +334,21 @@ class Clipmap:
     def extent_m(self, k: int) -> float:
         return (self.n - 1) * self.spacing_m(k)
 
-    def focus_index(self, k: int, lat: float, lon: float) -> tuple[float, float]:
+    def focus_index(self, k: int, lat, lon) -> tuple:
+        """(i, j), fractional, of (lat, lon) (degrees, scalars or arrays) in level k's lattice, the
+        column on the turn of the globe nearest the last update's focus (:meth:`unwrapped_dlon`)."""
         dlat, dlon = self.spacing_deg(k)
+        return (lat - self.lattice.lat0) / dlat, self.unwrapped_dlon(lon) / dlon
+
+    def unwrapped_dlon(self, lon):
+        """Degrees east of the lattice's lon0 of ``lon`` (scalar or array), on the turn nearest the
+        last update's focus: [-180, 180) plus whole turns. Columns so taken run on continuously
+        past every meridian, lon0 + 180 and the antimeridian included: a level's region follows
+        the focus across them by toroidal strips as anywhere else (thesis §3.1.3, §3.1.4), where
+        a column wrapped at a fixed meridian jumped a whole turn and refilled every level."""
         dl = (lon - self.lattice.lon0 + 180.0) % 360.0 - 180.0
-        return (lat - self.lattice.lat0) / dlat, dl / dlon
+        turns = np.floor((self._focus_dlon - dl) / 360.0 + 0.5)
+        return dl + 360.0 * turns
 
     def latlon(self, k: int, i, j) -> tuple[np.ndarray, np.ndarray]:
         dlat, dlon = self.spacing_deg(k)
@@ -342,9 +361,7 @@ class Clipmap:
         """(ECEF positions (rows, cols, 3) float64, heights MSL (rows, cols)) of a rectangle of posts."""
         lat_rows, lon_cols = self.latlon(k, np.arange(r.i0, r.i1 + 1), np.arange(r.j0, r.j1 + 1))
         lat_rows = np.clip(lat_rows, -90.0, 90.0)
-        # Asked of the terrain within [-180, 180): a coarse level reaches past +-540 (the query's
-        # limit) from a camera near the antimeridian; the geometry below is periodic either way.
-        lon_cols = np.where((lon_cols >= -180.0) & (lon_cols < 180.0), lon_cols, (lon_cols + 180.0) % 360.0 - 180.0)
+        lon_cols = _wrapped_lon(lon_cols)
         lat, lon = np.broadcast_arrays(lat_rows[:, None], lon_cols[None, :])
         h = self._store_posts(k, r)
         if h is None and hasattr(self.terrain, "height_grid"):  # in process: one index a row and a column
@@ -408,7 +425,7 @@ class Clipmap:
         the lattice, per-row and per-column sines and cosines)."""
         lat_rows, lon_cols = self.latlon(k, np.arange(2 * r.i0, 2 * r.i1 + 2) / 2.0,
                                          np.arange(2 * r.j0, 2 * r.j1 + 2) / 2.0)
-        lat_rows = np.clip(lat_rows, -90.0, 90.0)
+        lat_rows, lon_cols = np.clip(lat_rows, -90.0, 90.0), _wrapped_lon(lon_cols)
         gradient_grid = getattr(self.terrain, "gradient_grid", None)
         if gradient_grid is not None:  # in process: one index a row and a column
             de, dn, _ = gradient_grid(lat_rows, lon_cols)
@@ -430,7 +447,7 @@ class Clipmap:
 
         lat_rows, lon_cols = self.latlon(k, np.arange(2 * r.i0, 2 * r.i1 + 2) / 2.0,
                                          np.arange(2 * r.j0, 2 * r.j1 + 2) / 2.0)
-        lat_rows = np.clip(lat_rows, -90.0, 90.0)
+        lat_rows, lon_cols = np.clip(lat_rows, -90.0, 90.0), _wrapped_lon(lon_cols)
         sl, cl = np.sin(np.radians(lat_rows))[:, None], np.cos(np.radians(lat_rows))[:, None]
         so, co = np.sin(np.radians(lon_cols))[None, :], np.cos(np.radians(lon_cols))[None, :]
         up = np.stack(np.broadcast_arrays(cl * co, cl * so, sl), axis=-1)
@@ -466,6 +483,7 @@ class Clipmap:
         """Move levels onto their active regions around the focus, coarse to fine, within the
         budget (``unlimited``: every level, as a first load does); the storage pieces to upload."""
         self.stats = UpdateStats()
+        self._focus_dlon = float(self.unwrapped_dlon(focus_lon))
         uploads: list[Upload] = []
         spent = 0
         behind = False
@@ -531,6 +549,14 @@ class Clipmap:
         level._log_writes(todo)
         self.stats.levels_moved += 1
         return uploads
+
+
+def _wrapped_lon(lon: np.ndarray) -> np.ndarray:
+    """Longitudes (degrees) of a level's columns, any turn, within [-180, 180) (those already
+    there bit for bit): what the terrain is asked (its queries stop at +-540, and a region's
+    columns run on past a turn, Clipmap.unwrapped_dlon) and what the normals and land classes are
+    placed by, so that a post's values do not depend on the turn its column was taken on."""
+    return np.where((lon >= -180.0) & (lon < 180.0), lon, (lon + 180.0) % 360.0 - 180.0)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -55,7 +55,9 @@ pieces, and one vertex shader that displaces a small grid block per instance
   coarser level (outside the coarser level's own morph band, whose start
   varies by the 2-cell snapping of regions): no cracks. alpha_h fades a level whose extent is small against the
   viewer's height above the ground (:func:`height_alpha`) before it stops
-  being drawn: no popping. Normals are blended by the same alpha.
+  being drawn: no popping; the finest level from the ground up (the thesis'
+  n = n_max case), the others from where the finer level is gone (HEIGHT_FADE
+  says why). Normals are blended by the same alpha.
 - **Precision** (global-terrain-flight-sim §6). Positions are float32 offsets
   from each level's float64 origin; the shader adds the float32 of (level
   origin - renderer origin) in local ENU and rotates the offset by the
@@ -132,8 +134,16 @@ from terrain.threads import cpu_count, map_shared
 BLOCK = 8  # cells a side of an instanced block
 MORPH_WIDTH_FRACTION = 0.1  # w = n / 10 (thesis §3.1.5)
 # Level clipping by height (§3.2.2): a level fades out as the viewer's height above the ground
-# grows from HEIGHT_FADE[0] to HEIGHT_FADE[1] times the level's extent, then is not drawn.
+# grows from HEIGHT_FADE[0] to HEIGHT_FADE[1] times the level's edge (its clip region's longer side,
+# ClipmapLayer.edge_m), then is not drawn. The finest level fades from the ground up, as the
+# thesis' n = n_max case has it: alpha_h = h / (FINEST_HEIGHT_FADE edge(n)). The other levels depart
+# from the thesis' h / (0.4 edge(n + 1) - 1), a ramp from the ground as wide as ours (0.4 of the
+# finer level's edge is 0.2 of the level's own): a level's drawn border is the coarser level's posts
+# (alpha 1 there), so a level that morphed while the finer one inside it is still drawn would part
+# from that border (cracks). Ours starts where the finer level is gone (its HEIGHT_FADE[1] x its
+# edge, half the level's: HEIGHT_FADE[0] x the level's), and so does the finest's end.
 HEIGHT_FADE = (0.2, 0.4)
+FINEST_HEIGHT_FADE = 0.4  # thesis §3.2.2, n = n_max; at most 2 HEIGHT_FADE[0] (no cracks, above)
 # Near a pole the layer draws the reference mesh (terrain_mesh.TerrainMeshLayer) instead: a level is
 # n x n posts of the lat/lon lattice, so east-west it spans cos(latitude) of its north-south
 # metres, and at 89.99 degrees the coarsest level was a strip some metres wide with open sea
@@ -563,10 +573,11 @@ def inset_map(m: InsetMask, lat0: float, lon0: float, dlat: float, dlon: float, 
     return a_u, c_u, a_v, c_v
 
 
-def height_alpha(height_above_ground_m: float, extent_m: float) -> float:
-    """alpha_h of a level of this extent (thesis §3.2.2, linear between HEIGHT_FADE x extent)."""
-    a, b = HEIGHT_FADE
-    return min(max((height_above_ground_m / extent_m - a) / (b - a), 0.0), 1.0)
+def height_alpha(height_above_ground_m: float, edge_m: float, finest: bool = False) -> float:
+    """alpha_h of a level of this edge (thesis §3.2.2): linear between HEIGHT_FADE x edge; the
+    finest level's (``finest``) h / (FINEST_HEIGHT_FADE x edge), from the ground up."""
+    a, b = (0.0, FINEST_HEIGHT_FADE) if finest else HEIGHT_FADE
+    return min(max((height_above_ground_m / edge_m - a) / (b - a), 0.0), 1.0)
 
 
 def block_grid(size: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
@@ -1790,13 +1801,20 @@ class ClipmapLayer:
         c = self.clipmap
         top = len(c.levels) - 1
         drawn = [lv.k for lv in c.levels if lv.valid and
-                 (lv.k == top or height_alpha(self._height_above_ground, c.extent_m(lv.k)) < 1.0)]
+                 (lv.k == top or height_alpha(self._height_above_ground, self.edge_m(lv.k), lv.k == 0) < 1.0)]
         return drawn_regions(c, drawn, margin_cells=math.ceil(max(MORPH_WIDTH_FRACTION * c.n, 1.0)) + 2)
 
     def level_alpha_h(self, k: int) -> float:
-        """Level k's fade by the viewer's height (0 for the coarsest, always drawn)."""
+        """Level k's fade by the viewer's height (0 for the coarsest, always drawn; the finest
+        level, k = 0, is the thesis' n_max)."""
         c = self.clipmap
-        return 0.0 if k == len(c.levels) - 1 else height_alpha(self._height_above_ground, c.extent_m(k))
+        return 0.0 if k == len(c.levels) - 1 else height_alpha(self._height_above_ground, self.edge_m(k), k == 0)
+
+    def edge_m(self, k: int) -> float:
+        """Level k's edge(n) (thesis §3.2.2: max(edge_x, edge_y), the sides of its clip region),
+        metres, the east-west side at the focus's latitude (the mean Earth radius: for sizes)."""
+        c = self.clipmap
+        return (c.n - 1) * max(c.spacing_m(k), self._east_spacing_m(k, self._focus[0]))
 
     def _upload(self, u) -> None:
         level = self.clipmap.levels[u.k]
