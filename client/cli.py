@@ -332,6 +332,7 @@ def _fly_profile(sim, agent: int, profile: str, leg_s: float, duration_s: float,
                 lost = _agent_lost(exc)
                 if lost is None:
                     raise
+                controls.cancel()
                 sim.leave()  # its agent crashed or was destroyed: its flight is over, not failed
                 return f"{pilot.legs} legs, then its agent {lost}; {picture.updates} updates"
             except StreamEnded:  # the server ended the exercise: the picture's end says so
@@ -340,7 +341,11 @@ def _fly_profile(sim, agent: int, profile: str, leg_s: float, duration_s: float,
         stop.wait(min(MIN_LEG_WALL_S, max(end - time.monotonic(), 0.0)))
     if not picture.alive:  # the server ended the exercise, or went away
         ok, why = why_ended(picture)
-        accepted = _accepted(controls) if ok else None
+        if ok:
+            accepted = _accepted(controls)
+        else:  # a server gone, a stream its own session ended, a failure: no count to wait for
+            accepted = None
+            controls.cancel()
         counts = f"{accepted} commands accepted, " if accepted is not None else ""
         line = f"{pilot.legs} legs, then {why}; {counts}{picture.updates} updates"
         return line if ok else BotFailure(f"stopped: {line}")

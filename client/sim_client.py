@@ -25,6 +25,12 @@ is the error of the failed call. An ended picture stays at the world time of
 its last update (it is not extrapolated past it). A client stream
 (:meth:`SimClient.controls`, :meth:`SimClient.external`) the server has ended
 refuses further messages with its error, or :class:`StreamEnded`.
+
+Closing a client (:meth:`SimClient.close`, the end of its ``with`` block) ends
+everything it opened: its pictures and event iterators are cancelled, and its
+controls and external streams that are still open are cancelled too (what they
+had not sent yet is dropped: close a stream first to have the server take it
+all). No thread of a closed client waits on.
 """
 
 from __future__ import annotations
@@ -90,7 +96,9 @@ class SimClient:
         self.token = ""
         self.agent_id = 0
         self.world_info: pb.WorldInfo | None = None
-        self._streams: list = []
+        self._streams: list = []  # the server streams: Watch and WatchEvents calls
+        self._request_streams: set = set()  # the client streams still open (_RequestStream)
+        self._request_streams_lock = threading.Lock()  # they leave the set on gRPC's thread
 
     def __enter__(self) -> SimClient:
         return self
@@ -99,9 +107,23 @@ class SimClient:
         self.close()
 
     def close(self) -> None:
+        """End every stream this client opened (server streams and client streams still
+        open: cancelled, a client stream's unsent messages dropped), then the channel."""
         for s in self._streams:
             s.cancel()
+        with self._request_streams_lock:
+            open_streams = list(self._request_streams)
+        for r in open_streams:
+            r.cancel()
         self.channel.close()
+
+    def _track(self, stream: _RequestStream, is_open: bool) -> None:
+        """A client stream opened (is_open) or ended: the ones close() must end."""
+        with self._request_streams_lock:
+            if is_open:
+                self._request_streams.add(stream)
+            else:
+                self._request_streams.discard(stream)
 
     def wait_ready(self, timeout_s: float = 10.0) -> None:
         """Block until the channel is connected; ServiceError(UNAVAILABLE) after timeout_s."""
@@ -195,16 +217,27 @@ class SimClient:
 
 class _RequestStream:
     """One client-streaming call fed from a queue: messages go out in order on gRPC's
-    thread; :meth:`close` ends the stream and returns the server's answer. A message for a
+    thread; :meth:`close` ends the stream and returns the server's answer, :meth:`cancel`
+    ends it at once (SimClient.close() cancels the ones still open). A message for a
     stream that has ended raises (the stream's error, else :class:`StreamEnded`): the server
     reads no more of it, so it would be lost."""
 
     def __init__(self, client: SimClient, rpc, name: str):
         self.client = client
         self.name = name  # the RPC, for messages
-        self._closed_here = False  # close() ended the stream, not the server
+        self._closed_here = False  # close() or cancel() ended the stream, not the server
         self._q: queue.Queue = queue.Queue()
         self._future = rpc.future(self._messages())
+        client._track(self, True)
+        # gRPC reads _messages on a thread of its own (grpc/_channel.py consume_request_iterator)
+        # that looks at the call's state only between messages: blocked in the queue's get(), it
+        # waited forever once the call had ended (the server ended it, it failed, it was
+        # cancelled). So the call's end ends the messages (at once if it has ended already).
+        self._future.add_done_callback(self._ended)
+
+    def _ended(self, _future) -> None:
+        self._q.put(None)
+        self.client._track(self, False)
 
     def _messages(self):
         while True:
@@ -215,7 +248,10 @@ class _RequestStream:
 
     def _put(self, msg) -> None:
         if self._future.done():  # ended: a failed stream's error (e.g. a bad message) says why
-            accepted = self.close()
+            try:
+                accepted = self.close()
+            except StreamEnded as exc:  # cancelled here: no count
+                raise StreamEnded(f"{exc}: this message was not sent") from None
             who = ("this client closed it" if self._closed_here
                    else "the server ended it: the exercise is over or the server stops")
             raise StreamEnded(f"{self.name}: the stream has ended ({who}; {accepted} messages accepted): this "
@@ -227,12 +263,22 @@ class _RequestStream:
         self._q.put(None)
         try:
             return self._future.result(timeout=self.client.timeout_s)
+        except grpc.FutureCancelledError:
+            raise StreamEnded(f"{self.name}: the stream has ended (this client cancelled it: SimClient.close() or "
+                              "cancel(); the server's count of accepted messages is unknown)") from None
         except grpc.RpcError as exc:
             raise error_from_rpc(exc) from None
 
     def close(self) -> int:
         """End the stream; the number of messages the server accepted (raises its error)."""
         return self._finish().accepted
+
+    def cancel(self) -> None:
+        """End the stream now, without the server's answer: messages not yet sent are
+        dropped (a stream that has ended is left as it is)."""
+        self._closed_here = self._closed_here or not self._future.done()
+        self._q.put(None)  # gRPC's thread ends now, not when (if: the channel may close first) the call's end comes
+        self._future.cancel()
 
     def __enter__(self):
         return self
