@@ -195,8 +195,11 @@ class Autopilot:
     """Heading / altitude / speed hold for one :class:`fdm.aircraft.Aircraft`.
 
     Call :meth:`update` once per step before ``aircraft.step()`` (or use
-    :meth:`run`). The autopilot reads the raw state and writes controls; it
-    keeps its integrators, so one autopilot flies one aircraft.
+    :meth:`run`), or once per ``dt_s`` of several steps, passing it (a host updates its
+    pilots every 1/30 s: server.aircraft_host.PILOT_HZ; the integrators, slew limits and
+    low-pass filters advance by the time that passes, so the tuning holds at either rate).
+    The autopilot reads the raw state and writes controls; it keeps its integrators, so
+    one autopilot flies one aircraft.
     """
 
     def __init__(self, aircraft, targets: Targets | None = None, gains: Gains | None = None):
@@ -222,8 +225,9 @@ class Autopilot:
             _check_positive("speed_mps", speed_mps)
         self.targets = Targets(heading_deg, alt_msl_m, speed_mps)
 
-    def update(self, row=None) -> None:
-        """Read the state, write the controls for the next step.
+    def update(self, row=None, dt_s: float | None = None) -> None:
+        """Read the state, write the controls for the next step (or the next ``dt_s``
+        seconds of steps: the time the integrators advance by; None, one step).
 
         ``row``: the aircraft's current raw state (``raw_values()``, a list or a
         float64 array of fdm.state.RAW_WIDTH), for a host that has already read
@@ -232,7 +236,7 @@ class Autopilot:
         ac = self.aircraft
         r = _row_values(ac, row)
         g = self.gains
-        dt = ac.dt
+        dt = ac.dt if dt_s is None else dt_s
         phi, psi, p, q = r[_PHI], r[_PSI], r[_P], r[_Q]
         pitch = roll = yaw = throttle = None
         tg = self.targets
@@ -397,9 +401,9 @@ class WaypointFollower:
     def done(self) -> bool:
         return self.active >= len(self.waypoints)
 
-    def update(self, row=None) -> None:
-        """Retarget on the active waypoint, then the autopilot's update; ``row`` as in
-        :meth:`Autopilot.update` (read once here and shared with the autopilot)."""
+    def update(self, row=None, dt_s: float | None = None) -> None:
+        """Retarget on the active waypoint, then the autopilot's update; ``row`` and ``dt_s``
+        as in :meth:`Autopilot.update` (the row read once here and shared with the autopilot)."""
         if not self.done:
             r = row = _row_values(self.autopilot.aircraft, row)
             lat, lon, alt = self.waypoints[self.active]
@@ -420,7 +424,7 @@ class WaypointFollower:
                     self._leg_back_azi = back if leg > 0.0 else None
             if not self.done:
                 self.autopilot.set_targets(azi1 % 360.0, alt, self.speed_mps)
-        self.autopilot.update(row)
+        self.autopilot.update(row, dt_s)
 
     def run(self, seconds: float) -> list:
         events = []

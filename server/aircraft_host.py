@@ -89,6 +89,12 @@ WORKER_START_TIMEOUT_S = 120.0
 WORKER_NICE = 3
 # An aircraft on its wheels slower than this when its pilot leaves is parked, not flown (m/s).
 PARKED_MPS = 2.0
+# Pilots (autopilots, routes) fly at this rate whatever the world's: a world tick longer
+# than 1/PILOT_HZ is flown in pieces of at most that, the pilots updated before each (an
+# f16's roll loop updated once a second, at a 1 Hz world, circled for good), and each
+# update advances the pilot's integrators by the piece's time. 30 Hz: the default world
+# rate, where a tick is one piece (fdm.aircraft.CHECK_HZ, the fleet's quiet check, too).
+PILOT_HZ = 30.0
 
 
 @dataclass
@@ -266,14 +272,19 @@ class LocalAircraftHost:
     # -- ticking --------------------------------------------------------------------------------
 
     def begin_tick(self, steps: int) -> None:
-        """Pilots update (each on its aircraft's row of the last tick when it has one),
-        then every aircraft runs ``steps`` JSBSim steps through the Fleet."""
+        """Every aircraft runs ``steps`` JSBSim steps through the Fleet, in pieces of at most
+        1/PILOT_HZ, the pilots updated before each piece (on the first, each on its
+        aircraft's row of the last tick when it has one)."""
+        piece = max(1, int(round(1.0 / (PILOT_HZ * self.dt))))
         rows = self._rows  # nothing between two ticks changes an aircraft's state (controls are not state)
-        for entity_id, pilot in self._pilots.items():
-            ac = self._aircraft[entity_id]
-            if pilot is not None and not ac.crashed:
-                pilot.update(rows.get(entity_id))
-        with_events = self.fleet.advance(steps)
+        with_events = []
+        for start in range(0, max(int(steps), 0), piece):
+            n = min(piece, steps - start)
+            for entity_id, pilot in self._pilots.items():
+                ac = self._aircraft[entity_id]
+                if pilot is not None and not ac.crashed:
+                    pilot.update(rows.get(entity_id) if start == 0 else None, n * self.dt)
+            with_events += self.fleet.advance(n)
         events = []
         if with_events:  # rare: the owners are looked up only then
             owner = {id(ac): entity_id for entity_id, ac in self._aircraft.items()}
