@@ -458,7 +458,10 @@ class Recording:
         self.entities = {e.entity_id: e for e in self.index.entities}
         self._cache: OrderedDict[int, Chunk] = OrderedDict()
         self._cache_lock = threading.Lock()  # the replay's clock and control threads both read chunks
-        self._zstd = zstandard.ZstdDecompressor()
+        # A decompressor per thread: python-zstandard's may not be used from two threads at once
+        # (the replay's clock and its control calls read chunks together: an acceptance probe saw
+        # intact chunks read as corrupt, and the process die of SIGSEGV).
+        self._zstd_of_thread = threading.local()
         if self.lost:
             self._describe_lost()
 
@@ -1017,9 +1020,16 @@ class Recording:
         decoded (inputs and events are read this way)."""
         data, nh, where = self._chunk_bytes(k)
         try:
-            return rpb.ChunkHead.FromString(data[:nh]), rpb.ChunkBody.FromString(self._zstd.decompress(data[nh:]))
+            return rpb.ChunkHead.FromString(data[:nh]), rpb.ChunkBody.FromString(self._decompressor().decompress(data[nh:]))
         except Exception as exc:  # noqa: BLE001 - zstd and protobuf errors
             raise DataFormatError(f"{where}: cannot be decoded: {exc}") from None
+
+    def _decompressor(self) -> zstandard.ZstdDecompressor:
+        """This thread's zstd decompressor (see _open)."""
+        d = getattr(self._zstd_of_thread, "d", None)
+        if d is None:
+            d = self._zstd_of_thread.d = zstandard.ZstdDecompressor()
+        return d
 
     def chunk(self, k: int) -> Chunk:
         """The k-th chunk decoded (cached); DataFormatError naming its offset if damaged."""
