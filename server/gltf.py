@@ -238,11 +238,12 @@ def _add_terrain(scene, extras: dict, stats: GltfStats, r, terrain, box, frame: 
     ``max_error_m``), textured for the sortie's start; left out, and said so in the extras,
     where no grid cell has data."""
     from terrain.mesh import centre_error, to_trimesh
-    from terrain.mesh_cli import checked_request, sample_mesh
+    from terrain.mesh_cli import checked_request, grid_limit, sample_mesh
     from terrain.texture_cli import texture_request
 
     when = _sun_time(r, frame.lon_deg)
-    req = texture_request(box, size, spacing_m, when, default_long_side=DEFAULT_LONG_SIDE)
+    req = texture_request(box, size, spacing_m, when, default_long_side=DEFAULT_LONG_SIDE,
+                          limit=grid_limit(max_error_m, "max_error_m"))
     req = checked_request(req, max_error_m, "max_error_m", "size" if size else "spacing_m", size or spacing_m)
     mesh, _, image = sample_mesh(terrain, req, max_error_m, frame=frame,
                                  geoid_undulation_m=float(r.header.geoid_undulation_m), texture=texture)

@@ -47,7 +47,7 @@ def check(address: str, service: str = "", timeout_s: float = DEFAULT_TIMEOUT_S)
     """(serving, status text): the health of ``service`` at ``address`` after one Check call.
 
     The text is the status name (SERVING, NOT_SERVING, SERVICE_UNKNOWN) or the
-    gRPC error's code and details when the call failed."""
+    gRPC error's code and details when the call failed (:func:`failure_text`)."""
     import grpc
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 
@@ -61,9 +61,23 @@ def check(address: str, service: str = "", timeout_s: float = DEFAULT_TIMEOUT_S)
             reply = health_pb2_grpc.HealthStub(channel).Check(
                 health_pb2.HealthCheckRequest(service=service), timeout=timeout_s)
         except grpc.RpcError as exc:
-            return False, f"{exc.code().name}: {exc.details()}"
+            return False, failure_text(exc.code(), exc.details(), service)
     return (reply.status == health_pb2.HealthCheckResponse.SERVING,
             health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status))
+
+
+def failure_text(code, details: str | None, service: str) -> str:
+    """"CODE: what went wrong" for a failed Check. grpc.health.v1's Check fails with NOT_FOUND for
+    a service name the server has not registered (gRPC's doc/health-checking.md; grpcio's
+    grpc_health.v1.health.HealthServicer.Check), and grpcio's servicer sends no details with it,
+    so the text names the service; any other code without details says so."""
+    import grpc
+
+    if details:
+        return f"{code.name}: {details}"
+    if code == grpc.StatusCode.NOT_FOUND:
+        return f"NOT_FOUND: unknown service {service!r} (the server registers no health status under that name)"
+    return f"{code.name}: (the server gave no details)"
 
 
 def check_address(address: str) -> None:

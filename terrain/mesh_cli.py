@@ -25,9 +25,6 @@ from datetime import datetime, timedelta, timezone
 
 from sortie.errors import InvalidArgument
 
-# The largest grid an adaptive mesh samples: 2049 x 2049 posts (4.2 M, as MAX_VERTICES).
-MAX_RTIN_SIDE = 2049
-
 
 def add_mesh_parser(commands) -> argparse.ArgumentParser:
     """Add ``mesh`` to the sub-commands of ``sortie terrain`` (server/terrain_cli.py's ``commands``)."""
@@ -39,17 +36,18 @@ def add_mesh_parser(commands) -> argparse.ArgumentParser:
         description="Sample the terrain on a regular lat/lon grid and write it as a triangle mesh in a "
                     "local east-north-up frame at the box's centre (glTF: x east, y up, z south), "
                     "textured with the synthesized land classes and light map of `sortie terrain "
-                    "texture`. At most 4,194,304 (2048 x 2048) vertices (terrain/mesh.py, MAX_VERTICES).")
+                    "texture`. At most 4,194,304 (2048 x 2048) vertices (terrain/mesh.py, MAX_VERTICES); "
+                    "with --max-error-m, a grid of at most 2049 x 2049 (MAX_ADAPTIVE_SIDE).")
     add_terrain_source_args(p)
-    add_grid_args(p, "vertices", "at most 4,194,304 in all")
+    add_grid_args(p, "vertices", "at most 4,194,304 in all; with --max-error-m at most 2049 a side")
     light = p.add_mutually_exclusive_group()
     light.add_argument("--time", metavar="ISO8601", help="UTC instant of the texture's sun, e.g. 2026-06-21T12:00:00Z "
                                                           "(default: local mean noon at the centre, 21 June 2026)")
     light.add_argument("--no-texture", action="store_true", help="geometry alone (no texture, no colours)")
     p.add_argument("--max-error-m", type=float, metavar="M",
                    help="an adaptive mesh (right-triangulated irregular network, terrain/rtin.py) within M "
-                        "metres of every sampled post: the grid becomes 2^k + 1 posts a side, at least --size "
-                        "or --spacing-m asks, and keeps only the triangles the bound needs")
+                        "metres of every sampled post: the grid becomes 2^k + 1 posts a side (at most 2049), at "
+                        "least --size or --spacing-m asks, and keeps only the triangles the bound needs")
     p.add_argument("--geoid-undulation-m", type=float, default=0.0, metavar="N",
                    help="ellipsoidal height = MSL height + N, as the simulation world's (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="noise seed of the texture (default %(default)s)")
@@ -59,30 +57,46 @@ def add_mesh_parser(commands) -> argparse.ArgumentParser:
     return p
 
 
+def grid_limit(max_error_m: float | None, error_field: str = "--max-error-m"):
+    """The vertex limit of a mesh's grid (terrain.texture_cli.GridLimit, for texture_request):
+    terrain.mesh.MAX_VERTICES for a regular mesh; for an adaptive one (``max_error_m`` given, by
+    ``error_field``) the largest RTIN grid, MAX_ADAPTIVE_SIDE a side (:func:`adaptive_request`
+    checks the side)."""
+    from terrain.mesh import MAX_ADAPTIVE_SIDE, MAX_VERTICES
+    from terrain.texture_cli import GridLimit
+
+    if max_error_m is None:
+        return GridLimit("vertices", MAX_VERTICES, "2048 x 2048")
+    return GridLimit("vertices", MAX_ADAPTIVE_SIDE ** 2,
+                     f"{MAX_ADAPTIVE_SIDE} x {MAX_ADAPTIVE_SIDE} with {error_field}: an adaptive mesh")
+
+
 def adaptive_request(req, max_error_m: float, error_field: str, size_field: str, size_value):
     """The request of an adaptive mesh (terrain/rtin.py): the grid made 2^k + 1 posts a side, at
-    least as many as ``req`` asks either way; InvalidArgument naming the option at fault."""
+    least as many as ``req`` asks either way, at most terrain.mesh.MAX_ADAPTIVE_SIDE; InvalidArgument
+    naming the option at fault (``size_field``, and ``error_field`` in its message)."""
+    from terrain.mesh import MAX_ADAPTIVE_SIDE
     from terrain.rtin import grid_size_for
 
     if not (math.isfinite(max_error_m) and max_error_m >= 0.0):
         raise InvalidArgument(error_field, "must be a finite number of metres, 0 or more", value=max_error_m)
     side = grid_size_for(max(req.cols, req.rows))
-    if side > MAX_RTIN_SIDE:
-        raise InvalidArgument(size_field, f"an adaptive mesh samples {side} x {side} posts, over the limit of "
-                                          f"{MAX_RTIN_SIDE} a side", value=size_value)
+    if side > MAX_ADAPTIVE_SIDE:
+        raise InvalidArgument(size_field, f"{req.cols}x{req.rows} with {error_field} makes an adaptive mesh's grid "
+                                          f"{side} x {side} (2^k + 1 posts a side, at least as many as asked), over "
+                                          f"its limit of {MAX_ADAPTIVE_SIDE} a side", value=size_value)
     return dataclasses.replace(req, cols=side, rows=side)
 
 
 def checked_request(req, max_error_m: float | None, error_field: str, size_field: str, size_value):
     """``req`` within the mesh limits: an adaptive mesh's grid (:func:`adaptive_request`), or a
     regular one of at most terrain.mesh.MAX_VERTICES; InvalidArgument naming the option at fault."""
-    from terrain.mesh import MAX_VERTICES
-
     if max_error_m is not None:
         return adaptive_request(req, max_error_m, error_field, size_field, size_value)
-    if req.cols * req.rows > MAX_VERTICES:
+    limit = grid_limit(None)
+    if req.cols * req.rows > limit.max_count:
         raise InvalidArgument(size_field, f"{req.cols}x{req.rows} = {req.cols * req.rows:,} vertices is over the limit "
-                                          f"of {MAX_VERTICES:,}", value=size_value)
+                                          f"of {limit.text()}", value=size_value)
     return req
 
 
@@ -126,7 +140,8 @@ def mesh_command(args) -> int:
                               value=args.geoid_undulation_m)
     bbox = box_of(args)
     centre_lon = 0.5 * (bbox[1] + bbox[3]) if len(bbox) == 4 and all(map(math.isfinite, bbox)) else 0.0
-    req = texture_request(bbox, args.size, args.spacing_m, args.time or local_noon(centre_lon))
+    req = texture_request(bbox, args.size, args.spacing_m, args.time or local_noon(centre_lon),
+                          limit=grid_limit(args.max_error_m))
     req = checked_request(req, args.max_error_m, "--max-error-m", "--size" if args.size else "--spacing-m",
                           args.size or args.spacing_m)
     terrain = terrain_source(args)

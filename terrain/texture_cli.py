@@ -72,6 +72,22 @@ SIZE_PATTERN = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
 
 @dataclass(frozen=True)
+class GridLimit:
+    """What a command's grid points are ("pixels" of a texture, "vertices" of a mesh), the most it
+    takes (``max_count`` in all) and how that limit reads in its errors (``note``, e.g. "16 Mpixel")."""
+
+    what: str
+    max_count: int
+    note: str = ""
+
+    def text(self) -> str:
+        return f"{self.max_count:,} {self.what}" + (f" ({self.note})" if self.note else "")
+
+
+TEXTURE_LIMIT = GridLimit("pixels", MAX_PIXELS, "16 Mpixel")
+
+
+@dataclass(frozen=True)
 class TextureRequest:
     """A validated request: the box (degrees), the grid and the UTC instant."""
 
@@ -176,10 +192,13 @@ def check_bbox(bbox) -> tuple[float, float, float, float]:
 
 
 def grid_size(bbox, size: str | None, spacing_m: float | None,
-              default_long_side: int = DEFAULT_LONG_SIDE_PX) -> tuple[int, int]:
-    """(cols, rows) from --size, or --spacing-m, or the default; within MIN_SIDE_PX and MAX_PIXELS."""
+              default_long_side: int = DEFAULT_LONG_SIDE_PX, limit: GridLimit = TEXTURE_LIMIT) -> tuple[int, int]:
+    """(cols, rows) from --size, or --spacing-m, or the default; at least MIN_SIDE_PX each way and
+    ``limit.max_count`` in all, the errors naming the option and counting in ``limit.what`` (a
+    texture's pixels, a mesh's vertices: terrain/mesh_cli.py)."""
     from terrain.texture import metre_spacing
 
+    what = limit.what
     lat_min, lon_min, lat_max, lon_max = bbox
     width_m, height_m = metre_spacing(lat_min, lat_max, lat_max - lat_min, lon_max - lon_min)
     if size is not None:
@@ -193,10 +212,9 @@ def grid_size(bbox, size: str | None, spacing_m: float | None,
             raise InvalidArgument("--spacing-m", "must be a positive number of metres", value=spacing_m)
         # In floats first: a tiny spacing makes counts thousands of digits long, or infinite.
         across, down = width_m / spacing_m, height_m / spacing_m
-        if not across * down <= 2 * MAX_PIXELS:
-            raise InvalidArgument("--spacing-m", f"{spacing_m:g} m makes about {across:.3g} x {down:.3g} pixels over "
-                                                 f"the box, over the limit of {MAX_PIXELS:,} (16 Mpixel)",
-                                  value=spacing_m)
+        if not across * down <= 2 * limit.max_count:
+            raise InvalidArgument("--spacing-m", f"{spacing_m:g} m makes about {across:.3g} x {down:.3g} {what} over "
+                                                 f"the box, over the limit of {limit.text()}", value=spacing_m)
         cols = max(MIN_SIDE_PX, round(width_m / spacing_m))
         rows = max(MIN_SIDE_PX, round(height_m / spacing_m))
         field = "--spacing-m"
@@ -206,20 +224,21 @@ def grid_size(bbox, size: str | None, spacing_m: float | None,
         rows = max(MIN_SIDE_PX, round(height_m * scale))
         field = "--size"
     if min(cols, rows) < MIN_SIDE_PX:
-        raise InvalidArgument(field, f"needs at least {MIN_SIDE_PX} pixels each way, got {cols}x{rows}",
+        raise InvalidArgument(field, f"needs at least {MIN_SIDE_PX} {what} each way, got {cols}x{rows}",
                               value=size)
-    if cols * rows > MAX_PIXELS:
-        raise InvalidArgument(field, f"{cols}x{rows} = {cols * rows:,} pixels is over the limit of "
-                                     f"{MAX_PIXELS:,} (16 Mpixel)", value=size if size is not None else spacing_m)
+    if cols * rows > limit.max_count:
+        raise InvalidArgument(field, f"{cols}x{rows} = {cols * rows:,} {what} is over the limit of {limit.text()}",
+                              value=size if size is not None else spacing_m)
     return cols, rows
 
 
 def texture_request(bbox, size: str | None, spacing_m: float | None, time_text: str,
-                    default_long_side: int = DEFAULT_LONG_SIDE_PX) -> TextureRequest:
-    """Validate the command's inputs; every failure is InvalidArgument naming the option and value."""
+                    default_long_side: int = DEFAULT_LONG_SIDE_PX, limit: GridLimit = TEXTURE_LIMIT) -> TextureRequest:
+    """Validate the command's inputs; every failure is InvalidArgument naming the option and value.
+    ``limit``: the grid's (a texture's pixels by default; a mesh passes its vertices')."""
     box = check_bbox(bbox)
     when = parse_time(time_text)
-    cols, rows = grid_size(box, size, spacing_m, default_long_side)
+    cols, rows = grid_size(box, size, spacing_m, default_long_side, limit)
     return TextureRequest(*box, cols=cols, rows=rows, when=when)
 
 
