@@ -232,7 +232,11 @@ def _project_kernel(seg_axes, seg_arc, seg_len, cum, lat, lon, hint, heading_deg
     taken before one on an earlier segment (a vehicle never goes back a leg it overlaps),
     then the one on the segment most aligned with heading_deg[j] (compass degrees; NaN: no
     preference, the first).
-    Cross-track is positive to the right of the route's direction.
+    Cross-track is positive to the right of the route's direction. The arc length of a point
+    before the first waypoint is measured along the first leg extended backwards (negative),
+    of one past the last waypoint along the last leg extended on (over the route's length):
+    a column lined up behind its start keeps its order and gaps (clamped to 0, every member
+    stood level at s = 0, the listed first led from the back and drove into the others).
     """
     nseg = seg_len.shape[0]
     for j in range(lat.shape[0]):
@@ -270,7 +274,12 @@ def _project_kernel(seg_axes, seg_arc, seg_len, cum, lat, lon, hint, heading_deg
                 r = seg_arc[k, ARC_RADIUS]
                 along = ax[AX_ALONG, 0] * px + ax[AX_ALONG, 1] * py + ax[AX_ALONG, 2] * pz
                 angle = math.atan2(along / r, op)  # exact on the leg, its plane's foot beside it
-                out_s[j] = cum[k] + min(max(r * (angle - seg_arc[k, ARC_START]), 0.0), seg_len[k])
+                along_leg = r * (angle - seg_arc[k, ARC_START])
+                if k > 0:
+                    along_leg = max(along_leg, 0.0)
+                if k < nseg - 1:
+                    along_leg = min(along_leg, seg_len[k])
+                out_s[j] = cum[k] + along_leg
                 out_x[j] = ax[AX_RIGHT, 0] * px + ax[AX_RIGHT, 1] * py + ax[AX_RIGHT, 2] * pz
                 out_seg[j] = k
 
@@ -518,7 +527,10 @@ class Route:
         return nv, direction
 
     def project(self, lat, lon, hint=None, heading_deg=None):
-        """(s, cross_track_m, segment) of each point's closest route point.
+        """(s, cross_track_m, segment) of each point's closest route point; s (m) runs on
+        beyond the route's ends along its first and last legs extended (negative before the
+        first waypoint, over :attr:`length_m` past the last), so points lined up there keep
+        their order.
 
         hint: (n,) int64 segments from the last call (-1: search all); the
         search looks a few segments around it, which keeps a vehicle on its own
@@ -557,8 +569,10 @@ class Route:
 
 def column_order(route: Route, lat, lon, heading_deg) -> np.ndarray:
     """The order of a column on ``route``: indices of the vehicles at (lat, lon) heading
-    heading_deg, farthest along the route first (it leads), the rest in their order along it;
-    a stable sort, so vehicles level with each other keep the order they were given in."""
+    heading_deg, farthest along the route first (it leads), the rest in their order along it
+    (before the first waypoint, along the first leg extended back: a column staged behind its
+    start forms up front first); a stable sort, so vehicles level with each other keep the
+    order they were given in."""
     lat, lon, heading = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (lat, lon, heading_deg))
     s, _, _ = route.project(lat, lon, heading_deg=np.broadcast_to(heading, lat.shape))
     return np.argsort(-s, kind="stable")

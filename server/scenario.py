@@ -119,7 +119,7 @@ Schema (``*`` required; everything else has the default shown)::
                                convoy = "name" and spacing_m = 50.0 (0, 1000]: members of a
                                convoy (at least 2) share route, cruise_mps and spacing_m;
                                the member farthest along the route leads, the others
-                               follow in their order along it (listed order where level)
+                               follow in their order along it (listed order where level); members before the first waypoint are placed along the first leg extended back
 
     [[target_areas]]           0..256
     name*                      unique (same rule as agent names)
