@@ -93,7 +93,7 @@ import numpy as np
 
 from fdm import catalog
 from fdm.contacts import contact_points, ground_clearance, place_contacts
-from fdm.events import LIMITS, SURFACE_CRASH_REASONS, WRECK_IMPACT, Event, EventDetector
+from fdm.events import LIMITS, SEGMENT_CRASH_REASON, SURFACE_CRASH_REASONS, WRECK_IMPACT, Event, EventDetector
 from fdm.ground import WATER_LEVEL_MSL_M
 from fdm.state import FT_M, RAW_COLUMNS, RAW_PROPERTIES, RAW_WIDTH, AircraftState
 from fdm.wreck import FALL_MIN_AGL_M, G0_MPS2, fall, impact_fraction, ned_to_body_matrix
@@ -424,6 +424,29 @@ def terrain_msl_m(terrain, lat_deg, lon_deg) -> np.ndarray:
                    np.float64)
     h = np.where(np.isnan(h), 0.0, h)
     return np.maximum(h, WATER_LEVEL_MSL_M) if getattr(terrain, "has_water", True) else h
+
+
+# The state-out columns of motion: a wreck keeps its place and attitude, and these read 0
+# (1 g for the load factor) from its crash on, so that receivers dead-reckoning it see it
+# stay, and its sender's dead reckoning sends one last update, then heartbeats.
+WRECK_MOTION_COLUMNS = tuple(RAW_COLUMNS[name] for name in (
+    "v_north_fps", "v_east_fps", "v_down_fps", "p_rps", "q_rps", "r_rps", "udot_fps2", "vdot_fps2",
+    "wdot_fps2", "vt_fps", "vc_kts", "alpha_rad", "beta_rad"))
+
+
+def rest_row(row, lat_deg: float, lon_deg: float, alt_msl_m: float, surface_msl_m: float):
+    """A wreck's raw state row (fdm.state.RAW_PROPERTIES) at rest at a place: ``row`` (a list
+    or a (RAW_WIDTH,) float64 array, changed in place and returned) put at (lat, lon) degrees,
+    ``alt_msl_m`` metres MSL over the surface ``surface_msl_m``, its attitude kept, no motion
+    (WRECK_MOTION_COLUMNS) and 1 g. The one formula for the aircraft (:meth:`Aircraft.crash`)
+    and a host showing the same wreck before the aircraft has it (server.world), bit for bit."""
+    c = RAW_COLUMNS
+    row[c["lat_rad"]], row[c["lon_rad"]] = math.radians(lat_deg), math.radians(lon_deg)
+    row[c["alt_ft"]], row[c["terrain_ft"]] = alt_msl_m / FT_M, surface_msl_m / FT_M
+    for k in WRECK_MOTION_COLUMNS:
+        row[k] = 0.0
+    row[c["nz_g"]] = 1.0
+    return row
 
 
 def static_compressions_m(locations_in: np.ndarray, springs_lbs_ft, cg_in, weight_lbs: float) -> np.ndarray:
@@ -1095,10 +1118,27 @@ class Aircraft:
 
     def crash(self, t: float, lat: float, lon: float, alt_m: float, reason: str, **detail) -> list:
         """A crash found by the host (e.g. its terrain collision check): recorded as an
-        event, and the aircraft stops where it is. The event (or nothing if already down)."""
-        if self.crashed:
-            return []
-        return self._record([self._detector._crash(t, lat, lon, alt_m, reason, **detail)])
+        event, and the aircraft stops where it is. The event (or nothing if already down).
+
+        A host's segment test (``reason`` SEGMENT_CRASH_REASON) gives the place where the
+        aircraft's path met the terrain: the wreck rests there, not below the surface (not
+        where it is, up to a world tick further on, inside the terrain), also when its own
+        checks had already crashed it further along: far from the ground they run at the
+        terrain refresh, which assumes slopes of at most 45 degrees, so a cliff face is found
+        late (an acceptance probe's wall at 250 m/s: 13-39 m inside it)."""
+        events = [] if self.crashed else self._record([self._detector._crash(t, lat, lon, alt_m, reason,
+                                                                             **detail)])
+        if reason == SEGMENT_CRASH_REASON:
+            self._rest_at(lat, lon, alt_m)
+        return events
+
+    def _rest_at(self, lat: float, lon: float, alt_m: float) -> None:
+        """The wreck (crashed: a falling one stops falling) at rest at (lat, lon) degrees,
+        ``alt_m`` metres MSL or the surface there if that is higher (:func:`rest_row`)."""
+        surface = self._surface_m(lat, lon)
+        row = rest_row(self.raw_values(), lat, lon, max(alt_m, surface), surface)
+        self._fall = None
+        self.raw_values = row.copy  # shadows the method: the frozen row, a fresh list each call
 
     def step(self) -> list:
         """One JSBSim step with terrain coupling and event detection; the events of this step."""
@@ -1202,12 +1242,7 @@ class Aircraft:
                     self._come_to_rest()
         return events
 
-    # The state-out columns of motion: a wreck keeps its place and attitude, and these read 0
-    # (1 g for the load factor) from its crash on, so that receivers dead-reckoning it see it
-    # stay, and its sender's dead reckoning sends one last update, then heartbeats.
-    _MOTION_COLUMNS = tuple(RAW_COLUMNS[name] for name in (
-        "v_north_fps", "v_east_fps", "v_down_fps", "p_rps", "q_rps", "r_rps", "udot_fps2", "vdot_fps2",
-        "wdot_fps2", "vt_fps", "vc_kts", "alpha_rad", "beta_rad"))
+    _MOTION_COLUMNS = WRECK_MOTION_COLUMNS
 
     @property
     def falling(self) -> bool:

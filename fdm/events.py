@@ -46,11 +46,14 @@ DITCHED = "ditched"
 # Ground speed (m/s) up to which a structure contact is coming to rest, not a crash: a
 # walking pace, below a glider's end of ground run, where a wing drops onto its tip.
 STRUCTURE_REST_SPEED_MPS = 3.0
+# The crash reason of a host's segment test (server.world: the aircraft's path over a world tick
+# met the terrain there). Given to fdm.aircraft.Aircraft.crash, its place is where the wreck rests.
+SEGMENT_CRASH_REASON = "terrain collision (segment)"
 # The crash reasons of an aircraft meeting the surface (or whose state went non-finite): its
 # wreck stays where it crashed. Any other crash (the load factor; a host's, such as a mid-air
 # collision) well clear of the surface leaves a wreck that falls (fdm.wreck).
 SURFACE_CRASH_REASONS = frozenset({"sink rate at touchdown", "structure contact", "terrain penetration",
-                                   DITCHED, "state diverged"})
+                                   DITCHED, "state diverged", SEGMENT_CRASH_REASON})
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,10 @@ snapshot, tests collisions and publishes (measured at 71 f16s, 2000 ground
 vehicles and 32 clients: mean tick 37 -> 30 ms). Commands therefore take
 effect at the first tick begun after they arrive, as before; a crash the
 segment test finds reaches the aircraft one tick later (it has flown one
-more tick, ~8 m at 250 m/s, when it stops).
+more tick, ~8 m at 250 m/s, when it stops), and the aircraft then puts its
+wreck back where the path met the terrain; until its rows show that, the
+world's snapshots show the wreck there already (``_placed``), so the crash
+event and every state streamed or recorded agree from the crash's tick on.
 
 Physics never waits on the network: readers take the latest snapshot, writers
 only drop commands into a dict. Acceleration is the ECEF velocity's change
@@ -35,7 +38,9 @@ over the last tick (what a receiver's second-order dead reckoning needs: the
 inertial acceleration of the CG, not JSBSim's body-axis velocity rates).
 
 Entities have stable integer ids (1, 2, ...). A crashed aircraft stays where
-it stopped (JSBSim stops stepping it) until removed.
+it stopped (JSBSim stops stepping it), or where its path met the terrain when
+the segment test found that, until removed; one crashed clear of the surface
+falls there first (fdm/wreck.py).
 
 External entities are owned by another simulation and published through a
 gateway (DIS, server/dis_gateway.py): the world keeps each one's last state,
@@ -56,12 +61,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fdm.aircraft import InitialConditions, validate_controls
+from fdm.aircraft import SEGMENT_CRASH_REASON, InitialConditions, rest_row, terrain_msl_m, validate_controls
 from fdm.convoy import (BACK_OFF_AFTER_S, BACK_OFF_MPS, BACK_OFF_S, OBSTACLE_STANDOFF_M, PASS_AFTER_M,
                         PASS_CRAWL_CLEAR_M, PASS_CRAWL_MPS, Convoy, FollowerSet, Route, RouteFollower,
                         column_order, obstacle_reach_m, obstacle_speed_ceiling, pass_offset_m, swing_room_m)
 from fdm.ground import BLOCKED_COLLISION, BLOCKED_NAMES, FREE, GroundVehicles
-from fdm.state import euler_to_quaternion, state_arrays
+from fdm.state import FT_M, RAW_COLUMNS, euler_to_quaternion, state_arrays
 from fdm.vehicle_types import P_BRAKE, P_RMIN
 from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
@@ -273,6 +278,9 @@ class World(EventLog):
         self._pending: dict[int, tuple] = {}
         self._next_id = 1
         self._prev_vel = (np.zeros(0, np.int64), np.zeros((0, 3)))  # (ids, ECEF velocities) of the last snapshot
+        # Wrecks the segment test put where their path met the terrain: entity id -> (lat, lon,
+        # alt m MSL, surface m MSL), shown there until the aircraft host's rows have them there.
+        self._placed: dict[int, tuple] = {}
         self.snapshot = _empty_snapshot(0.0, 0)
         self.recorder = None  # server.recorder.Recorder: every tick, input and event
 
@@ -483,6 +491,7 @@ class World(EventLog):
             self._pending.pop(entity_id, None)
             self._ground_heading_hold.pop(entity_id, None)
             self._hold_version += 1
+            self._placed.pop(entity_id, None)
             if e.external_id:
                 self._external.pop(entity_id, None)
                 self._external_ids.pop(e.external_id, None)
@@ -736,18 +745,18 @@ class World(EventLog):
             self._air_in_flight = True
             self.tick_count += 1
             self.time_s = self.tick_count * self.dt
-            events = []
-            for entity_id, ev in air.events:
-                events.append(WorldEvent(self.time_s, ev.kind, entity_id, ev.lat_deg, ev.lon_deg, ev.alt_msl_m,
-                                         dict(ev.detail)))
+            events, fdm_crashes = self._air_events(air)
             for entity_id, crashed, on_ground in zip(air.ids.tolist(), air.crashed.tolist(), air.on_ground.tolist()):
                 e = self.entities.get(entity_id)
                 if e is not None:  # a crash the world found stays, though its command is still on its way
                     e.crashed, e.on_ground = e.crashed or crashed, on_ground
             for entity_id in air.lost:
                 events.append(self._lose(entity_id))
+            prev_vel = self._prev_vel
             snapshot = self._take_snapshot()
-            events += self._terrain_collisions(self.snapshot, snapshot)
+            if self._terrain_collisions(self.snapshot, snapshot, events, fdm_crashes):
+                self._prev_vel = prev_vel  # taken again: this tick's wrecks where their paths met the terrain
+                snapshot = self._take_snapshot()
             self._note_wrecks(events)  # what crashed so far this tick moves no more
             events += self._agent_collisions(self.snapshot, snapshot)
             self._note_wrecks(events)
@@ -803,21 +812,50 @@ class World(EventLog):
         self._layout_version += 1
         self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
         self._pending.pop(entity_id, None)
+        self._placed.pop(entity_id, None)
         return WorldEvent(self.time_s, "remove", entity_id, detail={"name": e.name, "reason": "fdm worker exited"})
 
     def close(self) -> None:
         """Release the aircraft host (its worker processes, if any)."""
         self.air.close()
 
-    def _terrain_collisions(self, before: Snapshot, after: Snapshot) -> list[WorldEvent]:
-        """Airborne aircraft whose path over the last tick (the straight ECEF segment from
-        the previous snapshot's position to this one's) cuts the terrain: one batched
+    def _air_events(self, air) -> tuple[list[WorldEvent], dict[int, int]]:
+        """The aircraft host's events of this tick as world events, and which of them are
+        crashes the fdm found this tick of aircraft airborne at the tick's start (entity id ->
+        index in the list: :meth:`_terrain_collisions` tests their paths). Left out: a crash
+        of an aircraft the world already had down (its own finding, on its way to the aircraft
+        while this tick ran: one crash per entity), and anything of a wreck the world put where
+        its path met the terrain (what the aircraft did past that place did not happen)."""
+        events, fdm_crashes = [], {}
+        for entity_id, ev in air.events:
+            e = self.entities.get(entity_id)
+            if entity_id in self._placed or (e is not None and e.crashed and ev.kind == "crash"):
+                continue
+            if ev.kind == "crash" and e is not None and not e.on_ground and entity_id not in fdm_crashes:
+                fdm_crashes[entity_id] = len(events)
+            events.append(WorldEvent(self.time_s, ev.kind, entity_id, ev.lat_deg, ev.lon_deg, ev.alt_msl_m,
+                                     dict(ev.detail)))
+        return events, fdm_crashes
+
+    def _terrain_collisions(self, before: Snapshot, after: Snapshot, events: list, fdm_crashes: dict) -> bool:
+        """Aircraft whose path over the last tick cut the terrain: one batched
         segment-intersection query (the terrain service's IntersectSegments when the
         terrain is remote), so a fast mover cannot tunnel through a ridge between the
-        fdm's contact checks. The crash event carries the hit point; the aircraft stops
-        where this tick left it (at most one tick's flight beyond)."""
+        fdm's contact checks. The paths: the straight ECEF segment from the previous
+        snapshot's position to this one's for the airborne aircraft; and for those the fdm
+        crashed this tick (``fdm_crashes``: entity id -> index of the crash in ``events``),
+        to where it stopped them, since far from the ground the fdm finds a cliff face only
+        at its next terrain refresh, up to a tick past it (at 1 Hz and 250 m/s, 39 m inside a
+        wall, reported as the load factor of JSBSim's gear pushed out of the rock).
+
+        Where a path meets the terrain the crash is there ("terrain collision (segment)": a new
+        event, or the fdm's moved there), and so is the wreck, at rest on the surface (the
+        aircraft host puts it there, :meth:`fdm.aircraft.Aircraft.crash`; this snapshot and
+        the next, taken before it has, show it there through ``_placed``). A crash the fdm
+        found whose path does not meet the terrain keeps its place and reason. Events are
+        added to (or changed in) ``events``; True if a wreck was placed."""
         if not hasattr(self.terrain, "intersect") or before.ids.size == 0:
-            return []
+            return False
         air = self._air_tick
         ids = air.ids[~air.crashed & ~air.on_ground]
         kb, in_before = rows_of(before.ids, ids)
@@ -827,19 +865,54 @@ class World(EventLog):
         keep &= np.array([e is not None and not e.crashed for e in entities], bool)  # not down this tick
         movers = [e for e, k in zip(entities, keep) if k]
         kb, ka = kb[keep], ka[keep]
-        if not movers:
-            return []
-        res = self.terrain.intersect(before.lat_deg[kb], before.lon_deg[kb], before.alt_msl_m[kb],
-                                     after.lat_deg[ka], after.lon_deg[ka], after.alt_msl_m[ka])
-        events = []
-        for j in np.flatnonzero(np.asarray(res.hit, bool)):
-            e = movers[j]
-            hit = (float(res.lat_deg[j]), float(res.lon_deg[j]), float(res.height_msl_m[j]))
-            reason = "terrain collision (segment)"
-            self.air.crash(e.id, self.time_s, *hit, reason)  # the aircraft stops before the next tick
+        end = (after.lat_deg[ka], after.lon_deg[ka], after.alt_msl_m[ka])
+        crashed = [self.entities[i] for i in fdm_crashes if i in self.entities]
+        if crashed:  # from the previous snapshot to where the fdm stopped them (its crash event's place)
+            kc, had = rows_of(before.ids, np.array([e.id for e in crashed], np.int64))
+            crashed = [e for e, k in zip(crashed, had) if k]
+            stops = [events[fdm_crashes[e.id]] for e in crashed]
+            kb = np.concatenate([kb, kc[had]])
+            end = tuple(np.concatenate([a, np.array([getattr(ev, f) for ev in stops], np.float64)])
+                        for a, f in zip(end, ("lat_deg", "lon_deg", "alt_msl_m")))
+        if not movers and not crashed:
+            return False
+        res = self.terrain.intersect(before.lat_deg[kb], before.lon_deg[kb], before.alt_msl_m[kb], *end)
+        hits = np.flatnonzero(np.asarray(res.hit, bool))
+        if hits.size == 0:
+            return False
+        lat, lon = np.asarray(res.lat_deg, np.float64)[hits], np.asarray(res.lon_deg, np.float64)[hits]
+        surface = terrain_msl_m(self.terrain, lat, lon)  # the sea's surface over water, as the fdm's
+        alt = np.maximum(np.asarray(res.height_msl_m, np.float64)[hits], surface)  # not inside, by rounding
+        for j, la, lo, h, s in zip(hits.tolist(), lat.tolist(), lon.tolist(), alt.tolist(), surface.tolist()):
+            e = movers[j] if j < len(movers) else crashed[j - len(movers)]
+            crash = WorldEvent(self.time_s, "crash", e.id, la, lo, h, {"reason": SEGMENT_CRASH_REASON})
+            if j < len(movers):
+                events.append(crash)
+            else:
+                events[fdm_crashes[e.id]] = crash
+            self.air.crash(e.id, self.time_s, la, lo, h, SEGMENT_CRASH_REASON)  # it puts the wreck there
             e.crashed = True
-            events.append(WorldEvent(self.time_s, "crash", e.id, *hit, {"reason": reason}))
-        return events
+            self._placed[e.id] = (la, lo, h, s)
+        return True
+
+    def _place_wrecks(self, ids: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The aircraft host's raw ``rows`` (of entities ``ids``) with the wrecks of ``_placed``
+        at rest where they were put (fdm.aircraft.rest_row, the aircraft's own formula), a
+        copy; a wreck whose row already has it there is forgotten (the host has caught up)."""
+        placed = list(self._placed)
+        k, found = rows_of(ids, np.array(placed, np.int64))
+        rows = rows.copy()
+        c = RAW_COLUMNS
+        for entity_id, r, here in zip(placed, k.tolist(), found.tolist()):
+            if not here:
+                continue
+            lat, lon, alt, surface = self._placed[entity_id]
+            if (rows[r, c["lat_rad"]], rows[r, c["lon_rad"]], rows[r, c["alt_ft"]]) == \
+                    (math.radians(lat), math.radians(lon), alt / FT_M):
+                del self._placed[entity_id]
+            else:
+                rest_row(rows[r], lat, lon, alt, surface)
+        return rows
 
     def _shapes(self, ids: np.ndarray) -> tuple:
         """(bounding radius, half length, half width, fixed) of each entity in ``ids`` --
@@ -1236,6 +1309,8 @@ class World(EventLog):
             here = np.array([i in self.entities for i in air_ids.tolist()], bool)
             if not here.all():  # removed while their tick was under way
                 rows, air_ids = rows[here], air_ids[here]
+            if self._placed:
+                rows = self._place_wrecks(air_ids, rows)
             s = state_arrays(rows, self.geoid_undulation_m)
             ids += air_ids.tolist()
             parts.append((s["ecef_m"], s["vel_ecef_mps"],

@@ -137,7 +137,8 @@ def test_aircraft_autopilot_targets_are_range_checked_as_the_scenario_checks_the
 
 def test_a_wreck_is_at_rest_where_it_came_down(world):
     """From the crash on, velocity, acceleration and body rates are 0 and the position stays:
-    receivers dead-reckoning it see it stay (it was published at 220 m/s before)."""
+    receivers dead-reckoning it see it stay (it was published at 220 m/s before). A crash of
+    a surface contact (a crash clear of the surface falls first: tests/test_fdm_wreck.py)."""
     w, by_name = world
     jet = by_name["jet"].id
     for _ in range(3):
@@ -145,7 +146,7 @@ def test_a_wreck_is_at_rest_where_it_came_down(world):
     row = list(w.snapshot.ids).index(jet)
     before = w.snapshot.ecef_m[row].copy()
     lat, lon, h = ecef_to_geodetic(before)
-    w.air.crash(jet, w.time_s, float(lat), float(lon), float(h), "the test")
+    w.air.crash(jet, w.time_s, float(lat), float(lon), float(h), "terrain penetration")
     for _ in range(4):
         w.tick()
     snap = w.snapshot
