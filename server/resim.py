@@ -205,6 +205,10 @@ def served_terrain(rec: Recording) -> tuple[list, dict, list]:
             spec["procedural"] = int(procedural[0]["seed"])
         except (KeyError, TypeError, ValueError):
             raise DataFormatError(f"{rec.path.name}: the recorded procedural source names no seed") from None
+        params = {k: float(procedural[0][k]) for k in ("max_height_m", "level_exponent", "water")
+                  if k in procedural[0]}
+        if params:  # the world the service made (M, E, W: sortie terrain serve --procedural-*)
+            spec["procedural_params"] = params
         notes.append(f"terrain: the service's procedural world, seed {spec['procedural']}")
     areas = tuple(_inset_area(s) for s in sources if s.get("kind") == "inset")
     if areas:

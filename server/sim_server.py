@@ -418,12 +418,13 @@ def _dr_thresholds(p) -> Thresholds:
 
 
 def open_terrain_source(dem=None, service: str | None = None, target_areas=(), store=(),
-                        procedural: int | None = None):
+                        procedural: int | None = None, procedural_params: dict | None = None):
     """The terrain of DEM files (in process) or a client of a terrain service; with
     ``target_areas`` ((name, polygon, detail_m) tuples) the DEM terrain answers inside them
     from their insets (terrain/inset.py; a service serves its own). ``store`` paths and a
     ``procedural`` seed add sources under the DEMs, in the order `sortie terrain serve`
-    stacks them (what re-simulating a sortie recorded over such a service rebuilds).
+    stacks them (what re-simulating a sortie recorded over such a service rebuilds), the
+    procedural world with ``procedural_params`` (max_height_m, level_exponent, water) if given.
 
     Module-level and picklable as ``functools.partial``, so an aircraft worker
     process opens the same terrain (server.aircraft_host)."""
@@ -435,7 +436,7 @@ def open_terrain_source(dem=None, service: str | None = None, target_areas=(), s
         return client
     from server.terrain_cli import build_terrain
 
-    terrain = build_terrain([str(p) for p in dem or ()], procedural, [str(p) for p in store])
+    terrain = build_terrain([str(p) for p in dem or ()], procedural, [str(p) for p in store], procedural_params)
     if target_areas:
         from terrain.inset import INSET_SEED, with_insets
 

@@ -1,7 +1,8 @@
 """``sortie terrain``: serve the terrain query service, describe a terrain, query a server.
 
-    sortie terrain serve (--dem FILE... | --store PATH...) [--procedural SEED] --port N [--host H] [--max-workers K]
-    sortie terrain info  (--dem FILE... | --store PATH... [--procedural SEED] | --address HOST:PORT) [--json]
+    sortie terrain serve (--dem FILE... | --store PATH...) [--procedural SEED [--procedural-max-height-m M]
+                         [--procedural-exponent E] [--procedural-water W]] --port N [--host H] [--max-workers K]
+    sortie terrain info  (--dem FILE... | --store PATH... [--procedural SEED ...] | --address HOST:PORT) [--json]
     sortie terrain query --address HOST:PORT LAT LON [LAT LON ...]
     sortie terrain import FILES... -o STORE [--resolution ARCSEC] [--step M | --lossless] [--add-detail KIND]
     sortie terrain texture (--dem FILE... | --store PATH...) --bbox ... --time ISO8601 -o DIR
@@ -19,13 +20,24 @@ from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.errors import InvalidArgument
 from sortie.logs import line
 from terrain.mesh_cli import add_mesh_parser
+from terrain.procedural import (DEFAULT_LEVEL_EXPONENT, DEFAULT_MAX_HEIGHT_M, DEFAULT_WATER, LEVEL_EXPONENT_MAX,
+                                MAX_HEIGHT_MAX_M, check_parameters)
 from terrain.store_cli import add_import_parser
 from terrain.texture_cli import add_texture_parser
 
 
-def build_terrain(dem_paths, procedural_seed: int | None = None, store_paths=()):
+# The procedural world's options, the paper's M, E and W (terrain/procedural.py, §3): option ->
+# (its argparse dest, the ProceduralTerrain parameter it sets), in check_parameters' order.
+PROCEDURAL_OPTIONS = {"--procedural-max-height-m": ("procedural_max_height_m", "max_height_m"),
+                      "--procedural-exponent": ("procedural_exponent", "level_exponent"),
+                      "--procedural-water": ("procedural_water", "water")}
+
+
+def build_terrain(dem_paths, procedural_seed: int | None = None, store_paths=(), procedural_params=None):
     """A Terrain over the DEM files (in priority order), then the terrain stores,
-    then a procedural world if a seed is given."""
+    then a procedural world if a seed is given; ``procedural_params``: its
+    ProceduralTerrain keyword arguments (max_height_m, level_exponent, water), or
+    None for the defaults."""
     from terrain.terrain import Terrain
 
     sources = []
@@ -40,7 +52,7 @@ def build_terrain(dem_paths, procedural_seed: int | None = None, store_paths=())
     if procedural_seed is not None:
         from terrain.procedural import ProceduralTerrain
 
-        sources.append(ProceduralTerrain(seed=procedural_seed))
+        sources.append(ProceduralTerrain(seed=procedural_seed, **(procedural_params or {})))
     if not sources:
         raise InvalidArgument("--dem", "give at least one DEM file, --store PATH or --procedural SEED")
     return Terrain(sources)
@@ -61,12 +73,35 @@ def terrain_source(args):
         if args.dem or args.store or args.procedural is not None:
             raise InvalidArgument("--address", "give a service address or terrain files, not both",
                                   value=args.address)
+        procedural_params(args)  # options of a procedural world without one: an error
         from client.terrain_client import TerrainClient
 
         client = TerrainClient(args.address)
         client.wait_ready(10.0)
         return client
-    return build_terrain(args.dem, args.procedural, args.store)
+    return terrain_of_args(args)
+
+
+def procedural_params(args) -> dict | None:
+    """The ProceduralTerrain parameters of the --procedural-* options (None when none is
+    given: the defaults), checked against the paper's ranges: InvalidArgument naming the
+    option and its value, as for one given without --procedural SEED."""
+    given = {flag: getattr(args, dest) for flag, (dest, _) in PROCEDURAL_OPTIONS.items()
+             if getattr(args, dest, None) is not None}
+    if not given:
+        return None
+    if args.procedural is None:
+        flag, value = next(iter(given.items()))
+        raise InvalidArgument(flag, "shapes a procedural world: give --procedural SEED too", value=value)
+    values = [given.get(flag, default) for flag, default in
+              zip(PROCEDURAL_OPTIONS, (DEFAULT_MAX_HEIGHT_M, DEFAULT_LEVEL_EXPONENT, DEFAULT_WATER))]
+    checked = check_parameters(*values, names=tuple(PROCEDURAL_OPTIONS))
+    return {param: value for (_, param), value in zip(PROCEDURAL_OPTIONS.values(), checked)}
+
+
+def terrain_of_args(args):
+    """The Terrain of :func:`add_terrain_args`' options."""
+    return build_terrain(args.dem, args.procedural, args.store, procedural_params(args))
 
 
 def add_parser(sub) -> None:
@@ -132,6 +167,14 @@ def add_terrain_args(parser: argparse.ArgumentParser) -> None:
                         help="terrain stores (sortie terrain import), under the DEMs")
     parser.add_argument("--procedural", type=int, metavar="SEED",
                         help="add a procedural world with this seed under the DEMs and stores")
+    parser.add_argument("--procedural-max-height-m", type=float, metavar="M",
+                        help=f"the procedural world's maximum height M (Ammeter & Mikhailyuk §3), metres, in "
+                             f"(0, {MAX_HEIGHT_MAX_M:g}] (default {DEFAULT_MAX_HEIGHT_M:g})")
+    parser.add_argument("--procedural-exponent", type=float, metavar="E",
+                        help=f"its level exponent E (roughness: smaller is rougher), in (1, {LEVEL_EXPONENT_MAX:g}] "
+                             f"(default {DEFAULT_LEVEL_EXPONENT:g})")
+    parser.add_argument("--procedural-water", type=float, metavar="W",
+                        help=f"its water W (more lakes and sea), in [0, 1] (default {DEFAULT_WATER:g})")
 
 
 def serve_command(args) -> int:
@@ -142,7 +185,7 @@ def serve_command(args) -> int:
 
     with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
         stats = [file_stat(p) for p in args.dem] if args.dem else None  # before reading: what is served
-        terrain = build_terrain(args.dem, args.procedural, args.store)
+        terrain = terrain_of_args(args)
         if args.insets and not stop.is_set():
             from server.scenario import load_scenario
             from terrain.inset import INSET_SEED, with_insets
@@ -184,7 +227,7 @@ def info_command(args) -> int:
 
         from terrain.dem import file_identity
 
-        terrain = build_terrain(args.dem, args.procedural, args.store)
+        terrain = terrain_of_args(args)
         meta = metadata_dict(metadata_message(terrain, [file_identity(p) for p in args.dem]))
     print(json.dumps(meta, indent=2) if args.json else format_metadata(meta))
     return 0

@@ -82,6 +82,13 @@ KIND_NAMES = {AIRCRAFT: "aircraft", GROUND: "ground", STATIC: "static"}
 PARTIAL_COMMANDS = frozenset({"stick", "autopilot"})
 KIND_OF_NAME = {v: k for k, v in KIND_NAMES.items()}
 MAX_ENTITIES = 10_000
+# How often (ticks) the world tells its in-process procedural terrain where its entities are
+# (ProceduralTerrain.retain_near: blocks no entity is near are dropped, the others evicted last),
+# and how far around an entity its blocks are kept: the paper's blocks "dropped when they leave"
+# the view (Ammeter & Mikhailyuk), for a simulation that reads its entities' contacts and one
+# tick's path; 10 km is far beyond what a Mach 3 aircraft covers between two calls (1 s at 30 Hz).
+TERRAIN_RETAIN_EVERY_TICKS = 30
+TERRAIN_RETAIN_RADIUS_M = 10_000.0
 # Events kept for late readers of the events stream (a ring; readers that fall
 # further behind lose the oldest).
 EVENT_BACKLOG = 10_000
@@ -764,9 +771,21 @@ class World(EventLog):
             for ev in events:
                 self._emit(ev)
             self.snapshot = snapshot
+            if self.tick_count % TERRAIN_RETAIN_EVERY_TICKS == 0:
+                self._retain_terrain(snapshot)
             if self.recorder is not None:
                 self.recorder.on_tick(snapshot, self.infos)
             return events
+
+    def _retain_terrain(self, snapshot: Snapshot) -> None:
+        """Tell the in-process procedural sources where the entities are
+        (ProceduralTerrain.retain_near); a remote terrain service, or an aircraft worker's own
+        copy of the terrain, keeps its own cache."""
+        from terrain.procedural import ProceduralTerrain
+
+        for src in getattr(self.terrain, "sources", ()):
+            if isinstance(src, ProceduralTerrain) and snapshot.ids.size:
+                src.retain_near(snapshot.lat_deg, snapshot.lon_deg, TERRAIN_RETAIN_RADIUS_M)
 
     def _terrain_blocks(self) -> list[WorldEvent]:
         """A "blocked" event for each ground vehicle of this world that the terrain stopped

@@ -49,6 +49,26 @@ turn, so the antimeridian is an ordinary seam. The pole rows (global rows 0
 and ``posts_per_turn / 2``) hash column 0 for every column and get no
 displacement, so each pole is a single height.
 
+Runtime parameters (§3: M, E, W "can be changed by the user at runtime"; a
+new square's "borders are fitted to the borders of already existing neighbor
+squares", the rest filled "using the currently active parameters").
+:meth:`ProceduralTerrain.set_parameters` starts a new *epoch* of (M, E, W);
+the blocks cached at that moment are the paper's existing squares and keep
+the epoch they were made in for good (a frozen block dropped from the cache
+regenerates as it was). Every other block belongs to the current epoch. A
+post's height is made by the oldest (lowest-epoch) block holding it, with
+that block's parameters: a corner by the oldest of its 4 blocks, an edge by
+the older of its 2, a pole by the oldest of its block row, the interior by
+its own block. That is the paper's preset of corner and border posts from
+existing neighbours, computed instead of looked up: an edge is displaced
+from its two ends alone, so a younger block recomputes an older
+neighbour's edge exactly (the same operations on the same values, bit for
+bit) without needing that block in the cache, and the answer does not
+depend on the order blocks are generated in. A preset post is taken in
+metres; the younger block's own posts displace from it in units of its own
+M. While the parameters never change this is the single-epoch world above,
+bit for bit.
+
 Heights are metres above mean sea level; argument order is always (lat, lon)
 in degrees.
 """
@@ -67,6 +87,11 @@ from sortie.errors import InvalidArgument, LimitExceeded
 from terrain.raster import (CRS_GEOGRAPHIC, POST_SNAP_TOLERANCE, STATUS_OK, STATUS_OUTSIDE, Georef, Raster,
                             metres_per_index)
 
+# The generation parameters' defaults (§3's M, E, W): hills up to about a kilometre, the
+# paper's E = 2 ("reduction by half with every step"), about a third of the world under water.
+DEFAULT_MAX_HEIGHT_M = 1000.0
+DEFAULT_LEVEL_EXPONENT = 2.0
+DEFAULT_WATER = 0.3
 DEFAULT_POSTS_PER_TURN = 2**19  # 360 / 2^19 deg = 0.000687 deg: 76.4 m north-south
 DEFAULT_BLOCK_CELLS = 256  # 257 x 257 posts, 19.6 km north-south per block
 # LRU capacity in blocks. A block holds bed and surface, 2 x 257^2 float64 =
@@ -164,12 +189,15 @@ def lattice_uniform(seed: int, rows, cols) -> np.ndarray:
 
 
 def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: float,
-                          pinned_rows: np.ndarray | None = None) -> np.ndarray:
+                          pinned_rows: np.ndarray | None = None, preset: np.ndarray | None = None) -> np.ndarray:
     """Normalised heights a = H / M of one block by the paper's subdivision (§3).
 
     uniform: (n + 1, n + 1) float64, R of each post, n a power of two.
     pinned_rows: (n + 1,) bool, rows whose posts get no displacement (the
-    poles), or None. Returns (n + 1, n + 1) float64, dimensionless.
+    poles), or None. preset: (n + 1, n + 1) float64, dimensionless, the posts
+    already set (the paper's borders fitted to existing neighbours), NaN
+    elsewhere, or None: a preset post keeps its value and later levels
+    displace from it. Returns (n + 1, n + 1) float64, dimensionless.
 
     Vectorised per level: all centres and edge midpoints of a level are set at
     once from the previous level's posts.
@@ -178,9 +206,14 @@ def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: flo
     n = size - 1
     if uniform.shape != (size, size) or n < 1 or n & (n - 1):
         raise ValueError(f"uniform must be (n + 1, n + 1) with n a power of two, got shape {uniform.shape}")
+    if preset is not None and preset.shape != uniform.shape:
+        raise ValueError(f"preset must be shaped like uniform {uniform.shape}, got shape {preset.shape}")
     moves = np.ones((size, 1)) if pinned_rows is None else (~pinned_rows).astype(np.float64)[:, None]
+    free = None if preset is None else np.isnan(preset)
     a = np.zeros((size, size))
     a[::n, ::n] = uniform[::n, ::n] - water  # level 0: A = 0, L = 1
+    if free is not None:
+        a[::n, ::n] = np.where(free[::n, ::n], a[::n, ::n], preset[::n, ::n])
     s, level = n, 1
     while s > 1:
         h = s // 2
@@ -188,14 +221,46 @@ def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: flo
         centre = 0.25 * ((a[lo, lo] + a[lo, hi]) + (a[hi, lo] + a[hi, hi]))
         along_row = 0.5 * (a[::s, lo] + a[::s, hi])  # midpoints of east-west edges
         along_col = 0.5 * (a[lo, ::s] + a[hi, ::s])  # midpoints of north-south edges
+        div = level**level_exponent
         for rows, cols, mean in ((slice(h, None, s), slice(h, None, s), centre),
                                  (slice(0, None, s), slice(h, None, s), along_row),
                                  (slice(h, None, s), slice(0, None, s), along_col)):
-            base = np.clip(1.0 + mean, 0.0, ROUGHNESS_BASE_MAX)
-            step = (uniform[rows, cols] - water) * (base * base) / level**level_exponent
-            a[rows, cols] = mean + step * moves[rows]
+            made = _displaced(mean, uniform[rows, cols], water, div, moves[rows])
+            a[rows, cols] = made if free is None else np.where(free[rows, cols], made, preset[rows, cols])
         s, level = h, level + 1
     return a
+
+
+def line_displacement(uniform: np.ndarray, level_exponent: float, water: float, ends: np.ndarray) -> np.ndarray:
+    """Normalised heights of one block edge, displaced from its two ends alone.
+
+    uniform: (n + 1,) float64, R of the edge's posts; ends: (2,) float64,
+    dimensionless, its end posts. Returns (n + 1,) float64. The same
+    operations on the same values as :func:`midpoint_displacement` gives a
+    block's border row or column (an edge's midpoints are means of that
+    edge's posts only), so a block can recompute, bit for bit, the edge an
+    older neighbour made with other parameters.
+    """
+    n = uniform.shape[0] - 1
+    if uniform.ndim != 1 or n < 1 or n & (n - 1) or np.shape(ends) != (2,):
+        raise ValueError(f"uniform must be (n + 1,) with n a power of two and ends (2,), got shapes "
+                         f"{uniform.shape} and {np.shape(ends)}")
+    a = np.zeros(n + 1)
+    a[0], a[n] = ends
+    s, level = n, 1
+    while s > 1:
+        h = s // 2
+        mean = 0.5 * (a[0:n:s] + a[s::s])
+        a[h::s] = _displaced(mean, uniform[h::s], water, level**level_exponent, 1.0)
+        s, level = h, level + 1
+    return a
+
+
+def _displaced(mean, uniform, water: float, div: float, moves):
+    """The paper's H = A + (R - W)(1 + A)^2 M / L^E in units of M, factor clamped (module
+    docstring), for posts whose mean of neighbours is ``mean``; div = L^E; moves 0 pins a post."""
+    base = np.clip(1.0 + mean, 0.0, ROUGHNESS_BASE_MAX)
+    return mean + (uniform - water) * (base * base) / div * moves
 
 
 def height_bounds_m(max_height_m: float, level_exponent: float, water: float,
@@ -209,6 +274,39 @@ def height_bounds_m(max_height_m: float, level_exponent: float, water: float,
     levels = int(round(math.log2(block_cells)))
     growth = 1.0 + 4.0 * sum(lv**-level_exponent for lv in range(1, levels + 1))
     return -water * max_height_m * growth, (1.0 - water) * max_height_m * growth
+
+
+def mixed_height_bounds_m(parameters, block_cells: int) -> tuple[float, float]:
+    """(lowest, highest) height in metres of a world whose blocks were made with any of
+    ``parameters`` ((M, E, W) tuples, the epochs of :meth:`ProceduralTerrain.set_parameters`).
+
+    A post is a level-0 corner of some epoch, or the mean of posts of earlier levels moved by one
+    epoch's step at its level; so by induction over levels the bound is the largest corner plus
+    the sum over levels of the largest step (and likewise down). One tuple gives
+    :func:`height_bounds_m`.
+    """
+    parameters = list(parameters)
+    if len(parameters) == 1:
+        return height_bounds_m(*parameters[0], block_cells)
+    levels = int(round(math.log2(block_cells)))
+    down = max(w * m for m, _, w in parameters)
+    up = max((1.0 - w) * m for m, _, w in parameters)
+    for lv in range(1, levels + 1):
+        down += max(4.0 * w * m * lv**-e for m, e, w in parameters)
+        up += max(4.0 * (1.0 - w) * m * lv**-e for m, e, w in parameters)
+    return -down, up
+
+
+def check_parameters(max_height_m, level_exponent, water,
+                     names=("max_height_m", "level_exponent", "water")) -> tuple[float, float, float]:
+    """(M, E, W) as floats, checked against the paper's ranges and this module's bounds:
+    0 < M <= MAX_HEIGHT_MAX_M, 1 < E <= LEVEL_EXPONENT_MAX, 0 <= W <= 1; else InvalidArgument
+    naming the field by ``names`` (a command line names its options) and the value."""
+    _check_real(names[0], max_height_m, lambda v: 0 < v <= MAX_HEIGHT_MAX_M, f"within (0, {MAX_HEIGHT_MAX_M:g}]")
+    _check_real(names[1], level_exponent, lambda v: 1 < v <= LEVEL_EXPONENT_MAX,
+                f"within (1, {LEVEL_EXPONENT_MAX:g}]")
+    _check_real(names[2], water, lambda v: 0 <= v <= 1, "within [0, 1]")
+    return float(max_height_m), float(level_exponent), float(water)
 
 
 @dataclass(frozen=True, eq=False)
@@ -235,26 +333,25 @@ class ProceduralTerrain:
 
     A height source for :class:`terrain.terrain.Terrain` (same methods as
     :class:`terrain.raster.Raster`). Blocks are kept in an LRU cache of at most
-    ``cache_blocks`` blocks; :meth:`retain_near` drops those no viewer is near.
+    ``cache_blocks`` blocks; :meth:`retain_near` drops those no viewer is near
+    and keeps the viewers' blocks out of the LRU's reach until its next call.
     A dropped block regenerates bit for bit. Thread-safe.
 
     Parameters are checked when it is made (InvalidArgument naming the field):
     0 < max_height_m <= MAX_HEIGHT_MAX_M, 1 < level_exponent <=
     LEVEL_EXPONENT_MAX, 0 <= water <= 1, block_cells a power of two in
     [2, BLOCK_CELLS_MAX], posts_per_turn a multiple of 2 block_cells up to
-    2^40, cache_blocks at least 1 and holding at most CACHE_MAX_BYTES.
+    2^40, cache_blocks at least 1 and holding at most CACHE_MAX_BYTES. They
+    are read-only: M, E and W change through :meth:`set_parameters`, which
+    keeps the seams (module docstring), the others not at all.
     """
 
-    def __init__(self, seed: int, max_height_m: float = 1000.0, level_exponent: float = 2.0,
-                 water: float = 0.3, block_cells: int = DEFAULT_BLOCK_CELLS,
-                 posts_per_turn: int = DEFAULT_POSTS_PER_TURN, cache_blocks: int = DEFAULT_CACHE_BLOCKS,
-                 name: str = "procedural"):
+    def __init__(self, seed: int, max_height_m: float = DEFAULT_MAX_HEIGHT_M,
+                 level_exponent: float = DEFAULT_LEVEL_EXPONENT, water: float = DEFAULT_WATER,
+                 block_cells: int = DEFAULT_BLOCK_CELLS, posts_per_turn: int = DEFAULT_POSTS_PER_TURN,
+                 cache_blocks: int = DEFAULT_CACHE_BLOCKS, name: str = "procedural"):
         _check_int("seed", seed, 0, 2**64 - 1)
-        _check_real("max_height_m", max_height_m, lambda v: 0 < v <= MAX_HEIGHT_MAX_M,
-                    f"within (0, {MAX_HEIGHT_MAX_M:g}]")
-        _check_real("level_exponent", level_exponent, lambda v: 1 < v <= LEVEL_EXPONENT_MAX,
-                    f"within (1, {LEVEL_EXPONENT_MAX:g}]")
-        _check_real("water", water, lambda v: 0 <= v <= 1, "within [0, 1]")
+        params = check_parameters(max_height_m, level_exponent, water)
         _check_int("block_cells", block_cells, 2, BLOCK_CELLS_MAX)
         if block_cells & (block_cells - 1):
             raise InvalidArgument("block_cells", "must be a power of two", value=block_cells)
@@ -264,13 +361,10 @@ class ProceduralTerrain:
                                   value=posts_per_turn)
         block_bytes = 2 * 8 * (block_cells + 1) ** 2
         _check_int("cache_blocks", cache_blocks, 1, max(1, min(2**20, CACHE_MAX_BYTES // block_bytes)))
-        self.seed = int(seed)
-        self.max_height_m = float(max_height_m)
-        self.level_exponent = float(level_exponent)
-        self.water = float(water)
-        self.block_cells = int(block_cells)
-        self.posts_per_turn = int(posts_per_turn)
-        self.cache_blocks = int(cache_blocks)
+        self._seed = int(seed)
+        self._block_cells = int(block_cells)
+        self._posts_per_turn = int(posts_per_turn)
+        self._cache_blocks = int(cache_blocks)
         self.name = name
         self.spacing_deg = 360.0 / self.posts_per_turn
         self.pole_row = self.posts_per_turn // 2  # global row of the north pole
@@ -280,6 +374,49 @@ class ProceduralTerrain:
         self.blocks_evicted = 0
         self._cache: OrderedDict[tuple[int, int], ProceduralBlock] = OrderedDict()
         self._lock = threading.Lock()
+        self._epochs: list[tuple[float, float, float]] = [params]  # (M, E, W) of each epoch, oldest first
+        self._frozen: dict[tuple[int, int], int] = {}  # block -> its epoch, for blocks cached at a change
+        self._pole_epoch: dict[int, int] = {}  # block row holding a pole -> the oldest epoch frozen in it
+        self._viewers: tuple[np.ndarray, np.ndarray, float] | None = None  # retain_near's (lat, lon, radius_m)
+        self._near: set[tuple[int, int]] = set()  # cached blocks near a viewer: evicted last
+
+    seed = property(lambda self: self._seed, doc="The lattice hash's seed (read-only).")
+    block_cells = property(lambda self: self._block_cells, doc="Cells a block side, a power of two (read-only).")
+    posts_per_turn = property(lambda self: self._posts_per_turn, doc="Lattice posts a turn of longitude (read-only).")
+    cache_blocks = property(lambda self: self._cache_blocks, doc="The LRU's capacity in blocks (read-only).")
+    max_height_m = property(lambda self: self._epochs[-1][0], doc="M now, metres (read-only: set_parameters).")
+    level_exponent = property(lambda self: self._epochs[-1][1], doc="E now (read-only: set_parameters).")
+    water = property(lambda self: self._epochs[-1][2], doc="W now (read-only: set_parameters).")
+
+    @property
+    def parameter_changes(self) -> int:
+        """How many times :meth:`set_parameters` changed M, E or W (the current epoch's number)."""
+        return len(self._epochs) - 1
+
+    def set_parameters(self, max_height_m: float | None = None, level_exponent: float | None = None,
+                       water: float | None = None) -> bool:
+        """Change M, E and W at runtime (§3; None keeps one); whether anything changed.
+
+        Blocks made from now on use the new values; the blocks cached now keep theirs for
+        good, and a new block's corners and borders shared with them are theirs (module
+        docstring), so every seam stays bit for bit whatever is generated when. Checked as
+        the constructor checks them (InvalidArgument naming the field and value). Each change
+        remembers the blocks cached then (a dictionary entry each, at most cache_blocks).
+        """
+        with self._lock:
+            m, e, w = self._epochs[-1]
+            params = check_parameters(m if max_height_m is None else max_height_m,
+                                      e if level_exponent is None else level_exponent,
+                                      w if water is None else water)
+            if params == self._epochs[-1]:
+                return False
+            now = len(self._epochs) - 1
+            for key in self._cache:
+                epoch = self._frozen.setdefault(key, now)
+                if key[0] in (0, self.block_rows - 1):
+                    self._pole_epoch[key[0]] = min(self._pole_epoch.get(key[0], epoch), epoch)
+            self._epochs.append(params)
+            return True
 
     # -- blocks ---------------------------------------------------------------
 
@@ -292,31 +429,106 @@ class ProceduralTerrain:
         if not 0 <= row < self.block_rows:
             raise InvalidArgument("row", f"must be within [0, {self.block_rows})", value=row)
         col %= self.block_cols
+        with self._lock:
+            plan = self._plan(row, col)
+        return self._make(row, col, plan)
+
+    def _plan(self, row: int, col: int):
+        """(own epoch, corner epochs (2, 2) [south/north, west/east], edge epochs {side: epoch})
+        of block (row, col): whose parameters make each of its shared posts (module
+        docstring). Called under the lock."""
+        current = len(self._epochs) - 1
+
+        def epoch(r, c):
+            return self._frozen.get((r, c % self.block_cols), current) if 0 <= r < self.block_rows else None
+
+        grid = [[epoch(row + dr, col + dc) for dc in (-1, 0, 1)] for dr in (-1, 0, 1)]
+        own = grid[1][1]
+        pole = {0: self._pole_epoch.get(row, own) if row == 0 else None,
+                1: self._pole_epoch.get(row, own) if row == self.block_rows - 1 else None}
+        pole = {k: None if v is None else min(v, own) for k, v in pole.items()}
+        corners = [[pole[i] if pole[i] is not None else
+                    min(grid[i + di][j + dj] for di in (0, 1) for dj in (0, 1)) for j in (0, 1)] for i in (0, 1)]
+        edges = {"south": pole[0] if pole[0] is not None else min(own, grid[0][1]),
+                 "north": pole[1] if pole[1] is not None else min(own, grid[2][1]),
+                 "west": min(own, grid[1][0]), "east": min(own, grid[1][2])}
+        return own, corners, edges, list(self._epochs)
+
+    def _make(self, row: int, col: int, plan) -> ProceduralBlock:
+        """Block (row, col) generated by ``plan`` (:meth:`_plan`)."""
+        own, corners, edges, epochs = plan
         n = self.block_cells
         g_rows = row * n + np.arange(n + 1, dtype=np.int64)
         g_cols = (col * n + np.arange(n + 1, dtype=np.int64)) % self.posts_per_turn
         pinned = (g_rows == 0) | (g_rows == self.pole_row)
         uniform = lattice_uniform(self.seed, g_rows[:, None], np.where(pinned[:, None], 0, g_cols[None, :]))
-        bed = self.max_height_m * midpoint_displacement(uniform, self.level_exponent, self.water, pinned)
+        m, e, w = epochs[own]
+        preset = self._preset(uniform, own, corners, edges, epochs, (bool(pinned[0]), bool(pinned[n])))
+        if preset is None:
+            bed = m * midpoint_displacement(uniform, e, w, pinned)
+        else:
+            bed = m * midpoint_displacement(uniform, e, w, pinned, preset / m)
+            bed = np.where(np.isnan(preset), bed, preset)  # older posts as they made them, in metres
         surface = np.maximum(bed, 0.0)
         bed.flags.writeable = False
         surface.flags.writeable = False
         return ProceduralBlock(row, col, -90.0 + row * n * self.spacing_deg, -180.0 + col * n * self.spacing_deg,
                                self.spacing_deg, bed, surface)
 
+    def _preset(self, uniform, own, corners, edges, epochs, pole_rows):
+        """(n + 1, n + 1) float64 metres: the posts older blocks make (their corners and
+        edges, with their parameters), NaN elsewhere; None when there are none. pole_rows:
+        (south, north) bool, whether the block's first or last row is a pole."""
+        if min(min(corners[0]), min(corners[1]), *edges.values()) >= own:
+            return None
+        n = self.block_cells
+        out = np.full(uniform.shape, np.nan)
+        corner_m = [[epochs[c][0] * (uniform[i * n, j * n] - epochs[c][2]) for j, c in enumerate(pair)]
+                    for i, pair in enumerate(corners)]  # level 0 of the epoch making it
+        for i in (0, 1):
+            for j in (0, 1):
+                if corners[i][j] < own:
+                    out[i * n, j * n] = corner_m[i][j]
+        sides = {"south": (np.s_[0, :], (0, 0), (0, 1)), "north": (np.s_[n, :], (1, 0), (1, 1)),
+                 "west": (np.s_[:, 0], (0, 0), (1, 0)), "east": (np.s_[:, n], (0, 1), (1, 1))}
+        for side, (line, c0, c1) in sides.items():
+            epoch = edges[side]
+            if epoch >= own:
+                continue
+            if side in ("south", "north") and pole_rows[c0[0]]:  # a pole: one height (pinned rows are not displaced)
+                out[line] = corner_m[c0[0]][0]
+                continue
+            m, e, w = epochs[epoch]
+            ends = [corner_m[i][j] / m if corners[i][j] < epoch else uniform[i * n, j * n] - w for i, j in (c0, c1)]
+            made = m * line_displacement(uniform[line], e, w, np.array(ends))
+            for k, (i, j) in ((0, c0), (n, c1)):
+                if corners[i][j] < epoch:
+                    made[k] = corner_m[i][j]
+            out[line] = made
+        return out
+
     def block(self, row: int, col: int) -> ProceduralBlock:
-        """Block (row, col) from the cache, generated (and the LRU one evicted) if absent."""
+        """Block (row, col) from the cache, generated (and one evicted) if absent: the least
+        recently used of those no viewer of :meth:`retain_near` is near, else of all."""
         key = (int(row), int(col) % self.block_cols)
         with self._lock:
             found = self._cache.get(key)
             if found is not None:
                 self._cache.move_to_end(key)
                 return found
-            made = self.generate_block(*key)
+            if not 0 <= key[0] < self.block_rows:
+                raise InvalidArgument("row", f"must be within [0, {self.block_rows})", value=row)
+            made = self._make(*key, self._plan(*key))
             self.blocks_generated += 1
             self._cache[key] = made
+            if self._viewers is not None and self._near_mask([key])[0]:
+                self._near.add(key)
             while len(self._cache) > self.cache_blocks:
-                self._cache.popitem(last=False)
+                victim = next((k for k in self._cache if k not in self._near), None)
+                if victim is None:  # the viewers' blocks alone fill the cache
+                    victim = next(iter(self._cache))
+                del self._cache[victim]
+                self._near.discard(victim)
                 self.blocks_evicted += 1
             return made
 
@@ -336,36 +548,54 @@ class ProceduralTerrain:
             return list(self._cache)
 
     def retain_near(self, lat, lon, radius_m: float) -> int:
-        """Drop cached blocks farther than radius_m from every viewer; return how many.
+        """The viewers are now at (lat, lon): drop the cached blocks farther than radius_m from
+        every one of them (§2: "squares dropping out of view have to be removed"); return how
+        many. A caller with views (a simulation's agents and observers) calls it as they move.
 
-        lat, lon: (k,) float64 degrees, the viewers. A block is kept when some
-        viewer is within radius_m plus the block's circumradius of its centre
-        (spherical distance), so every block a viewer's disc touches stays.
+        lat, lon: (k,) float64 degrees, the viewers; radius_m: metres, how far a view
+        reaches (the paper's far edge of the view, hidden in fog). A block is near a viewer
+        within radius_m plus the block's circumradius of its centre (spherical distance), so
+        every block a viewer's disc touches stays. Until the next call the blocks near these
+        viewers, cached now or made later, are the last the LRU evicts: a large query (a
+        coarse clipmap level over a thousand blocks) cycles through the other slots and
+        leaves the viewers' blocks, unless they alone fill the cache. No viewer (k = 0)
+        drops every block and ends that protection.
         """
         lat = np.atleast_1d(np.asarray(lat, dtype=np.float64))
         lon = np.atleast_1d(np.asarray(lon, dtype=np.float64))
         if lat.shape != lon.shape or lat.ndim != 1:
             raise InvalidArgument("lon", f"must be a (k,) array like lat {lat.shape}, got shape {lon.shape}")
+        for name, v in (("lat", lat), ("lon", lon)):
+            bad = np.flatnonzero(~np.isfinite(v))
+            if bad.size:
+                raise InvalidArgument(name, "must be finite", index=int(bad[0]), value=float(v[bad[0]]))
         if not (math.isfinite(radius_m) and radius_m >= 0):
             raise InvalidArgument("radius_m", "must be finite and >= 0", value=radius_m)
         with self._lock:
+            self._viewers = (lat.copy(), lon.copy(), float(radius_m)) if lat.size else None
             keys = list(self._cache)
-            if not keys or lat.size == 0:
-                dropped = keys
-            else:
-                rows, cols = np.array(keys, dtype=np.float64).T
-                half = 0.5 * self.block_cells * self.spacing_deg
-                c_lat = -90.0 + (2.0 * rows + 1.0) * half
-                c_lon = -180.0 + (2.0 * cols + 1.0) * half
-                reach = radius_m + _sphere_distance_m(c_lat, c_lon, c_lat + half, c_lon + half)
-                reach = np.maximum(reach, radius_m + _sphere_distance_m(c_lat, c_lon, c_lat - half, c_lon + half))
-                dist = _sphere_distance_m(c_lat[:, None], c_lon[:, None], lat[None, :], lon[None, :])
-                far = ~(dist <= reach[:, None]).any(axis=1)
-                dropped = [k for k, f in zip(keys, far) if f]
+            near = self._near_mask(keys) if keys else np.zeros(0, bool)
+            dropped = [k for k, kept in zip(keys, near) if not kept]
             for key in dropped:
                 del self._cache[key]
+            self._near = {k for k, kept in zip(keys, near) if kept}
             self.blocks_evicted += len(dropped)
             return len(dropped)
+
+    def _near_mask(self, keys) -> np.ndarray:
+        """(k,) bool: which blocks ((row, col) pairs) a viewer of :meth:`retain_near` is near;
+        all False without viewers. Called under the lock."""
+        if self._viewers is None:
+            return np.zeros(len(keys), bool)
+        lat, lon, radius_m = self._viewers
+        rows, cols = np.array(keys, dtype=np.float64).reshape(-1, 2).T
+        half = 0.5 * self.block_cells * self.spacing_deg
+        c_lat = -90.0 + (2.0 * rows + 1.0) * half
+        c_lon = -180.0 + (2.0 * cols + 1.0) * half
+        reach = radius_m + np.maximum(_sphere_distance_m(c_lat, c_lon, c_lat + half, c_lon + half),
+                                      _sphere_distance_m(c_lat, c_lon, c_lat - half, c_lon + half))
+        dist = _sphere_distance_m(c_lat[:, None], c_lon[:, None], lat[None, :], lon[None, :])
+        return (dist <= reach[:, None]).any(axis=1)
 
     # -- height-source interface ----------------------------------------------
 
@@ -472,13 +702,19 @@ class ProceduralTerrain:
 
     @property
     def height_range_m(self) -> tuple[float, float]:
-        """(lowest, highest) height the generator can make (:func:`height_bounds_m`), metres."""
-        return height_bounds_m(self.max_height_m, self.level_exponent, self.water, self.block_cells)
+        """(lowest, highest) height the generator can make, metres: :func:`height_bounds_m`, or
+        after :meth:`set_parameters` :func:`mixed_height_bounds_m` of the epochs any block may
+        still be made in (the frozen blocks' and the current one)."""
+        with self._lock:
+            used = sorted(set(self._frozen.values()) | {len(self._epochs) - 1})
+            params = [self._epochs[k] for k in used]
+        return mixed_height_bounds_m(params, self.block_cells)
 
     def describe(self) -> dict:
-        """Metadata: bounds (the whole globe), spacing, datum and generation parameters."""
+        """Metadata: bounds (the whole globe), spacing, datum and generation parameters (M, E
+        and W now; parameter_changes: how many times :meth:`set_parameters` changed them)."""
         mx, my = metres_per_index(CRS_GEOGRAPHIC, self.spacing_deg, self.spacing_deg, 0.0)
-        lo, hi = height_bounds_m(self.max_height_m, self.level_exponent, self.water, self.block_cells)
+        lo, hi = self.height_range_m
         return {
             "name": self.name,
             "kind": "procedural",
@@ -492,6 +728,7 @@ class ProceduralTerrain:
             "max_height_m": self.max_height_m,
             "level_exponent": self.level_exponent,
             "water": self.water,
+            "parameter_changes": self.parameter_changes,
             "block_cells": self.block_cells,
             "posts_per_turn": self.posts_per_turn,
             "cache_blocks": self.cache_blocks,
