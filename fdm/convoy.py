@@ -840,6 +840,9 @@ class FollowerSet:
         # Per vehicle, its convoy's number (vehicles of one convoy keep their spacing by the
         # convoy's law, not by braking for each other), -1 for a route follower's.
         self.convoy_of = np.repeat(np.where(convoy, np.arange(convoy.size), -1), sizes).astype(np.int64)
+        # and its place in the column (0: the leader), by which it brakes for a member behind it in
+        # the column that stands in its path (server/obstacles.py).
+        self.place = np.arange(self.index.size, dtype=np.int64) - np.repeat(self._starts, sizes)
         self._pass_offset = self._pass_until = None  # passes in progress (see update), made on the first
         self._s = None  # each vehicle's arc length along its route at the last update
         self._x = None  # and its cross-track (m, right of the route)

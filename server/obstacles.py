@@ -41,7 +41,7 @@ MOVING_MPS = 0.5
 
 
 @numba.njit(cache=True, nogil=True)
-def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, rows, reach, offset,
+def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w, group, place, rows, reach, offset,
                   min_speed, out_clear, out_row, out_across, out_need, out_yield):
     n = p.shape[0]
     v_max = 0.0
@@ -84,9 +84,9 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
         hi = np.searchsorted(keys, p[i, axis] + window, side="right")
         for o in range(lo, hi):
             j = order[o]
-            if j == i or (group[i] >= 0 and group[j] == group[i]
+            if j == i or (group[i] >= 0 and group[j] == group[i] and place[j] <= place[i]
                           and math.cos(heading_rad[i] - heading_rad[j]) > 0.0):
-                continue  # its own convoy going its way (the convoy's law spaces it; met head-on it is traffic)
+                continue  # ahead of it in its own column, going its way: the convoy's law spaces it
             dx, dy, dz = p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2]
             up = dx * ux + dy * uy + dz * uz
             if abs(up) > radius[i] + radius[j]:
@@ -133,7 +133,7 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
 
 
 def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length_m, half_width_m, group, rows,
-                    reach_m, vel_ecef_mps=None, offset_m=None, min_speed_mps=0.0) -> tuple:
+                    reach_m, vel_ecef_mps=None, offset_m=None, min_speed_mps=0.0, place=None) -> tuple:
     """For each vehicle ``rows`` (indices into the entity arrays; -1: none) the free distance
     (m) from its front to the nearest entity in its path ahead (the module docstring), that
     entity's index, how far it is to the vehicle's right (m, negative: left) and how far apart
@@ -147,9 +147,12 @@ def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length
 
     Entity arrays (n,): ECEF positions (n, 3) m, geodetic lat/lon, heading (degrees from north;
     of boxes, and of the asking vehicles), bounding radius, half length (0: a sphere), half
-    width; ``group`` (n,) int64: entities of one group (>= 0) going the same way ignore each
-    other (a convoy, whose spacing its own law keeps; on an out-and-back route its leader
-    meets its own column head-on, and that is traffic)."""
+    width; ``group`` (n,) int64: an entity of a group (>= 0) ignores one of its group going
+    its way that is ahead of it in the group's column (``place`` (n,) int64, 0 the leader;
+    None: all level, every one ignored): a convoy, whose spacing its own law keeps. One met
+    head-on (on an out-and-back route the leader meets its own column) is traffic, and so is
+    one behind it in the column that stands in its path: a column out of order does not drive
+    into itself (a leader staged behind its column rammed it)."""
     rows = np.ascontiguousarray(rows, np.int64)
     clear, row = np.full(rows.size, np.inf), np.full(rows.size, -1, np.int64)
     across, need = np.full(rows.size, np.nan), np.full(rows.size, np.nan)
@@ -167,7 +170,7 @@ def clearance_ahead(ecef_m, lat_deg, lon_deg, heading_deg, radius_m, half_length
 
     _ahead_kernel(p, np.ascontiguousarray(vel.reshape(-1, 3)), column(lat_deg), column(lon_deg),
                   np.radians(column(heading_deg)), column(radius_m), column(half_length_m), column(half_width_m),
-                  column(group, np.int64), rows,
+                  column(group, np.int64), column(0 if place is None else place, np.int64), rows,
                   np.ascontiguousarray(np.broadcast_to(np.asarray(reach_m, np.float64), rows.shape)),
                   np.ascontiguousarray(np.broadcast_to(np.asarray(0.0 if offset_m is None else offset_m, np.float64),
                                                        rows.shape)),

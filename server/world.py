@@ -738,7 +738,7 @@ class World(EventLog):
             if self.ground is not None and self.ground.n:
                 fs = self._followers
                 if fs.followers:
-                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, remaining_m=fs.remaining_m(),
+                    fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, place=fs.place, remaining_m=fs.remaining_m(),
                                                      cross_track_m=fs.cross_track_m()),
                               step_s=self.dt * self.ground.divisor[fs.index])
                 self._hold_ground_headings()
@@ -1122,7 +1122,8 @@ class World(EventLog):
         self.ground.set_controls(speed if ceiling is None else np.minimum(speed, ceiling), rate, index=idx)
 
     def _obstacles_ahead(self, idx: np.ndarray, convoy: np.ndarray | None = None, passing: bool = True,
-                         remaining_m: np.ndarray | None = None, cross_track_m: np.ndarray | None = None) -> tuple:
+                         remaining_m: np.ndarray | None = None, cross_track_m: np.ndarray | None = None,
+                         place: np.ndarray | None = None) -> tuple:
         """What the autopilot-driven ground vehicles ``idx`` (rows of self.ground) do about the
         nearest entity in their path (server/obstacles.py: vehicles, wrecks, static sites,
         aircraft on the ground, as the last snapshot has them): (speed ceilings (m/s), so each
@@ -1131,7 +1132,9 @@ class World(EventLog):
         coming the other way (one going its way is followed, not passed), while the ceiling
         lets it roll out at PASS_CRAWL_MPS), as :meth:`FollowerSet.update` takes them; Nones
         when there is nothing to look at. ``convoy``: per vehicle its convoy's number (-1:
-        none), whose members do not brake for each other; ``remaining_m``: per vehicle the
+        none), whose members do not brake for those ahead of them in the column (``place``: per
+        vehicle its place in it, 0 the leader; one behind it in the column that stands in its
+        path it brakes for); ``remaining_m``: per vehicle the
         route still ahead of it (m): one whose route ends before it would be past the obstacle
         does not pass it (it queues: vehicles bound for one place do not jostle round each
         other there); ``cross_track_m``: per vehicle how far right of its route it is (m), for
@@ -1147,8 +1150,11 @@ class World(EventLog):
         row_of[gnd_idx] = gnd_rows
         rows = row_of[idx]
         group = np.full(snap.ids.size, -1, np.int64)
+        column_place = np.zeros(snap.ids.size, np.int64)
         if convoy is not None:
             group[rows[rows >= 0]] = convoy[rows >= 0]
+        if place is not None:
+            column_place[rows[rows >= 0]] = place[rows >= 0]
         brake = self.ground.table[self.ground.type_id[idx], P_BRAKE]
         step = self.dt * self.ground.divisor[idx]  # what each one's next integration covers
         own_speed = self.ground.speed_mps[idx]
@@ -1156,7 +1162,7 @@ class World(EventLog):
         def search(asking, reach, headings=heading, **options):
             """server/obstacles.clearance_ahead over this tick's scene, for the snapshot rows asking."""
             return clearance_ahead(snap.ecef_m, snap.lat_deg, snap.lon_deg, headings, radius, half_l, half_w, group,
-                                   asking, reach, snap.vel_ecef_mps, **options)
+                                   asking, reach, snap.vel_ecef_mps, place=column_place, **options)
 
         clear, other, across, need, yield_m = search(rows, obstacle_reach_m(own_speed, brake))
         ceiling = obstacle_speed_ceiling(clear, brake, step, own_speed)

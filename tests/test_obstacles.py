@@ -424,3 +424,27 @@ def test_a_convoy_slowing_for_a_corner_keeps_its_spacing_at_any_world_rate(rate_
         assert np.diff(np.sort(s)) == pytest.approx([30.0] * 5, abs=1.0)
     finally:
         world.close()
+
+
+def test_a_column_out_of_order_never_drives_into_itself():
+    """Four Humvees 40 m apart on a road east, their column put out of order (its leader the
+    one at the back, as a column staged behind its route's start was ordered): the leader
+    brakes for the members in its path (a member behind it in the column is traffic), with
+    no collision, and stops at the standoff behind the one ahead of it. Before, members of one
+    convoy going the same way ignored each other and it drove into the one ahead at 10 m/s."""
+    world = World(FlatTerrain(400.0))
+    try:
+        route = [(LAT0, LON0), (LAT0, LON0 + 3000.0 / M_PER_DEG_LON)]
+        column = world.spawn_ground([f"c{k}" for k in range(4)], "hmmwv", [LAT0] * 4,
+                                    [LON0 + 40.0 * k / M_PER_DEG_LON for k in range(4)], [90.0] * 4,
+                                    route=route, cruise_mps=10.0, spacing_m=40.0)
+        spec, ids = world.routes[-1]
+        world.routes[-1] = (spec, ids[::-1])  # the rearmost leads
+        world._rebuild_followers()
+        events = [e for _ in range(30 * 20) for e in world.tick()]
+        assert not [e for e in events if e.kind == "collision"]
+        east = [(world.ground.lon[world.ground.index_of([e.ground_id])][0] - LON0) * M_PER_DEG_LON for e in column]
+        assert east == sorted(east)
+        assert east[1] - east[0] == pytest.approx(4.7 + 4.0, abs=1.5)  # its length and the standoff
+    finally:
+        world.close()
