@@ -196,7 +196,10 @@ def _main(argv: list[str] | None) -> int:
     pre = _pre_parse(argv)
     status = FAILURE_STATUS.get(pre.command, 2)
     json_logs = _log_format(pre, os.environ) == "json"
-    if json_logs:  # gRPC's C core logs to stderr in its own format; it reads this when grpc is imported
+    if json_logs or not pre.verbose:
+        # gRPC's C core logs to stderr in its own format (a port in use: its own line before
+        # ours, which names the cause); it reads this when grpc is imported. -v keeps its log
+        # in text logging, and GRPC_VERBOSITY set by the user is left as it is.
         os.environ.setdefault("GRPC_VERBOSITY", "NONE")
     light = LIGHT_COMMANDS.get(pre.command)
     parser = build_parser((light,) if light else COMMAND_MODULES)
