@@ -1459,6 +1459,13 @@ class Aircraft:
                                             else math.inf)
             if wow and self._ditches:
                 events += self._ditch(t, lat, lon, alt_m, terr)
+        elif terr[0] - alt_m > self.max_penetration_m:
+            # Far from the ground as of the last refresh, and the terrain now above the CG: the
+            # terrain rose faster than the refresh assumes (a cliff face: slopes of at most 45
+            # degrees), and the aircraft is inside it. A crash where it is (a host's segment test
+            # moves it to where the path met the terrain, server.world), not the terrain handed
+            # to JSBSim, whose gear forces threw an aircraft 950 m inside a wall to -4.6 g first.
+            events += self._detector.terrain_crash(t, lat, lon, alt_m, terr[0] - alt_m)
         else:
             self._terrain_ft = self._terrain_cg_ft
             self._set_terrain_ft(self._terrain_ft)

@@ -150,3 +150,26 @@ def test_an_fdm_crash_whose_path_meets_no_terrain_keeps_its_place_and_reason(ter
         assert w.snapshot.lon_deg[k] > crash.lon_deg + 1e-3  # on its way east, not put anywhere
     finally:
         w.close()
+
+
+def test_an_aircraft_alone_flying_into_the_wall_crashes_by_terrain_not_by_load_factor(terrain):
+    """Without a world (no segment test), an f16 at 250 m/s into the wall: its refresh finds the
+    terrain above its CG and that is the crash, "terrain penetration", before any load factor
+    (the terrain handed to JSBSim inside the wall threw it to -4.6 g first); the load factor
+    never leaves the f16's limits on the way in."""
+    from fdm.aircraft import Aircraft
+    from fdm.autopilot import Autopilot, Targets
+
+    ac = Aircraft("f16", terrain, InitialConditions(-33.5, -70.52, 600.0, heading_deg=90.0, speed_mps=250.0))
+    ap = Autopilot(ac, Targets(90.0, 600.0, 250.0))
+    events, nz = [], []
+    for _ in range(120 * 14):
+        ap.update()
+        events += ac.step()
+        nz.append(ac.state().load_factor_g)
+        if ac.crashed:
+            break
+    crashes = [e for e in events if e.kind == "crash"]
+    assert [e.detail["reason"] for e in crashes] == ["terrain penetration"], crashes
+    assert -70.5010 < crashes[0].lon_deg < -70.4990
+    assert min(nz) > -3.0 * 1.5 and max(nz) < 9.0 * 1.5
