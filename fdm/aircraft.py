@@ -87,6 +87,7 @@ import os
 import re
 import threading
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -173,6 +174,14 @@ RUNNING_KINDS = frozenset({"piston_engine", "turbine_engine", "turboprop_engine"
 CRANK_THROTTLES = (0.1, 1.0)
 CRANK_S = 8.0
 CRANK_SETTLE_S = 1.0
+# A ground start's running engines are run to the steady state of its throttle before time 0
+# (Aircraft._settle_engines): SETTLE_CHUNK_S at a time until no engine's thrust moves by more
+# than SETTLE_THRUST_LBF or SETTLE_THRUST_RATIO of it in a chunk, at most SETTLE_MAX_S (the
+# catalog's slowest, the DHC6's propellers, settle in 25 s; a c172p in 2 s).
+SETTLE_CHUNK_S = 0.5
+SETTLE_MAX_S = 30.0
+SETTLE_THRUST_LBF = 1.0
+SETTLE_THRUST_RATIO = 0.01
 
 # Glide trim (Aircraft._trim_glide). Steeper than this is a dive, not a glide (L/D below 1).
 GLIDE_GAMMA_MIN_DEG = -45.0
@@ -540,7 +549,9 @@ class Aircraft:
             # port could set any property of a hosted aircraft, past sessions, tokens and the
             # recording. The host drives its aircraft through this API alone.
             fdm.disable_input()
-            if not fdm.load_model(self.name):
+            with catalog.model_paths(self.name) as paths:  # a propeller's diameter in inches (fdm.catalog)
+                loaded = fdm.load_model_with_paths(self.name, *paths) if paths else fdm.load_model(self.name)
+            if not loaded:
                 raise SortieError(f"JSBSim could not load aircraft {self.name!r}")
             fdm.disable_output()  # models may declare CSV outputs (c172x: JSBout172B.csv); the host records
             _discard_outputs(fdm)
@@ -720,57 +731,102 @@ class Aircraft:
         """The engines of RUNNING_KINDS that are not running (engine indices)."""
         return [i for i, running in zip(self._must_run, self._get_running) if not running() > 0.5]
 
-    def _crank(self, throttle: float, on_ground: bool) -> None:
-        """Start the engines JSBSim's set-running left dead, as a pilot does (see CRANK_THROTTLES),
-        then restore the start: the tanks' fuel, time 0 and the initial conditions (JSBSim's run_ic
-        leaves the engines as they are). An engine that still does not run refuses a ground start
-        (InvalidArgument ``engines_running`` naming the aircraft and the engine: it would sit there
-        for good); in the air the aircraft glides, as with its engines off, and a warning says so
-        (the p51d at 3000 m and 60 m/s: its throttle is a manifold-pressure loop that holds the
-        throttle shut while the engine does not run, and its starter cannot turn it fast enough
-        in that thin air)."""
+    @contextmanager
+    def _before_time_0(self):
+        """Run the model before its start (to start or settle its engines), then put the start
+        back: time 0 and the initial conditions (JSBSim's run_ic leaves the engines as they are).
+        No fuel is burnt meanwhile (propulsion/fuel_freeze: FGPropulsion::ConsumeFuel then draws
+        from no tank and counts nothing in an engine's fuel-used-lbs), and the tanks' contents
+        are put back (a model's own fuel system may move fuel between them regardless)."""
         fdm, pm = self.fdm, self._pm
         tanks = []
         while pm.hasNode(f"propulsion/tank[{len(tanks)}]/contents-lbs"):
             tanks.append(f"propulsion/tank[{len(tanks)}]/contents-lbs")
         fuel_lbs = [fdm[t] for t in tanks]
-        if pm.hasNode("propulsion/magneto_cmd"):
-            fdm["propulsion/magneto_cmd"] = 3  # both (FGPiston: 0 off, 1 left, 2 right, 3 both)
-        if pm.hasNode("propulsion/cutoff_cmd"):
-            fdm["propulsion/cutoff_cmd"] = 0  # fuel on (FGTurbine, FGTurboProp)
-        dead = self._engines_run()
-        for opening in CRANK_THROTTLES:
-            self._apply({"throttle": opening})
-            fdm["propulsion/starter_cmd"] = 1
-            for _ in range(max(1, round(CRANK_S / self.dt))):
-                fdm.run()
-                if not self._engines_run():
-                    break
-            fdm["propulsion/starter_cmd"] = 0
-            for _ in range(round(CRANK_SETTLE_S / self.dt)):  # it runs once it runs off the starter
-                fdm.run()
-            dead = self._engines_run()
-            if not dead:
-                break
-        if dead:
-            spec = catalog.propulsion(self.name).engines
-            which = ", ".join(f"engine {i} ({spec[i].kind} {spec[i].file})" for i in dead)
-            why = (f"{self.name}'s {which} does not run: JSBSim's set-running leaves it stopped, and {CRANK_S:g} s "
-                   f"on its starter at each of throttle {', '.join(f'{t:g}' for t in CRANK_THROTTLES)} does not "
-                   "start it")
-            if on_ground:
-                raise InvalidArgument("engines_running", f"{why}; start {self.name} airborne or with its engines "
-                                                         "off (engines_running false), or fly another aircraft",
-                                      value=True)
-            _log.warning("%s; it starts airborne with it stopped, gliding", why)
-        # The start's throttle from here on, its engine as it ran (as set-running leaves one: at
-        # the steady state of full throttle), to settle in the first seconds.
-        self._apply({"throttle": throttle})
+        freeze = fdm["propulsion/fuel_freeze"] if pm.hasNode("propulsion/fuel_freeze") else None
+        if freeze is not None:
+            fdm["propulsion/fuel_freeze"] = 1
+        try:
+            yield
+        finally:
+            if freeze is not None:
+                fdm["propulsion/fuel_freeze"] = freeze
         for t, lbs in zip(tanks, fuel_lbs):
             fdm[t] = lbs
         fdm.set_sim_time(0.0)
         if not fdm.run_ic():
             raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
+
+    def _crank(self, throttle: float, on_ground: bool) -> None:
+        """Start the engines JSBSim's set-running left dead, as a pilot does (see CRANK_THROTTLES),
+        before time 0 (:meth:`_before_time_0`). An engine that still does not run refuses a ground
+        start (InvalidArgument ``engines_running`` naming the aircraft and the engine: it would sit
+        there for good); in the air the aircraft glides, as with its engines off, and a warning says
+        so (the p51d at 3000 m and 60 m/s: its throttle is a manifold-pressure loop that holds the
+        throttle shut while the engine does not run, and its starter cannot turn it fast enough
+        in that thin air)."""
+        fdm, pm = self.fdm, self._pm
+        with self._before_time_0():
+            if pm.hasNode("propulsion/magneto_cmd"):
+                fdm["propulsion/magneto_cmd"] = 3  # both (FGPiston: 0 off, 1 left, 2 right, 3 both)
+            if pm.hasNode("propulsion/cutoff_cmd"):
+                fdm["propulsion/cutoff_cmd"] = 0  # fuel on (FGTurbine, FGTurboProp)
+            dead = self._engines_run()
+            for opening in CRANK_THROTTLES:
+                self._apply({"throttle": opening})
+                fdm["propulsion/starter_cmd"] = 1
+                for _ in range(max(1, round(CRANK_S / self.dt))):
+                    fdm.run()
+                    if not self._engines_run():
+                        break
+                fdm["propulsion/starter_cmd"] = 0
+                for _ in range(round(CRANK_SETTLE_S / self.dt)):  # it runs once it runs off the starter
+                    fdm.run()
+                dead = self._engines_run()
+                if not dead:
+                    break
+            if dead:
+                spec = catalog.propulsion(self.name).engines
+                which = ", ".join(f"engine {i} ({spec[i].kind} {spec[i].file})" for i in dead)
+                why = (f"{self.name}'s {which} does not run: JSBSim's set-running leaves it stopped, and "
+                       f"{CRANK_S:g} s on its starter at each of throttle "
+                       f"{', '.join(f'{t:g}' for t in CRANK_THROTTLES)} does not start it")
+                if on_ground:
+                    raise InvalidArgument("engines_running", f"{why}; start {self.name} airborne or with its "
+                                                             "engines off (engines_running false), or fly another "
+                                                             "aircraft", value=True)
+                _log.warning("%s; it starts airborne with it stopped, gliding", why)
+            # The start's throttle from here on, its engine as it ran (as set-running leaves one: at
+            # the steady state of full throttle): a ground start settles it (_settle_engines), an
+            # airborne one in its first seconds.
+            self._apply({"throttle": throttle})
+
+    def _settle_engines(self) -> None:
+        """Bring a ground start's running engines to the steady state of its throttle before
+        time 0 (:meth:`_before_time_0`). JSBSim's set-running leaves them at the steady state of
+        full throttle (FGPropulsion::InitRunning sets every throttle to 1, then runs
+        GetSteadyState), and a ground start spent its first seconds spooling down from there
+        against its brakes: a Boeing314 at a 1000 m field, leaned, 4 x 3600 lbf for a second on a
+        hull without brakes, still sliding at 0.9 m/s after 5 s; the dr1, which has none either,
+        rolling off at 6 m/s. The whole model runs (its flight controls may drive its engines:
+        the p51d's manifold-pressure throttle, the c310's mixture), SETTLE_CHUNK_S at a time, put
+        back at rest at its start after each, until no engine's thrust moves by more than
+        SETTLE_THRUST_LBF or SETTLE_THRUST_RATIO of it in a chunk, for at most SETTLE_MAX_S."""
+        fdm = self.fdm
+        steps = max(1, round(SETTLE_CHUNK_S / self.dt))
+        with self._before_time_0():
+            last = [g() for g in self._get_thrust]
+            for _ in range(math.ceil(SETTLE_MAX_S / SETTLE_CHUNK_S)):
+                for _ in range(steps):
+                    fdm.run()
+                now = [g() for g in self._get_thrust]
+                if not fdm.run_ic():
+                    raise SortieError(f"JSBSim refused the initial conditions of {self.name!r}")
+                steady = all(abs(t - t0) <= max(SETTLE_THRUST_LBF, SETTLE_THRUST_RATIO * abs(t))
+                             for t, t0 in zip(now, last))
+                if steady or not all(math.isfinite(t) for t in now):
+                    break
+                last = now
 
     def _transfer_fuel(self) -> None:
         """Keep the feed tanks at their start's fuel from the other fuel tanks (see
@@ -882,6 +938,8 @@ class Aircraft:
             # trim after a lean retry fails as it did, TrimFailed.
             if ic.engines_running and self._engines_run() and all(math.isfinite(g()) for g in self._get_thrust):
                 self._crank(throttle, ic.on_ground)
+            if ic.engines_running and ic.on_ground and self._must_run:
+                self._settle_engines()
 
         initialise(mixture)
         self._terrain_ft = t_m / FT_M

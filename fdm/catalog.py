@@ -2,7 +2,8 @@
 
 An aircraft is a folder ``aircraft/NAME/`` holding ``NAME.xml`` whose root
 element is ``<fdm_config>`` (JSBSim's model file); that is exactly what
-``FGFDMExec.load_model(NAME)`` loads.
+``FGFDMExec.load_model(NAME)`` loads, but for a model whose files carry a unit error JSBSim
+cannot see (a propeller's diameter: :func:`model_paths`).
 """
 
 from __future__ import annotations
@@ -10,11 +11,14 @@ from __future__ import annotations
 import difflib
 import math
 import re
+import shutil
+import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from sortie.errors import NotFound
+from sortie.errors import NotFound, SortieError
 
 # Aircraft classes select autopilot gains and crash limits. Names not listed
 # are classified from the model (jet engines and a high-g FCS make a fighter).
@@ -37,7 +41,10 @@ CLASS_OF = {
 # gear; at 1/15 s the A4, B747, c310 and J3Cub crash, at 1/10 s most of the catalog. JSBSim's
 # gear is an explicit spring and damper: too long a step for its stiffness and it pumps energy in.
 # (Not at rest even at 120 Hz, whatever the bound: minisgs (stable at 1e-4 s only), SGS, paraglider,
-# ball, ballx, F450, wrightFlyer1903; the dr1 and ZLT-NT creep.)
+# ball, ballx, F450; the ZLT-NT creeps, 3 cm in 10 s at 1/50 s. The dr1 and wrightFlyer1903 rolled
+# off on the full-throttle burst a ground start began with; started at idle since
+# (fdm.aircraft.Aircraft._settle_engines) they rest, the wrightFlyer1903 creeping 9 cm in 10 s at
+# 1/50 s.)
 DT_MIN_S = 1e-4
 DT_MAX_S = 1.0 / 50.0
 
@@ -117,6 +124,7 @@ class EngineSpec:
     kind: str  # its file's root element: piston_engine, turbine_engine, turboprop_engine, electric_engine, ...
     file: str  # the engine file's name as the model gives it
     feeds: tuple  # the tanks it draws from (<feed>: JSBSim tank indices)
+    thruster: str = ""  # its <thruster file="...">, the name as the model gives it
 
 
 @dataclass(frozen=True)
@@ -138,12 +146,22 @@ def _model_part(folder: Path, section, ET):
     return ET.parse(path).getroot() if path is not None else None
 
 
+def _engine_file(folder: Path, base: Path, ref: str) -> Path | None:
+    """An engine or thruster file a model names, where JSBSim finds it (FGPropulsion::FindFullPathName,
+    ``.xml`` appended when missing): the aircraft's own ``Engines/`` folder, then the catalog's
+    ``engine/``; None where neither holds it."""
+    for path in (folder / "Engines" / ref, folder / "Engines" / f"{ref}.xml", base / "engine" / ref,
+                 base / "engine" / f"{ref}.xml"):
+        if ref and path.is_file():
+            return path
+    return None
+
+
 @lru_cache(maxsize=256)
 def propulsion(name: str, root: str | None = None) -> PropulsionSpec:
-    """A catalog model's engines (kind, file, feed tanks) and tanks, from its files. An engine
-    file is looked up as JSBSim does (FGPropulsion::FindFullPathName): the aircraft's own
-    ``Engines/`` folder, then the catalog's ``engine/``; a kind it cannot read is ''. Empty
-    for a name or file that cannot be read."""
+    """A catalog model's engines (kind, file, feed tanks, thruster) and tanks, from its files. An
+    engine file is looked up as JSBSim does (:func:`_engine_file`); a kind it cannot read is ''.
+    Empty for a name or file that cannot be read."""
     import xml.etree.ElementTree as ET
 
     base = Path(root) if root else root_dir()
@@ -159,26 +177,98 @@ def propulsion(name: str, root: str | None = None) -> PropulsionSpec:
     for el in section.findall("engine"):
         ref = el.get("file", "")
         kind = ""
-        for path in (folder / "Engines" / ref, folder / "Engines" / f"{ref}.xml", base / "engine" / ref,
-                     base / "engine" / f"{ref}.xml"):
-            if ref and path.is_file():
-                try:
-                    kind = ET.parse(path).getroot().tag
-                except ET.ParseError:
-                    pass
-                break
+        path = _engine_file(folder, base, ref)
+        if path is not None:
+            try:
+                kind = ET.parse(path).getroot().tag
+            except ET.ParseError:
+                pass
+        thruster = el.find("thruster")
         feeds = []
         for f in el.findall("feed"):
             try:
                 feeds.append(int((f.text or "").strip()))
             except ValueError:
                 pass
-        engines.append(EngineSpec(kind, ref, tuple(feeds)))
+        engines.append(EngineSpec(kind, ref, tuple(feeds), thruster.get("file", "") if thruster is not None else ""))
     types = tuple(tank.get("type", "").upper() for tank in section.findall("tank"))
     # JSBSim moves fuel between tanks only where a model's system drives a tank's external flow
     # (FGTank: propulsion/tank[i]/external-flow-rate-pps): the Short_S23's fuel system.
     moves = any("external-flow-rate-pps" in f.read_text(errors="replace") for f in folder.rglob("*.xml"))
     return PropulsionSpec(tuple(engines), types, moves)
+
+
+# A unit error in a model's files that JSBSim reads without a word. FGPropeller reads <diameter>
+# in feet, and a number without a unit attribute is taken in the unit asked for
+# (FGXMLElement::FindElementValueAsNumberConvertTo). The catalog writes every propeller's
+# diameter with unit="IN" but the L410's (engine/vrtule2.xml, "<diameter> 99 </diameter>"), which
+# JSBSim 1.3.3 reads as a 99 ft (30 m) propeller on a 4.7 t twin: at 156 rpm its tips run at
+# Mach 0.73 and it absorbs 1e7 ft.lbf/s, the engines cannot turn it past a few rpm, and its
+# thrust jumps between -500 and +150000 lbf from one step to the next (a parked L410 rolled away
+# at 10 m/s, brakes set). Its other numbers are those of a 99 in (2.51 m) propeller: Ixx 2.84
+# slug.ft2, and the M601's power table, which turns it at 1150 rpm at idle. A bare diameter
+# larger than any propeller ever flown is read in the inches the rest of the catalog writes.
+# The largest flown: the Linke-Hofmann R.II's, 6.90 m (22 ft 7.65 in) (G. W. Haddow,
+# P. M. Grosz, "The German Giants: The Story of the R-planes 1914-1919", Putnam, 1963).
+MAX_PROPELLER_DIAMETER_FT = 23.0
+_BARE_DIAMETER = re.compile(r"<diameter(\s*)>")
+
+
+@lru_cache(maxsize=256)
+def propeller_diameter_fixes(name: str, root: str | None = None) -> tuple:
+    """The propellers of a catalog model whose bare ``<diameter>`` is in inches (see
+    MAX_PROPELLER_DIAMETER_FT): (thruster file as the model names it, its path, the diameter
+    in inches) each, once a file; empty for most models and for a name the catalog does not hold."""
+    import xml.etree.ElementTree as ET
+
+    base = Path(root) if root else root_dir()
+    try:
+        folder = base / "aircraft" / resolve(name, root)
+    except NotFound:
+        return ()
+    fixes = []
+    for ref in dict.fromkeys(e.thruster for e in propulsion(name, root).engines):
+        path = _engine_file(folder, base, ref)
+        try:
+            element = ET.parse(path).getroot() if path is not None else None
+        except ET.ParseError:
+            continue
+        diameter = element.find("diameter") if element is not None and element.tag == "propeller" else None
+        if diameter is None or "unit" in diameter.attrib:
+            continue
+        try:
+            value = float(diameter.text)
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(value) and value > MAX_PROPELLER_DIAMETER_FT:
+            fixes.append((ref, path, value))
+    return tuple(fixes)
+
+
+@contextmanager
+def model_paths(name: str, root: str | None = None):
+    """Where ``FGFDMExec.load_model_with_paths`` loads a catalog model (its catalog spelling)
+    with its propellers' diameters read right (:func:`propeller_diameter_fixes`): (aircraft,
+    engine, systems) folders, the aircraft folder a temporary copy of the model's whose
+    ``Engines/`` holds the corrected propeller files (JSBSim looks there first), removed on
+    leaving: JSBSim reads all of a model's files while it loads it. None for a model that
+    loads as shipped (``load_model``)."""
+    fixes = propeller_diameter_fixes(name, root)
+    if not fixes:
+        yield None
+        return
+    base = Path(root) if root else root_dir()
+    with tempfile.TemporaryDirectory(prefix="sortie-jsbsim-") as tmp:
+        try:
+            folder = Path(tmp) / "aircraft" / name
+            shutil.copytree(base / "aircraft" / name, folder)
+            for ref, path, _ in fixes:
+                out = folder / "Engines" / (ref if ref.endswith(".xml") else f"{ref}.xml")
+                out.parent.mkdir(exist_ok=True)
+                out.write_text(_BARE_DIAMETER.sub(r'<diameter unit="IN"\1>', path.read_text(), count=1))
+        except OSError as exc:
+            raise SortieError(f"could not write aircraft {name!r}'s corrected propeller files: {exc}") from exc
+        yield str(Path(tmp) / "aircraft"), str(base / "engine"), str(base / "systems")
 
 
 def aircraft_class(name: str) -> str:
