@@ -12,14 +12,21 @@ after every leg (a closed box), "racetrack" right 180 degrees (two parallel legs
 joined by half turns); a leg's --leg-s world seconds count from the moment its
 agent is on the leg's heading (an f16 takes ~40 s to turn 90 degrees), so every
 side is flown alike. Aircraft fly their legs 300 m above and below the altitude
-they had at the first one, in turn. A bot ends when its agent is lost, on
---duration or a signal (leaving the server), or when the server ends the
-exercise, which it reports as ``sortie client`` does.
+they had at the first one, in turn, and never lower than 300 m above the highest
+terrain their next leg and turn can reach (the terrain the server names in its
+WorldInfo, DEM files found here or a terrain service). One below that floor at
+the start (parked on a runway) first climbs out on its heading at a speed it
+flies (1.3 times its slowest in fdm.catalog's trim survey) and begins its
+profile once above it. A bot ends when its agent is lost, on --duration or a
+signal (leaving the server), or when the server ends the exercise, which it
+reports as ``sortie client`` does.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import logging
 import math
 import re
 import sys
@@ -30,6 +37,8 @@ import time
 import numpy as np
 
 from sortie.errors import InvalidArgument, SortieError
+
+log = logging.getLogger(__name__)
 
 PROFILES = ("patrol", "racetrack")
 MAX_BOTS = 256  # a server's sessions (server/sim_service.py MAX_SESSIONS)
@@ -52,6 +61,23 @@ ON_HEADING_DEG = 5.0  # a leg's clock starts once the agent's heading is within 
 # them twice that time.
 MIN_TURN_RATE_DPS = 0.5
 ALT_STEP_M = 300.0  # an aircraft's legs, above and below the altitude of its first leg
+# No leg lower than this above the highest terrain its leg and turn can reach (the IFR minimum:
+# 300 m, 1000 ft, above the highest obstacle within 8 km of the aircraft; ICAO Annex 2, 5.1.2,
+# and SERA.5015(b); here within the bot's reach, :func:`bot_reach_m`).
+FLOOR_AGL_M = 300.0
+# The speed an aircraft climbs out at: this times the slowest it trims at in level flight in the
+# catalog's survey (fdm.catalog.TRIM_SPEEDS_SURVEYED, about its stall speed), the margin over the
+# stall of a normal approach (1.3 V_S0: FAA Airplane Flying Handbook, FAA-H-8083-3C, ch. 9).
+CLIMB_SPEED_OVER_SLOWEST = 1.3
+CLIMB_RESEND_M = 30.0  # a climb-out's altitude is sent again once the floor has raised it this much
+STANDING_MPS = 2.0  # slower than this an aircraft stands on the ground (server.aircraft_host.PARKED_MPS)
+# A bot's reach: a leg and a turn of its profile at the agent's speed, the turn at the bank limit
+# of the slowest-turning classes (fdm/autopilot.py GAINS: light and transport, 25 degrees; a level
+# coordinated turn's radius v^2 / (g tan(bank)): Anderson, Introduction to Flight, 7th ed., 6.17).
+REACH_BANK_DEG = 25.0
+GROUND_GRID = 33  # the highest terrain within a reach: the most of a GROUND_GRID^2 grid over it
+EARTH_RADIUS_M = 6_371_008.8  # mean radius (IUGG; Moritz, Geodetic Reference System 1980)
+G_MPS2 = 9.80665  # standard gravity (CGPM 1901)
 GROUND_SPEED_MPS = 8.0  # a ground bot's speed
 STREAM_END_WAIT_S = 5.0  # a bot whose controls the server ended waits this long for its picture to say why
 DEFAULT_OBSERVE_RADIUS_M = 100_000.0
@@ -308,18 +334,28 @@ def _fly_profile(sim, agent: int, profile: str, leg_s: float, duration_s: float,
     picture = sim.watch()
     picture.wait_for(lambda p: agent in p.infos, 10.0)
     info = picture.infos.get(agent)
-    pilot = BotPilot(profile, leg_s, aircraft=info is not None and info.kind == 1)
+    aircraft = info is not None and info.kind == 1
+    pilot = BotPilot(profile, leg_s, aircraft=aircraft,
+                     climb_speed_mps=climb_speed_mps(info.type) if aircraft else None, name=info.name if info else "")
     controls = sim.controls()
     info_w = getattr(sim, "world_info", None)
     undulation = float(info_w.geoid_undulation_m) if info_w is not None else 0.0
+    heights = bot_terrain(info_w.terrain) if aircraft and info_w is not None else None
     sent, sent_s = None, -math.inf  # the last command, and its world time
+    seen, speed = None, None  # (world time, ECEF position) at the last look; the speed since (None: unknown)
     end = _until(duration_s)
     while time.monotonic() < end and not stop.is_set() and picture.alive:
         if agent in picture.infos:
             now_s = picture.now_s()
             _, pos, quat = picture.state(ids=[agent])
-            h_msl = float(_geodetic(pos)[2][0]) - undulation  # the state's height is above the ellipsoid
-            targets = pilot.command(now_s, _heading_deg(pos[0], quat[0]), h_msl)
+            if seen is None or now_s > seen[0]:  # (a paused clock: the speed it had)
+                if seen is not None:
+                    speed = float(np.linalg.norm(pos[0] - seen[1])) / (now_s - seen[0])
+                seen = now_s, np.array(pos[0], np.float64)
+            lat, lon, h = _geodetic(pos)
+            h_msl = float(h[0]) - undulation  # the state's height is above the ellipsoid
+            ground = None if heights is None else functools.partial(highest_ground_msl_m, heights, lat[0], lon[0])
+            targets = pilot.command(now_s, _heading_deg(pos[0], quat[0]), h_msl, speed, ground)
             if targets is None and sent is not None and now_s - sent_s >= leg_s:
                 # Sent again after a leg's time without a command (a long turn): a wreck refuses it
                 # (server.world.World.command), so a lost agent is seen within a leg, as before.
@@ -362,35 +398,146 @@ def _accepted(controls) -> int | None:
         return None
 
 
+def climb_speed_mps(aircraft_type: str) -> float | None:
+    """The speed (m/s) a bot climbs an aircraft of ``aircraft_type`` (a JSBSim catalog name) out
+    at: CLIMB_SPEED_OVER_SLOWEST times the slowest it trims at in the catalog's survey, within the
+    fastest; None for a type the survey has no speeds for."""
+    from fdm.catalog import TRIM_SPEEDS_SURVEYED
+
+    speeds = TRIM_SPEEDS_SURVEYED.get(aircraft_type)
+    if not speeds:
+        return None
+    return min(CLIMB_SPEED_OVER_SLOWEST * min(speeds), float(max(speeds)))
+
+
+def bot_reach_m(speed_mps: float, leg_s: float) -> float:
+    """How far (m) an aircraft at ``speed_mps`` goes from where a leg begins, on the leg and its
+    turn: the leg's length and a turn's diameter at REACH_BANK_DEG."""
+    radius = speed_mps * speed_mps / (G_MPS2 * math.tan(math.radians(REACH_BANK_DEG)))
+    return speed_mps * leg_s + 2.0 * radius
+
+
+def highest_ground_msl_m(heights, lat_deg: float, lon_deg: float, reach_m: float) -> float | None:
+    """The highest terrain (m MSL) within ``reach_m`` of (lat, lon) degrees: the most of a
+    GROUND_GRID x GROUND_GRID grid over the disc, a post's spacing beyond it (a peak between posts
+    is missed by at most the slope times 0.71 spacings, the way to the nearest post: FLOOR_AGL_M is
+    the margin); ``heights`` a
+    function of (lat (n,), lon (n,)) degrees giving (n,) m MSL, NaN where it has no terrain. None
+    where it has none at all."""
+    step = 2.0 * reach_m / (GROUND_GRID - 1)
+    offsets = np.linspace(-reach_m - step, reach_m + step, GROUND_GRID + 2)
+    north, east = np.meshgrid(offsets, offsets, indexing="ij")
+    inside = np.hypot(north, east) <= reach_m + step
+    lat = lat_deg + np.degrees(north[inside] / EARTH_RADIUS_M)
+    lon = lon_deg + np.degrees(east[inside] / (EARTH_RADIUS_M * max(math.cos(math.radians(lat_deg)), 1e-6)))
+    h = np.asarray(heights(np.clip(lat, -90.0, 90.0), (lon + 180.0) % 360.0 - 180.0), np.float64)
+    return float(np.nanmax(h)) if np.isfinite(h).any() else None
+
+
+_BOT_TERRAINS: dict = {}  # WorldInfo.terrain -> its heights function (or None), shared by a process's bots
+_BOT_TERRAINS_LOCK = threading.Lock()
+
+
+def bot_terrain(world_terrain: str):
+    """A function of (lat (n,), lon (n,)) degrees giving the terrain's heights (n,) m MSL (NaN
+    where it has none) of the terrain a server names (WorldInfo.terrain: "dem:<files>" or
+    "service:<address>"), opened once per process and shared by its bots; None where it names
+    none, its DEM files are not here or its service does not answer (the bot then knows the
+    ground only under an aircraft standing on it). The server's target-area insets are left out:
+    they refine the DEM by metres, well inside FLOOR_AGL_M."""
+    with _BOT_TERRAINS_LOCK:
+        if world_terrain not in _BOT_TERRAINS:
+            _BOT_TERRAINS[world_terrain] = _open_bot_terrain(world_terrain)
+        return _BOT_TERRAINS[world_terrain]
+
+
+def _open_bot_terrain(world_terrain: str):
+    from pathlib import Path
+
+    from server.sim_server import open_terrain_source
+
+    kind, _, rest = world_terrain.partition(":")
+    spec = None
+    if kind == "service" and rest:
+        spec = {"service": rest}
+    elif kind == "dem" and rest:
+        dem = [f for f in rest.split(",") if f]
+        if dem and all(Path(f).exists() for f in dem):
+            spec = {"dem": dem}
+    if spec is None:
+        if world_terrain:
+            log.warning("bots cannot open the server's terrain %r here: they fly without a terrain floor",
+                        world_terrain)
+        return None
+    try:
+        terrain = open_terrain_source(**spec)
+    except (SortieError, OSError) as exc:
+        log.warning("bots cannot open the server's terrain %r (%s): they fly without a terrain floor",
+                    world_terrain, exc)
+        return None
+    lock = threading.Lock()  # one query at a time from the process's bot threads
+
+    def heights(lat, lon):
+        with lock:
+            return terrain.heights(lat, lon).height_msl_m
+
+    return heights
+
+
 class BotPilot:
     """What a bot commands, from what its agent does (no I/O: :meth:`command` is fed the
-    agent's world time, heading and altitude). Each leg's heading is the last one's plus the
-    profile's turn (the sides of a closed figure); a leg's ``leg_s`` world seconds run from
-    the moment the agent is within ON_HEADING_DEG of it (or its turn timed out). Aircraft
-    alternate between ALT_STEP_M above and below their altitude at the first leg, changing
-    it once on the leg's heading: every turn is level, at one speed, so all have one radius
-    (one turn climbing and the next descending walked a racetrack ~0.8 km sideways a lap)."""
+    agent's world time, heading, altitude and speed, and a function that finds the terrain).
+    Each leg's heading is the last one's plus the profile's turn (the sides of a closed
+    figure); a leg's ``leg_s`` world seconds run from the moment the agent is within
+    ON_HEADING_DEG of it (or its turn timed out). Aircraft alternate between ALT_STEP_M above
+    and below their altitude at the first leg, changing it once on the leg's heading: every turn
+    is level, at one speed, so all have one radius (one turn climbing and the next descending
+    walked a racetrack ~0.8 km sideways a lap).
 
-    def __init__(self, profile: str, leg_s: float, aircraft: bool = False):
+    The floor: no aircraft leg lower than FLOOR_AGL_M above the highest terrain within
+    :func:`bot_reach_m` of where it begins, and the base altitude at least ALT_STEP_M above that
+    (both legs clear it over level terrain). An aircraft below the floor at the start (parked on a
+    runway: it took the runway's height for its base, and turned on its take-off roll into a
+    crash) first climbs out: on the heading it had, to its first leg's altitude, at
+    ``climb_speed_mps`` when slower than that; its profile begins once it is above the floor.
+    Without terrain the floor is known only for an aircraft standing on the ground (its own
+    height) of a type with a climb speed; an airborne one, or one of a type without, flies its
+    legs about its first altitude as it is. One standing below a known floor whose type has no
+    climb speed is not taken off (InvalidArgument: the bot stops, its agent left parked)."""
+
+    def __init__(self, profile: str, leg_s: float, aircraft: bool = False, climb_speed_mps: float | None = None,
+                 name: str = ""):
         if profile not in PROFILES:
             raise InvalidArgument("profile", f"must be one of {', '.join(PROFILES)}", value=profile)
         self.turn_deg = 90.0 if profile == "patrol" else 180.0
         self.leg_s = leg_s
         self.aircraft = aircraft
+        self.climb_speed_mps = climb_speed_mps
+        self.name = name  # the agent's, for an error
         self.legs = 0  # legs begun
         self.goal_deg: float | None = None  # the heading of the leg being flown (or turned onto)
         self.short_deg = 0.0  # how far short of it the heading commanded is (the turn's steps)
         self.turn_start_s = 0.0  # world time the turn onto it began
         self.leg_start_s: float | None = None  # world time its clock started (None: still turning)
         self.base_alt_msl_m: float | None = None
+        self.floor_msl_m: float | None = None  # the lowest altitude a leg may have (None: unknown)
+        self.climb_deg: float | None = None  # a climb-out's heading (None: none begun)
+        self.climb_sent: dict | None = None  # the climb-out's last command
 
-    def command(self, now_s: float, heading_deg: float, alt_msl_m: float) -> dict | None:
+    def command(self, now_s: float, heading_deg: float, alt_msl_m: float, speed_mps: float | None = None,
+                ground=None) -> dict | None:
         """The autopilot targets to send now (None: nothing new). ``now_s``: world seconds;
-        ``heading_deg``: the agent's true heading; ``alt_msl_m``: its altitude, m MSL."""
+        ``heading_deg``: the agent's true heading; ``alt_msl_m``: its altitude, m MSL;
+        ``speed_mps``: its speed (None: not known yet, and an aircraft's bot waits for it);
+        ``ground``: a function of a distance (m) giving the highest terrain (m MSL) within it of
+        the agent, or None where the bot has no terrain."""
         targets = None
         if self.goal_deg is None:  # the first leg: on the heading the agent has
-            self.base_alt_msl_m = alt_msl_m
-            targets = self._begin(now_s, heading_deg, 0.0)
+            if self.aircraft and speed_mps is None:
+                return None
+            if self.aircraft and not self._clear_to_begin(heading_deg, alt_msl_m, speed_mps, ground):
+                return self._climb_out(speed_mps)
+            targets = self._begin(now_s, heading_deg if self.climb_deg is None else self.climb_deg, 0.0)
         elif self.leg_start_s is not None and now_s - self.leg_start_s >= self.leg_s:
             targets = self._begin(now_s, self.goal_deg, self.turn_deg)
         if self.leg_start_s is not None:
@@ -398,10 +545,56 @@ class BotPilot:
         if (abs(_wrap180(self.goal_deg - heading_deg)) <= ON_HEADING_DEG
                 or now_s - self.turn_start_s >= self.turn_deg / MIN_TURN_RATE_DPS):
             self.leg_start_s = now_s  # on the leg: its clock runs, an aircraft takes its altitude
-            return self._leg_altitude() if self.aircraft else targets
+            if self.aircraft:
+                self._raise_floor(alt_msl_m, speed_mps or 0.0, ground)
+                return self._leg_altitude()
+            return targets
         if self.short_deg > 0.0 and _wrap180(self._step_deg() - heading_deg) <= TURN_STEP_LEAD_DEG:
             self.short_deg = max(self.short_deg - TURN_STEP_DEG, 0.0)  # the turn's next step
             return self._turn()
+        return targets
+
+    def _raise_floor(self, alt_msl_m: float, speed_mps: float, ground) -> None:
+        """The floor from the terrain within reach now (it only rises: a climb-out's, or a leg's
+        that starts lower, stays); without terrain, a standing aircraft's own height (one a bot can
+        take off: of a type with a climb speed)."""
+        highest = None if ground is None else ground(bot_reach_m(max(speed_mps, self.climb_speed_mps or 0.0),
+                                                                  self.leg_s))
+        if (highest is None and speed_mps < STANDING_MPS and self.base_alt_msl_m is None
+                and self.climb_speed_mps is not None):
+            highest = alt_msl_m  # on the ground where it stands (and above it, the CG's height)
+        if highest is not None:
+            floor = highest + FLOOR_AGL_M
+            self.floor_msl_m = floor if self.floor_msl_m is None else max(self.floor_msl_m, floor)
+
+    def _clear_to_begin(self, heading_deg: float, alt_msl_m: float, speed_mps: float, ground) -> bool:
+        """Whether an aircraft begins its profile now: above its floor (or with none known)."""
+        self._raise_floor(alt_msl_m, speed_mps, ground)
+        if self.base_alt_msl_m is None:
+            self.base_alt_msl_m = alt_msl_m
+        if self.floor_msl_m is None:
+            return True
+        self.base_alt_msl_m = max(self.base_alt_msl_m, self.floor_msl_m + ALT_STEP_M)
+        if alt_msl_m >= self.floor_msl_m:
+            return True
+        if self.climb_deg is None:  # the climb-out begins, on the heading the agent has (a runway's)
+            if self.climb_speed_mps is None and speed_mps < STANDING_MPS:
+                raise InvalidArgument("agent", f"{self.name or 'the agent'} stands on the ground and its type has no "
+                                      "speed it flies at in fdm.catalog's trim survey: a bot cannot take it off")
+            self.climb_deg = heading_deg
+        return False
+
+    def _climb_out(self, speed_mps: float) -> dict | None:
+        """The climb-out's command: the first, then again when the floor has raised its altitude
+        by CLIMB_RESEND_M (the terrain ahead rises into reach as it climbs: it stays at least
+        ALT_STEP_M - CLIMB_RESEND_M above the floor in between)."""
+        targets = {"heading_deg": self.climb_deg, "alt_msl_m": self.base_alt_msl_m + ALT_STEP_M}
+        if self.climb_sent is None:
+            if self.climb_speed_mps is not None and speed_mps < self.climb_speed_mps:
+                targets["speed_mps"] = self.climb_speed_mps
+        elif targets["alt_msl_m"] < self.climb_sent["alt_msl_m"] + CLIMB_RESEND_M:
+            return None
+        self.climb_sent = targets
         return targets
 
     def _begin(self, now_s: float, from_deg: float, turn_deg: float) -> dict:
@@ -422,7 +615,10 @@ class BotPilot:
 
     def _leg_altitude(self) -> dict:
         up = self.legs % 2 == 1
-        return {"heading_deg": self.goal_deg, "alt_msl_m": self.base_alt_msl_m + (ALT_STEP_M if up else -ALT_STEP_M)}
+        alt = self.base_alt_msl_m + (ALT_STEP_M if up else -ALT_STEP_M)
+        if self.floor_msl_m is not None:
+            alt = max(alt, self.floor_msl_m)
+        return {"heading_deg": self.goal_deg, "alt_msl_m": alt}
 
 
 _WRECK = re.compile(r" (has crashed|is destroyed)\b")

@@ -91,12 +91,25 @@ GAINS = {
 # On the ground the heading is steered with the pedals: full pedal at this many radians of
 # heading error and more (a pedal of 1 per 0.5 rad, 29 degrees: tuned here on the c172x).
 G_STEER = 2.0
+# With weight on wheels the heading the pedals steer to moves towards the target no faster than a
+# turn of this lateral acceleration (m/s^2, about 0.1 g) allows at the ground speed v: a turn rate
+# of ROLL_LATERAL_ACCEL_MPS2 / v (a level turn's a = v * turn rate). A steered nose wheel turns
+# the aircraft on a path of curvature tan(delta) / wheelbase (the kinematic, "bicycle", model:
+# Rajamani, Vehicle Dynamics and Control, 2nd ed., 2012, sec. 2.2), so full pedal asks for
+# v^2 tan(delta) / wheelbase: on the c172p (10 degrees, 1.65 m: c172p.xml) 72 m/s^2 at 26 m/s,
+# where its tyres hold 4.9 (dynamic friction 0.5), and a 90-degree heading step on the take-off
+# roll ground-looped it onto a wing tip. A taxi still turns: at 2 m/s this allows 29 degrees a
+# second, more than the c172p's tightest turn there (9.4 m at full pedal: 12 degrees a second), at
+# 5 m/s 11 (a 90-degree turn in 8 s). And the runway's heading is held with the pedals' full
+# authority (the c172x needs 0.6 pedal against its propeller at 18 m/s): limiting the pedal instead
+# (by (5 m/s / v)^2) let it veer 32 degrees off the runway.
+ROLL_LATERAL_ACCEL_MPS2 = 1.0
 
 # Raw row columns read each update, looked up once.
 _TIME, _LAT, _LON, _ALT = _C["time_s"], _C["lat_rad"], _C["lon_rad"], _C["alt_ft"]
 _VN, _VE, _VD, _VT = _C["v_north_fps"], _C["v_east_fps"], _C["v_down_fps"], _C["vt_fps"]
 _PHI, _PSI, _P, _Q, _BETA = _C["phi_rad"], _C["psi_rad"], _C["p_rps"], _C["q_rps"], _C["beta_rad"]
-_ALPHA, _THETA = _C["alpha_rad"], _C["theta_rad"]
+_ALPHA, _THETA, _TERRAIN = _C["alpha_rad"], _C["theta_rad"], _C["terrain_ft"]
 
 # Stall protection: pitch stick per second, per rad of angle of attack beyond max_alpha_rad,
 # by which the stick is walked forward (tuned here: 1 deg beyond moves it 0.035 a second).
@@ -156,6 +169,15 @@ def tail_strike_pitch_rad(contacts) -> float:
     return min(angles, default=math.inf)
 
 
+# After a take-off the wings are held within LEVEL_BANK_RAD of level until the aircraft is
+# LEVEL_AGL_M above the ground (ArduPlane's TAKEOFF mode: wings level below TKOFF_LVL_ALT, 20 m,
+# within LEVEL_ROLL_LIMIT, 5 degrees; ArduPilot, ArduPlane/mode_takeoff.cpp and Parameters.cpp).
+# A heading still to turn at lift-off banked a J3Cub 27 degrees at 3 m and 20 m/s, and it stalled;
+# a 787-8 turning as it lifted off struck the runway ("structure contact") 2 s later.
+LEVEL_AGL_M = 20.0
+LEVEL_BANK_RAD = math.radians(5.0)
+
+
 def _check_positive(name: str, v) -> None:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         raise InvalidArgument(name, "must be a finite number", value=v)
@@ -213,9 +235,11 @@ class Autopilot:
         self._bank_cmd = None  # slew-limited bank command, rad
         self._stuck_mps = 0.0  # low-passed speed error the throttle cannot correct, m/s
         self._turn_sign = 0.0  # the way a reversal turns (+1 right, -1 left), 0 outside one
+        self._ground_ref = None  # the heading the pedals steer to on the ground, rad (None: airborne)
         # The highest pitch attitude on the runway (rad): a pull from standstill struck the
         # c172p's tail skid (10 degrees up from its main wheels) at 3 m/s.
         self._max_ground_pitch = tail_strike_pitch_rad(getattr(aircraft, "contacts", ())) - TAIL_STRIKE_MARGIN_RAD
+        self._lifting_off = False  # taken off, not yet LEVEL_AGL_M up: wings (nearly) level
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
         for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
@@ -224,6 +248,20 @@ class Autopilot:
         if speed_mps is not None:
             _check_positive("speed_mps", speed_mps)
         self.targets = Targets(heading_deg, alt_msl_m, speed_mps)
+
+    def _ground_steer_err(self, err: float, psi: float, r, dt: float) -> float:
+        """The heading error (rad) the pedals steer by on the ground: from the heading they steer
+        to, which follows the target (``err`` away from ``psi``, rad) at the turn rate of
+        ROLL_LATERAL_ACCEL_MPS2 at the ground speed, starting from the heading on touching down."""
+        if self._ground_ref is None:
+            self._ground_ref = psi
+        ground = math.hypot(r[_VN], r[_VE]) * FT_M
+        most = ROLL_LATERAL_ACCEL_MPS2 * dt / ground if ground > 0.0 else math.inf
+        # The way to the target from the reference: the way the target's error goes from the
+        # heading (a reversal keeps its side), less the reference's lead on the heading.
+        to_go = err - wrap_pi(self._ground_ref - psi)
+        self._ground_ref = wrap_pi(self._ground_ref + _clamp(to_go, -most, most))
+        return wrap_pi(self._ground_ref - psi)
 
     def update(self, row=None, dt_s: float | None = None) -> None:
         """Read the state, write the controls for the next step (or the next ``dt_s``
@@ -245,7 +283,9 @@ class Autopilot:
         # pedals (rudder and nose wheel), and the pitch loop's integrator waits (it would wind up
         # to full aft stick before the elevator can act, and over-rotate into a tail strike).
         rolling = ac.on_ground
-        if tg.heading_deg is not None:
+        if tg.heading_deg is None:
+            self._ground_ref = None
+        else:
             err = wrap_pi(math.radians(tg.heading_deg) - psi)
             # A reversal: near 180 degrees the shorter way round flips with every jitter of the
             # heading, and the wings rocked from one bank to the other. Beyond REVERSAL_RAD the
@@ -256,7 +296,16 @@ class Autopilot:
                 self._turn_sign = 1.0 if err > 0.0 else -1.0
             elif err * self._turn_sign < 0.0:
                 err = math.copysign(2.0 * math.pi - abs(err), self._turn_sign)
-            bank_cmd = 0.0 if rolling else _clamp(g.k_heading * err, -g.max_bank_rad, g.max_bank_rad)
+            if rolling:
+                bank_cmd = 0.0
+            else:
+                most = g.max_bank_rad
+                if self._lifting_off:
+                    if (r[_ALT] - r[_TERRAIN]) * FT_M < LEVEL_AGL_M:
+                        most = min(most, LEVEL_BANK_RAD)
+                    else:
+                        self._lifting_off = False
+                bank_cmd = _clamp(g.k_heading * err, -most, most)
             if g.max_bank_rate_rad_s < math.inf:
                 last = phi if self._bank_cmd is None else self._bank_cmd
                 step = g.max_bank_rate_rad_s * dt
@@ -266,7 +315,11 @@ class Autopilot:
             if -1.0 < u < 1.0:
                 self._i_bank = _clamp(self._i_bank + g.ki_bank * e * dt, -0.5, 0.5)
             roll = _clamp(u, -1.0, 1.0)
-            yaw = _clamp(G_STEER * err if rolling else -g.k_beta * r[_BETA], -1.0, 1.0)
+            if rolling:
+                yaw = _clamp(G_STEER * self._ground_steer_err(err, psi, r, dt), -1.0, 1.0)
+            else:
+                self._ground_ref = None
+                yaw = _clamp(-g.k_beta * r[_BETA], -1.0, 1.0)
         # Speed first: where the throttle cannot hold the speed (at idle too fast, at full power
         # too slow), the flight-path command below gives way to it.
         speed_excess = 0.0
@@ -280,6 +333,7 @@ class Autopilot:
                 # A take-off: full power on the roll, whatever the target speed (one at or below the
                 # lift-off speed held on the runway never lifted off under the attitude limit below).
                 throttle = 1.0
+                self._lifting_off = True
             # The speed error the throttle cannot correct from where it stands (m/s): too slow
             # at full power, too fast at idle; low-passed, so that the path command does not
             # step when the throttle reaches a stop. None on the runway: a take-off roll is slow

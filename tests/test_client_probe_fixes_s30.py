@@ -375,7 +375,12 @@ def test_an_aircraft_bots_racetrack_is_two_parallel_legs_joined_by_right_half_tu
     out_again = (np.abs((track - h0 + 180.0) % 360.0 - 180.0) <= 6.0) & (times > back + LEG_S)
     assert out_again.any() and np.abs(right[out_again]).max() < 800.0, right[out_again]
     turned = np.degrees(np.unwrap(np.radians(track)))
-    assert 340.0 < turned[-1] - turned[start] < 380.0, turned[-1] - turned[start]  # two right half turns
+    # Two right half turns by the time it is out on the first leg's line again (to its last
+    # sample there: the bot's legs run on wall time, so on a loaded host the next turn may have
+    # begun by the end of the run).
+    last_out = np.flatnonzero(out_again)[-1]
+    assert 340.0 < turned[last_out] - turned[start] < 380.0, turned[last_out] - turned[start]
+    assert turned[-1] - turned[start] > 340.0  # and never back the other way
     targets = _altitude_targets(commands)
     assert np.allclose(targets, [targets[0] - 600.0 * (k % 2) for k in range(len(targets))], rtol=0.0, atol=1e-6)
     (_, agent, what), = results
