@@ -176,6 +176,15 @@ def tail_strike_pitch_rad(contacts) -> float:
 # a 787-8 turning as it lifted off struck the runway ("structure contact") 2 s later.
 LEVEL_AGL_M = 20.0
 LEVEL_BANK_RAD = math.radians(5.0)
+# Heading trim: the bank the heading loop's proportional term would need a standing error for
+# (a constant true heading is a rhumb line, which curves against the great circle a wings-level
+# aircraft flies: at 60 S an f16 held 90 with a 0.1 degree error and drifted 1.4 km north in
+# 830 km; a model's own asymmetry) is integrated in near the target: within HEADING_TRIM_ZONE_RAD
+# of it, at k_heading / HEADING_TRIM_TAU_S per second, at most HEADING_TRIM_MAX_BANK_RAD of bank.
+# Outside the zone (a turn) it is not used and starts again from 0 (it holds no windup from a turn).
+HEADING_TRIM_ZONE_RAD = math.radians(2.0)
+HEADING_TRIM_TAU_S = 10.0
+HEADING_TRIM_MAX_BANK_RAD = math.radians(3.0)
 
 
 def _check_positive(name: str, v) -> None:
@@ -235,6 +244,7 @@ class Autopilot:
         self._bank_cmd = None  # slew-limited bank command, rad
         self._stuck_mps = 0.0  # low-passed speed error the throttle cannot correct, m/s
         self._turn_sign = 0.0  # the way a reversal turns (+1 right, -1 left), 0 outside one
+        self._i_heading = 0.0  # heading trim, rad of bank (HEADING_TRIM_*)
         self._ground_ref = None  # the heading the pedals steer to on the ground, rad (None: airborne)
         # The highest pitch attitude on the runway (rad): a pull from standstill struck the
         # c172p's tail skid (10 degrees up from its main wheels) at 3 m/s.
@@ -297,7 +307,7 @@ class Autopilot:
             elif err * self._turn_sign < 0.0:
                 err = math.copysign(2.0 * math.pi - abs(err), self._turn_sign)
             if rolling:
-                bank_cmd = 0.0
+                bank_cmd = self._i_heading = 0.0
             else:
                 most = g.max_bank_rad
                 if self._lifting_off:
@@ -305,7 +315,12 @@ class Autopilot:
                         most = min(most, LEVEL_BANK_RAD)
                     else:
                         self._lifting_off = False
-                bank_cmd = _clamp(g.k_heading * err, -most, most)
+                if abs(err) < HEADING_TRIM_ZONE_RAD:
+                    self._i_heading = _clamp(self._i_heading + g.k_heading / HEADING_TRIM_TAU_S * err * dt,
+                                             -HEADING_TRIM_MAX_BANK_RAD, HEADING_TRIM_MAX_BANK_RAD)
+                else:
+                    self._i_heading = 0.0
+                bank_cmd = _clamp(g.k_heading * err + self._i_heading, -most, most)
             if g.max_bank_rate_rad_s < math.inf:
                 last = phi if self._bank_cmd is None else self._bank_cmd
                 step = g.max_bank_rate_rad_s * dt

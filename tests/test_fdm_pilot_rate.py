@@ -76,3 +76,21 @@ def test_the_autopilot_flies_alike_at_any_world_rate(type_, speed):
         assert over <= max(ref_over, 0.0) + 1.0, (rate, over, ref_over)
         assert np.abs(got[2:, 1] - ref[2:, 1]).max() < 5.0, (rate, np.abs(got[2:, 1] - ref[2:, 1]).max())
         assert abs((got[-1, 0] - 90.0 + 180.0) % 360.0 - 180.0) < 1.0
+
+
+@pytest.mark.parametrize("type_, speed, lat", [("f16", 230.0, -60.0), ("737", 200.0, 60.0)])
+def test_a_held_heading_has_no_standing_error(type_, speed, lat):
+    """Holding 90 degrees at 60 degrees of latitude (a rhumb line, which curves against the
+    great circle a wings-level aircraft flies) for 300 s, updated at 30 Hz as a host does: the
+    mean heading error over the last 150 s is under 0.01 degree (the proportional loop alone
+    held 0.10 / 0.18 degree, an f16 drifting 1.4 km off its line in 830 km)."""
+    ac = Aircraft(type_, FlatTerrain(0.0), InitialConditions(lat, -60.0, 3000.0, heading_deg=90.0, speed_mps=speed))
+    ap = Autopilot(ac, Targets(90.0, 3000.0, speed))
+    errs = []
+    for k in range(120 * 300):
+        if k % 4 == 0:
+            ap.update(None, 4 * ac.dt)
+        ac.step()
+        if k % 120 == 0 and k >= 120 * 150:
+            errs.append((ac.state().heading_deg - 90.0 + 180.0) % 360.0 - 180.0)
+    assert abs(float(np.mean(errs))) < 0.01, np.mean(errs)
