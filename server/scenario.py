@@ -107,19 +107,32 @@ Schema (``*`` required; everything else has the default shown)::
                                on the ground with an engine that does not start, even on its
                                starter, is refused
     ground only:
-      speed_mps = 0.0          [0, the vehicle type's top speed]
+      speed_mps = 0.0          [0, the vehicle type's top speed]: the speed it starts at, on
+                               heading_deg; without an autopilot table it holds that heading
+                               and speed (a route's follower takes over its speed)
     aircraft and ground:
       controllable = false     may a pilot / driver session take the agent (opt-in, so a
                                session never takes a bot by accident)
       [agents.autopilot]       optional
         aircraft, one of:      route = [[lat, lon, alt_msl_m], ...] (1..1000) with speed_mps*
                                hold = {heading_deg, alt_msl_m, speed_mps} (at least one)
+                               (none: airborne, it holds its start's heading, speed_mps and
+                               altitude; alt_ref = "agl" holds the altitude above mean sea
+                               level it starts at, the surface under it plus alt_m)
         ground:                route* = [[lat, lon], ...] (2..1000, consecutive points at
                                least 1 mm apart), cruise_mps* (0, type's top speed],
-                               convoy = "name" and spacing_m = 50.0 (0, 1000]: members of a
-                               convoy (at least 2) share route, cruise_mps and spacing_m;
-                               the member farthest along the route leads, the others
-                               follow in their order along it (listed order where level); members before the first waypoint are placed along the first leg extended back
+                               convoy = "name" and spacing_m = 50.0 (0, 1000], centre to
+                               centre, at least the longest member's length plus the 4 m a
+                               driver keeps behind the vehicle ahead (convoy_spacing_min_m):
+                               members of a convoy (at least 2) share route, cruise_mps and
+                               spacing_m, each keeping its own coalition, controllable and
+                               speed_mps; the member farthest along the route leads, the
+                               others follow in their order along it (listed order where
+                               level); members before the first waypoint are placed along the
+                               first leg extended back
+    No two agents may start inside each other (their collision shapes overlapping: the world
+    tests contacts as they begin, so they would pass through each other); two statics may.
+    Checked when the world is built (server/sim_server.py), as is terrain under the agents.
 
     [[target_areas]]           0..256
     name*                      unique (same rule as agent names)
@@ -1084,8 +1097,37 @@ def _convoys(agents) -> tuple[ConvoySpec, ...]:
                                                                       "agents; check the name's spelling)", value=name)
         for i in idx[1:]:
             _same_as_leader(agents[i].autopilot, lead, f"agents[{i}].autopilot", idx[0], name)
+        _check_spacing(agents, idx, name)
         out.append(ConvoySpec(name, tuple(agents[i].name for i in idx), lead.points, lead.cruise_mps, lead.spacing_m))
     return tuple(out)
+
+
+def convoy_spacing_min_m(type_names) -> float:
+    """The least spacing (m, centre to centre along the route, as fdm.convoy keeps it) of a
+    convoy of vehicles of ``type_names``: its longest vehicle's length plus the standoff a
+    driver keeps behind what is ahead of it (fdm.convoy.OBSTACLE_STANDOFF_M, bumper to
+    bumper). Whichever two follow each other, their bumpers are then at least the standoff
+    apart at the convoy's spacing (half of each length lies between their centres); closer,
+    the column's spacing law drives each into the one ahead (3 m with 7.9 m M1A2s: a
+    collision every 14 s)."""
+    from fdm.convoy import OBSTACLE_STANDOFF_M
+
+    return max(VEHICLE_TYPES[t].length_m for t in type_names) + OBSTACLE_STANDOFF_M
+
+
+def _check_spacing(agents, idx: list[int], convoy: str) -> None:
+    from fdm.convoy import OBSTACLE_STANDOFF_M
+
+    spacing = agents[idx[0]].autopilot.spacing_m
+    least = convoy_spacing_min_m([agents[i].type for i in idx])
+    if spacing < least:
+        k = max(idx, key=lambda i: VEHICLE_TYPES[agents[i].type].length_m)
+        length = VEHICLE_TYPES[agents[k].type].length_m
+        raise ScenarioError(f"agents[{idx[0]}].autopilot.spacing_m",
+                            f"must be at least {least:g} m for convoy {convoy!r}: its longest member, agents[{k}] "
+                            f"{agents[k].name!r} ({agents[k].type}), is {length:g} m long, and a driver keeps "
+                            f"{OBSTACLE_STANDOFF_M:g} m (bumper to bumper) behind the vehicle ahead; the spacing is "
+                            "centre to centre along the route", value=spacing)
 
 
 def _same_as_leader(member: GroundRoute, lead: GroundRoute, path: str, lead_index: int, convoy: str) -> None:

@@ -373,26 +373,59 @@ class World(EventLog):
                 out.append(e)
             return out
 
-    def spawn_ground(self, names, type_, lat, lon, heading_deg, *, coalition: str = "neutral",
-                     controllable: bool = False, route=None, cruise_mps: float | None = None,
-                     spacing_m: float | None = None, on_vanish: str = "autopilot") -> list[Entity]:
+    def spawn_ground(self, names, type_, lat, lon, heading_deg, *, coalition="neutral", controllable=False,
+                     route=None, cruise_mps: float | None = None, spacing_m: float | None = None,
+                     on_vanish: str = "autopilot", speed_mps=0.0) -> list[Entity]:
         """Ground vehicles (one per name); with ``route`` [(lat, lon), ...] they follow it
         at ``cruise_mps`` (a convoy ``spacing_m`` apart when given: the one farthest along the
         route leads, the others follow in their order along it, names given first going first
-        where two stand level)."""
+        where two stand level). ``type_``, ``coalition``, ``controllable`` and ``speed_mps``
+        are one value for all or a sequence of one per name: each vehicle keeps its own (a
+        convoy of a blue and a red vehicle, one controllable, is one route, not one side).
+        ``speed_mps`` (m/s, [0, its type's top speed]) is the speed each starts at; off a
+        route, one started moving holds it on its heading (as a scenario aircraft holds its
+        spawn speed), until a driver or an autopilot command takes it."""
         names = list(names)
         n = len(names)
-        types = type_ if isinstance(type_, (list, tuple)) else [type_] * n
+
+        def each(value, field_name: str) -> list:
+            if isinstance(value, (list, tuple, np.ndarray)):
+                if len(value) != n:
+                    raise InvalidArgument(field_name, f"must have {n} values (one per name), got {len(value)}")
+                return list(value)
+            return [value] * n
+
+        types = each(type_, "type_")
+        coalitions, controllables = each(coalition, "coalition"), each(controllable, "controllable")
+        speeds = np.array(each(speed_mps, "speed_mps"), np.float64)
+        bad = ~(speeds >= 0.0)  # NaN too; the top speed is the vehicle model's check below
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise InvalidArgument("speed_mps", f"must be >= 0 m/s (a vehicle starts forward or at rest) for "
+                                               f"{names[k]}", index=k, value=float(speeds[k]))
         with self._lock:
-            if self.ground is None:
+            first = self.ground is None
+            if first:
                 self.ground = GroundVehicles(self.terrain, lat, lon, heading_deg, types)
                 gids = self.ground.ids.copy()
             else:
                 gids = self.ground.add(lat, lon, heading_deg, types)
+            rows = self.ground.index_of(gids)
+            try:
+                self.ground.check_controls(speeds, None, index=rows, names=names)
+            except InvalidArgument:
+                if first:
+                    self.ground = None
+                else:
+                    self.ground.remove(gids)
+                raise
+            self.ground.speed_mps[rows] = speeds
+            self.ground.speed_cmd_mps[rows] = speeds
             out = []
             for k, name in enumerate(names):
-                e = self._new_entity(name, GROUND, str(types[k]), coalition=coalition, controllable=controllable,
-                                     ground_id=int(gids[k]), on_vanish=on_vanish)
+                e = self._new_entity(name, GROUND, str(types[k]), coalition=coalitions[k],
+                                     controllable=bool(controllables[k]), ground_id=int(gids[k]),
+                                     on_vanish=on_vanish)
                 self._register(e)
                 out.append(e)
             if route is not None:
@@ -404,6 +437,11 @@ class World(EventLog):
                 self.routes.append((spec, ids))
                 self._scenario_routes.update((e.id, spec) for e in out)
                 self._rebuild_followers()
+            elif (speeds > 0.0).any():
+                for e, v in zip(out, speeds.tolist()):
+                    if v > 0.0:
+                        self._ground_heading_hold[e.id] = self._present_hold(e)
+                self._hold_version += 1
             for e, la, lo in zip(out, np.atleast_1d(lat), np.atleast_1d(lon)):
                 self._emit(WorldEvent(self.time_s, "spawn", e.id, float(la), float(lo), math.nan,
                                       {"name": e.name, "kind": "ground", "type": e.type}))
