@@ -318,11 +318,13 @@ class ExternalStream(_RequestStream):
 
     def update(self, external_id: str, *, ecef_m, vel_ecef_mps, quat_wxyz, acc_ecef_mps2=(0.0, 0.0, 0.0),
                body_rates_rps=(0.0, 0.0, 0.0), algorithm: int = pb.DEAD_RECKONING_ALGORITHM_FPW, name: str = "",
-               kind: str = "aircraft", type: str = "", coalition: str = "neutral") -> None:  # noqa: A002
-        """The entity's state now: ecef_m (3,) m, vel_ecef_mps (3,), acc_ecef_mps2 (3,) ECEF;
-        quat_wxyz (4,) ECEF -> body; body_rates_rps (3,) body axes; a DIS world algorithm
-        (1-5). name, kind ("aircraft", "ground", "static"), type and coalition are read on
-        the entity's first update."""
+               kind: str = "aircraft", type: str = "", coalition: str = "neutral",  # noqa: A002
+               destroyed: bool = False) -> None:
+        """The entity's state now: ecef_m (3,) m, vel_ecef_mps (3,), acc_ecef_mps2 (3,) ECEF
+        (body axes for a body-axis algorithm); quat_wxyz (4,) ECEF -> body; body_rates_rps (3,)
+        body axes; a DIS algorithm (1-5 world axes, 6-9 body axes). name, kind ("aircraft",
+        "ground", "static"), type and coalition are read on the entity's first update.
+        destroyed: its simulation says it is destroyed (a wreck from then on)."""
         if kind not in KINDS:
             raise InvalidArgument("kind", f"must be one of {', '.join(KINDS)}", value=kind)
         x, y, z = (float(v) for v in ecef_m)
@@ -331,7 +333,8 @@ class ExternalStream(_RequestStream):
                                orientation_wxyz=list(map(float, quat_wxyz)),
                                angular_velocity_body_rps=list(map(float, body_rates_rps)), dead_reckoning=algorithm)
         self._put(pb.ExternalEntityUpdate(session_token=self.client.token, external_id=external_id, name=name,
-                                          kind=KINDS[kind], type=type, coalition=coalition, state=state))
+                                          kind=KINDS[kind], type=type, coalition=coalition, state=state,
+                                          destroyed=bool(destroyed)))
 
     def remove(self, external_id: str) -> None:
         self._put(pb.ExternalEntityUpdate(session_token=self.client.token, external_id=external_id, remove=True))

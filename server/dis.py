@@ -6,7 +6,7 @@ big-endian; offsets in bytes):
 ====== ==== ============================================================================
 offset size field
 ====== ==== ============================================================================
-0      1    protocol version (6: IEEE 1278.1a-1998, 7: IEEE 1278.1-2012)
+0      1    protocol version (5: IEEE 1278.1-1995, 6: IEEE 1278.1a-1998, 7: IEEE 1278.1-2012)
 1      1    exercise id
 2      1    PDU type (1: Entity State)
 3      1    protocol family (1: Entity Information/Interaction)
@@ -34,9 +34,11 @@ offset size field
 144    16n  variable parameter records       -- §6.2.94.1 (articulated part: §6.2.94.2)
 ====== ==== ============================================================================
 
-Version 6 lays the PDU out the same way except the PDU status byte, which is
-padding there (the 1998 header has two bytes of padding); both decode, and
-:func:`encode_pdu` writes either (version 7 by default).
+Versions 5 and 6 lay the PDU out the same way except the PDU status byte, which is
+padding there (the 1995 and 1998 headers have two bytes of padding; IEEE
+1278.1a-1998 added PDUs, not Entity State fields); all three decode, and
+:func:`encode_pdu` writes any (version 7 by default). Version 4 and older
+(SISO-REF-010: the DIS 2.0 drafts, IEEE 1278-1993, DIS 1.0) are refused.
 
 Frames. DIS world coordinates are WGS84 ECEF, the entity's axes x forward, y
 right, z down (IEEE 1278.1-2012 §1.6.3), as Sortie's. The orientation is the
@@ -58,8 +60,12 @@ becomes a generic platform of its domain (:func:`entity_type_of`). Force ids
 (SISO-REF-010 "Force ID"): 1 friendly = blue, 2 opposing = red, 3 neutral.
 
 Dead reckoning: Sortie sends algorithms 1-5 (world axes) as they are. An
-ingested PDU with a body-axis algorithm (6-9) is converted by
-:func:`world_dead_reckoning`; see there for the approximation.
+ingested PDU keeps its algorithm, body axes (6-9) included: the world
+dead-reckons it natively (server/external.py); :func:`external_dead_reckoning`
+drops only what the algorithm does not use.
+
+Datagrams: :func:`read_datagram` reads the PDUs of one datagram one by one and
+keeps every readable one; :func:`split_datagram` is its strict form.
 """
 
 from __future__ import annotations
@@ -76,10 +82,14 @@ from sortie.errors import DataFormatError, InvalidArgument
 
 # -- constants (IEEE 1278.1-2012 and SISO-REF-010) ------------------------------------------------
 
-# SISO-REF-010 "DIS Protocol Version" (UID 3): 6 IEEE 1278.1a-1998, 7 IEEE 1278.1-2012.
+# SISO-REF-010 "DIS Protocol Version" (UID 3): 5 IEEE 1278.1-1995, 6 IEEE 1278.1a-1998,
+# 7 IEEE 1278.1-2012 (the Entity State and Collision PDUs have one layout in all three).
+PROTOCOL_VERSION_1995 = 5
 PROTOCOL_VERSION_1998 = 6
 PROTOCOL_VERSION_2012 = 7
-SUPPORTED_VERSIONS = (PROTOCOL_VERSION_1998, PROTOCOL_VERSION_2012)
+SUPPORTED_VERSIONS = (PROTOCOL_VERSION_1995, PROTOCOL_VERSION_1998, PROTOCOL_VERSION_2012)
+VERSION_NAMES = {PROTOCOL_VERSION_1995: "IEEE 1278.1-1995", PROTOCOL_VERSION_1998: "IEEE 1278.1a-1998",
+                 PROTOCOL_VERSION_2012: "IEEE 1278.1-2012"}
 # SISO-REF-010 "PDU Type" (UID 4) and "Protocol Family" (UID 5).
 PDU_TYPE_ENTITY_STATE = 1
 FAMILY_ENTITY_INFORMATION = 1
@@ -105,8 +115,11 @@ COALITION_OF_FORCE = {v: k for k, v in FORCE_OF_COALITION.items()}
 # SISO-REF-010 platform appearance records (land, air, surface, ...): bit 23 "State",
 # 0 active, 1 deactivated. A deactivated ESPDU is the entity's last (its removal).
 APPEARANCE_DEACTIVATED = 1 << 23
-# The same records' bits 3-4, "Damage": 0 no damage, 1 slight, 2 moderate, 3 destroyed.
+# The same records' bits 3-4, "Damage": 0 no damage, 1 slight, 2 moderate, 3 destroyed -- in
+# the platform records of every domain, the munition and cultural feature records; the life
+# form record's bits 3-4 are its "Health", 3 fatal (:func:`appearance_destroyed`).
 APPEARANCE_DAMAGE_SHIFT = 3
+APPEARANCE_DAMAGE_MASK = 3 << APPEARANCE_DAMAGE_SHIFT
 APPEARANCE_DESTROYED = 3 << APPEARANCE_DAMAGE_SHIFT
 
 # The Collision PDU (IEEE 1278.1-2012 §7.2.3; SISO-REF-010 PDU Type 4, Entity
@@ -121,10 +134,22 @@ COLLISION_INELASTIC, COLLISION_ELASTIC = 0, 1
 
 # SISO-REF-010 "Dead Reckoning Algorithm" (UID 44) = IEEE 1278.1-2012 Annex E numbering.
 DR_OTHER, DR_STATIC, DR_FPW, DR_RPW, DR_RVW, DR_FVW, DR_FPB, DR_RPB, DR_RVB, DR_FVB = range(10)
-WORLD_ALGORITHM_OF_BODY = {DR_FPB: DR_FPW, DR_RPB: DR_RPW, DR_RVB: DR_RVW, DR_FVB: DR_FVW}
+# What each algorithm extrapolates with besides the velocity (Annex E): an acceleration, a
+# rotation at the body rates.
+DR_ACCELERATING = (DR_RVW, DR_FVW, DR_RVB, DR_FVB)
+DR_ROTATING = (DR_RPW, DR_RVW, DR_RPB, DR_RVB)
+
+# IEEE 1278.1-2012 §6.2.28 Entity Identifier record: site and application 0 (NO_SITE,
+# NO_APPLIC) and 65535 (ALL_SITES, ALL_APPLIC), entity number 0 (NO_ENTITY) and 65535
+# (ALL_ENTITIES) name no one entity (:func:`reserved_entity_id`).
+RESERVED_ID_NAMES = (("site", {0: "NO_SITE", 0xFFFF: "ALL_SITES"}),
+                     ("application", {0: "NO_APPLIC", 0xFFFF: "ALL_APPLIC"}),
+                     ("entity", {0: "NO_ENTITY", 0xFFFF: "ALL_ENTITIES"}))
 
 # SISO-REF-010 "Entity Kind" (UID 7) and platform "Domain" (UID 8).
-KIND_PLATFORM, KIND_CULTURAL_FEATURE = 1, 5
+KIND_PLATFORM, KIND_MUNITION, KIND_LIFE_FORM, KIND_CULTURAL_FEATURE = 1, 2, 3, 5
+# The kinds whose appearance record has the damage (health) field in bits 3-4 (see above).
+KINDS_WITH_DAMAGE = (KIND_PLATFORM, KIND_MUNITION, KIND_LIFE_FORM, KIND_CULTURAL_FEATURE)
 DOMAIN_LAND, DOMAIN_AIR, DOMAIN_SPACE = 1, 2, 5
 
 # Timestamp: 2^31 units per hour (the 31 high bits of the u32).
@@ -270,6 +295,27 @@ class EntityStatePdu:
         """Whether the appearance says the entity is deactivated (its last PDU)."""
         return bool(self.appearance & APPEARANCE_DEACTIVATED)
 
+    @property
+    def destroyed(self) -> bool:
+        """Whether the appearance says the entity is destroyed (:func:`appearance_destroyed`)."""
+        return appearance_destroyed(self.entity_type.kind, self.appearance)
+
+
+def appearance_destroyed(kind: int, appearance: int) -> bool:
+    """Whether an appearance (u32) of an entity of SISO-REF-010 ``kind`` says it is destroyed:
+    its damage (a life form's health) field, bits 3-4, is 3 (destroyed, fatal), for the kinds
+    whose appearance record has that field (KINDS_WITH_DAMAGE); never for the others."""
+    return kind in KINDS_WITH_DAMAGE and appearance & APPEARANCE_DAMAGE_MASK == APPEARANCE_DESTROYED
+
+
+def reserved_entity_id(entity_id) -> str | None:
+    """Why a DIS Entity ID (site, application, entity) names no one entity (e.g. "site 0 is
+    NO_SITE"), None when it names one (RESERVED_ID_NAMES)."""
+    for (part, names), value in zip(RESERVED_ID_NAMES, entity_id):
+        if value in names:
+            return f"{part} {value} is {names[value]}"
+    return None
+
 
 # -- decoding -------------------------------------------------------------------------------------
 
@@ -284,29 +330,54 @@ def decode_header(data: bytes) -> PduHeader:
         raise _fail("header", f"truncated: {len(data)} bytes, a PDU header has {HEADER_BYTES}", 0)
     version, exercise, pdu_type, family, ts, length, status, _ = _HEADER.unpack_from(data)
     if version not in SUPPORTED_VERSIONS:
-        raise _fail("protocol_version", f"version {version} is not supported (6: IEEE 1278.1a-1998, "
-                                        "7: IEEE 1278.1-2012)")
+        names = ", ".join(f"{v}: {n}" for v, n in VERSION_NAMES.items())
+        raise _fail("protocol_version", f"version {version} is not supported ({names})")
     if length < HEADER_BYTES:
         raise _fail("length", f"{length} bytes is shorter than the {HEADER_BYTES}-byte header")
     return PduHeader(version, exercise, pdu_type, family, ts, length,
                      status if version >= PROTOCOL_VERSION_2012 else 0)
 
 
-def split_datagram(data: bytes) -> list[bytes]:
-    """The PDUs of one UDP datagram, by their length fields (IEEE 1278.1-2012 allows
-    several PDUs in one datagram). DataFormatError when a length runs past the data."""
-    pdus, at = [], 0
+def read_datagram(data: bytes) -> tuple[list[bytes], list[DataFormatError]]:
+    """(the PDUs, what could not be read) of one UDP datagram, PDU by PDU by their length
+    fields (IEEE 1278.1-2012 allows several PDUs in one datagram), so one bad PDU never
+    costs the others: a PDU of a version not supported (:func:`decode_header`) is skipped
+    by its length field; a length shorter than a header or past the datagram's end, or a
+    trailing fragment shorter than a header, ends the reading, with the PDUs before it
+    kept. Each problem is a DataFormatError naming the field and its byte in the datagram."""
+    pdus, problems, at = [], [], 0
     while at < len(data):
-        header = decode_header(data[at:])
-        if at + header.length > len(data):
-            raise _fail("length", f"says {header.length} bytes, the datagram has {len(data) - at} left", at + 8)
-        pdus.append(data[at:at + header.length])
-        at += header.length
+        left = len(data) - at
+        if left < HEADER_BYTES:
+            problems.append(_fail("header", f"truncated: a trailing fragment of {left} bytes, a PDU header has "
+                                            f"{HEADER_BYTES}", at))
+            break
+        length = int.from_bytes(data[at + 8:at + 10], "big")
+        if not HEADER_BYTES <= length <= left:
+            problems.append(_fail("length", f"says {length} bytes, the datagram has {left} left (a PDU has at "
+                                            f"least the {HEADER_BYTES}-byte header)", at + 8))
+            break
+        try:
+            decode_header(data[at:at + length])
+        except DataFormatError as exc:  # its version: the length field still says where the next one starts
+            problems.append(exc if at == 0 else DataFormatError(f"{exc} (the PDU at byte {at} of the datagram)"))
+        else:
+            pdus.append(data[at:at + length])
+        at += length
+    return pdus, problems
+
+
+def split_datagram(data: bytes) -> list[bytes]:
+    """The PDUs of one UDP datagram (:func:`read_datagram`), all of them: the first problem
+    raises its DataFormatError."""
+    pdus, problems = read_datagram(data)
+    if problems:
+        raise problems[0]
     return pdus
 
 
 def decode_pdu(data: bytes) -> EntityStatePdu | OtherPdu:
-    """One PDU (``data`` is exactly its bytes): an :class:`EntityStatePdu` (versions 6 and
+    """One PDU (``data`` is exactly its bytes): an :class:`EntityStatePdu` (versions 5 to
     7), or an :class:`OtherPdu` for any other type. DataFormatError names the field and
     its byte offset when the data is truncated or inconsistent."""
     data = bytes(data)
@@ -530,36 +601,30 @@ def quat_from_dis_euler(euler) -> np.ndarray:
 
 # -- dead reckoning -------------------------------------------------------------------------------
 
-def world_dead_reckoning(algorithm: int, quat_wxyz, velocity, acceleration, omega_body):
-    """(world algorithm 1-5, velocity ECEF m/s (3,), acceleration ECEF m/s^2 (3,)) of a
-    received PDU's dead reckoning, for Sortie's world-axis extrapolation.
+def external_dead_reckoning(algorithm: int, velocity, acceleration, omega_body) -> tuple:
+    """(algorithm 1-9, velocity (3,), acceleration (3,), body rates (3,)) of a received PDU's
+    dead reckoning for the world's extrapolation (server.external.extrapolate_external):
+    what the algorithm moves the entity by, and zeros for what it does not use, so the
+    world's states show no motion the sender's own receivers do not extrapolate.
 
-    algorithm: the PDU's DIS code; quat_wxyz (4,) its orientation ECEF -> body; velocity,
-    acceleration (3,) as sent; omega_body (3,) rad/s, body axes.
+    algorithm: the PDU's DIS code; velocity, acceleration (3,) m/s, m/s^2 as sent (ECEF
+    for 1-5, body axes for 6-9, IEEE 1278.1-2012 §1.6.3.3 and Annex E); omega_body (3,)
+    rad/s, body axes.
 
-    - 1-5 (STATIC, FPW, RPW, RVW, FVW): world axes already, unchanged.
-    - 6-9 (FPB, RPB, RVB, FVB): velocity and acceleration are in body axes (IEEE
-      1278.1-2012 §1.6.3.3 and Annex E). They are rotated to ECEF with the PDU's
-      orientation R: v = R v_b; for RVB the world acceleration at the PDU's time is
-      R (a_b + omega x v_b) (the body velocity turns with the body), for FVB R a_b.
-      The matching world algorithm (FPB -> FPW, RPB -> RPW, RVB -> RVW, FVB -> FVW) then
-      holds the velocity's direction fixed where the body algorithms turn it with the
-      body: position and velocity agree at the PDU's time, and the positions part by
-      about |omega| |v| dt^2 / 2 (RPB; third order for RVB) until the next PDU -- at
-      3 deg/s and 200 m/s, 5 m after 1 s, about what a DIS sender's 1 m threshold
-      allows a body-axis receiver anyway between updates of a turning entity.
+    - 1 STATIC: all zeros (a static entity's PDU may carry a velocity: it does not move).
+    - 2-9: as sent, in their frames (the world dead-reckons body axes natively); the
+      acceleration only for RVW, FVW, RVB, FVB, the body rates only for RPW, RVW, RPB, RVB.
     - 0 (other) and values above 9 (not in SISO-REF-010): FPW on the velocity as sent.
     """
     v = np.asarray(velocity, dtype=np.float64)
-    a = np.asarray(acceleration, dtype=np.float64)
-    if algorithm in WORLD_ALGORITHM_OF_BODY:
-        r = _matrix(quat_wxyz)
-        if algorithm == DR_RVB:
-            a = a + np.cross(np.asarray(omega_body, dtype=np.float64), v)
-        return WORLD_ALGORITHM_OF_BODY[algorithm], r @ v, r @ a
-    if DR_STATIC <= algorithm <= DR_FVW:
-        return int(algorithm), v, a
-    return DR_FPW, v, np.zeros(3)
+    zero = np.zeros(3)
+    if algorithm == DR_STATIC:
+        return DR_STATIC, zero, zero, zero
+    if not DR_FPW <= algorithm <= DR_FVB:
+        return DR_FPW, v, zero, zero
+    a = np.asarray(acceleration, dtype=np.float64) if algorithm in DR_ACCELERATING else zero
+    w = np.asarray(omega_body, dtype=np.float64) if algorithm in DR_ROTATING else zero
+    return int(algorithm), v, a, w
 
 
 # -- entity types (SISO-REF-010) ------------------------------------------------------------------
@@ -696,13 +761,15 @@ def unique_name(name: str, xid: str, taken) -> str:
 def sortie_state(pdu: EntityStatePdu) -> dict:
     """Keyword arguments of ``ExternalStream.update`` for a received PDU: name (the marking,
     or the external id when it has no printable text), kind, type, coalition and the state
-    in Sortie's frames (world dead reckoning, :func:`world_dead_reckoning`)."""
+    in Sortie's frames with the PDU's own dead reckoning (:func:`external_dead_reckoning`;
+    for a body-axis algorithm "vel_ecef_mps" and "acc_ecef_mps2" are in body axes, as the
+    algorithm says)."""
     quat = quat_from_dis_euler(np.array(pdu.orientation))
-    algorithm, vel, acc = world_dead_reckoning(pdu.dr_algorithm, quat, pdu.linear_velocity,
-                                               pdu.dr_linear_acceleration, pdu.dr_angular_velocity)
+    algorithm, vel, acc, rates = external_dead_reckoning(pdu.dr_algorithm, pdu.linear_velocity,
+                                                         pdu.dr_linear_acceleration, pdu.dr_angular_velocity)
     kind, type_name = sortie_kind_type(pdu.entity_type)
     name = "".join(c if " " <= c <= "~" else "?" for c in pdu.marking_text).strip()
     return {"name": name or external_id(pdu.entity_id), "kind": kind, "type": type_name,
             "coalition": coalition_of(pdu.force_id), "ecef_m": np.array(pdu.location), "vel_ecef_mps": vel,
-            "acc_ecef_mps2": acc, "quat_wxyz": quat, "body_rates_rps": np.array(pdu.dr_angular_velocity),
-            "algorithm": algorithm}
+            "acc_ecef_mps2": acc, "quat_wxyz": quat, "body_rates_rps": rates, "algorithm": algorithm,
+            "destroyed": pdu.destroyed}

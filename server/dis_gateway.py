@@ -15,7 +15,13 @@ DIS entity number (above 65534) is refused with one log line. An entity that
 leaves the exercise gets one last PDU with the appearance's "deactivated"
 bit; so does every entity when the gateway stops. If the server sends
 nothing about an entity for --heartbeat-s wall seconds (a paused or slowed
-clock), its last PDU is sent again, so DIS receivers do not time it out.
+clock), a heartbeat PDU says where it is now, so DIS receivers do not time it
+out: its last state dead-reckoned to the world time now (the Watch stream's
+estimate), with that time's timestamp. While the world clock is paused
+(WatchUpdate.time_scale 0) every PDU, heartbeats included, says the entity
+stands still (velocity, acceleration and body rates 0), sent to every entity
+the moment the pause (and its end) is known, so DIS receivers freeze it where
+the world holds it instead of dead-reckoning it on.
 Entities that came from outside (``EntityInfo.external_id`` set, e.g. from
 this very gateway) are never sent back out. The gateway also reads the
 server's events: an entity that crashes or is destroyed is sent at once, and
@@ -31,20 +37,39 @@ In. PDUs of our exercise from other (site, application) pairs are decoded
 and each Entity State PDU is published into the exercise through the
 session's PublishExternal stream as the external entity "dis:<site>.<app>.<entity>"
 (name = marking, kind and type from the entity type, coalition from the force,
-world dead reckoning). DIS markings are not unique and world names are: a
+the PDU's own dead reckoning, body axes included, which the world
+extrapolates natively: server/external.py; a static entity's with no motion;
+a damage "destroyed" appearance makes it a wreck). DIS markings are not
+unique and world names are: a
 marking another entity already has becomes "<marking> <site>.<app>.<entity>"
 (dis.unique_name). The server ends a PublishExternal stream at the first
 update it refuses; the gateway then opens another, sends the update that met
 the ended stream again, and keeps tracking every remote entity it published
 (they stay in the world under the gateway's session), so one refused entity
 never costs another its update, timeout or removal. A remote entity is removed when its PDU says
-deactivated or after --remote-timeout-s (default 15 s: three missed 5 s
-heartbeats) without a PDU. Other PDU types, other exercises and our own PDUs
-are counted as ignored; malformed ones are counted and logged (at most one
-line per LOG_EVERY_S) and never stop the gateway.
+deactivated or after --remote-timeout-s without a PDU: by default 15 s, the
+three missed 5 s heartbeats issue #8 asks for (IEEE 1278.1-2012's own
+default is HBT_TIMEOUT_MPLIER 2.4 times HBT_PDU_ENTITY_STATE, 12 s; 15 s
+keeps a remote entity through one more late heartbeat). Other PDU types,
+other exercises and our own PDUs are counted as ignored; so is a foreign
+simulation's PDU that carries our own site and application (its entities
+cannot be told from ours: one warning names them and the options that set
+ours). Malformed ones -- undecodable, of an unsupported protocol version (4
+and older), or naming no one entity (a reserved Entity ID such as
+65535.65535.65535 ALL_ENTITIES, logged once per id) -- are counted and logged
+(at most one line per LOG_EVERY_S) and never stop the gateway; one bad PDU
+of a datagram never costs the others in it (dis.read_datagram).
 
 Network. One UDP socket bound to (--host, --port) with SO_REUSEADDR and
-SO_REUSEPORT receives; PDUs go out to the same address and port. The default
+SO_REUSEPORT receives; PDUs go out to the same address and port. A burst of
+PDUs (a simulation joining with a thousand entities) must not overflow the
+socket: it asks for an 8 MiB receive buffer (RECEIVE_BUFFER_BYTES: without
+CAP_NET_ADMIN Linux grants at most twice net.core.rmem_max, and the gateway
+logs what it got, with a warning when that is less) and
+one thread does nothing but move datagrams from the socket into a bounded
+queue that another thread decodes and publishes. What is lost anyway is
+counted (pdus_dropped) and logged: the kernel's own count of datagrams the
+full socket dropped (SO_RXQ_OVFL, Linux) and the queue's overflow. The default
 host 127.255.255.255 is the loopback broadcast address: datagrams sent there
 are delivered to every socket bound to it on this machine (several gateways,
 a DIS viewer, tests) and to nothing outside it. A unicast host such as
@@ -54,8 +79,9 @@ datagram to one of the sockets sharing a port. A LAN broadcast address
 
 Counters (:class:`DisGateway`): pdus_sent; pdus_received (every PDU that
 arrived, our own looped-back broadcasts included); pdus_ignored (other
-exercise, our own, not an Entity State PDU); pdus_malformed; and the number of
-remote and local entities.
+exercise, our own, not an Entity State PDU); pdus_malformed; pdus_dropped
+(datagrams lost before they were read); and the number of remote and local
+entities.
 """
 
 from __future__ import annotations
@@ -72,9 +98,10 @@ import threading
 import time
 
 import grpc
+import numpy as np
 
 from server import dis
-from server.dead_reckoning import FVW, RVW
+from server.dead_reckoning import FVW, RVW, extrapolate
 from server.external import external_state
 from sortie.errors import DataFormatError, InvalidArgument, SortieError
 from sortie.logs import line
@@ -86,10 +113,31 @@ DEFAULT_HOST = "127.255.255.255"  # loopback broadcast: every socket on the port
 DEFAULT_EXERCISE = 1
 DEFAULT_SITE = 1
 DEFAULT_APPLICATION = 1
-DEFAULT_REMOTE_TIMEOUT_S = 15.0  # three missed HBT_PDU_ENTITY_STATE (5 s) heartbeats
+# Three missed HBT_PDU_ENTITY_STATE (5 s) heartbeats, as issue #8 asks; IEEE 1278.1-2012's default
+# timeout is HBT_TIMEOUT_MPLIER (2.4) heartbeats, 12 s (the module docstring).
+DEFAULT_REMOTE_TIMEOUT_S = 15.0
 DEFAULT_HEARTBEAT_S = 5.0  # IEEE 1278.1-2012 HBT_PDU_ENTITY_STATE
 MAX_ENTITY_NUMBER = 65534  # 0 is NO_ENTITY and 65535 ALL_ENTITIES (IEEE 1278.1-2012 Entity Identifier)
 RECEIVE_BYTES = 65536  # a UDP datagram's largest payload
+# Linux charges a datagram its buffer's true size: about 830 bytes for a 144-byte Entity State
+# PDU on loopback (the default SO_RCVBUF, 212,992 bytes, held 256 of a burst).
+KERNEL_BYTES_PER_PDU = 830
+# The receive buffer asked for: a burst of about 10,000 Entity State PDUs. Linux books twice
+# what is asked (half for its own overhead); SO_RCVBUF grants at most net.core.rmem_max
+# (212,992 bytes by default), SO_RCVBUFFORCE (option 33, include/uapi/asm-generic/socket.h;
+# Python's socket module does not name it) any size, to a process with CAP_NET_ADMIN (root),
+# as systemd-journald sizes its sockets.
+RECEIVE_BUFFER_BYTES = 8 << 20
+SO_RCVBUFFORCE = 33
+# Datagrams read from the socket and not yet decoded, at most (bytes): a burst the decoding
+# thread has not caught up with, without letting a flood of 64 KiB datagrams take the memory.
+RECEIVE_QUEUE_BYTES = 16 << 20
+# Linux include/uapi/asm-generic/socket.h: with this option set, a received datagram carries a
+# SOL_SOCKET control message with the socket's count of datagrams dropped so far (u32); Python's
+# socket module does not name it.
+SO_RXQ_OVFL = 40
+# Reserved Entity IDs logged one line each, at most; beyond, through the throttled malformed log.
+MAX_LOGGED_IDS = 256
 POLL_S = 0.2  # how often the threads look at the stop flag, heartbeats and timeouts
 LOG_EVERY_S = 5.0  # at most one line per kind of receive problem per this many seconds
 # States kept per local entity, newest last, for the velocity of a Collision PDU: the events stream
@@ -119,6 +167,37 @@ class _Throttled:
         self._next, self._held = now + self.every_s, 0
 
 
+class _Inbox:
+    """Datagrams between the socket's reader and their decoder: first in, first out, at most
+    ``max_bytes`` held (put() says False when one would not fit: the caller counts it)."""
+
+    def __init__(self, max_bytes: int | None = None):
+        self.max_bytes = RECEIVE_QUEUE_BYTES if max_bytes is None else max_bytes
+        self._items: collections.deque = collections.deque()
+        self._bytes = 0
+        self._cond = threading.Condition()
+
+    def put(self, data: bytes) -> bool:
+        with self._cond:
+            if self._bytes + len(data) > self.max_bytes:
+                return False
+            self._items.append(data)
+            self._bytes += len(data)
+            self._cond.notify()
+            return True
+
+    def get(self, timeout_s: float) -> bytes | None:
+        """The oldest datagram, or None after ``timeout_s`` with none."""
+        with self._cond:
+            if not self._items and not self._cond.wait(timeout_s):
+                return None
+            if not self._items:
+                return None
+            data = self._items.popleft()
+            self._bytes -= len(data)
+            return data
+
+
 @dataclasses.dataclass
 class _Local:
     """A Sortie entity the gateway speaks for: what does not change, the last PDU sent."""
@@ -130,6 +209,8 @@ class _Local:
     pdu: dis.EntityStatePdu | None = None
     wire: bytes = b""
     sent_wall_s: float = 0.0
+    state: pb.EntityState | None = None  # the server's last state of it, which heartbeats dead-reckon
+    paused: bool = False  # whether its last PDU described a paused world (standing still)
     appearance: int = 0  # what every PDU of it carries (dis.APPEARANCE_DESTROYED once it crashed)
     # Its last states received, oldest first: (world time s, velocity ECEF m/s (3,), acceleration
     # ECEF m/s^2 (3,), dead-reckoning algorithm); see :func:`velocity_at`.
@@ -165,6 +246,8 @@ class DisGateway:
         self.pdus_received = 0
         self.pdus_ignored = 0
         self.pdus_malformed = 0
+        self.pdus_dropped = 0  # datagrams lost before they were read: a full socket or queue
+        self.receive_buffer_bytes = 0  # SO_RCVBUF granted (Linux reports twice what it books for data)
         self.finished = threading.Event()  # set when the server's stream ends
         self._stop = threading.Event()
         self._lock = threading.Lock()  # locals, remotes, counters of the sending side, the stream
@@ -174,6 +257,14 @@ class DisGateway:
         self._names: dict[str, str] = {}  # external id -> its (unique) world name
         self._malformed_log = _Throttled()
         self._publish_log = _Throttled()
+        self._dropped_log = _Throttled()
+        self._inbox = _Inbox()
+        self._kernel_drops = 0  # the socket's SO_RXQ_OVFL count last seen
+        self._overflow_counted = False  # whether the socket reports it
+        self._reserved_logged: set = set()  # reserved Entity IDs refused and logged
+        self._own_ids_warned = False  # a foreign simulation using our site and application was reported
+        self._sent_markings: dict[int, bytes] = {}  # our entity number -> the marking its PDUs carry
+        self._paused = False  # whether the world clock was paused at the last Watch update
         self._client = None
         self._picture = None
         self._stream = None
@@ -206,6 +297,7 @@ class DisGateway:
         self._stream = self._client.external()
         self._events_call = self._client.stub.WatchEvents(pb.WatchEventsRequest(session_token=self._client.token))
         self._threads = [threading.Thread(target=self._receive_loop, name="dis-receive", daemon=True),
+                         threading.Thread(target=self._ingest_loop, name="dis-ingest", daemon=True),
                          threading.Thread(target=self._housekeeping_loop, name="dis-heartbeat", daemon=True),
                          threading.Thread(target=self._events_loop, name="dis-events", daemon=True)]
         for t in self._threads:
@@ -254,26 +346,57 @@ class DisGateway:
 
     def stats(self) -> dict:
         return {"pdus_sent": self.pdus_sent, "pdus_received": self.pdus_received, "pdus_ignored": self.pdus_ignored,
-                "pdus_malformed": self.pdus_malformed, "remote_entities": self.remote_entities,
+                "pdus_malformed": self.pdus_malformed, "pdus_dropped": self.pdus_dropped,
+                "remote_entities": self.remote_entities,
                 "local_entities": self.local_entities}
 
     def _open_socket(self) -> socket.socket:
+        """The DIS socket, bound (InvalidArgument naming --host when the address is not one this
+        machine can bind), with the receive buffer of RECEIVE_BUFFER_BYTES it could get."""
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        if hasattr(socket, "SO_REUSEPORT"):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        sock.settimeout(POLL_S)
-        sock.bind((self.host, self.port))
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if hasattr(socket, "SO_REUSEPORT"):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+            linux = sys.platform.startswith("linux")
+            if not (linux and _forced_receive_buffer(sock)):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+            if linux:
+                sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+                self._overflow_counted = True
+            sock.settimeout(POLL_S)
+            try:
+                sock.bind((self.host, self.port))
+            except OSError as exc:  # gaierror (a name that does not resolve) included
+                raise InvalidArgument("host", f"cannot bind the DIS socket to {self.host}:{self.port}: "
+                                              f"{exc.strerror or exc} (give an address of this machine: the "
+                                              "loopback broadcast 127.255.255.255, or a broadcast or unicast "
+                                              "address of one of its networks)", value=self.host) from None
+        except BaseException:
+            sock.close()
+            raise
+        self.receive_buffer_bytes = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        holds = self.receive_buffer_bytes // KERNEL_BYTES_PER_PDU
+        if self.receive_buffer_bytes < RECEIVE_BUFFER_BYTES:
+            log.warning("DIS receive buffer: %d bytes granted of the %d asked (net.core.rmem_max caps it; raise it, "
+                        "or run with CAP_NET_ADMIN): a burst of more than about %d Entity State PDUs may be dropped",
+                        self.receive_buffer_bytes, RECEIVE_BUFFER_BYTES, holds)
+        else:
+            log.info("DIS receive buffer: %d bytes, a burst of about %d Entity State PDUs",
+                     self.receive_buffer_bytes, holds)
         return sock
 
     # -- out: Sortie -> DIS ---------------------------------------------------------------------
 
     def _on_update(self, picture, update: pb.WatchUpdate) -> None:
-        """Watch listener (the stream's thread): one PDU per entered or updated state."""
+        """Watch listener (the stream's thread): one PDU per entered or updated state; when the
+        world clock has just paused or resumed, a PDU of every other entity at once, standing
+        still or moving again (module docstring)."""
         with self._lock:
             if self._stop.is_set():
                 return
+            was_paused, self._paused = self._paused, picture is not None and picture.time_scale == 0.0
             if update.snapshot:  # a new full picture (a replay's seek): whatever is not in it is gone
                 for entity_id in set(self._locals) - {info.entity_id for info in update.entered}:
                     self._deactivate(entity_id)
@@ -285,6 +408,10 @@ class DisGateway:
             for state in update.states:
                 if state.entity_id in self._locals:
                     self._send_state(state.entity_id, state)
+            if self._paused != was_paused:
+                for entity_id, local in self._locals.items():
+                    if local.state is not None and local.paused != self._paused:  # not sent in this update
+                        self._heartbeat(entity_id, local, picture)
 
     def _admit(self, info: pb.EntityInfo) -> bool:
         """Whether the gateway speaks for this entity (not external, a DIS entity number)."""
@@ -311,20 +438,46 @@ class DisGateway:
             local.history.clear()
         local.history.append((state.time_s, tuple(state.velocity_ecef_mps), tuple(state.acceleration_ecef_mps2),
                               state.dead_reckoning))
-        seconds = self._hour_offset_s + state.time_s
+        local.state = state
+        self._send_at(entity_id, local, state.time_s)
+
+    def _heartbeat(self, entity_id: int, local: _Local, picture) -> None:
+        """A PDU of a local entity now: its last state dead-reckoned to the world time now
+        (``picture``'s estimate, client.sim_client.Picture.now_s)."""
+        if local.state is None or picture is None:
+            self._send(local)
+            return
+        self._send_at(entity_id, local, max(picture.now_s(), local.state.time_s))
+
+    def _send_at(self, entity_id: int, local: _Local, time_s: float) -> None:
+        """The PDU of ``local``'s last state dead-reckoned to world time ``time_s`` (by the
+        algorithm the server sent it with, as every receiver of the stream does), stamped with
+        that time; standing still while the world is paused."""
+        s = local.state
+        pos, vel, acc = (s.ecef_x_m, s.ecef_y_m, s.ecef_z_m), s.velocity_ecef_mps, s.acceleration_ecef_mps2
+        quat, rates = s.orientation_wxyz, s.angular_velocity_body_rps
         try:
+            dt_s = time_s - s.time_s
+            if dt_s > 0.0:
+                p, q = extrapolate(s.dead_reckoning, s.time_s, np.array([pos]), np.array([vel]), np.array([acc]),
+                                   np.array([quat]), np.array([rates]), time_s)
+                pos, quat = p[0], q[0]
+                if s.dead_reckoning in (RVW, FVW):
+                    vel = np.asarray(vel) + np.asarray(acc) * dt_s
+            if self._paused:
+                vel = acc = rates = (0.0, 0.0, 0.0)
             pdu = dis.entity_state_pdu(
                 exercise_id=self.exercise, entity_id=(self.site, self.application, entity_id), kind=local.kind,
-                type_name=local.type_name, coalition=local.coalition, name=local.name,
-                ecef_m=(state.ecef_x_m, state.ecef_y_m, state.ecef_z_m), vel_ecef_mps=state.velocity_ecef_mps,
-                acc_ecef_mps2=state.acceleration_ecef_mps2, quat_wxyz=state.orientation_wxyz,
-                body_rates_rps=state.angular_velocity_body_rps, algorithm=state.dead_reckoning,
-                timestamp=dis.dis_timestamp(seconds, absolute=False), appearance=local.appearance)
+                type_name=local.type_name, coalition=local.coalition, name=local.name, ecef_m=pos,
+                vel_ecef_mps=vel, acc_ecef_mps2=acc, quat_wxyz=quat, body_rates_rps=rates,
+                algorithm=s.dead_reckoning, appearance=local.appearance,
+                timestamp=dis.dis_timestamp(self._hour_offset_s + time_s, absolute=False))
             wire = dis.encode_pdu(pdu)
         except (InvalidArgument, ValueError) as exc:
             self._publish_log.warn("entity %d (%s) not sent: %s", entity_id, local.name, exc)
             return
-        local.pdu, local.wire = pdu, wire
+        local.pdu, local.wire, local.paused = pdu, wire, self._paused
+        self._sent_markings[entity_id] = pdu.marking
         self._send(local)
 
     def _send(self, local: _Local) -> None:
@@ -416,24 +569,49 @@ class DisGateway:
     # -- in: DIS -> Sortie ----------------------------------------------------------------------
 
     def _receive_loop(self) -> None:
+        """The socket's reader (its own thread, so a burst never waits on decoding): every
+        datagram into the inbox, and the kernel's count of those it dropped (SO_RXQ_OVFL)."""
+        ancillary = socket.CMSG_SPACE(4) if self._overflow_counted else 0
         while not self._stop.is_set():
             try:
-                data = self._sock.recv(RECEIVE_BYTES)
+                data, messages, _, _ = self._sock.recvmsg(RECEIVE_BYTES, ancillary)
             except socket.timeout:
                 continue
             except OSError:
                 if self._stop.is_set():
                     return
                 raise
-            try:
-                pdus = dis.split_datagram(data)
-            except DataFormatError as exc:
-                self.pdus_received += 1
-                self._malformed(exc)
-                continue
-            for pdu in pdus:
-                self.pdus_received += 1
-                self._take(pdu)
+            for level, kind, value in messages:
+                if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
+                    self._kernel_dropped(int.from_bytes(value[:4], sys.byteorder))
+            if not self._inbox.put(data):
+                self._dropped(1, f"the gateway's receive queue is full ({self._inbox.max_bytes} bytes)")
+
+    def _kernel_dropped(self, count: int) -> None:
+        """The socket's drop count (u32, since it opened) as a datagram reports it."""
+        new = (count - self._kernel_drops) % (1 << 32)
+        if new and new < (1 << 31):  # a datagram queued before a later one reported more: not news
+            self._kernel_drops = count
+            self._dropped(new, f"the socket's receive buffer ({self.receive_buffer_bytes} bytes) was full")
+
+    def _dropped(self, count: int, why: str) -> None:
+        self.pdus_dropped += count
+        self._dropped_log.warn("%d DIS datagrams dropped, %d in all: %s", count, self.pdus_dropped, why)
+
+    def _ingest_loop(self) -> None:
+        """The inbox's decoder (its own thread): each datagram's PDUs into the exercise."""
+        while not self._stop.is_set():
+            data = self._inbox.get(POLL_S)
+            if data is not None:
+                self._take_datagram(data)
+
+    def _take_datagram(self, data: bytes) -> None:
+        pdus, problems = dis.read_datagram(data)
+        self.pdus_received += len(pdus) + len(problems)
+        for exc in problems:
+            self._malformed(exc)
+        for pdu in pdus:
+            self._take(pdu)
 
     def _malformed(self, exc: Exception) -> None:
         self.pdus_malformed += 1
@@ -446,8 +624,14 @@ class DisGateway:
                 self.pdus_ignored += 1
                 return
             pdu = dis.decode_pdu(data)
+            reserved = dis.reserved_entity_id(pdu.entity_id)
+            if reserved is not None:
+                self._reserved(pdu, reserved)
+                return
             if pdu.entity_id[:2] == (self.site, self.application):
                 self.pdus_ignored += 1
+                if self._sent_markings.get(pdu.entity_id[2]) != pdu.marking:
+                    self._foreign_with_our_ids(pdu)
                 return
             xid = dis.external_id(pdu.entity_id)
             state = None if pdu.deactivated else dis.sortie_state(pdu)
@@ -458,6 +642,30 @@ class DisGateway:
             return
         with self._lock:
             self._publish(xid, state)
+
+    def _reserved(self, pdu: dis.EntityStatePdu, why: str) -> None:
+        """An Entity State PDU whose Entity ID names no one entity: malformed, logged once per id."""
+        self.pdus_malformed += 1
+        if pdu.entity_id in self._reserved_logged:
+            return
+        message = (f"DIS Entity State PDU of entity {'.'.join(map(str, pdu.entity_id))} ({pdu.marking_text!r}) "
+                   f"refused: {why}, not one entity (IEEE 1278.1-2012 §6.2.28)")
+        if len(self._reserved_logged) >= MAX_LOGGED_IDS:
+            self._malformed_log.warn("%s", message)
+            return
+        self._reserved_logged.add(pdu.entity_id)
+        log.warning("%s", message)
+
+    def _foreign_with_our_ids(self, pdu: dis.EntityStatePdu) -> None:
+        """A PDU with our site and application that is not one of ours: another simulation uses
+        them (its entities cannot be told from ours): said once."""
+        if self._own_ids_warned:
+            return
+        self._own_ids_warned = True
+        log.warning("another DIS simulation in exercise %d uses this gateway's own site %d and application %d "
+                    "(entity %d, %r): its entities are ignored; give the gateway a site and application of "
+                    "its own with --site and --application", self.exercise, self.site, self.application,
+                    pdu.entity_id[2], pdu.marking_text)
 
     def _publish(self, xid: str, state: dict | None) -> None:
         """Add, move (state) or remove (None) a remote entity on the PublishExternal stream."""
@@ -515,9 +723,9 @@ class DisGateway:
         while not self._stop.wait(POLL_S):
             now = time.monotonic()
             with self._lock:
-                for local in self._locals.values():
+                for entity_id, local in self._locals.items():
                     if local.wire and now - local.sent_wall_s >= self.heartbeat_s:
-                        self._send(local)
+                        self._heartbeat(entity_id, local, self._picture)
                 for xid in [x for x, t in self._remotes.items() if now - t > self.remote_timeout_s]:
                     self._publish(xid, None)
             picture = self._picture
@@ -539,6 +747,15 @@ class DisGateway:
         self._remotes.clear()
         self._names.clear()
         self._stream = None
+
+
+def _forced_receive_buffer(sock: socket.socket) -> bool:
+    """Whether SO_RCVBUFFORCE set RECEIVE_BUFFER_BYTES (False without CAP_NET_ADMIN)."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, RECEIVE_BUFFER_BYTES)
+    except PermissionError:
+        return False
+    return True
 
 
 def velocity_at(history, time_s: float) -> tuple[float, float, float]:
@@ -592,9 +809,11 @@ def add_parser(sub) -> None:
     p.add_argument("--application", type=int, default=DEFAULT_APPLICATION,
                    help="our DIS application number, unique per site (default %(default)s)")
     p.add_argument("--remote-timeout-s", type=float, default=DEFAULT_REMOTE_TIMEOUT_S,
-                   help="remove a DIS entity silent this long (default %(default)s)")
+                   help="remove a DIS entity silent this long (default %(default)s: three missed 5 s heartbeats; "
+                        "IEEE 1278.1's own default is 2.4, 12 s)")
     p.add_argument("--heartbeat-s", type=float, default=DEFAULT_HEARTBEAT_S,
-                   help="re-send an entity's last PDU after this long without an update (default %(default)s)")
+                   help="send an entity's PDU, its last state dead-reckoned to now, after this long without an "
+                        "update (default %(default)s)")
     p.set_defaults(func=dis_command)
 
 

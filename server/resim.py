@@ -338,11 +338,12 @@ def apply_input(world, r) -> None:
         # normalising again could change its last bits.
         pos, vel, acc, quat, rates, algorithm = v["state"]
         state = ExternalState(0.0, tuple(pos), tuple(vel), tuple(acc), tuple(quat), tuple(rates), int(algorithm))
+        destroyed = bool(v.get("destroyed", False))
         if "name" in v:  # the first update of an external entity: it enters the world
             world.publish_external(v["external_id"], "resim:external", state, v["name"], v["kind"], v["type"],
-                                   v["coalition"])
+                                   v["coalition"], destroyed=destroyed)
         else:
-            world.publish_external(v["external_id"], "resim:external", state)
+            world.publish_external(v["external_id"], "resim:external", state, destroyed=destroyed)
     else:
         raise DataFormatError(f"input of unknown kind {r.kind!r} at tick {r.tick}")
 

@@ -453,7 +453,7 @@ class SimulationServicer:
                                st.angular_velocity_body_rps or (0.0, 0.0, 0.0),
                                st.dead_reckoning or pb.DEAD_RECKONING_ALGORITHM_FPW)
         self.world.publish_external(msg.external_id, s.token, state, msg.name, msg.kind, msg.type,
-                                    msg.coalition or "neutral")
+                                    msg.coalition or "neutral", destroyed=msg.destroyed)
 
     async def PublishExternal(self, request_iterator, context):
         return await self._consume(request_iterator, context, self._publish_external, pb.PublishExternalResponse)

@@ -45,8 +45,10 @@ falls there first (fdm/wreck.py).
 External entities are owned by another simulation and published through a
 gateway (DIS, server/dis_gateway.py): the world keeps each one's last state,
 stamped with the world time it arrived at, and every snapshot dead-reckons it
-to the tick's time with its own DIS algorithm (server.dead_reckoning), so the
-rest of the server (interest, streaming, recording) treats it like any entity.
+to the tick's time with its own DIS algorithm, world or body axes
+(server.external), so the rest of the server (interest, streaming, recording)
+treats it like any entity. Its simulation may say it is destroyed: it is then a
+wreck like one of ours (EntityInfo.destroyed, one "destroyed" event), for good.
 Its arrivals are inputs like commands: journaled with the tick they came
 after, so re-simulation repeats them.
 """
@@ -71,8 +73,8 @@ from fdm.vehicle_types import P_BRAKE, P_RMIN
 from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
 from server.obstacles import MOVING_MPS, clearance_ahead
-from server.dead_reckoning import extrapolate, ned_to_ecef_quat
-from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState
+from server.dead_reckoning import ned_to_ecef_quat
+from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState, extrapolate_external
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound, bound_text
 from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
@@ -464,12 +466,15 @@ class World(EventLog):
 
     def publish_external(self, external_id: str, owner: str, state: ExternalState | None = None,
                          name: str = "", kind: int = AIRCRAFT, type_: str = "", coalition: str = "neutral",
-                         remove: bool = False) -> int:
+                         remove: bool = False, destroyed: bool = False) -> int:
         """An external entity's update from the gateway session ``owner``: the first one of
         ``external_id`` adds the entity (``name``, ``kind``, ``type_``, ``coalition``), later
         ones replace its state (``state.t0_s`` is set to the world time now), ``remove``
-        takes it out. Its entity id. Another owner's external id is PERMISSION_DENIED's
-        business (the caller checks :meth:`external_owner`)."""
+        takes it out. ``destroyed``: its simulation says it is destroyed (a DIS appearance's
+        damage "destroyed"): from this update on it is a wreck (:meth:`is_wreck`, in
+        :attr:`wrecks`, so EntityInfo.destroyed), with one "destroyed" event; a later update
+        without it does not mend it. Its entity id. Another owner's external id is
+        PERMISSION_DENIED's business (the caller checks :meth:`external_owner`)."""
         with self._lock:
             entity_id = self._external_ids.get(external_id)
             if remove:
@@ -504,8 +509,21 @@ class World(EventLog):
                                       {"name": name, "kind": KIND_NAMES[kind], "type": type_,
                                        "external_id": external_id}))
             self._external[entity_id] = state
+            e = self.entities[entity_id]
+            if destroyed:
+                fields["destroyed"] = True
             self._journal("external", entity_id, **fields)
+            if destroyed and not e.destroyed:
+                self._destroy_external(e, state)
             return entity_id
+
+    def _destroy_external(self, e: Entity, state: ExternalState) -> None:
+        """An external entity its simulation says is destroyed: a wreck from now on, said once."""
+        e.destroyed = True
+        self.wrecks = self.wrecks | {e.id}
+        lat, lon, h = (float(x) for x in ecef_to_geodetic(np.array(state.ecef_m)))
+        self._emit(WorldEvent(self.time_s, "destroyed", e.id, lat, lon, h - self.geoid_undulation_m,
+                              {"reason": f"its simulation says so ({e.external_id})"}))
 
     def external_owner(self, external_id: str) -> str | None:
         """The session that publishes ``external_id`` (None: not in the world)."""
@@ -1407,14 +1425,13 @@ class World(EventLog):
                         cols[6])
 
     def _external_part(self, states: list) -> tuple:
-        """Snapshot columns of external entities: each state dead-reckoned to the world time now."""
+        """Snapshot columns of external entities: each state dead-reckoned to the world time now with
+        its own DIS algorithm, world or body axes (server.external.extrapolate_external)."""
         cols = [np.array([getattr(s, f) for s in states], np.float64) for f in
                 ("t0_s", "ecef_m", "vel_ecef_mps", "acc_ecef_mps2", "quat_ecef2body", "body_rates_rps")]
         t0, pos, vel, acc, quat, rates = cols
         algorithm = np.array([s.algorithm for s in states], np.int64)
-        pos_t, quat_t = extrapolate(algorithm, t0, pos, vel, acc, quat, rates, self.time_s)
-        accelerates = np.isin(algorithm, (4, 5))[:, None]  # RVW, FVW (IEEE 1278.1 Annex E)
-        vel_t = vel + np.where(accelerates, acc * (self.time_s - t0)[:, None], 0.0)
+        pos_t, vel_t, quat_t = extrapolate_external(algorithm, t0, pos, vel, acc, quat, rates, self.time_s)
         lat, lon, h = ecef_to_geodetic(pos_t)
         return pos_t, vel_t, quat_t, rates, lat, lon, h - self.geoid_undulation_m
 

@@ -112,8 +112,8 @@ def test_truncated_pdus_name_the_field():
 def test_inconsistent_pdus_name_the_field_and_value():
     data = bytearray(raw(PDU_26))
     bad = bytearray(data)
-    bad[0] = 5
-    with pytest.raises(DataFormatError, match=r"protocol_version at byte 0: version 5 is not supported"):
+    bad[0] = 4
+    with pytest.raises(DataFormatError, match=r"protocol_version at byte 0: version 4 is not supported"):
         dis.decode_pdu(bytes(bad))
     bad = bytearray(data)
     bad[19] = 2  # two variable parameter records announced, none there
@@ -330,23 +330,17 @@ def test_forces_and_coalitions():
     assert [dis.coalition_of(f) for f in (0, 1, 2, 3, 9)] == ["neutral", "blue", "red", "neutral", "neutral"]
 
 
-def test_body_dead_reckoning_becomes_world():
-    # Level, heading east at (0, 0): body x = ECEF +Y, body z = ECEF -X.
-    q = dis.quat_from_dis_euler([math.pi / 2, 0.0, -math.pi / 2])
-    v_b, a_b, w_b = np.array([100.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 0, 0.1])  # yawing right
-    alg, v, a = dis.world_dead_reckoning(dis.DR_FPB, q, v_b, a_b, w_b)
-    assert alg == dis.DR_FPW
-    np.testing.assert_allclose(v, [0, 100.0, 0], atol=1e-12)
-    alg, v, a = dis.world_dead_reckoning(dis.DR_RVB, q, v_b, a_b, w_b)
-    # omega x v = (0, 10, 0) body: 10 m/s^2 to the right (south, ECEF -Z) plus 1 m/s^2 ahead (+Y).
-    assert alg == dis.DR_RVW
-    np.testing.assert_allclose(a, [0, 1.0, -10.0], atol=1e-12)
-    assert dis.world_dead_reckoning(dis.DR_RPB, q, v_b, a_b, w_b)[0] == dis.DR_RPW
-    assert dis.world_dead_reckoning(dis.DR_FVB, q, v_b, a_b, w_b)[0] == dis.DR_FVW
-    alg, v, a = dis.world_dead_reckoning(dis.DR_RVW, q, v_b, a_b, w_b)
-    assert alg == dis.DR_RVW and list(v) == list(v_b)
-    alg, v, a = dis.world_dead_reckoning(dis.DR_OTHER, q, v_b, a_b, w_b)
-    assert alg == dis.DR_FPW and not a.any()
+def test_body_dead_reckoning_is_kept_for_the_world():
+    """Body-axis algorithms stay body-axis (the world dead-reckons them by Annex E: server/external.py);
+    what an algorithm does not use is zeroed, and an unknown one is FPW."""
+    v_b, a_b, w_b = np.array([100.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 0, 0.1])
+    for code in (dis.DR_FPB, dis.DR_RPB, dis.DR_RVB, dis.DR_FVB, dis.DR_RVW):
+        alg, v, a, w = dis.external_dead_reckoning(code, v_b, a_b, w_b)
+        assert alg == code and list(v) == list(v_b)
+        assert list(a) == (list(a_b) if code in dis.DR_ACCELERATING else [0.0] * 3)
+        assert list(w) == (list(w_b) if code in dis.DR_ROTATING else [0.0] * 3)
+    alg, v, a, w = dis.external_dead_reckoning(dis.DR_OTHER, v_b, a_b, w_b)
+    assert alg == dis.DR_FPW and list(v) == list(v_b) and not a.any() and not w.any()
 
 
 def test_sortie_state_of_a_received_pdu():

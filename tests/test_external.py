@@ -60,7 +60,7 @@ def test_external_state_is_validated_naming_the_field():
     with pytest.raises(InvalidArgument, match="orientation"):
         external_state(0.0, pos, vel, (0, 0, 0), (0, 0, 0, 0), (0, 0, 0), 2)
     with pytest.raises(InvalidArgument, match=r"^state\.dead_reckoning: "):
-        external_state(0.0, pos, vel, (0, 0, 0), q, (0, 0, 0), 7)
+        external_state(0.0, pos, vel, (0, 0, 0), q, (0, 0, 0), 10)
 
 
 def test_gateway_sees_everything_and_its_external_entity_is_dead_reckoned(server):

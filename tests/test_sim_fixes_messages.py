@@ -139,5 +139,5 @@ def test_invalid_stick_and_dead_reckoning_values_name_the_requests_fields(server
     details = refusal(stub.PublishExternal, pb.ExternalEntityUpdate(
         session_token=gateway.token, external_id="dis:1.1.1", name="e", kind=1, coalition="red",
         state=pb.EntityState(ecef_x_m=x, ecef_y_m=y, ecef_z_m=z, velocity_ecef_mps=[0, 0, 0],
-                             orientation_wxyz=[1, 0, 0, 0], dead_reckoning=9)))
-    assert details.startswith("state.dead_reckoning: must be a DIS world-coordinate code ") and "(got 9)" in details
+                             orientation_wxyz=[1, 0, 0, 0], dead_reckoning=10)))
+    assert details.startswith("state.dead_reckoning: must be a DIS dead-reckoning code ") and "(got 10)" in details

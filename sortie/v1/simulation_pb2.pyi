@@ -285,7 +285,7 @@ class WorldInfo(_message.Message):
     def __init__(self, exercise_name: _Optional[str] = ..., start_time: _Optional[str] = ..., time_s: _Optional[float] = ..., server_unix_time_s: _Optional[float] = ..., clock: _Optional[str] = ..., time_scale: _Optional[float] = ..., world_rate_hz: _Optional[float] = ..., network_rate_hz: _Optional[float] = ..., target_areas: _Optional[_Iterable[_Union[TargetArea, _Mapping]]] = ..., terrain: _Optional[str] = ..., geoid_undulation_m: _Optional[float] = ..., terrain_insets: _Optional[bool] = ..., observer_radius_max_m: _Optional[float] = ..., entity_count: _Optional[int] = ..., centre_lat_deg: _Optional[float] = ..., centre_lon_deg: _Optional[float] = ...) -> None: ...
 
 class ExternalEntityUpdate(_message.Message):
-    __slots__ = ("session_token", "external_id", "name", "kind", "type", "coalition", "state", "remove")
+    __slots__ = ("session_token", "external_id", "name", "kind", "type", "coalition", "state", "remove", "destroyed")
     SESSION_TOKEN_FIELD_NUMBER: _ClassVar[int]
     EXTERNAL_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
@@ -294,6 +294,7 @@ class ExternalEntityUpdate(_message.Message):
     COALITION_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     REMOVE_FIELD_NUMBER: _ClassVar[int]
+    DESTROYED_FIELD_NUMBER: _ClassVar[int]
     session_token: str
     external_id: str
     name: str
@@ -302,7 +303,8 @@ class ExternalEntityUpdate(_message.Message):
     coalition: str
     state: EntityState
     remove: bool
-    def __init__(self, session_token: _Optional[str] = ..., external_id: _Optional[str] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ..., remove: _Optional[bool] = ...) -> None: ...
+    destroyed: bool
+    def __init__(self, session_token: _Optional[str] = ..., external_id: _Optional[str] = ..., name: _Optional[str] = ..., kind: _Optional[_Union[EntityKind, str]] = ..., type: _Optional[str] = ..., coalition: _Optional[str] = ..., state: _Optional[_Union[EntityState, _Mapping]] = ..., remove: _Optional[bool] = ..., destroyed: _Optional[bool] = ...) -> None: ...
 
 class PublishExternalResponse(_message.Message):
     __slots__ = ("accepted",)
