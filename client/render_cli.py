@@ -530,11 +530,32 @@ def achieved_fps(started_s) -> float | None:
     return (len(started_s) - 1) / (started_s[-1] - started_s[0])
 
 
+# How a frame's figures combine its views' (renderer.FrameStats, one per view): work and counts
+# add up (the frame cost all of it), the rest is the frame's as a whole.
+FRAME_STATS_SUMMED = ("frame_ms", "update_ms", "triangles", "vertices", "entities_drawn", "terrain_samples")
+FRAME_STATS_MAX = ("levels_active", "eye_lift_m")
+
+
+def frame_stats(per_view: dict) -> dict:
+    """One frame's figures from its views' FrameStats dicts ({view: stats}, in drawing order): the
+    sums of FRAME_STATS_SUMMED over the views, the largest of FRAME_STATS_MAX, ``rebased`` if any
+    view rebased, ``mesh_rebuilds`` (a running count) the last view's."""
+    views = list(per_view.values())
+    out = dict(views[-1])
+    for key in FRAME_STATS_SUMMED:
+        out[key] = sum(v[key] for v in views)
+    for key in FRAME_STATS_MAX:
+        out[key] = max(v[key] for v in views)
+    out["rebased"] = any(v["rebased"] for v in views)
+    return out
+
+
 def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Event, undulation: float):
     """Render up to args.frames frames at most args.fps a wall second, each in every view (one
     renderer: the views share its terrain layer, centred on the followed agent); (png paths,
-    per-frame stats dicts: one a frame, whatever the views, its start ``started_s`` and its end
-    ``wall_s`` in seconds from the first frame's start)."""
+    per-frame stats dicts: one a frame, whatever the views (:func:`frame_stats`: times and counts
+    summed over them, each view's own under ``views`` when there are several), its start
+    ``started_s`` and its end ``wall_s`` in seconds from the first frame's start)."""
     from PIL import Image
 
     from client.render.camera import heading_pitch_roll_deg, quat_to_matrix
@@ -560,26 +581,27 @@ def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Eve
         layer = renderer.terrain_layer
         if hasattr(layer, "focus_lat_lon"):  # every view's terrain is centred on the agent
             layer.focus_lat_lon = tuple(float(v) for v in ecef_to_geodetic(pos[0])[:2])
-        samples = 0
+        per_view = {}
         for view in views:
             chase = view == "chase"
             camera = follow_camera(pos[0], quat[0], int(info.kind), chase, args.fov_deg)
             image = renderer.render(camera, EntitySet.from_picture(picture, t, exclude=() if chase else (target,)))
-            samples += renderer.stats.terrain_samples
+            per_view[view] = renderer.stats.as_dict()
             path = out / (f"frame_{k:04d}.png" if len(views) == 1 else f"frame_{k:04d}_{view}.png")
             Image.fromarray(image).save(path)
             frames.append(str(path))
-        s = renderer.stats
+        s = frame_stats(per_view)
         lat, lon, h = (float(v) for v in ecef_to_geodetic(pos[0]))
         hdg, pitch, roll = heading_pitch_roll_deg(pos[0], quat_to_matrix(quat[0]))
         elapsed = time.monotonic() - t_start
-        stats.append({**s.as_dict(), "terrain_samples": samples, "world_time_s": t, "started_s": started,
-                      "wall_s": elapsed, "lat_deg": lat, "lon_deg": lon, "alt_msl_m": h - undulation,
-                      "heading_deg": hdg})
+        stats.append({**s, "world_time_s": t, "started_s": started, "wall_s": elapsed, "lat_deg": lat,
+                      "lon_deg": lon, "alt_msl_m": h - undulation, "heading_deg": hdg,
+                      **({"views": per_view} if len(views) > 1 else {})})
         span = started - stats[0]["started_s"]  # k intervals between frame starts (achieved_fps)
         fps = k / span if k and span > 0 else None
-        print(f"frame {k:04d} t={t:8.2f} s  fps {'-' if fps is None else f'{fps:.2f}':>5}  {s.frame_ms:6.1f} ms  "
-              f"tri {s.triangles:,}  samples {samples:,}  levels {s.levels_active}  entities {s.entities_drawn}  "
+        print(f"frame {k:04d} t={t:8.2f} s  fps {'-' if fps is None else f'{fps:.2f}':>5}  {s['frame_ms']:6.1f} ms  "
+              f"tri {s['triangles']:,}  samples {s['terrain_samples']:,}  levels {s['levels_active']}  "
+              f"entities {s['entities_drawn']}  "
               f"{info.name} {lat:.5f} {lon:.5f} {h - undulation:.0f} m hdg {hdg:.0f} pitch {pitch:.0f} "
               f"roll {roll:.0f}", flush=True)
         next_due = max(next_due + 1.0 / args.fps, time.monotonic())

@@ -355,6 +355,35 @@ class Clipmap:
         return (self.lattice.lat0 + np.asarray(i, np.float64) * dlat,
                 self.lattice.lon0 + np.asarray(j, np.float64) * dlon)
 
+    def heights_at(self, lat, lon) -> np.ndarray:
+        """(n,) float64 heights MSL (m) of the levels' surfaces at points (lat, lon) ((n,)
+        degrees), from the posts they hold (no terrain query): each from the finest valid level
+        whose region holds the point's cell, bilinear between that cell's four posts; NaN where
+        no level holds it."""
+        lat = np.asarray(lat, np.float64).ravel()
+        lon = np.asarray(lon, np.float64).ravel()
+        out = np.full(lat.shape, np.nan)
+        todo = np.isfinite(lat) & np.isfinite(lon)
+        n = self.n
+        for level in self.levels:
+            if not level.valid or not todo.any():
+                continue
+            fi, fj = self.focus_index(level.k, lat, lon)
+            r = level.region
+            with np.errstate(invalid="ignore"):
+                i, j = np.floor(np.where(todo, fi, r.i0)), np.floor(np.where(todo, fj, r.j0))
+            inside = todo & (i >= r.i0) & (i + 1 <= r.i1) & (j >= r.j0) & (j + 1 <= r.j1)
+            if not inside.any():
+                continue
+            ii, jj = i[inside].astype(np.int64), j[inside].astype(np.int64)
+            fy, fx = fi[inside] - ii, fj[inside] - jj
+            h = level.texel[..., 3]
+            h00, h01 = h[ii % n, jj % n], h[ii % n, (jj + 1) % n]
+            h10, h11 = h[(ii + 1) % n, jj % n], h[(ii + 1) % n, (jj + 1) % n]
+            out[inside] = (h00 * (1.0 - fx) + h01 * fx) * (1.0 - fy) + (h10 * (1.0 - fx) + h11 * fx) * fy
+            todo &= ~inside
+        return out
+
     # -- sampling
 
     def sample_posts(self, k: int, r: Rect) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,11 @@ a block of a level is drawn with every 2nd or 4th post inside its edges where
 that moves its surface by at most this many pixels on screen
 (client/render/clipmap_layer.py, ``decimated_grid``; None: every post). The view
 distance follows: about half the coarsest level's extent, (n - 1) / 2 x spacing x
-2^(L - 1); fog hides the edge there.
+2^(L - 1); fog hides the edge there. ``design_fov_deg`` is the horizontal field of view
+the levels are sized for (60 degrees, ``sortie render``/``sortie view``'s default; the
+figures below are for it): a narrower view, a zoom, is centred towards the ground it looks at
+so that the posts there are as many pixels apart as at this field of view
+(client/render/clipmap_layer.py, "Narrow views").
 
 Figures below for a 3-arc-second (about 90 m) DEM; they scale with its spacing.
 
@@ -43,6 +47,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+from client.render.camera import DEFAULT_FOV_X_DEG
 from sortie.errors import InvalidArgument
 
 HELICOPTER_WORDS = ("heli", "ah64", "uh60", "uh1", "ch47", "mi24", "mi8", "bo105", "ec135")
@@ -56,6 +61,7 @@ class LodProfile:
     budget: int
     finest_spacing_factor: float
     pixel_error: float | None = None  # blocks drawn with fewer posts within this many pixels (None: never)
+    design_fov_deg: float = DEFAULT_FOV_X_DEG  # the horizontal field of view the levels are sized for
 
     def layer_args(self) -> dict:
         """Keyword arguments of client.render.clipmap_layer.ClipmapLayer / clipmap_factory."""

@@ -7,8 +7,9 @@
 A frame, in draw order (reversed-Z float depth, client/render/gl.py):
 
 1. **terrain layer** (``TerrainLayer``: ``update(camera)``, ``draw(frame)``,
-   ``fog_range_m``, ``triangles``, ``vertices``, ``release()``; ``surface_height_msl``
-   and ``ground_height_msl`` where it has them: the eye is kept over the first,
+   ``fog_range_m``, ``triangles``, ``vertices``, ``release()``; ``surface_height_msl``,
+   ``ground_height_msl`` and ``fog_range_for(camera, width, height)`` (its reach within a
+   view, for a layer not centred on the camera) where it has them: the eye is kept over the first,
    :meth:`Renderer.above_drawn_ground`, the near plane clear of the second): by default the
    full-resolution mesh of client/render/terrain_mesh.py; issue #5's geometry
    clipmap plugs in through ``terrain_layer_factory``;
@@ -86,8 +87,9 @@ class TerrainLayer(Protocol):
 class FrameStats:
     """frame_ms: wall time of render() (update, draw, read back); update_ms: the layers'
     updates (mesh rebuilds, uploads) within it; triangles and vertices submitted; entities_drawn; rebased:
-    the local origin moved this frame; mesh_rebuilds: the terrain layer's rebuilds so far;
-    terrain_samples: terrain samples the layer took this frame (a clipmap's updates); levels_active:
+    the local origin moved this frame; mesh_rebuilds: the terrain layer's rebuilds so far (a clipmap's:
+    its polar mesh's); terrain_samples: terrain samples the layer took this frame (a clipmap's updates,
+    the posts of a mesh installed this frame); levels_active:
     the clipmap levels drawn (0 for the mesh); eye_lift_m: how far the eye was raised to stand
     EYE_CLEARANCE_M over the terrain surface drawn under it (0 where it stood higher)."""
 
@@ -367,7 +369,11 @@ class Renderer:
             # twentieth of it; none to speak of from orbit, where fog hid the whole Earth).
             # (h / range) squared by multiplication: inf, hence no fog, for a huge h, where ** raises
             # OverflowError.
-            edge = self.terrain_layer.fog_range_m
+            # (A layer centred away from the camera, a clipmap aimed by a narrow view, says how far
+            # its terrain reaches within this view: fog_range_for.)
+            range_for = getattr(self.terrain_layer, "fog_range_for", None)
+            edge = (self.terrain_layer.fog_range_m if range_for is None
+                    else range_for(camera, self.width, self.height))
             ratio = max(float(alt), 0.0) / edge
             fog_density = fog_density_per_m(edge) / (1.0 + ratio * ratio)
         return Frame(camera=camera, origin=o, width=self.width, height=self.height, view=camera.view_matrix(o),

@@ -31,14 +31,26 @@ The mesh is rebuilt, centred on the camera, when the camera has moved more
 than ``REBUILD_FRACTION`` of the window from its centre (so the full-resolution
 radius is always at least 3/4 of the window), and re-uploaded when the local
 origin is rebased. A rebuild is synchronous (the clipmap's incremental,
-budgeted updates are issue #5's). Shapes and frames are in each docstring;
-(lat, lon) order, degrees; heights metres MSL.
+budgeted updates are issue #5's), unless the layer is made with ``background``
+(the clipmap's polar mesh): then, while the camera is still inside the current
+window, the next mesh is built on a helper thread and the current one drawn
+until it is ready ("terrain work never disturbs the frame rate",
+global-terrain-flight-sim), and only the GPU upload is the frame's.
+
+The posts are asked for in as few calls as the terrain takes (:func:`grid_heights`):
+one, split by rows where the terrain refuses it as over a per-call limit (a
+procedural world generates at most MAX_NEW_BLOCKS_PER_CALL new blocks a call,
+and near a pole every row of the window touches a whole ring of them), in at
+most LIMIT_SPLIT_MAX_PARTS parts.
+Shapes and frames are in each docstring; (lat, lon) order, degrees; heights
+metres MSL.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass
 
@@ -48,7 +60,7 @@ from client.render.camera import Camera, LocalOrigin
 from client.render.gl import check_gl_error
 from client.render.shading import (GLSL_COMMON, ROCK_RGB, ROCK_SLOPE_DEG, TINT_HIGH_M, TINT_HIGH_RGB, TINT_LOW_RGB,
                                    TINT_MID_M, TINT_MID_RGB, WATER_RGB, WATER_SHININESS, WATER_SPECULAR, Frame, rgb)
-from sortie.errors import InvalidArgument
+from sortie.errors import InvalidArgument, LimitExceeded, SortieError
 from terrain.geodesy import enu_basis, geodetic_to_ecef, radii_of_curvature
 
 log = logging.getLogger(__name__)
@@ -58,6 +70,17 @@ DEFAULT_HORIZON_M = 80_000.0  # half-width of the horizon ring (0: none)
 DEFAULT_HORIZON_STRIDE = 8  # ring posts per full-resolution post, per axis
 MAX_POSTS_PER_AXIS = 2049  # beyond this the window takes every k-th post (the stride)
 REBUILD_FRACTION = 0.25  # recentre when the camera is this fraction of the window off centre
+# A call the terrain refuses as over a per-call limit is asked again in this many times as many
+# parts as its size over the limit (LimitExceeded.size / .limit): a little slack, as a part's
+# count of what the limit counts (new procedural blocks) need not split evenly with its rows.
+LIMIT_SPLIT_SLACK = 1.25
+# ... in at most this many parts in all: the limit bounds the work one request may start (a
+# procedural world's 4096 new blocks, about 6-16 s), and splitting is not a way round it. The
+# default window and ring at a pole over the default procedural world need 1.2-1.6 times it
+# (4864 and 6663 blocks: 90 N, 89.5 N), 2 or 3 parts; a 300 km ring at 88 N 5.8 times (23,679
+# blocks, a minute or more), refused as the single call was, naming the options that set the
+# area (client/render_cli.mesh_area_named).
+LIMIT_SPLIT_MAX_PARTS = 4
 _VERTEX_FLOATS = 8  # position (3), normal (3), height MSL, cos(slope)
 
 
@@ -258,14 +281,64 @@ def posts_across(lattice: Lattice, lat: float, half_m: float) -> tuple[float, fl
     return rows, min(cols, 360.0 / lattice.dlon)
 
 
+class MeshBuildCancelled(SortieError):
+    """A background mesh build stopped because its layer no longer wants it."""
+
+
+def grid_heights(terrain, lat_rows: list, lon_cols: list, cancelled=None) -> np.ndarray:
+    """Heights MSL (metres, NaN where no source answers) of grids of posts: grid g is every
+    (lat_rows[g][r], lon_cols[g][c]) ((rows,), (cols,) float64 degrees), row-major, the grids one
+    after another: one flat (sum of rows x cols,) float64 array.
+
+    Asked of ``terrain.heights`` in one call, as the mesh always was. A call the terrain refuses
+    as over a per-call limit (LimitExceeded: a procedural world's new blocks, which near a pole
+    every row of the window touches a whole ring of) is asked again in bands of whole rows of
+    every grid, in order of latitude (a band of rows is a band of the ground, so what serves it,
+    a procedural block, is mostly needed by that band alone), size / limit x LIMIT_SPLIT_SLACK
+    bands, each split the same way if refused in turn, in LIMIT_SPLIT_MAX_PARTS bands at most (a
+    request that needs more, or a row refused alone, is refused: the LimitExceeded is raised).
+    ``cancelled()`` (optional) is asked before every call: true raises MeshBuildCancelled."""
+    sizes = [r.size * c.size for r, c in zip(lat_rows, lon_cols)]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    out = np.empty(int(offsets[-1]))
+    rows = sorted((float(la), g, r) for g, lat_r in enumerate(lat_rows) for r, la in enumerate(lat_r))
+    todo = [(0, len(rows))] if rows else []
+    done = 0
+    while todo:
+        if cancelled is not None and cancelled():
+            raise MeshBuildCancelled("the mesh is no longer wanted")
+        a, b = todo.pop()
+        band = rows[a:b]
+        lat = np.concatenate([np.full(lon_cols[g].size, la) for la, g, _ in band])
+        lon = np.concatenate([lon_cols[g] for _, g, _ in band])
+        try:
+            h = np.asarray(terrain.heights(lat, lon).height_msl_m, np.float64)
+        except LimitExceeded as exc:
+            k = min(b - a, max(2, math.ceil(LIMIT_SPLIT_SLACK * exc.size / max(exc.limit, 1))))
+            if b - a == 1 or done + len(todo) + k > LIMIT_SPLIT_MAX_PARTS:
+                raise
+            cuts = np.linspace(a, b, k + 1).round().astype(int)
+            todo += [(int(x), int(y)) for x, y in zip(cuts[:-1], cuts[1:]) if y > x][::-1]
+            continue
+        done += 1
+        at = 0
+        for _, g, r in band:
+            cols = lon_cols[g].size
+            start = int(offsets[g]) + r * cols
+            out[start:start + cols] = h[at:at + cols]
+            at += cols
+    return out
+
+
 def build_mesh(terrain, lattice: Lattice, lat: float, lon: float, *, window_m: float = DEFAULT_WINDOW_M,
                horizon_m: float = DEFAULT_HORIZON_M, horizon_stride: int = DEFAULT_HORIZON_STRIDE,
-               stride: int = 1, geoid_undulation_m: float = 0.0) -> MeshData:
+               stride: int = 1, geoid_undulation_m: float = 0.0, cancelled=None) -> MeshData:
     """Fetch the posts around (lat, lon) from ``terrain`` (anything with ``heights(lat, lon)``
-    returning ``.height_msl_m``) in one call and build the mesh: the full-resolution window
+    returning ``.height_msl_m``; :func:`grid_heights`: one call, split where the terrain refuses
+    it as too large) and build the mesh: the full-resolution window
     (every ``stride``-th lattice post within ``window_m``) and, when ``horizon_m > window_m``,
     the ring of every ``stride * horizon_stride``-th post out to ``horizon_m``. Strides grow,
-    per axis, when a grid would exceed MAX_POSTS_PER_AXIS."""
+    per axis, when a grid would exceed MAX_POSTS_PER_AXIS. ``cancelled``: as grid_heights'."""
     rows, cols = posts_across(lattice, lat, window_m)
     si = max(stride, math.ceil(rows / MAX_POSTS_PER_AXIS))  # near a pole the columns thin out first
     sj = max(stride, math.ceil(cols / MAX_POSTS_PER_AXIS))
@@ -281,8 +354,8 @@ def build_mesh(terrain, lattice: Lattice, lat: float, lon: float, *, window_m: f
         grids.append((np.arange(ri0, ri1 + 1, si * hs), np.arange(rj0, rj1 + 1, sj * hs)))
     lats = [np.broadcast_to(lattice.lat(i)[:, None], (i.size, j.size)) for i, j in grids]
     lons = [np.broadcast_to(lattice.lon(j)[None, :], (i.size, j.size)) for i, j in grids]
-    res = terrain.heights(np.concatenate([a.ravel() for a in lats]), np.concatenate([a.ravel() for a in lons]))
-    all_h = np.asarray(res.height_msl_m, dtype=np.float64)
+    all_h = grid_heights(terrain, [lattice.lat(i) for i, _ in grids], [lattice.lon(j) for _, j in grids],
+                         cancelled)
 
     parts, offset, start, hole_i, hole_j = [], 0, 0, [], []
     for g, ((i, j), la, lo) in enumerate(zip(grids, lats, lons)):
@@ -417,11 +490,18 @@ class TerrainMeshLayer:
     ``spacing_m`` is given). window_m / horizon_m: half-widths of the full-resolution window and
     of the horizon ring (0: none). spacing_m: draw every k-th post, k = round(spacing_m / post
     spacing) (or, for a terrain that describes no source, a lattice of that spacing).
+    background: rebuild on a helper thread while the camera is still inside the current window,
+    drawing the current mesh until the next is ready (the first build, and one for a camera that
+    has left the window, are the frame's own); the terrain must answer from two threads at once
+    (Terrain and TerrainClient do).
+
+    Counters: ``rebuilds`` (meshes built so far), ``samples`` (posts the mesh installed by the
+    last update fetched: 0 unless it installed one), ``building`` (a background build running).
     """
 
     def __init__(self, ctx, terrain, origin: LocalOrigin, *, window_m: float = DEFAULT_WINDOW_M,
                  horizon_m: float = DEFAULT_HORIZON_M, horizon_stride: int = DEFAULT_HORIZON_STRIDE,
-                 spacing_m: float | None = None, geoid_undulation_m: float = 0.0):
+                 spacing_m: float | None = None, geoid_undulation_m: float = 0.0, background: bool = False):
         if not (0 < window_m <= 1_000_000):
             raise InvalidArgument("window_m", "must be in (0, 1000 km]", value=window_m)
         if not (horizon_m == 0 or window_m < horizon_m <= 2_000_000):
@@ -447,7 +527,10 @@ class TerrainMeshLayer:
         self._vbo = self._ibo = self._vao = None
         self._uploaded_generation = None
         self.rebuilds = 0
+        self.samples = 0
         self.last_build_ms = 0.0
+        self.background = bool(background)
+        self._job: _MeshJob | None = None
 
     @property
     def outer_half_m(self) -> float:
@@ -476,22 +559,63 @@ class TerrainMeshLayer:
         return max(abs(dn), abs(de))
 
     def update(self, camera: Camera) -> None:
-        """Rebuild around the camera when it has left the window's central part; re-upload after
-        a rebase of the local origin."""
+        """Rebuild around the camera when it has left the window's central part (on a helper thread
+        with ``background`` while the camera is inside the current window: a finished build is
+        installed by the next update); re-upload after a rebase of the local origin."""
         lat, lon, _ = camera.geodetic()
-        if self.mesh is None or self._off_centre_m(lat, lon) > REBUILD_FRACTION * self.window_m:
-            t0 = time.perf_counter()
-            lattice, stride = self._lattice_and_stride(lat, lon)
-            self.mesh = build_mesh(self.terrain, lattice, lat, lon, window_m=self.window_m, horizon_m=self.horizon_m,
-                                   horizon_stride=self.horizon_stride, stride=stride,
-                                   geoid_undulation_m=self.geoid_undulation_m)
-            self._uploaded_generation = None
-            self.rebuilds += 1
-            self.last_build_ms = (time.perf_counter() - t0) * 1e3
-            log.info("terrain mesh around (%.5f, %.5f): %s + %s posts, %d triangles, %.0f ms", lat, lon,
-                     self.mesh.window_shape, self.mesh.ring_shape, len(self.mesh.triangles), self.last_build_ms)
+        self.samples = 0
+        self._collect()
+        off = math.inf if self.mesh is None else self._off_centre_m(lat, lon)
+        if off > REBUILD_FRACTION * self.window_m:
+            if self.background and off <= self.window_m:  # the current mesh still holds the camera
+                if self._job is None:
+                    self._job = _MeshJob(self._build_args(lat, lon), self._build)
+            else:
+                self.cancel_build()
+                t0 = time.perf_counter()
+                mesh = build_mesh(self.terrain, **self._build_args(lat, lon))
+                self._install(mesh, (time.perf_counter() - t0) * 1e3)
         if self._uploaded_generation != self.origin.generation:
             self._upload()
+
+    @property
+    def building(self) -> bool:
+        """Whether a background build is under way."""
+        return self._job is not None
+
+    def _build_args(self, lat: float, lon: float) -> dict:
+        lattice, stride = self._lattice_and_stride(lat, lon)
+        return dict(lattice=lattice, lat=lat, lon=lon, window_m=self.window_m, horizon_m=self.horizon_m,
+                    horizon_stride=self.horizon_stride, stride=stride, geoid_undulation_m=self.geoid_undulation_m)
+
+    def _build(self, args: dict, cancelled) -> MeshData:
+        return build_mesh(self.terrain, cancelled=cancelled, **args)
+
+    def _collect(self) -> None:
+        """Install a finished background build (raise what stopped it)."""
+        job = self._job
+        if job is None or not job.done.is_set():
+            return
+        self._job = None
+        if job.error is not None:
+            raise job.error
+        self._install(job.mesh, job.build_ms)
+
+    def cancel_build(self) -> None:
+        """Drop a background build, if any: it stops before its next terrain call, its result unused."""
+        if self._job is not None:
+            self._job.cancel.set()
+            self._job = None
+
+    def _install(self, mesh: MeshData, build_ms: float) -> None:
+        self.mesh = mesh
+        self._uploaded_generation = None
+        self.rebuilds += 1
+        self.samples = len(mesh.positions_ecef)
+        self.last_build_ms = build_ms
+        lat, lon = mesh.centre
+        log.info("terrain mesh around (%.5f, %.5f): %s + %s posts, %d triangles, %.0f ms", lat, lon,
+                 mesh.window_shape, mesh.ring_shape, len(mesh.triangles), build_ms)
 
     def _upload(self) -> None:
         m = self.mesh
@@ -556,6 +680,35 @@ class TerrainMeshLayer:
         self._vbo = self._ibo = self._vao = None
 
     def release(self) -> None:
+        self.cancel_build()
         self._release_buffers()
         self.program.release()
+
+
+class _MeshJob:
+    """A mesh built on a daemon helper thread: ``build(args, cancelled)`` -> MeshData into
+    ``mesh`` (or the exception into ``error``), ``done`` set at the end, ``build_ms`` its wall
+    time. Setting ``cancel`` stops it before its next terrain call (no GL here: the layer uploads
+    on the render thread). A daemon, so that a build still running does not hold up the exit of
+    a process that has released its layer."""
+
+    def __init__(self, args: dict, build):
+        self.cancel = threading.Event()
+        self.done = threading.Event()
+        self.mesh: MeshData | None = None
+        self.error: BaseException | None = None
+        self.build_ms = 0.0
+        self._thread = threading.Thread(target=self._run, args=(args, build), name="terrain-mesh-build",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self, args: dict, build) -> None:
+        t0 = time.perf_counter()
+        try:
+            self.mesh = build(args, self.cancel.is_set)
+        except BaseException as exc:  # noqa: BLE001 - handed to the render thread, which raises it
+            self.error = exc
+        finally:
+            self.build_ms = (time.perf_counter() - t0) * 1e3
+            self.done.set()
 
