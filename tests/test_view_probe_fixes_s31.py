@@ -33,6 +33,7 @@ from client.render.renderer import Renderer
 from terrain.geodesy import ecef_to_geodetic
 from terrain.procedural import MAX_NEW_BLOCKS_PER_CALL, ProceduralTerrain
 from terrain.terrain import Terrain
+from test_clipmap import tank_server  # noqa: F401 - the fixture: one tank live on the Alps tile
 
 MAGENTA = (255, 0, 255)
 N_M = 48.0  # the geoid undulation the probe used
@@ -243,21 +244,6 @@ def test_a_refused_call_is_split_by_rows_into_the_same_heights():
 
 
 # --------------------------------------------------------------------------- 4: several views a frame
-
-@pytest.fixture()
-def tank_server(alps, hgt_alps):
-    """A live exercise with one tank on the Alps tile, its terrain named by the server."""
-    from server.sim_server import ServerConfig, SimulationServer
-    from server.world import World
-
-    w = World(alps, geoid_undulation_m=48.0)
-    w.spawn_ground(["tank1"], "m1a2", [47.29], [9.59], 45.0, coalition="red")
-    srv = SimulationServer(w, ServerConfig(exercise_name="views", terrain=f"dem:{hgt_alps}"))
-    srv.start()
-    yield srv
-    srv.stop(0.5)
-    w.close()
-
 
 def test_a_frames_figures_cover_all_its_views(tank_server, tmp_path):
     """--views chase,cockpit: the chase view draws the tank, the cockpit view (inside it) does not.
