@@ -29,10 +29,11 @@
 - ``script_max_abs_diff_m``: position difference against JSBSim's own run of
   ``scripts/c172_elevator_doublet.xml`` (see tests/test_fdm_script_reference.py
   for why it is not 0), and ``..._before_doublet_m`` over its first 5 s.
-- ``series["dt_convergence"]``: c172x, 60 s of sinusoidal stick inputs (a
-  function of simulated time, so every rate sees the same manoeuvre); ECEF
-  position error at the end against dt = 1/1000 s, and wall seconds per
-  simulated second, for dt = 1/50 ... 1/480.
+- ``series["dt_convergence"]``: c172x, 60 s of manoeuvring (bank to ±30° over
+  14 s, pitch 3° ± 5° over 10 s: the same commands of simulated time at every
+  rate, tracked by a stick law evaluated every step, _manoeuvre); ECEF position
+  error at the end against dt = 1/1000 s, and wall seconds per simulated second,
+  for dt = 1/50 ... 1/480.
 """
 
 from __future__ import annotations
@@ -224,12 +225,25 @@ def _manoeuvre(dt: float, seconds: float):
 
     ac = Aircraft("c172x", FlatTerrain(0.0), InitialConditions(47.3, 9.5, 1500.0, heading_deg=90.0,
                                                                 speed_mps=50.0), dt=dt)
+    # Open-loop stick inputs (this bench's first manoeuvre: pitch 0.15 sin(2 pi t / 10 s), roll
+    # 0.4 sin(2 pi t / 14 s)) spiralled into the ground at 31.6 s at every rate, and its figures
+    # were the crash sites' differences: an aircraft's spiral mode is unstable, and any open-loop
+    # input drifts the bank. The commands here are attitudes, tracked by a proportional-derivative
+    # stick law of the state after each step; it keeps the flight within 1500 +- 5 m, 46-50 m/s
+    # and 34 deg of bank, so the differences are the integration's.
+    fdm = ac.fdm
     t0 = time.perf_counter()
     for _ in range(int(round(seconds / dt))):
         t = ac.time_s
-        ac.set_controls(pitch=0.15 * math.sin(2 * math.pi * t / 10.0), roll=0.4 * math.sin(2 * math.pi * t / 14.0))
+        phi_c = math.radians(30.0) * math.sin(2 * math.pi * t / 14.0)
+        theta_c = math.radians(3.0) + math.radians(5.0) * math.sin(2 * math.pi * t / 10.0)
+        roll = 2.0 * (phi_c - fdm["attitude/phi-rad"]) - 0.3 * fdm["velocities/p-rad_sec"]
+        pitch = 3.0 * (theta_c - fdm["attitude/theta-rad"]) - 0.5 * fdm["velocities/q-rad_sec"]
+        ac.set_controls(pitch=min(1.0, max(-1.0, pitch)), roll=min(1.0, max(-1.0, roll)))
         ac.step()
     wall = time.perf_counter() - t0
+    if ac.crashed:
+        raise RuntimeError(f"the dt manoeuvre crashed at dt = {dt} s")
     return ac.state().ecef_m, wall / seconds
 
 
