@@ -250,6 +250,9 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
         if own:
             world.close()
     ticks = whole[first:last]
+    if not len(ticks):  # (once, the first full run after hours idle: a NaN capacity followed)
+        raise RuntimeError(f"no world tick in the steady window of a {seconds:g} s {clock} run with "
+                           f"{n_aircraft} aircraft ({len(whole)} ticks in the whole run)")
 
     def latencies(t_from: float, t_to: float) -> np.ndarray:
         return np.array([(wall_rx - published[round(t, 6)]) * 1e3 for log in data["received"] for t, wall_rx in log
