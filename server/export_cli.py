@@ -52,7 +52,8 @@ def add_parser(sub) -> None:
                                                           "longer side)")
     size.add_argument("--spacing-m", type=float, metavar="M", help="terrain vertex spacing, metres")
     gltf.add_argument("--max-error-m", type=float, metavar="M",
-                      help="an adaptive terrain mesh within M metres of every sampled post (far fewer triangles "
+                      help="an adaptive terrain mesh within M metres of every sampled post (vertically in the mesh's ENU frame, so "
+                           "the Earth's curvature counts; far fewer triangles "
                            "where the ground is smooth; terrain/rtin.py)")
     gltf.add_argument("--no-texture", action="store_true", help="the terrain untextured")
     gltf.set_defaults(func=gltf_command)

@@ -132,7 +132,8 @@ RASTER_PIXEL_IS_AREA = 1
 RASTER_PIXEL_IS_POINT = 2
 # Geographic CRSs read as WGS 84, with the accuracy of the EPSG registry's null
 # transformation to it (the datums differ by about that much in position):
-# WGS 84 (geographic 3D, 4979) exactly; NAD83 (4269, USGS 3DEP DEMs) through
+# WGS 84 (geographic 3D, 4979: its heights are ellipsoidal unless VerticalCSTypeGeoKey says
+# otherwise, see _vertical_datum) exactly; NAD83 (4269, USGS 3DEP DEMs) through
 # EPSG:1188 "NAD83 to WGS 84 (1)", 4 m; ETRS89 (4258, European national DEMs)
 # through EPSG:1149 "ETRS89 to WGS 84 (1)", 1 m. Other datums (ED50, Tokyo,
 # ...) differ by tens to hundreds of metres and are refused.
@@ -168,6 +169,10 @@ VERTICAL_CS_ELLIPSOID_CODES = range(5001, 5034)
 # Geographic 3D CRSs (EPSG, PROJ's proj.db type "Geographic 3D CRS") a file may give as its vertical
 # system: WGS 84, ETRS89, NZGD2000, NAD83(2011), ITRF2014. Their third axis is the ellipsoidal height.
 GEOGRAPHIC_3D_CODES = (4979, 4937, 4959, 6319, 7912)
+# What the error refusing a vertical system goes on to say.
+MSL_ADVICE = ("heights are read as metres above mean sea level: convert them with the geoid (e.g. EGM96/EGM2008), "
+              f"or declare VerticalCSTypeGeoKey ({KEY_VERTICAL_CS_TYPE}) 32767 (user-defined) to take them as "
+              "supplied; read are " + ", ".join(str(c) for c in VERTICAL_DATUMS_EPSG))
 
 RAW_SUFFIXES = (".raw", ".r16")
 # read_raw16's georeference: a raw file cannot be read without it.
@@ -329,8 +334,10 @@ def read_asc(path) -> Raster:
     sidecar ``.prj`` (the WKT GDAL and ArcGIS write beside the grid) is read
     when present: a projected CRS, or a geographic one on another datum than
     WGS 84 (or those read as it, see GEOGRAPHIC_AS_WGS84), is refused by name
-    instead of read as degrees. A leading UTF-8 byte order mark (what Windows tools such
-    as Notepad write) is skipped, in the grid and in its ``.prj``.
+    instead of read as degrees, and a geographic 3D one (its third axis, the
+    grid's values, is the ellipsoidal height) instead of read as mean sea level. A
+    leading UTF-8 byte order mark (what Windows tools such as Notepad write) is
+    skipped, in the grid and in its ``.prj``.
     """
     path = _existing(path)
     prj = _asc_sidecar_crs(path)
@@ -369,9 +376,19 @@ WKT_WGS84_DATUMS = ("WGS_1984", "WGS84", "WGS 84", "WORLD GEODETIC SYSTEM 1984",
                     "EUROPEAN TERRESTRIAL REFERENCE SYSTEM 1989", "ETRS89", "ETRS_1989", "NAD83", "NAD_1983")
 
 
+# A geographic CRS in WKT (not a compound one, whose up axis is its vertical CRS's) with a third,
+# up axis: WKT2's "CS[ellipsoidal,3]" (ISO 19162:2019 / OGC 18-010r7 section 7.5.1), an
+# AXIS[..., up] (WKT2, and GDAL's WKT1 of a 3D CRS), or ESRI's LINUNIT (its WKT1 of EPSG:4979 is
+# GEOGCS["WGS_1984_3D", ..., LINUNIT["Meter",1.0]], as PROJ writes it).
+WKT_GEOGRAPHIC_KINDS = ("GEOGCS", "GEOGCRS", "GEOGRAPHICCRS", "GEODCRS", "GEODETICCRS")
+WKT_GEOGRAPHIC_3D = re.compile(r'CS\s*\[\s*ellipsoidal\s*,\s*3\s*\]|AXIS\s*\[\s*"[^"]*"\s*,\s*up\b|LINUNIT\s*\[',
+                               re.IGNORECASE)
+
+
 def _asc_sidecar_crs(path: Path) -> str | None:
     """The name of the CRS in the grid's .prj sidecar (None without one); a projected
-    CRS or another datum is a DataFormatError naming it."""
+    CRS, another datum or a geographic 3D CRS (ellipsoidal heights) is a DataFormatError
+    naming it."""
     prj = path.with_suffix(".prj")
     if not prj.is_file():
         prj = path.with_suffix(".PRJ")
@@ -401,6 +418,10 @@ def _asc_sidecar_crs(path: Path) -> str | None:
     if not any(d in datum_name.upper().replace("D_", "", 1) for d in WKT_WGS84_DATUMS):
         raise DataFormatError(f"{path}: its {prj.name} is on datum {datum_name!r}; read are WGS 84, NAD83 "
                               "and ETRS89")
+    if head is not None and kind in WKT_GEOGRAPHIC_KINDS and WKT_GEOGRAPHIC_3D.search(text):
+        raise DataFormatError(f"{path}: its {prj.name} is a geographic 3D CRS ({name}): the grid's values are "
+                              "ellipsoidal heights, not mean sea level; convert them with the geoid (e.g. "
+                              "EGM96/EGM2008), or give the grid a 2-D geographic .prj to take them as supplied")
     return name
 
 
@@ -564,10 +585,18 @@ def read_geotiff(path) -> Raster:
 
 def _vertical_datum(path: Path, keys: dict) -> str:
     """The heights' vertical datum from VerticalCSTypeGeoKey (4096): a mean-sea-level type one of
-    VERTICAL_DATUMS_EPSG by name; none, or 32767 (user-defined), "as supplied". Any other code is
-    refused naming the key and the code: ellipsoidal heights (5001-5033, a geographic 3D CRS such as
-    4979) are tens of metres off sea level, and an unknown system cannot be read as it."""
+    VERTICAL_DATUMS_EPSG by name; 32767 (user-defined), or none with a 2-D geographic or projected
+    CRS, "as supplied". Any other code is refused naming the key and the code: ellipsoidal heights
+    (5001-5033, a geographic 3D CRS such as 4979) are tens of metres off sea level, and an unknown
+    system cannot be read as it. Without the key, a geographic 3D CRS as GeographicTypeGeoKey (2048)
+    says the third coordinate, the heights, is its ellipsoidal height (EPSG: the CRS's third axis,
+    "ellipsoidal height (h)"), refused the same way naming that key."""
     code = keys.get(KEY_VERTICAL_CS_TYPE)
+    if code is None and keys.get(KEY_GEOGRAPHIC_TYPE) in GEOGRAPHIC_3D_CODES:
+        raise DataFormatError(f"{path}: GeographicTypeGeoKey ({KEY_GEOGRAPHIC_TYPE}) = "
+                              f"{keys[KEY_GEOGRAPHIC_TYPE]!r} without a VerticalCSTypeGeoKey "
+                              f"({KEY_VERTICAL_CS_TYPE}): ellipsoidal heights (a geographic 3D CRS), not mean "
+                              "sea level; " + MSL_ADVICE)
     if code is None or code == VERTICAL_CS_USER_DEFINED:
         return VERTICAL_DATUM_DEFAULT
     if code in VERTICAL_DATUMS_EPSG:
@@ -576,10 +605,8 @@ def _vertical_datum(path: Path, keys: dict) -> str:
             if isinstance(code, int) and code in VERTICAL_CS_ELLIPSOID_CODES else
             "ellipsoidal heights (a geographic 3D CRS), not mean sea level" if code in GEOGRAPHIC_3D_CODES
             else "not a mean-sea-level vertical CRS this reader knows")
-    raise DataFormatError(f"{path}: VerticalCSTypeGeoKey ({KEY_VERTICAL_CS_TYPE}) = {code!r}: {what}; heights "
-                          "are read as metres above mean sea level: convert them with the geoid (e.g. "
-                          "EGM96/EGM2008), or declare 32767 (user-defined) to take them as supplied; read are "
-                          + ", ".join(str(c) for c in VERTICAL_DATUMS_EPSG))
+    raise DataFormatError(f"{path}: VerticalCSTypeGeoKey ({KEY_VERTICAL_CS_TYPE}) = {code!r}: {what}; "
+                          + MSL_ADVICE)
 
 
 def _model_units(path: Path, crs: int, keys: dict) -> float:

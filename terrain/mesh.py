@@ -15,7 +15,10 @@ its vertices and within a quarter of each cell's twist in between.
 
 **Adaptive meshes** (:func:`build_adaptive_mesh`): on a (2^k + 1)^2 grid, the right-triangulated
 irregular network of terrain/rtin.py keeps only the triangles an error bound at every grid post
-needs; its vertices are a subset of the grid's (``TerrainMesh.grid_index``).
+needs; its vertices are a subset of the grid's (``TerrainMesh.grid_index``). The bound holds in
+the frame below: each post's vertex within it of its triangles' planes along the frame's up, so
+the curved Earth under a flat triangle counts (a triangle's chord of length L sags about
+L^2 / (8R) below the ground: 15 m for 28 km, R = 6371 km), as does the terrain's own relief.
 
 **The frame.** Vertices are float64 metres east, north and up (ENU) from an origin on the
 WGS84 ellipsoid (``terrain.geodesy``); files hold float32 offsets from it, within 2^-24 of
@@ -204,13 +207,19 @@ def build_mesh(heights_msl_m, lat, lon, *, frame: LocalFrame | None = None,
 def build_adaptive_mesh(heights_msl_m, lat, lon, max_error_m: float, *, frame: LocalFrame | None = None,
                         geoid_undulation_m: float = 0.0) -> TerrainMesh:
     """The right-triangulated irregular network (terrain/rtin.py) of a (2^k + 1) x (2^k + 1) grid
-    (as :func:`build_mesh` takes it): within ``max_error_m`` of every grid post (exactly), with
-    the vertices its triangles use (``grid_index`` says which grid points they are)."""
+    (as :func:`build_mesh` takes it): every grid post's vertex (its true position in ``frame``)
+    within ``max_error_m`` of the plane of each triangle holding it, measured along the frame's
+    up at the post's own east and north (exactly; Earth's curvature included), with the vertices
+    its triangles use (``grid_index`` says which grid points they are)."""
     from terrain.rtin import rtin_faces
 
     mesh = build_mesh(heights_msl_m, lat, lon, frame=frame, geoid_undulation_m=geoid_undulation_m,
                       max_vertices=MAX_ADAPTIVE_SIDE ** 2)
-    return with_grid_faces(mesh, rtin_faces(mesh.heights_msl_m, max_error_m))
+    # The error in the frame the vertices are in: each post's up, which carries Earth's curvature,
+    # against its triangle's plane at the post's own east and north (terrain/rtin.py).
+    enu = mesh.vertices.reshape(mesh.shape + (3,))
+    up = np.where(np.isfinite(mesh.heights_msl_m), enu[..., 2], np.nan)
+    return with_grid_faces(mesh, rtin_faces(up, max_error_m, enu[..., :2]))
 
 
 def with_grid_faces(mesh: TerrainMesh, faces: np.ndarray) -> TerrainMesh:
@@ -222,29 +231,47 @@ def with_grid_faces(mesh: TerrainMesh, faces: np.ndarray) -> TerrainMesh:
 
 
 def centre_error(mesh: TerrainMesh, terrain) -> np.ndarray:
-    """|mesh - terrain| (m) at the centre of every grid cell the mesh covers: how far the mesh
-    strays from the terrain between its vertices. A regular mesh's cut diagonal passes through
-    every centre, at the mean of the cell's NW and SE heights (on the posts' own grid, exactly
-    the cell's |d| / 4 off the bilinear surface); an adaptive one is interpolated in its
-    triangle. Centres where the terrain has no height are left out. ``terrain``: anything with
+    """|mesh - terrain| (m) at the centre of every grid cell the mesh covers, in the frame the
+    vertices are in: the terrain's point at the centre's latitude and longitude (its MSL height
+    plus ``geoid_undulation_m``) against the plane of the triangle holding that centre on the
+    grid, along the frame's up at the point's own east and north. So a mesh whose flat triangles
+    cut under the curved Earth says so (a chord of length L sags about L^2 / (8R) below the
+    surface: 15 m for 28 km), as does one off the bilinear surface between its posts (a regular
+    mesh: each cell's twist |d| / 4, plus its diagonal's sag, under a millimetre for 100 m cells).
+    Centres where the terrain has no height are left out. ``terrain``: anything with
     ``heights(lat, lon)`` (terrain.terrain.Terrain, the terrain client)."""
-    h = mesh.heights_msl_m
-    rows, cols = h.shape
-    at = np.full((max(rows - 1, 0), max(cols - 1, 0)), np.nan)
-    if at.size and len(mesh.faces):
-        _centres_kernel(np.ascontiguousarray(mesh.grid_faces, np.int64), np.ascontiguousarray(h), at)
-    i, j = np.nonzero(np.isfinite(at))
-    lat_c = 0.5 * (mesh.lat[:-1] + mesh.lat[1:])
-    lon_c = 0.5 * (mesh.lon[:-1] + mesh.lon[1:])
-    truth = np.asarray(terrain.heights(lat_c[i], lon_c[j]).height_msl_m, dtype=np.float64)
-    err = np.abs(at[i, j] - truth)
+    rows, cols = mesh.shape
+    owner = np.full((max(rows - 1, 0), max(cols - 1, 0)), -1, np.int64)
+    if owner.size and len(mesh.faces):
+        _centre_faces_kernel(np.ascontiguousarray(mesh.grid_faces, np.int64), cols, owner)
+    i, j = np.nonzero(owner >= 0)
+    lat_c = 0.5 * (mesh.lat[:-1] + mesh.lat[1:])[i]
+    lon_c = 0.5 * (mesh.lon[:-1] + mesh.lon[1:])[j]
+    truth = np.asarray(terrain.heights(lat_c, lon_c).height_msl_m, dtype=np.float64)
+    point = mesh.frame.to_local(geodetic_to_ecef(lat_c, lon_c, truth + mesh.geoid_undulation_m).reshape(-1, 3))
+    corners = mesh.vertices[mesh.faces[owner[i, j]]]  # (n, 3 corners, 3) ENU
+    err = np.abs(point[:, 2] - plane_up(corners, point[:, :2]))
     return err[np.isfinite(err)]  # a centre in a hole of the terrain has no error to measure
 
 
+def plane_up(corners, east_north) -> np.ndarray:
+    """(n,) float64 m: the up of the plane through each triangle's ``corners`` ((n, 3, 3) ENU m)
+    at ``east_north`` ((n, 2) m, the same frame); NaN where the corners' east and north lie on a
+    line."""
+    c = np.asarray(corners, dtype=np.float64)
+    p = np.asarray(east_north, dtype=np.float64)
+    (xa, ya, za), (xb, yb, zb), (xc, yc, zc) = (np.moveaxis(c[:, k], -1, 0) for k in range(3))
+    px, py = p[:, 0], p[:, 1]
+    d = (xb - xa) * (yc - ya) - (yb - ya) * (xc - xa)
+    wa = (xb - px) * (yc - py) - (yb - py) * (xc - px)
+    wb = (xc - px) * (ya - py) - (yc - py) * (xa - px)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(d != 0.0, (wa * za + wb * zb + (d - wa - wb) * zc) / d, np.nan)
+
+
 @numba.njit(cache=True, nogil=True)
-def _centres_kernel(faces, h, out):
-    """The faces' (grid points) surface at the cell centres (row + 1/2, col + 1/2) inside them."""
-    cols = h.shape[1]
+def _centre_faces_kernel(faces, cols, out):
+    """out[row, col]: the face (of grid points) holding the cell centre (row + 1/2, col + 1/2)."""
     for f in range(faces.shape[0]):
         ya, xa = divmod(faces[f, 0], cols)
         yb, xb = divmod(faces[f, 1], cols)
@@ -258,7 +285,7 @@ def _centres_kernel(faces, h, out):
                 wb = ((xc - px) * (ya - py) - (yc - py) * (xa - px)) / d
                 wc = 1.0 - wa - wb
                 if wa >= -1e-12 and wb >= -1e-12 and wc >= -1e-12:
-                    out[y, x] = wa * h[ya, xa] + wb * h[yb, xb] + wc * h[yc, xc]
+                    out[y, x] = f
 
 
 def mesh_geodetic(mesh: TerrainMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -46,7 +46,7 @@ def add_mesh_parser(commands) -> argparse.ArgumentParser:
     light.add_argument("--no-texture", action="store_true", help="geometry alone (no texture, no colours)")
     p.add_argument("--max-error-m", type=float, metavar="M",
                    help="an adaptive mesh (right-triangulated irregular network, terrain/rtin.py) within M "
-                        "metres of every sampled post: the grid becomes 2^k + 1 posts a side (at most 2049), at "
+                        "metres of every sampled post (vertically in the mesh's ENU frame, so the Earth's curvature counts): the grid becomes 2^k + 1 posts a side (at most 2049), at "
                         "least --size or --spacing-m asks, and keeps only the triangles the bound needs")
     p.add_argument("--geoid-undulation-m", type=float, default=0.0, metavar="N",
                    help="ellipsoidal height = MSL height + N, as the simulation world's (default %(default)s)")

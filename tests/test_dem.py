@@ -610,7 +610,10 @@ def test_geotiff_compressed_tiled_and_bigtiff_read_the_same_posts(tmp_path, dtyp
 def test_geotiff_wgs84_compatible_datums_are_read_and_said(tmp_path, code, datum):
     """USGS 3DEP (NAD83) and European (ETRS89) DEMs: the same posts and place as WGS 84,
     with the datum and the EPSG null transformation's accuracy in the metadata."""
-    raster = read_geotiff(_write_geotiff(tmp_path / "d.tif", _ramp(), {1024: 2, 1025: 2, 2048: code},
+    # 4979's third axis is the ellipsoidal height: its heights need a VerticalCSTypeGeoKey (EGM96
+    # here) to be read (tests/test_datum_probe_fixes_s32.py).
+    vertical = {4096: 5773} if code == 4979 else {}
+    raster = read_geotiff(_write_geotiff(tmp_path / "d.tif", _ramp(), {1024: 2, 1025: 2, 2048: code, **vertical},
                                          (0.5, 0.25, 0.0), (0.0, 0.0, 0.0, -105.0, 40.0, 0.0)))
     assert raster.meta["horizontal_datum"].startswith(datum)
     assert raster.georef.crs == CRS_GEOGRAPHIC

@@ -12,8 +12,12 @@ Bounds, and why they hold:
   for the write and the axis swap (|v| <= 15 km here: under 2 mm).
 - *Cell centres.* On the posts' own grid the cut diagonal puts the mesh at (h_NW + h_SE) / 2
   and the bilinear surface at the mean of the four corners: their difference is |d| / 4,
-  d = h_NW - h_NE - h_SW + h_SE, exactly (module docstring), so ``centre_error`` must equal it
-  to rounding.
+  d = h_NW - h_NE - h_SW + h_SE, exactly (module docstring). ``centre_error`` measures in the
+  mesh's ENU frame, where the diagonal's chord also sags below the curved Earth by
+  (diagonal)^2 / (8R) (0.25 mm for these 112 m cells) and the frame's up leans from a cell's
+  plumb line by its distance from the origin over R (under 6e-4 rad within 3.7 km), moving the
+  compared points apart by that times their height difference: it must equal |d| / 4 within
+  5 mm (1.3 mm measured).
 """
 
 from __future__ import annotations
@@ -93,10 +97,11 @@ def test_heights_at_the_posts_and_the_round_trip(hgt_alps, alps):
     v = mesh.vertices
     normals = np.cross(v[mesh.faces[:, 1]] - v[mesh.faces[:, 0]], v[mesh.faces[:, 2]] - v[mesh.faces[:, 0]])
     assert np.all(normals[:, 2] > 0)
-    # At the cells' centres: |d| / 4 exactly, the mesh's distance from the bilinear surface.
+    # At the cells' centres: |d| / 4, the mesh's distance from the bilinear surface, within the
+    # curved Earth's 5 mm in the mesh's frame (module docstring).
     err = centre_error(mesh, alps)
     d = np.abs(truth[:-1, :-1] - truth[:-1, 1:] - truth[1:, :-1] + truth[1:, 1:]).ravel() / 4.0
-    assert np.abs(err - d).max() < 1e-6
+    assert np.abs(err - d).max() < 5e-3
     assert mesh.max_twist_m() == pytest.approx(d.max())
     assert d.max() > 10.0  # rugged: the check has something to see
 

@@ -87,15 +87,16 @@ def _run_mesh(argv):
 @pytest.mark.slow
 def test_an_adaptive_mesh_takes_the_2049_grid():
     """The largest RTIN grid, 2049 x 2049 (4,198,401 posts, what `--size 1500x1500 --max-error-m`
-    samples), builds: the adaptive mesh keeps the posts its triangles use (a plane: its 4
-    corners). Was refused: "grid: ... over the limit of 4,194,304". About 15 s."""
+    samples), builds: the adaptive mesh keeps the posts its triangles use (a plane of heights over
+    11 x 7.5 km: 8 triangles, 9 posts, as the curved Earth under it needs within 1 m). Was
+    refused: "grid: ... over the limit of 4,194,304". About 15 s."""
     from terrain.mesh import MAX_VERTICES, build_adaptive_mesh
 
     n = 2049
     assert n * n > MAX_VERTICES
     i, j = np.mgrid[0:n, 0:n]
     mesh = build_adaptive_mesh(500.0 + 0.1 * i + 0.05 * j, np.linspace(47.5, 47.4, n), np.linspace(9.4, 9.5, n), 1.0)
-    assert mesh.shape == (n, n) and len(mesh.faces) == 2 and len(mesh.vertices) == 4
+    assert mesh.shape == (n, n) and len(mesh.faces) == 8 and len(mesh.vertices) == 9
 
 
 def test_the_adaptive_grid_limit_is_the_2049_rtin_grid():
