@@ -62,6 +62,12 @@ from terrain.geodesy import WGS84_A_M, WGS84_E2, enu_basis, radii_of_curvature
 from terrain.validate import check_latlon
 
 PIVOT_ALPHA_DEG = 60.0
+# A route's end is reached within this distance (m, along the route; at it or past it counts):
+# the goal point is then the end itself, under a vehicle stopping there (stopping_speed brings it
+# to within millimetres), and its bearing is rounding: a tracked vehicle that had arrived facing
+# along the route pivoted 120 degrees on the spot towards it, a wheeled one was left commanding
+# its full yaw rate. A vehicle there, or with its goal as near, holds its heading (pursue).
+GOAL_REACHED_M = 0.5
 # Lookahead distance: k |v| clipped to [min, max] metres.
 LOOKAHEAD_GAIN_S = 1.5
 LOOKAHEAD_MIN_M = 12.0
@@ -365,12 +371,15 @@ def _goal_offsets(lat, lon, goal_nv, out_dn, out_de):
                                              goal_nv[j, 2] - pz)
 
 
-def pursue(v: GroundVehicles, idx: np.ndarray, goal_nv: np.ndarray, speed_cmd):
+def pursue(v: GroundVehicles, idx: np.ndarray, goal_nv: np.ndarray, speed_cmd, reached=None):
     """(speed_cmd, yaw_rate_cmd_dps) of pure pursuit (Coulter 1992: curvature 2 sin(alpha) / L
     towards the goal point at distance L) for vehicles ``idx`` of ``v`` towards goal points of
     unit normals ``goal_nv`` ((n, 3) float64, ECEF axes: :meth:`Route.normals_at`); a tracked
     vehicle whose goal lies more than PIVOT_ALPHA_DEG off its heading stops (speed 0) and
-    pivots at its yaw-rate limit, a wheeled one whose goal lies behind it turns at its limit."""
+    pivots at its yaw-rate limit, a wheeled one whose goal lies behind it turns at its limit.
+    One whose goal is within GOAL_REACHED_M, or that has ``reached`` (per vehicle, bool, or
+    None) its route's end, holds its heading (yaw rate 0, no pivot): it stops facing the way
+    its route goes, not the way a goal millimetres off (or just behind it) happens to lie."""
     speed = v.speed_mps[idx]
     dn, de = np.empty(idx.size), np.empty(idx.size)
     _goal_offsets(v.lat[idx], v.lon[idx], goal_nv, dn, de)
@@ -380,12 +389,13 @@ def pursue(v: GroundVehicles, idx: np.ndarray, goal_nv: np.ndarray, speed_cmd):
     yaw = np.degrees(speed * kappa)
     tracked = v.table[v.type_id[idx], P_KIND] == TRACKED
     lim = v.yaw_rate_limit_dps[idx]
-    pivot = tracked & (np.abs(alpha) > math.radians(PIVOT_ALPHA_DEG))
+    there = dist < GOAL_REACHED_M if reached is None else (dist < GOAL_REACHED_M) | reached
+    pivot = tracked & (np.abs(alpha) > math.radians(PIVOT_ALPHA_DEG)) & ~there
     # A goal behind a wheeled vehicle (the far end of an out-and-back route): 2 sin(alpha) / L
     # falls to 0 as alpha nears 180 deg and it would drive on away; it turns at its limit
     # towards the goal's side instead (the model's lateral-acceleration limit sets the radius).
-    behind = ~tracked & (np.abs(alpha) > 0.5 * np.pi)
-    yaw = np.where(pivot | behind, np.where(alpha < 0.0, -lim, lim), yaw)
+    behind = ~tracked & (np.abs(alpha) > 0.5 * np.pi) & ~there
+    yaw = np.where(pivot | behind, np.where(alpha < 0.0, -lim, lim), np.where(there, 0.0, yaw))
     speed_cmd = np.where(pivot, 0.0, speed_cmd)
     return speed_cmd, np.clip(yaw, -lim, lim)
 
@@ -658,7 +668,8 @@ class RouteFollower:
         """(speed_cmd, yaw_rate_cmd_dps) after pure pursuit for the vehicles' current poses
         (``lookahead``: :meth:`_lookahead`'s, when the caller has it)."""
         goal, _ = self.route.normals_at(self.s + (self._lookahead() if lookahead is None else lookahead))
-        return pursue(self.vehicles, self.index, goal, speed_cmd)
+        reached = self.s >= self.route.length_m - GOAL_REACHED_M if self.stop_at_end else None
+        return pursue(self.vehicles, self.index, goal, speed_cmd, reached)
 
     def commands(self):
         """(speed_cmd, yaw_rate_cmd_dps) for the follower's vehicles, not applied."""
@@ -904,7 +915,7 @@ class FollowerSet:
         offset = self._passing(s, pass_offset, pass_length)
         if offset is not None:
             self._shift_goals(offset, goal, direction)
-        speed_cmd, yaw_cmd = pursue(v, idx, goal, speed_cmd)
+        speed_cmd, yaw_cmd = pursue(v, idx, goal, speed_cmd, self._stops & (s >= self._length - GOAL_REACHED_M))
         if backing is not None and backing.any():
             rev = v.table[v.type_id[idx[backing]], P_VREV]
             speed_cmd = np.where(backing, 0.0, speed_cmd)

@@ -15,7 +15,8 @@ One world tick (``1 / world_rate_hz`` s, 30 Hz by default) does, in order:
 4. test the airborne aircraft's paths over the tick against the terrain
    (one batched segment intersection), and every moving entity's path against
    every other entity's (server/collisions.py: a "collision" event for each of
-   the two; an aircraft in one crashes, a ground vehicle stops);
+   the two; an aircraft in one crashes, a ground vehicle stops where it met the
+   other, or is put back where it began the tick, and the snapshot shows it there);
 5. publish an immutable :class:`Snapshot` of every live entity's kinematic
    state (ECEF position, velocity and acceleration, orientation ECEF -> body,
    body rates) for the network side to read without locks.
@@ -107,9 +108,12 @@ AIRCRAFT_CRASH_SPEED_MPS = 2.0
 # destroyed (72 km/h: an aircraft flying into it, two vehicles meeting head-on at speed);
 # below it a ground vehicle stops and drives on, a static one is unharmed.
 DESTROY_SPEED_MPS = 20.0
-# A ground vehicle touching another entity may not move deeper into it by more than this in a
-# tick (metres; rounding of positions through geodetic coordinates is far below it): it is put
-# back where it began the tick, so a driver pushing on does not pass through.
+# A ground vehicle touching another entity may not move deeper into it by more than this over
+# the contact (metres, its own moves summed, backing out counting against them; rounding of
+# positions through geodetic coordinates is far below it): it is put back where it began the
+# tick, so a driver pushing on does not pass through. Summed, not per tick: a tank starting from
+# rest moves 0.7 mm in its first tick at 30 Hz, under the bound, and crept through the other
+# that way, 0.7 mm every other tick (World._held_back).
 HOLD_DEPTH_M = 1.0e-3
 # A ground vehicle the terrain stops (a slope, water, the terrain's edge) is reported once
 # ("blocked", with the reason) and again only after it has driven free for this long (s): a
@@ -290,6 +294,12 @@ class World(EventLog):
         # Wrecks the segment test put where their path met the terrain: entity id -> (lat, lon,
         # alt m MSL, surface m MSL), shown there until the aircraft host's rows have them there.
         self._placed: dict[int, tuple] = {}
+        # The ongoing contacts of this world's ground vehicles (key: vehicle id << 32 | other id)
+        # and how much deeper the vehicle's own moves have taken each so far (m): World._held_back.
+        self._contact_creep = (np.zeros(0, np.int64), np.zeros(0))
+        # The pairs touching as the last tick left them, with a ground vehicle of this world in
+        # each (key: lower id << 32 | higher id, sorted): World._touching_before.
+        self._touching = np.zeros(0, np.int64)
         self.snapshot = _empty_snapshot(0.0, 0)
         self.recorder = None  # server.recorder.Recorder: every tick, input and event
 
@@ -821,7 +831,10 @@ class World(EventLog):
                 self._prev_vel = prev_vel  # taken again: this tick's wrecks where their paths met the terrain
                 snapshot = self._take_snapshot()
             self._note_wrecks(events)  # what crashed so far this tick moves no more
-            events += self._agent_collisions(self.snapshot, snapshot)
+            collided, moved = self._agent_collisions(self.snapshot, snapshot)
+            events += collided
+            if moved.size:  # stopped where they met, or put back: this snapshot shows where they are
+                self._restate_ground(snapshot, self.snapshot, moved)
             self._note_wrecks(events)
             events += self._terrain_blocks()
             for ev in events:
@@ -1028,7 +1041,7 @@ class World(EventLog):
         self._shapes_of = (ids.copy(), shapes)
         return shapes
 
-    def _agent_collisions(self, before: Snapshot, after: Snapshot) -> list[WorldEvent]:
+    def _agent_collisions(self, before: Snapshot, after: Snapshot) -> tuple[list[WorldEvent], np.ndarray]:
         """Entities that came into contact with each other over the last tick
         (server/collisions.py): a "collision" event for each of the two, where it was at
         the moment they touched, naming the other and their relative speed. An aircraft
@@ -1038,15 +1051,20 @@ class World(EventLog):
         tick, not left past it). A ground vehicle of this world's that drives deeper into
         what it already touches is put back where it began the tick and stopped
         (:meth:`_held_back`): it can back off, turn or slide along, not drive through.
-        Entities new this tick are not tested (they have no path yet)."""
+        Entities new this tick are not tested (they have no path yet). Returns the events
+        and the rows in ``self.ground`` of the vehicles it stopped or moved (``after`` still
+        has them where the fdm left them: :meth:`_restate_ground`)."""
+        none = np.zeros(0, np.int64)
+        contact_creep, self._contact_creep = self._contact_creep, (none, np.zeros(0))  # kept for those still on
+        touching, self._touching = self._touching, none
         if before.ids.size == 0 or after.ids.size < 2:
-            return []
+            return [], none
         if np.array_equal(before.ids, after.ids):  # the usual tick: the same entities in the same order
             ka = kb = np.arange(after.ids.size)
         else:
             kb, here = rows_of(before.ids, after.ids)
             if np.count_nonzero(here) < 2:
-                return []
+                return [], none
             ka = np.flatnonzero(here)
             kb = kb[here]
         ids = after.ids[ka]
@@ -1065,10 +1083,18 @@ class World(EventLog):
         ci, cj, t, dist = new_contacts(before.ecef_m[kb], after.ecef_m[ka], radius, heading_deg=heading,
                                        half_length_m=half_l, half_width_m=half_w, moves=moving,
                                        lat_deg=after.lat_deg[ka], lon_deg=after.lon_deg[ka], ongoing=gnd_rows.size > 0)
+        key = (np.minimum(ids[ci], ids[cj]) << 32) | np.maximum(ids[ci], ids[cj])  # entity ids are below 2**31
+        if touching.size and ci.size:
+            keep = self._touching_before(after, ka, ci, cj, t, key, touching, heading, radius, half_l, half_w)
+            ci, cj, t, dist, key = ci[keep], cj[keep], t[keep], dist[keep], key[keep]
+        if gnd_rows.size:
+            gnd = np.zeros(ids.size, bool)
+            gnd[gnd_rows] = True
+            self._touching = np.unique(key[gnd[ci] | gnd[cj]])
         held = t < 0.0  # touching at both ends of the tick: an ongoing contact
         if held.any():
             back = self._held_back(before, after, ka, kb, ci[held], cj[held], (heading0, heading), radius, half_l,
-                                   half_w, gnd_rows, gnd_idx, moving)
+                                   half_w, gnd_rows, gnd_idx, moving, contact_creep)
             ci, cj, t, dist = ci[~held], cj[~held], t[~held], dist[~held]
         else:
             back = None
@@ -1093,6 +1119,7 @@ class World(EventLog):
                     crashes.append((me, other, (lat, lon, h - self.geoid_undulation_m)))
                 elif me.kind == GROUND:
                     stops.append((me.ground_id, lat, lon))
+        moved = []
         for me, other, hit in crashes:
             reason = f"collision with {other.name}"
             if me.kind == AIRCRAFT and not me.crashed:
@@ -1102,26 +1129,81 @@ class World(EventLog):
             elif me.kind != AIRCRAFT and not me.destroyed:
                 self._destroy(me, hit[:2])
                 events.append(WorldEvent(self.time_s, "destroyed", me.id, *hit, {"reason": reason}))
+                if me.kind == GROUND and not me.external_id:
+                    moved.append(self.ground.index_of([me.ground_id]))
         if stops:
             gid, lat, lon = zip(*stops)
             # Where each was when it met the other (on its path this tick), not past it.
-            self.ground.stop(self.ground.index_of(list(gid)), lat=lat, lon=lon)
+            moved.append(self.ground.index_of(list(gid)))
+            self.ground.stop(moved[-1], lat=lat, lon=lon)
         if back is not None and back[0].size:  # after the stops: the tick's start is before any contact point
             alive = np.array([not self.entities[int(i)].destroyed for i in ids[back[1]]], bool)
             rows = back[0][alive]
             self.ground.heading_deg[rows] = heading0[back[1][alive]]  # and as it was turned then
             self.ground.stop(rows, lat=before.lat_deg[kb[back[1][alive]]], lon=before.lon_deg[kb[back[1][alive]]])
-        return events
+            moved.append(rows)
+        return events, np.unique(np.concatenate(moved)) if moved else none
+
+    def _touching_before(self, after: Snapshot, ka, ci, cj, t, key, touching, heading, radius, half_l,
+                         half_w) -> np.ndarray:
+        """Of the contacts ``new_contacts`` found this tick (rows ``ci``, ``cj`` of ``ids`` in
+        :meth:`_agent_collisions`, ``t`` the fraction at which they touch, -1 ongoing; ``key``:
+        each pair's key), those new ones of a pair that touched as the last tick left it
+        (``touching``: the last tick's :attr:`_touching`) made ongoing (``t`` set to -1 in
+        place) where they still touch at the tick's end, and a mask of the contacts to keep,
+        False for those that no longer touch then. A vehicle stopped where it met a sphere (a
+        site, an aircraft: the smaller root of |r(t)| = r_i + r_j) stands on the sphere's
+        surface, and read back from the snapshot it may be a rounding outside it: pushing on, it
+        was a new collision every tick (1569 in 60 s at 30 Hz), not an ongoing contact held
+        from going deeper (server/collisions.py counts a pair touching at the tick's start as
+        one). Those touching at neither end passed each other, as a pair touching at the start
+        that does not at the end is no contact to the kernel."""
+        keep = np.ones(t.size, bool)
+        again = np.flatnonzero((t >= 0.0) & np.isin(key, touching, assume_unique=True))
+        if again.size:
+            i, j = ci[again], cj[again]
+            r = after.ecef_m[ka[j]] - after.ecef_m[ka[i]]
+            on = overlap_depth(r, after.lat_deg[ka[i]], after.lon_deg[ka[i]], heading[i], heading[j], half_l[i],
+                               half_w[i], half_l[j], half_w[j], radius[i], radius[j]) > 0.0
+            t[again[on]] = -1.0
+            keep[again[~on]] = False
+        return keep
+
+    def _restate_ground(self, snapshot: Snapshot, before: Snapshot, moved: np.ndarray) -> None:
+        """Rewrite, in this tick's ``snapshot`` (not yet published), the rows of the ground
+        vehicles ``moved`` (rows in ``self.ground``) that the collision pass stopped or put back
+        after it was taken, from their state now, so what is published and recorded, and the next
+        tick's paths and overlap depths (:meth:`_held_back`), start where they are: measured
+        from the un-stopped pose, a vehicle pushing on was never "deeper" every other tick and
+        crept through what it pushed. Accelerations as :meth:`_take_snapshot`'s, from
+        ``before``'s velocities (the arrays are this snapshot's own; ``_prev_vel`` holds the
+        same velocity array, so it follows)."""
+        gnd_ids, idx, _ = self._layout()
+        k, found = rows_of(idx, moved)
+        rows, here = rows_of(snapshot.ids, gnd_ids[k[found]])
+        rows, moved = rows[here], moved[found][here]
+        if rows.size == 0:
+            return
+        ecef, vel, quat, rates, lat, lon, h = self.ground.snapshot_rows(moved, self.geoid_undulation_m)
+        snapshot.ecef_m[rows], snapshot.vel_ecef_mps[rows], snapshot.quat_ecef2body[rows] = ecef, vel, quat
+        snapshot.body_rates_rps[rows], snapshot.lat_deg[rows], snapshot.lon_deg[rows] = rates, lat, lon
+        snapshot.alt_msl_m[rows] = h
+        kb, had = rows_of(before.ids, snapshot.ids[rows])
+        snapshot.acc_ecef_mps2[rows] = np.where(had[:, None], (vel - before.vel_ecef_mps[kb]) / self.dt, 0.0)
 
     def _held_back(self, before: Snapshot, after: Snapshot, ka, kb, ci, cj, headings, radius, half_l, half_w,
-                   gnd_rows, gnd_idx, moving) -> tuple[np.ndarray, np.ndarray]:
+                   gnd_rows, gnd_idx, moving, contact_creep) -> tuple[np.ndarray, np.ndarray]:
         """Of the pairs (ci, cj) touching at both ends of the tick (rows of ``ids`` in
         :meth:`_agent_collisions`, with its shapes; ``headings``: at the tick's start and end),
         the ground vehicles of this world that moved deeper into the other: its overlap with the
         other as that began the tick is deeper from where and as the vehicle ended it than from
-        where and as it began, by more than HOLD_DEPTH_M (so a tank pivoting into its neighbour
-        is held as one driving into it). Returns their rows in ``self.ground`` and in ``ids``,
-        each once."""
+        where and as it began (so a tank pivoting into its neighbour is held as one driving into
+        it), by more than HOLD_DEPTH_M less what its own moves over the contact's earlier ticks
+        took it deeper (``contact_creep``: the last tick's :attr:`_contact_creep`; this tick's
+        are kept there; a move out of the overlap takes off, down to 0). Summed, moves each under
+        the bound do not add up: a tank pushing on from rest crept 0.7 mm every other tick through
+        the other. Only its own moves count: the other's (an aircraft taxiing into it, an external
+        entity) never hold it. Returns their rows in ``self.ground`` and in ``ids``, each once."""
         heading0, heading = headings
         gidx = np.full(heading.size, -1, np.int64)
         gidx[gnd_rows] = gnd_idx
@@ -1133,10 +1215,16 @@ class World(EventLog):
         q = before.ecef_m[kb[others]]
         where = (after.lat_deg[ka[mine]], after.lon_deg[ka[mine]])
         sizes = (half_l[mine], half_w[mine], half_l[others], half_w[others], radius[mine], radius[others])
-        deeper = (overlap_depth(q - after.ecef_m[ka[mine]], *where, heading[mine], heading0[others], *sizes)
-                  > overlap_depth(q - before.ecef_m[kb[mine]], *where, heading0[mine], heading0[others], *sizes)
-                  + HOLD_DEPTH_M)
-        rows = np.unique(mine[deeper])
+        deeper_m = (overlap_depth(q - after.ecef_m[ka[mine]], *where, heading[mine], heading0[others], *sizes)
+                    - overlap_depth(q - before.ecef_m[kb[mine]], *where, heading0[mine], heading0[others], *sizes))
+        keys = (after.ids[ka[mine]] << 32) | after.ids[ka[others]]  # entity ids are below 2**31
+        creep = np.zeros(mine.size)
+        if contact_creep[0].size:
+            k, known = rows_of(contact_creep[0], keys)
+            creep[known] = contact_creep[1][k[known]]
+        rows = np.unique(mine[creep + deeper_m > HOLD_DEPTH_M])
+        back = np.isin(mine, rows)  # put back, for all its contacts: its move did not happen
+        self._contact_creep = (keys, np.where(back, creep, np.maximum(creep + deeper_m, 0.0)))
         return gidx[rows], rows
 
     def _destroy(self, e: Entity, where: tuple) -> None:
