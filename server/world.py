@@ -75,7 +75,7 @@ from server.aircraft_host import LocalAircraftHost
 from server.collisions import new_contacts, overlap_depth
 from server.obstacles import MOVING_MPS, clearance_ahead
 from server.dead_reckoning import ned_to_ecef_quat
-from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalState, extrapolate_external
+from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalTable, extrapolate_external
 from sortie.errors import InvalidArgument, LimitExceeded, NotFound, bound_text
 from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
@@ -275,9 +275,10 @@ class World(EventLog):
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
         self._hold_version = 0  # bumped when a hold changes (its arrays are cached against it)
         self._hold_cache = None
-        self._external: dict[int, ExternalState] = {}  # external entities' last states
+        self._external = ExternalTable()  # external entities' last states (and their columns)
         self._external_ids: dict[str, int] = {}  # external id -> entity id
         self.entities: dict[int, Entity] = {}
+        self._names: set[str] = set()  # the entities' names (unique)
         # id -> (id, name, kind, type, coalition); replaced, never mutated, so readers on
         # other threads always see a whole dict.
         self.infos: dict[int, tuple] = {}
@@ -331,7 +332,7 @@ class World(EventLog):
     def _new_entity(self, name: str, kind: int, type_: str, **kw) -> Entity:
         if len(self.entities) >= MAX_ENTITIES:
             raise LimitExceeded("entities", len(self.entities) + 1, MAX_ENTITIES)
-        if any(e.name == name for e in self.entities.values()):
+        if name in self._names:  # (a scan of every entity: 3 s over 5,000 gateway adds)
             raise InvalidArgument("name", "an entity of this name exists", value=name)
         e = Entity(self._next_id, name, kind, type_, **kw)
         self._next_id += 1
@@ -339,6 +340,7 @@ class World(EventLog):
 
     def _register(self, e: Entity) -> None:
         self.entities[e.id] = e
+        self._names.add(e.name)
         self._layout_version += 1
         info = (e.id, e.name, e.kind, e.type, e.coalition) + ((e.external_id,) if e.external_id else ())
         self.infos = {**self.infos, e.id: info}
@@ -558,6 +560,7 @@ class World(EventLog):
             e = self.entities.pop(entity_id, None)
             if e is None:
                 raise NotFound(f"entity {entity_id} does not exist")
+            self._names.discard(e.name)
             self._layout_version += 1
             self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
             self.wrecks = self.wrecks - {entity_id}
@@ -897,6 +900,7 @@ class World(EventLog):
     def _lose(self, entity_id: int) -> WorldEvent:
         """An aircraft whose worker process died: gone from the world (the host has forgotten it)."""
         e = self.entities.pop(entity_id)
+        self._names.discard(e.name)
         self._layout_version += 1
         self.infos = {k: v for k, v in self.infos.items() if k != entity_id}
         self._pending.pop(entity_id, None)
@@ -1492,10 +1496,10 @@ class World(EventLog):
         if static_part is not None:
             ids += static_part[0]
             parts.append(static_part[1])
-        if self._external:
-            ext_ids = list(self._external)
-            ids += ext_ids
-            parts.append(self._external_part([self._external[i] for i in ext_ids]))
+        if len(self._external):
+            ext_ids, *ext_cols = self._external.columns()
+            ids += ext_ids.tolist()
+            parts.append(self._external_part(*ext_cols))
         if not ids:
             return _empty_snapshot(self.time_s, self.tick_count)
         cols = [np.concatenate([p[k] for p in parts]) for k in range(7)]
@@ -1512,13 +1516,10 @@ class World(EventLog):
         return Snapshot(self.time_s, self.tick_count, ids, cols[0], vel, acc, cols[2], cols[3], cols[4], cols[5],
                         cols[6])
 
-    def _external_part(self, states: list) -> tuple:
-        """Snapshot columns of external entities: each state dead-reckoned to the world time now with
-        its own DIS algorithm, world or body axes (server.external.extrapolate_external)."""
-        cols = [np.array([getattr(s, f) for s in states], np.float64) for f in
-                ("t0_s", "ecef_m", "vel_ecef_mps", "acc_ecef_mps2", "quat_ecef2body", "body_rates_rps")]
-        t0, pos, vel, acc, quat, rates = cols
-        algorithm = np.array([s.algorithm for s in states], np.int64)
+    def _external_part(self, t0, pos, vel, acc, quat, rates, algorithm) -> tuple:
+        """Snapshot columns of external entities (their states' columns,
+        server.external.ExternalTable.columns): each state dead-reckoned to the world time now
+        with its own DIS algorithm, world or body axes (server.external.extrapolate_external)."""
         pos_t, vel_t, quat_t = extrapolate_external(algorithm, t0, pos, vel, acc, quat, rates, self.time_s)
         lat, lon, h = ecef_to_geodetic(pos_t)
         return pos_t, vel_t, quat_t, rates, lat, lon, h - self.geoid_undulation_m
