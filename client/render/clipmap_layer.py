@@ -1912,6 +1912,66 @@ class ClipmapLayer:
             return float(sum(w * self._vertex_height(k, r, coarse, g) for w, g in zip(weights, corners) if w > 0))
         return math.nan
 
+    def surface_heights_msl(self, lats: np.ndarray, lons: np.ndarray) -> np.ndarray:
+        """(n,) float64 :meth:`surface_height_msl` at (n,) degrees at once, a pass a drawn level
+        (the renderer lifts entities onto it: entities.ground_lifts)."""
+        lats, lons = np.asarray(lats, np.float64), np.asarray(lons, np.float64)
+        if self.polar:
+            return self.polar_mesh.surface_heights_msl(lats, lons)
+        out = np.full(lats.shape, math.nan)
+        c = self.clipmap
+        if c is None:
+            return out
+        regions = self.drawn_level_regions()
+        todo = np.ones(lats.shape, bool)
+        for k in sorted(regions):
+            r = regions[k]
+            fi, fj = c.focus_index(k, lats, lons)
+            i, j = np.floor(fi).astype(np.int64), np.floor(fj).astype(np.int64)
+            here = todo & (r.i0 <= i) & (i + 1 <= r.i1) & (r.j0 <= j) & (j + 1 <= r.j1)
+            if not here.any():
+                continue
+            coarse = c.levels[k + 1] if k + 1 in regions else None
+            i, j, y, x = i[here], j[here], fi[here] - i[here], fj[here] - j[here]
+            lower = x >= y  # cell_corner_weights: SW-SE-NE, else SW-NE-NW
+            weights = (np.where(lower, 1.0 - x, 1.0 - y), np.where(lower, x - y, 0.0), np.where(lower, y, x),
+                       np.where(lower, 0.0, y - x))
+            corners = ((i, j), (i, j + 1), (i + 1, j + 1), (i + 1, j))  # SW, SE, NE, NW
+            out[here] = sum(w * self._vertex_heights(k, r, coarse, gi, gj) for w, (gi, gj) in zip(weights, corners))
+            todo &= ~here
+        return out
+
+    def _vertex_heights(self, k: int, region: Rect, coarse, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """(n,) float64 :meth:`_vertex_height` of level k's posts (i, j), (n,) int64 each."""
+        c = self.clipmap
+        h = c.levels[k].texel[i % c.n, j % c.n, 3].astype(np.float64)
+        if coarse is None:
+            return h
+        oi, oj = i & 1, j & 1
+        ci, cj = (i - oi) // 2, (j - oj) // 2
+
+        def post(a, b):
+            return coarse.texel[a % c.n, b % c.n, 3].astype(np.float64)
+
+        # The mean of the 1, 2 or 4 coarser posts around (i, j), as _vertex_height takes it.
+        hc = 0.25 * (post(ci, cj) + post(ci + oi, cj) + post(ci, cj + oj) + post(ci + oi, cj + oj))
+        alpha = self._vertex_alphas(k, region, i, j)
+        return np.where(alpha >= 1.0, hc, h + alpha * (hc - h))
+
+    def _vertex_alphas(self, k: int, region: Rect, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """(n,) float64 :meth:`vertex_alpha` of level k's posts (i, j), (n,) int64 each."""
+        c = self.clipmap
+        fi, fj = c.focus_index(k, *self._focus)
+        w, half = max(MORPH_WIDTH_FRACTION * c.n, 1.0), (c.n - 1) / 2.0 - 1.0
+        gi, gj = i - region.i0, j - region.j0
+        d = np.minimum.reduce([gi, gj, region.i1 - region.i0 - gi, region.j1 - region.j0 - gj])
+        if c.levels[k].region != clip_region(*active_origin(fi, fj, c.n), c.n):  # lagging
+            a_b = np.clip((w + 1.0 - d) / w, 0.0, 1.0)
+        else:
+            dv = np.maximum(np.abs(gi - (fi - region.i0)), np.abs(gj - (fj - region.j0)))
+            a_b = np.where(d <= 0, 1.0, np.clip((dv - (half - w)) / w, 0.0, 1.0))
+        return np.clip(a_b + self.level_alpha_h(k), 0.0, 1.0)
+
     def _vertex_height(self, k: int, region: Rect, coarse, g: tuple[int, int]) -> float:
         """The vertex shader's height MSL (``surface``) of level k's post g = (i, j) drawn in region."""
         c = self.clipmap

@@ -13,6 +13,16 @@ aircraft at 5 km in a 960-pixel, 60 degree view (1.1 mrad a pixel) is drawn
 8.8 times its size, about 130 m. Ground vehicles and statics stand on their
 reference point (``fdm.ground``: on the terrain), so they grow upwards.
 
+Lifted onto the drawn ground (:func:`ground_lifts`): ``fdm.ground`` puts a vehicle on the
+terrain's bilinear surface, but the terrain layer draws each cell as two flat triangles, which
+stand above that surface by up to a quarter of the cell's twist (terrain_mesh.cell_corner_weights;
+more than 2.7 m in 4.4 % of the Alps tile's cells), and a coarser clipmap level or a decimated
+block draws the ground elsewhere again. Each frame a ground vehicle or static whose reference
+point lies under the surface drawn there is raised along its local vertical onto it; an
+aircraft is raised until its lowest point, at its drawn scale and attitude, is on it (a marker
+magnified about its reference point would otherwise sink its lower half into the ground). Never
+lowered: only the drawing moves, not the entity.
+
 Colours: blue, red and neutral (yellow) coalitions, lit by the same sun and
 ambient as the terrain, and fogged.
 """
@@ -27,6 +37,7 @@ from client.render.camera import LocalOrigin, quat_to_matrix
 from client.render.gl import check_gl_error
 from client.render.shading import GLSL_COMMON, Frame, rgb
 from sortie.errors import InvalidArgument
+from terrain.geodesy import ecef_to_geodetic, enu_basis
 
 KIND_AIRCRAFT, KIND_GROUND, KIND_STATIC = 1, 2, 3  # sortie.v1.EntityKind numbers
 KIND_NAMES = {KIND_AIRCRAFT: "aircraft", KIND_GROUND: "ground", KIND_STATIC: "static"}
@@ -100,6 +111,11 @@ def static_mesh() -> np.ndarray:
 
 
 MESHES = {KIND_AIRCRAFT: aircraft_mesh, KIND_GROUND: ground_vehicle_mesh, KIND_STATIC: static_mesh}
+
+
+def mesh_vertices(triangles: np.ndarray) -> np.ndarray:
+    """(k, 3) float64 the distinct vertices of a (m, 3, 3) mesh, body metres."""
+    return np.unique(triangles.reshape(-1, 3), axis=0)
 
 
 def mesh_length_m(triangles: np.ndarray) -> float:
@@ -207,38 +223,79 @@ def apparent_scales(entities: EntitySet, lengths_m: np.ndarray, camera_ecef, pix
     return np.maximum(1.0, MIN_ENTITY_PIXELS * pixel_angle_rad * dist / lengths_m)
 
 
+def depth_below_reference_m(vertices_body: np.ndarray, quats_wxyz: np.ndarray, up_ecef: np.ndarray) -> np.ndarray:
+    """(n,) float64 metres: how far a mesh's lowest vertex lies below its reference point along
+    the local vertical, at true scale (0 where none is below). vertices_body: (k, 3) float64 body
+    metres; quats_wxyz: (n, 4) ECEF -> body; up_ecef: (n, 3) unit local verticals, ECEF."""
+    up_body = np.einsum("nij,ni->nj", quat_to_matrix(quats_wxyz), up_ecef)  # R^T up: the vertical in body axes
+    return np.maximum(0.0, (-(vertices_body @ up_body.T)).max(axis=0))
+
+
+def ground_lifts(kinds: np.ndarray, heights_m: np.ndarray, depths_m: np.ndarray, scales: np.ndarray,
+                 ground_m: np.ndarray) -> np.ndarray:
+    """(n,) float64 metres to raise each entity along its local vertical so that it is not drawn
+    under the ground: a ground vehicle or static (it stands on its reference point and grows
+    upwards) until its reference point is on the drawn ground; an aircraft (magnified about its
+    reference point) until its lowest point, scales x depths_m below it, is. 0 where it stands
+    higher or where no ground is drawn (NaN). kinds: (n,) int EntityKind; heights_m: (n,)
+    ellipsoid heights of the reference points; depths_m: (n,) :func:`depth_below_reference_m`;
+    scales: (n,) drawn scales; ground_m: (n,) ellipsoid height of the surface drawn under each."""
+    lowest = heights_m - np.where(kinds == KIND_AIRCRAFT, scales * depths_m, 0.0)
+    lift = ground_m - lowest
+    return np.where(lift > 0.0, lift, 0.0)  # (NaN: no ground drawn there -> 0)
+
+
 class EntityLayer:
-    """Draws an EntitySet: one instanced draw call per kind."""
+    """Draws an EntitySet: one instanced draw call per kind. ``lifts_m``: (n,) float64, how far
+    each entity of the last draw was raised onto the drawn ground (:func:`ground_lifts`)."""
 
     def __init__(self, ctx):
         self.ctx = ctx
         self.program = ctx.program(vertex_shader=ENTITY_VERTEX_SHADER, fragment_shader=ENTITY_FRAGMENT_SHADER)
         self._meshes = {}
+        self._aircraft_vertices = mesh_vertices(aircraft_mesh())  # its lowest point: ground_lifts
         for kind, make in MESHES.items():
             tris = make()
             vertices, normals = _flat_shaded(tris)
             data = np.hstack([vertices, normals]).astype("f4")
             self._meshes[kind] = (self.ctx.buffer(data.tobytes()), len(vertices), mesh_length_m(tris))
+        self.lifts_m = np.zeros(0)
         self.triangles = 0
         self.vertices = 0
         self.drawn = 0
 
-    def draw(self, frame: Frame, entities: EntitySet) -> None:
-        """Draw every entity in front of the near plane."""
+    def draw(self, frame: Frame, entities: EntitySet, ground=None) -> None:
+        """Draw every entity in front of the near plane. ground(lats, lons) -> (n,) float64: the
+        ellipsoid height (metres) of the terrain surface drawn at (n,) degrees (NaN where none),
+        onto which entities are lifted (:func:`ground_lifts`); None: none is drawn."""
         self.triangles = self.vertices = self.drawn = 0
+        self.lifts_m = np.zeros(len(entities))
         if len(entities) == 0:
             return
         frame.write_common(self.program)
         pixel = frame.camera.pixel_footprint_rad(frame.width)
         kinds = np.where(np.isin(entities.kinds, list(MESHES)), entities.kinds, KIND_STATIC)  # unknown: static
-        for kind, (vbo, n_vertices, length) in self._meshes.items():
+        lengths = np.zeros(len(entities))
+        for kind, (_, _, length) in self._meshes.items():
+            lengths[kinds == kind] = length
+        scales = apparent_scales(entities, lengths, frame.camera.position_ecef, pixel)
+        positions = entities.positions_ecef
+        if ground is not None:
+            lat, lon, h = ecef_to_geodetic(positions)
+            up = enu_basis(lat, lon)[2]
+            depths = np.zeros(len(entities))
+            air = np.flatnonzero(kinds == KIND_AIRCRAFT)
+            if air.size:
+                depths[air] = depth_below_reference_m(self._aircraft_vertices, entities.quats_wxyz[air], up[air])
+            self.lifts_m = ground_lifts(kinds, h, depths, scales, np.asarray(ground(lat, lon), np.float64))
+            positions = positions + self.lifts_m[:, None] * up
+        for kind, (vbo, n_vertices, _) in self._meshes.items():
             sel = np.flatnonzero(kinds == kind)
             if sel.size == 0:
                 continue
-            subset = EntitySet(entities.ids[sel], entities.kinds[sel], entities.positions_ecef[sel],
+            subset = EntitySet(entities.ids[sel], entities.kinds[sel], positions[sel],
                                entities.quats_wxyz[sel], tuple(entities.coalitions[k] for k in sel))
-            scales = apparent_scales(subset, np.full(sel.size, length), frame.camera.position_ecef, pixel)
-            instances = self.ctx.buffer(instance_records(frame.origin, subset, scales).tobytes())
+            instances = self.ctx.buffer(instance_records(frame.origin, subset, scales[sel]).tobytes())
             vao = self.ctx.vertex_array(self.program, [
                 (vbo, "3f 3f", "in_position", "in_normal"),
                 (instances, "3f 3f 3f 3f 3f/i", "in_axis_x", "in_axis_y", "in_axis_z", "in_offset", "in_colour")])

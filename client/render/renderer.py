@@ -24,7 +24,8 @@ A frame, in draw order (reversed-Z float depth, client/render/gl.py):
    It is the water wherever the terrain has no data or ends, and the horizon
    line; terrain at or below the water level (0 m MSL; half the step over a lossy
    terrain store, client/render/shading.py) is itself shaded as water;
-3. **entities** (client/render/entities.py), instanced;
+3. **entities** (client/render/entities.py), instanced, each lifted onto the terrain surface
+   drawn under it where it would stand below it (:meth:`Renderer.drawn_ground_m`);
 4. **sky**: one full-screen triangle at depth 0 (infinitely far) that only
    fills the pixels nothing else covered (depth test >=, early-rejected
    elsewhere): the gradient of client/render/shading.py.
@@ -417,7 +418,7 @@ class Renderer:
             if self.sea_layer is not None:
                 self.sea_layer.draw(frame)
                 triangles, vertices = triangles + self.sea_layer.triangles, vertices + self.sea_layer.vertices
-            self.entity_layer.draw(frame, entities)
+            self.entity_layer.draw(frame, entities, self.drawn_ground_m if self.terrain_layer is not None else None)
             self._draw_sky(frame)
             check_gl_error(self.ctx, "frame")
             data = self._fbo.read(components=3, alignment=1)
@@ -452,6 +453,22 @@ class Renderer:
             return camera, 0.0
         up = enu_basis(lat, lon)[2]
         return dataclasses.replace(camera, position_ecef=camera.position_ecef + lift * up), lift
+
+    def drawn_ground_m(self, lats, lons) -> np.ndarray:
+        """(n,) float64: the ellipsoid height (metres; MSL + N) of the terrain layer's surface drawn
+        at (n,) degrees, the surface :meth:`above_drawn_ground` keeps the eye over; NaN where it draws
+        none. Entities are lifted onto it (entities.ground_lifts). One call for all where the layer
+        answers many points at once (``surface_heights_msl``), else a call a point."""
+        lats, lons = np.asarray(lats, np.float64), np.asarray(lons, np.float64)
+        many = getattr(self.terrain_layer, "surface_heights_msl", None)
+        one = getattr(self.terrain_layer, "surface_height_msl", None)
+        if many is not None:
+            surface = np.asarray(many(lats, lons), np.float64)
+        elif one is not None:
+            surface = np.fromiter((one(float(a), float(b)) for a, b in zip(lats, lons)), np.float64, len(lats))
+        else:
+            surface = np.full(len(lats), math.nan)
+        return surface + self.geoid_undulation_m
 
     def height_above_ground_m(self, camera: Camera) -> float:
         """The camera's height above the highest surface drawn under it (metres; negative

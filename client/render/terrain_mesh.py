@@ -229,6 +229,21 @@ def grid_surface_height(heights_m: np.ndarray, fi: float, fj: float, top: bool =
     return float(np.dot(cell_corner_weights(fi - i, fj - j), corners))
 
 
+def grid_surface_heights(heights_m: np.ndarray, fi: np.ndarray, fj: np.ndarray) -> np.ndarray:
+    """(n,) float64 :func:`grid_surface_height` at (n,) fractional grid indices fi (rows), fj
+    (columns) at once: the height of the triangle drawn there; NaN outside the grid or on a hole."""
+    ny, nx = heights_m.shape
+    fi, fj = np.asarray(fi, np.float64), np.asarray(fj, np.float64)
+    inside = (fi >= 0.0) & (fj >= 0.0) & (fi <= ny - 1) & (fj <= nx - 1)
+    i = np.clip(np.floor(np.where(inside, fi, 0.0)).astype(np.int64), 0, ny - 2)
+    j = np.clip(np.floor(np.where(inside, fj, 0.0)).astype(np.int64), 0, nx - 2)
+    y, x = fi - i, fj - j
+    sw, se, ne, nw = heights_m[i, j], heights_m[i, j + 1], heights_m[i + 1, j + 1], heights_m[i + 1, j]
+    lower = x >= y  # cell_corner_weights: SW-SE-NE, else SW-NE-NW
+    h = np.where(lower, (1.0 - x) * sw + (x - y) * se + y * ne, (1.0 - y) * sw + x * ne + (y - x) * nw)
+    return np.where(inside, h, np.nan)
+
+
 def stitch_edges(points_ecef: np.ndarray, heights_m: np.ndarray, every: int) -> None:
     """Move the boundary posts of a (ny, nx, 3) grid that fall between every ``every``-th post
     onto the straight line (ECEF) between those two, in place; heights (ny, nx) likewise. The
@@ -648,6 +663,18 @@ class TerrainMeshLayer:
         rows, cols = m.window_shape
         heights = m.height_msl_m[:rows * cols].reshape(rows, cols)
         return grid_surface_height(heights, (lat - lat0) / dlat, ((lon - lon0) % 360.0) / dlon, top)
+
+    def surface_heights_msl(self, lats: np.ndarray, lons: np.ndarray) -> np.ndarray:
+        """(n,) float64 :meth:`surface_height_msl` at (n,) degrees at once (the renderer lifts
+        entities onto it: entities.ground_lifts)."""
+        m = self.mesh
+        lats, lons = np.asarray(lats, np.float64), np.asarray(lons, np.float64)
+        if m is None:
+            return np.full(lats.shape, math.nan)
+        (lat0, lon0), (dlat, dlon) = m.window_corner, m.window_spacing_deg
+        rows, cols = m.window_shape
+        heights = m.height_msl_m[:rows * cols].reshape(rows, cols)
+        return grid_surface_heights(heights, (lats - lat0) / dlat, ((lons - lon0) % 360.0) / dlon)
 
     def ground_height_msl(self, lat: float, lon: float) -> float:
         """At least the height MSL of the surface drawn at (lat, lon), for the renderer's near plane:
