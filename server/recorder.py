@@ -13,12 +13,16 @@ releases the GIL), compression, writing. Measured at 500 entities: 0.24 ms a
 tick for ordering and a BLAKE2b digest, which the clock thread paid before
 this split and the switch to XXH3.
 
-A chunk closes when it holds ``chunk_s`` world seconds of ticks or when its
-first tick is ``chunk_s`` wall seconds old (a slow or paused clock), and is
-written and flushed at once: a killed server loses at most the open chunk,
-at most ``chunk_s`` (1 s by default) of world time. The writer queue holds
-at most MAX_QUEUED_CHUNKS closed chunks; a disk slower than that makes the
-clock wait rather than drop a chunk. A write error (disk full) stops the
+A chunk closes when it holds ``chunk_s`` world seconds of ticks or when what
+it holds first (a tick, an input or an event) is ``chunk_s`` wall seconds old
+(a slow or paused clock: inputs made while the clock is paused close in a
+chunk of no tick, which readers keep before the chunk of the tick they come
+before), and is written, flushed and synced to the disk (fdatasync) at once:
+a killed server, or a machine that loses its power, loses at most the open
+chunk, at most ``chunk_s`` (1 s by default, at most MAX_CHUNK_S) of world or
+wall time. The writer queue holds at most MAX_QUEUED_CHUNKS closed chunks; a
+disk slower than that makes the clock wait rather than drop a chunk. A write
+error (disk full), or any other error on the writer's thread, stops the
 recording, logs it and leaves the exercise running; ``error`` says why.
 """
 
@@ -27,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import queue
 import threading
@@ -45,6 +50,12 @@ from sortie.v1 import simulation_pb2 as pb
 logger = logging.getLogger(__name__)
 
 DEFAULT_CHUNK_S = 1.0
+# The longest chunk (world or wall seconds): an hour loses an hour to a kill, and the wall-age
+# deadline (time.monotonic() + chunk_s) stays far inside what the clocks and queue timeouts take
+# (a chunk_s of 1e300 overflowed them and killed the writer thread).
+MAX_CHUNK_S = 3600.0
+# The longest the writer thread waits for a chunk before it looks at the open one's wall age.
+MAX_POLL_S = 0.25
 # The writer thread's nice value (Linux, per thread): its coding runs in the CPU time the clock
 # thread and the aircraft workers leave, not in theirs.
 WRITER_NICE = 10
@@ -130,6 +141,18 @@ def input_record(tick: int, kind: str, entity_id: int, fields: dict) -> rpb.Inpu
     return r
 
 
+def check_chunk_s(chunk_s: float, field: str = "chunk_s") -> None:
+    """InvalidArgument naming ``field`` unless ``chunk_s`` is a number of seconds in (0, MAX_CHUNK_S]."""
+    try:
+        ok = math.isfinite(chunk_s) and 0.0 < chunk_s <= MAX_CHUNK_S
+    except TypeError:
+        ok = False
+    if not ok:
+        from sortie.errors import InvalidArgument
+
+        raise InvalidArgument(field, f"must be a number of seconds in (0, {MAX_CHUNK_S:g}]", value=chunk_s)
+
+
 class _OpenChunk:
     def __init__(self):
         self.snapshots: list = []  # server.world.Snapshot (immutable: the world makes new arrays each tick)
@@ -143,10 +166,7 @@ class Recorder:
     """Records a world into ``path`` (a new file) with ``header``; see the module docstring."""
 
     def __init__(self, path, header: rpb.RecordingHeader, chunk_s: float = DEFAULT_CHUNK_S):
-        if not chunk_s > 0:
-            from sortie.errors import InvalidArgument
-
-            raise InvalidArgument("chunk_s", "must be > 0", value=chunk_s)
+        check_chunk_s(chunk_s)
         header.chunk_s = chunk_s
         self.path = Path(path)
         self.header = header
@@ -163,6 +183,7 @@ class Recorder:
         self.error: Exception | None = None
         self.chunks_written = 0
         self.cpu_s = 0.0  # CPU time of the writer thread's coding and writing
+        self.sync_s = 0.0  # wall time of the writer thread's fdatasync calls (off the clock thread)
         self.closed = False
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
@@ -179,9 +200,7 @@ class Recorder:
         else:
             new = ()
         with self._lock:
-            c = self._open
-            if c.wall_start is None:
-                c.wall_start = time.monotonic()
+            c = self._started()
             c.snapshots.append(snapshot)
             for i in new:
                 self._seen.add(i)
@@ -194,35 +213,63 @@ class Recorder:
     def on_input(self, tick: int, kind: str, entity_id: int, fields: dict) -> None:
         r = input_record(tick, kind, entity_id, fields)
         with self._lock:
-            self._open.inputs.append(r)
+            self._started().inputs.append(r)
 
     def on_event(self, tick: int, ev) -> None:
         r = event_record(tick, ev)
         with self._lock:
-            self._open.events.append(r)
+            self._started().events.append(r)
+
+    def _started(self) -> _OpenChunk:
+        """The open chunk, its wall age counted from now if it is empty (called under the lock):
+        inputs made while the clock is paused are written after ``chunk_s`` like ticks."""
+        c = self._open
+        if c.wall_start is None:
+            c.wall_start = time.monotonic()
+        return c
 
     # -- chunks ---------------------------------------------------------------------------------
 
     def _close_open(self) -> None:
         """Hand the open chunk to the writer thread (called under the lock)."""
         c, self._open = self._open, _OpenChunk()
-        if self.error is None:
-            self._queue.put(c)
+        self._put(c)
+
+    def _put(self, item) -> None:
+        """Queue ``item`` for the writer thread, waiting while the queue is full (a slow disk makes
+        the clock wait), but not for a writer thread that stopped, nor a chunk for a recording that
+        did (``error`` says why); None, the end, goes to a writer thread that runs."""
+        while self._thread.is_alive() and (item is None or self.error is None):
+            try:
+                self._queue.put(item, timeout=MAX_POLL_S)
+                return
+            except queue.Full:
+                continue
 
     def _close_if_old(self) -> None:
+        """Close the open chunk once what it holds first is ``chunk_s`` wall seconds old: ticks,
+        or inputs and events alone (the clock paused or slower than one tick in ``chunk_s``)."""
         with self._lock:
             c = self._open
-            if c.snapshots and time.monotonic() - c.wall_start >= self.chunk_s:
+            if c.wall_start is not None and time.monotonic() - c.wall_start >= self.chunk_s:
                 self._close_open()
 
     def _run(self) -> None:
+        try:
+            self._write_chunks()
+        except Exception as exc:  # noqa: BLE001 - any error stops the recording, never the exercise
+            self.error = exc
+            logger.error("recording to %s stopped: %s: %s", self.path, type(exc).__name__, exc)
+
+    def _write_chunks(self) -> None:
         try:  # Linux: a thread's own nice value; the clock thread and the fdm workers come first
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICE)
         except (AttributeError, OSError):
             pass
+        poll_s = min(self.chunk_s / 4, MAX_POLL_S)
         while True:
             try:
-                c = self._queue.get(timeout=self.chunk_s / 4)
+                c = self._queue.get(timeout=poll_s)
             except queue.Empty:
                 self._close_if_old()
                 continue
@@ -235,6 +282,9 @@ class Recorder:
                 head, body = encode_chunk(c, self.steps, self.rate_hz)
                 self._writer.write_chunk(head, body)
                 self.cpu_s += time.thread_time() - t0
+                t1 = time.perf_counter()
+                self._writer.sync(data_only=True)  # on the disk: a power loss loses the open chunk only
+                self.sync_s += time.perf_counter() - t1
                 self.chunks_written += 1
             except Exception as exc:  # noqa: BLE001 - the exercise goes on without its recording
                 self.error = exc
@@ -248,7 +298,7 @@ class Recorder:
         with self._lock:
             if self._open.snapshots or self._open.inputs or self._open.events:
                 self._close_open()
-        self._queue.put(None)
+        self._put(None)
         self._thread.join()
         if self.error is None:
             try:

@@ -19,7 +19,11 @@ footer's index once every chunk it names is where it says, holding the ticks
 it says (their heads checked on opening); a file without one (the server was
 killed), or whose index does not match the chunks (swapped or moved, the
 footer kept), is indexed by walking the chunk frames (their heads are
-uncompressed), and everything up to the last whole chunk replays.
+uncompressed), and everything up to the last whole chunk replays. A whole
+footer (its index's CRC, its back offset and end marker) followed by other
+bytes is still the footer: the bytes after it are a problem naming them. The
+walk ends at a whole footer only; an INDX magic that starts none (a chunk's
+damaged magic, a damaged footer) is a damaged stretch like any other.
 
 Damage. A chunk's own CRC covers its head and body; the head also ends with a
 CRC of its own (over the frame's lengths and the head), so a chunk whose body
@@ -273,11 +277,11 @@ class RecordingWriter:
         self.bytes_written = self._f.tell()
         _add_to_index(self.index, head, offset, self._entities)
 
-    def sync(self) -> None:
-        """Make what was written durable (fsync), beyond surviving a killed process."""
-        import os
-
-        os.fsync(self._f.fileno())
+    def sync(self, data_only: bool = False) -> None:
+        """Make what was written durable (fsync; ``data_only``: fdatasync, which leaves out
+        metadata that reading the data back does not need, such as the modification time),
+        beyond surviving a killed process: a power loss too."""
+        (os.fdatasync if data_only and hasattr(os, "fdatasync") else os.fsync)(self._f.fileno())
 
     def close(self) -> None:
         if self.closed:
@@ -563,20 +567,67 @@ class Recording:
         self.notes.append("the header has no CRC (recorded before header CRCs): its fields are unchecked but "
                           "for their ranges (the scenario text is checked by its SHA-256)")
 
+    def _footer_end(self, offset: int) -> int | None:
+        """Where the footer starting at ``offset`` ends, when a whole one does: its INDX frame,
+        the index its CRC checks, the offset of "INDX" back at ``offset`` and the end marker;
+        None otherwise (an INDX magic alone is 4 bytes of a damaged chunk, or anything)."""
+        frame = self._read_at(offset, FRAME.size) if offset < self.size else b""
+        if len(frame) < FRAME.size:
+            return None
+        magic, n, _, crc = FRAME.unpack(frame)
+        if magic != INDEX_MAGIC or n > MAX_HEAD_BYTES or offset + FRAME.size + n + 16 > self.size:
+            return None
+        data = self._read_at(offset + FRAME.size, n + 16)
+        if zlib.crc32(data[:n]) != crc or data[n:] != struct.pack("<Q", offset) + END_MAGIC:
+            return None
+        return offset + FRAME.size + n + 16
+
+    def _footer_past_chunks(self) -> int | None:
+        """The offset of a whole footer that the chunk frames lead to from the header, hopping by
+        their lengths (nothing else read: 16 bytes a chunk), when the file does not end with one
+        (bytes appended after it); None when the hop meets anything else first."""
+        offset = self._data_start
+        while offset + FRAME.size <= self.size:
+            magic, nh, nb, _ = FRAME.unpack(self._read_at(offset, FRAME.size))
+            if magic == INDEX_MAGIC:
+                return offset if self._footer_end(offset) is not None else None
+            if magic != CHUNK_MAGIC or nh > MAX_HEAD_BYTES or nb > MAX_BODY_BYTES:
+                return None
+            offset += FRAME.size + nh + nb
+        return None
+
+    def _note_bytes_after_footer(self, offset: int, end: int) -> None:
+        """The bytes after the whole footer at ``offset`` (ending at ``end``): a problem, once."""
+        if end < self.size and not self._after_footer_noted:
+            self._after_footer_noted = True
+            self.problems.append(f"{self.size - end} bytes after the footer at offset {offset} (the recording ends "
+                                 f"at byte {end}): not part of the recording, left unread")
+
     def _read_footer(self) -> rpb.RecordingIndex | None:
+        """The footer's index: the file's last bytes, or a whole footer followed by other bytes
+        (appended: a problem naming them); None (a problem) when there is none or it is
+        damaged: the file is walked."""
+        self._after_footer_noted = False
         if self.size < self._data_start + FRAME.size + 16:
             self.problems.append(NO_FOOTER)
             return None
         tail = self._read_at(self.size - 16, 16)
-        if tail[8:] != END_MAGIC:
-            self.problems.append(NO_FOOTER)
-            return None
-        (offset,) = struct.unpack("<Q", tail[:8])
+        offset = struct.unpack("<Q", tail[:8])[0] if tail[8:] == END_MAGIC else None
+        end = self._footer_end(offset) if offset is not None else None
+        if end is None:  # no footer at the end: one followed by appended bytes, or none
+            found = self._footer_past_chunks()
+            if found is not None:
+                offset, end = found, self._footer_end(found)
+            elif offset is None:
+                self.problems.append(NO_FOOTER)
+                return None
+        if end is not None:
+            self._note_bytes_after_footer(offset, end)
         frame = self._read_at(offset, FRAME.size) if offset < self.size else b""
         if len(frame) == FRAME.size:
             magic, n, _, crc = FRAME.unpack(frame)
             data = self._read_at(offset + FRAME.size, n) if magic == INDEX_MAGIC and n <= MAX_HEAD_BYTES else b""
-            if len(data) == n and zlib.crc32(data) == crc and offset + FRAME.size + n + 16 == self.size:
+            if len(data) == n and zlib.crc32(data) == crc and end is not None:
                 try:
                     index = rpb.RecordingIndex.FromString(data)
                 except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError: CRC-valid, not an index
@@ -652,6 +703,8 @@ class Recording:
         if len(frame) < FRAME.size:
             return f"cut short ({len(frame)} of {FRAME.size} frame bytes)"
         magic, nh, nb, crc = FRAME.unpack(frame)
+        if magic == INDEX_MAGIC:  # the walk stops at a whole footer (_at_footer): this is none
+            return "is no chunk frame (an INDX magic, but no whole footer there)"
         if magic != CHUNK_MAGIC:
             return "is no chunk frame (no CHNK magic)"
         if nh > MAX_HEAD_BYTES or nb > MAX_BODY_BYTES:
@@ -678,7 +731,7 @@ class Recording:
             magic, nh, nb, _ = FRAME.unpack(frame)
             end = offset + FRAME.size + nh + nb
             if magic == CHUNK_MAGIC and nh <= MAX_HEAD_BYTES and nb <= MAX_BODY_BYTES and end <= self.size:
-                if end == self.size or self._read_at(end, len(INDEX_MAGIC)) == INDEX_MAGIC:
+                if end == self.size or self._at_footer(end):
                     return None, None  # the last chunk, or the one before the footer
                 got = self._probe(end)
                 if not isinstance(got, str):
@@ -686,14 +739,27 @@ class Recording:
         pos = offset + 1
         while pos < self.size:
             block = self._read_at(pos, SCAN_BLOCK + len(CHUNK_MAGIC) - 1)
-            i = block.find(CHUNK_MAGIC)
-            while i >= 0:
+            for i in (m.start() for m in re.finditer(re.escape(CHUNK_MAGIC) + b"|" + re.escape(INDEX_MAGIC), block)):
+                if block[i:i + 4] == INDEX_MAGIC:
+                    if self._at_footer(pos + i):
+                        return None, None  # a whole footer: the recording ends there
+                    continue
                 got = self._probe(pos + i)
                 if not isinstance(got, str):
                     return pos + i, got
-                i = block.find(CHUNK_MAGIC, i + 1)
             pos += SCAN_BLOCK
         return None, None
+
+    def _at_footer(self, offset: int) -> bool:
+        """Whether a whole footer starts at ``offset`` (:meth:`_footer_end`); bytes after it are a
+        problem (:meth:`_note_bytes_after_footer`)."""
+        if self._read_at(offset, len(INDEX_MAGIC)) != INDEX_MAGIC:
+            return False
+        end = self._footer_end(offset)
+        if end is None:
+            return False
+        self._note_bytes_after_footer(offset, end)
+        return True
 
     def _walk(self) -> rpb.RecordingIndex:
         """Index the chunks by their frames. A chunk that does not check is skipped (see
@@ -703,7 +769,7 @@ class Recording:
         offset, got = self._data_start, None
         self._index_end = offset
         while offset < self.size:
-            if self._read_at(offset, len(INDEX_MAGIC)) == INDEX_MAGIC:
+            if self._at_footer(offset):  # not an INDX magic alone: a damaged chunk's is a damaged stretch
                 break
             got = self._probe(offset) if got is None else got
             if not isinstance(got, str):
@@ -723,19 +789,22 @@ class Recording:
         order. A chunk that holds a tick one before it in the file holds (a copy, or an overlap)
         is left out: the first in the file is kept. A chunk out of place that overlaps none is
         kept, in its place (each chunk reads alone, and its trusted head says its ticks). A chunk
-        with no tick (the writer writes one last, with the inputs and events done after the last
-        tick) is kept when it comes after every tick kept, the first such one only. What is left
-        out is a problem."""
+        with no tick (inputs and events done after tick F - 1, F its first tick: the writer's last,
+        or one closed on wall time while the clock was paused or slow) is kept, in file order
+        among those of the same F, before the chunk that holds tick F, when no chunk before it in
+        the file holds tick F or later, nor ticks either side of F, and it is no copy of one kept
+        (the same frame CRC). What is left out is a problem."""
         starts: list[int] = []  # first ticks of the chunks kept that hold ticks, ascending
         spans: list[tuple[int, int, int]] = []  # their (first tick, end tick (exclusive), index in found)
-        empty = []
+        empty = []  # (index in found, the end tick of the chunks before it in the file)
+        reach = FIRST_TICK  # the end tick (exclusive) of the chunks with ticks met so far in the file
         for i, item in enumerate(found):
             if len(item) != 2:
                 continue
             head = item[1]
             a, b = head.first_tick, head.first_tick + head.ticks
             if not head.ticks:
-                empty.append(i)
+                empty.append((i, reach))
                 continue
             p = bisect.bisect_right(starts, a)
             clash = spans[p - 1] if p and spans[p - 1][1] > a else (
@@ -749,25 +818,34 @@ class Recording:
                         f"{c}..{d - 1}), which comes first in the file: a chunk out of place, read in its place")
                 starts.insert(p, a)
                 spans.insert(p, (a, b, i))
+                reach = max(reach, b)
                 continue
             self.problems.append(
                 f"chunk at offset {item[0]} holds ticks {a}..{b - 1} (t = {a * self.dt:.2f} .. "
                 f"{(b - 1) * self.dt:.2f} s), and the chunk at offset {found[clash[2]][0]}, before it in the file, "
                 f"holds ticks {clash[0]}..{clash[1] - 1}: a copy or a chunk out of place, left out with its inputs "
                 "and events")
-        kept = [i for _, _, i in spans]
-        end = spans[-1][1] if spans else FIRST_TICK
-        for i in empty:
+        order = [(a, 1, i) for a, _, i in spans]
+        kept_crcs: dict[int, set] = {}  # first tick -> frame CRCs of the chunks with no tick kept
+        for i, reach_before in empty:
             offset, head = found[i]
-            if head.first_tick >= end and not (kept and not found[kept[-1]][1].ticks):
-                kept.append(i)
+            f = head.first_tick
+            crc = FRAME.unpack(self._read_at(offset, FRAME.size))[3]
+            inside = next((s for s in spans if s[0] < f < s[1]), None)
+            if f >= reach_before and inside is None and crc not in kept_crcs.get(f, ()):
+                kept_crcs.setdefault(f, set()).add(crc)
+                order.append((f, 0, i))
                 continue
-            why = (f"so does the chunk at offset {found[kept[-1]][0]}, before it in the file"
-                   if head.first_tick >= end else f"the recording goes on to tick {end - 1}")
+            if crc in kept_crcs.get(f, ()):
+                why = "a copy of a chunk before it in the file"
+            elif inside is not None:
+                why = (f"the chunk at offset {found[inside[2]][0]} holds ticks {inside[0]}..{inside[1] - 1}, either "
+                       "side of them")
+            else:
+                why = f"chunks before it in the file go on to tick {reach_before - 1}"
             self.problems.append(f"chunk at offset {offset} holds no tick, only inputs and events done after tick "
-                                 f"{head.first_tick - 1} (those done after a recording's last tick), and {why}: "
-                                 "left out with them")
-        return kept
+                                 f"{f - 1}, and {why}: left out with them")
+        return [i for _, _, i in sorted(order)]
 
     def _index_walked(self, found: list) -> rpb.RecordingIndex:
         """The index of what the walk found, in file order: (offset, head) of whole chunks,

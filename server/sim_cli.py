@@ -115,8 +115,8 @@ def add_recording_options(p, only: str = "") -> None:
                      help=f"{only}record into DIR/<exercise>-<UTC time>.sortie (default %(default)s)")
     rec.add_argument("--no-record", action="store_true", help=f"{only}do not record the sortie")
     p.add_argument("--record-chunk-s", type=float, default=1.0, metavar="S",
-                   help=f"{only}world seconds per recording chunk: what a killed server may lose "
-                        "(default %(default)s)")
+                   help=f"{only}world seconds per recording chunk, at most 3600: what a killed server "
+                        "may lose (default %(default)s)")
 
 
 MAX_SLUG_BYTES = 120  # of a recording's default file name (UTF-8): with its time, suffix and ".sortie", under 255
@@ -159,8 +159,9 @@ def check_recording(args, exercise_name: str) -> Path | None:
     path = recording_path(args, exercise_name)
     if path is None:
         return None
-    if not (math.isfinite(args.record_chunk_s) and args.record_chunk_s > 0):
-        raise InvalidArgument("record_chunk_s", "must be a finite number > 0", value=args.record_chunk_s)
+    from server.recorder import check_chunk_s
+
+    check_chunk_s(args.record_chunk_s, "--record-chunk-s")
     option = recording_option(args)
     _check_folder(path.parent, option, args.record if args.record else args.record_dir)
     if args.record and path.exists():
