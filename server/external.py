@@ -66,6 +66,10 @@ MAX_SPEED_MPS = 20_000.0
 MAX_ACCELERATION_MPS2 = 1.0e4
 # - body rate 1e5 rad/s: above a rifle bullet's spin (about 4,000 rev/s, 2.5e4 rad/s).
 MAX_BODY_RATE_RPS = 1.0e5
+# A published quaternion's norm within these is normalised (float32 round-off, a sender's scaling);
+# outside them it is refused.
+MIN_QUAT_NORM = 0.5
+MAX_QUAT_NORM = 2.0
 # IEEE 1278.1-2012 Annex E / SISO-REF-010 "Dead Reckoning Algorithm" (UID 44) body-axis codes:
 # velocity and acceleration in the entity's own axes (the module docstring).
 FPB, RPB, RVB, FVB = 6, 7, 8, 9
@@ -134,8 +138,10 @@ def external_state(t0_s: float, ecef_m, vel_ecef_mps, acc_ecef_mps2, quat_ecef2b
                                               "(geodetic height)", value=[round(x, 3) for x in pos])
     q = np.array(_finite_vector("state.orientation_wxyz", quat_ecef2body, 4))
     norm = float(np.linalg.norm(q))
-    if not 0.5 <= norm <= 2.0:
-        raise InvalidArgument("state.orientation_wxyz", "must be a unit quaternion", value=q.tolist())
+    if not MIN_QUAT_NORM <= norm <= MAX_QUAT_NORM:
+        raise InvalidArgument("state.orientation_wxyz", f"must be a unit quaternion (a norm within "
+                                                        f"{MIN_QUAT_NORM:g}-{MAX_QUAT_NORM:g} is normalised; this "
+                                                        f"one's is {norm:.6g})", value=q.tolist())
     code = algorithm
     if isinstance(code, bool) or not isinstance(code, (int, np.integer)) or code not in EXTERNAL_ALGORITHM_NAMES:
         raise InvalidArgument("state.dead_reckoning", f"must be a DIS dead-reckoning code "

@@ -371,6 +371,162 @@ def check_batch(request: Mapping[str, np.ndarray], names: tuple[str, ...], limit
     return n
 
 
+# --- health ----------------------------------------------------------------------------------
+
+_HealthCheckResponse = health_pb2.HealthCheckResponse
+
+
+def _health_list(status: Mapping[str, int]) -> health_pb2.HealthListResponse:
+    """grpc.health.v1 List's answer: every registered name with its status."""
+    return health_pb2.HealthListResponse(
+        statuses={name: _HealthCheckResponse(status=value) for name, value in status.items()})
+
+
+class HealthServicer(health_pb2_grpc.HealthServicer):
+    """grpc.health.v1 (Check, List, Watch) of a ``grpc.Server``.
+
+    grpcio's own servicer (grpc_health.v1.health) was used before, with two faults:
+    List, which reflection advertises, answered UNIMPLEMENTED; and
+    ``enter_graceful_shutdown`` sent NOT_SERVING to every Watch stream but left the stream
+    open, and ``grpc.Server.stop(grace)`` waits for every open call, so one health watcher
+    (a load balancer, a client channel's health check) held every SIGTERM for the whole
+    grace. Here a graceful shutdown sends NOT_SERVING, then ends each Watch stream (OK): a
+    client channel's health checker has the NOT_SERVING and starts a new Watch (gRPC proposal
+    A17, "Client-Side Health Checking"), which a stopping server no longer takes. Check keeps
+    grpcio's answers: NOT_FOUND, no details, for a name never registered (gRPC
+    doc/health-checking.md).
+    """
+
+    def __init__(self):
+        # _lock guards the tables; gRPC's callback at a stream's end takes it. _send_lock keeps
+        # each watcher's messages in order; the sends wait on gRPC's completion thread, which
+        # runs those callbacks, so _lock is never held while sending (grpcio's servicer held
+        # its one lock there).
+        self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
+        self._status: dict[str, int] = {}
+        self._watchers: dict[str, set] = {}  # service -> the send callbacks of its open Watch streams
+        self._shutting_down = False
+
+    def Check(self, request, context):
+        with self._lock:
+            status = self._status.get(request.service)
+        if status is None:
+            context.set_code(grpc.StatusCode.NOT_FOUND)
+            return _HealthCheckResponse()
+        return _HealthCheckResponse(status=status)
+
+    def List(self, request, context):
+        with self._lock:
+            return _health_list(self._status)
+
+    def Watch(self, request, context, send_response_callback=None):
+        """Non-blocking (gRPC calls it with ``send_response_callback`` and holds no thread for
+        the stream): the status now, then each change; a callback of None ends the stream."""
+        service, send = request.service, send_response_callback
+        with self._send_lock:
+            with self._lock:
+                status = self._status.get(service, _HealthCheckResponse.SERVICE_UNKNOWN)
+                ending = self._shutting_down
+                if not ending:
+                    self._watchers.setdefault(service, set()).add(send)
+            send(_HealthCheckResponse(status=status))
+            if ending:
+                send(None)
+                return
+
+        def gone():  # the stream ended, by either side
+            with self._lock:
+                self._watchers.get(service, set()).discard(send)
+
+        if not context.add_callback(gone):  # it ended already
+            gone()
+
+    Watch.experimental_non_blocking = True  # as grpcio's servicer (grpc._server checks the attribute)
+
+    def set(self, service: str, status: int) -> None:
+        """``service``'s status, sent to its watchers; ignored once a shutdown has begun."""
+        with self._send_lock:
+            with self._lock:
+                if self._shutting_down:
+                    return
+                self._status[service] = status
+                sends = list(self._watchers.get(service, ()))
+            for send in sends:
+                send(_HealthCheckResponse(status=status))
+
+    def enter_graceful_shutdown(self) -> None:
+        """Every name NOT_SERVING for good: each Watch stream gets it, then ends (OK)."""
+        with self._send_lock:
+            with self._lock:
+                if self._shutting_down:
+                    return
+                self._shutting_down = True
+                for service in self._status:
+                    self._status[service] = _HealthCheckResponse.NOT_SERVING
+                watchers = [(self._status.get(service, _HealthCheckResponse.SERVICE_UNKNOWN), send)
+                            for service, sends in self._watchers.items() for send in sends]
+                self._watchers.clear()
+            for status, send in watchers:
+                send(_HealthCheckResponse(status=status))
+                send(None)
+
+
+class AioHealthServicer(health_pb2_grpc.HealthServicer):
+    """:class:`HealthServicer` for a ``grpc.aio`` server: its methods run on the server's
+    event loop (one thread, so no lock); Watch streams end once a graceful shutdown has sent
+    them NOT_SERVING, as there. grpcio's aio servicer had the same two faults (List
+    UNIMPLEMENTED, logged as an error with its traceback at every call; Watch streams held
+    ``stop(grace)`` to its end)."""
+
+    def __init__(self):
+        self._status: dict[str, int] = {}
+        self._changed = asyncio.Event()  # set, and replaced, at every change
+        self._shutting_down = False
+
+    async def Check(self, request, context):
+        status = self._status.get(request.service)
+        if status is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND)
+        return _HealthCheckResponse(status=status)
+
+    async def List(self, request, context):
+        return _health_list(self._status)
+
+    async def Watch(self, request, context):
+        last = None
+        while True:
+            changed = self._changed  # taken before the status: a change during the write wakes us
+            status = self._status.get(request.service, _HealthCheckResponse.SERVICE_UNKNOWN)
+            if status != last:
+                await context.write(_HealthCheckResponse(status=status))
+                last = status
+                continue  # the status may have changed during the write (a shutdown among them)
+            if self._shutting_down:
+                return
+            await changed.wait()
+
+    def _announce(self) -> None:
+        self._changed.set()
+        self._changed = asyncio.Event()
+
+    async def set(self, service: str, status: int) -> None:
+        """``service``'s status, sent to its watchers; ignored once a shutdown has begun."""
+        if self._shutting_down:
+            return
+        self._status[service] = status
+        self._announce()
+
+    async def enter_graceful_shutdown(self) -> None:
+        """Every name NOT_SERVING for good: each Watch stream sends it, then ends (OK)."""
+        if self._shutting_down:
+            return
+        self._shutting_down = True
+        for service in self._status:
+            self._status[service] = _HealthCheckResponse.NOT_SERVING
+        self._announce()
+
+
 # --- lifecycle -------------------------------------------------------------------------------
 
 class ManagedServer:
@@ -383,7 +539,7 @@ class ManagedServer:
 
     def __init__(self, server, service_names: tuple[str, ...]):
         self.grpc_server = server
-        self.health = health.HealthServicer()
+        self.health = HealthServicer()
         self._serving = health_pb2.HealthCheckResponse.SERVING
         self._health_names = ("", *service_names)
         health_pb2_grpc.add_HealthServicer_to_server(self.health, server)
@@ -507,12 +663,10 @@ class AioManagedServer:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
 
     async def _create(self, services, address, max_rpcs, options) -> int:
-        from grpc_health.v1.health import aio as health_aio
-
         self.grpc_server = grpc.aio.server(options=options, maximum_concurrent_rpcs=max_rpcs)
         for name, handlers in services:
             self.grpc_server.add_registered_method_handlers(name, handlers)
-        self.health = health_aio.HealthServicer()
+        self.health = AioHealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc_server)
         reflection.enable_server_reflection((*(name for name, _ in services), health.SERVICE_NAME,
                                              reflection.SERVICE_NAME), self.grpc_server)

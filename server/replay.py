@@ -295,6 +295,12 @@ class ReplayServer:
         with self._lock:
             if which is None:
                 raise InvalidArgument("action", "set one of play, pause, speed, seek_time_s, step_ticks")
+            if which in ("play", "pause") and not getattr(msg, which):
+                # A oneof bool names its action by being set; false would read as its opposite
+                # (pause: false as play) or as nothing, and was taken as true: refused instead.
+                other = "pause" if which == "play" else "play"
+                raise InvalidArgument(which, f"must be true (false is not an action; set {other}: true to {other})",
+                                      value=False)
             if which == "play":
                 if self._position_s >= self.rec.last_time_s:  # at the end: play from the start
                     self._position_s, self._seeked = self.rec.first_time_s, True

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
-from server.external import external_state
+from server.external import COALITIONS, EXTERNAL_ALGORITHM_NAMES, external_state
 from server.grpc_common import Malformed, tolerant_decoder
 from server.streaming import ClientQueue, encode_watch_update
 from server.world import AIRCRAFT, GROUND, World
@@ -70,6 +70,11 @@ MAX_CONCURRENT_RPCS = MAX_SESSIONS * CALLS_PER_SESSION  # (streams are coroutine
 STREAM_POLL_S = 0.25
 SUPERSEDED = "superseded by a new Watch of this session"
 SESSION_LEFT = "session left"
+# What an ExternalEntityUpdate's unset fields mean (proto3 sends no zero or empty field, so a
+# gateway that leaves them out sends these): dead_reckoning 0 (DEAD_RECKONING_ALGORITHM_UNSPECIFIED)
+# is FPW, constant velocity in world axes (IEEE 1278.1-2012 Annex E), and coalition "" neutral.
+UNSET_DEAD_RECKONING = pb.DEAD_RECKONING_ALGORITHM_FPW
+UNSET_COALITION = "neutral"
 
 
 def status_of(error: Exception):
@@ -448,12 +453,22 @@ class SimulationServicer:
         if not msg.HasField("state"):
             raise InvalidArgument("state", "is required unless remove is set")
         st = msg.state
+        # The wire's unset values are accepted, as their refusals say (external_state and the
+        # world, called from Python, take no unset value).
+        if st.dead_reckoning != 0 and st.dead_reckoning not in EXTERNAL_ALGORITHM_NAMES:
+            codes = ", ".join(f"{code} {name}" for code, name in sorted(EXTERNAL_ALGORITHM_NAMES.items()))
+            raise InvalidArgument("state.dead_reckoning", f"must be a DIS dead-reckoning code ({codes}), or unset "
+                                  f"(0) for {EXTERNAL_ALGORITHM_NAMES[UNSET_DEAD_RECKONING]}",
+                                  value=st.dead_reckoning)
+        if owner is None and msg.coalition not in ("", *COALITIONS):  # read on the first update only
+            raise InvalidArgument("coalition", f"must be one of {', '.join(COALITIONS)}, or unset (\"\") for "
+                                  f"{UNSET_COALITION}", value=msg.coalition)
         state = external_state(0.0, (st.ecef_x_m, st.ecef_y_m, st.ecef_z_m), st.velocity_ecef_mps,
                                st.acceleration_ecef_mps2 or (0.0, 0.0, 0.0), st.orientation_wxyz,
                                st.angular_velocity_body_rps or (0.0, 0.0, 0.0),
-                               st.dead_reckoning or pb.DEAD_RECKONING_ALGORITHM_FPW)
+                               st.dead_reckoning or UNSET_DEAD_RECKONING)
         self.world.publish_external(msg.external_id, s.token, state, msg.name, msg.kind, msg.type,
-                                    msg.coalition or "neutral", destroyed=msg.destroyed)
+                                    msg.coalition or UNSET_COALITION, destroyed=msg.destroyed)
 
     async def PublishExternal(self, request_iterator, context):
         return await self._consume(request_iterator, context, self._publish_external, pb.PublishExternalResponse)

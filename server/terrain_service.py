@@ -60,6 +60,10 @@ MAX_PROFILE_SAMPLES = PROFILE_MAX_SAMPLES  # per GetProfile; enforced by terrain
 MAX_LOS_RAYS = 100_000  # per LineOfSight: each ray marches the terrain between its ends
 MAX_SEGMENTS = 100_000  # per IntersectSegments
 MAX_REGION_POSTS = 4 * 1024 * 1024  # per GetRegion: 20 MB response (float32 + class byte)
+# The HeightEncoding a GetTile or GetRegion request may name (proto/sortie/v1/terrain.proto; unset
+# is FLOAT32). proto3 enums are open: any other number arrives as it is, and is refused, where it
+# was served as FLOAT32.
+HEIGHT_ENCODINGS = (pb.HEIGHT_ENCODING_UNSPECIFIED, pb.HEIGHT_ENCODING_FLOAT32, pb.HEIGHT_ENCODING_ZSTD_CM)
 
 # Threads answering calls; the numba kernels release the GIL, so batches from
 # different clients run in parallel.
@@ -278,6 +282,7 @@ class TerrainServicer:
 
     def GetTile(self, request: pb.GetTileRequest) -> pb.HeightGrid:
         # The first store (in the terrain's order) holding the cell answers, as heights do.
+        check_height_encoding(request.encoding)
         cell_id = int(request.cell_id)
         missing = []
         for store in self._stores():
@@ -299,6 +304,7 @@ class TerrainServicer:
         another lattice is not merged (its posts would not line up)."""
         from terrain.profile import check_point
 
+        check_height_encoding(request.encoding)
         stores = self._stores()
         levels = max(store.levels for store in stores)
         if request.level >= levels:
@@ -371,6 +377,13 @@ def merge_store_rasters(rasters: list):
                   meta={**rasters[0].meta, "stores": len(rasters)})
 
 
+def check_height_encoding(encoding: int) -> None:
+    """InvalidArgument naming ``encoding`` unless it is one of HEIGHT_ENCODINGS."""
+    if encoding not in HEIGHT_ENCODINGS:
+        raise InvalidArgument("encoding", "must be one of " + ", ".join(
+            f"{pb.HeightEncoding.Name(e)} ({e})" for e in HEIGHT_ENCODINGS), value=encoding)
+
+
 def height_grid(store, raster, level: int, cell_id: int, encoding: int = pb.HEIGHT_ENCODING_FLOAT32,
                 max_error_m: float | None = None) -> pb.HeightGrid:
     """A store raster (row 0 south) as the wire's HeightGrid (row 0 north); ``max_error_m``: the
@@ -386,6 +399,7 @@ def height_grid(store, raster, level: int, cell_id: int, encoding: int = pb.HEIG
                          lat_north_deg=g.y0 + (rows - 1) * g.dy, lon_west_deg=(g.x0 + 180.0) % 360.0 - 180.0,
                          dlat_deg=g.dy, dlon_deg=g.dx, post_class=np.ascontiguousarray(classes[::-1]).tobytes(),
                          max_error_m=store.max_error_m if max_error_m is None else max_error_m, cell_id=cell_id)
+    check_height_encoding(encoding)
     if encoding == pb.HEIGHT_ENCODING_ZSTD_CM:
         import zstandard
 

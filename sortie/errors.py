@@ -122,6 +122,9 @@ def bound_text(bound: float, refused: float) -> str:
     the limit on or past the refused value, so that the message never contradicts itself
     (an m1a2's 18.77568 m/s top speed read "18.8" refusing 18.8, "18.7757" refusing 18.7757)."""
     text = f"{bound:.6g}"
-    if (refused - float(text)) * (refused - bound) > 0:
+    shown_bound = float(text)
+    # The refused value strictly on one side of both (compared, not multiplied: the product of
+    # two differences near 1e308 overflowed, a numpy scalar's with a RuntimeWarning; NaN: neither).
+    if (refused > shown_bound and refused > bound) or (refused < shown_bound and refused < bound):
         return text
     return repr(float(bound))
