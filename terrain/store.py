@@ -29,6 +29,7 @@ Each level file::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -112,13 +113,15 @@ class TerrainStore:
         """manifest: the importer's own, of the regions written so far (read while it runs);
         otherwise ``store.json``, refused while its import is unfinished."""
         self.path = Path(path)
-        manifest_path = self.path / MANIFEST
-        m = manifest if manifest is not None else read_manifest(self.path)
-        if m.get("format") != FORMAT_NAME:
-            raise DataFormatError(f"{manifest_path}: format {m.get('format')!r} is not {FORMAT_NAME!r}")
-        if m.get("version") != FORMAT_VERSION:
-            raise DataFormatError(f"{manifest_path}: version {m.get('version')!r}, this build reads {FORMAT_VERSION}")
-        check_manifest(m, manifest_path)
+        self._lock = threading.RLock()
+        self._index: dict[tuple[int, int], tuple[np.ndarray, dict, int]] = {}  # entries, lookup, file size
+        self._files: dict[tuple[int, int], object] = {}
+        if manifest is not None:
+            _check_format(manifest, self.path / MANIFEST)
+            m, self._manifest_id = manifest, None
+            self._open_level_files(m)
+        else:
+            m, self._manifest_id = self._open_snapshot()
         self.manifest = m
         self.tile = int(m["tile"])
         self.depth = int(m["depth"])
@@ -129,9 +132,6 @@ class TerrainStore:
                         for r in m["regions"]]
         self.name = m.get("name", self.path.name)
         self._composing: dict[tuple[int, int], list[Region]] = {}  # (region, level) -> regions its tiles read
-        self._lock = threading.RLock()
-        self._index: dict[tuple[int, int], tuple[np.ndarray, dict, int]] = {}  # entries, lookup, file size
-        self._files: dict[tuple[int, int], object] = {}
         self._readers = [PyramidReader(list(r.rects), self.tile, self.step_units,
                                        self._blob_getter(r.index), cache_tiles=cache_tiles,
                                        describe_tile=self._tile_namer(r.index))
@@ -142,6 +142,58 @@ class TerrainStore:
         self._viewers: dict = {}  # key -> (lat, lon) of every view reading this store
         self._cache_tiles = cache_tiles
         self._dctx = zstandard.ZstdDecompressor()
+
+    def _open_snapshot(self) -> tuple[dict, tuple]:
+        """(manifest, its file's identity) read from ``store.json``, with the level files it lists
+        opened (up to EAGER_LEVEL_FILES) while that same manifest was in place: an import replaces
+        level files only while the store has no manifest (it removes the earlier one first), so
+        files opened between reading a manifest and finding it unchanged are that manifest's. The
+        open files keep their contents (their inodes) when a later import replaces them, so a
+        process reading a store goes on reading the store it opened. Tried SNAPSHOT_ATTEMPTS
+        times when the manifest changes meanwhile (an import finishing)."""
+        manifest_path = self.path / MANIFEST
+        for _ in range(SNAPSHOT_ATTEMPTS):
+            m, identity = _read_manifest_file(self.path)
+            _check_format(m, manifest_path)
+            self._open_level_files(m)
+            if _file_identity(manifest_path) == identity:
+                return m, identity
+            self.close()
+        raise DataFormatError(f"terrain store {self.path}: its {MANIFEST} was replaced {SNAPSHOT_ATTEMPTS} times "
+                              "while the store was being opened (an import writing it?); open it again once the "
+                              "import has finished")
+
+    def _open_level_files(self, m: dict) -> None:
+        """Open the level files a manifest lists, the first EAGER_LEVEL_FILES of them (the rest open
+        when first read, :meth:`_open_level`). One that cannot be opened is left to that too, where
+        reading it raises the error naming it."""
+        for r in m["regions"]:
+            for level in range(len(r["rects"])):
+                if len(self._files) >= EAGER_LEVEL_FILES:
+                    return
+                try:
+                    self._files[(r["index"], level)] = open(self._level_path(r["index"], level), "rb")
+                except OSError:
+                    pass
+
+    def is_current(self) -> bool:
+        """False when ``store.json`` is no longer the one this store was opened with (a re-import
+        finished since); True while an import is writing the store (it has no manifest then) and
+        for an importer's own view (given its manifest)."""
+        if self._manifest_id is None:
+            return True
+        now = _file_identity(self.path / MANIFEST)
+        return now is None or now == self._manifest_id
+
+    def _check_not_reimported(self, path: Path) -> None:
+        """DataFormatError naming the store and ``path`` (a level file about to be read) unless the
+        manifest is still the one the store was opened with: a level file opened after a re-import
+        (or during one) is another pyramid's, and mixed with this store's tiles it decodes to wrong
+        heights or fails as damage."""
+        if self._manifest_id is not None and _file_identity(self.path / MANIFEST) != self._manifest_id:
+            raise DataFormatError(f"terrain store {self.path}: re-imported since it was opened ({MANIFEST} replaced, "
+                                  f"or removed by an import under way), so {path} is no longer this store's; "
+                                  "reopen it")
 
     # ------------------------------------------------------------------ geometry
 
@@ -477,21 +529,30 @@ class TerrainStore:
         hit = self._index.get(key)
         if hit is None:
             path = self._level_path(region, level)
-            try:
-                f = open(path, "rb")
-            except OSError as e:
-                raise DataFormatError(f"terrain store {self.path}: cannot open {path}: {e.strerror or e}") from None
+            f = self._files.get(key)
+            if f is None:
+                f = self._files[key] = self._open_level(path)
             try:
                 hit = self._read_index(f, path, level)
             except OSError as e:
-                f.close()
                 raise DataFormatError(f"{path}: cannot be read: {e.strerror or e}") from None
-            except BaseException:
-                f.close()
-                raise
             self._index[key] = hit
-            self._files[key] = f
         return hit
+
+    def _open_level(self, path: Path):
+        """A level file the store did not open with the manifest (beyond EAGER_LEVEL_FILES, or after
+        :meth:`close`), checked to be the manifest's after it is opened (:meth:`_check_not_reimported`)."""
+        try:
+            f = open(path, "rb")
+        except OSError as e:
+            self._check_not_reimported(path)  # gone because a re-import removed it: say so
+            raise DataFormatError(f"terrain store {self.path}: cannot open {path}: {e.strerror or e}") from None
+        try:
+            self._check_not_reimported(path)
+        except BaseException:
+            f.close()
+            raise
+        return f
 
     @staticmethod
     def _read_index(f, path: Path, level: int):
@@ -586,6 +647,8 @@ class TerrainStore:
             self._block_cache.clear()
 
     def close(self) -> None:
+        """Close the level files; a later read opens them again, checked to be still this store's
+        (:meth:`_open_level`)."""
         with self._lock:
             for f in self._files.values():
                 f.close()
@@ -597,22 +660,58 @@ def read_manifest(path) -> dict:
     """A store's ``store.json``: NotFound without one; DataFormatError when it is not JSON, or
     when its import did not finish (no summary: manifests of an interrupted import of before
     the manifest was written once, at the end)."""
+    return _read_manifest_file(path)[0]
+
+
+def _read_manifest_file(path) -> tuple[dict, tuple]:
+    """(:func:`read_manifest`, the identity of the file it was read from: :func:`_file_identity`)."""
     manifest_path = Path(path) / MANIFEST
     if not manifest_path.is_file():
         raise NotFound(f"terrain store {path}: no {MANIFEST} (not a store, or its import did not finish: "
                        f"run the same sortie terrain import again to resume it)")
     try:
-        m = json.loads(manifest_path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        with open(manifest_path, "rb") as f:
+            identity = _identity(os.fstat(f.fileno()))
+            m = json.loads(f.read())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DataFormatError(f"{manifest_path}: {e}") from None
     if not isinstance(m, dict):
         raise DataFormatError(f"{manifest_path}: not a JSON object")
     if m.get("format") == FORMAT_NAME and m.get("summary") is None:
         raise DataFormatError(f"{manifest_path}: unfinished import (the manifest has no summary); run the same "
                               f"sortie terrain import again to resume it")
-    return m
+    return m, identity
 
 
+def _identity(stat: os.stat_result) -> tuple:
+    """What tells one manifest file from its replacement: device, inode, size and modification
+    time (an importer writes a new file and renames it over the old one)."""
+    return stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns
+
+
+def _file_identity(path: Path) -> tuple | None:
+    """:func:`_identity` of the file now at ``path``; None when there is none."""
+    try:
+        return _identity(os.stat(path))
+    except OSError:
+        return None
+
+
+def _check_format(m: dict, manifest_path: Path) -> None:
+    """DataFormatError naming ``store.json`` unless the manifest is of this format and version and
+    usable (:func:`check_manifest`)."""
+    if m.get("format") != FORMAT_NAME:
+        raise DataFormatError(f"{manifest_path}: format {m.get('format')!r} is not {FORMAT_NAME!r}")
+    if m.get("version") != FORMAT_VERSION:
+        raise DataFormatError(f"{manifest_path}: version {m.get('version')!r}, this build reads {FORMAT_VERSION}")
+    check_manifest(m, manifest_path)
+
+
+# Level files a store opens with its manifest (the rest when first read, checked against the manifest):
+# a store of many regions would otherwise hold a descriptor per region and level.
+EAGER_LEVEL_FILES = 256
+# How often opening a store reads its manifest again when an import replaced it meanwhile.
+SNAPSHOT_ATTEMPTS = 3
 # The largest tile side a manifest may give: a decoded tile of 4096^2 int32 posts is 64 MiB (the
 # importer writes DEFAULT_TILE; the codec needs an even side of at least 4, heightcodec.pyramid_rects).
 MAX_TILE = 4096
@@ -621,10 +720,19 @@ MAX_TILE = 4096
 MAX_COL0_TURNS = 64
 
 
+def vertical_datums() -> frozenset[str]:
+    """The vertical datums an import writes into ``store.json`` (a source's
+    ``Raster.vertical_datum``): those terrain.dem's readers give, all heights above mean sea level."""
+    from terrain import dem
+
+    return frozenset((dem.VERTICAL_DATUM_SRTM, dem.VERTICAL_DATUM_DEFAULT, *dem.VERTICAL_DATUMS_EPSG.values()))
+
+
 def check_manifest(m: dict, manifest_path) -> None:
     """DataFormatError naming ``store.json``, the field and its value for a manifest a reader cannot
     use (a damaged or hand-edited file): a missing key, a value of the wrong type, a lattice beyond
-    the store's (tile, depth), a step outside the codec's range, a region list that is empty or
+    the store's (tile, depth), a unit other than 1 cm, a step outside the codec's range, ``lossless``
+    not saying whether the step is 1, a vertical datum no import writes, a region list that is empty or
     not numbered in order, a region's rectangles that are not its pyramid's (tile-aligned, inside
     the lattice, each level the tile-aligned box of the finer one's even posts, up to one tile or
     depth + 1 levels: what heightcodec.encode_pyramid coded), or bounds that are not a box."""
@@ -652,12 +760,20 @@ def check_manifest(m: dict, manifest_path) -> None:
         raise bad("tile", "is not even (the codec's pyramid halves tiles)", tile)
     depth = integer(get(m, "depth", "depth"), "depth", 0, MAX_DEPTH)
     unit_m = number(get(m, "unit_m", "unit_m"), "unit_m")
-    if unit_m <= 0:
-        raise bad("unit_m", "is not a positive number of metres", unit_m)
-    integer(get(m, "step_units", "step_units"), "step_units", 1, heightcodec.MAX_ABS_UNITS)
+    if unit_m != DEFAULT_UNIT_M:
+        raise bad("unit_m", f"is not {DEFAULT_UNIT_M} m: the store's height unit is 1 cm (the codec's range of "
+                  "2^29 units and GetRegion's HEIGHT_ENCODING_ZSTD_CM assume it; docs/STORE.md)", unit_m)
+    step_units = integer(get(m, "step_units", "step_units"), "step_units", 1, heightcodec.MAX_ABS_UNITS)
+    lossless = get(m, "lossless", "lossless")
+    if not isinstance(lossless, bool) or lossless != (step_units == 1):
+        raise bad("lossless", f"does not go with step_units {step_units} (lossless is a step of 1 unit: "
+                  f"{str(step_units == 1).lower()} here)", lossless)
     for key in ("name", "vertical_datum"):
         if key in m and not isinstance(m[key], str):
             raise bad(key, "is not a string", m[key])
+    if "vertical_datum" in m and m["vertical_datum"] not in vertical_datums():
+        raise bad("vertical_datum", "is not a vertical datum an import writes (those of terrain.dem's readers: "
+                  + ", ".join(sorted(vertical_datums())) + ")", m["vertical_datum"])
     summary = m.get("summary")
     if summary is not None and not isinstance(summary, dict):
         raise bad("summary", "is not a JSON object", summary)
@@ -738,11 +854,13 @@ _open_lock = threading.Lock()
 
 
 def open_store(path) -> TerrainStore:
-    """The process-wide instance of a store (shared cache for every view and client)."""
+    """The process-wide instance of a store (shared cache for every view and client); a new one
+    once the store was re-imported since that instance was opened (:meth:`TerrainStore.is_current`:
+    whoever holds the old one goes on reading the old files)."""
     key = os.path.realpath(path)
     with _open_lock:
         store = _open_stores.get(key)
-        if store is None:
+        if store is None or not store.is_current():
             store = _open_stores[key] = TerrainStore(path)
         return store
 
@@ -965,7 +1083,8 @@ def level_files(path, regions) -> list[Path]:
 
 
 def write_level_file(path: Path, level: int, tiles: dict[tuple[int, int], tuple[bytes, bytes]]) -> None:
-    """Write one level's tiles atomically (temporary file, then rename)."""
+    """Write one level's tiles atomically (temporary file, then rename); the OSError of a write that
+    fails propagates, its temporary file removed."""
     keys = sorted(tiles)
     index = np.zeros(len(keys), _INDEX_ENTRY)
     offset = _LEVEL_HEAD.size + index.nbytes
@@ -974,21 +1093,29 @@ def write_level_file(path: Path, level: int, tiles: dict[tuple[int, int], tuple[
         index[i] = (key[0], key[1], offset, len(h), len(c))
         offset += len(h) + len(c)
     tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        f.write(_LEVEL_HEAD.pack(LEVEL_MAGIC, FORMAT_VERSION, level, len(keys)))
-        f.write(index.tobytes())
-        for key in keys:
-            f.write(tiles[key][0])
-            f.write(tiles[key][1])
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(_LEVEL_HEAD.pack(LEVEL_MAGIC, FORMAT_VERSION, level, len(keys)))
+            f.write(index.tobytes())
+            for key in keys:
+                f.write(tiles[key][0])
+                f.write(tiles[key][1])
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):  # a write that failed (a full disk) leaves no partial file
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 def code_classes(classes: np.ndarray) -> bytes:
-    """A tile's class blob: empty when all measured, one byte when uniform, else zstd."""
+    """A tile's class blob: empty when all measured, one byte when uniform, else a zstd frame with
+    its content checksum (XXH64, RFC 8878 section 3.1.1), so that damage inside it that still
+    decodes is refused (classes of stores imported before are read as before, unchecked)."""
     first = int(classes.flat[0])
     if np.all(classes == first):
         return b"" if first == CLASS_MEASURED else bytes([first])
-    return zstandard.ZstdCompressor(level=9).compress(np.ascontiguousarray(classes, np.uint8).tobytes())
+    return zstandard.ZstdCompressor(level=9, write_checksum=True).compress(
+        np.ascontiguousarray(classes, np.uint8).tobytes())
 
 
 __all__ = ["TerrainStore", "StoreSource", "open_store", "lattice_spacing_deg", "depth_for_spacing",

@@ -20,7 +20,8 @@ band files carry a key of the arguments and of the files' contents). The
 manifest is written once, when every region is coded: an interrupted import
 leaves no ``store.json`` (an earlier store's is removed before its level files
 are overwritten), so nothing opens it as complete. A finished import removes
-``.import``.
+``.import``. A write that fails (a full disk) is InvalidArgument naming output
+and the file; it leaves no partial file, and keeps the finished bands to resume.
 
 Re-importing into an existing store: once every new level file is written, the
 earlier store's level files and region directories that the new manifest will
@@ -30,6 +31,7 @@ stored bytes count the listed files alone.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -103,12 +105,18 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
     if not paths:
         raise InvalidArgument("files", "give at least one DEM file")
     _check_seed(detail_seed)
+    if unit_m != st.DEFAULT_UNIT_M:
+        raise InvalidArgument("unit_m", f"must be {st.DEFAULT_UNIT_M} m: the store's height unit is 1 cm (readers "
+                              "refuse another, docs/STORE.md)", value=unit_m)
     step_units = _step_units(step_m, lossless, unit_m)
     if add_detail not in (None, "fractal", "cellular"):
         raise InvalidArgument("add_detail", "must be 'fractal' or 'cellular'", value=add_detail)
     rasters = load_sources(paths)
     for r in rasters:
         _check_height_range(r, unit_m)
+    if rasters[0].vertical_datum not in st.vertical_datums():  # readers would refuse the store
+        raise DataFormatError(f"{rasters[0].source}: vertical datum {rasters[0].vertical_datum!r} is not one a "
+                              "store records (" + ", ".join(sorted(st.vertical_datums())) + ")")
     # Default lattice: no coarser than any source along either axis (store posts are
     # 4/3 as wide in degrees of longitude as they are tall in latitude).
     depth = (_default_depth(rasters, tile) if resolution_arcsec is None
@@ -120,9 +128,23 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
     out = _output_dir(Path(out))
     key = _import_key(paths, depth, tile, unit_m, add_detail, detail_seed)
     _drop_stale_bands(out / WORK_DIR, key)
+    progress_bar = _Progress(progress, sum(_region_posts(g) for g in groups))
+    try:
+        summary = _import_regions(out, key, name, terrain, sources, rasters, groups, tile, depth, unit_m,
+                                  step_units, progress_bar, t_start)
+    finally:
+        progress_bar.close()
+    shutil.rmtree(out / WORK_DIR, ignore_errors=True)
+    return summary
+
+
+def _import_regions(out: Path, key: str, name, terrain, sources, rasters, groups, tile: int, depth: int,
+                    unit_m: float, step_units: int, progress_bar, t_start: float) -> ImportSummary:
+    """Sample, code and write every region, then the manifest (import_dems's steps 3-5); a write
+    that fails is InvalidArgument naming output and the file (:func:`_writing`)."""
+    dlat, dlon = st.lattice_spacing_deg(depth, tile)
     regions, totals = [], {"posts": 0, "measured": 0, "filled": 0, "qmax": 0.0, "qsq": 0.0, "smax": 0.0,
                            "ssq": 0.0, "sn": 0}
-    progress_bar = _Progress(progress, sum(_region_posts(g) for g in groups))
     for index, (row0, col0, rows, cols, members) in enumerate(groups):
         edges = [(sources[m], rasters[m]) for m in members]
         heights, classes = _sample_region(terrain, out, key, index, row0, col0, rows, cols, dlat, dlon, tile,
@@ -133,8 +155,10 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
         class_levels = _class_pyramid(classes, row0, col0, rects)
         if index == 0:
             # The level files below overwrite an earlier store's: its manifest no longer describes them.
-            (out / st.MANIFEST).unlink(missing_ok=True)
-        (out / f"region-{index:03d}").mkdir(exist_ok=True)
+            with _writing(out, out / st.MANIFEST):
+                (out / st.MANIFEST).unlink(missing_ok=True)
+        with _writing(out, out / f"region-{index:03d}"):
+            (out / f"region-{index:03d}").mkdir(exist_ok=True)
         for level, rect in enumerate(rects):
             tiles = {}
             for (k, ti, tj), blob in blobs.items():
@@ -143,7 +167,9 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
                 c = class_levels[level][ti * tile - rect.row0:(ti + 1) * tile - rect.row0,
                                         tj * tile - rect.col0:(tj + 1) * tile - rect.col0]
                 tiles[(ti, tj)] = (blob, st.code_classes(c))
-            st.write_level_file(st.level_file(out, index, level), level, tiles)
+            path = st.level_file(out, index, level)
+            with _writing(out, path):
+                st.write_level_file(path, level, tiles)
         del blobs, class_levels
         regions.append({"index": index, "rects": [[r.row0, r.col0, r.rows, r.cols] for r in rects],
                         "bounds": _data_bounds(classes, row0, col0, dlat, dlon),
@@ -165,7 +191,8 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
         totals["sn"] += src[2]
         store.close()
     listed = st.level_files(out, regions)
-    _remove_unlisted(out, listed)
+    with _writing(out, out):
+        _remove_unlisted(out, listed)
     stored = sum(p.stat().st_size for p in listed)
     seconds = time.perf_counter() - t_start
     summary = ImportSummary(
@@ -178,11 +205,28 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
         max_error_vs_source_m=totals["smax"], rms_error_vs_source_m=math.sqrt(totals["ssq"] / max(totals["sn"], 1)),
         seconds=seconds, samples_per_s=sum(_region_posts(g) for g in groups) / seconds,
         bounds=[r["bounds"] for r in regions])
-    _write_manifest(out, _manifest(out, name, tile, depth, unit_m, step_units, rasters, regions,
-                                   summary.to_json()))
-    shutil.rmtree(out / WORK_DIR, ignore_errors=True)
-    progress_bar.close()
+    with _writing(out, out / st.MANIFEST):
+        _write_manifest(out, _manifest(out, name, tile, depth, unit_m, step_units, rasters, regions,
+                                       summary.to_json()))
     return summary
+
+
+@contextlib.contextmanager
+def _writing(out: Path, path: Path):
+    """An OSError writing ``path`` in the store ``out`` (a full disk, a file grown past the process's
+    limit, a directory made read-only) as InvalidArgument naming output and the path, saying what the
+    import leaves: no manifest, and its finished bands under .import/ (docs/STORE.md: the same import
+    run again resumes from them), which the user may delete to free their space. The writers remove
+    their own partial files (st.write_level_file, :func:`_save_band`, :func:`_write_manifest`)."""
+    try:
+        yield
+    except OSError as e:
+        work = out / WORK_DIR
+        kept = sum(p.stat().st_size for p in work.glob("*.npz")) if work.is_dir() else 0
+        raise InvalidArgument("output", f"cannot write {path}: {e.strerror or e}; the store has no {st.MANIFEST} "
+                              f"until an import finishes: free some space (or fix the directory) and run the same "
+                              f"import again, which resumes from the {kept / 2**20:.1f} MiB of finished bands kept "
+                              f"in {work} (delete it to free them)", value=str(path)) from None
 
 
 # How far from a whole number of units a step may be and still be that number: float noise of
@@ -526,7 +570,8 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
 
     edges: (source, its raster) of the region's members, priority order (see _edge_samples)."""
     work = out / WORK_DIR
-    work.mkdir(exist_ok=True)
+    with _writing(out, work):
+        work.mkdir(exist_ok=True)
     heights = np.empty((rows, cols), np.float64)
     classes = np.empty((rows, cols), np.uint8)
     # Anti-aliasing: average kx x ky samples a post when the store is coarser than a source, each
@@ -543,9 +588,8 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
         else:
             h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, (ky, kx), edges)
             heights[b0:b1], classes[b0:b1] = h, c
-            tmp = path.with_name(path.name + ".tmp.npz")
-            np.savez(tmp, h=h, c=c)
-            tmp.replace(path)
+            with _writing(out, path):
+                _save_band(path, h, c)
         progress_bar.advance((b1 - b0) * cols)
     outside = classes == st.CLASS_OUTSIDE
     if outside.all():
@@ -556,6 +600,19 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
         ri, ci = scipy.ndimage.distance_transform_edt(outside, return_distances=False, return_indices=True)
         heights[outside] = heights[ri[outside], ci[outside]]
     return heights, classes
+
+
+def _save_band(path: Path, heights: np.ndarray, classes: np.ndarray) -> None:
+    """A sampled band, written atomically (a temporary file, then a rename; the temporary file
+    removed when the write fails, so that .import/ holds only whole bands)."""
+    tmp = path.with_name(path.name + ".tmp.npz")
+    try:
+        np.savez(tmp, h=heights, c=classes)
+        tmp.replace(path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 def _aa_factor(store_spacing: float, source_spacings) -> int:
@@ -765,9 +822,15 @@ def _manifest(out: Path, name, tile, depth, unit_m, step_units, rasters, regions
 
 
 def _write_manifest(out: Path, manifest: dict) -> None:
+    """store.json, written atomically (no partial file left when the write fails)."""
     tmp = out / (st.MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=1) + "\n")
-    tmp.replace(out / st.MANIFEST)
+    try:
+        tmp.write_text(json.dumps(manifest, indent=1) + "\n")
+        tmp.replace(out / st.MANIFEST)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 class _Progress:
