@@ -26,6 +26,15 @@ its last update (it is not extrapolated past it). A client stream
 (:meth:`SimClient.controls`, :meth:`SimClient.external`) the server has ended
 refuses further messages with its error, or :class:`StreamEnded`.
 
+A picture never falls behind its stream (issue #4: a slow client loses intermediate
+updates, never the latest state). Its stream's thread only reads and applies each update
+(:meth:`Picture.state` is always the newest received); listeners run on a thread of their
+own, and a listener slower than the stream is handed the updates that came meanwhile merged
+into one (:class:`PendingUpdate`: each entity's latest state, every entity that came or
+went, in order). Reading the stream at its rate matters: gRPC lets a reader that reads
+slower than the stream fall behind without bound (it holds what the server sent in the
+reader's own process, so the server's latest-wins merge never starts).
+
 Closing a client (:meth:`SimClient.close`, the end of its ``with`` block) ends
 everything it opened: its pictures and event iterators are cancelled, and its
 controls and external streams that are still open are cancelled too (what they
@@ -35,6 +44,7 @@ all). No thread of a closed client waits on.
 
 from __future__ import annotations
 
+import collections
 import queue
 import threading
 import time
@@ -96,7 +106,7 @@ class SimClient:
         self.token = ""
         self.agent_id = 0
         self.world_info: pb.WorldInfo | None = None
-        self._streams: list = []  # the server streams: Watch and WatchEvents calls
+        self._streams: list = []  # the server streams: pictures (Watch) and WatchEvents calls
         self._request_streams: set = set()  # the client streams still open (_RequestStream)
         self._request_streams_lock = threading.Lock()  # they leave the set on gRPC's thread
 
@@ -194,11 +204,11 @@ class SimClient:
 
     def watch(self, listener=None) -> Picture:
         """Start the Watch stream in a background thread; the live picture it maintains.
-        ``listener(picture, update)`` is called for every update, the snapshot first
-        (see Picture.listeners)."""
+        ``listener(picture, update)`` is called with the updates in order, the snapshot first,
+        those that came while it was busy merged into one (see Picture.listeners)."""
         call = self.stub.Watch(pb.WatchRequest(session_token=self.token))
-        self._streams.append(call)
         picture = Picture(call, self.world_info.time_scale if self.world_info else 1.0)
+        self._streams.append(picture)  # close() cancels it: what its listeners have not had is dropped
         if listener is not None:
             picture.listeners.append(listener)
         picture.start()
@@ -340,6 +350,83 @@ class ExternalStream(_RequestStream):
         self._put(pb.ExternalEntityUpdate(session_token=self.client.token, external_id=external_id, remove=True))
 
 
+def _copy(message):
+    """A message of its own (a sub-message read from an update keeps the whole update's
+    memory alive: one entity's latest state could hold a minutes-old update)."""
+    c = type(message)()
+    c.CopyFrom(message)
+    return c
+
+
+class PendingUpdate:
+    """Consecutive WatchUpdates not yet handed to a picture's listeners, as one update: what
+    a listener slower than the stream gets (issue #4: intermediate updates may be lost, never
+    the latest state).
+
+    Merged: the latest world time and clock rate (``time_scale``, when one of them carried
+    it); each entity's latest state (its earlier ones are lost); every entity that entered
+    (its info as it came) and every one that left, with its states before leaving dropped,
+    so a listener that reads ``left``, then ``entered``, then ``states`` (the order an update
+    is applied in) ends with the picture the updates end with. Not merged: a snapshot (a new
+    picture: it starts a PendingUpdate of its own), and an update where an entity leaves that
+    entered in the updates held (the listener would never see it come and go: it goes in the
+    next PendingUpdate). So nothing that comes or goes, and no snapshot, is lost, and those
+    stay in order; a pause or resume shows as the latest ``time_scale``. Held while the
+    listener is busy: one state per entity in view in each PendingUpdate, and a PendingUpdate
+    more for each snapshot or come-and-go meanwhile."""
+
+    def __init__(self, update: pb.WatchUpdate):
+        self._alone: pb.WatchUpdate | None = update  # handed over as it came while nothing joins it
+        self.count = 1  # updates merged
+        self.time_s = update.time_s
+        self.snapshot = update.snapshot
+        self.time_scale = update.time_scale if update.HasField("time_scale") else None
+        self._entered: dict[int, pb.EntityInfo] = {}
+        self._left: dict[int, None] = {}  # ordered, unique
+        self._states: dict[int, pb.EntityState] = {}
+
+    def _unpack(self) -> None:
+        u, self._alone = self._alone, None
+        self._entered = {i.entity_id: _copy(i) for i in u.entered}
+        self._left = dict.fromkeys(u.left)
+        self._states = {s.entity_id: _copy(s) for s in u.states}
+
+    def merge(self, update: pb.WatchUpdate) -> bool:
+        """Take ``update`` (the next one of the stream) in; False where it must be handed
+        over on its own, after this one (a snapshot, or one of the entities that entered
+        here leaving)."""
+        if update.snapshot:
+            return False
+        if update.left:
+            entered = self._entered if self._alone is None else {e.entity_id for e in self._alone.entered}
+            if any(i in entered for i in update.left):
+                return False
+        if self._alone is not None:
+            self._unpack()
+        for i in update.left:
+            self._states.pop(i, None)
+            self._left[i] = None
+        for info in update.entered:
+            self._entered[info.entity_id] = _copy(info)
+        for state in update.states:
+            self._states[state.entity_id] = _copy(state)
+        self.time_s = update.time_s
+        if update.HasField("time_scale"):
+            self.time_scale = update.time_scale
+        self.count += 1
+        return True
+
+    def update(self) -> pb.WatchUpdate:
+        """The merged update (the one update itself while nothing joined it)."""
+        if self._alone is not None:
+            return self._alone
+        u = pb.WatchUpdate(time_s=self.time_s, snapshot=self.snapshot, entered=list(self._entered.values()),
+                           left=list(self._left), states=list(self._states.values()))
+        if self.time_scale is not None:
+            u.time_scale = self.time_scale
+        return u
+
+
 class Picture:
     """What one session sees: entity infos and their dead-reckoned states."""
 
@@ -361,11 +448,21 @@ class Picture:
         # for this client's own failure (a listener's exception), else the call's error.
         self.error: Exception | None = None
         self.snapshot_received = threading.Event()
-        # Called as fn(picture, update) on the stream's thread after each WatchUpdate is
-        # applied, under the picture's lock (gateways re-publish each update as it comes).
+        # Called as fn(picture, update) for the updates in order, on the picture's listener
+        # thread (one a picture, started with the first update that finds a listener here),
+        # not under the picture's lock: the stream's thread never waits for a listener, so the
+        # picture may already hold newer updates than the one a listener is given. A listener
+        # still busy when updates come gets them merged into one (PendingUpdate: each entity's
+        # latest state; what came or went, and snapshots, all in order). Updates a listener
+        # has not had yet are dropped when the picture is cancelled (SimClient.close()), and
+        # handed over when the stream ends otherwise.
         self.listeners: list = []
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="watch", daemon=True)
+        self._handover = threading.Condition()  # the updates for the listeners, and their thread's end
+        self._pending: collections.deque[PendingUpdate] = collections.deque()
+        self._stream_over = False
+        self._listener_thread: threading.Thread | None = None
 
     def start(self) -> None:
         self._thread.start()
@@ -428,15 +525,24 @@ class Picture:
                         del self.wall_log[:50_000]
                     if u.snapshot:
                         self.snapshot_received.set()
-                    for fn in self.listeners:
-                        fn(self, u)
                     self._cond.notify_all()
+                if self.listeners:
+                    self._hand_over(u)
         except grpc.RpcError as exc:
-            if exc.code() != grpc.StatusCode.CANCELLED:
-                self.error = stream_error(exc)  # StreamAborted: superseded, or the session left
+            cancelled = exc.code() == grpc.StatusCode.CANCELLED
+            if not cancelled:
+                with self._cond:
+                    if self.error is None:  # a listener's failure came first: it stays the reason
+                        self.error = stream_error(exc)  # StreamAborted: superseded, or the session left
+            self._end_listening(drop=cancelled)
         except Exception as exc:  # noqa: BLE001 - this client's own failure ends its picture, said in error
-            self.error = PictureFailed(self.time_s, exc)
+            with self._cond:
+                if self.error is None:
+                    self.error = PictureFailed(self.time_s, exc)
             self._call.cancel()  # the server stops sending to a picture that no longer reads
+            self._end_listening(drop=False)  # the updates before this one are the listeners' still
+        else:
+            self._end_listening(drop=False)
         finally:
             with self._cond:
                 # Nothing is known past the last update: its world time is the picture's from now on
@@ -444,11 +550,63 @@ class Picture:
                 self.time_scale = 0.0
                 self._cond.notify_all()
 
+    def _hand_over(self, update: pb.WatchUpdate) -> None:
+        """Give an update to the listener thread: merged into the one it has not taken yet
+        where it can be (PendingUpdate.merge), else after it."""
+        with self._handover:
+            if self._stream_over:  # cancelled: the listeners are given nothing more
+                return
+            if not (self._pending and self._pending[-1].merge(update)):
+                self._pending.append(PendingUpdate(update))
+            if self._listener_thread is None:
+                self._listener_thread = threading.Thread(target=self._listen, name="watch-listeners", daemon=True)
+                self._listener_thread.start()
+            self._handover.notify()
+
+    def _end_listening(self, drop: bool) -> None:
+        """The stream has ended: the listener thread ends once it has handed over what is
+        pending (at once, the pending dropped, where ``drop``)."""
+        with self._handover:
+            if drop:
+                self._pending.clear()
+            self._stream_over = True
+            self._handover.notify()
+
+    def _listen(self) -> None:
+        """The listener thread: each pending update to every listener, in order, until the
+        stream has ended and nothing is pending; a listener that raises ends the picture
+        (PictureFailed, the call cancelled, what is pending dropped)."""
+        try:
+            while True:
+                with self._handover:
+                    while not self._pending and not self._stream_over:
+                        self._handover.wait()
+                    if not self._pending:
+                        return
+                    update = self._pending.popleft().update()
+                try:
+                    for fn in list(self.listeners):
+                        fn(self, update)
+                except Exception as exc:  # noqa: BLE001 - this client's own failure ends its picture, said in error
+                    with self._cond:  # it came before whatever ended the stream since: it is the reason
+                        if not isinstance(self.error, PictureFailed):
+                            self.error = PictureFailed(update.time_s, exc)
+                    self._end_listening(drop=True)
+                    self._call.cancel()  # the server stops sending to a picture that no longer reads
+                    return
+                with self._cond:  # wait_for's predicates may look at what listeners did
+                    self._cond.notify_all()
+        finally:
+            with self._cond:
+                self._cond.notify_all()
+
     @property
     def alive(self) -> bool:
-        """Whether the stream is still running (False once the server ended it or it failed:
-        see :attr:`error`)."""
-        return self._thread.is_alive()
+        """Whether the stream is still running, or its listeners still have updates to take
+        (False once the server ended it or it failed, and they have had them: see
+        :attr:`error`)."""
+        listening = self._listener_thread
+        return self._thread.is_alive() or (listening is not None and listening.is_alive())
 
     def now_s(self) -> float:
         """Estimated world time now (last update's time + scaled wall time since); once the
@@ -470,10 +628,13 @@ class Picture:
         with self._cond:
             while not predicate(self):
                 left = deadline - time.monotonic()
-                if left <= 0 or not self._thread.is_alive():
+                if left <= 0 or not self.alive:
                     return bool(predicate(self))
                 self._cond.wait(min(left, 0.5))
             return True
 
     def cancel(self) -> None:
+        """End the stream now; the listeners are given nothing more (a call under way
+        finishes)."""
+        self._end_listening(drop=True)
         self._call.cancel()

@@ -390,7 +390,8 @@ class DisGateway:
     # -- out: Sortie -> DIS ---------------------------------------------------------------------
 
     def _on_update(self, picture, update: pb.WatchUpdate) -> None:
-        """Watch listener (the stream's thread): one PDU per entered or updated state; when the
+        """Watch listener (the picture's listener thread; updates that came while it was busy arrive
+        merged: each entity's latest state): one PDU per entered or updated state; when the
         world clock has just paused or resumed, a PDU of every other entity at once, standing
         still or moving again (module docstring)."""
         with self._lock:

@@ -520,7 +520,7 @@ class TacviewTelemetry:
     # -- the simulation side (Watch and events threads) -----------------------------------------
 
     def _on_update(self, picture, update) -> None:
-        """Picture listener (the Watch thread, under the picture's lock): the entity infos."""
+        """Picture listener (the picture's listener thread, not under its lock): the entity infos."""
         if not (update.snapshot or update.left or update.entered):
             return
         if update.snapshot:  # the frame clock restarts at its time (see the module docstring)
