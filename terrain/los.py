@@ -62,7 +62,8 @@ once; :func:`line_of_sight` traces such a ray from its other end as well, so
 a ray blocked on the raster before it leaves is blocked whichever end is
 outside); FILLED when the walk passed over a block holding a filled-void post
 (conservative: at whatever pyramid level it cleared that block); else OK.
-A raster spanning a full turn of longitude is walked periodically; any other
+A raster spanning a full turn of longitude or more (a whole number of cells a
+turn) is walked periodically over its first turn's cells; any other
 raster ends at its first and last column (an antimeridian-crossing raster is
 one range of columns: longitudes are unwrapped along the ray). A geographic
 raster whose first or last row lies on a pole keeps tracks over the pole.
@@ -396,7 +397,8 @@ def _next_cell(r0, r1, r2, c0, c1, c2, sr, sc, rlo, rhi, clo, chi, u_r, u_c, u_e
 def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua, ub, stack, out):
     """Walk the cells of one monotone stretch [ua, ub] of a piece.
 
-    periodic: the columns wrap (the raster spans a full turn). poles: bit 0
+    periodic: the cells per turn when the columns wrap (the raster spans a full turn or more: only
+    the first turn's cells are read), else 0. poles: bit 0
     set when row 0 lies on the south pole, bit 1 when the last row lies on the
     north pole; there no latitude lies beyond the raster, so a track that the
     quadratic carries a hair past the pole row stays in the polar cells.
@@ -406,7 +408,7 @@ def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua,
     _WALK_OUTSIDE. out[3] is set to 1 when a filled-void cell was used.
     """
     ny, nx = heights.shape
-    ncy, ncx = ny - 1, nx - 1
+    ncy, ncx = ny - 1, (periodic if periodic else nx - 1)
     r0, r1, r2, c0, c1, c2, p0, p1, p2 = poly[0], poly[1], poly[2], poly[3], poly[4], poly[5], \
         poly[6], poly[7], poly[8]
     sr, sc, i, j = _walk_start(r0, r1, r2, c0, c1, c2, ua, ub, ncy, ncx)
@@ -577,11 +579,23 @@ def check_segments(a_lat, a_lon, a_h, b_lat, b_lon, b_h):
     return a_lat, a_lon, a_h, b_lat, b_lon, b_h
 
 
-def _walk_params(raster: Raster) -> tuple[bool, int, float]:
-    """(periodic, poles, columns per turn) of a raster as :func:`trace_segments` walks it."""
+def _walk_params(raster: Raster) -> tuple[int, int, float]:
+    """(periodic, poles, columns per turn) of a raster as :func:`trace_segments` walks it.
+
+    periodic: the cells per turn when the raster's columns wrap, else 0. A raster wraps when a turn
+    is a whole number of its cells (to 1e-9 of a turn) and it spans that turn or more: its cells
+    past the first turn repeat the first ones, and like the heights kernel (terrain.raster, longitude
+    modulo a turn east of x0) the walk reads only the first turn's cells (a GeoTIFF from -180.05 to
+    180.05, or a store's all-longitude raster of a turn and two posts, was walked as a plain range
+    and rays over the pole or across its seam left it: OUTSIDE).
+    """
     g = raster.georef
     turn = 360.0 if g.crs == CRS_GEOGRAPHIC else TWO_PI_A_M
-    periodic = abs((raster.shape[1] - 1) * g.dx - turn) <= 1.0e-9 * turn
+    period = turn / g.dx
+    whole = round(period)
+    periodic = 0
+    if abs(period - whole) <= 1.0e-9 * period and raster.shape[1] - 1 >= whole:
+        periodic = whole
     poles = 0
     if g.crs == CRS_GEOGRAPHIC:
         lat_top = g.y0 + (raster.shape[0] - 1) * g.dy
@@ -819,7 +833,7 @@ def _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, u0, u1,
     columns. The walk is :func:`_walk`'s (the same block steps on the min/max pyramid): a block
     whose maximum is finite holds no hole and is passed whole (a cell with a NaN post has maximum
     +inf, terrain.pyramid), unless it holds a filled post (then its cells are told apart)."""
-    ncy, ncx = pshape[0, 0], pshape[0, 1]
+    ncy, ncx = pshape[0, 0], (periodic if periodic else pshape[0, 1])
     has_fill = pfill.shape[0] > 0
     r0, r1, r2 = poly[0], poly[1], poly[2]
     c0, c1, c2 = poly[3] - shift, poly[4], poly[5]
@@ -942,7 +956,7 @@ def _covered_at(heights, crs, x0, y0, dx, dy, periodic, x, y, z):
         return False
     for i in range(i0, i1 + 1):
         for jj in range(j0, j1 + 1):
-            j = jj % (nx - 1) if periodic else jj
+            j = jj % periodic if periodic else jj
             s = (np.float64(heights[i, j]) + np.float64(heights[i, j + 1]) + np.float64(heights[i + 1, j])
                  + np.float64(heights[i + 1, j + 1]))
             if s != s:

@@ -33,7 +33,8 @@ can answer there.
 
 Longitude wraps for geographic rasters: tiles E179 and W180 merge into one
 raster with x0 = 179 that runs on to 181 (the kernel reads longitude modulo
-360 east of x0).
+360 east of x0). Web Mercator rasters wrap likewise every 2 pi a metres of x
+when that is a whole number of posts (to ``ALIGN_TOLERANCE_POSTS``).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ import numpy as np
 
 from sortie.errors import LimitExceeded
 from terrain.dem import enclosed_voids, fill_voids, read_dem
-from terrain.raster import CRS_GEOGRAPHIC, Georef, Raster, grid_bounds
+from terrain.raster import CRS_GEOGRAPHIC, TWO_PI_A_M, Georef, Raster, grid_bounds
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +146,7 @@ def aligned(a: Raster, b: Raster) -> bool:
             return False
     dcol = (gb.x0 - ga.x0) / ga.dx
     if _wraps(ga):
-        dcol %= FULL_TURN_DEG / ga.dx
+        dcol %= _turn(ga) / ga.dx
     drow = (gb.y0 - ga.y0) / ga.dy
     return _near_whole(dcol, ga) and abs(drow - round(drow)) <= ALIGN_TOLERANCE_POSTS
 
@@ -154,14 +155,21 @@ def _near_whole(dcol: float, g: Georef) -> bool:
     if abs(dcol - round(dcol)) <= ALIGN_TOLERANCE_POSTS:
         return True
     # dcol taken modulo a turn may sit just below the period: that is 0.
-    return _wraps(g) and abs(dcol - FULL_TURN_DEG / g.dx) <= ALIGN_TOLERANCE_POSTS
+    return _wraps(g) and abs(dcol - _turn(g) / g.dx) <= ALIGN_TOLERANCE_POSTS
+
+
+def _turn(g: Georef) -> float:
+    """A full turn of longitude in the grid's x unit: 360 degrees, or Web Mercator's 2 pi a metres
+    (EPSG:3857's x is a * longitude in radians, IOGP Guidance Note 7-2, method 1024)."""
+    return FULL_TURN_DEG if g.crs == CRS_GEOGRAPHIC else TWO_PI_A_M
 
 
 def _wraps(g: Georef) -> bool:
-    """Geographic grids whose posts repeat every 360 degrees can wrap in longitude."""
-    if g.crs != CRS_GEOGRAPHIC:
-        return False
-    period = FULL_TURN_DEG / g.dx
+    """Grids whose posts repeat every turn of longitude (a whole number of posts a turn) can wrap:
+    geographic ones every 360 degrees, Web Mercator ones every 2 pi a metres (tiles cut at x = +-pi a
+    merged across the antimeridian as geographic ones do; the heights kernel and the ray walk read x
+    modulo the same turn)."""
+    period = _turn(g) / g.dx
     return abs(period - round(period)) <= ALIGN_TOLERANCE_POSTS
 
 
@@ -178,7 +186,7 @@ def place(members: list[Raster]) -> Placement:
     if _wraps(ref):
         best = None
         for k, xk in enumerate(xs):
-            east = [_east_of(x, xk, dx) for x in xs]
+            east = [_east_of(x, xk, dx, _turn(ref)) for x in xs]
             span = max(e + (m.shape[1] - 1) * dx for e, m in zip(east, members))
             if best is None or span < best[0] - 0.5 * dx:
                 best = (span, xk, east)
@@ -193,10 +201,10 @@ def place(members: list[Raster]) -> Placement:
     return Placement(Georef(ref.crs, x0, y0, dx, dy), (ny, nx), offsets)
 
 
-def _east_of(x: float, start: float, dx: float) -> float:
-    """Degrees from start east to x, in [0, 360); a hair below 360 is 0."""
-    d = (x - start) % FULL_TURN_DEG
-    return 0.0 if FULL_TURN_DEG - d <= ALIGN_TOLERANCE_POSTS * dx else d
+def _east_of(x: float, start: float, dx: float, turn: float) -> float:
+    """From start east to x, in [0, turn) (the grid's x unit); a hair below a turn is 0."""
+    d = (x - start) % turn
+    return 0.0 if turn - d <= ALIGN_TOLERANCE_POSTS * dx else d
 
 
 def _connected(members: list[Raster], placement: Placement) -> bool:

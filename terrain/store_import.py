@@ -185,7 +185,7 @@ def _import_regions(out: Path, key: str, name, terrain, sources, rasters, groups
         totals["measured"] += int(np.count_nonzero(classes == st.CLASS_MEASURED))
         totals["filled"] += int(np.count_nonzero(classes == st.CLASS_FILLED))
         del units, classes
-        src = _error_vs_sources(st.StoreSource(store), [rasters[m] for m in members])
+        src = _error_vs_sources(st.StoreSource(store), [rasters[m] for m in sorted(members)])  # in priority order
         totals["smax"] = max(totals["smax"], src[0])
         totals["ssq"] += src[1]
         totals["sn"] += src[2]
@@ -776,9 +776,14 @@ def _class_pyramid(classes, row0, col0, rects):
 
 def _error_vs_sources(source: st.StoreSource, rasters, max_points: int = 200_000):
     """(max, sum of squares, n) of store height - source height at the sources'
-    measured posts (a deterministic subsample of at most max_points per source)."""
+    measured posts that the source itself answers in the stack (a deterministic subsample of at most
+    max_points per source). rasters: in priority order. The stack answers a point from its first
+    source answering OK there, else its first answering FILLED (terrain.terrain.Terrain); a post
+    answered by another source holds that source's height in the store, so counting it reported
+    the sources' disagreement as the store's error (7.15 m max, 5.19 m RMS, for a store within
+    0.17 m of each source where it answers)."""
     worst, sq, n = 0.0, 0.0, 0
-    for r in rasters:
+    for k, r in enumerate(rasters):
         ny, nx = r.heights.shape
         stride = max(1, int(math.ceil(math.sqrt(ny * nx / max_points))))
         rows, cols = np.meshgrid(np.arange(0, ny, stride), np.arange(0, nx, stride), indexing="ij")
@@ -791,11 +796,26 @@ def _error_vs_sources(source: st.StoreSource, rasters, max_points: int = 200_000
         ok = (s == STATUS_OK) & np.isfinite(want)
         if r.filled is not None:
             ok &= r.filled[rows, cols] == 0  # uint8 flags: 1 where a void was filled
+        ok &= _answered_by(rasters, k, lat, lon)
         d = np.abs(h[ok] - want[ok])
         worst = max(worst, float(d.max(initial=0.0)))
         sq += float(np.sum(d ** 2))
         n += int(d.size)
     return worst, sq, n
+
+
+def _answered_by(rasters, k: int, lat, lon) -> np.ndarray:
+    """(n,) bool: where the stack of ``rasters`` (priority order) answers from rasters[k]: the
+    first answering OK, else (none OK) the first answering FILLED. lat, lon: (n,) float64 degrees."""
+    owner_ok = np.full(lat.size, -1)
+    owner_filled = np.full(lat.size, -1)
+    h, s = np.empty(lat.size), np.empty(lat.size, np.uint8)
+    for j, r in enumerate(rasters):
+        s.fill(STATUS_OUTSIDE)  # heights_into answers only the points still OUTSIDE
+        r.heights_into(lat, lon, h, s)
+        owner_ok[(owner_ok < 0) & (s == STATUS_OK)] = j
+        owner_filled[(owner_filled < 0) & (s == STATUS_FILLED)] = j
+    return np.where(owner_ok >= 0, owner_ok, owner_filled) == k
 
 
 def _post_latlon(r: Raster, rows, cols):
