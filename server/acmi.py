@@ -278,8 +278,14 @@ def iso_utc(value: str, what: str) -> str:
     except ValueError:
         raise DataFormatError(f"{what} is not an ISO 8601 time (got {value!r})") from None
     if t.tzinfo is not None:
-        t = t.astimezone(dt.timezone.utc).replace(tzinfo=None)
-    text = t.strftime("%Y-%m-%dT%H:%M:%S")
+        try:
+            t = t.astimezone(dt.timezone.utc).replace(tzinfo=None)
+        except OverflowError:  # 9999-12-31T23:59:59-05:00 is in year 10000 UTC (the scenario refuses it)
+            raise DataFormatError(f"{what} is not within years 1..9999 in UTC (got {value!r})") from None
+    # ISO 8601 writes the year in four digits (0001..9999; ISO 8601-1:2019, 5.2.2.1), as
+    # datetime.isoformat does; strftime("%Y") does not pad years before 1000 with glibc
+    # (the Python docs' strftime notes), and "800-03-01T..." is no ISO 8601 date.
+    text = t.replace(microsecond=0).isoformat(timespec="seconds")
     if t.microsecond:
         text += f".{t.microsecond // 1000:03d}"
     return text + "Z"

@@ -5,6 +5,7 @@
     sortie resim FILE [--dem FILE... | --terrain HOST:PORT] [--until S] [--json OUT]
     sortie resim FILE --take-over S --agent NAME --port N   # live from instant S, NAME free to claim
                  [--duration S]                      # live for S world seconds (default: to the exercise's end)
+                 [--clock realtime|fast|paused] [--time-scale X]  # default: real time, x1, whatever the recording ran
                  [--record FILE | --record-dir DIR | --no-record]  # recorded as sortie server records
     sortie replay FILE --port N [--speed X] [--paused]
 """
@@ -18,6 +19,8 @@ import sys
 from collections import Counter
 
 from server.grpc_common import DEFAULT_GRACE_S, HOST_HELP, listen_address
+from server.scenario import TIME_SCALE_MAX
+from server.sim_server import CLOCKS
 from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.logs import line
 
@@ -58,6 +61,13 @@ def add_parser(sub) -> None:
     r.add_argument("--duration", type=float, metavar="S",
                    help="with --take-over: stop after S world seconds live (default: at the exercise's end, the "
                         "later of the scenario's duration_s and the recording's end; none: until stopped)")
+    r.add_argument("--clock", choices=CLOCKS,
+                   help="with --take-over: the clock it runs live (default realtime, x1, whatever clock the "
+                        "recording ran: a client flies the agent in real time); fast: --time-scale x real time; "
+                        "paused: until SIGUSR1 (SIGUSR1 runs the clock, SIGUSR2 pauses it, as sortie server's)")
+    r.add_argument("--time-scale", type=float, metavar="X",
+                   help=f"with --take-over: world seconds per wall second of the fast clock, (1, {TIME_SCALE_MAX:g}] "
+                        "(default: the fast clock's default)")
     r.add_argument("--port", type=int, default=0, help="with --take-over: TCP port (0: a free one)")
     r.add_argument("--host", default="127.0.0.1", help=f"with --take-over: {HOST_HELP} (default %(default)s)")
     r.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
@@ -184,11 +194,11 @@ def resim_command(args) -> int:
     workers = aircraft_workers(args.aircraft_workers)
     if args.take_over is not None:
         return take_over_command(args, workers)
-    if args.agent or args.record or args.duration is not None:
+    given = [o for o in ("agent", "record", "duration", "clock", "time_scale") if getattr(args, o) not in (None, "")]
+    if given:
         from sortie.errors import InvalidArgument
 
-        option = "agent" if args.agent else "record" if args.record else "duration"
-        raise InvalidArgument(option, "only with --take-over", value=getattr(args, option))
+        raise InvalidArgument(given[0], "only with --take-over", value=getattr(args, given[0]))
     with _open(args.file) as rec:
         if not rec.index.ticks:  # a server killed before its first chunk: no DIVERGED, nothing ran
             print(f"{args.file}: nothing to compare: the recording holds no ticks")
@@ -218,18 +228,32 @@ def resim_command(args) -> int:
 
 
 def take_over_command(args, workers: int) -> int:
-    from server.grpc_common import stop_signals, wait_for_signal
-    from server.resim import take_over, take_over_header
-    from server.sim_cli import (_missing_folders, check_recording, new_recording, recording_option,
-                                remove_recording)
-    from server.scenario import DURATION_MAX_S
-    from server.sim_server import SimulationServer, server_config
+    """Live from --take-over S: the world re-simulated to S, then served until the end (or
+    --duration), in real time x1 unless --clock/--time-scale say otherwise (the recording's
+    clock is not the take-over's: a fast x50 recording taken over ran x50, labelled
+    "realtime"). SIGUSR1/SIGUSR2 run and pause the clock from the first step, as sortie
+    server's (sim_cli.ClockSignals): one that comes while the world is re-simulated is
+    applied as it goes live, where it killed the process before (no recording footer)."""
+    from server.sim_cli import check_run_options, clock_signals, run_clock
     from sortie.errors import InvalidArgument
 
     if not args.agent:
         raise InvalidArgument("agent", "--take-over needs --agent NAME")
-    if args.duration is not None and not (math.isfinite(args.duration) and 0.0 < args.duration <= DURATION_MAX_S):
-        raise InvalidArgument("duration", f"must be within (0, {DURATION_MAX_S:g}] s", value=args.duration)
+    check_run_options(args)  # --time-scale and --duration
+    live_clock = run_clock("realtime", 1.0, args.clock, args.time_scale)
+    with clock_signals() as clock:
+        return _take_over(args, workers, live_clock, clock)
+
+
+def _take_over(args, workers: int, live_clock: tuple[str, float], clock) -> int:
+    """:func:`take_over_command` once its options are checked, under ``clock``
+    (sim_cli.ClockSignals) with the (clock, time_scale) it runs live."""
+    from server.grpc_common import stop_signals, wait_for_signal
+    from server.resim import take_over, take_over_header
+    from server.sim_cli import _missing_folders, check_recording, new_recording, recording_option, remove_recording
+    from server.sim_server import SimulationServer, server_config
+    from sortie.errors import InvalidArgument
+
     recording = {}
 
     def record(rec, world, scenario, spec):  # recorded as `sortie server` records, from the world's start
@@ -251,7 +275,7 @@ def take_over_command(args, workers: int) -> int:
         raise exc.with_field(option) if option else exc from None
     recorder = recording.get("recorder")
     config = server_config(scenario, "take-over:" + str(args.file))
-    config.clock = "realtime"
+    config.clock, config.time_scale = live_clock
     try:
         server = SimulationServer(world, config, listen_address(args.host, args.port), before_tick=inputs.apply)
     except BaseException:  # it cannot listen: nothing is left behind for `sortie replay` to pick
@@ -261,10 +285,11 @@ def take_over_command(args, workers: int) -> int:
             remove_recording(recording["path"], recording["made"])
         raise
     with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
+        clock.attach(server)
         server.start()
         until = "until stopped" if config.duration_s is None else f"until t = {config.duration_s:.2f} s"
         line(f"sortie take-over of {args.agent} at t = {world.time_s:.2f} s ({until}) listening on "
-             f"{server.address}", logger=__name__)
+             f"{server.address} (clock {clock.clock(config.clock)} x{config.time_scale:g})", logger=__name__)
         if recorder is not None:
             line(f"recording to {recording['path']}", logger=__name__)
         for lost in inputs.lost:

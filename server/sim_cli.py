@@ -12,7 +12,8 @@ too, with the same options (:func:`add_recording_options`).
 
 Runs until SIGTERM/SIGINT (graceful: NOT_SERVING, streams closed, in-flight
 calls get --grace-s) or until the scenario's (or --duration's) end. SIGUSR1 runs
-the world clock (a "paused" exercise resumes in real time), SIGUSR2 pauses it.
+the world clock (a "paused" exercise resumes in real time), SIGUSR2 pauses it, from the
+first step of the start (:class:`ClockSignals`).
 """
 
 from __future__ import annotations
@@ -69,23 +70,69 @@ def add_parser(sub) -> None:
     p.set_defaults(func=server_command)
 
 
+class ClockSignals:
+    """SIGUSR1 runs the world clock (a "paused" exercise resumes in real time, others in their
+    own clock) and SIGUSR2 pauses it: an operator's control of the clock (`kill -USR1 PID`), as
+    the scenario's clock = "paused" promises. Taken from a service's first step, as its SIGTERM
+    is (grpc_common.stop_signals): a signal that comes while the server starts (loading the
+    terrain, starting and trimming the aircraft, re-simulating a take-over: seconds) is
+    remembered and applied by :meth:`attach`, where its default action killed the process
+    (exit 138/140, the aircraft workers orphaned) -- an acceptance probe. The last signal wins.
+
+    The handlers run in the main thread between bytecodes, and may interrupt :meth:`attach`
+    or each other: :meth:`_settle` applies the latest request until no newer one came while it
+    did, so an older request never lands after a newer one."""
+
+    def __init__(self):
+        self.server = None
+        self.wanted: str | None = None  # "run" or "pause": the latest signal's request (None: none yet)
+        self._requests = 0  # signals taken so far
+
+    def request(self, wanted: str) -> None:
+        """A signal's handler: remember ``wanted`` ("run" / "pause"); apply it once attached."""
+        self.wanted = wanted
+        self._requests += 1
+        self._settle()
+
+    def attach(self, server) -> None:
+        """Control ``server`` (a SimulationServer, before or after its start) from now on,
+        applying the request that came while it was being built."""
+        self.server = server
+        self._settle()
+
+    def clock(self, configured: str) -> str:
+        """The clock a server configured with ``configured`` runs under the signals so far."""
+        if self.wanted is None:
+            return configured
+        if self.wanted == "pause":
+            return "paused"
+        return "realtime" if configured == "paused" else configured
+
+    def _settle(self) -> None:
+        server = self.server
+        if server is None or self.wanted is None:
+            return
+        while True:
+            seen = self._requests
+            server.set_clock(self.clock(server.config.clock))
+            if self._requests == seen:
+                return
+
+
 @contextlib.contextmanager
-def clock_signals(server, clock: str):
-    """While serving, SIGUSR1 runs the world clock (a "paused" exercise resumes in real time,
-    others in their own clock) and SIGUSR2 pauses it: an operator's control of the clock
-    (`kill -USR1 PID`), as the scenario's clock = "paused" promises."""
-    running = "realtime" if clock == "paused" else clock
+def clock_signals():
+    """:class:`ClockSignals` taking SIGUSR1 and SIGUSR2 while in the block (main thread only);
+    the previous handlers are back after it."""
+    from sortie.cli import take_early_clock_request
 
-    def run(signum, frame):
-        server.set_clock(running)
-
-    def pause(signum, frame):
-        server.set_clock("paused")
-
-    previous = {signal.SIGUSR1: signal.signal(signal.SIGUSR1, run),
-                signal.SIGUSR2: signal.signal(signal.SIGUSR2, pause)}
+    control = ClockSignals()
+    early = take_early_clock_request()  # one that came while the modules imported (sortie.cli)
+    if early is not None:
+        control.request(early)
+    previous = {signal.SIGUSR1: signal.signal(signal.SIGUSR1, lambda signum, frame: control.request("run")),
+                signal.SIGUSR2: signal.signal(signal.SIGUSR2, lambda signum, frame: control.request("pause"))}
     try:
-        yield
+        yield control
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -285,26 +332,27 @@ def server_command(args) -> int:
     while the server starts (loading the terrain, starting the aircraft workers and trimming
     the aircraft take seconds) abandons the start after the step under way, as a failure
     would but exiting 0 with a line, where it killed the process (-15) and left its workers
-    to die on a broken pipe."""
-    with stop_signals() as stop:
-        try:
-            server, world, metrics, recorder, path = _start(args, stop)
-        except StoppedWhileStarting:
-            line("sortie server: stopped while starting (nothing served or recorded)", logger=__name__)
-            return 0
-        config = server.config
-        with clock_signals(server, config.clock):
+    to die on a broken pipe. SIGUSR1/SIGUSR2 are caught from the first step too, to the end
+    of the shutdown (a recording's footer): one that comes while the server starts runs or
+    pauses the clock it starts with (:class:`ClockSignals`)."""
+    with clock_signals() as clock:
+        with stop_signals() as stop:
+            try:
+                server, world, metrics, recorder, path = _start(args, stop, clock)
+            except StoppedWhileStarting:
+                line("sortie server: stopped while starting (nothing served or recorded)", logger=__name__)
+                return 0
             line(f"sortie simulation server listening on {server.address} ({len(world.entities)} agents, "
-                 f"clock {config.clock})", logger=__name__)
+                 f"clock {clock.clock(server.config.clock)})", logger=__name__)
             if metrics is not None:
                 line(f"metrics on http://{metrics.address}/metrics", logger=__name__)
             if recorder is not None:
                 line(f"recording to {path}", logger=__name__)
             wait_for_signal(server.finished, stop=stop)
-    server.stop(args.grace_s)
-    world.close()
-    if metrics is not None:
-        metrics.stop()
+        server.stop(args.grace_s)
+        world.close()
+        if metrics is not None:
+            metrics.stop()
     stats = server.tick_stats()
     line(f"sortie simulation server stopped at world time {world.time_s:.1f} s "
          f"({stats['ticks']} ticks, p99 {stats['tick_p99_ms']:.1f} ms)", logger=__name__)
@@ -318,10 +366,11 @@ def server_command(args) -> int:
     return 0
 
 
-def _start(args, stop):
+def _start(args, stop, signals: ClockSignals):
     """(server started, world, metrics server or None, recorder or None, its path) of
     :func:`server_command`; StoppedWhileStarting, everything opened closed, when ``stop`` is
-    set after any step (before the recording is made, so a stopped start records nothing)."""
+    set after any step (before the recording is made, so a stopped start records nothing).
+    ``signals`` control its clock from just before its start (its first tick)."""
     from server.recorder import recording_header
     from server.scenario import load_scenario
     from server.sim_server import (SimulationServer, aircraft_host, build_world, open_terrain, server_config,
@@ -369,6 +418,7 @@ def _start(args, stop):
         if metrics is not None:
             metrics.start()
             metrics_started = True
+        signals.attach(server)
         server.start()
     except BaseException:
         _abandon_start(server, metrics, metrics_started, recorder, path, made, world, host)

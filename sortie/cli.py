@@ -169,6 +169,26 @@ def _terminated(signum, frame):
     raise Terminated()
 
 
+# The commands whose world clock SIGUSR1 runs and SIGUSR2 pauses (server.sim_cli.clock_signals).
+# One of those signals that comes while their modules import (the first second or so, before the
+# command takes them) is remembered here and applied when it does: its default action killed the
+# process.
+CLOCK_SIGNAL_COMMANDS = frozenset({"server", "resim"})
+_early_clock_request: list[str] = []  # "run" / "pause", the latest last
+
+
+def _early_clock_signal(signum, frame):
+    _early_clock_request.append("run" if signum == signal.SIGUSR1 else "pause")
+
+
+def take_early_clock_request() -> str | None:
+    """The clock request ("run" / "pause") of the last SIGUSR1/SIGUSR2 that came before the
+    command took those signals, once (None: none came)."""
+    wanted = _early_clock_request[-1] if _early_clock_request else None
+    _early_clock_request.clear()
+    return wanted
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; its exit status. A Ctrl-C (SIGINT) at any point, while the command
     modules import and the parser is built (the first second or so) as while the command runs,
@@ -178,6 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     words = sys.argv[1:] if argv is None else list(argv)
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminated) if in_main else None
+    clock_previous = {}
+    if in_main and _pre_parse(words).command in CLOCK_SIGNAL_COMMANDS:
+        clock_previous = {sig: signal.signal(sig, _early_clock_signal) for sig in (signal.SIGUSR1, signal.SIGUSR2)}
     try:
         return _main(argv)
     except KeyboardInterrupt:
@@ -189,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if in_main:
             signal.signal(signal.SIGTERM, previous)
+            for sig, handler in clock_previous.items():
+                signal.signal(sig, handler)
 
 
 def _main(argv: list[str] | None) -> int:
