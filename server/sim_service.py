@@ -401,7 +401,7 @@ class SimulationServicer:
         if which is None:
             raise InvalidArgument("command", "set one of stick, autopilot, drive")
         sub = getattr(msg, which)
-        self.world.command(s.agent_id, which, {f.name: v for f, v in sub.ListFields()})
+        self.world.command(s.agent_id, which, {f.name: v for f, v in sub.ListFields()}, owner=s.token)
 
     async def _consume(self, request_iterator, context, handle, response_class):
         """A client stream: each message handled in turn (on the thread pool); the first

@@ -76,7 +76,7 @@ from server.collisions import new_contacts, overlap_depth
 from server.obstacles import MOVING_MPS, clearance_ahead
 from server.dead_reckoning import ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalTable, extrapolate_external
-from sortie.errors import InvalidArgument, LimitExceeded, NotFound, bound_text
+from sortie.errors import InvalidArgument, LimitExceeded, NotFound, PermissionDenied, bound_text
 from terrain.geodesy import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
 AIRCRAFT, GROUND, STATIC = 1, 2, 3  # = sortie.v1.EntityKind values
@@ -667,7 +667,7 @@ class World(EventLog):
             return
         self._ground_heading_hold[e.id] = self._present_hold(e)
 
-    def command(self, entity_id: int, kind: str, values: dict) -> None:
+    def command(self, entity_id: int, kind: str, values: dict, owner: str | None = None) -> None:
         """Validate a command now (InvalidArgument naming the field; nothing kept) and
         keep it for the next tick, replacing any earlier one (latest wins); but stick and
         autopilot commands set only the fields they give, so two of the same kind in one
@@ -677,6 +677,13 @@ class World(EventLog):
         kind "stick": aircraft controls (fdm.aircraft.CONTROL_RANGES names);
         "autopilot": heading_deg / alt_msl_m / speed_mps targets; "drive":
         speed_mps and yaw_rate_dps of a ground vehicle.
+
+        ``owner``: the session that sends it (its token), which must own the entity when the
+        command is kept (PERMISSION_DENIED otherwise), checked under the world's lock: a session
+        validated before its Leave released the agent on another thread had its command kept
+        after the release, the released aircraft flew on the departed pilot's stick and
+        crashed (an acceptance probe: 3 of 160 leaves made mid-stream). None: the caller's
+        check stands (re-simulation, in-process use).
         """
         e = self.entities.get(entity_id)
         if e is None:
@@ -707,6 +714,8 @@ class World(EventLog):
         else:
             raise InvalidArgument("command", 'must be "stick", "autopilot" or "drive"', value=kind)
         with self._lock:
+            if owner is not None and e.owner != owner:
+                raise PermissionDenied(f"{e.name} is no longer controlled by this session")
             was = self._pending.get(entity_id)
             merged = {**was[1], **values} if was is not None and was[0] == kind and kind in PARTIAL_COMMANDS else values
             self._pending[entity_id] = (kind, merged)
