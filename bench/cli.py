@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 from pathlib import Path
 
 SUITES = ("terrain", "fdm", "server", "recording", "render", "store")
@@ -19,11 +20,18 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _check_writable(option: str, path: Path, directory: bool = False) -> None:
-    """InvalidArgument naming ``option`` now, before a run of minutes, when ``path`` (a file,
-    or with ``directory`` a folder) cannot be written."""
+def _check_writable(option: str, text: str, directory: bool = False) -> None:
+    """InvalidArgument naming ``option`` now, before a run of minutes, when the path ``text`` (a
+    file, or with ``directory`` a folder) cannot be written: an empty path names nothing, and a
+    file's path ending in a separator names a folder (``Path`` would drop the separator and write
+    a file of the folder's name)."""
     from sortie.errors import InvalidArgument
 
+    if not text:
+        raise InvalidArgument(option, "is empty: give a path", value=text)
+    if not directory and text.endswith(tuple(s for s in (os.sep, os.altsep) if s)):
+        raise InvalidArgument(option, "ends in a path separator: give a file's path, not a folder's", value=text)
+    path = Path(text)
     folder = path if directory else path.parent
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -42,18 +50,18 @@ def _check_writable(option: str, path: Path, directory: bool = False) -> None:
 def run(args) -> int:
     from bench import calibration
 
-    if args.json:
-        _check_writable("--json", Path(args.json))
-    if args.plots:
-        _check_writable("--plots", Path(args.plots), directory=True)
+    if args.json is not None:
+        _check_writable("--json", args.json)
+    if args.plots is not None:
+        _check_writable("--plots", args.plots, directory=True)
     before = calibration.probe()
     report = importlib.import_module(f"bench.{args.suite}").run(quick=args.quick)
     calibration.add_to(report, before, calibration.probe())
     report.print_table()
-    if args.json:
+    if args.json is not None:
         report.write(args.json)
         print(f"wrote {args.json}")
-    if args.plots:
+    if args.plots is not None:
         from bench.plots import PLOTTERS
 
         for path in PLOTTERS[args.suite](report.to_json(), Path(args.plots)):

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 import os
-import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]  # the checkout; site-packages in an installed copy
 DATA_DIR_ENV = "SORTIE_DATA_DIR"  # a folder laid out as data/ (dem/, scenarios/, ...), searched first
@@ -87,6 +88,14 @@ def best_time(fn, repeat: int, number: int = 1) -> float:
 
 
 def percentile(samples, q: float) -> float:
-    """q-th percentile (0..100) of samples by linear interpolation."""
-    return float(statistics.quantiles(sorted(samples), n=1000, method="inclusive")[int(q * 10) - 1]) \
-        if len(samples) > 1 else float(samples[0])
+    """q-th percentile (0..100) of samples by linear interpolation between closest ranks:
+    numpy.percentile's default ("linear", Hyndman & Fan 1996 definition 7), which
+    statistics.quantiles(method="inclusive") also is."""
+    from sortie.errors import InvalidArgument
+
+    a = np.asarray(samples, dtype=np.float64).reshape(-1)
+    if a.size == 0:
+        raise InvalidArgument("samples", "is empty: no percentile of nothing", value=[])
+    if not 0.0 <= q <= 100.0:
+        raise InvalidArgument("q", "must be a percentile in [0, 100]", value=q)
+    return float(np.percentile(a, q))

@@ -654,6 +654,8 @@ def _headline_metrics(report: Report, runs: list[PathRun]) -> None:
     m["holes_px"] = sum(f.holes_px for f in clip)
     m["update_ms_per_frame_median"] = _pct(update, 50)
     m["update_ms_per_frame_p99"] = _pct(update, 99)
+    # Issue #5's key, bare: its goal (<= 2 ms) is quoted against the p99 (docs/BENCHMARKS.md).
+    m["update_ms_per_frame"] = m["update_ms_per_frame_p99"]
     m["frame_ms"] = statistics.median(t for r in runs for t in r.default.frame_ms)
     m["reference_frame_ms"] = statistics.median(t for r in runs for t in r.reference.frame_ms)
     m["draw_plan_ms"] = statistics.median(t for r in runs for t in r.default.plan_ms)

@@ -13,7 +13,9 @@ releases the GIL), compression, writing. Measured at 500 entities: 0.24 ms a
 tick for ordering and a BLAKE2b digest, which the clock thread paid before
 this split and the switch to XXH3.
 
-A chunk closes when it holds ``chunk_s`` world seconds of ticks or when what
+A chunk closes when one more tick would take it to ``chunk_s`` world seconds
+since the previous chunk's last tick (it holds at most ``chunk_s`` - dt: the
+tick left over is the time its write and sync take) or when what
 it holds first (a tick, an input or an event) is ``chunk_s`` wall seconds old
 (a slow or paused clock: inputs made while the clock is paused close in a
 chunk of no tick, which readers keep before the chunk of the tick they come
@@ -60,6 +62,8 @@ MAX_POLL_S = 0.25
 # thread and the aircraft workers leave, not in theirs.
 WRITER_NICE = 10
 MAX_QUEUED_CHUNKS = 64
+# Slack (ticks) for chunk_s x rate_hz landing a rounding error below a whole number of ticks.
+CHUNK_TICKS_EPS = 1e-9
 REPO = Path(__file__).resolve().parents[1]
 # The code whose arithmetic a re-simulation repeats (the build id hashes it).
 SIMULATION_SOURCES = ("fdm", "terrain", "server/world.py", "server/aircraft_host.py", "server/scenario.py",
@@ -173,7 +177,11 @@ class Recorder:
         self.steps = steps_of(header)
         self.rate_hz = header.world_rate_hz
         self.chunk_s = chunk_s
-        self.chunk_ticks = max(1, int(round(chunk_s * self.rate_hz)))
+        # A chunk closes at the tick after which one more would take it to chunk_s since the last
+        # tick on disk: it holds at most chunk_s - dt of world time, and the dt left over is the
+        # write's and fdatasync's time, so a kill -9 loses at most chunk_s (issue #6's bound, with
+        # the write included; 30 ticks of 1/30 s lost 1.0 s plus the write, bench kill9_lost_s).
+        self.chunk_ticks = max(1, math.floor(chunk_s * self.rate_hz - 1.0 + CHUNK_TICKS_EPS))
         self._writer = RecordingWriter(path, header)
         self._lock = threading.Lock()
         self._open = _OpenChunk()

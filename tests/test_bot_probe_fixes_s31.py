@@ -212,9 +212,9 @@ def test_a_racetrack_bot_takes_a_parked_c172p_off_and_flies_above_the_floor(alps
     commands, truth = [], []
     command = w.command
 
-    def logged(entity_id, kind, values):
+    def logged(entity_id, kind, values, **kw):  # (owner: the sending session)
         commands.append((w.time_s, dict(values)))
-        return command(entity_id, kind, values)
+        return command(entity_id, kind, values, **kw)
 
     w.command = logged
 

@@ -197,12 +197,12 @@ def test_info_on_a_recording_with_a_damaged_chunk_lists_it_and_summarises_the_re
     import json
 
     info = json.loads(out.stdout)
-    assert info["ticks"] == 180 and info["chunks"] == 6 and info["entities"] == 12
+    assert info["ticks"] == 180 and info["chunks"] == 7 and info["entities"] == 12
     assert len(info["problems"]) == 1 and f"chunk 2 at offset {offset}" in info["problems"][0]
     out = sortie("recording", "info", flipped)
     assert out.returncode == 0 and f"problem: flip.sortie: chunk 2 at offset {offset}" in out.stdout
     out = sortie("recording", "check", flipped)
-    assert out.returncode == 1 and "5 of 6 chunks replay" in out.stdout
+    assert out.returncode == 1 and "6 of 7 chunks replay" in out.stdout
 
 
 def test_replay_refuses_a_seek_into_a_damaged_chunk_and_plays_past_it(recorded, tmp_path):
