@@ -54,9 +54,9 @@ def _logged_commands(world: World) -> list:
     log = []
     command = world.command
 
-    def logged(entity_id, kind, values):
+    def logged(entity_id, kind, values, **kw):  # (owner: the sending session)
         log.append((world.time_s, dict(values)))
-        return command(entity_id, kind, values)
+        return command(entity_id, kind, values, **kw)
 
     world.command = logged
     return log
