@@ -21,6 +21,10 @@ the outer loops are slower by a factor of 5-10). Gains are per aircraft class
 the MD11, B747 and 787-8 (transport). Heavy jets add washed-out angle-of-attack
 feedback to the pitch loop and a stall protection: beyond ``max_alpha_rad`` the
 stick only moves forward. The f16 rolls into turns at a limited bank rate.
+
+Every class keeps its load factor within 0.8 of its limit load (:data:`NZ_LIMIT_FRACTION`),
+and an upset (beyond 60 degrees of bank, below -30 of pitch) is recovered before the hold
+resumes: unload, wings level the shortest way, then pull out within the limit (:data:`UPSET_BANK_RAD`).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from pyproj import Geod
 
+from fdm.events import LIMITS
 from fdm.state import FT_M, RAW_COLUMNS as _C
 from sortie.errors import InvalidArgument
 
@@ -110,10 +115,42 @@ _TIME, _LAT, _LON, _ALT = _C["time_s"], _C["lat_rad"], _C["lon_rad"], _C["alt_ft
 _VN, _VE, _VD, _VT = _C["v_north_fps"], _C["v_east_fps"], _C["v_down_fps"], _C["vt_fps"]
 _PHI, _PSI, _P, _Q, _BETA = _C["phi_rad"], _C["psi_rad"], _C["p_rps"], _C["q_rps"], _C["beta_rad"]
 _ALPHA, _THETA, _TERRAIN = _C["alpha_rad"], _C["theta_rad"], _C["terrain_ft"]
+_NZ = _C["nz_g"]
 
 # Stall protection: pitch stick per second, per rad of angle of attack beyond max_alpha_rad,
 # by which the stick is walked forward (tuned here: 1 deg beyond moves it 0.035 a second).
 _STALL_PUSH_PER_RAD_S = 2.0
+
+
+# Load-factor limiter. fdm.events.LIMITS holds each class's ultimate load, 1.5 x its limit load
+# (the factor of safety of 14 CFR 23.303 / 25.303); limit loads +3.8 / -1.52 g for normal-category
+# light aeroplanes (14 CFR 23.337), +2.5 / -1 g for transports (14 CFR 25.337), +9 / -3 g for
+# fighters (MIL-A-8861B). The pitch stick keeps the load factor within NZ_LIMIT_FRACTION of the
+# limit load, a margin for the overshoot of a limiter that acts on the measured load factor: past
+# it the stick moves no further that way and walks back, faster the further past (like the stall
+# protection). A c172x given full aft stick at 76 m/s reached 9.8 g in 0.27 s.
+SAFETY_FACTOR = 1.5
+NZ_LIMIT_FRACTION = 0.8
+# Pitch stick per second per g past the limiter's load factor (tuned here on the c172x upsets).
+_NZ_PUSH_PER_G_S = 1.0
+
+# Upset recovery (FAA Airplane Flying Handbook, FAA-H-8083-3C, 2021, ch. 5, and the Airplane Upset
+# Prevention and Recovery Training Aid, rev. 3, 2017, nose-low recovery: unload, roll in the
+# shortest direction to wings level, then recover to level flight within the g limits). Beyond
+# UPSET_BANK_RAD of bank or below UPSET_PITCH_RAD of pitch (the Training Aid's definition of an
+# upset: bank beyond 45 degrees, pitch below -10; wider here, as the holds bank to 45 themselves)
+# the altitude hold's flight-path loop stands down: the pitch stick holds a load factor, first
+# unloaded to the 1 g the wings give at the bank, cos(bank), never below 0 g (the lift never pulls
+# toward the ground) while the roll loop levels the wings, then, within PULL_BANK_RAD of level,
+# pulls out at UPSET_PULL_FRACTION of the limit load until the flight path is back within the
+# hold's descent limit, where the hold takes over from the stick where it is. Handed a spiral dive
+# (bank 107..173 degrees, pitch -22..-64), the old hold pulled a c172x to 5.8..9.8 g in under 0.8 s.
+UPSET_BANK_RAD = math.radians(60.0)
+UPSET_PITCH_RAD = math.radians(-30.0)
+PULL_BANK_RAD = math.radians(30.0)
+UPSET_PULL_FRACTION = 0.8
+# Pitch stick per second per g of load-factor error in the upset's load-factor loop (integral).
+_UPSET_KI_PER_G_S = 0.2
 
 
 # Heading error (rad) beyond which a turn keeps the way it began (170 degrees).
@@ -250,6 +287,12 @@ class Autopilot:
         # c172p's tail skid (10 degrees up from its main wheels) at 3 m/s.
         self._max_ground_pitch = tail_strike_pitch_rad(getattr(aircraft, "contacts", ())) - TAIL_STRIKE_MARGIN_RAD
         self._lifting_off = False  # taken off, not yet LEVEL_AGL_M up: wings (nearly) level
+        limits = LIMITS[aircraft.aircraft_class]
+        self._nz_hi = NZ_LIMIT_FRACTION * limits.nz_max_g / SAFETY_FACTOR  # limiter's bounds, g
+        self._nz_lo = NZ_LIMIT_FRACTION * limits.nz_min_g / SAFETY_FACTOR
+        self._nz_pull = UPSET_PULL_FRACTION * limits.nz_max_g / SAFETY_FACTOR  # upset pull-out, g
+        self._upset = False  # recovering from an upset (UPSET_*)
+        self._i_upset = 0.0  # the upset recovery's integral of load-factor error, pitch stick
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
         for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
@@ -273,6 +316,38 @@ class Autopilot:
         self._ground_ref = wrap_pi(self._ground_ref + _clamp(to_go, -most, most))
         return wrap_pi(self._ground_ref - psi)
 
+    def _in_upset(self, r, rolling: bool) -> bool:
+        """Whether the aircraft is (still) in an upset (UPSET_*): entered beyond the bank or below
+        the pitch of an upset, left once the wings are within PULL_BANK_RAD of level and the
+        flight path is back within the hold's descent limit."""
+        if rolling:
+            return False
+        phi = abs(r[_PHI])
+        if phi > UPSET_BANK_RAD or r[_THETA] < UPSET_PITCH_RAD:
+            return True
+        if not self._upset:
+            return False
+        v = max(math.sqrt(r[_VN] ** 2 + r[_VE] ** 2 + r[_VD] ** 2), 1.0)
+        return phi >= PULL_BANK_RAD or -r[_VD] / v < math.sin(self.gains.max_descent_rad)
+
+    def _upset_pitch(self, r, dt: float, entering: bool) -> float:
+        """The pitch stick of an upset recovery: a load-factor command, unloaded to cos(bank) (at
+        least 0 g) until the wings are within PULL_BANK_RAD of level, then the class's upset pull.
+        The stick is an integral of the load-factor error plus the class's pitch-rate damping
+        about the pitch rate that load factor turns at, q = g (nz - cos(theta) cos(phi)) / V (the
+        body-axis normal force balance in a coordinated manoeuvre, small angle of attack): the
+        heavy jets' slow short period set a pure integral oscillating beyond their limits."""
+        g = self.gains
+        phi = abs(r[_PHI])
+        nz_cmd = self._nz_pull if phi < PULL_BANK_RAD else max(math.cos(phi), 0.0)
+        v = max(r[_VT] * FT_M, 1.0)
+        q_cmd = G * (nz_cmd - math.cos(r[_THETA]) * math.cos(phi)) / v
+        damping = g.kd_pitch_rate * (q_cmd - r[_Q])
+        if entering:  # from the stick where it stands
+            self._i_upset = self.aircraft.controls.pitch - damping
+        self._i_upset = _clamp(self._i_upset + _UPSET_KI_PER_G_S * (nz_cmd - r[_NZ]) * dt, -1.0, 1.0)
+        return _clamp(self._i_upset + damping, -1.0, 1.0)
+
     def update(self, row=None, dt_s: float | None = None) -> None:
         """Read the state, write the controls for the next step (or the next ``dt_s``
         seconds of steps: the time the integrators advance by; None, one step).
@@ -293,6 +368,7 @@ class Autopilot:
         # pedals (rudder and nose wheel), and the pitch loop's integrator waits (it would wind up
         # to full aft stick before the elevator can act, and over-rotate into a tail strike).
         rolling = ac.on_ground
+        was_upset, self._upset = self._upset, self._in_upset(r, rolling)
         if tg.heading_deg is None:
             self._ground_ref = None
         else:
@@ -306,7 +382,7 @@ class Autopilot:
                 self._turn_sign = 1.0 if err > 0.0 else -1.0
             elif err * self._turn_sign < 0.0:
                 err = math.copysign(2.0 * math.pi - abs(err), self._turn_sign)
-            if rolling:
+            if rolling or self._upset:  # an upset: wings level first, the shortest way
                 bank_cmd = self._i_heading = 0.0
             else:
                 most = g.max_bank_rad
@@ -321,7 +397,9 @@ class Autopilot:
                 else:
                     self._i_heading = 0.0
                 bank_cmd = _clamp(g.k_heading * err + self._i_heading, -most, most)
-            if g.max_bank_rate_rad_s < math.inf:
+            if self._upset:  # at full roll authority; a slew resumes from the bank it leaves
+                self._bank_cmd = phi
+            elif g.max_bank_rate_rad_s < math.inf:
                 last = phi if self._bank_cmd is None else self._bank_cmd
                 step = g.max_bank_rate_rad_s * dt
                 bank_cmd = self._bank_cmd = _clamp(bank_cmd, last - step, last + step)
@@ -376,14 +454,28 @@ class Autopilot:
                     self._alpha_lp = alpha
                 self._alpha_lp += (alpha - self._alpha_lp) * min(dt / g.alpha_washout_s, 1.0)
                 u -= g.k_alpha * (alpha - self._alpha_lp)
+            if self._upset:
+                u = self._upset_pitch(r, dt, not was_upset)
+            elif was_upset:  # the hold takes over from the recovery's stick, without a jump
+                self._i_pitch = _clamp(self._i_pitch + ac.controls.pitch - u, -1.0, 1.0)
+                u = ac.controls.pitch
             stalling = alpha > g.max_alpha_rad
             if stalling:  # no further aft than now: forward, faster the deeper into the stall
                 u = min(u, ac.controls.pitch - _STALL_PUSH_PER_RAD_S * (alpha - g.max_alpha_rad) * dt)
-            if -1.0 < u < 1.0 and not (stalling and e > 0.0) and not rolling:  # anti-windup: not while saturated
+            nz = r[_NZ]
+            # Past the limiter's load factor the integrator waits too (it would wind up against it).
+            limited = not rolling and ((nz > self._nz_hi and e > 0.0) or (nz < self._nz_lo and e < 0.0))
+            if -1.0 < u < 1.0 and not (stalling and e > 0.0) and not (rolling or limited or self._upset):
+                # anti-windup: not while saturated
                 self._i_pitch = _clamp(self._i_pitch + g.ki_pitch * e * dt, -1.0, 1.0)
             if rolling and self._max_ground_pitch < math.inf:
                 # Attitude limit: the stick that holds the pitch below the limit, rate-damped.
                 u = min(u, g.kp_pitch * (self._max_ground_pitch - r[_THETA]) - g.kd_pitch_rate * q)
+            # Load-factor limiter: past a bound, no further that way than now, and walked back.
+            if not rolling and nz > self._nz_hi:
+                u = min(u, ac.controls.pitch - _NZ_PUSH_PER_G_S * (nz - self._nz_hi) * dt)
+            elif not rolling and nz < self._nz_lo:
+                u = max(u, ac.controls.pitch + _NZ_PUSH_PER_G_S * (self._nz_lo - nz) * dt)
             pitch = _clamp(u, -1.0, 1.0)
         if pitch != pitch or roll != roll or yaw != yaw or throttle != throttle:
             # A NaN state: set_controls rejects it, naming the control, as it always has.
