@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from terrain.geodesy import ecef_to_geodetic, geodetic_to_ecef
@@ -100,7 +100,11 @@ def _assert_symmetric_and_consistent(t: Terrain, a, b, gaps: bool):
     if not gaps:  # the stack covers every segment: both ways meet the same surface
         np.testing.assert_array_equal(fwd.hit, back.hit)
         assert (fwd.status != STATUS_OUTSIDE).all() and (ab.status != STATUS_OUTSIDE).all()
-        np.testing.assert_array_equal(~ab.visible, inner(fwd))
+        # Blocked where either way's first contact lies strictly between the ends: a first contact
+        # at an end (within ENDPOINT_TOLERANCE_M) hides what comes after it from that side (a
+        # chord along lat 48.0 from the foot of the 456 m cliff where the Alps tile ends under
+        # the procedural world runs into the cliff at once, 5 cm out, and comes out 10.5 km on).
+        np.testing.assert_array_equal(~ab.visible, inner(fwd) | inner(back))
     else:  # from either end up to the first stretch no source covers
         np.testing.assert_array_equal(~ab.visible & (ab.status != STATUS_OUTSIDE), inner(fwd) | inner(back))
         nothing = ~fwd.hit & ~back.hit & (fwd.status == STATUS_OUTSIDE)
@@ -267,6 +271,7 @@ _END = st.tuples(st.floats(47.90, 48.10), st.floats(9.05, 9.95), st.floats(2.0, 
 
 @settings(max_examples=60, deadline=None)
 @given(a=_END, b=_END)
+@example(a=(48.0, 9.125, 2.0), b=(48.0, 9.5, 2.0))  # found by a clean-clone CI run (above)
 def test_edge_over_procedural_symmetric(alps_over_procedural, a, b):
     """Both ends anywhere near the Alps tile's north edge (either side of it), above the stack."""
     t = alps_over_procedural
