@@ -178,7 +178,9 @@ def test_every_chunk_is_synced_to_the_disk_as_it_is_written(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     chunks = int(out.stdout.split("chunks")[1])
     syncs = [ln for ln in trace.read_text().splitlines() if "fdatasync(" in ln and str(path) in ln]
-    assert chunks == 10 and len(syncs) >= chunks, (chunks, syncs)
+    # 60 ticks at 0.25 s a chunk make 10 chunks of ticks; slowed by strace, the writer may also
+    # close one on the wall clock (a CI run saw 11), so at least 10.
+    assert chunks >= 10 and len(syncs) >= chunks, (chunks, syncs)
 
 
 # -- finding 5: inputs made while the clock is paused ----------------------------------------------------

@@ -84,6 +84,22 @@ def _check_first_contact(t: Terrain, a, b, res, k):
             assert h[0] < t.heights(lat, lon).height_msl_m[0], k
 
 
+# Dense samples 2 m apart on a bilinear surface of 90 m posts miss at most a few centimetres of it
+# between them; clearances within half a metre of zero are left undecided.
+DENSE_MARGIN_M = 0.5
+
+
+def _interior_clearance(t: Terrain, a, b, k) -> float:
+    """Ray k's least height above the stack's surface, over dense samples of the segment between
+    ENDPOINT_TOLERANCE_M from either end (negative: below it somewhere)."""
+    pa, pb = _ecef(a[0][k], a[1][k], a[2][k]), _ecef(b[0][k], b[1][k], b[2][k])
+    length = float(np.linalg.norm(pb - pa))
+    d = np.append(np.arange(ENDPOINT_TOLERANCE_M, length - ENDPOINT_TOLERANCE_M, SAMPLE_M),
+                  length - ENDPOINT_TOLERANCE_M)
+    lat, lon, h = ecef_to_geodetic(pa + (d / length)[:, None] * (pb - pa))
+    return float(np.nanmin(h - t.heights(lat, lon).height_msl_m))
+
+
 def _assert_symmetric_and_consistent(t: Terrain, a, b, gaps: bool):
     """intersect both ways, line of sight both ways, and the relations between them."""
     fwd = t.intersect(*a, *b)
@@ -97,14 +113,24 @@ def _assert_symmetric_and_consistent(t: Terrain, a, b, gaps: bool):
     def inner(r):  # a contact strictly between the ends, as line of sight counts them
         return r.hit & (r.distance_m > ENDPOINT_TOLERANCE_M) & (r.distance_m < length - ENDPOINT_TOLERANCE_M)
 
+    def at_end(r):  # a first contact at an end hides from that side whatever comes after it
+        return r.hit & ~inner(r)
+
     if not gaps:  # the stack covers every segment: both ways meet the same surface
         np.testing.assert_array_equal(fwd.hit, back.hit)
         assert (fwd.status != STATUS_OUTSIDE).all() and (ab.status != STATUS_OUTSIDE).all()
-        # Blocked where either way's first contact lies strictly between the ends: a first contact
-        # at an end (within ENDPOINT_TOLERANCE_M) hides what comes after it from that side (a
-        # chord along lat 48.0 from the foot of the 456 m cliff where the Alps tile ends under
-        # the procedural world runs into the cliff at once, 5 cm out, and comes out 10.5 km on).
-        np.testing.assert_array_equal(~ab.visible, inner(fwd) | inner(back))
+        # Blocked where either way's first contact lies strictly between the ends. Where both
+        # ways' first contacts are at the ends (within ENDPOINT_TOLERANCE_M), intersect cannot
+        # tell: a chord along lat 48.0 from the foot of the 456 m cliff where the Alps tile ends
+        # under the procedural world runs into the cliff at once, and either comes out again
+        # further on (9.125 -> 9.5 E) or stays in it to the other end's cliff (9.125 -> 9.625 E:
+        # both first contacts at 0 m, blocked in between). Those are judged by dense samples.
+        settled = ~(at_end(fwd) & at_end(back))
+        np.testing.assert_array_equal(~ab.visible[settled], (inner(fwd) | inner(back))[settled])
+        for k in np.flatnonzero(~settled):
+            clearance = _interior_clearance(t, a, b, k)
+            if abs(clearance) > DENSE_MARGIN_M:
+                assert ab.visible[k] == (clearance > 0.0), (k, clearance)
     else:  # from either end up to the first stretch no source covers
         np.testing.assert_array_equal(~ab.visible & (ab.status != STATUS_OUTSIDE), inner(fwd) | inner(back))
         nothing = ~fwd.hit & ~back.hit & (fwd.status == STATUS_OUTSIDE)
@@ -271,7 +297,8 @@ _END = st.tuples(st.floats(47.90, 48.10), st.floats(9.05, 9.95), st.floats(2.0, 
 
 @settings(max_examples=60, deadline=None)
 @given(a=_END, b=_END)
-@example(a=(48.0, 9.125, 2.0), b=(48.0, 9.5, 2.0))  # found by a clean-clone CI run (above)
+@example(a=(48.0, 9.125, 2.0), b=(48.0, 9.5, 2.0))  # found by clean-clone CI runs (above)
+@example(a=(48.0, 9.125, 2.0), b=(48.0, 9.625, 2.0))
 def test_edge_over_procedural_symmetric(alps_over_procedural, a, b):
     """Both ends anywhere near the Alps tile's north edge (either side of it), above the stack."""
     t = alps_over_procedural
