@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import os
+
 import pytest
+from hypothesis import settings
+
+# CI (.ci/run) runs every property test on the same examples each time (derandomize: one fixed
+# seed per test), so a clean-clone run is reproducible; `make test` on a developer's machine keeps
+# drawing new examples, and whatever they find is kept as an @example.
+settings.register_profile("ci", derandomize=True)
+if os.environ.get("SORTIE_HYPOTHESIS_PROFILE"):
+    settings.load_profile(os.environ["SORTIE_HYPOTHESIS_PROFILE"])
 
 REPO = Path(__file__).resolve().parents[1]
 EMBEDDED_DEM = REPO / "data" / "dem"
