@@ -73,14 +73,15 @@ def test_convoy_members_keep_their_own_coalition_and_controllable(tmp_path):
     agents[0].update(coalition="blue", controllable=True)
     agents[1].update(coalition="red", type="m2a3", speed_mps=4.0)
     world, scenario, _, desc = world_of(agents, tmp_path)
+    # Start speeds as spawned, before the server's clock ticks (c0 starts to move at its first tick).
+    speeds = {e.name: world.ground.speed_mps[world.ground.index_of([e.ground_id])[0]]
+              for e in world.entities.values()}
+    assert speeds["c0"] == 0.0 and speeds["c1"] == 4.0  # its own start speed
     srv = SimulationServer(world, server_config(scenario, desc))
     srv.start()
     try:
         got = {e.name: (e.coalition, e.controllable) for e in world.entities.values()}
         assert got == {"c0": ("blue", True), "c1": ("red", False)}
-        speeds = {e.name: world.ground.speed_mps[world.ground.index_of([e.ground_id])[0]]
-                  for e in world.entities.values()}
-        assert speeds["c0"] == 0.0 and speeds["c1"] in (4.0, pytest.approx(4.0, abs=0.5))  # its own start speed
         assert {i[1]: i[4] for i in world.infos.values()} == {"c0": "blue", "c1": "red"}
         with SimClient(srv.address) as driver:
             with pytest.raises(Exception, match="not free to control"):
