@@ -2,7 +2,8 @@
 follows an agent of a running exercise and writes frames).
 
     sortie render (--dem FILE... | --terrain HOST:PORT) --camera LAT,LON,ALT,HEADING,PITCH[,ROLL]
-                  --out frame.png [--size 960x540] [--fov-deg 60] [--window-km 20] [--horizon-km 80]
+                  --out frame.png [--time ISO8601] [--size 960x540] [--fov-deg 60] [--window-km 20]
+                  [--horizon-km 80]
     sortie view --server HOST:PORT (--follow AGENT_NAME | --agent-type aircraft|ground) [--chase]
                 [--dem FILE... | --terrain HOST:PORT] --frames N --fps F --out DIR [--size WxH]
 
@@ -18,6 +19,12 @@ followed agent's pose is dead-reckoned to the picture's estimate of world
 time now (client.sim_client.Picture); the camera sits at its eye (cockpit)
 or, with ``--chase``, behind and above it. A HUD line per frame goes to
 stdout; ``summary.json`` in --out holds the run's figures.
+
+The sun: ``sortie view`` lights the terrain with the sun of the exercise's clock, at the
+camera's position: WorldInfo.start_time (a live server's scenario, a replay's recording) plus
+the picture's world time, updated once a world second (client/render/shading.py).
+``sortie render`` takes the instant as ``--time`` (ISO 8601 with a zone, parsed as ``sortie
+terrain texture --time``); without it, a fixed light from the north-west, 45 degrees up.
 
 Altitudes are metres MSL; N, the geoid undulation (ellipsoid = MSL + N),
 must be the server's for entities to sit on the terrain: ``sortie view``
@@ -35,6 +42,7 @@ import re
 import signal
 import threading
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +64,8 @@ ALT_MSL_ABS_MAX_M = 1.0e8
 
 
 def add_parser(sub) -> None:
+    from client.render.shading import DEFAULT_SUN_AZIMUTH_DEG, DEFAULT_SUN_ELEVATION_DEG
+
     r = sub.add_parser("render", help="render one frame of the terrain from a camera pose (headless)",
                        description="Render one frame (terrain mesh, sea, sky) from a pose to a PNG, headless "
                                    "(EGL; Mesa llvmpipe without a GPU).")
@@ -64,13 +74,20 @@ def add_parser(sub) -> None:
                    help="degrees, metres MSL, degrees (heading true, pitch nose up, roll right wing down); "
                         "a southern latitude as is, e.g. --camera -33.9,151.2,2000,0,-10")
     r.add_argument("--out", required=True, type=Path, help="PNG to write")
+    r.add_argument("--time", metavar="ISO8601",
+                   help="light the terrain with the sun at this instant (a zone is required: Z or an offset, e.g. "
+                        "2026-06-15T07:00:00Z), where the camera is (terrain/sun.py; at night, ambient light only); "
+                        f"default: a fixed light from azimuth {DEFAULT_SUN_AZIMUTH_DEG:g} degrees (north-west), "
+                        f"{DEFAULT_SUN_ELEVATION_DEG:g} degrees up, whatever the place")
     _view_args(r)
     r.set_defaults(func=render_command)
 
     v = sub.add_parser("view", help="headless render client: follow an agent of a running exercise",
                        description="Join a simulation server, follow an agent's dead-reckoned pose (cockpit or "
                                    "chase camera), draw the terrain and the other entities, write PNG frames, a "
-                                   "HUD line per frame and summary.json.")
+                                   "HUD line per frame and summary.json. The terrain is lit by the sun of the "
+                                   "exercise's clock (its start_time plus world time, a replay's too) where the "
+                                   "camera is.")
     v.add_argument("--server", required=True, metavar="HOST:PORT")
     who = v.add_mutually_exclusive_group(required=True)
     who.add_argument("--follow", metavar="AGENT_NAME", help="the agent's scenario name")
@@ -257,7 +274,7 @@ def open_terrain(dem=None, service: str | None = None, world_terrain: str = "", 
     raise InvalidArgument("--dem", "give --dem FILE... or --terrain HOST:PORT (the server names no terrain)")
 
 
-def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "observer", insets=()):
+def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "observer", insets=(), sun_time=None):
     from client.render.clipmap_layer import clipmap_factory
     from client.render.profiles import profile
     from client.render.renderer import Renderer
@@ -276,7 +293,7 @@ def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "obs
                                   polar_horizon_m=args.horizon_km * 1000.0, **layer_args)
     return Renderer(terrain, w, h, window_m=args.window_km * 1000.0, horizon_m=args.horizon_km * 1000.0,
                     geoid_undulation_m=geoid_undulation_m, fog=not args.no_fog, terrain_layer_factory=factory,
-                    insets=insets)
+                    insets=insets, sun_time=sun_time)
 
 
 def world_insets(terrain, world_info):
@@ -329,6 +346,11 @@ def render_command(args) -> int:
     lat, lon, alt, heading, pitch, roll = parse_pose(args.camera)
     check_render_options(args)
     check_image_path("--out", args.out)
+    sun_time = None
+    if args.time is not None:
+        from terrain.texture_cli import parse_time  # sortie terrain texture --time's parsing and errors
+
+        sun_time = parse_time(args.time)
     undulation = args.geoid_undulation_m or 0.0
     camera = Camera.from_geodetic(lat, lon, alt, heading, pitch, roll, geoid_undulation_m=undulation,
                                   fov_x_deg=args.fov_deg)
@@ -341,7 +363,7 @@ def render_command(args) -> int:
         if alt < ground:  # a frame from inside the terrain shows nothing meaningful
             raise InvalidArgument("--camera", f"altitude {alt:g} m MSL is below {what} "
                                               f"({ground:.1f} m MSL at {lat:g}, {lon:g})", value=args.camera)
-        with _renderer(args, terrain, undulation) as r, mesh_area_named(args, r):
+        with _renderer(args, terrain, undulation, sun_time=sun_time) as r, mesh_area_named(args, r):
             image = r.render(camera)
             s = r.stats
     finally:
@@ -352,8 +374,17 @@ def render_command(args) -> int:
               "surface" if s.eye_lift_m > 0 else "")
     print(f"wrote {args.out} ({image.shape[1]}x{image.shape[0]}) from {desc}: {s.frame_ms:.0f} ms "
           f"(terrain {args.terrain_renderer} update {s.update_ms:.0f} ms), {s.triangles:,} triangles, "
-          f"{s.vertices:,} vertices{lifted}", flush=True)
+          f"{s.vertices:,} vertices{lifted}; {sun_text(s, sun_time)}", flush=True)
     return 0
+
+
+def sun_text(stats, sun_time) -> str:
+    """What lit a frame, for its report line: the sun in the camera's sky (renderer.FrameStats)."""
+    where = (f"sun at {sun_time.isoformat().replace('+00:00', 'Z')}" if isinstance(sun_time, datetime)
+             else "sun of the exercise's clock" if sun_time is not None else "fixed light (no --time)")
+    night = ": below the horizon, ambient light only" if stats.sun_elevation_deg <= 0.0 else ""
+    return (f"{where}, azimuth {stats.sun_azimuth_deg:.1f} elevation {stats.sun_elevation_deg:.1f} "
+            f"degrees{night}")
 
 
 # -- sortie view ---------------------------------------------------------------------------------
@@ -475,12 +506,14 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         from client.render.profiles import profile_for
 
         lod = args.profile or profile_for(KIND_NAMES.get(int(info.kind), ""), info.type).name
+        start = exercise_start(sim.world_info.start_time)
         print(f"following {info.name!r} ({KIND_NAMES.get(int(info.kind), '?')} {info.type}, id {target}), "
-              f"{', '.join(_views(args))} camera, terrain {desc} ({args.terrain_renderer}, profile {lod})",
+              f"{', '.join(_views(args))} camera, terrain {desc} ({args.terrain_renderer}, profile {lod}), "
+              f"{'sun of ' + sim.world_info.start_time + ' + world time' if start is not None else 'fixed light'}",
               flush=True)
         try:
             with _renderer(args, terrain, undulation, lod, insets) as r, mesh_area_named(args, r):
-                frames, stats = _frames(args, picture, target, r, out, stop, undulation)
+                frames, stats = _frames(args, picture, target, r, out, stop, undulation, start)
         finally:
             _close(terrain)
         from client.cli import stream_end
@@ -490,7 +523,9 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         "server": args.server, "follow": info.name, "entity_id": int(target),
         "kind": KIND_NAMES.get(int(info.kind), str(info.kind)), "camera": ",".join(_views(args)),
         "terrain_renderer": args.terrain_renderer, "profile": lod,
-        "role": args.role, "terrain": desc, "geoid_undulation_m": undulation, "insets": [s.name for s in insets],
+        "role": args.role, "terrain": desc, "start_time": sim.world_info.start_time,
+        "sun": "exercise clock" if start is not None else "fixed", "geoid_undulation_m": undulation,
+        "insets": [s.name for s in insets],
         "size": list(parse_size(args.size)), "fov_x_deg": args.fov_deg,
         "window_km": args.window_km, "horizon_km": args.horizon_km, "frames": len(stats),
         "requested_frames": args.frames, "requested_fps": args.fps,
@@ -508,6 +543,28 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
 
 
 VIEWS = ("cockpit", "chase")
+
+
+def exercise_start(start_time: str) -> np.datetime64 | None:
+    """WorldInfo.start_time (ISO 8601 with a zone, UTC as the server and a recording write it)
+    as a UTC numpy datetime64 in microseconds, to which world seconds add without datetime's
+    year 9999 limit; None, with a warning, when the server sent none or one that does not read
+    (the frames keep the fixed light)."""
+    try:
+        start = datetime.fromisoformat(start_time.strip().upper())  # (RFC 3339 allows "t" and "z")
+        if start.tzinfo is None or start.utcoffset() is None:
+            raise ValueError("no zone")
+        start = start.astimezone(timezone.utc).replace(tzinfo=None)
+    except (ValueError, OverflowError) as exc:
+        log.warning("the server's start_time %r is not an ISO 8601 instant with a zone (%s): the terrain is lit "
+                    "by the fixed light", start_time, exc)
+        return None
+    return np.datetime64(start, "us")
+
+
+def exercise_instant(start: np.datetime64, world_time_s: float) -> np.datetime64:
+    """The UTC instant world_time_s world seconds after the exercise's start (exercise_start)."""
+    return start + np.timedelta64(int(round(world_time_s * 1e6)), "us")
 
 
 def _views(args) -> list[str]:
@@ -550,12 +607,15 @@ def frame_stats(per_view: dict) -> dict:
     return out
 
 
-def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Event, undulation: float):
+def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Event, undulation: float,
+            start: np.datetime64 | None = None):
     """Render up to args.frames frames at most args.fps a wall second, each in every view (one
-    renderer: the views share its terrain layer, centred on the followed agent); (png paths,
-    per-frame stats dicts: one a frame, whatever the views (:func:`frame_stats`: times and counts
-    summed over them, each view's own under ``views`` when there are several), its start
-    ``started_s`` and its end ``wall_s`` in seconds from the first frame's start)."""
+    renderer: the views share its terrain layer, centred on the followed agent), lit by the sun
+    of the exercise's start plus the frame's world time (:func:`exercise_start`; the fixed light
+    when ``start`` is None); (png paths, per-frame stats dicts: one a frame, whatever the views
+    (:func:`frame_stats`: times and counts summed over them, each view's own under ``views`` when
+    there are several), its start ``started_s`` and its end ``wall_s`` in seconds from the first
+    frame's start)."""
     from PIL import Image
 
     from client.render.camera import heading_pitch_roll_deg, quat_to_matrix
@@ -577,6 +637,8 @@ def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Eve
             print(f"frame {k:04d}: {info.name!r} left the exercise", flush=True)
             break
         started = time.monotonic() - t_start
+        if start is not None:
+            renderer.sun_time = exercise_instant(start, t)
         views = _views(args)
         layer = renderer.terrain_layer
         if hasattr(layer, "focus_lat_lon"):  # every view's terrain is centred on the agent
@@ -601,7 +663,7 @@ def _frames(args, picture, target: int, renderer, out: Path, stop: threading.Eve
         fps = k / span if k and span > 0 else None
         print(f"frame {k:04d} t={t:8.2f} s  fps {'-' if fps is None else f'{fps:.2f}':>5}  {s['frame_ms']:6.1f} ms  "
               f"tri {s['triangles']:,}  samples {s['terrain_samples']:,}  levels {s['levels_active']}  "
-              f"entities {s['entities_drawn']}  "
+              f"entities {s['entities_drawn']}  sun {s['sun_azimuth_deg']:.0f}/{s['sun_elevation_deg']:.0f}  "
               f"{info.name} {lat:.5f} {lon:.5f} {h - undulation:.0f} m hdg {hdg:.0f} pitch {pitch:.0f} "
               f"roll {roll:.0f}", flush=True)
         next_due = max(next_due + 1.0 / args.fps, time.monotonic())

@@ -49,8 +49,8 @@ from client.render.camera import REBASE_DISTANCE_M, Camera, LocalOrigin, near_pl
 from client.render.entities import EntityLayer, EntitySet
 from client.render.gl import check_gl_error, create_context, enable_reversed_z, float_depth_texture
 from client.render.shading import (DEFAULT_SUN_AZIMUTH_DEG, DEFAULT_SUN_ELEVATION_DEG, SKY_EXPONENT, SKY_HORIZON_RGB,
-                                   SKY_ZENITH_RGB, SUN_RGB, Frame, fog_density_per_m, rgb, sun_direction_local,
-                                   water_level_m)
+                                   SKY_ZENITH_RGB, SUN_RGB, EphemerisSun, Frame, fog_density_per_m, instant_s, rgb,
+                                   sun_direction_local, sun_in_sky_deg, water_level_m)
 from client.render.terrain_mesh import (DEFAULT_HORIZON_M, DEFAULT_HORIZON_STRIDE, DEFAULT_WINDOW_M,
                                         TERRAIN_FRAGMENT_SHADER, TERRAIN_VERTEX_SHADER, TerrainMeshLayer, interleave)
 from sortie.errors import InvalidArgument
@@ -92,7 +92,9 @@ class FrameStats:
     its polar mesh's); terrain_samples: terrain samples the layer took this frame (a clipmap's updates,
     the posts of a mesh installed this frame); levels_active:
     the clipmap levels drawn (0 for the mesh); eye_lift_m: how far the eye was raised to stand
-    EYE_CLEARANCE_M over the terrain surface drawn under it (0 where it stood higher)."""
+    EYE_CLEARANCE_M over the terrain surface drawn under it (0 where it stood higher);
+    sun_azimuth_deg, sun_elevation_deg: the sun the frame was lit by, in the camera's sky
+    (at or below 0 degrees: ambient light only)."""
 
     frame_ms: float = 0.0
     update_ms: float = 0.0
@@ -104,6 +106,8 @@ class FrameStats:
     terrain_samples: int = 0
     levels_active: int = 0
     eye_lift_m: float = 0.0
+    sun_azimuth_deg: float = 0.0
+    sun_elevation_deg: float = 0.0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -230,6 +234,7 @@ uniform vec2 u_size;       // pixels
 uniform mat3 u_ray_basis;  // columns: right / fx, up / fy, forward, local ENU
 uniform vec3 u_up;         // the camera's vertical, local ENU
 uniform vec3 u_sun;
+uniform float u_sun_light;  // 0: the sun is down, no disc
 uniform int u_flat;
 uniform vec3 u_flat_rgb;
 out vec4 out_colour;
@@ -242,7 +247,7 @@ void main() {{
     vec3 ray = normalize(u_ray_basis * vec3(ndc, 1.0));
     float t = pow(clamp(dot(ray, u_up), 0.0, 1.0), {SKY_EXPONENT});
     float s = max(dot(ray, u_sun), 0.0);
-    vec3 c = mix(HORIZON, ZENITH, t) + SUN * (0.25 * pow(s, 64.0) + pow(s, 4000.0));
+    vec3 c = mix(HORIZON, ZENITH, t) + SUN * u_sun_light * (0.25 * pow(s, 64.0) + pow(s, 4000.0));
     out_colour = vec4(min(c, 1.0), 1.0);
 }}
 """
@@ -254,7 +259,10 @@ class Renderer:
     terrain: ``Terrain``, ``TerrainClient`` or None (sea, entities and sky only). width,
     height: pixels. window_m, horizon_m, horizon_stride, spacing_m: the terrain mesh
     (client/render/terrain_mesh.py). geoid_undulation_m: N, ellipsoid height = MSL + N, as the
-    simulation server's scenario says. sun_*: the sun in the local sky, degrees. fog: on/off;
+    simulation server's scenario says. sun_azimuth_deg, sun_elevation_deg: the fixed sun, in the
+    local origin's sky, degrees; sun_time: an instant (timezone-aware datetime or numpy
+    datetime64, UTC), or None for the fixed sun: the sun of that instant in the camera's sky
+    (client/render/shading.py; settable between frames, ``Renderer.sun_time``). fog: on/off;
     its density hides the terrain's far edge. sea: the sea shell. flat_sky_rgb: test mode, a
     flat sky of this 0-255 colour (and no fog). terrain_layer_factory(ctx, origin) -> a
     TerrainLayer, in place of the mesh. insets: terrain.inset.InsetSource objects (the target
@@ -267,7 +275,7 @@ class Renderer:
                  spacing_m: float | None = None, geoid_undulation_m: float = 0.0,
                  sun_azimuth_deg: float = DEFAULT_SUN_AZIMUTH_DEG, sun_elevation_deg: float = DEFAULT_SUN_ELEVATION_DEG,
                  fog: bool = True, sea: bool = True, flat_sky_rgb=None, rebase_distance_m: float = REBASE_DISTANCE_M,
-                 terrain_layer_factory=None, ctx=None, insets=()):
+                 terrain_layer_factory=None, ctx=None, insets=(), sun_time=None):
         for name, v in (("width", width), ("height", height)):
             if not (isinstance(v, int) and 1 <= v <= MAX_IMAGE_SIDE):
                 raise InvalidArgument(name, f"must be an integer in [1, {MAX_IMAGE_SIDE}] pixels", value=v)
@@ -283,6 +291,8 @@ class Renderer:
         self.width, self.height = width, height
         self.geoid_undulation_m = float(geoid_undulation_m)
         self.sun_azimuth_deg, self.sun_elevation_deg = float(sun_azimuth_deg), float(sun_elevation_deg)
+        self.ephemeris = EphemerisSun()
+        self.sun_time = sun_time
         self.fog = bool(fog) and flat_sky_rgb is None
         self.sea = bool(sea)
         self.flat_sky_rgb = None if flat_sky_rgb is None else tuple(int(c) for c in flat_sky_rgb)
@@ -357,7 +367,32 @@ class Renderer:
             self.ctx.release()
         self.ctx = None
 
+    @property
+    def sun_time(self):
+        """The instant whose sun lights the frames (shading.EphemerisSun), or None: the fixed sun."""
+        return self._sun_time
+
+    @sun_time.setter
+    def sun_time(self, when) -> None:
+        if when is not None:
+            instant_s("sun_time", when)  # checked here, not at the next frame
+        self._sun_time = when
+
     # -- a frame
+
+    def _sun(self, camera: Camera) -> tuple[np.ndarray, float, tuple[float, float]]:
+        """(sun_local (3,) unit vector in the origin's ENU, sun_light 1 or 0, (azimuth, elevation)
+        degrees in the camera's sky): the fixed sun, or the sun of ``sun_time`` at the camera's
+        position; its direct light only while it is above the camera's horizon."""
+        lat, lon, _ = camera.geodetic()
+        if self._sun_time is None:
+            sun_local = sun_direction_local(self.sun_azimuth_deg, self.sun_elevation_deg)
+            sun_ecef = sun_local @ self.origin.basis  # (the basis' rows: east, north, up in ECEF)
+        else:
+            sun_ecef = self.ephemeris.direction_ecef(self._sun_time, lat, lon)
+            sun_local = self.origin.vectors_to_local(sun_ecef)
+        azimuth, elevation = sun_in_sky_deg(sun_ecef, lat, lon)
+        return sun_local, float(elevation > 0.0), (azimuth, elevation)
 
     def _frame(self, camera: Camera) -> Frame:
         o = self.origin
@@ -377,11 +412,12 @@ class Renderer:
                     else range_for(camera, self.width, self.height))
             ratio = max(float(alt), 0.0) / edge
             fog_density = fog_density_per_m(edge) / (1.0 + ratio * ratio)
+        sun_local, sun_light, self._sun_sky_deg = self._sun(camera)
         return Frame(camera=camera, origin=o, width=self.width, height=self.height, view=camera.view_matrix(o),
                      projection=camera.projection(self.width, self.height),
                      camera_local=o.to_local(camera.position_ecef),
                      up_local=o.vectors_to_local(enu_basis(lat, lon)[2]),
-                     sun_local=sun_direction_local(self.sun_azimuth_deg, self.sun_elevation_deg),
+                     sun_local=sun_local, sun_light=sun_light,
                      fog_density=fog_density, fog_rgb=rgb(SKY_HORIZON_RGB), flat_sky_rgb=self.flat_sky_rgb,
                      water_level_m=self.water_level_m)
 
@@ -429,7 +465,8 @@ class Renderer:
                                 entities_drawn=self.entity_layer.drawn, rebased=rebased,
                                 mesh_rebuilds=getattr(self.terrain_layer, "rebuilds", 0),
                                 terrain_samples=getattr(self.terrain_layer, "samples", 0),
-                                levels_active=getattr(self.terrain_layer, "levels_active", 0), eye_lift_m=lift)
+                                levels_active=getattr(self.terrain_layer, "levels_active", 0), eye_lift_m=lift,
+                                sun_azimuth_deg=self._sun_sky_deg[0], sun_elevation_deg=self._sun_sky_deg[1])
         return image
 
     def above_drawn_ground(self, camera: Camera) -> tuple[Camera, float]:
@@ -505,6 +542,7 @@ class Renderer:
         p["u_ray_basis"].write(basis.T.astype("f4").tobytes())  # GLSL matrices are column-major
         p["u_up"].write(frame.up_local.astype("f4").tobytes())
         p["u_sun"].write(frame.sun_local.astype("f4").tobytes())
+        p["u_sun_light"].value = float(frame.sun_light)
         p["u_flat"].value = int(frame.flat_sky_rgb is not None)
         p["u_flat_rgb"].value = rgb(frame.flat_sky_rgb or (0, 0, 0))
         self.ctx.depth_func = ">="  # only where the depth is still the cleared 0 (writes 0: no change)

@@ -8,9 +8,22 @@ directional sun plus a constant ambient term, Lambert diffuse
 (colour = albedo x (AMBIENT + SUN x max(n . l, 0)), the split of
 sortie/demo.py's hillshade: 0.35 + 0.65 x shade), and a Blinn-Phong specular
 highlight on water only (Blinn, "Models of light reflection for computer
-synthesized pictures", SIGGRAPH 1977). The sun is given by azimuth and
-elevation in the sky of the local origin and stays fixed in the local sky as
-the origin moves (no ephemeris).
+synthesized pictures", SIGGRAPH 1977).
+
+The sun is one of two. Fixed (``sortie render`` without ``--time``, and a
+``Renderer`` given no ``sun_time``): an azimuth and elevation in the sky of the
+local origin (from the north-west, 45 degrees up, by default), fixed in the
+local sky as the origin moves. Or the sun of an instant (``Renderer.sun_time``:
+a live exercise's or a replay's start_time + world time, ``sortie render
+--time``): terrain/sun.py's apparent sun (NOAA/Meeus, refraction included, as
+``sortie terrain texture`` lights by default) in the sky of the camera's
+position, turned into ECEF (:func:`sun_direction_ecef`) and recomputed once
+SUN_UPDATE_S of that time has passed (:class:`EphemerisSun`). With the sun at
+or below the camera's horizon there is no direct light (``Frame.sun_light``
+0: no diffuse term, no specular glint, no sun disc): the terrain is lit by the
+ambient term alone, as terrain/texture.py's light map has no directional term
+then, never black and never from below (max(n . l, 0) alone would light a
+slope facing a sun under the horizon).
 
 Colour by height and slope (virtual-terrain-generation: "points located
 above a limit and parts of steep mountains are colored like rocks, the rest
@@ -48,10 +61,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from datetime import datetime, timezone
 
 import numpy as np
 
 from client.render.camera import Camera, LocalOrigin
+from sortie.errors import InvalidArgument
 
 DEFAULT_SUN_AZIMUTH_DEG = 315.0  # sortie/demo.py's hillshade: light from the north-west
 DEFAULT_SUN_ELEVATION_DEG = 45.0
@@ -70,6 +85,10 @@ ROCK_SLOPE_DEG = (30.0, 45.0)  # slope where rock starts, and where it is all ro
 WATER_RGB = (35, 75, 125)
 WATER_SHININESS = 64.0
 WATER_SPECULAR = 0.6
+# The sun of an instant is recomputed once this much of its time has passed: the sun moves
+# 360 degrees a day, 0.0042 degree (15 arcseconds) a second, under a pixel of any view here.
+SUN_UPDATE_S = 1.0
+UNIX_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 
 
 def rgb(c) -> tuple[float, float, float]:
@@ -81,6 +100,72 @@ def sun_direction_local(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     """(3,) unit vector towards the sun in local ENU (azimuth clockwise from north)."""
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
+
+
+def sun_direction_ecef(when, lat_deg: float, lon_deg: float, *, refraction: bool = True) -> np.ndarray:
+    """(3,) float64 unit vector, ECEF, toward the sun's centre at UTC instant ``when`` (a
+    timezone-aware datetime or a numpy datetime64, as terrain.sun.julian_day takes) seen from
+    (lat_deg, lon_deg): terrain.sun.sun_position's azimuth and elevation there (apparent, with
+    refraction, unless ``refraction`` is False) as an ENU vector turned into ECEF. Parallax is
+    8.8 arcseconds (the solar parallax): the direction holds from anywhere near that point, and
+    its elevation in another point's sky is that point's geometric one (plus the refraction
+    where it was computed, 0.57 degree at most, at the horizon)."""
+    from terrain.geodesy import enu_basis
+    from terrain.sun import sun_direction_enu, sun_position
+
+    s = sun_position(when, lat_deg, lon_deg, refraction=refraction)
+    e, n, u = sun_direction_enu(s.azimuth_deg, s.elevation_deg)
+    east, north, up = enu_basis(lat_deg, lon_deg)
+    return e * east + n * north + u * up
+
+
+def sun_in_sky_deg(sun_ecef, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+    """(azimuth degrees clockwise from north in [0, 360), elevation degrees) of the ECEF
+    direction ``sun_ecef`` (3,) in the sky of (lat_deg, lon_deg)."""
+    from terrain.geodesy import enu_basis
+
+    v = np.asarray(sun_ecef, np.float64)
+    e, n, u = (float(b @ v) for b in enu_basis(lat_deg, lon_deg))
+    return math.degrees(math.atan2(e, n)) % 360.0, math.degrees(math.atan2(u, math.hypot(e, n)))
+
+
+def instant_s(field: str, when) -> float:
+    """Seconds (float64) since 1970-01-01T00:00:00 UTC of one instant, a timezone-aware datetime
+    or a numpy datetime64 taken as UTC (what terrain.sun.julian_day takes); InvalidArgument
+    naming ``field`` for anything else. (Seconds, not a Julian day: a day number of 2.46e6 holds
+    a second only to 40 microseconds, so one second later could compare as less than one.)"""
+    if isinstance(when, datetime):
+        if when.tzinfo is None or when.utcoffset() is None:
+            raise InvalidArgument(field, "must be timezone-aware (a time without a zone is ambiguous)",
+                                  value=when.isoformat())
+        return (when - UNIX_EPOCH).total_seconds()
+    stamp = np.asarray(when) if isinstance(when, np.datetime64) else None
+    if stamp is None or np.isnat(stamp):
+        raise InvalidArgument(field, "must be a timezone-aware datetime or a numpy datetime64 instant", value=when)
+    return float((stamp - np.datetime64(0, "us")).astype("timedelta64[us]").astype(np.int64)) / 1e6
+
+
+class EphemerisSun:
+    """The sun of an instant for a camera that moves: :func:`sun_direction_ecef` at the camera's
+    position, computed again only once the instant asked for is SUN_UPDATE_S or more from the one
+    it was computed for (either way: a replay seeks back), so a frame costs a comparison. The
+    direction is ECEF, the same from anywhere (:func:`sun_direction_ecef`): a camera that moved
+    meanwhile sees it in its own sky."""
+
+    def __init__(self, refraction: bool = True):
+        self.refraction = bool(refraction)
+        self.computed = 0  # how many times the ephemeris was evaluated
+        self._t = None
+        self._ecef = None
+
+    def direction_ecef(self, when, lat_deg: float, lon_deg: float) -> np.ndarray:
+        """(3,) float64 unit ECEF vector toward the sun at ``when`` (to within SUN_UPDATE_S)."""
+        t = instant_s("sun_time", when)
+        if self._t is None or abs(t - self._t) >= SUN_UPDATE_S:
+            self._ecef = sun_direction_ecef(when, lat_deg, lon_deg, refraction=self.refraction)
+            self._t = t
+            self.computed += 1
+        return self._ecef
 
 
 def water_level_m(terrain) -> float:
@@ -109,7 +194,9 @@ class Frame:
     camera_local: (3,) float64, the camera's local offset; up_local: (3,) the camera's
     local vertical in the local frame; sun_local: (3,) unit vector to the sun; fog_density
     1/m (0: no fog); fog_rgb and the sky colours 0-1 floats; flat_sky: test mode;
-    water_level_m: terrain at or below this height MSL is water (:func:`water_level_m`).
+    water_level_m: terrain at or below this height MSL is water (:func:`water_level_m`);
+    sun_light: the weight of the sun's direct light, 1 with the sun above the camera's horizon,
+    0 at or below it (ambient only).
     """
 
     camera: Camera
@@ -125,6 +212,7 @@ class Frame:
     fog_rgb: tuple
     flat_sky_rgb: tuple | None
     water_level_m: float = 0.0
+    sun_light: float = 1.0
 
     def write_common(self, program) -> None:
         """Set the uniforms of GLSL_COMMON (those the program uses) and its matrices."""
@@ -133,6 +221,7 @@ class Frame:
             "u_projection": self.projection.T.astype("f4").tobytes(),
             "u_camera": self.camera_local.astype("f4").tobytes(),
             "u_sun": self.sun_local.astype("f4").tobytes(),
+            "u_sun_light": np.float32(self.sun_light).tobytes(),
             "u_fog_density": np.float32(self.fog_density).tobytes(),
             "u_fog_rgb": np.array(self.fog_rgb, "f4").tobytes(),
             "u_vertical": np.asarray(self.up_local, "f4").tobytes(),
@@ -149,6 +238,7 @@ uniform mat4 u_view;
 uniform mat4 u_projection;
 uniform vec3 u_camera;       // camera offset, local ENU metres
 uniform vec3 u_sun;          // unit vector to the sun, local ENU
+uniform float u_sun_light;   // the sun's direct light: 1 above the horizon, 0 at or below (ambient only)
 uniform float u_fog_density; // 1/m; 0 turns fog off
 uniform vec3 u_fog_rgb;
 uniform vec3 u_vertical;     // the camera's local vertical, local ENU (fog is by horizontal distance)
@@ -157,7 +247,7 @@ const float AMBIENT = {AMBIENT};
 const float SUN = {SUN};
 
 vec3 lambert(vec3 albedo, vec3 n) {{
-    return albedo * (AMBIENT + SUN * max(dot(n, u_sun), 0.0));
+    return albedo * (AMBIENT + SUN * u_sun_light * max(dot(n, u_sun), 0.0));
 }}
 
 vec3 fogged(vec3 colour, vec3 world) {{

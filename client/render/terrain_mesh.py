@@ -465,7 +465,7 @@ vec3 terrain_colour(vec3 world, vec3 n, float height, float cos_slope) {{
     if (height <= u_water_level) {{  // water at sea level
         vec3 to_eye = normalize(u_camera - world);
         float spec = pow(max(dot(n, normalize(u_sun + to_eye)), 0.0), {WATER_SHININESS});
-        colour = lambert(WATER, n) + {WATER_SPECULAR} * spec;
+        colour = lambert(WATER, n) + {WATER_SPECULAR} * u_sun_light * spec;  // no glint of a set sun
     }} else {{
         vec3 tint = height < MID_M ? mix(TINT_LOW, TINT_MID, height / MID_M)
                                    : mix(TINT_MID, TINT_HIGH, clamp((height - MID_M) / (HIGH_M - MID_M), 0.0, 1.0));
