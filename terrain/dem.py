@@ -54,7 +54,8 @@ import re
 import shutil
 import tempfile
 import zipfile
-from pathlib import Path
+from pathlib import Path, PurePosixPath
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -139,6 +140,17 @@ RASTER_PIXEL_IS_POINT = 2
 # ...) differ by tens to hundreds of metres and are refused.
 GEOGRAPHIC_AS_WGS84 = {4326: ("WGS 84", 0.0, None), 4979: ("WGS 84 (3D)", 0.0, None),
                        4269: ("NAD83", 4.0, 1188), 4258: ("ETRS89", 1.0, 1149)}
+# A user-defined geographic CRS (GeographicTypeGeoKey 32767, GeoTIFF 1.0 sections 6.2.2 and 6.3.2.1) given by
+# its parts: GeogGeodeticDatumGeoKey (2050, codes 6.3.2.2) and GeogPrimeMeridianGeoKey (2051, codes 6.3.2.4;
+# absent: Greenwich, as libgeotiff's GTIFGetDefn leaves a zero offset). On the EPSG datum of one of
+# GEOGRAPHIC_AS_WGS84's 2-D CRSs (WGS 84 6326, NAD83 6269, ETRS89 6258; PROJ's proj.db) with the Greenwich
+# meridian (8901) it is that CRS, as GDAL reads it; its angular unit is GeogAngularUnitsGeoKey's, as for
+# any geographic raster.
+KEY_GEOG_GEODETIC_DATUM = 2050
+KEY_GEOG_PRIME_MERIDIAN = 2051
+GEOGRAPHIC_USER_DEFINED = 32767
+PRIME_MERIDIAN_GREENWICH = 8901
+GEOGRAPHIC_OF_DATUM = {6326: 4326, 6269: 4269, 6258: 4258}
 # EPSG:3857 and its deprecated alias EPSG:3785. The older unofficial code
 # 900913 exceeds 65535, so it cannot appear in a SHORT GeoKey value.
 EPSG_WEB_MERCATOR = (3857, 3785)
@@ -164,6 +176,15 @@ VERTICAL_DATUMS_EPSG = {5773: "EGM96 geoid (EPSG:5773)", 3855: "EGM2008 geoid (E
                         5103: "NAVD 1988 (GeoTIFF VertCS 5103)", 5104: "Yellow Sea 1956 (GeoTIFF VertCS 5104)",
                         5105: "Baltic Sea (GeoTIFF VertCS 5105)"}
 VERTICAL_CS_USER_DEFINED = 32767
+# The EPSG vertical datum (reference surface) of each system above: PROJ's proj.db, table vertical_crs,
+# column datum_code; GeoTIFF 1.0's VertCS 5101-5105 (section 6.3.4.1) are named after the EPSG vertical
+# datums of the same codes (5101 Ordnance Datum Newlyn, ..., 5105 Baltic 1977). SRTM's heights are above
+# the EGM96 geoid (SRTM Topography, NASA JPL 2005), EPSG datum 5171. Two labels on one datum are one
+# system (vertical_datum_identity): "EGM96 geoid (SRTM)" and "EGM96 geoid (EPSG:5773)" merge in a mosaic.
+VERTICAL_DATUM_CODES = {5773: 5171, 3855: 1027, 5798: 5203, 5714: 5100, 5703: 5103, 5701: 5101, 5711: 5111,
+                        5705: 5105, 5709: 5109, 5783: 5181, 7837: 1170, 5941: 1096, 5713: 5114, 6647: 1127,
+                        5101: 5101, 5102: 5102, 5103: 5103, 5104: 5104, 5105: 5105}
+EPSG_DATUM_EGM96 = 5171
 # GeoTIFF 1.0 section 6.3.4.1: VertCS_Airy_1830_ellipsoid (5001) .. VertCS_OSU91A_ellipsoid (5033).
 VERTICAL_CS_ELLIPSOID_CODES = range(5001, 5034)
 # Geographic 3D CRSs (EPSG, PROJ's proj.db type "Geographic 3D CRS") a file may give as its vertical
@@ -173,6 +194,24 @@ GEOGRAPHIC_3D_CODES = (4979, 4937, 4959, 6319, 7912)
 MSL_ADVICE = ("heights are read as metres above mean sea level: convert them with the geoid (e.g. EGM96/EGM2008), "
               f"or declare VerticalCSTypeGeoKey ({KEY_VERTICAL_CS_TYPE}) 32767 (user-defined) to take them as "
               "supplied; read are " + ", ".join(str(c) for c in VERTICAL_DATUMS_EPSG))
+_DATUM_OF_LABEL = {VERTICAL_DATUM_SRTM: EPSG_DATUM_EGM96,
+                   **{label: VERTICAL_DATUM_CODES[code] for code, label in VERTICAL_DATUMS_EPSG.items()}}
+
+
+def vertical_datum_identity(label: str) -> str:
+    """The vertical system behind a ``Raster.vertical_datum`` label, for comparing sources: the EPSG
+    vertical datum of a label the readers give for one (VERTICAL_DATUM_CODES), else the label itself.
+    "mean sea level (as supplied)" (no vertical key, 32767, an ASCII grid without a vertical CRS) is
+    its own system: heights taken as supplied are not claimed to be on any named datum."""
+    code = _DATUM_OF_LABEL.get(label)
+    return label if code is None else f"EPSG vertical datum {code}"
+
+
+def vertical_datum_label(datum_code: int) -> str | None:
+    """The reader's label (VERTICAL_DATUMS_EPSG, an EPSG vertical CRS's before GeoTIFF 1.0's) for heights
+    in metres on EPSG vertical datum ``datum_code``; None for a datum not among them."""
+    return next((VERTICAL_DATUMS_EPSG[c] for c, d in VERTICAL_DATUM_CODES.items() if d == datum_code), None)
+
 
 RAW_SUFFIXES = (".raw", ".r16")
 # read_raw16's georeference: a raw file cannot be read without it.
@@ -234,7 +273,8 @@ def _read_zipped(path: Path, **kwargs) -> Raster:
     try:
         with zipfile.ZipFile(path) as archive:
             members = [m for m in archive.infolist()
-                       if not m.is_dir() and Path(m.filename).suffix.lower() in DEM_SUFFIXES]
+                       if not m.is_dir() and not _archive_metadata(m.filename)
+                       and Path(m.filename).suffix.lower() in DEM_SUFFIXES]
             if len(members) != 1:
                 names = ", ".join(m.filename for m in archive.infolist()) or "nothing"
                 raise DataFormatError(f"{path}: a DEM archive must hold exactly one DEM file "
@@ -262,6 +302,14 @@ def _read_zipped(path: Path, **kwargs) -> Raster:
     return raster
 
 
+def _archive_metadata(name: str) -> bool:
+    """Whether a zip member is macOS's AppleDouble metadata, not a file's data: the Finder's "Compress"
+    stores each file's extended attributes as ``__MACOSX/<folder>/._<name>`` (Apple's AppleDouble
+    format, RFC 1740), and copies to non-Apple volumes leave ``._<name>`` beside the file."""
+    parts = PurePosixPath(name).parts
+    return bool(parts) and (parts[0] == "__MACOSX" or parts[-1].startswith("._"))
+
+
 # Largest .prj sidecar read out of a .zip (a WKT CRS is a few kilobytes).
 MAX_ZIPPED_PRJ_BYTES = 1 << 20
 
@@ -273,7 +321,7 @@ def _zipped_prj(archive: zipfile.ZipFile, member: zipfile.ZipInfo):
         return None
     stem = str(Path(member.filename).with_suffix("")).lower()
     for m in archive.infolist():
-        if (not m.is_dir() and Path(m.filename).suffix.lower() == ".prj"
+        if (not m.is_dir() and not _archive_metadata(m.filename) and Path(m.filename).suffix.lower() == ".prj"
                 and str(Path(m.filename).with_suffix("")).lower() == stem and m.file_size <= MAX_ZIPPED_PRJ_BYTES):
             return m
     return None
@@ -330,17 +378,25 @@ def read_asc(path) -> Raster:
     ``*corner`` is the outer corner of the south-west cell (cell-area
     registration): posts are put at cell centres, half a cell inwards.
     ``*center`` is the centre of that cell, i.e. the post itself. File row 0 is
-    the north row. NODATA posts are voids, filled by the harmonic rule. A
-    sidecar ``.prj`` (the WKT GDAL and ArcGIS write beside the grid) is read
-    when present: a projected CRS, or a geographic one on another datum than
-    WGS 84 (or those read as it, see GEOGRAPHIC_AS_WGS84), is refused by name
-    instead of read as degrees, and a geographic 3D one (its third axis, the
-    grid's values, is the ellipsoidal height) instead of read as mean sea level. A
-    leading UTF-8 byte order mark (what Windows tools such as Notepad write) is
-    skipped, in the grid and in its ``.prj``.
+    the north row. NODATA posts are voids, filled by the harmonic rule (see
+    :func:`_asc_voids`; ``NODATA_value nan``, as GDAL writes it, leaves the
+    non-finite cells the voids they always are). A sidecar ``.prj`` (the WKT
+    GDAL and ArcGIS write beside the grid, or the older ArcInfo keyword form) is
+    read when present (:func:`_asc_sidecar_crs`): a projected CRS, alone or as
+    the horizontal part of a compound CRS, or a geographic one on another datum
+    than WGS 84 (or those read as it, see GEOGRAPHIC_AS_WGS84), is refused by
+    name instead of read as degrees, and a geographic 3D one (its third axis,
+    the grid's values, is the ellipsoidal height) instead of read as mean sea
+    level. Its units are applied: coordinates in another angular unit (ArcInfo's
+    ``Units DS``, arc-seconds) are converted to degrees, heights in feet (the
+    unit of a compound CRS's vertical part, ArcInfo's ``Zunits FEET``) to metres
+    as the GeoTIFF reader converts them (meta["vertical_units"]), and a vertical
+    CRS on a datum the GeoTIFF reader names gives the grid that vertical datum.
+    A leading UTF-8 byte order mark (what Windows tools such as Notepad write)
+    is skipped, in the grid and in its ``.prj``.
     """
     path = _existing(path)
-    prj = _asc_sidecar_crs(path)
+    crs = _asc_sidecar_crs(path)
     data = path.read_bytes()
     try:
         text = data[len(UTF8_BOM):].decode("ascii") if data.startswith(UTF8_BOM) else data.decode("ascii")
@@ -360,35 +416,95 @@ def read_asc(path) -> Raster:
         raise DataFormatError(f"{path}: header says {nrows} x {ncols} = {nrows * ncols} values, "
                               f"file has {values.size}")
     grid = values.reshape(nrows, ncols)[::-1]
-    nodata = _asc_float(path, header, "nodata_value") if "nodata_value" in header else None
-    voids = ~np.isfinite(grid) if nodata is None else (grid == nodata) | ~np.isfinite(grid)
+    nodata = _asc_nodata(path, header)
+    voids = _asc_voids(grid, nodata)
     meta = {"format": "ESRI ASCII grid", "registration_x": x_reg, "registration_y": y_reg,
             "nodata_value": nodata, "crs_assumed": "EPSG:4326"}
-    if prj:
-        meta["crs_prj"] = prj
-    return _finish(path, grid, voids, _make_georef(path, CRS_GEOGRAPHIC, x0, y0, dx, dy),
-                   VERTICAL_DATUM_DEFAULT, meta)
+    datum = VERTICAL_DATUM_DEFAULT
+    if crs is not None:
+        meta["crs_prj"] = crs.name
+        datum = crs.vertical_datum
+        unit_name, degrees = crs.horizontal_units
+        if degrees != 1.0:  # the header's coordinates and spacing -> degrees
+            x0, y0, dx, dy = (v * degrees for v in (x0, y0, dx, dy))
+            meta["horizontal_units"] = unit_name
+        unit_name, to_m = crs.vertical_units
+        if to_m != 1.0:  # values -> metres, voids found on the values as written
+            grid = grid * to_m
+            meta["vertical_units"] = unit_name
+    return _finish(path, grid, voids, _make_georef(path, CRS_GEOGRAPHIC, x0, y0, dx, dy), datum, meta)
 
 
-# Datum names in WKT that are WGS 84 or read as it (GEOGRAPHIC_AS_WGS84's NAD83, ETRS89).
+def _asc_nodata(path: Path, header: dict) -> float | None:
+    """NODATA_value, or None without one. Unlike the other header values it may be non-finite:
+    GDAL's AAIGrid writer prints a NaN nodata as ``nan``."""
+    if "nodata_value" not in header:
+        return None
+    try:
+        return float(header["nodata_value"])
+    except ValueError:
+        raise DataFormatError(f"{path}: header nodata_value must be a number, got {header['nodata_value']!r}") from None
+
+
+def _asc_voids(grid: np.ndarray, nodata: float | None) -> np.ndarray:
+    """(ny, nx) bool: the void cells of a grid ((ny, nx) float64, as written): non-finite ones, and
+    those equal to a finite NODATA_value in float64 or once both are rounded to float32. GDAL's
+    AAIGrid driver reads a grid with floating point values as Float32 and compares there (GDAL's
+    AAIGrid driver documentation, AAIGRID_DATATYPE: "set to Float32 for grid with floating point
+    values"), and writers print the header and the cells at different precisions: a header of
+    -3.4028234663852886e+38 over cells of -3.4028235e+38 is float32's lowest value both times. A
+    nodata beyond float32's range is compared in float64 only."""
+    voids = ~np.isfinite(grid)
+    if nodata is None or not math.isfinite(nodata):
+        return voids
+    voids |= grid == nodata
+    with np.errstate(over="ignore"):  # cells beyond float32's range round to +-inf: never a finite nodata
+        nodata32 = np.float32(nodata)
+        if np.isfinite(nodata32):
+            voids |= grid.astype(np.float32) == nodata32
+    return voids
+
+
+# Datum names in WKT that are WGS 84 or read as it (GEOGRAPHIC_AS_WGS84's NAD83, ETRS89), matched in
+# the .prj's own datum name (a leading "D_" dropped) and in PROJ's name for it. ESRI writes NAD83 as
+# "D_North_American_1983" (GDAL's morphToESRI too, as USGS NED grids ship), and its realisations
+# with a suffix (_HARN, _CSRS, _2011, _NSRS2007): all are read as NAD83, since the EPSG registry's
+# transformations from each to WGS 84 are as accurate as NAD83's own or better (NAD83(HARN) EPSG:1580
+# 2 m, NAD83(CSRS) EPSG:1842 2 m, NAD83(NSRS2007) EPSG:15931 2 m, NAD83(2011) EPSG:9774 2 m, against
+# NAD83 EPSG:1188 4 m), and GDAL's names for them ("NAD83_High_Accuracy_Reference_Network", ...) were
+# read as NAD83 already.
 WKT_WGS84_DATUMS = ("WGS_1984", "WGS84", "WGS 84", "WORLD GEODETIC SYSTEM 1984", "NORTH_AMERICAN_DATUM_1983",
-                    "NORTH AMERICAN DATUM 1983", "EUROPEAN_TERRESTRIAL_REFERENCE_SYSTEM_1989",
+                    "NORTH AMERICAN DATUM 1983", "NORTH_AMERICAN_1983", "EUROPEAN_TERRESTRIAL_REFERENCE_SYSTEM_1989",
                     "EUROPEAN TERRESTRIAL REFERENCE SYSTEM 1989", "ETRS89", "ETRS_1989", "NAD83", "NAD_1983")
+# ESRI's VERTCS carries a shift added to the heights (PARAMETER["Vertical_Shift", ...]), which PROJ drops.
+WKT_ESRI_VERTICAL_SHIFT = re.compile(r'PARAMETER\s*\[\s*"Vertical_Shift"\s*,\s*([^\],\s]+)', re.IGNORECASE)
+# Units are the same unit when their factors agree this closely (WKT prints them to 15 or 16 digits).
+UNIT_FACTOR_RTOL = 1e-9
+# The older ArcInfo .prj keywords (GDAL's OGRSpatialReference::importFromESRI reads this form): "Units" of a
+# GEOGRAPHIC projection, DD decimal degrees or DS arc-seconds (GDAL's AAIGrid and AIG drivers divide the
+# georeference by 3600 for DS); "Zunits" of the values, NO (none said: as supplied, in metres), METERS or
+# FEET, read as the US survey foot, as importFromESRI reads "Units FEET" of the same form. Values:
+# (name, degrees or metres per unit).
+ARCINFO_UNITS_DEG = {"DD": ANGULAR_UNITS_DEG[9102], "DS": ANGULAR_UNITS_DEG[9104]}
+ARCINFO_ZUNITS_M = {"NO": VERTICAL_UNITS_M[9001], "METERS": VERTICAL_UNITS_M[9001], "FEET": VERTICAL_UNITS_M[9003]}
 
 
-# A geographic CRS in WKT (not a compound one, whose up axis is its vertical CRS's) with a third,
-# up axis: WKT2's "CS[ellipsoidal,3]" (ISO 19162:2019 / OGC 18-010r7 section 7.5.1), an
-# AXIS[..., up] (WKT2, and GDAL's WKT1 of a 3D CRS), or ESRI's LINUNIT (its WKT1 of EPSG:4979 is
-# GEOGCS["WGS_1984_3D", ..., LINUNIT["Meter",1.0]], as PROJ writes it).
-WKT_GEOGRAPHIC_KINDS = ("GEOGCS", "GEOGCRS", "GEOGRAPHICCRS", "GEODCRS", "GEODETICCRS")
-WKT_GEOGRAPHIC_3D = re.compile(r'CS\s*\[\s*ellipsoidal\s*,\s*3\s*\]|AXIS\s*\[\s*"[^"]*"\s*,\s*up\b|LINUNIT\s*\[',
-                               re.IGNORECASE)
+class AscCrs(NamedTuple):
+    """What an ESRI grid's .prj says: its name (meta["crs_prj"]); the header coordinates' unit
+    (name, degrees per unit); the values' unit (name, metres per unit); their vertical datum
+    (a Raster.vertical_datum label)."""
+
+    name: str
+    horizontal_units: tuple[str, float]
+    vertical_units: tuple[str, float]
+    vertical_datum: str
 
 
-def _asc_sidecar_crs(path: Path) -> str | None:
-    """The name of the CRS in the grid's .prj sidecar (None without one); a projected
-    CRS, another datum or a geographic 3D CRS (ellipsoidal heights) is a DataFormatError
-    naming it."""
+def _asc_sidecar_crs(path: Path) -> AscCrs | None:
+    """What the grid's .prj sidecar says (None without one, or one that is no CRS); a CRS the grid
+    cannot be read in is a DataFormatError naming it: a projected CRS (alone or as a compound CRS's
+    horizontal part), another datum, a geographic 3D CRS (ellipsoidal heights), a unit it does not
+    know (coordinates or heights), depths or ellipsoidal heights as a vertical CRS."""
     prj = path.with_suffix(".prj")
     if not prj.is_file():
         prj = path.with_suffix(".PRJ")
@@ -399,30 +515,121 @@ def _asc_sidecar_crs(path: Path) -> str | None:
     text = prj.read_text(encoding="utf-8-sig", errors="replace").strip()
     head = re.match(r"\s*(\w+)\s*\[\s*\"([^\"]*)\"", text)
     if head is not None:  # WKT (GDAL, ArcGIS)
-        kind, name = head.group(1).upper(), head.group(2)
-        projected = kind in ("PROJCS", "PROJCRS", "PROJECTEDCRS")
-        datum = re.search(r"DATUM\s*\[\s*\"([^\"]*)\"", text, re.IGNORECASE)
-        datum_name = datum.group(1) if datum else name
-    else:  # the older ArcInfo form: "Projection GEOGRAPHIC", "Datum WGS84", ...
-        fields = dict((line.split(None, 1) + [""])[:2] for line in text.splitlines() if line.strip())
-        fields = {k.upper(): v.strip() for k, v in fields.items()}
-        if "PROJECTION" not in fields:
-            return None  # not a CRS we can read: the grid is taken as degrees, as without one
-        name = fields["PROJECTION"]
-        projected = name.upper() != "GEOGRAPHIC"
-        datum_name = fields.get("DATUM", "WGS84")
-    if projected:
-        raise DataFormatError(f"{path}: its {prj.name} is a projected CRS ({name}); ESRI ASCII grids are "
-                              "read in geographic degrees only (convert it to EPSG:4326, or to a GeoTIFF in "
-                              "EPSG:4326 or 3857)")
-    if not any(d in datum_name.upper().replace("D_", "", 1) for d in WKT_WGS84_DATUMS):
-        raise DataFormatError(f"{path}: its {prj.name} is on datum {datum_name!r}; read are WGS 84, NAD83 "
-                              "and ETRS89")
-    if head is not None and kind in WKT_GEOGRAPHIC_KINDS and WKT_GEOGRAPHIC_3D.search(text):
+        return _wkt_prj(path, prj, text, head.group(2))
+    # The older ArcInfo form: "Projection GEOGRAPHIC", "Datum WGS84", "Units DD", "Zunits NO", ...
+    fields = dict((line.split(None, 1) + [""])[:2] for line in text.splitlines() if line.strip())
+    fields = {k.upper(): v.strip() for k, v in fields.items()}
+    if "PROJECTION" not in fields:
+        return None  # not a CRS we can read: the grid is taken as degrees, as without one
+    name = fields["PROJECTION"]
+    if name.upper() != "GEOGRAPHIC":
+        raise _projected_prj(path, prj, name)
+    _check_prj_datum(path, prj, fields.get("DATUM", "WGS84"))
+    units = (fields.get("UNITS") or "DD").upper()
+    zunits = (fields.get("ZUNITS") or "NO").upper()
+    if units not in ARCINFO_UNITS_DEG:
+        raise DataFormatError(f"{path}: its {prj.name} gives Units {fields['UNITS']!r} for a GEOGRAPHIC projection; "
+                              "read are " + ", ".join(f"{k} ({n})" for k, (n, _) in ARCINFO_UNITS_DEG.items()))
+    if zunits not in ARCINFO_ZUNITS_M:
+        raise DataFormatError(f"{path}: its {prj.name} gives Zunits {fields['ZUNITS']!r}; read are "
+                              + ", ".join(f"{k} ({n})" for k, (n, _) in ARCINFO_ZUNITS_M.items()))
+    return AscCrs(name, ARCINFO_UNITS_DEG[units], ARCINFO_ZUNITS_M[zunits], VERTICAL_DATUM_DEFAULT)
+
+
+def _wkt_prj(path: Path, prj: Path, text: str, name: str) -> AscCrs:
+    """A WKT .prj (WKT1 as GDAL or ESRI write it, WKT2; a compound CRS as COMPD_CS, COMPOUNDCRS or
+    ESRI's horizontal CRS followed by a VERTCS) read by PROJ, which also maps ESRI's names to EPSG's."""
+    import pyproj
+
+    try:
+        crs = pyproj.CRS.from_wkt(text)
+    except pyproj.exceptions.CRSError as e:
+        raise DataFormatError(f"{path}: its {prj.name} is not a WKT CRS PROJ can read ({e})") from None
+    horizontal, vertical = (crs.sub_crs_list[0], crs.sub_crs_list[1]) if crs.is_compound else (crs, None)
+    while horizontal.is_bound:  # WKT1's TOWGS84 makes a bound CRS around the one the grid is in
+        horizontal = horizontal.source_crs
+    if horizontal.is_projected:
+        raise _projected_prj(path, prj, name if vertical is None else
+                             f"{horizontal.name}, the horizontal part of compound CRS {name!r}")
+    if not horizontal.is_geographic:
+        raise DataFormatError(f"{path}: its {prj.name} is {horizontal.type_name!r} ({horizontal.name}), not a "
+                              "geographic CRS; ESRI ASCII grids are read in geographic degrees only")
+    raw_datum = re.search(r"\bDATUM\s*\[\s*\"([^\"]*)\"", text, re.IGNORECASE)
+    _check_prj_datum(path, prj, raw_datum.group(1) if raw_datum else horizontal.datum.name, horizontal.datum.name)
+    meridian = horizontal.prime_meridian
+    if meridian.longitude != 0.0:
+        raise DataFormatError(f"{path}: its {prj.name} has prime meridian {meridian.name!r} at {meridian.longitude:g} "
+                              f"{meridian.unit_name} from Greenwich; read is Greenwich")
+    if len(horizontal.axis_info) > 2:  # PROJ makes one of a compound CRS on an ellipsoidal VERT_DATUM (2002) too
         raise DataFormatError(f"{path}: its {prj.name} is a geographic 3D CRS ({name}): the grid's values are "
                               "ellipsoidal heights, not mean sea level; convert them with the geoid (e.g. "
                               "EGM96/EGM2008), or give the grid a 2-D geographic .prj to take them as supplied")
-    return name
+    axis = horizontal.axis_info[0]
+    degrees = _known_unit(axis.unit_conversion_factor * 180.0 / math.pi, ANGULAR_UNITS_DEG.values())
+    if degrees is None:
+        raise DataFormatError(f"{path}: its {prj.name} gives coordinates in {axis.unit_name!r} "
+                              f"({axis.unit_conversion_factor!r} rad); read are "
+                              + ", ".join(sorted({n for n, _ in ANGULAR_UNITS_DEG.values()})))
+    vertical_units, datum = VERTICAL_UNITS_M[9001], VERTICAL_DATUM_DEFAULT
+    if vertical is not None:
+        vertical_units, datum = _prj_vertical(path, prj, text, vertical)
+    return AscCrs(name, degrees, vertical_units, datum)
+
+
+def _prj_vertical(path: Path, prj: Path, text: str, vertical) -> tuple[tuple[str, float], str]:
+    """((unit name, metres per unit), Raster.vertical_datum label) of a compound .prj's vertical CRS
+    (a pyproj CRS): heights up, in a unit of VERTICAL_UNITS_M (the GeoTIFF reader's), labelled by
+    their EPSG vertical datum where the GeoTIFF reader names it, else "as supplied"."""
+    import pyproj
+
+    while vertical.is_bound:
+        vertical = vertical.source_crs
+    what = f"{path}: its {prj.name}'s vertical CRS ({vertical.name})"
+    axis = vertical.axis_info[0]
+    if axis.direction.lower() != "up":
+        raise DataFormatError(f"{what} has its axis {axis.direction}: depths, not heights above mean sea level")
+    shift = WKT_ESRI_VERTICAL_SHIFT.search(text)
+    if shift is not None and _float_or_nan(shift.group(1)) != 0.0:
+        raise DataFormatError(f"{what} has Vertical_Shift {shift.group(1)}; read are heights without a shift (0)")
+    unit = _known_unit(axis.unit_conversion_factor, VERTICAL_UNITS_M.values())
+    if unit is None:
+        raise DataFormatError(f"{what} gives heights in {axis.unit_name!r} ({axis.unit_conversion_factor!r} m); "
+                              "read are " + ", ".join(n for n, _ in VERTICAL_UNITS_M.values()))
+    ident = vertical.datum.to_json_dict().get("id") or {}
+    if ident.get("authority") != "EPSG":
+        try:  # PROJ's datum of that name (EPSG's names, ESRI's and their aliases: "EGM96_Geoid", "NAVD88")
+            ident = pyproj.crs.Datum.from_name(vertical.datum.name, auth_name="EPSG",
+                                               datum_type="VERTICAL_REFERENCE_FRAME").to_json_dict().get("id") or {}
+        except pyproj.exceptions.CRSError:
+            ident = {}
+    label = vertical_datum_label(int(ident["code"])) if ident.get("authority") == "EPSG" else None
+    return unit, label or VERTICAL_DATUM_DEFAULT
+
+
+def _float_or_nan(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
+def _known_unit(factor: float, units) -> tuple[str, float] | None:
+    """The (name, factor) of ``units`` whose factor is ``factor`` to UNIT_FACTOR_RTOL, or None."""
+    return next(((n, f) for n, f in units if abs(factor - f) <= UNIT_FACTOR_RTOL * f), None)
+
+
+def _projected_prj(path: Path, prj: Path, name: str) -> DataFormatError:
+    return DataFormatError(f"{path}: its {prj.name} is a projected CRS ({name}); ESRI ASCII grids are read in "
+                           "geographic degrees only (convert it to EPSG:4326, or to a GeoTIFF in EPSG:4326 or 3857)")
+
+
+def _check_prj_datum(path: Path, prj: Path, datum_name: str, proj_name: str | None = None) -> None:
+    """DataFormatError naming the datum unless it (the .prj's name, or PROJ's for it) is one of
+    WKT_WGS84_DATUMS."""
+    names = (datum_name.upper().replace("D_", "", 1), (proj_name or "").upper())
+    if not any(d in n for d in WKT_WGS84_DATUMS for n in names):
+        raise DataFormatError(f"{path}: its {prj.name} is on datum {datum_name!r}; read are WGS 84, NAD83 "
+                              "and ETRS89")
 
 
 # The UTF-8 byte order mark (U+FEFF encoded), which Windows editors put at the start of text files.
@@ -509,7 +716,8 @@ def _asc_origin(path: Path, header: dict, axis: str, spacing: float) -> tuple[fl
 def read_geotiff(path) -> Raster:
     """Single-band GeoTIFF in EPSG:4326 or EPSG:3857 (Web Mercator); NAD83 and ETRS89
     geographic rasters are read as WGS 84 within the EPSG registry's stated accuracy
-    (GEOGRAPHIC_AS_WGS84; the raster's meta["horizontal_datum"] says so).
+    (GEOGRAPHIC_AS_WGS84; the raster's meta["horizontal_datum"] says so), and so is a
+    user-defined geographic CRS (32767) on one of their datums with the Greenwich meridian.
 
     Georeference from ModelPixelScale + one ModelTiepoint, or from a
     ModelTransformation without rotation. GTRasterTypeGeoKey decides where
@@ -570,10 +778,14 @@ def read_geotiff(path) -> Raster:
             "raster_type": "PixelIsArea" if half else "PixelIsPoint",
             "nodata": nodata, "rows_south_to_north": bool(sy > 0)}
     if crs == CRS_GEOGRAPHIC:
-        name, accuracy_m, transformation = GEOGRAPHIC_AS_WGS84[keys[KEY_GEOGRAPHIC_TYPE]]
+        code = _geographic_code(path, keys)
+        name, accuracy_m, transformation = GEOGRAPHIC_AS_WGS84[code]
         meta["horizontal_datum"] = name if transformation is None else (
-            f"{name} (EPSG:{keys[KEY_GEOGRAPHIC_TYPE]}) read as WGS 84: EPSG:{transformation} null "
+            f"{name} (EPSG:{code}) read as WGS 84: EPSG:{transformation} null "
             f"transformation, accurate to {accuracy_m:g} m")
+        if keys.get(KEY_GEOGRAPHIC_TYPE) == GEOGRAPHIC_USER_DEFINED:
+            meta["geographic_crs"] = (f"user-defined on EPSG datum {keys[KEY_GEOG_GEODETIC_DATUM]}, "
+                                      f"read as EPSG:{code}")
     scale, offset, unit_type = _gdal_band_metadata(path, tags.get(TAG_GDAL_METADATA))
     unit_name, to_m = _vertical_units(path, keys, unit_type)
     if (scale, offset, to_m) != (1.0, 0.0, 1.0):  # stored values -> metres (GDAL's unscaling, then units)
@@ -715,11 +927,7 @@ def parse_geokeys(path, directory, doubles=(), ascii_params: str = "") -> dict[i
 def _geotiff_crs(path: Path, keys: dict) -> int:
     model = keys.get(KEY_GT_MODEL_TYPE)
     if model == MODEL_TYPE_GEOGRAPHIC:
-        code = keys.get(KEY_GEOGRAPHIC_TYPE)
-        if code not in GEOGRAPHIC_AS_WGS84:
-            known = ", ".join(f"{c} ({name})" for c, (name, _, _) in GEOGRAPHIC_AS_WGS84.items())
-            raise DataFormatError(f"{path}: unsupported geographic CRS: GeographicTypeGeoKey "
-                                  f"({KEY_GEOGRAPHIC_TYPE}) = {code!r}; read are {known}")
+        _geographic_code(path, keys)
         return CRS_GEOGRAPHIC
     if model == MODEL_TYPE_PROJECTED:
         code = keys.get(KEY_PROJECTED_CS_TYPE)
@@ -731,6 +939,30 @@ def _geotiff_crs(path: Path, keys: dict) -> int:
     raise DataFormatError(f"{path}: unsupported model type: GTModelTypeGeoKey ({KEY_GT_MODEL_TYPE}) = "
                           f"{model!r}; expected {MODEL_TYPE_PROJECTED} (projected) or "
                           f"{MODEL_TYPE_GEOGRAPHIC} (geographic)")
+
+
+def _geographic_code(path: Path, keys: dict) -> int:
+    """The GEOGRAPHIC_AS_WGS84 code a geographic GeoTIFF is read as: its GeographicTypeGeoKey (2048), or
+    for a user-defined one (32767) the CRS on its GeogGeodeticDatumGeoKey (2050) with the Greenwich
+    meridian (GEOGRAPHIC_OF_DATUM). Anything else is refused naming the keys and their values."""
+    code = keys.get(KEY_GEOGRAPHIC_TYPE)
+    if code == GEOGRAPHIC_USER_DEFINED:
+        datum = keys.get(KEY_GEOG_GEODETIC_DATUM)
+        meridian = keys.get(KEY_GEOG_PRIME_MERIDIAN, PRIME_MERIDIAN_GREENWICH)
+        if datum in GEOGRAPHIC_OF_DATUM and meridian == PRIME_MERIDIAN_GREENWICH:
+            return GEOGRAPHIC_OF_DATUM[datum]
+        known = ", ".join(f"{d} ({GEOGRAPHIC_AS_WGS84[c][0]})" for d, c in GEOGRAPHIC_OF_DATUM.items())
+        raise DataFormatError(f"{path}: unsupported geographic CRS: GeographicTypeGeoKey ({KEY_GEOGRAPHIC_TYPE}) = "
+                              f"{code} (user-defined) with GeogGeodeticDatumGeoKey ({KEY_GEOG_GEODETIC_DATUM}) = "
+                              f"{datum!r} and GeogPrimeMeridianGeoKey ({KEY_GEOG_PRIME_MERIDIAN}) = {meridian!r}; "
+                              f"read are the datums {known} on the prime meridian {PRIME_MERIDIAN_GREENWICH} "
+                              "(Greenwich)")
+    if code not in GEOGRAPHIC_AS_WGS84:
+        known = ", ".join(f"{c} ({name})" for c, (name, _, _) in GEOGRAPHIC_AS_WGS84.items())
+        raise DataFormatError(f"{path}: unsupported geographic CRS: GeographicTypeGeoKey "
+                              f"({KEY_GEOGRAPHIC_TYPE}) = {code!r}; read are {known} (or "
+                              f"{GEOGRAPHIC_USER_DEFINED} on one of their datums)")
+    return code
 
 
 def _raster_to_model(path: Path, tags: dict) -> tuple[float, float, float, float]:

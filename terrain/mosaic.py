@@ -1,7 +1,9 @@
 """Mosaic: several DEM rasters -> the fewest rasters that keep seams continuous.
 
 This is the thesis's height-raster conversion step (several tiles in, one
-terrain out). Rasters with the same CRS, post spacing and vertical datum whose
+terrain out). Rasters with the same CRS, post spacing and vertical datum (the
+datum itself, not its label: :func:`terrain.dem.vertical_datum_identity`, so an
+SRTM tile and a GeoTIFF declaring EGM96 by EPSG:5773 are one system) whose
 post grids align (origins a whole number of posts apart, within
 ``ALIGN_TOLERANCE_POSTS``) and that touch or overlap are copied into one
 raster over their bounding box, so the bilinear surface is continuous across
@@ -45,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sortie.errors import LimitExceeded
-from terrain.dem import enclosed_voids, fill_voids, read_dem
+from terrain.dem import enclosed_voids, fill_voids, read_dem, vertical_datum_identity
 from terrain.raster import CRS_GEOGRAPHIC, TWO_PI_A_M, Georef, Raster, grid_bounds
 
 log = logging.getLogger(__name__)
@@ -136,9 +138,10 @@ def _can_merge(rasters: list[Raster], groups: list[list[int]], members: list[int
 
 
 def aligned(a: Raster, b: Raster) -> bool:
-    """True when a and b can share one grid: same CRS, datum, spacing, post phase."""
+    """True when a and b can share one grid: same CRS, vertical datum (by identity, whatever the
+    labels), spacing, post phase."""
     ga, gb = a.georef, b.georef
-    if ga.crs != gb.crs or a.vertical_datum != b.vertical_datum:
+    if ga.crs != gb.crs or vertical_datum_identity(a.vertical_datum) != vertical_datum_identity(b.vertical_datum):
         return False
     # Spacing: b's far posts must stay within tolerance of a's grid.
     for da, db, n in ((ga.dx, gb.dx, max(a.shape[1], b.shape[1])), (ga.dy, gb.dy, max(a.shape[0], b.shape[0]))):
