@@ -166,7 +166,8 @@ def _split_address(entry: str) -> tuple[str, int]:
     """("host", port) of "host:port" or "[v6]:port"; InvalidArgument naming the entry."""
     host, sep, port = entry.rpartition(":")
     bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    if not sep or not bare or (":" in bare and bare == host) or not port.isdigit() or not 1 <= int(port) <= 65535:
+    if (not sep or not bare or (":" in bare and bare == host) or not (port.isascii() and port.isdigit())
+            or not 1 <= int(port) <= 65535):  # ASCII digits: str.isdigit() takes "²" and "１２３" too
         raise InvalidArgument("address", 'each replica must be "host:port" with a port in [1, 65535] '
                                          '("[::1]:50051" for IPv6)', value=entry)
     return bare, int(port)

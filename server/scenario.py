@@ -19,7 +19,10 @@ scalars read as TOML's do (YAML 1.2 core: ``1e3`` is a number; ``yes``, ``no``,
 ``on`` and ``off`` are strings, only ``true`` / ``false`` are booleans; ``010``
 is ten). What TOML cannot say is an error with its line and column, or its key
 path: a duplicate key, a key that is not a string, a null value (leave the key
-out for its default).
+out for its default). A value shaped like a date or date-time that is none
+(2026-02-29, hour 24, second 60, an offset of 24 hours) is an error with its
+line and column in either format. A leading byte order mark is skipped in
+either format.
 
 Schema (``*`` required; everything else has the default shown)::
 
@@ -52,12 +55,15 @@ Schema (``*`` required; everything else has the default shown)::
     dem = ["f.hgt", ...]       1..64 DEM files, highest priority first, relative to the
                                scenario file's folder or absolute; .hgt .asc .tif .tiff
                                (raw 16-bit files need a georeference a scenario cannot give)
-    service = "host:port"      a running terrain service ("[::1]:50051" for IPv6)
+    service = "host:port"      a running terrain service ("[::1]:50051" for IPv6; the port in
+                               ASCII digits)
     geoid_undulation_m = 0.0   N (ellipsoid minus geoid height) for ECEF, |N| <= 120
     insets = false             answer inside the target areas from their high-detail inset
                                data (terrain/inset.py), which clients draw as geomipmaps;
                                with a service, the service must serve them (sortie terrain
-                               serve --insets SCENARIO)
+                               serve --insets SCENARIO): the server refuses to start, naming
+                               terrain.insets, when it serves no inset of a target area's
+                               name, polygon and detail_m (server/sim_server.py)
 
     [agent_types.<name>]       <name> is a kind (aircraft, ground, static, observer) or a
                                type (a JSBSim catalog name, a vehicle type, or the type of a
@@ -65,7 +71,9 @@ Schema (``*`` required; everything else has the default shown)::
                                a type table overrides its kind's, for every agent of that type.
                                Resolution: built-in kind default < [agent_types.<kind>]
                                < [agent_types.<type>]. Keys, each optional:
-        aoi_radius_m           area of interest, [0, 1,000 km]
+        aoi_radius_m           area of interest, [0, 1,000 km]; for observer (0, 1,000 km]: the
+                               largest radius an observer may join with (0 for another kind:
+                               an agent that sees only itself)
         dr_position_m          dead-reckoning position threshold, (0, 1000]
         dr_orientation_deg     dead-reckoning orientation threshold, (0, 180]
         heartbeat_s            state sent at least this often, (0, 3600]
@@ -139,8 +147,13 @@ Schema (``*`` required; everything else has the default shown)::
     polygon*                   [[lat, lon], ...], 3..1000 vertices, closing vertex optional
                                (dropped), a simple polygon: no repeated consecutive vertex,
                                no edge crossing or touching another (1 mm), non-zero area
-    detail_m = 5.0             inset post spacing, [0.25, 100] m; the polygon's bounding box
-                               may hold at most 8192 x 8192 posts at it
+    detail_m = 5.0             inset post spacing, [0.25, 100] m; the inset (terrain/inset.py:
+                               the polygon's bounding box and a margin, in blocks of 64 cells,
+                               posts at most detail_m apart: the DEM's, refined by a power of
+                               two to between 0.5 and 1 x detail_m where they are coarser)
+                               may have at most 4096 x 4096 posts (INSET_MAX_POSTS). Refused
+                               here when it cannot over any DEM, by the server (which reads
+                               the DEM's lattice) when it does not over the scenario's
 
 Polygons are checked in a local plane around their first vertex (north and
 east metres with WGS84 radii of curvature at that latitude, longitude
@@ -200,7 +213,6 @@ CONVOY_SPACING_MAX_M = 1_000.0
 WAYPOINT_MIN_SEPARATION_M = 1e-3  # as fdm.convoy.Route requires
 DETAIL_MIN_M = 0.25
 DETAIL_MAX_M = 100.0
-MAX_TARGET_AREA_POSTS = 8192 * 8192
 POLYGON_TOUCH_M = 1e-3  # edges closer than this touch
 
 # --- defaults -------------------------------------------------------------------------------------
@@ -466,12 +478,18 @@ def scenario_data(text: str, path) -> dict:
     """The tables of a scenario file's ``text``, for :func:`parse_scenario`: YAML when
     ``path`` ends in .yaml / .yml, TOML otherwise (a recording keeps the text and the
     path it was read from; server/resim.py). A syntax error is a ScenarioError naming
-    the line and column (no file name: :func:`load_scenario` adds it)."""
+    the line and column (no file name: :func:`load_scenario` adds it). A leading byte
+    order mark is no part of the text (Unicode 15.0 section 23.8: U+FEFF at the start of
+    a stream is a signature, not content; PyYAML skips it, tomllib refuses it, and editors
+    on Windows write it)."""
+    text = text.removeprefix("\ufeff")
     if SCENARIO_FORMATS.get(Path(path).suffix.lower()) != "YAML":
         try:
             return tomllib.loads(text)
         except tomllib.TOMLDecodeError as e:
             raise _syntax_error(e) from None
+        except RecursionError:  # tomllib parses nested arrays and inline tables recursively
+            raise ScenarioError("file", "TOML syntax error: nested too deeply") from None
         except ValueError:  # int() refusing an integer of more than sys.get_int_max_str_digits() digits
             raise _long_integer(text) from None
     return _yaml_data(text)
@@ -545,6 +563,21 @@ def _yaml_loader():
                 raise ConstructorError(None, None, f"found an integer of {len(text.lstrip('+-'))} digits (at most "
                                                    f"{sys.get_int_max_str_digits()})", node.start_mark) from None
 
+        def construct_checked_timestamp(self, node):
+            """PyYAML's timestamp, or a YAML error at its place where the text has a date's or a
+            date-time's shape but is none (2026-02-29, hour 24, second 60, an offset beyond
+            RFC 3339's: PyYAML lets the datetime module's bare ValueError out, or reads offset
+            minutes past 59 as hours); TOML refuses each of them."""
+            parts = _YAML_TIMESTAMP_PARTS.match(node.value)
+            why = _offset_problem(parts["tz_hour"], parts["tz_minute"]) if parts else None
+            if why is None:
+                try:
+                    return self.construct_yaml_timestamp(node)
+                except (ValueError, OverflowError) as e:
+                    why = str(e)
+            raise ConstructorError(None, None, f"found {node.value!r}, which has the shape of a date or date-time "
+                                               f"but is none ({why}; quote it if it is text)", node.start_mark)
+
     resolvers = (
         ("null", r"~|null|Null|NULL|", "~nN"),
         ("bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
@@ -559,6 +592,7 @@ def _yaml_loader():
     Loader.add_implicit_resolver("tag:yaml.org,2002:timestamp", _YAML_TIMESTAMP, list("0123456789"))
     Loader.timestamp_regexp = _YAML_TIMESTAMP_PARTS  # what PyYAML's timestamp constructor reads
     Loader.add_constructor("tag:yaml.org,2002:int", Loader.construct_core_int)
+    Loader.add_constructor("tag:yaml.org,2002:timestamp", Loader.construct_checked_timestamp)
     return Loader
 
 
@@ -571,6 +605,16 @@ _YAML_TIMESTAMP = re.compile(r"""^(?:[0-9]{4}-[0-9]{2}-[0-9]{2}
 _YAML_TIMESTAMP_PARTS = re.compile(r"""^(?P<year>[0-9]{4})-(?P<month>[0-9]{1,2})-(?P<day>[0-9]{1,2})
     (?:(?:[Tt]|[ \t]+)(?P<hour>[0-9]{1,2}):(?P<minute>[0-9]{2}):(?P<second>[0-9]{2})(?:\.(?P<fraction>[0-9]*))?
      (?:[ \t]*(?P<tz>[Zz]|(?P<tz_sign>[-+])(?P<tz_hour>[0-9]{1,2})(?::(?P<tz_minute>[0-9]{2}))?))?)?$""", re.X)
+
+
+def _offset_problem(hour: str | None, minute: str | None) -> str | None:
+    """What is wrong with a UTC offset's hours and minutes (text, None where absent), or None:
+    RFC 3339 section 5.6's time-numoffset has hours 00-23 and minutes 00-59."""
+    if hour is not None and int(hour) > 23:
+        return "a UTC offset's hours must be in 0..23"
+    if minute is not None and int(minute) > 59:
+        return "a UTC offset's minutes must be in 0..59"
+    return None
 
 
 def _yaml_data(text: str) -> dict:
@@ -897,7 +941,10 @@ def _address(value: str, path: str) -> str:
         host, sep, port = entry.strip().rpartition(":")
         bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
         unbracketed_ipv6 = ":" in host and bare == host
-        if not sep or not bare or unbracketed_ipv6 or not port.isdigit() or not 1 <= int(port) <= 65535:
+        # ASCII digits only: str.isdigit() takes "²" and "１２３" too, which int() refuses or a
+        # socket never sees (as server/health_cli.py checks a port).
+        if (not sep or not bare or unbracketed_ipv6 or not (port.isascii() and port.isdigit())
+                or not 1 <= int(port) <= 65535):
             raise ScenarioError(path, 'must be "host:port" with a port in [1, 65535] ("[::1]:50051" for IPv6), '
                                       'or a comma list of them (replicas)', value=value)
     return value
@@ -919,6 +966,12 @@ def _agent_types(value: dict, agents) -> tuple[dict, dict]:
     for key, table in t.data.items():
         path = t.key(key)
         given = _type_params(table, path)
+        if key == "observer" and given.get("aoi_radius_m") == 0.0:
+            # An observer's area is the largest radius it may join with (Sessions.join takes
+            # (0, this]): 0 would shut every observer out. Other kinds may see only themselves.
+            raise ScenarioError(f"{path}.aoi_radius_m", f"must be within (0, {_fmt(AOI_MAX_M)}] for observers (it "
+                                                        "is the largest radius an observer may join with, so 0 "
+                                                        "would let none join)", value=given["aoi_radius_m"])
         if key in TYPE_KINDS:
             kind_params[key] = replace(kind_params[key], **given)
             continue
@@ -1172,12 +1225,47 @@ def _target_area(entry) -> TargetArea:
                                        "keep the area off the pole", value=_shown(vertices))
     north, east = _local_m(lat, lon, float(lat[0]), float(lon[0]))
     _check_simple_polygon(north, east, poly_path, vertices)
-    posts = (np.ptp(north) / detail + 1.0) * (np.ptp(east) / detail + 1.0)
-    if posts > MAX_TARGET_AREA_POSTS:
-        raise ScenarioError(t.key("detail_m"), f"gives {posts:.3g} inset posts over the polygon's bounding box "
-                                               f"(at most {MAX_TARGET_AREA_POSTS}): coarsen it or shrink the area",
-                            value=detail)
+    _check_inset_size(lat, lon, detail, t.key("detail_m"))
     return TargetArea(name, tuple(vertices), detail)
+
+
+def inset_posts_least(lat, lon, detail_m: float) -> tuple[int, int]:
+    """(rows, cols): the fewest posts the inset of a target area (terrain/inset.py) can have,
+    whatever the DEM beneath. Its lattice spans the polygon's bounding box plus
+    INSET_MARGIN_CELLS cells each side, rounded up to whole INSET_BLOCK_CELLS blocks plus one
+    post, with posts at most detail_m apart along each axis (the DEM's own spacing where that
+    is finer, else the DEM's refined by the least power of two that reaches detail_m: between
+    0.5 and 1 x detail_m); the box's extents in metres are the inset's, at its middle latitude.
+
+    lat, lon: (n,) float64 degrees, the polygon's vertices; longitudes taken the short way
+    from the first (an area may straddle the antimeridian)."""
+    from terrain.inset import INSET_BLOCK_CELLS, INSET_MARGIN_CELLS
+
+    lat, lon = np.asarray(lat, np.float64), np.asarray(lon, np.float64)
+    lat_c = 0.5 * (float(lat.min()) + float(lat.max()))
+    m, n = radii_of_curvature(lat_c)
+    dlon = (lon - lon[0] + 180.0) % 360.0 - 180.0
+    extent_m = (math.radians(float(np.ptp(lat))) * float(m),
+                math.radians(float(np.ptp(dlon))) * float(n) * math.cos(math.radians(lat_c)))
+    rows, cols = (math.ceil((e / detail_m + 2 * INSET_MARGIN_CELLS) / INSET_BLOCK_CELLS) * INSET_BLOCK_CELLS + 1
+                  for e in extent_m)
+    return rows, cols
+
+
+def _check_inset_size(lat, lon, detail_m: float, path: str) -> None:
+    """A target area whose inset cannot fit terrain/inset.py's INSET_MAX_POSTS over any DEM is
+    a ScenarioError at ``path`` (its detail_m). Whether it fits over the scenario's DEM is
+    known only with the DEM: the server checks that (server/sim_server.py), before it builds
+    an inset; `sortie terrain serve --insets` builds them from any scenario's areas."""
+    from terrain.inset import INSET_MAX_POSTS
+
+    rows, cols = inset_posts_least(lat, lon, detail_m)
+    if rows * cols > INSET_MAX_POSTS:
+        side = math.isqrt(INSET_MAX_POSTS)
+        raise ScenarioError(path, f"gives at least {rows} x {cols} inset posts over the polygon's bounding box "
+                                  f"(posts at most detail_m apart, terrain/inset.py), more than the "
+                                  f"{INSET_MAX_POSTS} ({side} x {side}) an inset may have: coarsen it or shrink the "
+                                  "area", value=detail_m)
 
 
 def check_simple_polygon(north, east) -> tuple[int, int] | None:

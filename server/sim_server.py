@@ -54,7 +54,7 @@ from server.sim_service import (MAX_CONCURRENT_RPCS, SERVICE_NAME, Sessions, Sim
                                 method_handlers)
 from server.streaming import Publisher
 from server.world import KIND_NAMES, World
-from sortie.errors import InvalidArgument, SortieError
+from sortie.errors import InvalidArgument, LimitExceeded, SortieError
 from sortie.v1 import simulation_pb2 as pb
 
 logger = logging.getLogger(__name__)
@@ -107,16 +107,27 @@ def type_params(params: dict, entities: dict, entity_id, kind: str | None = None
 
 
 def entities_centre(lat_deg, lon_deg) -> tuple[int, float, float]:
-    """(count, median latitude, median longitude) of the entities with a position (degrees),
-    the longitudes unrolled about the first one's, so a group across the antimeridian has its
-    median among them; (0, 0, 0) for none."""
+    """(count, median latitude, median longitude) of the entities with a position (degrees);
+    (0, 0, 0) for none. The longitudes are a circle, cut at the widest gap between neighbours
+    (the arc no entity is on) and read as one run from there, so a group across the
+    antimeridian has its median among them, whatever order the entities come in (where gaps
+    tie, the cut is the one east of the westernmost entity of them, counting from -180)."""
     lat, lon = np.asarray(lat_deg, np.float64), np.asarray(lon_deg, np.float64)
     ok = np.isfinite(lat) & np.isfinite(lon)
     if not ok.any():
         return 0, 0.0, 0.0
     lat, lon = lat[ok], lon[ok]
-    unrolled = lon[0] + (lon - lon[0] + 180.0) % 360.0 - 180.0
-    centre_lon = (float(np.median(unrolled)) + 180.0) % 360.0 - 180.0
+    outside = (lon < -180.0) | (lon >= 180.0)
+    east = np.sort(np.where(outside, (lon + 180.0) % 360.0 - 180.0, lon))  # [-180, 180), in range kept exact
+    gaps = np.append(np.diff(east), east[0] + 360.0 - east[-1])  # gaps[i]: from east[i] east to the next
+    n = east.size
+    first = int(np.argmax(gaps)) + 1  # the run starts east of the widest gap
+    # The median of the run east[first], ..., east[first - 1] (indices mod n): its middle
+    # entity's longitude itself, or halfway east from one middle entity to the other.
+    a, b = float(east[(first + (n - 1) // 2) % n]), float(east[(first + n // 2) % n])
+    centre_lon = a + 0.5 * ((b - a) % 360.0)
+    if centre_lon >= 180.0:
+        centre_lon -= 360.0
     return int(lat.size), float(np.median(lat)), centre_lon
 
 
@@ -438,11 +449,32 @@ def open_terrain_source(dem=None, service: str | None = None, target_areas=(), s
 
     terrain = build_terrain([str(p) for p in dem or ()], procedural, [str(p) for p in store], procedural_params)
     if target_areas:
-        from terrain.inset import INSET_SEED, with_insets
-
         _check_areas_covered(terrain, target_areas)
-        terrain = with_insets(terrain, target_areas, INSET_SEED)
+        terrain = _with_insets(terrain, target_areas)
     return terrain
+
+
+def _with_insets(terrain, target_areas):
+    """terrain.inset.with_insets(terrain, target_areas, INSET_SEED), built an area at a time, so
+    that an inset beyond its post limit (INSET_MAX_POSTS: its count is known only with the
+    DEM's lattice, which the scenario's validator does not read) is a ScenarioError naming
+    ``target_areas[i].detail_m`` (InsetSource refuses it before it reads any height)."""
+    from terrain.inset import INSET_MAX_POSTS, INSET_SEED, InsetSource
+    from terrain.terrain import Terrain
+
+    insets = []
+    for i, (name, polygon, detail_m) in enumerate(target_areas):
+        try:
+            insets.append(InsetSource(terrain, polygon, detail_m, INSET_SEED, name=name))
+        except LimitExceeded as exc:
+            if exc.limit != INSET_MAX_POSTS:
+                raise
+            side = math.isqrt(INSET_MAX_POSTS)
+            raise ScenarioError(f"target_areas[{i}].detail_m", f"{exc} ({side} x {side}, terrain/inset.py): its "
+                                "posts are the DEM's beneath, refined by the least power of two that brings them "
+                                "within detail_m of each other; coarsen it, shrink the area or set [terrain] "
+                                "insets = false", value=detail_m) from None
+    return Terrain(insets + list(terrain.sources))  # as with_insets: each over the terrain itself
 
 
 def _check_areas_covered(terrain, target_areas) -> None:
@@ -479,14 +511,66 @@ def inset_areas(scenario) -> tuple:
 
 
 def open_terrain(scenario, dem=None, service: str | None = None):
-    """(terrain source, description, picklable factory opening the same terrain)."""
+    """(terrain source, description, picklable factory opening the same terrain). With
+    ``[terrain] insets`` and target areas, a terrain service must serve their insets
+    (:func:`check_service_insets`)."""
     spec = terrain_spec(scenario, dem, service)
     desc = f"service:{spec['service']}" if "service" in spec else "dem:" + ",".join(spec["dem"])
     try:
         terrain = open_terrain_source(**spec)
+        if "service" in spec and scenario.terrain.insets and scenario.target_areas:
+            try:
+                check_service_insets(terrain.describe(), inset_areas(scenario), spec["service"])
+            except BaseException:
+                terrain.close()
+                raise
     except ScenarioError as exc:
         raise scenario.in_file(exc) from None
     return terrain, desc, functools.partial(open_terrain_source, **spec)
+
+
+def check_service_insets(sources, target_areas, address: str) -> None:
+    """A terrain service's sources (``sources``: its describe(), details as text) hold the inset
+    of each of ``target_areas`` ((name, polygon, detail_m) tuples) as the server would build it
+    (terrain/inset.py: the same area name, polygon and detail_m, seed INSET_SEED), since clients
+    draw the insets from WorldInfo's target areas and the world meets the service's heights;
+    else a ScenarioError naming ``terrain.insets``. Insets of other areas may be served too."""
+    from terrain.inset import INSET_SEED
+
+    served = {}
+    for s in sources:
+        if s.get("kind") == "inset":
+            served.setdefault(str(s.get("area")), s)
+    for i, (name, polygon, detail_m) in enumerate(target_areas):
+        s = served.get(name)
+        if s is None:
+            why = f"serves no inset of target_areas[{i}] {name!r}"
+        elif not _same_inset(s, polygon, detail_m, INSET_SEED):
+            why = (f"serves an inset named {name!r} that is not target_areas[{i}]'s (its polygon "
+                   f"{s.get('polygon')}, detail_m {s.get('detail_m')}, seed {s.get('detail_seed')})")
+        else:
+            continue
+        raise ScenarioError("terrain.insets", f"the terrain service at {address} {why}; start it with `sortie "
+                            "terrain serve --insets SCENARIO` on this scenario, or set insets = false", value=True)
+
+
+def _same_inset(source: dict, polygon, detail_m: float, seed: int) -> bool:
+    """Whether a served inset's description (its values possibly text: a service's details)
+    is of ``polygon`` (closing vertex optional) at ``detail_m`` with ``seed``."""
+    import json
+
+    try:
+        served = source.get("polygon")
+        served = json.loads(served) if isinstance(served, str) else served
+        served = [(float(a), float(b)) for a, b in served]
+        same = (float(source.get("detail_m")) == float(detail_m)
+                and int(source.get("detail_seed", seed)) == seed)
+    except (TypeError, ValueError):
+        return False
+    ours = [(float(a), float(b)) for a, b in polygon]
+    if len(ours) > 1 and ours[-1] == ours[0]:
+        ours = ours[:-1]
+    return same and served == ours
 
 
 def aircraft_host(scenario, terrain, terrain_factory, workers: int, nice: int | None = None):

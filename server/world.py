@@ -463,12 +463,13 @@ class World(EventLog):
 
     def spawn_static(self, name: str, type_: str, lat: float, lon: float, alt_msl_m: float | None = None,
                      heading_deg: float = 0.0, *, coalition: str = "neutral") -> Entity:
-        """A static entity; on the terrain when ``alt_msl_m`` is None."""
+        """A static entity; on the surface when ``alt_msl_m`` is None: the surface an aircraft,
+        a ground vehicle and the scenario's overlap check meet there (fdm.aircraft.terrain_msl_m:
+        the sea surface over water, where a DEM's bathymetry lies below it; no data as sea
+        level)."""
         with self._lock:
             if alt_msl_m is None:
-                h = float(np.asarray(self.terrain.heights(np.array([lat], float),
-                                                          np.array([lon], float)).height_msl_m)[0])
-                alt_msl_m = 0.0 if math.isnan(h) else h
+                alt_msl_m = float(terrain_msl_m(self.terrain, np.array([lat], float), np.array([lon], float))[0])
             e = self._new_entity(name, STATIC, type_, coalition=coalition, static_lat_lon_alt=(lat, lon, alt_msl_m),
                                  static_heading_deg=heading_deg)
             self._register(e)
