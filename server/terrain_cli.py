@@ -21,7 +21,7 @@ from sortie.errors import InvalidArgument
 from sortie.logs import line
 from terrain.mesh_cli import add_mesh_parser
 from terrain.procedural import (DEFAULT_LEVEL_EXPONENT, DEFAULT_MAX_HEIGHT_M, DEFAULT_WATER, LEVEL_EXPONENT_MAX,
-                                MAX_HEIGHT_MAX_M, check_parameters)
+                                MAX_HEIGHT_MAX_M, check_parameters, check_seed)
 from terrain.store_cli import add_import_parser
 from terrain.texture_cli import add_texture_parser
 
@@ -100,7 +100,10 @@ def procedural_params(args) -> dict | None:
 
 
 def terrain_of_args(args):
-    """The Terrain of :func:`add_terrain_args`' options."""
+    """The Terrain of :func:`add_terrain_args`' options (a bad --procedural SEED is an error naming
+    the option, as for the --procedural-* options)."""
+    if args.procedural is not None:
+        check_seed(args.procedural, "--procedural")
     return build_terrain(args.dem, args.procedural, args.store, procedural_params(args))
 
 

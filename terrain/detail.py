@@ -12,7 +12,15 @@ Here, in a raster's index space (row, col; posts at integers):
 * Pyramid residuals (:func:`pyramid_residual_variance`): level l + 1 keeps
   every other post of level l; level l is predicted from it by bilinear
   subdivision (edge midpoints: mean of 2, centres: mean of 4) and the residual
-  variance is taken over the new posts only.
+  variance is taken over the new posts only. With a sea level (below) only the
+  residuals whose stencil posts (the new post and the 2 or 4 it is predicted
+  from) all lie above it count: the detail is synthesised over land alone, so
+  the sea's flat posts must not dilute the variance it is scaled to (a tile of
+  86 % sea gave land 1/2.6 of its own residual std). Where land gives no fit
+  (fewer than 2 levels of ``min_residuals``: an all-sea tile, a few islets)
+  every residual counts, as without a sea level. Sources of one import pool
+  their residuals (:func:`pooled_residual_variance`, per lattice spacing), so
+  tiles kept apart get one fit and their detail meets at the seam.
 * The variance decays about log-linearly with level; a least-squares line
   through log2 of the finest measured levels (:func:`fit_sub_level_std`) is
   extrapolated to the sub-sample levels l = -1, -2, ..., -K, whose lattices
@@ -45,9 +53,22 @@ Here, in a raster's index space (row, col; posts at integers):
   there meet the surface to within the weight's curvature over a finest cell;
   elsewhere exactly.
 * The detail's amplitude is one fit per raster (its whole pyramid's residual
-  variance), so a flat plain beside mountains in the same raster gets the
+  variance over land), so a flat plain beside mountains in the same raster gets the
   mountains' detail: the thesis's rule (noise variance "equal that in actual
   terrain", taken over the data the detail is synthesised for).
+* Towards the poles a geographic lattice's cells narrow east-west (width/height
+  = dx cos(lat) / dy), while the noise drawn at its posts does not: its
+  east-west slopes grow as 1 / cos(lat), and at a pole, where a row is one point,
+  the noise of that row's posts would give one point many heights and a
+  horizontal normal (east slope d/dcol over 6e-17 m a column). So the noise of a
+  lattice row on a pole (+-90 deg) is 0 (the surface there is the source's, its
+  slope the source's), and the detail is scaled by the polar taper
+  p(lat) = min(1, dx cos(lat) / (dy POLAR_ASPECT_MIN)) (:func:`polar_taper`): 1
+  wherever cells are at least POLAR_ASPECT_MIN as wide as tall (every latitude
+  to 60 deg for square posts, SRTM's whole range), then falling with the cells'
+  width, so the detail's east-west slopes stay within 1 / POLAR_ASPECT_MIN of
+  its north-south ones. It is a function of latitude and spacing alone, so
+  tiles of one spacing agree on their seams; Web Mercator cells are square (1).
 """
 
 from __future__ import annotations
@@ -76,6 +97,11 @@ ALIGNMENT_TOLERANCE_POSTS = 1e-6
 SEA_LEVEL_M = 0.0
 # The detail ramps in over this many of its total standard deviations above sea level.
 SEA_TAPER_STDS = 3.0
+# Lattice cells narrower east-west than this fraction of their north-south height get their
+# detail scaled down in proportion (polar_taper): 0.5 is cos 60 deg, SRTM's northern limit.
+POLAR_ASPECT_MIN = 0.5
+# A lattice row a raster does not hold at a pole (detail_noise's pole_rows).
+NO_POLE_ROW = -(1 << 62)
 
 
 def sea_taper(base_m, sea_level_m: float | None, taper_m: float):
@@ -105,39 +131,123 @@ _TABLE = noise_table()
 _TABLE.flags.writeable = False
 
 
-def level_residuals(z: np.ndarray) -> np.ndarray:
+def _level_parts(z: np.ndarray):
+    """The three residual grids of one pyramid step (edge midpoints east, north, cell centres)
+    with, for each, the posts of its stencil: (residuals, [new post, coarse posts...]) triples."""
+    z = z[: z.shape[0] - 1 + z.shape[0] % 2, : z.shape[1] - 1 + z.shape[1] % 2]
+    c = z[::2, ::2]
+    east = (z[::2, 1::2], [c[:, :-1], c[:, 1:]])
+    north = (z[1::2, ::2], [c[:-1], c[1:]])
+    centre = (z[1::2, 1::2], [c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]])
+    for new, coarse in (east, north, centre):
+        predicted = coarse[0] + coarse[1] if len(coarse) == 2 else (coarse[0] + coarse[1]) + (coarse[2] + coarse[3])
+        yield new - predicted / len(coarse), [new, *coarse]
+
+
+def _kept_residuals(parts, above_m: float | None) -> np.ndarray:
+    """(k,) float64 finite residuals of one step's parts (:func:`_level_parts`), with ``above_m``
+    those whose stencil posts all lie above it."""
+    out = []
+    for res, stencil in parts:
+        keep = np.isfinite(res)
+        if above_m is not None:
+            for post in stencil:
+                keep &= post > above_m
+        out.append(res[keep])
+    return np.concatenate(out)
+
+
+def level_residuals(z: np.ndarray, above_m: float | None = None) -> np.ndarray:
     """Residuals of predicting z from z[::2, ::2] by bilinear subdivision (thesis §3.1.8).
 
     z: (ny, nx) float heights, metres; an even trailing row/column is dropped
     so the coarse posts include the last ones. Returns (k,) float64 residuals
-    (actual - predicted) at the new posts only, NaN ones removed.
+    (actual - predicted) at the new posts only, NaN ones removed; with
+    ``above_m``, only those whose stencil posts all lie above it (m, land).
     """
-    z = np.asarray(z, dtype=np.float64)
-    z = z[: z.shape[0] - 1 + z.shape[0] % 2, : z.shape[1] - 1 + z.shape[1] % 2]
-    c = z[::2, ::2]
-    east = z[::2, 1::2] - 0.5 * (c[:, :-1] + c[:, 1:])
-    north = z[1::2, ::2] - 0.5 * (c[:-1] + c[1:])
-    centre = z[1::2, 1::2] - 0.25 * ((c[:-1, :-1] + c[:-1, 1:]) + (c[1:, :-1] + c[1:, 1:]))
-    res = np.concatenate([east.ravel(), north.ravel(), centre.ravel()])
-    return res[np.isfinite(res)]
+    return _kept_residuals(list(_level_parts(np.asarray(z, dtype=np.float64))), above_m)
 
 
-def pyramid_residual_variance(heights: np.ndarray, min_residuals: int = 64) -> np.ndarray:
+def residual_moments(heights: np.ndarray, above_m=(None,)) -> np.ndarray:
+    """(T, L, 3) float64 for each threshold of ``above_m`` (None: every finite residual; a
+    height, m: residuals whose stencil posts all lie above it), per pyramid level, finest
+    (l = 0) first: count, mean (m) and sum of squared deviations from it (m^2) of the level's
+    residuals (:func:`level_residuals`); levels while both sides hold at least 3 posts. Moments
+    pool exactly over several rasters (:func:`pool_moments`)."""
+    z = np.asarray(heights, dtype=np.float64)
+    out = []
+    while min(z.shape) >= 3:
+        parts = list(_level_parts(z))
+        level = []
+        for threshold in above_m:
+            res = _kept_residuals(parts, threshold)
+            mean = float(res.mean()) if res.size else 0.0
+            level.append((float(res.size), mean, float(np.sum((res - mean) ** 2))))
+        out.append(level)
+        z = z[: z.shape[0] - 1 + z.shape[0] % 2: 2, : z.shape[1] - 1 + z.shape[1] % 2: 2]
+    return np.array(out, dtype=np.float64).reshape(-1, len(above_m), 3).transpose(1, 0, 2)
+
+
+def pool_moments(moments) -> np.ndarray:
+    """(L, 3) moments of the union of several rasters' residuals, level by level (L the most
+    levels any has): counts add, means weigh by count, and each raster's squared deviations
+    add with count x (its mean - the pooled mean)^2 (Chan, Golub & LeVeque 1979, the pairwise
+    update of the sum of squares)."""
+    moments = [np.asarray(m, dtype=np.float64).reshape(-1, 3) for m in moments]
+    levels = max((m.shape[0] for m in moments), default=0)
+    out = np.zeros((levels, 3))
+    for lv in range(levels):
+        rows = np.array([m[lv] for m in moments if m.shape[0] > lv and m[lv, 0] > 0]).reshape(-1, 3)
+        n = rows[:, 0].sum()
+        if n == 0:
+            continue
+        mean = float(np.sum(rows[:, 0] * rows[:, 1]) / n)
+        out[lv] = (n, mean, float(np.sum(rows[:, 2] + rows[:, 0] * (rows[:, 1] - mean) ** 2)))
+    return out
+
+
+def moment_variances(moments: np.ndarray, min_residuals: int = 64) -> np.ndarray:
+    """(L,) float64 residual variance (m^2) per level, finest first, up to the first level with
+    fewer than min_residuals residuals."""
+    out = []
+    for n, _, m2 in np.asarray(moments, dtype=np.float64).reshape(-1, 3):
+        if n < min_residuals:
+            break
+        out.append(m2 / n)
+    return np.array(out, dtype=np.float64)
+
+
+# Levels of land residuals that make a fit (a slope): with fewer, every residual counts.
+LAND_FIT_MIN_LEVELS = 2
+
+
+def pooled_residual_variance(height_grids, sea_level_m: float | None = None, min_residuals: int = 64) -> np.ndarray:
+    """(L,) float64 residual variance (m^2) per pyramid level, finest (l = 0) first, of the
+    residuals of every grid of ``height_grids`` ((ny, nx) float, metres, NaN for no data)
+    together: each counts by its number of residuals (:func:`pool_moments`).
+
+    With ``sea_level_m``, only residuals whose stencil posts all lie above it (land: the detail
+    is added there alone, :func:`sea_taper`), unless land gives fewer than
+    LAND_FIT_MIN_LEVELS levels of min_residuals while all residuals give more (an all-sea
+    tile, a few islets): then every residual, as without a sea level. Levels stop at the first
+    with fewer than min_residuals residuals."""
+    moments = [residual_moments(h, (None,) if sea_level_m is None else (None, sea_level_m)) for h in height_grids]
+    every = moment_variances(pool_moments([m[0] for m in moments]), min_residuals)
+    if sea_level_m is None:
+        return every
+    land = moment_variances(pool_moments([m[1] for m in moments]), min_residuals)
+    return land if land.size >= min(LAND_FIT_MIN_LEVELS, every.size) else every
+
+
+def pyramid_residual_variance(heights: np.ndarray, min_residuals: int = 64,
+                              sea_level_m: float | None = None) -> np.ndarray:
     """(L,) float64 residual variance (m^2) per pyramid level, finest (l = 0) first.
 
     heights: (ny, nx) float, metres, NaN for no data. Level l + 1 is every
     other post of level l; levels stop when fewer than min_residuals finite
-    residuals remain.
+    residuals remain. sea_level_m: count land alone (:func:`pooled_residual_variance`).
     """
-    z = np.asarray(heights, dtype=np.float64)
-    out = []
-    while min(z.shape) >= 3:
-        res = level_residuals(z)
-        if res.size < min_residuals:
-            break
-        out.append(float(np.var(res)))
-        z = z[: z.shape[0] - 1 + z.shape[0] % 2: 2, : z.shape[1] - 1 + z.shape[1] % 2: 2]
-    return np.array(out)
+    return pooled_residual_variance([heights], sea_level_m, min_residuals)
 
 
 def fit_sub_level_std(variances: np.ndarray, sub_levels: int, fit_levels: int = FIT_LEVELS):
@@ -178,8 +288,16 @@ def _lattice_noise(seed_hash, level, gi, gj, std, table):
 
 
 @numba.njit(cache=True, nogil=True)
+def _on_pole(i, lv, pole_south, pole_north):
+    """Whether local lattice row i of level lv lies on a pole row (level-0 rows pole_south,
+    pole_north; NO_POLE_ROW for none)."""
+    return ((pole_south != NO_POLE_ROW and i == pole_south << lv)
+            or (pole_north != NO_POLE_ROW and i == pole_north << lv))
+
+
+@numba.njit(cache=True, nogil=True)
 def _detail_kernel(rows, cols, level_std_m, seed_hash, table, ny, nx, row_offset, col_offset, col_period,
-                   out, d_row, d_col):
+                   pole_south, pole_north, out, d_row, d_col):
     for p in range(rows.shape[0]):
         acc = 0.0
         acc_r = 0.0
@@ -199,10 +317,13 @@ def _detail_kernel(rows, cols, level_std_m, seed_hash, table, ny, nx, row_offset
                 gj = gj % (col_period << lv)
                 gj1 = gj1 % (col_period << lv)
             std = level_std_m[lv - 1]
-            v00 = _lattice_noise(seed_hash, lv, gi, gj, std, table)
-            v01 = _lattice_noise(seed_hash, lv, gi, gj1, std, table)
-            v10 = _lattice_noise(seed_hash, lv, gi + 1, gj, std, table)
-            v11 = _lattice_noise(seed_hash, lv, gi + 1, gj1, std, table)
+            v00 = v01 = v10 = v11 = 0.0  # a row on a pole is one point: no noise there
+            if not _on_pole(np.int64(i), lv, pole_south, pole_north):
+                v00 = _lattice_noise(seed_hash, lv, gi, gj, std, table)
+                v01 = _lattice_noise(seed_hash, lv, gi, gj1, std, table)
+            if not _on_pole(np.int64(i) + 1, lv, pole_south, pole_north):
+                v10 = _lattice_noise(seed_hash, lv, gi + 1, gj, std, table)
+                v11 = _lattice_noise(seed_hash, lv, gi + 1, gj1, std, table)
             south = v00 * (1.0 - fx) + v01 * fx
             north = v10 * (1.0 - fx) + v11 * fx
             acc += south * (1.0 - fy) + north * fy
@@ -214,7 +335,7 @@ def _detail_kernel(rows, cols, level_std_m, seed_hash, table, ny, nx, row_offset
 
 
 def detail_noise(rows, cols, level_std_m, seed: int, shape, row_offset: int = 0, col_offset: int = 0,
-                 col_period: int = 0):
+                 col_period: int = 0, pole_rows=(None, None)):
     """Synthesised detail at fractional raster indices: sum over sub-levels of bilinear noise.
 
     rows, cols: (n,) float64 fractional (row, col) in the raster's index
@@ -222,8 +343,10 @@ def detail_noise(rows, cols, level_std_m, seed: int, shape, row_offset: int = 0,
     (lattice spacing 2^-k posts); shape: the raster's (ny, nx), for the
     far-edge cell choice; row_offset, col_offset: global lattice index of the
     raster's post (0, 0); col_period: posts per turn of longitude (0: no
-    wrap). Returns (detail, d/drow, d/dcol), each (n,) float64: metres, and
-    metres per post index (the north-east cell on a lattice line).
+    wrap); pole_rows: (south, north) rows of the raster's index space on the
+    poles (:func:`pole_rows`; None: not a row of its lattice), whose noise is 0
+    at every level. Returns (detail, d/drow, d/dcol), each (n,) float64: metres,
+    and metres per post index (the north-east cell on a lattice line).
     """
     rows = np.ascontiguousarray(rows, dtype=np.float64)
     cols = np.ascontiguousarray(cols, dtype=np.float64)
@@ -231,9 +354,37 @@ def detail_noise(rows, cols, level_std_m, seed: int, shape, row_offset: int = 0,
         raise ValueError(f"rows and cols must be equal (n,) arrays, got shapes {rows.shape} and {cols.shape}")
     out, d_row, d_col = np.zeros(rows.shape), np.zeros(rows.shape), np.zeros(rows.shape)
     seed_hash = lattice_hash(seed)[()]
+    south, north = (NO_POLE_ROW if r is None else int(r) for r in pole_rows)
     _detail_kernel(rows, cols, np.ascontiguousarray(level_std_m, dtype=np.float64), seed_hash, _TABLE,
-                   shape[0], shape[1], row_offset, col_offset, col_period, out, d_row, d_col)
+                   shape[0], shape[1], row_offset, col_offset, col_period, south, north, out, d_row, d_col)
     return out, d_row, d_col
+
+
+def pole_rows(crs: int, y0: float, dy: float) -> tuple[int | None, int | None]:
+    """(south, north): the rows of a raster whose row r lies at y0 + r dy on the poles (-90, +90
+    deg) where they are rows of its lattice (within ALIGNMENT_TOLERANCE_POSTS), else None; (None,
+    None) for a projected raster (Web Mercator never reaches a pole)."""
+    if crs != CRS_GEOGRAPHIC:
+        return None, None
+    out = []
+    for lat in (-90.0, 90.0):
+        q = (lat - y0) / dy
+        out.append(int(round(q)) if abs(q - round(q)) < ALIGNMENT_TOLERANCE_POSTS else None)
+    return out[0], out[1]
+
+
+def polar_taper(lat_deg, crs: int, dx: float, dy: float):
+    """(p, dp/dlat): the detail's scale p = clip(dx cos(lat) / (dy POLAR_ASPECT_MIN), 0, 1) of a
+    geographic lattice of spacing dx, dy (degrees) at latitudes lat_deg ((n,) float64 degrees),
+    and its slope per degree of latitude (0 where p is 1); (1, 0) for a projected lattice, whose
+    cells are square (module docstring)."""
+    lat = np.asarray(lat_deg, dtype=np.float64)
+    if crs != CRS_GEOGRAPHIC:
+        return np.ones(lat.shape), np.zeros(lat.shape)
+    k = dx / (dy * POLAR_ASPECT_MIN)
+    raw = k * np.cos(np.radians(lat))
+    slope = np.where(raw < 1.0, -k * np.sin(np.radians(lat)) * (math.pi / 180.0), 0.0)
+    return np.clip(raw, 0.0, 1.0), slope
 
 
 @numba.njit(cache=True, nogil=True)
@@ -277,6 +428,40 @@ def _filled_at_index(filled, rows, cols):
     return (filled[i0, j0] | filled[i0, j1] | filled[i1, j0] | filled[i1, j1]).astype(bool)
 
 
+def sub_levels_for(raster: Raster, finest_spacing_m: float) -> int:
+    """K: the detail levels a :class:`DetailedRaster` of ``raster`` adds, halving its larger post
+    spacing (m, at its centre) until at or below finest_spacing_m (at most MAX_SUB_LEVELS)."""
+    coarse_m = max(raster.post_spacing_m)
+    return min(MAX_SUB_LEVELS, max(0, math.ceil(math.log2(coarse_m / finest_spacing_m))))
+
+
+def detailed_rasters(rasters, seed: int, finest_spacing_m: float = 1.0,
+                     sea_level_m: float | None = SEA_LEVEL_M) -> list[DetailedRaster]:
+    """A :class:`DetailedRaster` of each raster, those of one lattice spacing (CRS, dx, dy)
+    fitted to their residuals pooled (:func:`pooled_residual_variance`, over land): sources
+    kept apart (tiles of an import) then draw the same noise on a shared edge from one global
+    lattice with the same stds, so the detailed surface is as continuous across their seam as
+    the sources are (each fitted alone, two halves of one tile stepped by up to 0.5 m)."""
+    variance = variance_by_spacing(rasters, sea_level_m)
+    return [DetailedRaster(r, seed, finest_spacing_m, sea_level_m=sea_level_m, residual_variance_m2=v)
+            for r, v in zip(rasters, variance)]
+
+
+def variance_by_spacing(rasters, sea_level_m: float | None = SEA_LEVEL_M) -> list[np.ndarray]:
+    """Per raster, the (L,) residual variances (m^2) pooled over every raster of its lattice
+    spacing (CRS, dx, dy): :func:`pooled_residual_variance`, over land with ``sea_level_m``.
+    Levels are counted in posts, so only rasters of one spacing share a fit."""
+    groups: dict[tuple, list[int]] = {}
+    for k, r in enumerate(rasters):
+        groups.setdefault((r.georef.crs, r.georef.dx, r.georef.dy), []).append(k)
+    variance = [np.zeros(0)] * len(rasters)
+    for members in groups.values():
+        v = pooled_residual_variance([rasters[k].heights for k in members], sea_level_m)
+        for k in members:
+            variance[k] = v
+    return variance
+
+
 def _aligned_offset(origin: float, spacing: float) -> int:
     q = origin / spacing
     return int(round(q)) if abs(q - round(q)) < ALIGNMENT_TOLERANCE_POSTS else 0
@@ -288,30 +473,43 @@ class DetailedRaster:
     A height source for :class:`terrain.terrain.Terrain`. Heights at the
     raster's posts are exact; between them, sub-levels k = 1..K (lattice
     spacing 2^-k posts, the finest at or below ``finest_spacing_m``) add
-    Gaussian noise whose std per level comes from the raster's own pyramid
-    residuals (or ``level_std_m`` when given, e.g. one fit shared by a
-    mosaic's tiles). Heights at or below ``sea_level_m`` get no detail, and it
-    ramps in above (:func:`sea_taper`, the module docstring); None: detail everywhere.
+    Gaussian noise whose std per level comes from pyramid residual variances:
+    the raster's own over land (``sea_level_m``), or ``residual_variance_m2``
+    when given (:func:`pooled_residual_variance` of several sources, so that
+    tiles kept apart share one fit: :func:`detailed_rasters`); or the stds
+    themselves, ``level_std_m``. Heights at or below ``sea_level_m`` get no
+    detail, and it ramps in above (:func:`sea_taper`, the module docstring);
+    None: detail everywhere, residuals of every post. Near the poles the detail
+    is scaled by :func:`polar_taper`, and it is 0 on a pole's row.
     """
 
     def __init__(self, raster: Raster, seed: int, finest_spacing_m: float = 1.0, fit_levels: int = FIT_LEVELS,
-                 level_std_m=None, name: str | None = None, sea_level_m: float | None = SEA_LEVEL_M):
+                 level_std_m=None, name: str | None = None, sea_level_m: float | None = SEA_LEVEL_M,
+                 residual_variance_m2=None):
         if not isinstance(raster, Raster):
             raise TypeError(f"raster must be a terrain.raster.Raster, got {type(raster).__name__}")
         if not (math.isfinite(finest_spacing_m) and finest_spacing_m > 0):
             raise InvalidArgument("finest_spacing_m", "must be finite and > 0", value=finest_spacing_m)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**64:
             raise InvalidArgument("seed", "must be an integer within [0, 2^64)", value=seed)
+        if sea_level_m is not None and not math.isfinite(sea_level_m):
+            raise InvalidArgument("sea_level_m", "must be a finite height (m) or None", value=sea_level_m)
         self.raster = raster
         self.seed = int(seed)
         self.name = name or f"{raster.name}+detail"
         self.finest_spacing_m = float(finest_spacing_m)
-        coarse_m = max(raster.post_spacing_m)
-        self.sub_levels = min(MAX_SUB_LEVELS, max(0, math.ceil(math.log2(coarse_m / finest_spacing_m))))
-        self.residual_variance_m2 = pyramid_residual_variance(raster.heights)
+        self.sea_level_m = None if sea_level_m is None else float(sea_level_m)
+        self.sub_levels = sub_levels_for(raster, finest_spacing_m)
+        if residual_variance_m2 is None:
+            variance = pyramid_residual_variance(raster.heights, sea_level_m=self.sea_level_m)
+        else:
+            variance = np.array(residual_variance_m2, dtype=np.float64).reshape(-1)
+            if not np.all(np.isfinite(variance) & (variance >= 0)):
+                raise InvalidArgument("residual_variance_m2", "must be finite values >= 0 (m^2)", value=variance)
+        variance.flags.writeable = False
+        self.residual_variance_m2 = variance
         if level_std_m is None:
-            std, self.fit_alpha, self.fit_beta = fit_sub_level_std(self.residual_variance_m2, self.sub_levels,
-                                                                   fit_levels)
+            std, self.fit_alpha, self.fit_beta = fit_sub_level_std(variance, self.sub_levels, fit_levels)
         else:
             std = np.array(level_std_m, dtype=np.float64)
             if std.shape != (self.sub_levels,) or not np.all(np.isfinite(std) & (std >= 0)):
@@ -319,24 +517,28 @@ class DetailedRaster:
             self.fit_alpha, self.fit_beta = math.nan, math.nan
         std.flags.writeable = False
         self.level_std_m = std
-        if sea_level_m is not None and not math.isfinite(sea_level_m):
-            raise InvalidArgument("sea_level_m", "must be a finite height (m) or None", value=sea_level_m)
-        self.sea_level_m = None if sea_level_m is None else float(sea_level_m)
         self.sea_taper_m = SEA_TAPER_STDS * float(np.sqrt(np.sum(std ** 2)))
         g = raster.georef
         self.row_offset = _aligned_offset(g.y0, g.dy)
         self.col_offset = _aligned_offset(g.x0, g.dx)
         turn = 360.0 / g.dx if g.crs == CRS_GEOGRAPHIC else 0.0
         self.col_period = int(round(turn)) if turn and abs(turn - round(turn)) < ALIGNMENT_TOLERANCE_POSTS else 0
+        self.pole_rows = pole_rows(g.crs, g.y0, g.dy)
 
     def detail_at_index(self, rows, cols, levels: int | None = None):
-        """(detail, d/drow, d/dcol) at fractional raster indices (n,) float64; see :func:`detail_noise`.
+        """(detail, d/drow, d/dcol) at fractional raster indices (n,) float64: :func:`detail_noise`
+        times :func:`polar_taper` at the rows' latitudes (its slope in d/drow).
 
         levels: use only sub-levels 1..levels (default all).
         """
         std = self.level_std_m if levels is None else self.level_std_m[:levels]
-        return detail_noise(rows, cols, std, self.seed, self.raster.shape, self.row_offset, self.col_offset,
-                            self.col_period)
+        noise, d_row, d_col = detail_noise(rows, cols, std, self.seed, self.raster.shape, self.row_offset,
+                                           self.col_offset, self.col_period, self.pole_rows)
+        g = self.raster.georef
+        if g.crs != CRS_GEOGRAPHIC:
+            return noise, d_row, d_col
+        taper, slope = polar_taper(g.y0 + np.asarray(rows, dtype=np.float64) * g.dy, g.crs, g.dx, g.dy)
+        return taper * noise, taper * d_row + noise * slope * g.dy, taper * d_col
 
     def warm_cache(self, n_points: int) -> bool:
         """The underlying raster's :meth:`terrain.raster.Raster.warm_cache`."""

@@ -40,10 +40,12 @@ h(post) = b(post) + w(s) d(post), where
   posts, K = min(Kx, Ky) so every level's lattice is a sub-lattice of the
   inset's) bilinear Gaussian noise of standard deviation sigma_k, fitted to the
   log-linear decay of the residual variances of the DEM's pyramid over the
-  area and ``STATS_MARGIN_POSTS`` posts around it, drawn by a counter hash of
-  (seed, level, global lattice row, column): deterministic per seed and equal
-  to :class:`terrain.detail.DetailedRaster`'s values there for the same
-  sigmas. d is 0 at the DEM's posts. A terrain whose covering source already
+  area and ``STATS_MARGIN_POSTS`` posts around it (over land: residuals whose
+  posts are all above sea level, as terrain.detail counts them, since the sea
+  gets no detail), drawn by a counter hash of (seed, level, global lattice
+  row, column) and scaled by terrain.detail.polar_taper: deterministic per
+  seed and equal to :class:`terrain.detail.DetailedRaster`'s values there for
+  the same sigmas. d is 0 at the DEM's posts. A terrain whose covering source already
   synthesises detail (kind "dem+detail") gets none added (K = 0);
 * the sign of b is kept (``keep_sea_level_sign``): where b <= 0 (the sea, as
   SRTM stores it) h = b, and land stays above 1 cm, since land and water are
@@ -127,7 +129,8 @@ import numba
 import numpy as np
 
 from sortie.errors import InvalidArgument, LimitExceeded
-from terrain.detail import detail_noise, fit_sub_level_std, noise_table, pyramid_residual_variance
+from terrain.detail import (SEA_LEVEL_M, detail_noise, fit_sub_level_std, noise_table, pole_rows, polar_taper,
+                            pyramid_residual_variance)
 from terrain.geodesy import radii_of_curvature
 from terrain.raster import CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OUTSIDE, Georef, Raster
 from terrain.validate import check_latlon
@@ -506,7 +509,9 @@ class InsetSource(Raster):
 
     @staticmethod
     def _residual_variance(terrain_below, base: BaseLattice, lat_min, lat_max, lon_min, lon_max) -> np.ndarray:
-        """Pyramid residual variances (m^2) of the DEM posts over the box and STATS_MARGIN_POSTS around."""
+        """Pyramid residual variances (m^2) of the DEM posts over the box and STATS_MARGIN_POSTS around,
+        over land (terrain.detail.pyramid_residual_variance with the sea level: no detail is added
+        to the sea, keep_sea_level_sign)."""
         i0 = math.floor((lat_min - base.lat0) / base.dlat) - STATS_MARGIN_POSTS
         i1 = math.ceil((lat_max - base.lat0) / base.dlat) + STATS_MARGIN_POSTS
         j0 = math.floor((lon_min - base.lon0) / base.dlon) - STATS_MARGIN_POSTS
@@ -517,7 +522,7 @@ class InsetSource(Raster):
         lon = base.lon0 + np.arange(j0, j1 + 1, dtype=np.float64) * base.dlon
         lat_g, lon_g = np.meshgrid(lat, lon, indexing="ij")
         h, _ = _fetch(terrain_below, lat_g, lon_g)
-        return pyramid_residual_variance(h)
+        return pyramid_residual_variance(h, sea_level_m=SEA_LEVEL_M)
 
     def _detail(self, i0: int, j0: int, rows: int, cols: int) -> np.ndarray:
         """(rows, cols) detail (m) at the posts, in the DEM's index space (terrain/detail.py)."""
@@ -528,9 +533,12 @@ class InsetSource(Raster):
         c = ((j0 + np.arange(cols)) / float(1 << kx)) - wj0
         rr, cc = np.meshgrid(r, c, indexing="ij")
         shape = (int(math.ceil(r[-1])) + 2, int(math.ceil(c[-1])) + 2)
+        lat_w = b.lat0 + wi0 * b.dlat  # the latitude of index row 0
         d, _, _ = detail_noise(rr.ravel(), cc.ravel(), self.level_std_m, self.seed, shape,
-                               b.row_offset + wi0, b.col_offset + wj0, b.col_period)
-        return d.reshape(rows, cols)
+                               b.row_offset + wi0, b.col_offset + wj0, b.col_period,
+                               pole_rows(CRS_GEOGRAPHIC, lat_w, b.dlat))
+        taper, _ = polar_taper(lat_w + r * b.dlat, CRS_GEOGRAPHIC, b.dlon, b.dlat)
+        return d.reshape(rows, cols) * taper[:, None]
 
     # -- coverage
 

@@ -309,6 +309,14 @@ def check_parameters(max_height_m, level_exponent, water,
     return float(max_height_m), float(level_exponent), float(water)
 
 
+def check_seed(seed, name: str = "seed") -> int:
+    """The seed as an int when it is an integer within [0, 2^64) (the lattice hash takes it as a
+    uint64); else InvalidArgument naming the field by ``name`` (a command line: its option,
+    --procedural) and the value."""
+    _check_int(name, seed, 0, 2**64 - 1)
+    return int(seed)
+
+
 @dataclass(frozen=True, eq=False)
 class ProceduralBlock:
     """One generated block.
@@ -350,7 +358,7 @@ class ProceduralTerrain:
                  level_exponent: float = DEFAULT_LEVEL_EXPONENT, water: float = DEFAULT_WATER,
                  block_cells: int = DEFAULT_BLOCK_CELLS, posts_per_turn: int = DEFAULT_POSTS_PER_TURN,
                  cache_blocks: int = DEFAULT_CACHE_BLOCKS, name: str = "procedural"):
-        _check_int("seed", seed, 0, 2**64 - 1)
+        check_seed(seed)
         params = check_parameters(max_height_m, level_exponent, water)
         _check_int("block_cells", block_cells, 2, BLOCK_CELLS_MAX)
         if block_cells & (block_cells - 1):

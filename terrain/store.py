@@ -774,6 +774,7 @@ def check_manifest(m: dict, manifest_path) -> None:
     if "vertical_datum" in m and m["vertical_datum"] not in vertical_datums():
         raise bad("vertical_datum", "is not a vertical datum an import writes (those of terrain.dem's readers: "
                   + ", ".join(sorted(vertical_datums())) + ")", m["vertical_datum"])
+    _check_detail(m, bad, integer, number)
     summary = m.get("summary")
     if summary is not None and not isinstance(summary, dict):
         raise bad("summary", "is not a JSON object", summary)
@@ -820,6 +821,52 @@ def check_manifest(m: dict, manifest_path) -> None:
         if not (-90.0 <= lat_min <= lat_max <= 90.0 and lon_min <= lon_max):
             raise bad(f"{where}.bounds", "is not a box [lat_min, lon_min, lat_max, lon_max] (latitudes within "
                       "+-90, the minima at most the maxima)", bounds)
+
+
+DETAIL_KINDS = ("fractal", "cellular")  # store.json's add_detail (sortie terrain import --add-detail)
+
+
+def _check_detail(m: dict, bad, integer, number) -> None:
+    """check_manifest's part for the synthetic detail (add_detail, detail_seed,
+    detail_finest_spacing_m, each source's detail_level_std_m / detail_amplitude_m); a manifest
+    without them (an import without detail, or from before they were recorded) passes."""
+    kind = m.get("add_detail")
+    if kind is None:
+        return
+    if kind not in DETAIL_KINDS:
+        raise bad("add_detail", f"is not one of {', '.join(DETAIL_KINDS)} (or null)", kind)
+    integer(m.get("detail_seed"), "detail_seed", 0, 2**64 - 1)
+    if "detail_finest_spacing_m" in m and not number(m["detail_finest_spacing_m"], "detail_finest_spacing_m") > 0:
+        raise bad("detail_finest_spacing_m", "is not > 0", m["detail_finest_spacing_m"])
+    sources = m.get("sources", [])
+    for i, src in enumerate(sources if isinstance(sources, list) else []):
+        if not isinstance(src, dict):
+            continue
+        stds = src.get("detail_level_std_m", [])
+        if not isinstance(stds, list) or any(number(v, f"sources[{i}].detail_level_std_m") < 0 for v in stds):
+            raise bad(f"sources[{i}].detail_level_std_m", "is not a list of numbers >= 0 (m)", stds)
+        if "detail_amplitude_m" in src and number(src["detail_amplitude_m"], f"sources[{i}].detail_amplitude_m") < 0:
+            raise bad(f"sources[{i}].detail_amplitude_m", "is not >= 0 (m)", src["detail_amplitude_m"])
+
+
+def detail_description(m: dict) -> dict:
+    """A store's synthetic detail as describe() (GetMetadata's source details) says it:
+    ``detail`` (its kind), ``detail_seed``, ``detail_finest_spacing_m``, and for fractal detail
+    ``detail_levels`` and ``detail_level_std_m``, for cellular ``detail_amplitude_m`` (one value,
+    or one per source in store.json's order where the sources' fits differ); {} for a store
+    without detail, or imported before store.json recorded it."""
+    kind = m.get("add_detail")
+    if kind is None:
+        return {}
+    out = {"detail": kind, "detail_seed": m.get("detail_seed"),
+           "detail_finest_spacing_m": m.get("detail_finest_spacing_m")}
+    key = "detail_level_std_m" if kind == "fractal" else "detail_amplitude_m"
+    values = [src[key] for src in m.get("sources", []) if isinstance(src, dict) and key in src]
+    if values:
+        out[key] = values[0] if all(v == values[0] for v in values) else values
+    if kind == "fractal":
+        out["detail_levels"] = max((len(v) for v in values), default=0)
+    return out
 
 
 def _wrapped_bounds(bounds) -> tuple[float, float, float, float]:
@@ -1030,7 +1077,8 @@ class StoreSource:
     def describe(self) -> dict:
         """Metadata (Terrain.describe, GetMetadata): the bounds hold every region's (longitudes
         the shortest way round: lon_max passes 180 for regions across the antimeridian);
-        filled_posts is the import's count of level-0 posts in filled voids."""
+        filled_posts is the import's count of level-0 posts in filled voids; a store imported with
+        synthetic detail says so (:func:`detail_description`: detail, detail_seed, ...)."""
         s = self.store
         lat_min = min(r.bounds[0] for r in s.regions)
         lat_max = max(r.bounds[2] for r in s.regions)
@@ -1049,7 +1097,9 @@ class StoreSource:
                 "source": str(s.path), "store_levels": s.levels, "store_depth": s.depth,
                 "max_error_m": s.max_error_m,
                 # Half the step, 0 when lossless (GetMetadata: TerrainSource.details, as text).
-                "store_quantisation_m": s.quantisation_bound_m}
+                "store_quantisation_m": s.quantisation_bound_m,
+                # Synthetic detail baked in at import (sortie terrain import --add-detail), if any.
+                **detail_description(s.manifest)}
 
 
 def lon_cover(spans) -> tuple[float, float]:

@@ -43,7 +43,9 @@ def import_command(args) -> int:
     s = summary
     print(f"terrain store {s.store}: {s.regions} region(s), {s.levels} levels, finest depth {s.depth} "
           f"({s.spacing_arcsec[0]:.3f}\" x {s.spacing_arcsec[1]:.3f}\")")
-    print(f"  posts {s.posts:,} ({s.measured_posts:,} measured, {s.filled_posts:,} filled voids); "
+    made = "from measured data" if s.add_detail else "measured"
+    detail = f"; {s.add_detail} detail added, seed {s.detail_seed}" if s.add_detail else ""
+    print(f"  posts {s.posts:,} ({s.measured_posts:,} {made}, {s.filled_posts:,} filled voids{detail}); "
           f"{s.stored_bytes:,} bytes, {s.ratio_vs_int16:.2f}:1 against int16")
     print(f"  quantisation step {s.step_m:g} m: max error {s.max_quantisation_error_m:.3f} m, "
           f"RMS {s.rms_quantisation_error_m:.3f} m")

@@ -61,9 +61,10 @@ IMPORT_BYTES_PER_POST = 40
 SAMPLE_CHUNK = 1 << 20  # points per Terrain.heights call
 # In the bands' key: bands sampled by an importer of another version (2: kx x ky anti-aliasing; 3: edge
 # posts also at the edges of a source's voids; 4: sources either side of the antimeridian grouped into
-# one region, whose bands a band's name, by region index, does not tell apart) are sampled again, not
-# mixed into a store with new ones.
-SAMPLING_VERSION = 4
+# one region, whose bands a band's name, by region index, does not tell apart; 5: synthetic detail fitted
+# over land alone, pooled over the sources, tapered towards the poles) are sampled again, not mixed into
+# a store with new ones.
+SAMPLING_VERSION = 5
 WORK_DIR = ".import"  # resumable bands, removed when the import finishes
 REGION_DIR = re.compile(r"region-[0-9]{3,}")  # the store's own names (docs/STORE.md, Files): what a
 LEVEL_FILE = re.compile(r"level-[0-9]{2,}\.tiles")  # re-import may remove when its manifest does not list it
@@ -89,6 +90,10 @@ class ImportSummary:
     seconds: float
     samples_per_s: float
     bounds: list
+    # Synthetic detail (--add-detail, --detail-seed): its posts between the sources' are counted
+    # in measured_posts (their class: the data they are made from), not measured themselves.
+    add_detail: str | None = None
+    detail_seed: int | None = None
 
     def to_json(self) -> dict:
         return dict(self.__dict__)
@@ -127,11 +132,12 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
     groups = _regions(rasters, dlat, dlon, tile)
     out = _output_dir(Path(out))
     key = _import_key(paths, depth, tile, unit_m, add_detail, detail_seed)
+    detail = _detail_record(add_detail, detail_seed, sources)
     _drop_stale_bands(out / WORK_DIR, key)
     progress_bar = _Progress(progress, sum(_region_posts(g) for g in groups))
     try:
         summary = _import_regions(out, key, name, terrain, sources, rasters, groups, tile, depth, unit_m,
-                                  step_units, progress_bar, t_start)
+                                  step_units, progress_bar, t_start, detail)
     finally:
         progress_bar.close()
     shutil.rmtree(out / WORK_DIR, ignore_errors=True)
@@ -139,9 +145,10 @@ def import_dems(paths, out, *, resolution_arcsec: float | None = None, step_m: f
 
 
 def _import_regions(out: Path, key: str, name, terrain, sources, rasters, groups, tile: int, depth: int,
-                    unit_m: float, step_units: int, progress_bar, t_start: float) -> ImportSummary:
+                    unit_m: float, step_units: int, progress_bar, t_start: float, detail: dict) -> ImportSummary:
     """Sample, code and write every region, then the manifest (import_dems's steps 3-5); a write
-    that fails is InvalidArgument naming output and the file (:func:`_writing`)."""
+    that fails is InvalidArgument naming output and the file (:func:`_writing`); ``detail``:
+    :func:`_detail_record`."""
     dlat, dlon = st.lattice_spacing_deg(depth, tile)
     regions, totals = [], {"posts": 0, "measured": 0, "filled": 0, "qmax": 0.0, "qsq": 0.0, "smax": 0.0,
                            "ssq": 0.0, "sn": 0}
@@ -177,7 +184,7 @@ def _import_regions(out: Path, key: str, name, terrain, sources, rasters, groups
         # Errors: the decoded store against the sampled lattice and against the source posts, read
         # through the regions written so far (the manifest itself is written once, at the end).
         store = st.TerrainStore(out, manifest=_manifest(out, name, tile, depth, unit_m, step_units, rasters,
-                                                        regions, None))
+                                                        regions, None, detail))
         qmax, qsq = _quantisation_error(store, store.regions[index], units, classes, row0, col0, unit_m)
         totals["qmax"] = max(totals["qmax"], qmax)
         totals["qsq"] += qsq
@@ -204,10 +211,10 @@ def _import_regions(out: Path, key: str, name, terrain, sources, rasters, groups
         rms_quantisation_error_m=math.sqrt(totals["qsq"] / max(totals["posts"], 1)),
         max_error_vs_source_m=totals["smax"], rms_error_vs_source_m=math.sqrt(totals["ssq"] / max(totals["sn"], 1)),
         seconds=seconds, samples_per_s=sum(_region_posts(g) for g in groups) / seconds,
-        bounds=[r["bounds"] for r in regions])
+        bounds=[r["bounds"] for r in regions], add_detail=detail["add_detail"], detail_seed=detail["detail_seed"])
     with _writing(out, out / st.MANIFEST):
         _write_manifest(out, _manifest(out, name, tile, depth, unit_m, step_units, rasters, regions,
-                                       summary.to_json()))
+                                       summary.to_json(), detail))
     return summary
 
 
@@ -404,30 +411,54 @@ def _lon_spacing_deg(r: Raster) -> float:
 
 
 def _with_detail(rasters, kind: str, seed: int, dlat_deg: float):
+    """The sources with synthetic detail down to the store's spacing (``dlat_deg``): one fit of
+    the residuals of all sources of a spacing, over land (terrain.detail.detailed_rasters), so
+    tiles kept apart meet at their seams."""
+    from terrain.detail import SEA_LEVEL_M, detailed_rasters, variance_by_spacing
+
     finest_m = dlat_deg * math.pi / 180.0 * 6371008.8
     if kind == "fractal":
-        from terrain.detail import DetailedRaster
+        return detailed_rasters(rasters, seed, finest_spacing_m=finest_m, sea_level_m=SEA_LEVEL_M)
+    return [CellularDetail(r, seed, finest_m, amplitude_m=0.5 * math.sqrt(float(v[0])) if v.size else 0.0)
+            for r, v in zip(rasters, variance_by_spacing(rasters, SEA_LEVEL_M))]
 
-        return [DetailedRaster(r, seed, finest_spacing_m=finest_m) for r in rasters]
-    return [CellularDetail(r, seed, finest_m) for r in rasters]
+
+def _detail_record(add_detail: str | None, seed: int, sources) -> dict:
+    """What the manifest and summary say of the synthetic detail (docs/STORE.md): its kind,
+    seed and finest spacing, and per source its level stds (fractal) or amplitude (cellular);
+    add_detail None without detail."""
+    if not add_detail:
+        return {"add_detail": None, "detail_seed": None}
+    if add_detail == "fractal":
+        per_source = [{"detail_level_std_m": [float(v) for v in s.level_std_m]} for s in sources]
+        finest_m = sources[0].finest_spacing_m
+    else:
+        per_source = [{"detail_amplitude_m": float(s.amplitude_m)} for s in sources]
+        finest_m = sources[0].cell_m / 4.0
+    return {"add_detail": add_detail, "detail_seed": int(seed), "detail_finest_spacing_m": float(finest_m),
+            "detail_sources": per_source}
 
 
 class CellularDetail:
     """Cellular (Worley F1) bumps added below a raster's post spacing (thesis §3.3.3's
     "cellular noise"): feature points hashed on a lattice of ``cell_m`` (4 store
-    posts), amplitude the raster's finest pyramid residual std / 2, zero at the
-    raster's own posts' scale on average (the mean of F1 is removed). As the fractal
-    detail (terrain.detail.sea_taper): none at or below sea level, ramping in over the
-    amplitude above it (F1 - 0.5 >= -0.5, so land stays above sea level: h - 0.5 h at worst)."""
+    posts), amplitude the raster's finest pyramid residual std / 2 over land
+    (terrain.detail.pyramid_residual_variance with the sea level; or ``amplitude_m``, one
+    shared by an import's sources), zero at the raster's own posts' scale on average (the
+    mean of F1 is removed). As the fractal detail (terrain.detail.sea_taper): none at or
+    below sea level, ramping in over the amplitude above it (F1 - 0.5 >= -0.5, so land stays
+    above sea level: h - 0.5 h at worst)."""
 
-    def __init__(self, raster: Raster, seed: int, finest_m: float):
-        from terrain.detail import pyramid_residual_variance
+    def __init__(self, raster: Raster, seed: int, finest_m: float, amplitude_m: float | None = None):
+        from terrain.detail import SEA_LEVEL_M, pyramid_residual_variance
 
         self.raster = raster
         self.seed = int(seed)
         self.cell_m = 4.0 * finest_m
-        var = pyramid_residual_variance(raster.heights)
-        self.amplitude_m = 0.5 * math.sqrt(float(var[0])) if var.size else 0.0
+        if amplitude_m is None:
+            var = pyramid_residual_variance(raster.heights, sea_level_m=SEA_LEVEL_M)
+            amplitude_m = 0.5 * math.sqrt(float(var[0])) if var.size else 0.0
+        self.amplitude_m = float(amplitude_m)
         self.name = f"{raster.name}+cellular"
 
     def heights_into(self, lat, lon, out_h, out_status) -> None:
@@ -827,16 +858,20 @@ def _post_latlon(r: Raster, rows, cols):
     return web_mercator_inverse(x, y)
 
 
-def _manifest(out: Path, name, tile, depth, unit_m, step_units, rasters, regions, summary) -> dict:
-    """The manifest (docs/STORE.md); summary None while the import is running (never written so)."""
+def _manifest(out: Path, name, tile, depth, unit_m, step_units, rasters, regions, summary, detail) -> dict:
+    """The manifest (docs/STORE.md); summary None while the import is running (never written so);
+    ``detail``: :func:`_detail_record` (add_detail, detail_seed, and with detail its finest spacing
+    and each source's level stds or amplitude)."""
+    per_source = detail.get("detail_sources") or [{} for _ in rasters]
     return {
         "format": st.FORMAT_NAME, "version": st.FORMAT_VERSION, "name": name or out.name,
         "tile": tile, "depth": depth, "unit_m": unit_m, "step_units": step_units,
         "lossless": step_units == 1, "vertical_datum": rasters[0].vertical_datum,
         "quadtree": "global-terrain-flight-sim §4: 6 roots of 90 x 120 deg; tile (row, col) of level k = "
                     "cell (depth - k, row, col)",
+        **{k: v for k, v in detail.items() if k != "detail_sources"},
         "regions": regions,
-        "sources": [{"path": str(r.source), "name": r.name} for r in rasters],
+        "sources": [{"path": str(r.source), "name": r.name, **d} for r, d in zip(rasters, per_source)],
         "summary": summary,
     }
 
