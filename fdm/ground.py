@@ -51,7 +51,12 @@ One sub-step of one vehicle
    gradient the vehicle stood on (a vehicle placed on a steep face does not
    climb it); downhill and side slope beyond their limits stop only a move that
    makes them worse, so a vehicle placed on a steep slope can still drive off
-   it, down or across. ``blocked`` says why.
+   it, down or across. "Worse" across is steeper than the gentlest side slope
+   the vehicle has stood on since it was placed, by more than the heights'
+   resolution can tell apart (:func:`side_slope_tolerances`): heights stored as
+   float32 or whole metres (SRTM) make a plane's side gradient vary from pose to
+   pose, and a vehicle driving along its contour was stopped every few steps.
+   ``blocked`` says why.
 
 No tunnelling at any step size
 ------------------------------
@@ -100,7 +105,7 @@ import numpy as np
 from fdm.vehicle_types import (G_MPS2, P_ACCEL, P_ALAT, P_BRAKE, P_FR, P_GRAD, P_KIND, P_LEN,
                                P_PIVOT, P_POWER_PER_KG, P_RMIN, P_SIDE, P_VMAX, P_VREV, P_WID, P_YAWMAX,
                                TRACKED, VehicleType, get_type, type_table)
-from sortie.errors import InvalidArgument, bound_text
+from sortie.errors import InvalidArgument, SortieError, bound_text
 from terrain.geodesy import WGS84_A_M, WGS84_E2
 from terrain.raster import STATUS_OUTSIDE
 from terrain.validate import as_1d_f64, check_finite, check_latlon, first_bad
@@ -113,15 +118,30 @@ WATER_LEVEL_MSL_M = 0.0
 # posts, and a vehicle driving off a steep face must not be stopped by that noise. A vehicle
 # within its limits gets none: any move beyond them stops it.
 SLOPE_WORSE_TOLERANCE = 0.02
-# How much steeper across (rise per metre) a move may find the ground under a vehicle already
-# standing beyond its side-slope limit before it counts as making it worse: rounding only. Along
-# the contour of a plane the gradient differs from pose to pose by about 1e-14 (heights' last
-# bits over the track width), and a "no worse" with no margin stopped such a vehicle every other
-# step. Not SLOPE_WORSE_TOLERANCE: each accepted move becomes the next one's reference, so a
-# margin compounds, and with 0.02 a vehicle on a 0.53 side slope crept to 0.81 in 8 s at 20 Hz
-# while the same one stepped every 8th tick (set_observers) was stopped: 1e-9 a step compounds
-# to nothing a run can reach.
-SLOPE_ROUNDING_GRAD = 1e-9
+# The side-slope "no worse" rule's tolerance: how much two poses' side gradients may differ
+# with no change in the ground, from the resolution q of the stored heights (each post within
+# q/2 of its value: IEEE 754 round to nearest for float32, whole metres for SRTM). The heights
+# are bilinear over the posts, so each is within q/2 of the exact surface's and the error's
+# slope within a cell is at most q/dx east and q/dy north (post spacings dx, dy): the side
+# gradient, (h_left - h_right) / W over the track width W, is off by at most
+#   e = q * min(1 / W, hypot(1 / dx, 1 / dy))   (the first: two errors of q/2; the second: the
+# error's largest slope along the axle), and two poses' by up to 2 e. Steps coarser than float32's
+# come from the terrain's description (height_steps, side_slope_tolerances); float32's own is
+# taken at the contacts' height in the kernel, over W alone (it knows no post spacing there).
+# Measured against the gentlest side gradient the vehicle has stood on (GroundVehicles.side_ref),
+# not the last pose's: a margin taken from the last pose compounds (with 0.02 a vehicle on a 0.53
+# side slope crept to 0.81 in 8 s at 20 Hz), this one never lets a vehicle stand more than 2 e
+# (4 e on the exact surface) steeper across than it already has.
+# float32 keeps 24 significant bits (IEEE 754 binary32): its spacing at x in [2^k, 2^(k+1)) is
+# 2^(k - 23), i.e. 2^(e - 24) with frexp's exponent e. Taken at twice the contacts' height, and
+# at least at 1024 m, it is that of every post up to that height around the wheel base (a cell
+# rising further above the contacts than they stand above sea level is a cliff at any height over
+# a few hundred metres); an overestimate costs nothing: 2 e is 1.6e-4 at 2 km on a 3 m track.
+FLOAT32_SIGNIFICAND_BITS = 24
+FLOAT32_SPACING_FLOOR_M = 1024.0
+# SRTM .hgt posts are whole metres (signed 16-bit integers: SRTM Topography, NASA JPL 2005),
+# however a reader stores them.
+HGT_HEIGHT_STEP_M = 1.0
 # A sub-step moves at most this fraction of the contact length (see module doc).
 SUBSTEP_MAX_LENGTH_FRAC = 0.5
 # ... and turns at most this far.
@@ -426,9 +446,20 @@ def roll_rad(pitch_grad, roll_grad):
 
 
 @numba.njit(cache=True, nogil=True)
-def _resolve_kernel(idx, type_id, table, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts_h, pts_status, water_level,
-                    lat, lon, heading_deg, speed, yaw_rate_dps, height, pitch_grad, roll_grad, blocked):
-    """Accept each proposal whose wheel base is on dry, drivable ground; stop the rest."""
+def _float32_spacing(h):
+    """Spacing of float32 values (m) at max(``h``, FLOAT32_SPACING_FLOOR_M), ``h`` >= 0 metres."""
+    _, e = math.frexp(max(h, FLOAT32_SPACING_FLOOR_M))
+    return math.ldexp(1.0, e - FLOAT32_SIGNIFICAND_BITS)
+
+
+@numba.njit(cache=True, nogil=True)
+def _resolve_kernel(idx, type_id, table, step_grad, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts_h, pts_status,
+                    water_level, lat, lon, heading_deg, speed, yaw_rate_dps, height, pitch_grad, roll_grad, side_ref,
+                    blocked):
+    """Accept each proposal whose wheel base is on dry, drivable ground; stop the rest.
+    ``step_grad``: (types,) the side-gradient error of the terrain's coarsest height step per
+    type (:func:`side_slope_tolerances`); ``side_ref``: (n,) the gentlest side gradient each
+    vehicle has stood on (magnitude), updated here."""
     for k in range(idx.shape[0]):
         j = idx[k]
         t = type_id[j]
@@ -451,8 +482,14 @@ def _resolve_kernel(idx, type_id, table, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts
             side = table[t, P_SIDE]
             if a > gmax or (a < -gmax and (a0 >= -gmax or a < a0 - SLOPE_WORSE_TOLERANCE)):
                 code = BLOCKED_SLOPE
-            elif abs(gr) > side and abs(gr) > abs(roll_grad[j]) + SLOPE_ROUNDING_GRAD:
-                code = BLOCKED_SIDE_SLOPE
+            elif abs(gr) > side:
+                # Within its limit before: any move beyond stops it. Beyond it: one steeper
+                # across than the gentlest it has stood on, by more than twice the side
+                # gradient's error from the heights' resolution (see FLOAT32_SIGNIFICAND_BITS).
+                top = 2.0 * max(abs(pts_h[b + 3]), abs(pts_h[b + 4]))
+                tol = 2.0 * max(_float32_spacing(top) / table[t, P_WID], step_grad[t])
+                if abs(roll_grad[j]) <= side or abs(gr) > side_ref[j] + tol:
+                    code = BLOCKED_SIDE_SLOPE
         blocked[j] = code
         if code != FREE:
             speed[j] = 0.0
@@ -466,6 +503,7 @@ def _resolve_kernel(idx, type_id, table, p_lat, p_lon, p_psi, p_v, p_r, p_s, pts
         height[j] = pts_h[b]
         pitch_grad[j] = gp
         roll_grad[j] = gr
+        side_ref[j] = min(side_ref[j], abs(gr))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -570,7 +608,52 @@ class GroundState:
 
 # The per-vehicle arrays, kept in step by add() and remove() (type_id apart).
 PER_VEHICLE = ("lat", "lon", "heading_deg", "speed_mps", "yaw_rate_dps", "height_msl_m", "pitch_grad", "roll_grad",
-               "blocked", "speed_cmd_mps", "yaw_rate_cmd_dps", "last_tick", "last_time_s", "divisor", "ids")
+               "side_ref", "blocked", "speed_cmd_mps", "yaw_rate_cmd_dps", "last_tick", "last_time_s", "divisor", "ids")
+
+
+def height_steps(terrain) -> list[tuple[float, float, float]]:
+    """(height step q, post spacing east dx, north dy), metres, of each source of ``terrain``
+    whose heights are held to a step coarser than float32's: SRTM .hgt files (whole metres,
+    HGT_HEIGHT_STEP_M; any source a mosaic merged one into) and terrain stores (their
+    quantisation step, ``store_step_m``). From ``terrain.describe()`` (Terrain, TerrainClient:
+    a service's details come as text); [] for a terrain that cannot describe itself (FlatTerrain)."""
+    describe = getattr(terrain, "describe", None)
+    if describe is None:
+        return []
+    try:
+        sources = describe()
+    except SortieError:  # a service that does not answer: its heights will say so
+        return []
+    out = []
+    for d in sources:
+        if not isinstance(d, dict):
+            continue
+        if d.get("kind") == "store":
+            q = d.get("store_step_m", 0.0)
+        elif d.get("kind") == "dem" and any(
+                m.strip().lower().endswith(".hgt") for m in str(d.get("source", "")).split(";")):
+            q = HGT_HEIGHT_STEP_M
+        else:
+            continue
+        try:
+            q, dx, dy = float(q), float(d.get("spacing_east_m", 0.0)), float(d.get("spacing_north_m", 0.0))
+        except (TypeError, ValueError):
+            continue
+        if q > 0.0 and dx > 0.0 and dy > 0.0:
+            out.append((q, dx, dy))
+    return out
+
+
+def side_slope_tolerances(widths_m, steps) -> np.ndarray:
+    """(types,) the largest error of a side gradient measured over each track width
+    ``widths_m`` (m) on the sources ``steps`` (:func:`height_steps`): q min(1 / W,
+    hypot(1 / dx, 1 / dy)) at the worst source (see FLOAT32_SIGNIFICAND_BITS); 0 where none.
+    The float32 term is the kernel's (it depends on the height)."""
+    w = np.asarray(widths_m, np.float64)
+    out = np.zeros(w.size)
+    for q, dx, dy in steps:
+        out = np.maximum(out, q * np.minimum(1.0 / w, math.hypot(1.0 / dx, 1.0 / dy)))
+    return out
 
 
 class GroundVehicles:
@@ -584,7 +667,8 @@ class GroundVehicles:
     or outside the terrain.
     """
 
-    def __init__(self, terrain, lat, lon, heading_deg, vehicle_type="m1a2", water_level_msl_m=WATER_LEVEL_MSL_M):
+    def __init__(self, terrain, lat, lon, heading_deg, vehicle_type="m1a2", water_level_msl_m=WATER_LEVEL_MSL_M, *,
+                 height_steps_of_terrain=None):
         lat, lon = check_latlon(lat, lon)
         n = lat.size
         heading = as_1d_f64("heading_deg", heading_deg)
@@ -596,6 +680,10 @@ class GroundVehicles:
         self.types, self.type_id = _resolve_types(vehicle_type, n)
         self.table = type_table(self.types)
         self.terrain = terrain
+        # The terrain's coarse height steps (:func:`height_steps`; given by add(), which places
+        # through a new instance, so a service is asked once).
+        self.height_steps = height_steps(terrain) if height_steps_of_terrain is None else height_steps_of_terrain
+        self._step_grad = side_slope_tolerances(self.table[:, P_WID], self.height_steps)
         self.water_level_msl_m = float(water_level_msl_m)
         self.n = n
         self.lat = lat.copy()
@@ -607,6 +695,9 @@ class GroundVehicles:
         # Pitch and roll are kept as gradients (tangents); pitch_deg/roll_deg convert.
         self.pitch_grad = np.zeros(n)
         self.roll_grad = np.zeros(n)
+        # The gentlest side gradient (magnitude) each vehicle has stood on since it was placed:
+        # the side-slope "no worse" rule's reference (_resolve_kernel).
+        self.side_ref = np.zeros(n)
         self.blocked = np.zeros(n, np.uint8)
         self.speed_cmd_mps = np.zeros(n)
         self.yaw_rate_cmd_dps = np.zeros(n)
@@ -642,7 +733,8 @@ class GroundVehicles:
     def add(self, lat, lon, heading_deg, vehicle_type="m1a2") -> np.ndarray:
         """Place new vehicles (validated and placed on the terrain exactly as by the
         constructor; nothing is added if any is bad) at rest; their new ids."""
-        new = GroundVehicles(self.terrain, lat, lon, heading_deg, vehicle_type, self.water_level_msl_m)
+        new = GroundVehicles(self.terrain, lat, lon, heading_deg, vehicle_type, self.water_level_msl_m,
+                             height_steps_of_terrain=self.height_steps)
         new.ids = np.arange(self._next_id, self._next_id + new.n, dtype=np.int64)
         new.last_tick[:] = self.tick
         new.last_time_s[:] = self.time_s
@@ -655,6 +747,7 @@ class GroundVehicles:
             setattr(self, name, np.concatenate([getattr(self, name), getattr(new, name)]))
         self.type_id = np.concatenate([self.type_id, remap[new.type_id]])
         self.types, self.table = types, type_table(types)
+        self._step_grad = side_slope_tolerances(self.table[:, P_WID], self.height_steps)
         self._next_id += new.n
         self._resized()
         return new.ids
@@ -708,6 +801,7 @@ class GroundVehicles:
         self.height_msl_m[idx] = h[:, 0]
         self.pitch_grad[idx] = (h[:, 1] - h[:, 2]) / self.table[self.type_id[idx], P_LEN]
         self.roll_grad[idx] = (h[:, 4] - h[:, 3]) / self.table[self.type_id[idx], P_WID]
+        self.side_ref[idx] = np.abs(self.roll_grad[idx])  # placed: the no-worse rule starts here
 
     @property
     def pitch_deg(self) -> np.ndarray:
@@ -913,10 +1007,11 @@ class GroundVehicles:
         _propose_kernel(idx, self._sub_dt, self.lat, self.lon, self.heading_deg, self.speed_mps, self.pitch_grad,
                         self.type_id, self.speed_cmd_mps, self.yaw_rate_cmd_dps, self.table, *p, pts_lat, pts_lon)
         res = self.terrain.heights(pts_lat, pts_lon)
-        _resolve_kernel(idx, self.type_id, self.table, *p, np.ascontiguousarray(res.height_msl_m, np.float64),
-                        np.ascontiguousarray(res.status, np.uint8), self.water_level_msl_m, self.lat, self.lon,
-                        self.heading_deg, self.speed_mps, self.yaw_rate_dps, self.height_msl_m, self.pitch_grad,
-                        self.roll_grad, self.blocked)
+        _resolve_kernel(idx, self.type_id, self.table, self._step_grad, *p,
+                        np.ascontiguousarray(res.height_msl_m, np.float64), np.ascontiguousarray(res.status, np.uint8),
+                        self.water_level_msl_m, self.lat, self.lon, self.heading_deg, self.speed_mps,
+                        self.yaw_rate_dps, self.height_msl_m, self.pitch_grad, self.roll_grad, self.side_ref,
+                        self.blocked)
 
 
 def _command(name: str, values, m: int) -> np.ndarray:

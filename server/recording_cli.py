@@ -7,7 +7,7 @@
                  [--duration S]                      # live for S world seconds (default: to the exercise's end)
                  [--clock realtime|fast|paused] [--time-scale X]  # default: real time, x1, whatever the recording ran
                  [--record FILE | --record-dir DIR | --no-record]  # recorded as sortie server records
-    sortie replay FILE --port N [--speed X] [--paused]
+    sortie replay FILE --port N [--speed X] [--paused] [--dem FILE... | --terrain HOST:PORT]
 """
 
 from __future__ import annotations

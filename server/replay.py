@@ -10,6 +10,15 @@ over it. Replay controls are a second service on the same port,
 sortie.v1.ReplayService: play, pause, speed 0.1x-64x, seek to any time,
 step by ticks.
 
+An observer stands on the recorded terrain, as live (its area of interest is
+centred on the ground: sim_service.Sessions._ground_point): the terrain is
+found as ``sortie resim`` and ``sortie export gltf`` find it (the header's DEM
+files, or those its terrain service read, with the scenario's insets; or
+``--dem`` / ``--terrain``) and opened on a thread of its own from the start
+(:class:`RecordedTerrain`), so a large terrain delays no start and only an
+observer's Join waits for it. Where none can be opened, observers stand at
+mean sea level (the geoid's undulation above the ellipsoid), with one warning.
+
 The replay clock thread runs at the exercise's network rate in *wall*
 time: each period it moves the replay position by speed x the wall time
 elapsed, shows the recorded tick at that position (one chunk decoded per
@@ -49,7 +58,7 @@ from server.sim_service import (MAX_CONCURRENT_RPCS, SERVICE_NAME, Sessions, Sim
 from server.streaming import Publisher
 from server.world import KIND_NAMES, STATIC, Entity, EventLog, Snapshot, WorldEvent, _empty_snapshot
 from sortie.config import MAX_GRACE_S, grace_seconds
-from sortie.errors import DataFormatError, InvalidArgument, PermissionDenied
+from sortie.errors import DataFormatError, InvalidArgument, NotFound, PermissionDenied
 from sortie.logs import line
 from sortie.v1 import recording_pb2 as rpb
 from sortie.v1 import simulation_pb2 as pb
@@ -68,15 +77,66 @@ MAX_STEP_TICKS = 1_000_000
 STOP_EVENT_KINDS = ("crash", "destroyed", "collision")
 
 
+class RecordedTerrain:
+    """The terrain a replay's observers stand on: ``spec`` (the arguments of
+    server.sim_server.open_terrain_source; None: none to open) opened on a thread of its own
+    by :meth:`start`, which :meth:`get` waits for. One that does not open is None, with one
+    warning naming why: observers stand at mean sea level then."""
+
+    def __init__(self, spec: dict | None, what: str = "the recorded terrain"):
+        self.spec = spec
+        self.what = what
+        self._terrain = None
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._opened = threading.Event()
+
+    def start(self) -> None:
+        """Begin opening it (once; at once done when there is nothing to open)."""
+        with self._lock:
+            if self._thread is not None or self._opened.is_set():
+                return
+            if self.spec is None:
+                self._opened.set()
+                return
+            self._thread = threading.Thread(target=self._open, name="replay-terrain", daemon=True)
+            self._thread.start()
+
+    def _open(self) -> None:
+        from server.sim_server import open_terrain_source
+
+        try:
+            self._terrain = open_terrain_source(**self.spec)
+            logger.info("replay: observers stand on %s", self.what)
+        except Exception as exc:  # noqa: BLE001 - any failure leaves observers at mean sea level, said once
+            logger.warning("replay: %s does not open (%s): observers stand at mean sea level", self.what, exc)
+        finally:
+            self._opened.set()
+
+    def get(self):
+        """The terrain (``heights(lat, lon)``) once opened, None where it did not open."""
+        self.start()
+        self._opened.wait()
+        return self._terrain
+
+    def close(self) -> None:
+        """Close it if it opened and holds a connection (a terrain service's client); a thread
+        still opening it is left to end on its own (a daemon)."""
+        if self._opened.is_set() and hasattr(self._terrain, "close"):
+            self._terrain.close()
+
+
 class ReplayWorld(EventLog):
     """What the session service and the publisher read from a World, fed by a recording.
 
     :meth:`show` puts one recorded tick on display (and emits the events
-    recorded since the last tick shown, when asked)."""
+    recorded since the last tick shown, when asked). ``recorded_terrain`` (a
+    :class:`RecordedTerrain`, or None) is the ground observers stand on."""
 
-    def __init__(self, rec: Recording):
+    def __init__(self, rec: Recording, recorded_terrain: RecordedTerrain | None = None):
         super().__init__()
         self.rec = rec
+        self.recorded_terrain = recorded_terrain
         self.dt = rec.dt
         self.geoid_undulation_m = rec.header.geoid_undulation_m
         described = {i: _described(i, e) for i, e in rec.entities.items()}
@@ -162,6 +222,12 @@ class ReplayWorld(EventLog):
 
     # -- the World interface of server.sim_service ------------------------------------------------
 
+    @property
+    def terrain(self):
+        """The recorded terrain, waited for while it opens; None where there is none (an
+        observer's centre is then at mean sea level: sim_service.Sessions._ground_point)."""
+        return None if self.recorded_terrain is None else self.recorded_terrain.get()
+
     def claim(self, entity_id: int, owner: str, client: str = ""):
         raise InvalidArgument("role", "a replay has no agents to control: join as an observer")
 
@@ -216,7 +282,9 @@ class ReplayServer:
     """A recording + its replay clock + SimulationService and ReplayService. ``start()``, ``stop()``."""
 
     def __init__(self, path, address: str = "127.0.0.1:0", speed: float = 1.0, playing: bool = True,
-                 start_s: float | None = None):
+                 start_s: float | None = None, dem=None, terrain_service: str | None = None):
+        """``dem`` files or a ``terrain_service`` address stand in for the recorded terrain
+        (NotFound for a DEM file that is not there); without them, the recording's own."""
         from server.dead_reckoning import DeadReckoner
         from server.resim import recorded_scenario
         from server.sim_server import ServerConfig, server_config
@@ -224,13 +292,20 @@ class ReplayServer:
         if start_s is not None and math.isnan(start_s):
             raise InvalidArgument("start_s", "must be a number of seconds", value=start_s)
         self.rec = Recording(path)
+        scenario = None
         try:
-            self.config = server_config(recorded_scenario(self.rec), self.rec.header.terrain.description)
+            scenario = recorded_scenario(self.rec)
+            self.config = server_config(scenario, self.rec.header.terrain.description)
         except Exception as exc:  # noqa: BLE001 - a scenario this build cannot read: default parameters
             logger.warning("replay of %s with default parameters: %s", path, exc)
             self.config = ServerConfig(exercise_name=self.rec.header.exercise_name,
                                        start_time=self.rec.header.start_time)
-        self.world = ReplayWorld(self.rec)
+        try:
+            self.terrain = replay_terrain(self.rec, scenario, dem, terrain_service)
+        except BaseException:
+            self.rec.close()
+            raise
+        self.world = ReplayWorld(self.rec, self.terrain)
         self._check_speed(speed)
         self.speed = float(speed)
         self.playing = bool(playing)
@@ -266,6 +341,7 @@ class ReplayServer:
     # -- lifecycle ------------------------------------------------------------------------------
 
     def start(self) -> None:
+        self.terrain.start()  # on its own thread: only an observer's Join waits for it
         self._show()
         self.grpc.start()
         self._thread.start()
@@ -278,6 +354,7 @@ class ReplayServer:
         if self.servicer is not None:  # events and client streams end OK too, now
             self.servicer.close()
         self.grpc.stop(grace_s).wait()
+        self.terrain.close()
         self.rec.close()
 
     # -- controls -------------------------------------------------------------------------------
@@ -449,15 +526,52 @@ class ReplayServer:
             self.finished.set()
 
 
+def replay_terrain(rec: Recording, scenario=None, dem=None, service: str | None = None) -> RecordedTerrain:
+    """The terrain a replay's observers stand on, found as ``sortie resim`` finds it
+    (server.resim.recorded_terrain_spec: ``dem`` files or a ``service`` given, else the
+    header's DEM files or those its terrain service read; ``scenario``'s insets with DEM
+    files, as the world answered from them); not opened yet. Given files that are not there
+    are NotFound; where the recording's own cannot be found, a warning now and observers at
+    mean sea level."""
+    from server.resim import recorded_terrain_spec, with_insets
+
+    try:
+        spec, notes = recorded_terrain_spec(rec, dem, service)
+    except (NotFound, DataFormatError) as exc:
+        if dem or service:
+            raise
+        logger.warning("replay of %s: observers stand at mean sea level: %s (give --dem FILE... or --terrain "
+                       "HOST:PORT for the recorded terrain)", rec.path.name, exc)
+        return RecordedTerrain(None)
+    for note in notes:
+        logger.info("replay: %s", note)
+    if scenario is not None:
+        with_insets(spec, scenario)
+    if "service" in spec:
+        what = f"the terrain service {spec['service']}"
+    else:
+        parts = [str(p) for p in (*spec.get("dem", ()), *spec.get("store", ()))]
+        parts += [f"procedural seed {spec['procedural']}"] if "procedural" in spec else []
+        what = "the terrain of " + ", ".join(parts)
+    return RecordedTerrain(spec, what)
+
+
 # -- CLI ------------------------------------------------------------------------------------------
 
 def add_parser(sub) -> None:
     p = sub.add_parser("replay", help="serve a recording through the live streaming API, with replay controls",
                        description="Serve a sortie recording through sortie.v1.SimulationService (observers join "
-                                   "and watch as live: interest management, dead reckoning, events) and "
-                                   "sortie.v1.ReplayService (play, pause, speed 0.1x-64x, seek, step).")
+                                   "and watch as live: interest management, dead reckoning, events; an "
+                                   "observer stands on the recorded terrain, or --dem / --terrain, at mean sea "
+                                   "level where none opens) and sortie.v1.ReplayService (play, pause, speed "
+                                   "0.1x-64x, seek, step).")
     p.add_argument("file", help="a .sortie recording")
     p.add_argument("--port", type=int, required=True, help="TCP port; 0 picks a free one")
+    terrain = p.add_mutually_exclusive_group()
+    terrain.add_argument("--dem", nargs="+", metavar="FILE",
+                         help="the DEM files observers stand on (default: the recorded ones)")
+    terrain.add_argument("--terrain", metavar="HOST:PORT[,HOST:PORT...]",
+                         help="a terrain service (or replicas of one) serving the recorded terrain")
     p.add_argument("--host", default="127.0.0.1", help=f"{HOST_HELP} (default %(default)s)")
     p.add_argument("--speed", type=float, default=1.0, help="times real time, 0.1-64 (default %(default)s)")
     p.add_argument("--paused", action="store_true", help="start paused")
@@ -472,7 +586,8 @@ def replay_command(args) -> int:
     replay is not served)."""
     if args.start is not None and math.isnan(args.start):
         raise InvalidArgument("--start", "must be a number of seconds", value=args.start)
-    server = ReplayServer(args.file, listen_address(args.host, args.port), args.speed, not args.paused, args.start)
+    server = ReplayServer(args.file, listen_address(args.host, args.port), args.speed, not args.paused, args.start,
+                          dem=args.dem, terrain_service=args.terrain)
     with stop_signals() as stop:  # before the line that says it listens (grpc_common.stop_signals)
         server.start()
         r = server.rec

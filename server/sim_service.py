@@ -144,21 +144,26 @@ class Sessions:
         if len(agent_name) > MAX_NAME_CHARS:
             raise InvalidArgument("agent_name", f"must be at most {MAX_NAME_CHARS} characters (no scenario agent "
                                                 "has a longer name)", value=agent_name)
+        centre = None
+        if role == pb.ROLE_OBSERVER:
+            lat, lon, radius = observer
+            if not (math.isfinite(lat) and abs(lat) <= 90.0):
+                raise InvalidArgument("observer_lat_deg", "must be within [-90, 90]", value=lat)
+            if not (math.isfinite(lon) and abs(lon) <= 540.0):
+                raise InvalidArgument("observer_lon_deg", "must be within [-540, 540]", value=lon)
+            limit = self.params_of(None, "observer").aoi_radius_m
+            if not (math.isfinite(radius) and 0.0 < radius <= limit):
+                raise InvalidArgument("observer_radius_m", f"must be in (0, {limit:g}] m", value=radius)
+            # Outside the table's lock, which every call takes: the ground may be a terrain
+            # service's answer, or a replay's terrain still opening (server/replay.py).
+            centre = self._ground_point(lat, lon)
         with self._lock:
             if len(self._by_token) >= MAX_SESSIONS:
                 raise LimitExceeded("sessions", len(self._by_token) + 1, MAX_SESSIONS)
             token = secrets.token_urlsafe(16)
             s = Session(token, name, role)
             if role == pb.ROLE_OBSERVER:
-                lat, lon, radius = observer
-                if not (math.isfinite(lat) and abs(lat) <= 90.0):
-                    raise InvalidArgument("observer_lat_deg", "must be within [-90, 90]", value=lat)
-                if not (math.isfinite(lon) and abs(lon) <= 540.0):
-                    raise InvalidArgument("observer_lon_deg", "must be within [-540, 540]", value=lon)
-                limit = self.params_of(None, "observer").aoi_radius_m
-                if not (math.isfinite(radius) and 0.0 < radius <= limit):
-                    raise InvalidArgument("observer_radius_m", f"must be in (0, {limit:g}] m", value=radius)
-                s.observer_ecef = self._ground_point(lat, lon)
+                s.observer_ecef = centre
                 s.radius_m = float(radius)
             elif role == pb.ROLE_GATEWAY:  # sees everything: an infinite area of interest
                 s.observer_ecef = np.zeros(3)
@@ -175,8 +180,10 @@ class Sessions:
     def _ground_point(self, lat: float, lon: float) -> np.ndarray:
         """ECEF of the ground at (lat, lon): an observer stands on the terrain (its MSL height
         plus the world's geoid undulation; the sea where there is no terrain), so a radius
-        smaller than the terrain's height still holds what is around it."""
-        terrain = getattr(self.world, "terrain", None)  # a replay has none: mean sea level
+        smaller than the terrain's height still holds what is around it. A world without a
+        terrain (a replay whose recorded terrain did not open: server/replay.py) puts it at
+        mean sea level."""
+        terrain = getattr(self.world, "terrain", None)
         h = math.nan if terrain is None else float(np.asarray(
             terrain.heights(np.array([lat], float), np.array([lon], float)).height_msl_m)[0])
         h = (0.0 if h != h else h) + self.world.geoid_undulation_m
