@@ -239,8 +239,9 @@ class TerrainStore:
             if level >= len(region.rects):
                 continue
             r = region.rects[level]
-            c = _unwrap_col(col, r, self.cols_per_turn(level))
-            if r.row0 <= row <= r.row1 - 1 and r.col0 <= c <= r.col1 - 1:
+            per_turn = self.cols_per_turn(level)
+            c = _unwrap_col(col, r, per_turn)
+            if r.row0 <= row <= r.row1 - 1 and r.col0 <= c <= _east_col(r.col0, r.col1, per_turn):
                 return region
         return None
 
@@ -450,8 +451,11 @@ class TerrainStore:
             n = BLOCK_TILES * self.tile
             rect = region.rects[level]
             r0, c0 = rect.row0 + block_row * n, rect.col0 + block_col * n
+            # A rectangle a whole turn wide wraps onto itself: its last block takes the turn's
+            # first column as its east edge (_parts reads it from the region's first columns).
+            east = _east_col(rect.col0, rect.col1, self.cols_per_turn(level)) + 1
             raster = self._block_raster(region, level, r0, min(r0 + n + 1, rect.row1),
-                                        c0, min(c0 + n + 1, rect.col1))
+                                        c0, min(c0 + n + 1, east))
             self._block_cache[key] = raster
             while len(self._block_cache) > CACHE_BLOCKS:
                 self._block_cache.popitem(last=False)
@@ -887,6 +891,14 @@ def _unwrap_col(col: float, rect: LevelRect, per_turn: int) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
+def _east_col(col0, col1, per_turn):
+    """The easternmost column a rectangle's posts answer up to: its last, col1 - 1, or for a
+    rectangle a whole turn wide (a region round the globe, docs/STORE.md) col1, the first column a
+    turn on: the cells between its last column and the antimeridian interpolate across the wrap."""
+    return col1 if col1 - col0 >= per_turn else col1 - 1
+
+
+@numba.njit(cache=True, nogil=True)
 def _unwrap(col, col0, per_turn):
     """:func:`_unwrap_col` on numbers (compiled, shared with :func:`_block_keys`)."""
     if col < col0:
@@ -937,7 +949,7 @@ def _block_keys(lat, lon, dlat, dlon, per_turn, rects, n, out_key):
         for r in range(rects.shape[0] - 1, -1, -1):
             row0, row1, col0, col1 = rects[r, 0], rects[r, 1], rects[r, 2], rects[r, 3]
             c = _unwrap(col, col0, per_turn)
-            if row >= row0 and row <= row1 - 1 and c >= col0 and c <= col1 - 1:
+            if row >= row0 and row <= row1 - 1 and c >= col0 and c <= _east_col(col0, col1, per_turn):
                 bi = (min(int(math.floor(row)), row1 - 2) - row0) // n
                 bj = (min(int(math.floor(c)), col1 - 2) - col0) // n
                 key = (r * KEY_STRIDE + bi) * KEY_STRIDE + bj

@@ -47,6 +47,8 @@ import numpy as np
 
 from sortie.errors import DataFormatError, InvalidArgument
 from terrain import heightcodec, store as st
+from terrain.geodesy import WGS84_A_M, WGS84_E2
+from terrain.procedural import mix64
 from terrain.raster import (CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, TWO_PI_A_M, Raster,
                             fractional_index)
 from terrain.terrain import Terrain
@@ -62,9 +64,10 @@ SAMPLE_CHUNK = 1 << 20  # points per Terrain.heights call
 # In the bands' key: bands sampled by an importer of another version (2: kx x ky anti-aliasing; 3: edge
 # posts also at the edges of a source's voids; 4: sources either side of the antimeridian grouped into
 # one region, whose bands a band's name, by region index, does not tell apart; 5: synthetic detail fitted
-# over land alone, pooled over the sources, tapered towards the poles) are sampled again, not mixed into
-# a store with new ones.
-SAMPLING_VERSION = 5
+# over land alone, pooled over the sources, tapered towards the poles; 6: cellular detail from a 3-D
+# lattice, its mean removed, and a region round the globe one turn wide) are sampled again, not mixed
+# into a store with new ones.
+SAMPLING_VERSION = 6
 WORK_DIR = ".import"  # resumable bands, removed when the import finishes
 REGION_DIR = re.compile(r"region-[0-9]{3,}")  # the store's own names (docs/STORE.md, Files): what a
 LEVEL_FILE = re.compile(r"level-[0-9]{2,}\.tiles")  # re-import may remove when its manifest does not list it
@@ -441,13 +444,17 @@ def _detail_record(add_detail: str | None, seed: int, sources) -> dict:
 
 class CellularDetail:
     """Cellular (Worley F1) bumps added below a raster's post spacing (thesis §3.3.3's
-    "cellular noise"): feature points hashed on a lattice of ``cell_m`` (4 store
-    posts), amplitude the raster's finest pyramid residual std / 2 over land
+    "cellular noise"): F1 of a 3-D lattice of feature points, one jittered point per cube of
+    side ``cell_m`` (4 store posts) in Earth-centred, Earth-fixed coordinates, evaluated on the
+    WGS84 ellipsoid (:func:`_worley_f1`). Built in 3-D, the field is the same whatever the
+    longitude: continuous across the antimeridian and at the poles, and isotropic on the ground
+    (F1 of a plane lattice in (lat, lon cos lat) was sheared by lon sin lat, and jumped at
+    +-180). Amplitude: the raster's finest pyramid residual std / 2 over land
     (terrain.detail.pyramid_residual_variance with the sea level; or ``amplitude_m``, one
-    shared by an import's sources), zero at the raster's own posts' scale on average (the
-    mean of F1 is removed). As the fractal detail (terrain.detail.sea_taper): none at or
-    below sea level, ramping in over the amplitude above it (F1 - 0.5 >= -0.5, so land stays
-    above sea level: h - 0.5 h at worst)."""
+    shared by an import's sources), times F1 - CELLULAR_F1_MEAN (the field's mean removed: zero
+    on average). As the fractal detail (terrain.detail.sea_taper): none at or below sea level,
+    ramping in over the amplitude above it (F1 - CELLULAR_F1_MEAN >= -CELLULAR_F1_MEAN, so land
+    stays above sea level: h (1 - CELLULAR_F1_MEAN) at worst)."""
 
     def __init__(self, raster: Raster, seed: int, finest_m: float, amplitude_m: float | None = None):
         from terrain.detail import SEA_LEVEL_M, pyramid_residual_variance
@@ -471,20 +478,13 @@ class CellularDetail:
         ok, weight = ok[keep], weight[keep]
         out_h[ok] += weight * self.amplitude_m * self._f1(lat[ok], lon[ok])
 
-    def _f1(self, lat, lon):
-        from terrain.procedural import lattice_hash
-
-        y = np.radians(lat) * 6371008.8 / self.cell_m
-        x = np.radians(lon) * 6371008.8 * np.cos(np.radians(lat)) / self.cell_m
-        iy, ix = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
-        best = np.full(y.shape, np.inf)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                h = lattice_hash(self.seed, iy + dy, ix + dx)
-                fy = (h & 0xFFFF).astype(np.float64) / 65536.0
-                fx = ((h >> np.uint64(16)) & np.uint64(0xFFFF)).astype(np.float64) / 65536.0
-                best = np.minimum(best, np.hypot(iy + dy + fy - y, ix + dx + fx - x))
-        return best - 0.5  # F1 of unit cells averages ~0.5
+    def _f1(self, lat, lon) -> np.ndarray:
+        """F1 - CELLULAR_F1_MEAN (cells) at points (lat, lon degrees, (n,)) on the ellipsoid."""
+        lat = np.ascontiguousarray(lat, np.float64).reshape(-1)
+        lon = np.ascontiguousarray(lon, np.float64).reshape(-1)
+        out = np.empty(lat.size)
+        _worley_f1(lat, lon, 1.0 / self.cell_m, np.uint64(self.seed), out)
+        return out - CELLULAR_F1_MEAN
 
     def gradient_into(self, lat, lon, out_de, out_dn, out_status) -> None:
         self.raster.gradient_into(lat, lon, out_de, out_dn, out_status)
@@ -496,10 +496,88 @@ class CellularDetail:
         return {**self.raster.describe(), "name": self.name, "detail": "cellular"}
 
 
+# The mean of F1 (:func:`_f1_cells`, cells): over a surface, whose points fall at every offset in
+# their cubes alike, the mean over the unit cube of the expected distance to the nearest feature point.
+# Measured once (no closed form for a jittered lattice): 2e8 points uniform in the cubes, 20 runs of
+# 1e7 (numpy default_rng(run), seed = run): 0.52035, standard error 0.00001 (the runs' spread /
+# sqrt(20)); the field's std is 0.172. tests/test_store2_probe_fixes_s33.py checks |mean| < 0.01 over
+# the globe. (A Poisson process of the same density would give 0.554, the mean distance to the nearest
+# neighbour, Gamma(4/3) (4 pi / 3)^(-1/3): Chandrasekhar 1943, Rev. Mod. Phys. 15, 1; one point a cube
+# spreads them more evenly, so the nearest is nearer. The mean at a given offset in the cube ranges from
+# 0.477 at its centre to 0.539 at its corners: a ripple of the cell's period, within the bumps' own scale.)
+CELLULAR_F1_MEAN = 0.52035
+_JITTER_MASK = np.uint64((1 << 21) - 1)  # a feature point's offset: three 21-bit fields of its cube's hash
+_JITTER_SHIFT_Y, _JITTER_SHIFT_Z = np.uint64(21), np.uint64(42)
+_JITTER_SCALE = 2.0 ** -21
+
+
+@numba.njit(cache=True, nogil=True)
+def _feature_d2(h_seed, i, j, k, ox, oy, oz) -> float:
+    """Squared distance (cells) to the feature point of cube (i, j, k), whose corner lies at
+    (ox, oy, oz) from the point: the cube's hash (terrain.procedural.lattice_hash(seed, i, j, k),
+    h_seed being mix64(seed)) split into three 21-bit offsets in [0, 1)."""
+    h = mix64(mix64(mix64(h_seed ^ np.uint64(i)) ^ np.uint64(j)) ^ np.uint64(k))
+    dx = ox + float(h & _JITTER_MASK) * _JITTER_SCALE
+    dy = oy + float((h >> _JITTER_SHIFT_Y) & _JITTER_MASK) * _JITTER_SCALE
+    dz = oz + float((h >> _JITTER_SHIFT_Z) & _JITTER_MASK) * _JITTER_SCALE
+    return dx * dx + dy * dy + dz * dz
+
+
+@numba.njit(cache=True, nogil=True)
+def _f1_cells(h_seed, px, py, pz) -> float:
+    """Worley F1 (Worley 1996, "A cellular texture basis function", SIGGRAPH) at a point (cells):
+    the distance to the nearest feature point, one per unit cube. Exact: the 27 cubes around the
+    point first; a cube two away along an axis lies at least 1 + the point's least distance to its
+    own cube's faces away, so the 125 cubes are searched when the nearest found is further than
+    that (2.5e-4 of points), and no cube three away can hold a point nearer than the
+    point's own cube's (within sqrt(3)). F1 is therefore continuous (1-Lipschitz) everywhere.
+    h_seed: mix64(seed), uint64; px, py, pz: the point, cells (float64)."""
+    fx, fy, fz = math.floor(px), math.floor(py), math.floor(pz)
+    ix, iy, iz = np.int64(fx), np.int64(fy), np.int64(fz)
+    fx, fy, fz = px - fx, py - fy, pz - fz
+    best = np.inf
+    for a in range(-1, 2):
+        for b in range(-1, 2):
+            for c in range(-1, 2):
+                best = min(best, _feature_d2(h_seed, ix + a, iy + b, iz + c, a - fx, b - fy, c - fz))
+    reach = 1.0 + min(min(fx, 1.0 - fx), min(fy, 1.0 - fy), min(fz, 1.0 - fz))
+    if best > reach * reach:
+        for a in range(-2, 3):
+            for b in range(-2, 3):
+                for c in range(-2, 3):
+                    if max(abs(a), abs(b), abs(c)) == 2:
+                        best = min(best, _feature_d2(h_seed, ix + a, iy + b, iz + c, a - fx, b - fy, c - fz))
+    return math.sqrt(best)
+
+
+@numba.njit(cache=True, nogil=True)
+def _worley_f1(lat, lon, inv_cell_m, seed, out) -> None:
+    """F1 (:func:`_f1_cells`) on the WGS84 ellipsoid: lat, lon (n,) float64 degrees; inv_cell_m:
+    1 / the cube's side in metres; seed uint64; out (n,) float64, cells. A point's position is its
+    ECEF one (terrain.geodesy.geodetic_to_ecef at height 0) in cells."""
+    h_seed = mix64(seed)
+    for n in range(lat.shape[0]):
+        phi, lam = math.radians(lat[n]), math.radians(lon[n])
+        sin_phi, cos_phi = math.sin(phi), math.cos(phi)
+        nu = WGS84_A_M / math.sqrt(1.0 - WGS84_E2 * sin_phi * sin_phi) * inv_cell_m
+        out[n] = _f1_cells(h_seed, nu * cos_phi * math.cos(lam), nu * cos_phi * math.sin(lam),
+                           nu * (1.0 - WGS84_E2) * sin_phi)
+
+
+@numba.njit(cache=True, nogil=True)
+def _worley_f1_cells(px, py, pz, seed, out) -> None:
+    """F1 (:func:`_f1_cells`) at points given in cells: px, py, pz (n,) float64; seed uint64; out
+    (n,) float64 (CELLULAR_F1_MEAN's measurement, the tests)."""
+    h_seed = mix64(seed)
+    for n in range(px.shape[0]):
+        out[n] = _f1_cells(h_seed, px[n], py[n], pz[n])
+
+
 def _regions(rasters, dlat, dlon, tile):
     """Group sources whose level-0 post boxes come within one tile of each other, across the
     antimeridian too: (row0, col0, rows, cols, member indices) per group, col0 in the lattice's first
-    turn (col0 + cols past a turn for a group across the antimeridian).
+    turn (col0 + cols past a turn for a group across the antimeridian), cols at most one turn: a
+    group round the globe is the turn from the antimeridian, col0 0 and cols the columns per turn.
 
     Rows stop at the lattice's last one, 2 2^D T - 1, one spacing north of the South Pole: the
     pole's own row (2 2^D T) is the southern edge of the last row of quad-tree cells, which no
@@ -543,6 +621,13 @@ def _regions(rasters, dlat, dlon, tile):
         row0, col0, row1, col1 = _group_box(boxes, g)
         shift = per_turn * (col0 // per_turn)  # col0 into the first turn again, as for one source
         col0, col1 = col0 - shift, col1 - shift
+        if col1 - col0 >= per_turn:
+            # Round the globe (a 360-degree source, whose reader adds a wrap column; sources that
+            # chain round it): one turn of columns from the antimeridian, tile-aligned (per_turn is
+            # 3 2^D T), each lattice column once. Wider, the columns past the turn were stored twice
+            # (coded apart, up to a step apart) and counted twice in the summary's posts.
+            col0, col1 = 0, per_turn
+
         if (row1 - row0) * (col1 - col0) > limit:
             raise InvalidArgument("resolution", f"a region of {row1 - row0} x {col1 - col0} posts exceeds the "
                                   f"limit of {limit:,} posts ({why}); import a coarser resolution or fewer files")
