@@ -22,23 +22,34 @@ not retry because the dead replica had begun to answer, or that a stopping
 replica cancelled, is sent once more by the client. Terrain queries are read-only, so a repeated call is harmless.
 See :func:`replica_service_config` for the numbers and docs/DEPLOYMENT.md for
 what was measured. One address behaves as it always has: a plain channel, no
-retries.
+retries of UNAVAILABLE.
+
+Sharing. All the threads of a client together keep at most ``max_calls_in_flight`` calls in
+flight (chunks of a split batch included), lowered to the service's admission limit (times
+the replicas) once a refusal names it; a call the service refuses for want of room (its
+admission, RESOURCE_EXHAUSTED naming ``concurrent_calls``, or gRPC's own "Concurrent RPC limit
+exceeded!") is sent again after a backoff, at most ADMISSION_RETRY_MAX_ATTEMPTS attempts, and
+then fails as LimitExceeded naming the limit. Before, one call of 20,000 rays took 3 of a
+service's 24 admission slots at once, and 12 threads sharing a client had 7 of their calls
+refused as a bare ServiceError.
 """
 
 from __future__ import annotations
 
 import ipaddress
 import json
+import random
 import re
 import socket
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
 import grpc
 import numpy as np
 
-from server.grpc_common import MAX_MESSAGE_BYTES, channel_options
+from server.grpc_common import ADMISSION_FIELD, MAX_MESSAGE_BYTES, channel_options
 from server.terrain_service import DESCRIBE_TO_FIELD, MAX_HEIGHT_POINTS, RPCS, SERVICE_NAME, serializers
 from sortie.errors import (DataFormatError, InvalidArgument, LimitExceeded, NotFound, PermissionDenied, SortieError,
                            Unauthenticated)
@@ -58,6 +69,21 @@ DEFAULT_TIMEOUT_S = 30.0
 CHUNK_POINTS = MAX_HEIGHT_POINTS
 CHUNK_RAYS = 8_192
 MAX_IN_FLIGHT = 4
+# Calls one client keeps in flight at once, all its threads together, until a refusal names the
+# service's admission limit (then that limit times the replicas, if lower). A service admits
+# server.terrain_service.ADMITTED_CALLS_PER_WORKER (4) calls per worker thread, and has
+# min(32, cores + 4) of them by default: at least 20 calls, which 16 leave room in for another
+# client; 16 keep four split batches (MAX_IN_FLIGHT chunks each) in flight at once.
+MAX_CALLS_IN_FLIGHT = 16
+# Attempts of a call refused for want of room (the service's admission, or gRPC's own limit),
+# the n-th retry after the replicas' backoff below (RETRY_*: a random wait in [0, min(0.05 x
+# 2^(n-1), 1)] s, gRFC A6's formula; "full jitter", so that clients refused together do not come
+# back together): at most 3.55 s of waiting in all, 1.8 s on average.
+ADMISSION_RETRY_MAX_ATTEMPTS = 8
+# gRPC's refusal of a call over a server's maximum_concurrent_rpcs (grpc/_server.py, grpc.aio's
+# server): how a terrain service refused its admission before it named the limit, and how it
+# still refuses a flood beyond its OTHER_CALLS_AT_ONCE.
+GRPC_CONCURRENCY_REFUSAL = "Concurrent RPC limit exceeded!"
 
 # Retries of a call to replicas (gRFC A6 retryPolicy): up to RETRY_MAX_ATTEMPTS
 # attempts in all, the n-th retry after a random wait in [0, min(initial x
@@ -87,6 +113,56 @@ _INVALID = re.compile(r"^(?P<field>[A-Za-z_][\w.]*)(?:\[(?P<index>\d+)\])?: (?P<
 # A limit's field may say what it counts: "segments (procedural raster posts)".
 _LIMIT = re.compile(r"^(?P<field>[A-Za-z_][\w.]*(?: \([^()]*\))?): (?P<size>\d+) exceeds the limit of (?P<limit>\d+)"
                     r"(?: \((?P<why>.*)\))?$", re.S)
+
+
+def admission_refusal(error: grpc.RpcError) -> int | None:
+    """The admission limit a refusal of a call for want of room names (0: gRPC's own refusal,
+    which names none); None when ``error`` is no such refusal (a batch over its limit, a message
+    too large: sending it again would not help)."""
+    if error.code() != grpc.StatusCode.RESOURCE_EXHAUSTED:
+        return None
+    details = error.details() or ""
+    if details == GRPC_CONCURRENCY_REFUSAL:
+        return 0
+    m = _LIMIT.match(details)
+    return int(m["limit"]) if m and m["field"] == ADMISSION_FIELD else None
+
+
+def retry_backoff_s(retry: int) -> float:
+    """The wait before the ``retry``-th retry (1, 2, ...): uniform in [0, min(RETRY_INITIAL_BACKOFF_S
+    x RETRY_BACKOFF_MULTIPLIER^(retry-1), RETRY_MAX_BACKOFF_S)] (gRFC A6; full jitter)."""
+    cap = min(RETRY_INITIAL_BACKOFF_S * RETRY_BACKOFF_MULTIPLIER ** (retry - 1), RETRY_MAX_BACKOFF_S)
+    return random.uniform(0.0, cap)
+
+
+class CallSlots:
+    """The calls a client has in flight at once, all its threads together: at most ``limit``,
+    which :meth:`lower` may lower (never below 1). A slot is released when its call ends,
+    from whichever thread gRPC ends it on, so a thread waiting for one while its own split
+    batch is in flight cannot wait on itself. Thread-safe."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self.in_flight = 0
+        self._free = threading.Condition()
+
+    def acquire(self, timeout_s: float | None) -> None:
+        """Take a slot; ServiceError(DEADLINE_EXCEEDED) when none frees within ``timeout_s``."""
+        with self._free:
+            if not self._free.wait_for(lambda: self.in_flight < self.limit, timeout_s):
+                raise ServiceError(grpc.StatusCode.DEADLINE_EXCEEDED,
+                                   f"none of the client's {self.limit} calls in flight ended within {timeout_s} s")
+            self.in_flight += 1
+
+    def release(self, _call=None) -> None:
+        """Give a slot back (a gRPC future's done callback, hence the argument)."""
+        with self._free:
+            self.in_flight -= 1
+            self._free.notify()
+
+    def lower(self, limit: int) -> None:
+        with self._free:
+            self.limit = max(1, min(self.limit, limit))
 
 
 def error_from_rpc(error: grpc.RpcError) -> SortieError:
@@ -216,17 +292,23 @@ class TerrainClient:
     address: "host:port", or "host:port,host:port,..." for replicas of one
     terrain (round robin, retries; see the module docstring). timeout_s:
     deadline of each call, seconds (gRPC's retries included; a call sent again
-    after UNAVAILABLE gets a deadline of its own). Methods take (n,)
+    after UNAVAILABLE or a refusal gets a deadline of its own; the wait for a
+    slot of ``max_calls_in_flight`` is bounded by it too). Methods take (n,)
     array-likes (scalars are one point) and return the Terrain's result
     dataclasses with numpy arrays. Thread-safe: many threads (bots) may share
-    one client. ``target`` is the channel's gRPC target; ``resent_calls`` counts
-    the calls a client of replicas sent again after UNAVAILABLE or CANCELLED.
+    one client, which keeps at most ``max_calls_in_flight`` calls in flight for
+    all of them (``max_in_flight``: chunks of one split batch) and sends a call
+    the service refused for want of room again later (see the module docstring).
+    ``target`` is the channel's gRPC target; ``resent_calls`` counts the calls
+    a client of replicas sent again after UNAVAILABLE or CANCELLED, and
+    ``retried_refusals`` those sent again after a refusal for want of room.
     """
 
     def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S, chunk_points: int = CHUNK_POINTS,
-                 chunk_rays: int = CHUNK_RAYS, max_in_flight: int = MAX_IN_FLIGHT):
+                 chunk_rays: int = CHUNK_RAYS, max_in_flight: int = MAX_IN_FLIGHT,
+                 max_calls_in_flight: int = MAX_CALLS_IN_FLIGHT):
         for name, value in (("chunk_points", chunk_points), ("chunk_rays", chunk_rays),
-                            ("max_in_flight", max_in_flight)):
+                            ("max_in_flight", max_in_flight), ("max_calls_in_flight", max_calls_in_flight)):
             if not (isinstance(value, int) and value >= 1):
                 raise InvalidArgument(name, "must be an integer >= 1", value=value)
         self.address = address
@@ -234,11 +316,15 @@ class TerrainClient:
         self.chunk_points = chunk_points
         self.chunk_rays = chunk_rays
         self.max_in_flight = max_in_flight
+        self.slots = CallSlots(max_calls_in_flight)
         self.replicated = "," in address
         self.resent_calls = 0
-        self._resent_lock = threading.Lock()
+        self.retried_refusals = 0
+        self._count_lock = threading.Lock()
+        self._replicas = 1
         if self.replicated:
             self.target = replica_target(address)
+            self._replicas = len(self.target.split(","))
             options = channel_options() + [
                 ("grpc.service_config", json.dumps(replica_service_config())),
                 ("grpc.enable_retries", 1),
@@ -273,33 +359,68 @@ class TerrainClient:
         except grpc.FutureTimeoutError:
             raise ServiceError(grpc.StatusCode.UNAVAILABLE, f"no terrain service at {self.address}") from None
 
-    def _call(self, rpc: str, request):
+    def _send(self, rpc: str, request):
+        """One call, in a slot of the client's (:class:`CallSlots`)."""
+        self.slots.acquire(self.timeout_s)
         try:
             return self._calls[rpc](request, timeout=self.timeout_s)
-        except grpc.RpcError as exc:
-            return self._resend_or_raise(rpc, request, exc)
+        finally:
+            self.slots.release()
 
-    def _resend_or_raise(self, rpc: str, request, exc: grpc.RpcError):
-        """After a failed call: when it failed UNAVAILABLE (or CANCELLED by a stopping
-        replica) on a client of replicas, the answer to ``request`` sent once more; otherwise, or if that fails too, the failure
-        as a sortie.errors exception.
+    def _send_future(self, rpc: str, request) -> grpc.Future:
+        """One call sent, not waited for, in a slot of the client's given back when it ends."""
+        self.slots.acquire(self.timeout_s)
+        try:
+            future = self._calls[rpc].future(request, timeout=self.timeout_s)
+        except BaseException:
+            self.slots.release()
+            raise
+        future.add_done_callback(self.slots.release)
+        return future
 
-        gRPC's retry policy never retries a call once its response has begun to arrive
-        (it cannot know the call is safe to repeat), so a replica killed while sending an
-        answer fails that call (an unretried UNAVAILABLE was seen once in about twenty
-        SIGKILLs in tests/test_terrain_replicas.py). Terrain queries are read-only:
+    def _count(self, counter: str) -> None:
+        with self._count_lock:
+            setattr(self, counter, getattr(self, counter) + 1)
+
+    def _call(self, rpc: str, request, failed: grpc.RpcError | None = None):
+        """The answer to ``request``, sent now unless ``failed`` is how a first attempt already
+        sent failed; failures as sortie.errors exceptions.
+
+        A refusal for want of room (:func:`admission_refusal`) lowers the client's bound to the
+        limit it names (times the replicas) and is sent again after a backoff
+        (:func:`retry_backoff_s`), at most ADMISSION_RETRY_MAX_ATTEMPTS attempts in all; then it
+        fails as the service said it (LimitExceeded naming ``concurrent_calls`` and the limit).
+
+        On a client of replicas, a call that failed UNAVAILABLE (or CANCELLED by a stopping
+        replica) is sent once more. gRPC's retry policy never retries a call once its response
+        has begun to arrive (it cannot know the call is safe to repeat), so a replica killed
+        while sending an answer fails that call (an unretried UNAVAILABLE was seen once in about
+        twenty SIGKILLs in tests/test_terrain_replicas.py). Terrain queries are read-only:
         sending it again is safe, and round robin sends it to another replica."""
-        # CANCELLED too: a replica shutting down cancels the calls that reach it as it stops
-        # (seen once in a CI run of tests/test_terrain_replicas.py: a 5 ms call, SIGTERM);
-        # this client never cancels its own calls (its deadline is DEADLINE_EXCEEDED).
-        if self.replicated and exc.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED):
-            with self._resent_lock:
-                self.resent_calls += 1
-            try:
-                return self._calls[rpc](request, timeout=self.timeout_s)
-            except grpc.RpcError as again:
-                exc = again
-        raise error_from_rpc(exc) from None
+        attempts, resent = 1, False
+        while True:
+            if failed is None:
+                try:
+                    return self._send(rpc, request)
+                except grpc.RpcError as exc:
+                    failed = exc
+            limit = admission_refusal(failed)
+            if limit is not None and attempts < ADMISSION_RETRY_MAX_ATTEMPTS:
+                if limit:
+                    self.slots.lower(limit * self._replicas)
+                time.sleep(retry_backoff_s(attempts))
+                attempts += 1
+                self._count("retried_refusals")
+            # CANCELLED too: a replica shutting down cancels the calls that reach it as it stops
+            # (seen once in a CI run of tests/test_terrain_replicas.py: a 5 ms call, SIGTERM);
+            # this client never cancels its own calls (its deadline is DEADLINE_EXCEEDED).
+            elif (self.replicated and not resent
+                  and failed.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED)):
+                resent = True
+                self._count("resent_calls")
+            else:
+                raise error_from_rpc(failed) from None
+            failed = None
 
     def _call_chunked(self, rpc: str, request: dict, chunk: int) -> dict:
         """One logical call over parallel arrays, sent as pipelined chunks of at most ``chunk``.
@@ -324,25 +445,25 @@ class TerrainClient:
                 parts[k] = future.result()
             except grpc.RpcError as exc:
                 try:
-                    parts[k] = self._resend_or_raise(rpc, part, exc)
-                    return
-                except SortieError as failure:
-                    error = failure
-                for _, other, _ in pending:
-                    other.cancel()
-                if isinstance(error, InvalidArgument) and error.index is not None:
+                    parts[k] = self._call(rpc, part, exc)
+                except InvalidArgument as error:
+                    if error.index is None:
+                        raise
                     text = str(error).split(": ", 1)[1]
-                    error = InvalidArgument(error.field, text, index=error.index + starts[k])
-                raise error from None
+                    raise InvalidArgument(error.field, text, index=error.index + starts[k]) from None
 
-        call = self._calls[rpc]
-        for k, s in enumerate(starts):
-            if len(pending) >= self.max_in_flight:
+        try:
+            for k, s in enumerate(starts):
+                if len(pending) >= self.max_in_flight:
+                    collect()
+                part = {name: v[s:s + chunk] for name, v in request.items()}
+                pending.append((k, self._send_future(rpc, part), part))
+            while pending:
                 collect()
-            part = {name: v[s:s + chunk] for name, v in request.items()}
-            pending.append((k, call.future(part, timeout=self.timeout_s), part))
-        while pending:
-            collect()
+        except BaseException:
+            for _, other, _ in pending:
+                other.cancel()
+            raise
         first = parts[0]
         return {name: (np.concatenate([p[name] for p in parts]) if isinstance(value, np.ndarray) else value)
                 for name, value in first.items()}

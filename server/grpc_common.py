@@ -353,6 +353,77 @@ def unary_handler(name: str, method: Callable, field_names: Mapping[str, str],
     return behaviour
 
 
+# The field a refusal for want of room names (LimitExceeded), which clients retry later
+# (client/terrain_client.py).
+ADMISSION_FIELD = "concurrent_calls"
+# How often a call queued for a worker looks whether its caller is still there.
+ADMISSION_POLL_S = 0.05
+
+
+class Admission:
+    """At most ``limit`` calls admitted at once, running or queued for one of ``workers``
+    running at once; one more is refused at once (LimitExceeded naming ADMISSION_FIELD and the
+    limit: RESOURCE_EXHAUSTED) rather than queued without bound. Thread-safe.
+
+    gRPC's own ``maximum_concurrent_rpcs`` did this before, and counted every call of the server:
+    health checks and reflection too, which a busy server then refused ("Concurrent RPC limit
+    exceeded!") or queued behind the batches on the same threads past their deadline (a busy
+    terrain service failed its container's health check). Admitted calls now hold threads of
+    their own (the pool is sized ``limit`` plus spares), of which ``workers`` work at once, so
+    the spares answer health, reflection and refusals at once."""
+
+    def __init__(self, limit: int, workers: int, what: str):
+        for name, v in (("limit", limit), ("workers", workers)):
+            if not (isinstance(v, int) and v >= 1):
+                raise InvalidArgument(name, "must be an integer >= 1", value=v)
+        self.limit, self.workers, self.what = limit, workers, what
+        self._admitted = 0
+        self._lock = threading.Lock()
+        self._working = threading.BoundedSemaphore(workers)
+
+    @property
+    def admitted(self) -> int:
+        """Calls admitted now (running or queued)."""
+        return self._admitted
+
+    def wrap(self, name: str, behaviour: Callable, stats: CallStats | None = None) -> Callable:
+        """``behaviour(request, context)`` admitted first: refused (RESOURCE_EXHAUSTED, counted in
+        ``stats`` under ``name``'s last part) when ``limit`` calls are in, else run once one of the
+        ``workers`` is free; a call whose caller leaves or whose deadline passes while it waits
+        ends CANCELLED / DEADLINE_EXCEEDED without running."""
+        short = name.rsplit("/", 1)[-1]
+
+        def admitted(request, context):
+            with self._lock:
+                full = self._admitted >= self.limit
+                if not full:
+                    self._admitted += 1
+                n = self._admitted + 1
+            if full:
+                if stats is not None:
+                    stats.record(short, 0.0, grpc.StatusCode.RESOURCE_EXHAUSTED.name)
+                context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                              message_of(LimitExceeded(ADMISSION_FIELD, n, self.limit, self.what)))
+            try:
+                while not self._working.acquire(timeout=ADMISSION_POLL_S):
+                    remaining = context.time_remaining()
+                    if remaining is not None and remaining <= 0.0:
+                        context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, f"{short}: the call's deadline passed "
+                                      "while it waited for a worker")
+                    if not context.is_active():
+                        context.abort(grpc.StatusCode.CANCELLED, f"{short}: the call was cancelled while it "
+                                      "waited for a worker")
+                try:
+                    return behaviour(request, context)
+                finally:
+                    self._working.release()
+            finally:
+                with self._lock:
+                    self._admitted -= 1
+
+        return admitted
+
+
 def check_batch(request: Mapping[str, np.ndarray], names: tuple[str, ...], limit: int) -> int:
     """Length n of the parallel arrays ``names`` of a decoded request.
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from server.grpc_common import (
     MAX_MESSAGE_BYTES,
+    Admission,
     CallStats,
     ManagedServer,
     PackedCodec,
@@ -69,8 +70,15 @@ HEIGHT_ENCODINGS = (pb.HEIGHT_ENCODING_UNSPECIFIED, pb.HEIGHT_ENCODING_FLOAT32, 
 # different clients run in parallel.
 DEFAULT_MAX_WORKERS = min(32, (os.cpu_count() or 1) + 4)
 # Calls admitted at once per worker thread (running or queued); more are refused
-# with RESOURCE_EXHAUSTED instead of queueing without bound.
+# with RESOURCE_EXHAUSTED instead of queueing without bound (grpc_common.Admission).
 ADMITTED_CALLS_PER_WORKER = 4
+ADMISSION_WHAT = "terrain calls admitted at once, running or queued; sent again later, it may be admitted"
+# Threads beyond the admitted calls' for what is not admitted: health checks, reflection, and
+# refusals, so a busy service answers its health check at once (docker-compose's healthcheck).
+SPARE_THREADS = 4
+# Calls gRPC takes at once beyond the admitted ones (health, reflection, calls about to be
+# refused): a backstop, refused by gRPC itself before their requests are read.
+OTHER_CALLS_AT_ONCE = 64
 
 HEIGHT_REFERENCE = ("heights are metres above mean sea level (each source's vertical_datum, "
                     "the EGM96 geoid for SRTM), not above the WGS84 ellipsoid")
@@ -539,15 +547,20 @@ def stoppable_handler(name: str, method, field_names, stats: CallStats | None = 
     return behaviour
 
 
-def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None) -> dict:
+def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None,
+                    admission: Admission | None = None) -> dict:
     """gRPC method handlers for every RPC of the service, fast-path codecs included;
-    ``stats`` counts the calls (the service's metrics)."""
+    ``stats`` counts the calls (the service's metrics); ``admission`` (if given) admits them."""
     handlers = {}
     for rpc, (_, _, field_names) in RPCS.items():
         _, request_deserializer, response_serializer, _ = serializers(rpc)
         make = stoppable_handler if rpc in STOPPABLE_RPCS else unary_handler
+        name = f"{SERVICE_NAME}/{rpc}"
+        behaviour = make(name, getattr(servicer, rpc), field_names, stats)
+        if admission is not None:
+            behaviour = admission.wrap(name, behaviour, stats)
         handlers[rpc] = grpc.unary_unary_rpc_method_handler(
-            make(f"{SERVICE_NAME}/{rpc}", getattr(servicer, rpc), field_names, stats),
+            behaviour,
             request_deserializer=tolerant_decoder(request_deserializer),
             response_serializer=response_serializer,
         )
@@ -562,20 +575,24 @@ def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFA
     against ``dem_stats`` (their :func:`file_stat` before they were read; None: taken now).
 
     Returns the server, not yet started (call ``start()``), and the bound port;
-    ``server.stats`` (grpc_common.CallStats) counts its calls.
-    Health (SERVING for "" and sortie.v1.TerrainService once started) and
-    reflection are registered.
+    ``server.stats`` (grpc_common.CallStats) counts its calls, ``server.admission``
+    (grpc_common.Admission) admits them: ADMITTED_CALLS_PER_WORKER x ``max_workers`` at once,
+    ``max_workers`` of them working. Health (SERVING for "" and sortie.v1.TerrainService once
+    started) and reflection are registered, outside the admission, on SPARE_THREADS threads of
+    their own: a busy service answers them at once.
     """
+    admission = Admission(ADMITTED_CALLS_PER_WORKER * max_workers, max_workers, ADMISSION_WHAT)
     server = grpc.server(
-        futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="terrain-rpc"),
+        futures.ThreadPoolExecutor(max_workers=admission.limit + SPARE_THREADS, thread_name_prefix="terrain-rpc"),
         options=server_options(),
-        maximum_concurrent_rpcs=ADMITTED_CALLS_PER_WORKER * max_workers,
+        maximum_concurrent_rpcs=admission.limit + OTHER_CALLS_AT_ONCE,
     )
     stats = CallStats()
-    server.add_registered_method_handlers(SERVICE_NAME,
-                                          method_handlers(TerrainServicer(terrain, dem_paths, dem_stats), stats))
+    server.add_registered_method_handlers(
+        SERVICE_NAME, method_handlers(TerrainServicer(terrain, dem_paths, dem_stats), stats, admission))
     managed = ManagedServer(server, (SERVICE_NAME,))
     managed.stats = stats
+    managed.admission = admission
     try:
         port = server.add_insecure_port(address)
     except RuntimeError as exc:  # in use, or no such interface: with the system's reason
