@@ -62,6 +62,11 @@ once; :func:`line_of_sight` traces such a ray from its other end as well, so
 a ray blocked on the raster before it leaves is blocked whichever end is
 outside); FILLED when the walk passed over a block holding a filled-void post
 (conservative: at whatever pyramid level it cleared that block); else OK.
+A segment whose track runs along a line of posts (a vertical one, one in a
+meridian plane, one on the equator over a row of posts) reads that line's
+posts alone, as heights do at its points: along a hole's rim it meets the
+raster, with the slope its points have there, and a filled post beside the
+line does not make it FILLED.
 A raster spanning a full turn of longitude or more (a whole number of cells a
 turn) is walked periodically over its first turn's cells; any other
 raster ends at its first and last column (an antimeridian-crossing raster is
@@ -95,7 +100,7 @@ from sortie.errors import InvalidArgument
 from terrain.geodesy import (WGS84_A_M, WGS84_B_M, WGS84_E2, WGS84_EP2, WGS84_F, ecef_to_geodetic,
                              geodetic_to_ecef)
 from terrain.raster import (CRS_GEOGRAPHIC, STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, TWO_PI_A_M, Raster,
-                            fractional_index, metres_per_index)
+                            _gradient_value, fractional_index, metres_per_index)
 from terrain.validate import check_heights, check_latlon
 
 # Longest piece of the piecewise-quadratic ray (m). Keeps the vertical cubic
@@ -393,6 +398,22 @@ def _next_cell(r0, r1, r2, c0, c1, c2, sr, sc, rlo, rhi, clo, chi, u_r, u_c, u_e
     return i, j
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _track_posts(r0, r1, r2, c0, c1, c2, i, j, jw):
+    """(i0, i1, j0, j1): the rows and (wrapped) columns of the posts of cell (i, j) (jw: j wrapped)
+    that have weight somewhere on a stretch of the track (row r0 + r1 u + r2 u**2, column
+    c0 + c1 u + c2 u**2, unwrapped as j). A track along a post line (its row or column a constant
+    on it, as a vertical segment's both are and a segment in a meridian plane its column, snapped
+    to the line by terrain.raster.fractional_index) reads that line's posts alone, a post of zero
+    weight replaced by its neighbour on the line, as terrain.raster._weighted_corners does for a
+    point: such a track is covered where the heights of its points are (a hole beside the line
+    takes nothing from it); any other track reads the cell's four posts."""
+    on_r = r1 == 0.0 and r2 == 0.0
+    on_c = c1 == 0.0 and c2 == 0.0
+    return ((i + 1 if on_r and r0 == i + 1 else i), (i if on_r and r0 == i else i + 1),
+            (jw + 1 if on_c and c0 == j + 1 else jw), (jw if on_c and c0 == j else jw + 1))
+
+
 @numba.njit(cache=True, nogil=True)
 def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua, ub, stack, out):
     """Walk the cells of one monotone stretch [ua, ub] of a piece.
@@ -404,8 +425,9 @@ def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua,
     quadratic carries a hair past the pole row stays in the polar cells.
 
     Returns _WALK_ON (no hit, continue), _WALK_HIT (out[0] = u of the hit,
-    out[1], out[2] = surface slope d h / d col, d h / d row there) or
-    _WALK_OUTSIDE. out[3] is set to 1 when a filled-void cell was used.
+    out[1], out[2] = surface slope d h / d col, d h / d row there, or, with out[5] set to 1, the
+    hit's fractional row and column in the raster, on a post line beside a hole: its slope is
+    :func:`_rim_slopes`') or _WALK_OUTSIDE. out[3] is set to 1 when a filled-void cell was used.
     """
     ny, nx = heights.shape
     ncy, ncx = ny - 1, (periodic if periodic else nx - 1)
@@ -430,12 +452,16 @@ def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua,
             if has_fill and pfill[block]:
                 out[3] = 1.0
         else:
+            i0, i1, j0, j1 = _track_posts(r0, r1, r2, c0, c1, c2, i, j, jw)
             h00, h01 = np.float64(heights[i, jw]), np.float64(heights[i, jw + 1])
             h10, h11 = np.float64(heights[i + 1, jw]), np.float64(heights[i + 1, jw + 1])
-            if (h00 + h01 + h10 + h11) != (h00 + h01 + h10 + h11):
-                return _WALK_OUTSIDE
-            if filled.shape[0] > 0 and (filled[i, jw] | filled[i, jw + 1] | filled[i + 1, jw]
-                                        | filled[i + 1, jw + 1]):
+            rim = (h00 + h01 + h10 + h11) != (h00 + h01 + h10 + h11)
+            if rim:  # a hole's post: only a track along a line of the cell's finite posts stays on
+                h00, h01 = np.float64(heights[i0, j0]), np.float64(heights[i0, j1])
+                h10, h11 = np.float64(heights[i1, j0]), np.float64(heights[i1, j1])
+                if (h00 + h01 + h10 + h11) != (h00 + h01 + h10 + h11):
+                    return _WALK_OUTSIDE
+            if filled.shape[0] > 0 and (filled[i0, j0] | filled[i0, j1] | filled[i1, j0] | filled[i1, j1]):
                 out[3] = 1.0
             w = u_e - u
             v = _cell_root(h00, h01, h10, h11, poly, u, w, i, j, stack)
@@ -444,8 +470,11 @@ def _walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, ua,
                 fx = _quad(c0, c1, c2, uh) - j
                 fy = _quad(r0, r1, r2, uh) - i
                 out[0] = uh
-                out[1] = (h01 - h00) + (h00 - h01 - h10 + h11) * fy
-                out[2] = (h10 - h00) + (h00 - h01 - h10 + h11) * fx
+                if rim:  # the slope there is found by trace_segments (_rim_slopes), kept out of this loop
+                    out[1], out[2], out[5] = i + fy, jw + fx, 1.0
+                else:
+                    out[1] = (h01 - h00) + (h00 - h01 - h10 + h11) * fy
+                    out[2] = (h10 - h00) + (h00 - h01 - h10 + h11) * fx
                 return _WALK_HIT
         if u_e >= ub:
             out[4] = k
@@ -527,21 +556,24 @@ def _fit_piece(ra, rm, rb, ca, cm, cb, ha, hm, hb, poly, cuts):
 
 @numba.njit(cache=True, nogil=True)
 def _trace_kernel(heights, filled, pmax, pfill, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn_cols,
-                  a_ecef, b_ecef, s_lo, s_hi, rho_coef, out_s, out_dcol, out_drow, out_status):
+                  a_ecef, b_ecef, s_lo, s_hi, rho_coef, out_s, out_dcol, out_drow, out_status, out_rim):
     """First contact parameter s in [s_lo, s_hi] (NaN: none) of each segment a + s (b - a).
 
     a_ecef, b_ecef: (n, 3) float64 ECEF metres; s_lo, s_hi: (n,) float64.
     Writes out_s (n,) float64, out_dcol/out_drow (n,) float64 surface slope at
-    the hit in metres per index step, out_status (n,) uint8 STATUS_*.
+    the hit in metres per index step, out_status (n,) uint8 STATUS_*; out_rim (n,) uint8 1 where
+    the hit lies on a post line beside a hole, out_dcol/out_drow then its fractional row and
+    column (:func:`_walk`).
     """
     poly = np.zeros(9)
     cuts = np.zeros(4)
     stack = np.zeros((_STACK_DEPTH, 7))
-    out = np.zeros(5)
+    out = np.zeros(6)
     for n in range(a_ecef.shape[0]):
         seg = _segment(a_ecef, b_ecef, n)
         out_s[n] = math.nan
         out[3] = 0.0
+        out[5] = 0.0
         out[4] = pshape.shape[0] - 1
         sa = s_lo[n]
         ra, ca, ha = _track_at(seg, sa, crs, x0, y0, dx, dy)
@@ -558,7 +590,7 @@ def _trace_kernel(heights, filled, pmax, pfill, poff, pshape, crs, x0, y0, dx, d
                 u0 = cuts[c]
             if code == _WALK_HIT:
                 out_s[n] = sa + out[0] * (sb - sa)
-                out_dcol[n], out_drow[n] = out[1], out[2]
+                out_dcol[n], out_drow[n], out_rim[n] = out[1], out[2], out[5] > 0.0
             if code == _WALK_ON and sb >= s_hi[n]:
                 break
             sa, ra, ca, ha = sb, rb, cb, hb
@@ -566,6 +598,18 @@ def _trace_kernel(heights, filled, pmax, pfill, poff, pshape, crs, x0, y0, dx, d
             out_status[n] = STATUS_OUTSIDE
         else:
             out_status[n] = STATUS_FILLED if out[3] > 0.0 else STATUS_OK
+
+
+@numba.njit(cache=True, nogil=True)
+def _rim_slopes(heights, periodic, rows, cols):
+    """(d h / d col, d h / d row) (m per index step) at fractional indices (rows, cols) (m,) of hits
+    on a post line beside a hole: the raster's slope there as its points' (terrain.raster's
+    _gradient_value, which Raster.gradient_into answers normals with), so a ray's contact normal is
+    the one normals give its point. Kept out of the walk, whose hot loop it slowed by half."""
+    dcol, drow = np.zeros(rows.shape[0]), np.zeros(rows.shape[0])
+    for k in range(rows.shape[0]):
+        dcol[k], drow[k], _ = _gradient_value(heights, rows[k], cols[k], periodic)
+    return dcol, drow
 
 
 def check_segments(a_lat, a_lon, a_h, b_lat, b_lon, b_h):
@@ -591,11 +635,7 @@ def _walk_params(raster: Raster) -> tuple[int, int, float]:
     """
     g = raster.georef
     turn = 360.0 if g.crs == CRS_GEOGRAPHIC else TWO_PI_A_M
-    period = turn / g.dx
-    whole = round(period)
-    periodic = 0
-    if abs(period - whole) <= 1.0e-9 * period and raster.shape[1] - 1 >= whole:
-        periodic = whole
+    periodic = raster.columns_per_turn
     poles = 0
     if g.crs == CRS_GEOGRAPHIC:
         lat_top = g.y0 + (raster.shape[0] - 1) * g.dy
@@ -627,9 +667,13 @@ def trace_segments(raster: Raster, a_ecef: np.ndarray, b_ecef: np.ndarray, s_lo:
     drow = np.full(n, np.nan)
     status = np.zeros(n, np.uint8)
     filled = raster.filled if raster.filled is not None else _NO_FILLED
+    rim = np.zeros(n, np.uint8)
     _trace_kernel(raster.heights, filled, pyr.max_flat, pyr.filled_flat, pyr.offsets, pyr.shapes,
                   g.crs, g.x0, g.y0, g.dx, g.dy, periodic, poles, turn_cols, a_ecef, b_ecef, s_lo, s_hi,
-                  PIECE_RHO_COEF, s, dcol, drow, status)
+                  PIECE_RHO_COEF, s, dcol, drow, status, rim)
+    rim = np.flatnonzero(rim)
+    if rim.size:
+        dcol[rim], drow[rim] = _rim_slopes(raster.heights, periodic, dcol[rim], drow[rim])
     return s, dcol, drow, status
 
 
@@ -824,11 +868,13 @@ def _emit(s0, s1, fill, ray, first, count, out_ray, out_s0, out_s1, out_fill):
 
 
 @numba.njit(cache=True, nogil=True)
-def _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, u0, u1, sa, sb, ray, first, count,
-                out_ray, out_s0, out_s1, out_fill):
+def _cover_walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, shift, u0, u1, sa, sb, ray, first,
+                count, out_ray, out_s0, out_s1, out_fill):
     """Emit (as parameters s = sa + u (sb - sa)) the parts of [u0, u1] over cells of four finite
     posts, each marked 1 in out_fill over cells with a filled-void post (pfill: the pyramid's
-    filled flags, empty when the raster has none), else 0. [u0, u1] is a monotone stretch of a
+    filled flags, empty when the raster has none), else 0; along a post line, over cells whose
+    posts on the line are finite, marked by those posts (:func:`_track_posts`, as :func:`_walk`
+    reads them; heights, filled: the raster's). [u0, u1] is a monotone stretch of a
     piece clipped to the raster's rows and (columns less ``shift``, a whole number of turns) its
     columns. The walk is :func:`_walk`'s (the same block steps on the min/max pyramid): a block
     whose maximum is finite holds no hole and is passed whole (a cell with a NaN post has maximum
@@ -837,6 +883,7 @@ def _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, u0, u1,
     has_fill = pfill.shape[0] > 0
     r0, r1, r2 = poly[0], poly[1], poly[2]
     c0, c1, c2 = poly[3] - shift, poly[4], poly[5]
+    on_line = (r1 == 0.0 and r2 == 0.0) or (c1 == 0.0 and c2 == 0.0)
     sr, sc, i, j = _walk_start(r0, r1, r2, c0, c1, c2, u0, u1, ncy, ncx)
     if i == _OUT_OF_RANGE or j == _OUT_OF_RANGE:
         return count
@@ -858,6 +905,13 @@ def _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, u0, u1,
         if (not covered or fill) and k > 0:
             k -= 1
             continue
+        if (not covered or fill) and on_line:
+            i0, i1, j0, j1 = _track_posts(r0, r1, r2, c0, c1, c2, i, j, jw)
+            h = (np.float64(heights[i0, j0]) + np.float64(heights[i0, j1]) + np.float64(heights[i1, j0])
+                 + np.float64(heights[i1, j1]))
+            covered = h == h
+            if has_fill:
+                fill = filled[i0, j0] | filled[i0, j1] | filled[i1, j0] | filled[i1, j1]
         if covered:
             count = _emit(sa + u * (sb - sa), sa + u_e * (sb - sa), fill, ray, first, count, out_ray, out_s0, out_s1,
                           out_fill)
@@ -871,8 +925,8 @@ def _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, u0, u1,
 
 
 @numba.njit(cache=True, nogil=True)
-def _cover_stretch(pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, ua, ub, sa, sb, ray, first, count,
-                   out_ray, out_s0, out_s1, out_fill):
+def _cover_stretch(heights, filled, pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, ua, ub, sa, sb, ray,
+                   first, count, out_ray, out_s0, out_s1, out_fill):
     """:func:`_cover_walk` over the parts of the monotone stretch [ua, ub] inside the raster's rows
     (beyond a pole row too, when the raster reaches the pole) and columns: every copy of the
     column range a whole turn apart that the stretch meets, in order along it (a raster not
@@ -883,8 +937,8 @@ def _cover_stretch(pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, 
     if not u0 <= u1:
         return count
     if periodic:
-        return _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, 0.0, u0, u1, sa, sb, ray, first, count,
-                           out_ray, out_s0, out_s1, out_fill)
+        return _cover_walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, 0.0, u0, u1, sa, sb, ray,
+                           first, count, out_ray, out_s0, out_s1, out_fill)
     c_a, c_b = _quad(poly[3], poly[4], poly[5], ua), _quad(poly[3], poly[4], poly[5], ub)
     lo, hi = min(c_a, c_b), max(c_a, c_b)
     if not (abs(lo) < 1.0e12 and abs(hi) < 1.0e12):
@@ -896,16 +950,16 @@ def _cover_stretch(pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, 
         v0, v1 = _clip_monotone(poly[3] - shift, poly[4], poly[5], ua, ub, 0.0, float(ncx))
         v0, v1 = max(v0, u0), min(v1, u1)
         if v0 <= v1:
-            count = _cover_walk(pmax, pfill, poff, pshape, periodic, poles, poly, shift, v0, v1, sa, sb, ray, first,
-                                count, out_ray, out_s0, out_s1, out_fill)
+            count = _cover_walk(heights, filled, pmax, pfill, poff, pshape, periodic, poles, poly, shift, v0, v1, sa,
+                                sb, ray, first, count, out_ray, out_s0, out_s1, out_fill)
             if count < 0:
                 return count
     return count
 
 
 @numba.njit(cache=True, nogil=True)
-def _cover_kernel(pmax, pfill, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn_cols, a_ecef, b_ecef, s_lo,
-                  s_hi, rho_coef, first_ray, out_ray, out_s0, out_s1, out_fill):
+def _cover_kernel(heights, filled, pmax, pfill, poff, pshape, crs, x0, y0, dx, dy, periodic, poles, turn_cols, a_ecef,
+                  b_ecef, s_lo, s_hi, rho_coef, first_ray, out_ray, out_s0, out_s1, out_fill):
     """The parameter intervals of each segment a + s (b - a), s in [s_lo, s_hi], over the raster's
     covered cells (out_fill: 1 over filled-void cells), in order, from segment first_ray on:
     (count written, next segment). The
@@ -925,8 +979,8 @@ def _cover_kernel(pmax, pfill, poff, pshape, crs, x0, y0, dx, dy, periodic, pole
             n_cuts = _fit_piece(ra, rm, rb, ca, cm, cb, ha, hm, hb, poly, cuts)
             u0 = 0.0
             for c in range(n_cuts + 1):
-                count = _cover_stretch(pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, u0, cuts[c], sa,
-                                       sb, n, first, count, out_ray, out_s0, out_s1, out_fill)
+                count = _cover_stretch(heights, filled, pmax, pfill, poff, pshape, periodic, poles, turn_cols, poly, u0,
+                                       cuts[c], sa, sb, n, first, count, out_ray, out_s0, out_s1, out_fill)
                 if count < 0:
                     return first, n
                 u0 = cuts[c]
@@ -936,38 +990,69 @@ def _cover_kernel(pmax, pfill, poff, pshape, crs, x0, y0, dx, dy, periodic, pole
     return count, a_ecef.shape[0]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _post_span(v, along):
+    """(first, last) posts beside fractional index v whichever way a walk leaves it: the two of its
+    cell, the three of both cells beside a post line it lies on, or that line's alone when the
+    track runs along it (``along``)."""
+    k = int(math.floor(v))
+    if v != k:
+        return k, k + 1
+    return (k, k) if along else (k - 1, k + 1)
+
+
 @numba.njit(cache=True, nogil=True)
-def _covered_at(heights, crs, x0, y0, dx, dy, periodic, x, y, z):
+def _covered_at(heights, crs, x0, y0, dx, dy, periodic, x, y, z, on_row, on_col):
     """Whether the ECEF point lies in a cell of four finite posts whichever way a walk leaves it
     (:func:`_walk` takes the cell ahead on a boundary): on a row or column line both cells beside
-    it that the raster has must be covered, and one at least."""
+    it that the raster has must be covered, and one at least; a track along that line (on_row,
+    on_col: its row, its column constant, :func:`_along_lines`) reads the line's posts alone, as
+    :func:`_walk` does (:func:`_track_posts`)."""
     lat, lon, _ = _geodetic(x, y, z)
     r, c = fractional_index(lat, lon, crs, x0, y0, dx, dy)
     if not (abs(r) < 1.0e12 and abs(c) < 1.0e12):
         return False
     ny, nx = heights.shape
-    i1, j1 = int(math.floor(r)), int(math.floor(c))
-    i0 = i1 - 1 if r == i1 else i1
-    j0 = j1 - 1 if c == j1 else j1
-    i0, i1 = max(i0, 0), min(i1, ny - 2)
-    if not periodic:
-        j0, j1 = max(j0, 0), min(j1, nx - 2)
-    if i0 > i1 or j0 > j1:
+    if not (0.0 <= r <= ny - 1) or not (periodic or 0.0 <= c <= nx - 1):
         return False
-    for i in range(i0, i1 + 1):
-        for jj in range(j0, j1 + 1):
-            j = jj % periodic if periodic else jj
-            s = (np.float64(heights[i, j]) + np.float64(heights[i, j + 1]) + np.float64(heights[i + 1, j])
-                 + np.float64(heights[i + 1, j + 1]))
-            if s != s:
+    ra, rb = _post_span(r, on_row)
+    ca, cb = _post_span(c, on_col)
+    ra, rb = max(ra, 0), min(rb, ny - 1)
+    if not periodic:
+        ca, cb = max(ca, 0), min(cb, nx - 1)
+    for p in range(ra, rb + 1):
+        for q in range(ca, cb + 1):
+            v = heights[p, q % periodic if periodic else q]
+            if v != v:
                 return False
     return True
 
 
 @numba.njit(cache=True, nogil=True)
+def _along_lines(crs, x0, y0, dx, dy, ax, ay, az, vx, vy, vz, lo, hi):
+    """(on_row, on_col): whether the stretch [lo, hi] of segment a + s v runs along a row line, a
+    column line of posts: its fractional row (column) the same whole number at its ends and middle
+    (a straight chord lies on a line of constant latitude or longitude all along or crosses it;
+    vertical segments and those in a meridian plane run along one, snapped to it as every point of
+    their track is by terrain.raster.fractional_index)."""
+    ra, ca = 0.0, 0.0
+    on_row, on_col = True, True
+    for t in range(3):
+        s = lo + 0.5 * t * (hi - lo)
+        lat, lon, _ = _geodetic(ax + s * vx, ay + s * vy, az + s * vz)
+        r, c = fractional_index(lat, lon, crs, x0, y0, dx, dy)
+        if t == 0:
+            ra, ca = r, c
+        on_row = on_row and r == ra and r == math.floor(r)
+        on_col = on_col and c == ca and c == math.floor(c)
+    return on_row, on_col
+
+
+@numba.njit(cache=True, nogil=True)
 def _inner_bounds(heights, crs, x0, y0, dx, dy, periodic, a_ecef, b_ecef, p0, p1, nudge_m, out0, out1):
     """Each stretch [p0, p1] of a segment a + s (b - a) with its ends moved inwards, by nudge_m
-    doubling, until the raster covers them exactly (:func:`_covered_at`), so that
+    doubling, until the raster covers them exactly (:func:`_covered_at`, for a stretch along a
+    post line that line's posts, :func:`_along_lines`), so that
     :func:`trace_segments` starts and ends the stretch on the raster; NaN when no point up to the
     stretch's middle is covered (a sliver along a hole's rim)."""
     for n in range(p0.shape[0]):
@@ -975,11 +1060,13 @@ def _inner_bounds(heights, crs, x0, y0, dx, dy, periodic, a_ecef, b_ecef, p0, p1
         step = nudge_m / length if length > 0.0 else 0.0
         lo, hi = p0[n], p1[n]
         mid = 0.5 * (lo + hi)
+        on_row, on_col = _along_lines(crs, x0, y0, dx, dy, ax, ay, az, vx, vy, vz, lo, hi)
         out0[n] = math.nan
         out1[n] = math.nan
         s, d = lo, step
         while True:
-            if _covered_at(heights, crs, x0, y0, dx, dy, periodic, ax + s * vx, ay + s * vy, az + s * vz):
+            if _covered_at(heights, crs, x0, y0, dx, dy, periodic, ax + s * vx, ay + s * vy, az + s * vz, on_row,
+                           on_col):
                 out0[n] = s
                 break
             if s >= mid or d == 0.0:
@@ -987,7 +1074,8 @@ def _inner_bounds(heights, crs, x0, y0, dx, dy, periodic, a_ecef, b_ecef, p0, p1
             s, d = min(lo + d, mid), 2.0 * d
         s, d = hi, step
         while True:
-            if _covered_at(heights, crs, x0, y0, dx, dy, periodic, ax + s * vx, ay + s * vy, az + s * vz):
+            if _covered_at(heights, crs, x0, y0, dx, dy, periodic, ax + s * vx, ay + s * vy, az + s * vz, on_row,
+                           on_col):
                 out1[n] = s
                 break
             if s <= mid or d == 0.0:
@@ -1136,6 +1224,7 @@ def segment_coverage(raster: Raster, a_ecef, b_ecef, s_lo, s_hi):
     g = raster.georef
     periodic, poles, turn_cols = _walk_params(raster)
     pyr = raster.pyramid
+    filled = raster.filled if raster.filled is not None else _NO_FILLED
     whole = _whole_segments(raster, a_ecef, b_ecef)
     walk = np.flatnonzero(~whole)
     a_walk, b_walk = np.ascontiguousarray(a_ecef[walk]), np.ascontiguousarray(b_ecef[walk])
@@ -1144,9 +1233,9 @@ def segment_coverage(raster: Raster, a_ecef, b_ecef, s_lo, s_hi):
     parts, first = [], 0
     while first < n:
         out = np.empty(cap, np.int64), np.empty(cap), np.empty(cap), np.empty(cap, np.uint8)
-        count, first = _cover_kernel(pyr.max_flat, pyr.filled_flat, pyr.offsets, pyr.shapes, g.crs, g.x0, g.y0, g.dx,
-                                     g.dy, periodic, poles, turn_cols, a_walk, b_walk, s_lo[walk], s_hi[walk],
-                                     PIECE_RHO_COEF, first, *out)
+        count, first = _cover_kernel(raster.heights, filled, pyr.max_flat, pyr.filled_flat, pyr.offsets, pyr.shapes,
+                                     g.crs, g.x0, g.y0, g.dx, g.dy, periodic, poles, turn_cols, a_walk, b_walk,
+                                     s_lo[walk], s_hi[walk], PIECE_RHO_COEF, first, *out)
         parts.append((walk[out[0][:count]], out[1][:count], out[2][:count], out[3][:count]))
         cap *= 2
     inside = np.flatnonzero(whole)

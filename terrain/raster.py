@@ -296,20 +296,24 @@ def _filled_status(filled, r, c):
 
 
 @numba.njit(cache=True, nogil=True)
-def gradient_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, out_dcol, out_drow, out_status):
+def gradient_into(heights, filled, lat, lon, crs, x0, y0, dx, dy, periodic, out_dcol, out_drow, out_status):
     """Partial derivatives of the bilinear surface in index units (m per post).
 
-    On a cell edge the cell to the north-east is used (the last cell at the
-    far edges), matching bilinear_into's choice. filled as for :func:`bilinear_into`;
-    the status is the one bilinear_into gives the point (FILLED where a post of
-    non-zero weight is a filled void), so :class:`terrain.terrain.Terrain` can
-    answer a filled point's slope from a measured source, as it does its height.
+    Found wherever :func:`bilinear_into` has a height (:func:`_gradient_value`: on a cell edge
+    the cell to the north-east, the last cell at the far edges, unless a hole beside the edge
+    leaves it a post the height does not read). periodic: the columns a turn holds when the
+    raster's columns wrap (:attr:`Raster.columns_per_turn`), else 0. filled as for
+    :func:`bilinear_into`; the status is the one bilinear_into gives the point (FILLED where a
+    post of non-zero weight is a filled void), so :class:`terrain.terrain.Terrain` can answer a
+    filled point's slope from a measured source, as it does its height.
     """
     for k in range(lat.shape[0]):
         if out_status[k] != STATUS_OUTSIDE:
             continue
         r, c = fractional_index(lat[k], lon[k], crs, x0, y0, dx, dy)
-        dcol, drow, found = _gradient_value(heights, r, c)
+        dcol, drow, found = _cell_gradient(heights, r, c)
+        if not found:  # a hole's post in the cell; called apart, as inlined it slowed this loop by half
+            dcol, drow, found = _rim_gradient(heights, r, c, periodic)
         if found:
             out_dcol[k] = dcol
             out_drow[k] = drow
@@ -345,10 +349,18 @@ def bilinear_grid_into(heights, filled, lat_rows, lon_cols, crs, x0, y0, dx, dy,
                     out_status[i, j] = status
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _side_slope(a0, b0, a1, b1, w):
+    """(b0 - a0) (1 - w) + (b1 - a1) w: a cell's derivative across one axis from its posts a (before)
+    and b (after) on its two lines along the other axis, the second line at weight w."""
+    return (b0 - a0) * (1.0 - w) + (b1 - a1) * w
+
+
 @numba.njit(cache=True, nogil=True)
-def _gradient_value(heights, r, c):
-    """(d/dcol, d/drow, found) of the bilinear surface at fractional index (r, c): the cell
-    :func:`gradient_into` takes (the north-east one on an edge)."""
+def _cell_gradient(heights, r, c):
+    """(d/dcol, d/drow, found) at fractional index (r, c) from its cell as :func:`gradient_into`
+    takes it (the north-east one on an edge, the last cell at the far edges) when that cell's four
+    posts are finite; else not found (:func:`_rim_gradient` answers there)."""
     ny, nx = heights.shape
     if not (r >= 0.0 and r <= ny - 1 and c >= 0.0 and c <= nx - 1):
         return 0.0, 0.0, False
@@ -364,8 +376,54 @@ def _gradient_value(heights, r, c):
 
 
 @numba.njit(cache=True, nogil=True)
-def gradient_grid_into(heights, filled, lat_rows, lon_cols, crs, x0, y0, dx, dy, mx_rows, my_rows, out_de,
-                       out_dn, out_status):
+def _rim_gradient(heights, r, c, periodic):
+    """(d/dcol, d/drow, found) at fractional index (r, c) whose cell has a NaN post: found where
+    :func:`_bilinear_value` has a height (every post of non-zero weight finite), so a point on an
+    edge or a post beside a hole gets this raster's slope, as it gets its height.
+
+    Each partial derivative is the cell's with its posts of zero weight unread (so on a post
+    line, the line's own posts along it); across a line the point lies on (fx or fy 0), where
+    the cell lacks a post that derivative reads, the cell's on the other side of the line
+    (west, south; the columns wrap where ``periodic``, as for :func:`gradient_into`); where
+    neither side has them the raster holds only the line or the post there, and the slope
+    across it is 0 (the data say nothing of it)."""
+    ny, nx = heights.shape
+    if not (r >= 0.0 and r <= ny - 1 and c >= 0.0 and c <= nx - 1):
+        return 0.0, 0.0, False
+    i, fy = _cell(r, ny)
+    j, fx = _cell(c, nx)
+    i0, i1, j0, j1 = _weighted_corners(i, fy, j, fx)
+    weighted = (np.float64(heights[i0, j0]) + np.float64(heights[i0, j1]) + np.float64(heights[i1, j0])
+                + np.float64(heights[i1, j1]))
+    if weighted != weighted:
+        return 0.0, 0.0, False
+    dcol = _side_slope(np.float64(heights[i0, j]), np.float64(heights[i0, j + 1]), np.float64(heights[i1, j]),
+                       np.float64(heights[i1, j + 1]), fy)
+    west = j - 1 if j > 0 else (periodic - 1 if periodic else -1)
+    if dcol != dcol and fx == 0.0 and west >= 0:
+        dcol = _side_slope(np.float64(heights[i0, west]), np.float64(heights[i0, j]), np.float64(heights[i1, west]),
+                           np.float64(heights[i1, j]), fy)
+    drow = _side_slope(np.float64(heights[i, j0]), np.float64(heights[i + 1, j0]), np.float64(heights[i, j1]),
+                       np.float64(heights[i + 1, j1]), fx)
+    if drow != drow and fy == 0.0 and i > 0:
+        drow = _side_slope(np.float64(heights[i - 1, j0]), np.float64(heights[i, j0]), np.float64(heights[i - 1, j1]),
+                           np.float64(heights[i, j1]), fx)
+    return (dcol if dcol == dcol else 0.0), (drow if drow == drow else 0.0), True
+
+
+@numba.njit(cache=True, nogil=True)
+def _gradient_value(heights, r, c, periodic):
+    """(d/dcol, d/drow, found) of the bilinear surface at fractional index (r, c), found wherever
+    :func:`_bilinear_value` has a height: :func:`_cell_gradient`, else :func:`_rim_gradient`."""
+    dcol, drow, found = _cell_gradient(heights, r, c)
+    if found:
+        return dcol, drow, found
+    return _rim_gradient(heights, r, c, periodic)
+
+
+@numba.njit(cache=True, nogil=True)
+def gradient_grid_into(heights, filled, lat_rows, lon_cols, crs, x0, y0, dx, dy, periodic, mx_rows, my_rows,
+                       out_de, out_dn, out_status):
     """Raster.gradient_into over the lattice lat_rows x lon_cols, with each row's metres per
     column and per row step (mx_rows, my_rows: :func:`metres_per_index` of lat_rows) given:
     the same slopes and statuses, bit for bit, for the points still OUTSIDE."""
@@ -373,7 +431,9 @@ def gradient_grid_into(heights, filled, lat_rows, lon_cols, crs, x0, y0, dx, dy,
     for i in range(rr.shape[0]):
         for j in range(cc.shape[0]):
             if out_status[i, j] == STATUS_OUTSIDE:
-                dcol, drow, found = _gradient_value(heights, rr[i], cc[j])
+                dcol, drow, found = _cell_gradient(heights, rr[i], cc[j])
+                if not found:
+                    dcol, drow, found = _rim_gradient(heights, rr[i], cc[j], periodic)
                 if found:
                     out_de[i, j] = dcol / mx_rows[i]
                     out_dn[i, j] = drow / my_rows[i]
@@ -455,6 +515,19 @@ class Raster:
         return build_pyramid(self.heights, self.filled)
 
     @cached_property
+    def columns_per_turn(self) -> int:
+        """The columns a full turn of longitude holds when this raster's columns wrap, else 0.
+
+        They wrap when a turn is a whole number of cells (to 1e-9 of a turn) and the raster spans
+        that turn or more: its columns past the first turn repeat the first ones (a GeoTIFF from
+        -180.05 to 180.05, a store's all-longitude raster of a turn and two posts), so the column
+        west of column 0 is column columns_per_turn - 1 (the slope on column 0, the ray walk)."""
+        g = self.georef
+        period = (360.0 if g.crs == CRS_GEOGRAPHIC else TWO_PI_A_M) / g.dx
+        whole = round(period)
+        return whole if abs(period - whole) <= 1.0e-9 * period and self.shape[1] - 1 >= whole else 0
+
+    @cached_property
     def height_range_m(self) -> tuple[float, float] | None:
         """(lowest, highest) post height in metres (the bilinear surface stays between them;
         None when no post has data)."""
@@ -515,7 +588,8 @@ class Raster:
         dcol = np.zeros(lat.shape[0])
         drow = np.zeros(lat.shape[0])
         st = out_status.copy()
-        gradient_into(self.heights, self._filled_arg, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, dcol, drow, st)
+        gradient_into(self.heights, self._filled_arg, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, self.columns_per_turn,
+                      dcol, drow, st)
         hit = todo & (st != STATUS_OUTSIDE)
         if hit.any():
             mx, my = metres_per_index(g.crs, g.dx, g.dy, lat[hit])
@@ -535,8 +609,8 @@ class Raster:
         g = self.georef
         mx, my = metres_per_index(g.crs, g.dx, g.dy, lat_rows)
         gradient_grid_into(self.heights, self._filled_arg, lat_rows, lon_cols, g.crs, g.x0, g.y0, g.dx, g.dy,
-                           np.ascontiguousarray(mx, np.float64), np.ascontiguousarray(my, np.float64),
-                           out_de, out_dn, out_status)
+                           self.columns_per_turn, np.ascontiguousarray(mx, np.float64),
+                           np.ascontiguousarray(my, np.float64), out_de, out_dn, out_status)
 
     def raster_for(self, lat_min: float, lon_min: float, lat_max: float, lon_max: float):
         """This raster if it covers the box (degrees) entirely, else None."""

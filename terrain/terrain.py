@@ -419,9 +419,8 @@ class Terrain:
                 source.gradient_into(lat[idx], lon[idx], sub_de, sub_dn, sub_status)
                 de[idx], dn[idx], status[idx] = sub_de, sub_dn, sub_status
         # A filled point's slope comes from the source its height comes from (heights' rule,
-        # decided on heights). That source's slope is missing only on a post at the rim of one
-        # of its holes (the slope's cell has a NaN corner, the height reads the post alone):
-        # there the filled answer stays.
+        # decided on heights). A source has a slope wherever it has a height
+        # (terrain.raster._rim_gradient), so its answer replaces the fill's.
         for source, idx, _ in self._measured_instead(lat, lon, status):
             sub_de, sub_dn = np.full(idx.size, np.nan), np.full(idx.size, np.nan)
             sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
