@@ -11,21 +11,30 @@ classes), slope.png (8-bit, 255 = 90 degrees), diffuse.png, lightmap.png
 (8-bit, 255 = full light), shadow.png (255 = in shadow), composite.png and
 texture.json (box, size, spacings, sun, class histogram, files).
 
+Each row of pixels has its own metre spacings (terrain.texture.row_spacing:
+a row's east-west spacing is N(phi) cos(phi) dlon at its own latitude), and
+slopes, normals, sky view and shadows take them, so a tall box (30 to 75 N)
+or a polar one has the true slope in every row. texture.json's spacing_m
+gives the centre's ("east", "north", as --spacing-m means them) and the
+rows' range ("east_rows", "north_rows"). The land classes' noise is placed
+by world position (ECEF on the ellipsoid), so every box draws the same
+classes at the same place, whatever its extent, however its longitude is
+written, and across the antimeridian.
+
 The sun is placed at every pixel (terrain/sun.py at the pixel's centre),
 with refraction (the apparent sun) unless --no-refraction. Where its
 direction differs by less than SUN_UNIFORM_DEG across the box (a 1-degree
 box differs by about 1 degree), the centre's sun lights the whole box and
-shadows take the exact one-sun sweep, as before. Otherwise each pixel's
-ambient light (and its twilight ramp), N.L and day or night are its own, so
-a box wide enough to span day and night is lit on its day side and dark on
-its night side, and cast shadows follow each pixel's own sun, in one sweep
-per quadrant of sun directions (terrain.texture.cast_shadow): a shadow ray
-bends with the change of the sun's direction along it, about 1 degree per
-degree of arc it runs over the ground at mid-latitudes (0.1 degree along a
-10 km shadow; east-west, 1/cos(latitude) times that toward the poles),
-whatever the box's width; no box is refused or tiled for its width.
-texture.json gives the sun at the box's centre, whether it was per pixel,
-and the range of its elevation over the pixels.
+shadows take the one-sun sweep. Otherwise each pixel's ambient light (and
+its twilight ramp), N.L and day or night are its own, so a box wide enough
+to span day and night is lit on its day side and dark on its night side,
+and each pixel's shadow ray runs straight toward its own sun
+(terrain.texture.cast_shadow), whatever the box's width; no box is refused
+or tiled for its width. texture.json gives the sun at the box's centre,
+whether it was per pixel, and the range of its elevation over the pixels.
+--time takes an ISO 8601 instant with a zone (Z, z or an offset), 24:00 as
+the end of the day and a leap second :60 as :59; one outside the years 1 to
+9999 once in UTC is an error naming --time.
 
 Water over a lossy terrain store: the class map counts as water every pixel
 within the store's quantisation bound (half its step) of sea level
@@ -51,7 +60,7 @@ import json
 import math
 import re
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 
 from sortie.errors import InvalidArgument
 
@@ -107,9 +116,8 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
         description="Synthesize aerial imagery of a lat/lon box from the terrain alone, after Flight "
                     "Simulator X: a land-class map from elevation, water and slope, procedural class "
                     "textures, and a light map (sky exposure, sun, cast shadows) for the given UTC time. "
-                    "The sun is each pixel's own (a box may span day and night); cast shadows follow each "
-                    "pixel's sun, a shadow ray bending with the sun's direction along it (about 1 degree per "
-                    "degree of arc it runs at mid-latitudes). Writes classes.png, slope.png, diffuse.png, "
+                    "The sun is each pixel's own (a box may span day and night), and so is each shadow ray; "
+                    "slopes and light take each row's own metre spacing. Writes classes.png, slope.png, diffuse.png, "
                     "lightmap.png, shadow.png, composite.png and texture.json into DIR. A box with no terrain "
                     "data is refused.")
     from server.terrain_cli import add_terrain_source_args  # loaded by now: it registers this command
@@ -117,7 +125,7 @@ def add_texture_parser(commands) -> argparse.ArgumentParser:
     add_terrain_source_args(p)
     add_grid_args(p, "pixels", f"at most {MAX_PIXELS:,} in all")
     p.add_argument("--time", required=True, metavar="ISO8601",
-                   help="UTC instant with its zone, e.g. 2026-06-21T12:00:00Z")
+                   help="instant with its zone, e.g. 2026-06-21T12:00:00Z or 2026-06-21T14:00:00+02:00")
     p.add_argument("--no-refraction", action="store_true", help="geometric sun elevation (no refraction)")
     p.add_argument("--seed", type=int, default=0, help="noise seed of the textures and bands (default %(default)s)")
     p.add_argument("--soft-px", type=int, default=0, metavar="N",
@@ -155,16 +163,40 @@ def box_of(args) -> list:
         raise InvalidArgument("--cell", f"is not a quad-tree cell id ({e})", value=args.cell) from None
 
 
+# The time of day of an ISO 8601 instant in its extended form (hh:mm[:ss[.fff]]), after the date.
+TIME_OF_DAY = re.compile(r"^(?P<date>[^Tt ]+[Tt ])(?P<h>\d\d):(?P<m>\d\d)(?::(?P<s>\d\d)(?P<frac>[.,]\d+)?)?"
+                         r"(?P<zone>.*)$")
+
+
 def parse_time(text: str) -> datetime:
-    """An ISO 8601 instant with a zone ('Z' or +hh:mm), as an aware UTC datetime."""
+    """An ISO 8601 instant with a zone ('Z', 'z' or +hh:mm), as an aware UTC datetime.
+
+    ISO 8601's end of day 24:00[:00] is the next day's 00:00; a leap second hh:mm:60 (RFC 3339
+    section 5.6 allows it) is read as hh:mm:59 (the sun moves 0.004 degrees in a second, below
+    the sun model's accuracy). An instant outside the years 1 to 9999 once in UTC is refused."""
+    shown = text
+    text = text.strip()
+    next_day = False
+    m = TIME_OF_DAY.match(text)
+    if m is not None and m["h"] == "24":
+        if m["m"] != "00" or (m["s"] or "00") != "00" or (m["frac"] and m["frac"][1:].strip("0")):
+            raise InvalidArgument("--time", "hour 24 is only 24:00:00, the end of a day", value=shown)
+        text, next_day = f"{m['date']}00:00:00{m['zone']}", True
+    elif m is not None and m["s"] == "60":
+        text = f"{m['date']}{m['h']}:{m['m']}:59{m['frac'] or ''}{m['zone']}"
+    if text.endswith("z"):
+        text = text[:-1] + "Z"
     try:
-        when = datetime.fromisoformat(text.strip())
+        when = datetime.fromisoformat(text)
     except ValueError:
         raise InvalidArgument("--time", "must be an ISO 8601 instant such as 2026-06-21T12:00:00Z",
-                              value=text) from None
+                              value=shown) from None
     if when.tzinfo is None or when.utcoffset() is None:
-        raise InvalidArgument("--time", "needs a zone: end it with Z (UTC) or an offset like +02:00", value=text)
-    return when.astimezone(timezone.utc)
+        raise InvalidArgument("--time", "needs a zone: end it with Z (UTC) or an offset like +02:00", value=shown)
+    try:
+        return (when + timedelta(days=1) if next_day else when).astimezone(timezone.utc)
+    except OverflowError:
+        raise InvalidArgument("--time", "is outside the years 1 to 9999 once converted to UTC", value=shown) from None
 
 
 def check_bbox(bbox) -> tuple[float, float, float, float]:
@@ -295,14 +327,15 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
     terrain's quantisation bound as its height tolerance (:func:`water_tolerance_m`)."""
     import numpy as np
 
-    from terrain.geodesy import radii_of_curvature
     from terrain.sun import sun_position
     from terrain.texture import (CLASS_COLOURS_RGB, CLASS_NAMES, class_histogram, metre_spacing,
-                                 synthesize)
+                                 noise_positions, row_spacing, synthesize)
 
     heights, lat, lon = sample_heights(terrain, req) if sampled is None else sampled
-    dx, dy = metre_spacing(req.lat_min, req.lat_max, (req.lat_max - req.lat_min) / req.rows,
-                           (req.lon_max - req.lon_min) / req.cols)
+    dlat, dlon = (req.lat_max - req.lat_min) / req.rows, (req.lon_max - req.lon_min) / req.cols
+    # Each row's own spacings for slopes, normals, sky view and shadows; the centre's for texture.json.
+    dx, dy = row_spacing(lat, dlat, dlon)
+    dx_c, dy_c = metre_spacing(req.lat_min, req.lat_max, dlat, dlon)
     lat_c, lon_c = 0.5 * (req.lat_min + req.lat_max), 0.5 * (req.lon_min + req.lon_max)
     sun = sun_position(req.when, lat_c, lon_c, refraction=refraction)
     az, el = float(sun.azimuth_deg), float(sun.elevation_deg)
@@ -314,20 +347,18 @@ def make_texture(terrain, req: TextureRequest, *, seed: int = 0, soft_px: int = 
     cos_apart = np.clip(sun_direction_enu(az_px, el_px) @ sun_direction_enu(az, el), -1.0, 1.0)
     per_pixel = bool(np.degrees(np.arccos(cos_apart.min())) >= SUN_UNIFORM_DEG)
     az_lit, el_lit = (az_px, el_px) if per_pixel else (az, el)
-    # Noise placed by world position (metres east and north at the centre's scale), so two
-    # boxes draw the same bands and woodlots where they overlap.
-    m, n = radii_of_curvature(lat_c)
-    east = (np.radians(lon) * n * np.cos(np.radians(lat_c)))[None, :]
-    north = (np.radians(lat) * m)[:, None]
+    # Noise placed by world position (ECEF on the ellipsoid), so every box draws the same bands
+    # and woodlots at the same place, however its longitude is written and across the antimeridian.
     water_tol = water_tolerance_m(terrain)
     tex = synthesize(heights, dx, dy, az_lit, el_lit, lat[:, None], seed=seed, soft_px=soft_px,
-                     noise_en_m=(east, north), water_tolerance_m=water_tol)
+                     noise_xyz_m=noise_positions(lat[:, None], lon[None, :]), water_tolerance_m=water_tol)
     finite = heights[np.isfinite(heights)]
     hist = class_histogram(tex.classes)
     summary = {
         "bbox": {"lat_min": req.lat_min, "lon_min": req.lon_min, "lat_max": req.lat_max, "lon_max": req.lon_max},
         "size": {"cols": req.cols, "rows": req.rows},
-        "spacing_m": {"east": dx, "north": dy},
+        "spacing_m": {"east": dx_c, "north": dy_c, "east_rows": [float(dx.min()), float(dx.max())],
+                      "north_rows": [float(dy.min()), float(dy.max())]},
         "time_utc": req.when.isoformat().replace("+00:00", "Z"),
         "sun": {"azimuth_deg": az, "elevation_deg": el, "refraction": refraction,
                 "at": {"lat": lat_c, "lon": lon_c}, "per_pixel": per_pixel,

@@ -21,7 +21,8 @@ import pytest
 from sortie.cli import main
 from sortie.errors import InvalidArgument
 from terrain.sun import sun_position
-from terrain.texture import LightParams, cast_shadow, fractal_noise, grid_latlon, light_map, metre_spacing
+from terrain.texture import (LightParams, cast_shadow, fractal_noise, grid_latlon, light_map, metre_spacing,
+                             row_spacing)
 from terrain.texture_cli import add_texture_parser, make_texture, texture_request
 
 
@@ -49,6 +50,9 @@ def test_each_pixel_has_its_own_sun(bbox, when):
     tex, summary = make_texture(None, req, sampled=(heights, lat, lon))
     sun = sun_position(req.when, lat[:, None], lon[None, :], refraction=True)
     az, el = np.radians(sun.azimuth_deg), np.radians(sun.elevation_deg)
+    # The fixture rises a * (the centre's east-west spacing) a column; slopes take each row's own spacing.
+    dlat, dlon = (req.lat_max - req.lat_min) / req.rows, (req.lon_max - req.lon_min) / req.cols
+    a = (a * metre_spacing(req.lat_min, req.lat_max, dlat, dlon)[0] / row_spacing(lat, dlat, dlon)[0])[:, None]
     expected = (-a * np.cos(el) * np.sin(az) + np.sin(el)) / np.sqrt(1.0 + a * a)
     np.testing.assert_allclose(tex.light.n_dot_l, expected, atol=1e-5)
     day, night = sun.elevation_deg > 5.0, sun.elevation_deg < -LightParams().twilight_deg
