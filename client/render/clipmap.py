@@ -472,7 +472,7 @@ class Clipmap:
         """Land class (terrain.texture.class_map) of each normal texel of a rectangle: the height
         of its post, the slope of its normal, band noise placed by world position (so that
         neighbouring strips agree). (2 rows, 2 cols) float."""
-        from terrain.texture import class_map
+        from terrain.texture import class_map, noise_positions
 
         lat_rows, lon_cols = self.latlon(k, np.arange(2 * r.i0, 2 * r.i1 + 2) / 2.0,
                                          np.arange(2 * r.j0, 2 * r.j1 + 2) / 2.0)
@@ -485,10 +485,10 @@ class Clipmap:
         heights = np.repeat(np.repeat(h, 2, axis=0), 2, axis=1)
         dy = self.spacing_m(k) / 2.0
         dx = dy * self.lattice.dlon / self.lattice.dlat * max(float(np.cos(np.radians(lat_rows.mean()))), 1e-6)
-        north = np.radians(lat_rows)[:, None] * 6_371_000.0
-        east = np.radians(lon_cols)[None, :] * 6_371_000.0 * cl
-        east, north = np.broadcast_arrays(east, north)
-        return class_map(heights, slope, dx, dy, lat_rows[:, None], noise_en_m=(east, north),
+        # The class noise at each sample's ECEF position, as `sortie terrain texture` places it: the
+        # same classes at the same place as the CLI's texture, no seam at the antimeridian.
+        return class_map(heights, slope, dx, dy, lat_rows[:, None],
+                         noise_xyz_m=noise_positions(lat_rows[:, None], lon_cols[None, :]),
                          water_tolerance_m=self.water_level_m).astype(np.float64)
 
     @property

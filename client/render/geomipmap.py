@@ -701,7 +701,7 @@ class GeomipmapInset:
         (12, 25, 38 degrees) are for real landforms, and the detail's metre-scale slopes would
         turn a flat field into a mottle of grass, forest and rock where the clipmap beside it,
         classifying at its own posts, draws farmland."""
-        from terrain.texture import CLASS_COLOURS_RGB, class_map
+        from terrain.texture import CLASS_COLOURS_RGB, class_map, noise_positions
 
         inset = self.inset
         rows, cols = inset.shape
@@ -714,12 +714,11 @@ class GeomipmapInset:
             slope = np.degrees(np.arccos(np.clip(cos_slope, -1.0, 1.0)))
         lat = g.y0 + np.arange(rows) * g.dy
         lon = g.x0 + np.arange(cols) * g.dx
-        north = np.radians(lat)[:, None] * 6_371_000.0
-        east = np.radians(lon)[None, :] * 6_371_000.0 * np.cos(np.radians(lat))[:, None]
-        east, north = np.broadcast_arrays(east, north)
         spacing_e, spacing_n = inset.spacing_m
+        # The class noise at each post's ECEF position, as the clipmap and `sortie terrain texture`
+        # place it (no seam at the antimeridian).
         classes = class_map(np.asarray(inset.heights, np.float64), slope, spacing_e, spacing_n, lat[:, None],
-                            noise_en_m=(east, north))
+                            noise_xyz_m=noise_positions(lat[:, None], lon[None, :]))
         return np.asarray(CLASS_COLOURS_RGB, np.float64)[classes[r, c]] / 255.0
 
     def _dem_slope_deg(self) -> np.ndarray | None:
