@@ -495,8 +495,9 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         _join(sim, args)
         picture = sim.watch()
         if not picture.wait_for(lambda p: _pick(p, args.follow, kind) is not None, FOLLOW_WAIT_S):
+            ended = picture.error  # the stream's own end, if it ended before the wait did
             sim.leave()
-            raise NotFound(_not_seen(args))
+            raise NotFound(_not_seen(args) + (f" (the state stream ended: {ended})" if ended is not None else ""))
         target = _pick(picture, args.follow, kind)
         info = picture.infos[target]
         terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain, store=args.store)

@@ -3,6 +3,7 @@
 and what collides agree), the clipmap is lowered beneath it, and the client draws it."""
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -95,6 +96,12 @@ def test_sortie_view_draws_the_servers_insets(canyon, tmp_path):
     srv = SimulationServer(world, server_config(scenario, "dem:" + ",".join(spec["dem"])))
     srv.start()
     try:
+        # The world has ticked before the view joins: its first tick may compile kernels for this
+        # terrain in a fresh clone (a CI run's view waited its 15 s for tank1 in vain).
+        deadline = time.monotonic() + 120.0
+        while world.tick_count < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert world.tick_count >= 1, "the world never ticked"
         rc = main(["view", "--server", srv.address, "--follow", "tank1", "--frames", "1", "--fps", "5", "--out",
                    str(tmp_path), "--size", "160x90", "--profile", "helicopter"])
     finally:
