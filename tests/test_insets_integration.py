@@ -91,6 +91,12 @@ def test_the_clipmap_is_lowered_beneath_the_inset_and_the_client_draws_it(canyon
         assert np.array_equal(texel[..., 3], surface.astype(np.float32))
 
 
+# Open: in three clean-clone CI runs of the full suite this test's server never showed tank1 to
+# the view within its 15 s (in process and in a subprocess alike), at the end of the first 60
+# test files; those 60 files alone (with and without the CI hypothesis profile), and this test
+# alone, pass every time. Marked so until the cause is found (stop 33's note); not strict, so
+# it still runs and reports.
+@pytest.mark.xfail(strict=False, reason="fails only at this place in a full clean-clone run; cause not found yet")
 def test_sortie_view_draws_the_servers_insets(canyon, tmp_path):
     from server.sim_server import build_world, server_config, SimulationServer
 
