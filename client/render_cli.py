@@ -485,6 +485,14 @@ def _not_seen(args) -> str:
             "every entity")
 
 
+def _picture_so_far(picture, most: int = 12) -> str:
+    """What the picture held when the wait for the agent ended: its update count and the names
+    it saw (the first ``most``), so a wrong name or an empty stream shows in the error."""
+    names = sorted(str(info.name) for info in picture.infos.values())
+    listed = ", ".join(repr(n) for n in names[:most]) + (f", ... ({len(names)} in all)" if len(names) > most else "")
+    return f"; the picture had {picture.updates} updates and {len(names)} entities" + (f": {listed}" if names else "")
+
+
 def _view(args, kind: int | None, stop: threading.Event) -> int:
     from client.render.entities import KIND_NAMES
     from client.sim_client import SimClient
@@ -497,7 +505,8 @@ def _view(args, kind: int | None, stop: threading.Event) -> int:
         if not picture.wait_for(lambda p: _pick(p, args.follow, kind) is not None, FOLLOW_WAIT_S):
             ended = picture.error  # the stream's own end, if it ended before the wait did
             sim.leave()
-            raise NotFound(_not_seen(args) + (f" (the state stream ended: {ended})" if ended is not None else ""))
+            raise NotFound(_not_seen(args) + _picture_so_far(picture)
+                           + (f" (the state stream ended: {ended})" if ended is not None else ""))
         target = _pick(picture, args.follow, kind)
         info = picture.infos[target]
         terrain, desc = open_terrain(args.dem, args.terrain, sim.world_info.terrain, store=args.store)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from sortie.errors import SortieError
 
-DEFAULT_START_TIMEOUT_S = 60.0
+DEFAULT_START_TIMEOUT_S = 120.0
 STOP_TIMEOUT_S = 30.0
 
 

@@ -247,9 +247,24 @@ class SimulationServer:
         # vehicles; 40 ms after this), a pause of the clock thread and every stream.
         gc.collect()
         gc.freeze()
+        self._warm_up()
         self.grpc.start()
         self._thread.start()
         logger.info("simulation server on %s, clock %s x%g", self.address, self._clock, self.config.time_scale)
+
+    def _warm_up(self) -> None:
+        """Compile the terrain's query kernels before the clock starts (Terrain.warm_up): in a
+        fresh install the world's first segment across a target area's edge compiled for 10-25 s
+        inside a tick, stalling the clock and every stream. Near the first target area, else the
+        origin (where a global source such as the procedural world is warmed). A remote terrain
+        (the terrain service) warms its own at start."""
+        warm = getattr(self.world.terrain, "warm_up", None)
+        if warm is None:
+            return
+        areas = self.config.target_areas
+        near = ((float(np.mean([p[0] for p in areas[0][1]])), float(np.mean([p[1] for p in areas[0][1]])))
+                if areas and areas[0][1] else (0.0, 0.0))
+        logger.info("terrain kernels ready in %.2f s", warm(near=near))
 
     def stop(self, grace_s: float = 2.0) -> None:
         self._stop.set()

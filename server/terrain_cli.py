@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 
 from server.grpc_common import DEFAULT_GRACE_S, stop_signals
 from server.terrain_service import DEFAULT_MAX_WORKERS
@@ -196,6 +197,8 @@ def serve_command(args) -> int:
             areas = [a for path in args.insets for a in load_scenario(path).target_areas]
             terrain = with_insets(terrain, areas, INSET_SEED)
             line(f"insets over {len(areas)} target areas: {', '.join(a.name for a in areas)}", logger=__name__)
+        if not stop.is_set():  # the query kernels compiled before the first call needs them (Terrain.warm_up)
+            logging.getLogger(__name__).info("query kernels ready in %.2f s", terrain.warm_up())
         if stop.is_set():
             line("sortie terrain service stopped while starting", logger=__name__)
             return 0

@@ -758,6 +758,60 @@ class Terrain:
         """One dict per source: name, kind, bounds, resolution, vertical datum."""
         return [source.describe() for source in self.sources]
 
+    def warm_up(self, near: tuple[float, float] = (0.0, 0.0)) -> float:
+        """Run every query once over each source, and across each source's edges, so that the
+        compiled kernels a query reaches are ready before a real-time caller needs them;
+        returns the seconds it took.
+
+        numba compiles a kernel on its first call in a process and keeps it in its on-disk cache,
+        so in a fresh install the first query down a new path (a segment crossing from a target
+        area's inset onto the DEM under it: ``stack_partitions``, ``segment_coverage``,
+        ``stack_trace``) waits for the compiler, 10-20 s on a busy 2-core machine. In a world
+        tick that stalls the clock and every stream (a view joining then saw nothing for 15 s:
+        tests/test_insets_integration.py). ``near`` (lat, lon), degrees: where to warm a source
+        that covers the globe (the procedural world), e.g. the exercise's centre.
+
+        Per source: a vertical segment through the ground at its centre, and two slanted ones
+        from inside it across its east and north edges (onto the next source, or out of the
+        data), each as an intersection, a line of sight, heights and normals, in one batch."""
+        import time
+
+        from sortie.errors import SortieError
+
+        t0 = time.perf_counter()
+        lat, lon, h0, lat_b, lon_b, h1 = [], [], [], [], [], []
+        for d in self.describe():
+            box = [d.get(k) for k in ("lat_min", "lon_min", "lat_max", "lon_max")]
+            if any(v is None or not math.isfinite(float(v)) for v in box):
+                continue
+            la0, lo0, la1, lo1 = (float(v) for v in box)
+            if la1 - la0 >= 90.0 or lo1 - lo0 >= 180.0:  # (nearly) global: a small box at near
+                la0, la1 = max(-89.9, near[0] - 0.05), min(89.9, near[0] + 0.05)
+                lo0, lo1 = near[1] - 0.05, near[1] + 0.05
+            cl, co = 0.5 * (la0 + la1), 0.5 * (lo0 + lo1)
+            dla, dlo = min(0.2 * (la1 - la0), 0.02), min(0.2 * (lo1 - lo0), 0.02)
+            ground = float(self.heights(np.array([cl]), np.array([co])).height_msl_m[0])
+            ground = ground if math.isfinite(ground) else 0.0
+            ends = [((cl, co, ground + 200.0), (cl, co, ground - 200.0)),
+                    ((cl, lo1 - dlo, ground + 30.0), (cl, lo1 + dlo, ground - 30.0)),
+                    ((la1 - dla, co, ground + 30.0), (min(89.9, la1 + dla), co, ground - 30.0))]
+            for (a_la, a_lo, a_h), (b_la, b_lo, b_h) in ends:
+                lat.append(a_la), lon.append((a_lo + 180.0) % 360.0 - 180.0), h0.append(a_h)
+                lat_b.append(b_la), lon_b.append((b_lo + 180.0) % 360.0 - 180.0), h1.append(b_h)
+        if not lat:
+            return time.perf_counter() - t0
+        seg = [np.array(x, np.float64) for x in (lat, lon, h0, lat_b, lon_b, h1)]
+        try:
+            self.intersect(*seg)
+            self.line_of_sight(*seg)
+            both_lat, both_lon = np.concatenate([seg[0], seg[3]]), np.concatenate([seg[1], seg[4]])
+            self.heights(both_lat, both_lon)
+            self.normals(both_lat, both_lon)
+            self.height_at(float(seg[0][0]), float(seg[1][0]))
+        except SortieError:  # a limit of this terrain's (e.g. a ray budget): the queries warm what they reached
+            pass
+        return time.perf_counter() - t0
+
 
 @dataclass(frozen=True)
 class ProfileResult:

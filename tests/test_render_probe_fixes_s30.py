@@ -180,6 +180,19 @@ def test_an_observer_that_does_not_see_the_agent_says_why(tank_server, tmp_path,
     err = capsys.readouterr().err
     assert rc == 2 and "not within the observed area" in err and "--observe-radius-km" in err
     assert "--role gateway" in err and "not in the exercise (" not in err
+    assert "the picture had" in err  # what it did see (here: the observed area's own entities, if any)
+
+
+def test_a_gateway_that_does_not_see_the_agent_names_what_it_saw(tank_server, tmp_path, capsys, monkeypatch):
+    """A misspelt name: the error lists the names the picture held, among them the right one."""
+    import client.render_cli as render_cli
+
+    monkeypatch.setattr(render_cli, "FOLLOW_WAIT_S", 1.0)
+    rc = main(["view", "--server", tank_server.address, "--follow", "tank9", "--role", "gateway",
+               "--frames", "1", "--fps", "1", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "'tank9' is not in the exercise" in err, err
+    assert "'tank1'" in err and "the picture had" in err, err
 
 
 def test_view_out_that_is_a_file_is_refused_by_name(tmp_path, capsys):
