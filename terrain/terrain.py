@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from sortie.errors import LimitExceeded
+from sortie.errors import LimitExceeded, SortieError
 from terrain.geodesy import WGS84_A_M, WGS84_B_M, WGS84_E2, ecef_to_geodetic, geodetic_to_ecef
 from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster, metres_per_index
 from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
@@ -766,7 +767,7 @@ class Terrain:
         numba compiles a kernel on its first call in a process and keeps it in its on-disk cache,
         so in a fresh install the first query down a new path (a segment crossing from a target
         area's inset onto the DEM under it: ``stack_partitions``, ``segment_coverage``,
-        ``stack_trace``) waits for the compiler, 10-20 s on a busy 2-core machine. In a world
+        ``stack_trace``) waits for the compiler, 10-25 s on a busy 2-core machine. In a world
         tick that stalls the clock and every stream (a view joining then saw nothing for 15 s:
         tests/test_insets_integration.py). ``near`` (lat, lon), degrees: where to warm a source
         that covers the globe (the procedural world), e.g. the exercise's centre.
@@ -774,10 +775,6 @@ class Terrain:
         Per source: a vertical segment through the ground at its centre, and two slanted ones
         from inside it across its east and north edges (onto the next source, or out of the
         data), each as an intersection, a line of sight, heights and normals, in one batch."""
-        import time
-
-        from sortie.errors import SortieError
-
         t0 = time.perf_counter()
         lat, lon, h0, lat_b, lon_b, h1 = [], [], [], [], [], []
         for d in self.describe():
