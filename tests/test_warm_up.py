@@ -8,6 +8,7 @@ package's kernels hold (compiled, or loaded from numba's cache) before and after
 """
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -98,3 +99,84 @@ def test_warm_up_changes_no_answer():
     sa = cold.intersect(lat, lon, h, lat + 0.01, lon + 0.01, h - 80.0)
     sb = warm.intersect(lat, lon, h, lat + 0.01, lon + 0.01, h - 80.0)
     assert np.array_equal(sa.distance_m, sb.distance_m, equal_nan=True)
+
+
+# -- the world's own kernels (server.warm_up) --------------------------------------------------------
+
+WORLD_PROBE = r"""
+import json, sys
+import numpy as np
+
+def overloads():  # every compiled kernel of the project's packages, and how many signatures it holds
+    from numba.core.registry import CPUDispatcher
+    return {f"{m}.{k}": len(v.overloads) for m, mod in list(sys.modules.items())
+            if m.split(".")[0] in ("terrain", "server", "fdm")
+            for k, v in vars(mod).items() if isinstance(v, CPUDispatcher)}
+
+def main():
+    from server.scenario import load_scenario
+    from server.sim_server import SimulationServer, aircraft_host, build_world, open_terrain, server_config
+
+    scenario = load_scenario(sys.argv[1])
+    terrain, desc, factory = open_terrain(scenario, None, None)
+    world = build_world(scenario, terrain, aircraft_host(scenario, terrain, factory, 0))
+    config = server_config(scenario, desc)
+    config.clock = "paused"  # the test ticks the world itself, after the start's warm-up
+    server = SimulationServer(world, config, "127.0.0.1:0")
+    entities, events = sorted(world.entities), world.events_since(0)[1]
+    server.start()
+    server.stop(0.5)
+    untouched = {"time_s": world.time_s, "ticks": world.tick_count, "entities": sorted(world.entities) == entities,
+                 "events": world.events_since(0)[1] == events}
+    before = overloads()
+    for _ in range(int(sys.argv[2])):
+        world.tick()
+    after = overloads()
+    world.close()
+    print(json.dumps({"compiled": sorted(k for k, v in after.items() if v > before.get(k, 0)),
+                      "untouched": untouched, "ground": int(world.ground.n if world.ground is not None else 0)}))
+
+if __name__ == "__main__":
+    main()
+"""
+
+
+@pytest.mark.parametrize("scenario", ["alps", "grand_canyon"])
+def test_after_the_start_a_worlds_ticks_compile_nothing(scenario, tmp_path):
+    """The scenario's world (aircraft in process, a convoy on a route and vehicles off any:
+    alps; one tank on a route over an inset: grand_canyon) started by its SimulationServer
+    (which warms the terrain and then ticks a scratch world), then 40 ticks: no kernel of the
+    terrain, server or fdm packages gains a signature in them; the start left the world
+    itself with its own entities and events and the one tick a paused clock runs."""
+    probe = tmp_path / "probe.py"
+    probe.write_text(WORLD_PROBE)
+    proc = subprocess.run([sys.executable, str(probe), f"data/scenarios/{scenario}.toml", "40"],
+                          capture_output=True, text=True, timeout=600, cwd=REPO,
+                          env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert got["compiled"] == [], got["compiled"]
+    # the paused clock runs the world's first tick (a snapshot for whoever joins): the scratch
+    # world's ticks are not the world's
+    assert got["untouched"] == {"time_s": pytest.approx(1 / 30), "ticks": 1, "entities": True, "events": True}
+    assert got["ground"] > 0
+
+
+def test_warm_up_world_takes_the_first_place_with_ground_and_skips_the_sea():
+    """The scratch world goes to the first place that takes ground vehicles: a place that is
+    no place (NaN) or outside the data is passed over; none left, nothing is warmed and
+    (seconds, None) says so. The world given lends only its terrain and rates."""
+    from server.warm_up import warm_up_world
+    from server.world import World
+
+    spec = terrain_spec(load_scenario("data/scenarios/alps.toml"))
+    terrain = open_terrain_source(**spec)
+    world = World(terrain)
+    try:
+        seconds, place = warm_up_world(world, [(math.nan, 9.5), (10.0, 20.0), (47.35, 9.45)])
+        assert place == (47.35, 9.45) and seconds > 0.0
+        seconds, place = warm_up_world(world, [(10.0, 20.0)])
+        assert place is None
+        assert world.entities == {} and world.tick_count == 0
+    finally:
+        world.close()
