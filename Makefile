@@ -17,6 +17,9 @@ SYS_PACKAGES := libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libgles2 libglx-mesa
 TOOLS := .tools
 TOOLS_STAMP := $(TOOLS)/.installed
 GLTF_VALIDATOR := gltf-validator@2.0.0-dev.3.10
+# Two bootstraps at once (two clones on one machine) wait for each other's apt and dpkg
+# locks, up to this many seconds, instead of failing (apt >= 1.9.11 reads DPkg::Lock::Timeout).
+APT_GET := apt-get -o DPkg::Lock::Timeout=600
 
 .PHONY: all bootstrap sysdeps demo test proto bench clean
 
@@ -30,7 +33,7 @@ $(VENV)/bin/python:
 	@if ! $(PYTHON) -c 'import ensurepip, venv' >/dev/null 2>&1; then \
 	  echo "installing python3-venv (this python has no venv/ensurepip)"; \
 	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
-	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv python3-pip >/dev/null; \
+	  $$SUDO $(APT_GET) update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive $(APT_GET) install -y -qq python3-venv python3-pip >/dev/null; \
 	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
@@ -46,7 +49,7 @@ $(SYS_STAMP): Makefile | $(VENV)/bin/python
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
 	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
-	  $$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
+	  $$SUDO $(APT_GET) update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive $(APT_GET) install -y -qq $$missing >/dev/null; \
 	fi
 	touch $@
 
@@ -54,7 +57,7 @@ $(TOOLS_STAMP): Makefile
 	@if ! command -v npm >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
 	  echo "installing nodejs and npm (for the Khronos glTF validator)"; \
 	  SUDO=""; [ "$$(id -u)" -ne 0 ] && SUDO=sudo; \
-	  ($$SUDO apt-get update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm \
+	  ($$SUDO $(APT_GET) update -qq && $$SUDO env DEBIAN_FRONTEND=noninteractive $(APT_GET) install -y -qq nodejs npm \
 	    >/dev/null) || echo "note: nodejs and npm could not be installed"; \
 	fi; \
 	if command -v npm >/dev/null 2>&1; then \
