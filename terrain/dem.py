@@ -136,21 +136,30 @@ RASTER_PIXEL_IS_POINT = 2
 # WGS 84 (geographic 3D, 4979: its heights are ellipsoidal unless VerticalCSTypeGeoKey says
 # otherwise, see _vertical_datum) exactly; NAD83 (4269, USGS 3DEP DEMs) through
 # EPSG:1188 "NAD83 to WGS 84 (1)", 4 m; ETRS89 (4258, European national DEMs)
-# through EPSG:1149 "ETRS89 to WGS 84 (1)", 1 m. Other datums (ED50, Tokyo,
-# ...) differ by tens to hundreds of metres and are refused.
+# through EPSG:1149 "ETRS89 to WGS 84 (1)", 1 m; NAD83's realisations, which the
+# newer USGS and NOAA rasters declare, through the registry's null transformations
+# to WGS 84, each 2 m (PROJ's proj.db, helmert_transformation, all parameters 0):
+# NAD83(HARN) 4152 EPSG:1580, NAD83(CSRS) 4617 EPSG:1842, NAD83(NSRS2007) 4759
+# EPSG:15931, NAD83(2011) 6318 EPSG:9774 (the same four the .prj reader below takes
+# by name). NAD83(CORS96) 6783 has no transformation to WGS 84 in the registry and is
+# refused, as are other datums (ED50, Tokyo, ...), which differ by tens to hundreds
+# of metres.
 GEOGRAPHIC_AS_WGS84 = {4326: ("WGS 84", 0.0, None), 4979: ("WGS 84 (3D)", 0.0, None),
-                       4269: ("NAD83", 4.0, 1188), 4258: ("ETRS89", 1.0, 1149)}
+                       4269: ("NAD83", 4.0, 1188), 4258: ("ETRS89", 1.0, 1149),
+                       4152: ("NAD83(HARN)", 2.0, 1580), 4617: ("NAD83(CSRS)", 2.0, 1842),
+                       4759: ("NAD83(NSRS2007)", 2.0, 15931), 6318: ("NAD83(2011)", 2.0, 9774)}
 # A user-defined geographic CRS (GeographicTypeGeoKey 32767, GeoTIFF 1.0 sections 6.2.2 and 6.3.2.1) given by
 # its parts: GeogGeodeticDatumGeoKey (2050, codes 6.3.2.2) and GeogPrimeMeridianGeoKey (2051, codes 6.3.2.4;
 # absent: Greenwich, as libgeotiff's GTIFGetDefn leaves a zero offset). On the EPSG datum of one of
-# GEOGRAPHIC_AS_WGS84's 2-D CRSs (WGS 84 6326, NAD83 6269, ETRS89 6258; PROJ's proj.db) with the Greenwich
+# GEOGRAPHIC_AS_WGS84's 2-D CRSs (WGS 84 6326, NAD83 6269, ETRS89 6258, NAD83(HARN) 6152, NAD83(CSRS) 6140,
+# NAD83(NSRS2007) 6759, NAD83(2011) 1116; PROJ's proj.db, geodetic_crs.datum_code) with the Greenwich
 # meridian (8901) it is that CRS, as GDAL reads it; its angular unit is GeogAngularUnitsGeoKey's, as for
 # any geographic raster.
 KEY_GEOG_GEODETIC_DATUM = 2050
 KEY_GEOG_PRIME_MERIDIAN = 2051
 GEOGRAPHIC_USER_DEFINED = 32767
 PRIME_MERIDIAN_GREENWICH = 8901
-GEOGRAPHIC_OF_DATUM = {6326: 4326, 6269: 4269, 6258: 4258}
+GEOGRAPHIC_OF_DATUM = {6326: 4326, 6269: 4269, 6258: 4258, 6152: 4152, 6140: 4617, 6759: 4759, 1116: 6318}
 # EPSG:3857 and its deprecated alias EPSG:3785. The older unofficial code
 # 900913 exceeds 65535, so it cannot appear in a SHORT GeoKey value.
 EPSG_WEB_MERCATOR = (3857, 3785)

@@ -606,10 +606,16 @@ def test_geotiff_compressed_tiled_and_bigtiff_read_the_same_posts(tmp_path, dtyp
 
 @pytest.mark.parametrize("code, datum", [(4326, "WGS 84"), (4979, "WGS 84 (3D)"),
                                          (4269, "NAD83 (EPSG:4269) read as WGS 84: EPSG:1188"),
-                                         (4258, "ETRS89 (EPSG:4258) read as WGS 84: EPSG:1149")])
+                                         (4258, "ETRS89 (EPSG:4258) read as WGS 84: EPSG:1149"),
+                                         (6318, "NAD83(2011) (EPSG:6318) read as WGS 84: EPSG:9774 null "
+                                                "transformation, accurate to 2 m"),
+                                         (4152, "NAD83(HARN) (EPSG:4152) read as WGS 84: EPSG:1580"),
+                                         (4617, "NAD83(CSRS) (EPSG:4617) read as WGS 84: EPSG:1842"),
+                                         (4759, "NAD83(NSRS2007) (EPSG:4759) read as WGS 84: EPSG:15931")])
 def test_geotiff_wgs84_compatible_datums_are_read_and_said(tmp_path, code, datum):
-    """USGS 3DEP (NAD83) and European (ETRS89) DEMs: the same posts and place as WGS 84,
-    with the datum and the EPSG null transformation's accuracy in the metadata."""
+    """USGS 3DEP (NAD83, and its realisations in newer products) and European (ETRS89) DEMs:
+    the same posts and place as WGS 84, with the datum and the EPSG null transformation's
+    accuracy in the metadata."""
     # 4979's third axis is the ellipsoidal height: its heights need a VerticalCSTypeGeoKey (EGM96
     # here) to be read (tests/test_datum_probe_fixes_s32.py).
     vertical = {4096: 5773} if code == 4979 else {}

@@ -245,12 +245,14 @@ def _userdefined(path, datum, meridian=8901, extra=()):
 
 
 @pytest.mark.parametrize("datum, meridian, name", [(6326, 8901, "WGS 84"), (6326, None, "WGS 84"),
-                                                   (6269, 8901, "NAD83"), (6258, 8901, "ETRS89")])
+                                                   (6269, 8901, "NAD83"), (6258, 8901, "ETRS89"),
+                                                   (1116, 8901, "NAD83(2011)"), (6152, None, "NAD83(HARN)")])
 def test_a_user_defined_geographic_crs_on_a_read_datum_is_read(tmp_path, datum, meridian, name):
     """GeographicTypeGeoKey 32767 with GeogGeodeticDatumGeoKey 6326 (GeoTIFF 1.0, as GDAL reads it).
     Before: "unsupported geographic CRS: GeographicTypeGeoKey (2048) = 32767"."""
     raster = read_dem(_userdefined(tmp_path / "u.tif", datum, meridian))
-    keys = [(1024, 0, 1, 2), (1025, 0, 1, 1), (2048, 0, 1, {6326: 4326, 6269: 4269, 6258: 4258}[datum])]
+    code = {6326: 4326, 6269: 4269, 6258: 4258, 1116: 6318, 6152: 4152}[datum]
+    keys = [(1024, 0, 1, 2), (1025, 0, 1, 1), (2048, 0, 1, code)]
     same = read_dem(_geotiff(tmp_path / "e.tif", np.arange(12, dtype=np.float32).reshape(3, 4) + 100, keys,
                              (0.01, 0.01, 0), (0, 0, 0, 150.0, -35.0, 0)))
     assert raster.georef == same.georef and np.array_equal(raster.heights, same.heights)
@@ -258,8 +260,8 @@ def test_a_user_defined_geographic_crs_on_a_read_datum_is_read(tmp_path, datum, 
     assert raster.meta["horizontal_datum"] == same.meta["horizontal_datum"]
 
 
-@pytest.mark.parametrize("datum, meridian", [(6230, 8901), (None, 8901), (6326, 8903)],
-                         ids=["ed50", "no-datum", "paris"])
+@pytest.mark.parametrize("datum, meridian", [(6230, 8901), (None, 8901), (6326, 8903), (1133, 8901)],
+                         ids=["ed50", "no-datum", "paris", "nad83-cors96"])
 def test_a_user_defined_geographic_crs_on_another_datum_is_refused_naming_the_keys(tmp_path, datum, meridian):
     with pytest.raises(DataFormatError, match=rf"GeographicTypeGeoKey \(2048\) = 32767 \(user-defined\) with "
                                               rf"GeogGeodeticDatumGeoKey \(2050\) = {datum} and "
