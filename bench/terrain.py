@@ -165,10 +165,20 @@ def bench_los(report: Report, raster, quick: bool, rng) -> None:
     report.series["los_speed_vs_error"] = curve
 
 
+def service_query_threads(service) -> int:
+    """The --query-threads a `sortie terrain serve` process runs with: its default when not given."""
+    from server.terrain_cli import default_query_threads
+
+    args = service.args
+    return int(args[args.index("--query-threads") + 1]) if "--query-threads" in args else default_query_threads()
+
+
 def bench_grpc(report: Report, raster, dem_path: Path, quick: bool, rng) -> None:
     """The service in its own process (as deployed: no GIL shared with the
-    client), queried over loopback; the in-process Terrain call on the same
-    points is the baseline. One-point calls are timed interleaved with the
+    client, its default --query-threads), queried over loopback; the in-process
+    Terrain call on the same points, one thread, is the baseline. A second service
+    at --query-threads 1 gives ``grpc_one_thread_vs_inprocess``: the transport's
+    own slowdown, with the query on one thread on both sides. One-point calls are timed interleaved with the
     service's grpc.health.v1 Check on the same channel (``grpc_health_*``: a
     call that does no work, the transport's floor on this machine)."""
     from client.terrain_client import TerrainClient
@@ -209,15 +219,27 @@ def bench_grpc(report: Report, raster, dem_path: Path, quick: bool, rng) -> None
             t2 = time.perf_counter()
             lat_ms.append((t1 - t0) * 1e3)
             floor_ms.append((t2 - t1) * 1e3)
+        threads = service_query_threads(service)
+    # The transport's own share: the same batches from a service answering on one thread, as
+    # the in-process baseline does (the service's default splits a large batch over its CPUs).
+    with ServiceProcess(["terrain", "serve", "--dem", str(dem_path), "--query-threads", "1"]) as service, \
+            TerrainClient(service.address) as client:
+        client.heights(lat, lon)
+        t_one = t_local_one = math.inf
+        for _ in range(2 if quick else 4):
+            t_one = min(t_one, best_time(lambda: client.heights(lat, lon), 10))
+            t_local_one = min(t_local_one, best_time(lambda: terrain.heights(lat, lon), 10))
     report.metrics["grpc_batch_points_per_s"] = GRPC_BATCH_POINTS / t_grpc
     report.metrics["grpc_vs_inprocess"] = t_grpc / t_local
+    report.metrics["grpc_one_thread_vs_inprocess"] = t_one / t_local_one
     report.metrics["grpc_single_p50_ms"] = percentile(lat_ms, 50)
     report.metrics["grpc_single_p99_ms"] = percentile(lat_ms, 99)
     report.metrics["grpc_health_p50_ms"] = percentile(floor_ms, 50)
     report.metrics["grpc_health_p99_ms"] = percentile(floor_ms, 99)
     report.metrics["grpc_bit_exact"] = int(same)
     report.params.update(grpc_batch_points=GRPC_BATCH_POINTS, grpc_single_queries=n_single,
-                         grpc_server="separate process on loopback")
+                         grpc_server="separate process on loopback", grpc_query_threads=threads,
+                         inprocess_threads=1)
 
 
 def bench_mesh(report: Report, raster, quick: bool, tmp_dir: Path) -> None:

@@ -16,7 +16,7 @@ import json
 import logging
 
 from server.grpc_common import DEFAULT_GRACE_S, stop_signals
-from server.terrain_service import DEFAULT_MAX_WORKERS
+from server.terrain_service import DEFAULT_MAX_WORKERS, QUERY_THREADS_MAX
 from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.errors import InvalidArgument
 from sortie.logs import line
@@ -124,6 +124,9 @@ def add_parser(sub) -> None:
     serve.add_argument("--host", default="127.0.0.1", help=f"{HOST_HELP} (default %(default)s)")
     serve.add_argument("--max-workers", type=_positive_int, default=DEFAULT_MAX_WORKERS,
                        help="threads answering calls (default %(default)s)")
+    serve.add_argument("--query-threads", type=_query_threads, default=default_query_threads(),
+                       help="threads one large height batch (32,768 points or more) is answered on, "
+                            "1-4 (default: this machine's CPUs, at most 4: %(default)s)")
     serve.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
                        help=f"seconds in-flight calls get to finish on shutdown, 0-{MAX_GRACE_S:g} "
                             "(default %(default)s)")
@@ -154,6 +157,20 @@ def add_parser(sub) -> None:
     add_import_parser(commands)
     add_texture_parser(commands)
     add_mesh_parser(commands)
+
+
+def default_query_threads() -> int:
+    """--query-threads' default: the CPUs this process may run on, at most QUERY_THREADS_MAX."""
+    from terrain.threads import cpu_count
+
+    return max(1, min(QUERY_THREADS_MAX, cpu_count()))
+
+
+def _query_threads(text: str) -> int:
+    value = int(text)
+    if not 1 <= value <= QUERY_THREADS_MAX:
+        raise argparse.ArgumentTypeError(f"must be 1-{QUERY_THREADS_MAX}, got {value}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -203,7 +220,7 @@ def serve_command(args) -> int:
             line("sortie terrain service stopped while starting", logger=__name__)
             return 0
         server, port = create_server(terrain, listen_address(args.host, args.port), max_workers=args.max_workers,
-                                     dem_paths=args.dem, dem_stats=stats)  # SortieError naming the system's reason when it cannot listen
+                                     dem_paths=args.dem, dem_stats=stats, query_threads=args.query_threads)  # SortieError naming the system's reason when it cannot listen
         metrics = None
         if args.metrics_port is not None:
             from server.metrics import MetricsServer, terrain_metrics

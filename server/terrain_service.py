@@ -69,6 +69,9 @@ HEIGHT_ENCODINGS = (pb.HEIGHT_ENCODING_UNSPECIFIED, pb.HEIGHT_ENCODING_FLOAT32, 
 # Threads answering calls; the numba kernels release the GIL, so batches from
 # different clients run in parallel.
 DEFAULT_MAX_WORKERS = min(32, (os.cpu_count() or 1) + 4)
+# Threads one large height batch is answered on (terrain.terrain._heights_into: a DEM's share of
+# a batch of at least 2 x 16,384 points split in parts; the caller's thread is one of them).
+QUERY_THREADS_MAX = 4
 # Calls admitted at once per worker thread (running or queued); more are refused
 # with RESOURCE_EXHAUSTED instead of queueing without bound (grpc_common.Admission).
 ADMITTED_CALLS_PER_WORKER = 4
@@ -227,8 +230,9 @@ class TerrainServicer:
     streaming pass costs far less than missing on them point by point.
     """
 
-    def __init__(self, terrain, dem_paths=(), dem_stats=None):
+    def __init__(self, terrain, dem_paths=(), dem_stats=None, query_threads: int = 1):
         self.terrain = terrain
+        self.query_threads = int(query_threads)
         self._dem_files = DemIdentities(dem_paths, dem_stats)  # hashed in the background from now on
         self._metadata = None
         self._metadata_lock = threading.Lock()
@@ -242,7 +246,7 @@ class TerrainServicer:
 
     def GetHeights(self, request: dict) -> dict:
         check_batch(request, ("lat_deg", "lon_deg"), MAX_HEIGHT_POINTS)
-        result = self.terrain.heights(request["lat_deg"], request["lon_deg"], warm=True)
+        result = self.terrain.heights(request["lat_deg"], request["lon_deg"], warm=True, threads=self.query_threads)
         return {"height_msl_m": result.height_msl_m, "status": sent_status(result.status)}
 
     def GetNormals(self, request: dict) -> dict:
@@ -568,8 +572,9 @@ def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None,
 
 
 def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFAULT_MAX_WORKERS,
-                  dem_paths=(), dem_stats=None) -> tuple[ManagedServer, int]:
+                  dem_paths=(), dem_stats=None, query_threads: int = 1) -> tuple[ManagedServer, int]:
     """A terrain server bound to ``address`` ("host:port", port 0 for any free one);
+    ``query_threads``: threads one large GetHeights batch is answered on (QUERY_THREADS_MAX);
     ``dem_paths``, the DEM files ``terrain`` was read from, are named with their SHA-256
     in GetMetadata (a recording over the service keeps them), hashed from start-up on and checked
     against ``dem_stats`` (their :func:`file_stat` before they were read; None: taken now).
@@ -589,7 +594,7 @@ def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFA
     )
     stats = CallStats()
     server.add_registered_method_handlers(
-        SERVICE_NAME, method_handlers(TerrainServicer(terrain, dem_paths, dem_stats), stats, admission))
+        SERVICE_NAME, method_handlers(TerrainServicer(terrain, dem_paths, dem_stats, query_threads), stats, admission))
     managed = ManagedServer(server, (SERVICE_NAME,))
     managed.stats = stats
     managed.admission = admission

@@ -52,6 +52,9 @@ RAY_PART_CUT = (3.0 - math.sqrt(5.0)) / 2.0
 # Source kinds (describe()["kind"]) whose heights are made up, not measured: a
 # filled void of a DEM is not handed to them.
 SYNTHETIC_KINDS = ("procedural",)
+# Heights(threads=k) splits a raster's share of a batch into k contiguous parts, each at least
+# this many points (smaller batches: one thread; a hand-off costs ~20-50 us, a point ~13 ns).
+PARALLEL_MIN_POINTS_PER_THREAD = 16_384
 # The shell every surface of a stack lies in (Terrain._shell): what a segment does above it or
 # below it is known without tracing. Metres of margin on either radius, far above rounding.
 SHELL_MARGIN_M = 1.0
@@ -309,13 +312,15 @@ class Terrain:
         self.sources[0].heights_into(lat, lon, out, st)
         return out
 
-    def heights(self, lat, lon, *, warm: bool = False) -> HeightResult:
+    def heights(self, lat, lon, *, warm: bool = False, threads: int = 1) -> HeightResult:
         """Bilinear heights (m, MSL) at (lat, lon) degrees, float64 (n,).
 
         warm: let each source reached stream its posts into the CPU caches
         first when the batch is large enough to gain from it (see
         :meth:`terrain.raster.Raster.warm_cache`); for callers whose caches are
-        cold, like the gRPC service. Results are the same either way.
+        cold, like the gRPC service. threads: answer a DEM raster's share of a
+        large batch on up to this many threads (:func:`_heights_into`; the
+        service's query threads). Results are the same either way, bit for bit.
         """
         lat, lon = check_latlon(lat, lon)
         out_h = np.full(lat.shape, np.nan)
@@ -324,11 +329,11 @@ class Terrain:
             if warm:
                 _warm_cache(source, lat.size if idx is None else idx.size)
             if idx is None:
-                source.heights_into(lat, lon, out_h, status)
+                _heights_into(source, lat, lon, out_h, status, threads)
             else:
                 sub_h = np.full(idx.size, np.nan)
                 sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
-                source.heights_into(lat[idx], lon[idx], sub_h, sub_status)
+                _heights_into(source, lat[idx], lon[idx], sub_h, sub_status, threads)
                 out_h[idx] = sub_h
                 status[idx] = sub_status
         for _, idx, sub_h in self._measured_instead(lat, lon, status):
@@ -808,6 +813,24 @@ class Terrain:
         except SortieError:  # a limit of this terrain's (e.g. a ray budget): the queries warm what they reached
             pass
         return time.perf_counter() - t0
+
+
+def _heights_into(source, lat, lon, out_h, out_status, threads: int) -> None:
+    """``source.heights_into`` over (n,) float64 C-contiguous arrays; a DEM raster's (its
+    kernel, terrain.raster.bilinear_into, releases the GIL and writes only the points it is
+    given) in up to ``threads`` contiguous parts of at least PARALLEL_MIN_POINTS_PER_THREAD
+    points, on terrain.threads' shared pool with the caller working too. Other sources
+    (stores, the procedural world, insets: caches of their own) take the batch whole."""
+    parts = min(int(threads), lat.size // PARALLEL_MIN_POINTS_PER_THREAD)
+    if parts < 2 or type(source) is not Raster:
+        source.heights_into(lat, lon, out_h, out_status)
+        return
+    from terrain.threads import map_shared
+
+    cuts = np.linspace(0, lat.size, parts + 1).astype(np.int64).tolist()
+    map_shared(lambda k: source.heights_into(lat[cuts[k]:cuts[k + 1]], lon[cuts[k]:cuts[k + 1]],
+                                             out_h[cuts[k]:cuts[k + 1]], out_status[cuts[k]:cuts[k + 1]]),
+               list(range(parts)), parts)
 
 
 @dataclass(frozen=True)
