@@ -26,14 +26,20 @@ of interest at random points) streaming at 20 Hz from separate processes
   clients streaming; ``latency_p99_ms``: world tick -> client receipt, the
   publish's wall time on the server against the update's arrival in the
   client process (one machine clock); ``slow_client_tick_ratio``: tick p99
-  with one more client that never reads its stream, over the run without
-  Every run serves each of the two loads twice, in the order calm, stalled,
-  stalled, calm (full runs each on its own world; --quick on one world, each
-  run going on where the last left it), and takes the p99s over each kind's
-  pooled steady-window ticks (--quick's ratio the p90s,
-  QUICK_SLOW_CLIENT_PERCENTILE: its ~75 ticks a kind make a p99 one tick) (the latencies over both calm runs; the ``_whole_run``
-  figures the larger of the two); ``params["realtime_runs_tick_p99_ms"]`` keeps
-  each run's own p99.
+  with one more client that never reads its stream, over the same without it.
+  One real-time run on one world serves both: its steady window is cut in
+  phases, calm, stalled, stalled, calm (REALTIME_PHASES; FULL_PHASE_REPEATS
+  times in full runs, PHASE_S each), the stalled client joining at a stalled phase's start and
+  leaving at the next calm one's (bench.server_clients --stall-phases); each
+  phase's first PHASE_SETTLE_S are left out, and each kind's ticks are pooled:
+  a drift of the machine's speed cancels phase by phase (until the nineteenth
+  session: four separate 10 s runs, whose calm p99s alone read 16.5 and
+  27.5 ms in one full run). ``tick_p99_ms`` and the latencies are the calm
+  phases'; --quick's ratio is the p90s (QUICK_SLOW_CLIENT_PERCENTILE: its ~60
+  ticks a kind make a p99 one tick); ``params["realtime_phases_tick_p99_ms"]``
+  keeps each phase's own p99, and the ``_whole_run`` figures span every phase;
+  ``slow_client_tick_ratio_paired_median``: the median over the pairs of
+  neighbouring phases (calm, stalled | stalled, calm | ...) of their p99 ratio.
   Every tick and latency figure (the fits' mean ticks too) is taken over the
   steady window: from STEADY_SKIP_S after every load client is ready (each
   one's first full snapshot) to STEADY_TAIL_S before they stop (closing 32
@@ -82,6 +88,14 @@ REALTIME_RATE_OK = 0.98
 # --quick's slow_client_tick_ratio: the percentile of each kind's pooled ticks (two 2 s windows of
 # about 37 ticks: a p99 there is the single worst tick, which read 0.17 to 1.44 run to run).
 QUICK_SLOW_CLIENT_PERCENTILE = 90
+# The real-time run's phases (stalled client present or not), seconds each, and the seconds at each
+# phase's start left out (the stalled client joining, its snapshot, its Watch cancelled).
+REALTIME_PHASES = (False, True, True, False)
+FULL_PHASE_REPEATS = 4  # full runs: 16 phases (a first full run with 2 x 4 phases of 5 s: one slow spell took half)
+PHASE_S = 4.0
+PHASE_SETTLE_S = 1.0
+QUICK_PHASE_S = 1.5
+QUICK_PHASE_SETTLE_S = 0.5
 
 
 def _f16_fleet(terrain, n: int) -> list:
@@ -188,14 +202,17 @@ def _world(terrain, n_aircraft: int, n_ground: int, seed: int = 3, workers: int 
     return w
 
 
-def _clients(address: str, n: int, seconds: float, stall: int = 0) -> list:
+def _clients(address: str, n: int, seconds: float, stall: int = 0, phased: bool = False) -> list:
     """The load clients, CLIENTS_PER_PROCESS to a process (as on separate machines,
-    they must not queue on one interpreter lock; the stalled ones in the first)."""
+    they must not queue on one interpreter lock; the stalled ones in the first, which with
+    ``phased`` brings them in and out as its stdin says: bench.server_clients --stall-phases)."""
     procs = []
     for k, first in enumerate(range(0, n, CLIENTS_PER_PROCESS)):
         count = min(CLIENTS_PER_PROCESS, n - first)
+        extra = ["--stall-phases"] if phased and k == 0 else []
         procs.append(subprocess.Popen([sys.executable, "-m", "bench.server_clients", address, str(count),
-                                       str(seconds), str(7 + k), "--stall", str(stall if k == 0 else 0)],
+                                       str(seconds), str(7 + k), "--stall", str(stall if k == 0 else 0), *extra],
+                                      stdin=subprocess.PIPE if extra else subprocess.DEVNULL,
                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     for proc in procs:
         line = proc.stderr.readline()
@@ -216,11 +233,31 @@ def _gather(procs: list, timeout_s: float) -> dict:
     return merged
 
 
+def _command(proc, command: str) -> None:
+    """Send a --stall-phases load process ``command`` and wait for its acknowledgement."""
+    proc.stdin.write(command + "\n")
+    proc.stdin.flush()
+    while True:
+        line = proc.stderr.readline()
+        if not line:
+            raise RuntimeError(f"the load process ended before acknowledging {command!r}")
+        if line.strip() == f"{command} ok":
+            return
+
+
 def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, stall: int = 0,
-           clients: int = CLIENTS, workers: int = 0, window=(STEADY_SKIP_S, STEADY_TAIL_S), world=None) -> dict:
+           clients: int = CLIENTS, workers: int = 0, window=(STEADY_SKIP_S, STEADY_TAIL_S), world=None,
+           phases=None, settle_s: float = 0.0) -> dict:
     """Run a server with the load for ``seconds`` of wall time; tick and latency figures over
     its steady window (``window``: seconds left out after the clients are ready, before they stop).
-    ``world``: one of :func:`_world` to serve (left open: the caller's), else a new one."""
+    ``world``: one of :func:`_world` to serve (left open: the caller's), else a new one.
+
+    ``phases`` (bools: stalled or calm): the steady window cut in that many equal phases, the
+    ``stall`` stalled clients present in the stalled ones only (brought in and out by the
+    first load process); each phase's ticks after its first ``settle_s`` (the joins, the new
+    Watches' snapshots, the cancellations) count for its kind: ``phase_ticks`` {False: calm,
+    True: stalled}, ``phase_latency_ms`` the calm phases' latencies, ``phase_tick_p99_ms``
+    [(stalled, p99)] in order, ``phase_watching`` the Watch streams open after each settle."""
     skip_s, tail_s = window
     from server.sim_server import ServerConfig, SimulationServer
 
@@ -239,7 +276,7 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
     server.publisher.publish = publish
     server.start()
     try:
-        procs = _clients(server.address, clients, seconds, stall)
+        procs = _clients(server.address, clients, seconds, stall, phased=bool(phases))
         server.tick_ms.clear()
         t_ready = world.time_s
         # The steady window: every client streaming, after each one's first full snapshot
@@ -248,7 +285,19 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
         # start-up, imports and joins hold the CPU.
         time.sleep(skip_s)
         first, t_world0, wall0 = len(server.tick_ms), world.time_s, time.monotonic()
-        time.sleep(max(seconds - skip_s - tail_s, 0.5))
+        spans = []  # (stalled, first tick, last tick, world time from, to) of each phase
+        if phases:
+            phase_s = max(seconds - skip_s - tail_s, 0.5) / len(phases)
+            for k, stalled in enumerate(phases):
+                start = wall0 + k * phase_s
+                _command(procs[0], "stall" if stalled else "calm")
+                time.sleep(max(0.0, start + settle_s - time.monotonic()))
+                a, w_a, watching = len(server.tick_ms), world.time_s, len(server.sessions.watching())
+                time.sleep(max(0.0, start + phase_s - time.monotonic()))
+                spans.append((stalled, a, len(server.tick_ms), w_a, world.time_s, watching))
+            # (its stdin is closed by _gather's communicate: the load process then ends its phases)
+        else:
+            time.sleep(max(seconds - skip_s - tail_s, 0.5))
         last, t_world1, wall1 = len(server.tick_ms), world.time_s, time.monotonic()
         data = _gather(procs, seconds + 120.0)
         whole = np.array(server.tick_ms)
@@ -265,7 +314,16 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
         return np.array([(wall_rx - published[round(t, 6)]) * 1e3 for log in data["received"] for t, wall_rx in log
                          if t_from <= t <= t_to and round(t, 6) in published])
 
-    return {"ticks": ticks, "tick_mean_ms": float(ticks.mean()), "tick_p99_ms": float(np.percentile(ticks, 99)),
+    phased = {}
+    if spans:
+        phased["phase_ticks"] = {kind: np.concatenate([whole[a:b] for stalled, a, b, *_ in spans if stalled == kind])
+                                 for kind in (False, True)}
+        phased["phase_latency_ms"] = np.concatenate([latencies(w_a, w_b) for stalled, _, _, w_a, w_b, _ in spans
+                                                     if not stalled])
+        phased["phase_tick_p99_ms"] = [(stalled, float(np.percentile(whole[a:b], 99)) if b > a else math.nan)
+                                       for stalled, a, b, *_ in spans]
+        phased["phase_watching"] = [watching for *_, watching in spans]
+    return {**phased, "ticks": ticks, "tick_mean_ms": float(ticks.mean()), "tick_p99_ms": float(np.percentile(ticks, 99)),
             "tick_p99_ms_whole_run": float(np.percentile(whole, 99)),
             "world_rate": (t_world1 - t_world0) / (wall1 - wall0), "latency_ms": latencies(t_world0, t_world1),
             "latency_ms_whole_run": latencies(t_ready, np.inf), "bytes": sum(data["bytes"]),
@@ -293,36 +351,41 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
     report.metrics["tick_ms_per_aircraft"] = slope
     report.metrics["tick_ms_fixed"] = base
     n_rt = max(1, int(0.75 * realtime))
-    # --quick: one world for both real-time runs (building it, 150 trimmed f16s in the workers,
-    # took 6-7 s of the suite's 55), the stalled-client run going on where the calm one ended.
-    # Full runs build each its own, as the runs before this change did.
-    # Full runs serve the calm and the stalled-client loads twice each, in the order calm, stalled,
-    # stalled, calm, and pool each kind's steady-window ticks (and the calm runs' latencies): the
-    # p99 of one 10 s window read 19 or 42 ms for the same code within the hour.
-    world = _world(terrain, n_rt, n_ground, workers=workers) if quick else None
-    runs = {False: [], True: []}
-    try:  # calm, stalled, stalled, calm: a drift of the machine's speed cancels in each kind's pool
-        for stalled in (False, True, True, False):
-            runs[stalled].append(_serve(terrain, n_rt, "realtime", seconds, n_ground, stall=int(stalled),
-                                        clients=clients, workers=workers, window=window, world=world))
+    # One world and one load for the real-time run, whose steady window is cut in phases with
+    # and without the stalled client, alternating calm, stalled, stalled, calm (twice in full
+    # runs), each phase's first seconds (the stalled client's join, its snapshot, its
+    # cancellation) left out. The tick percentiles of each kind pool its phases: a drift of the
+    # machine's speed, which moved one kind's p99 more than the stalled client does (separate
+    # 10 s runs of the same kind read 16.5 and 27.5 ms), cancels phase by phase.
+    phases = REALTIME_PHASES * (1 if quick else FULL_PHASE_REPEATS)
+    phase_s, settle_s = (QUICK_PHASE_S, QUICK_PHASE_SETTLE_S) if quick else (PHASE_S, PHASE_SETTLE_S)
+    skip_s, tail_s = window
+    world = _world(terrain, n_rt, n_ground, workers=workers)
+    try:
+        run = _serve(terrain, n_rt, "realtime", skip_s + len(phases) * phase_s + tail_s, n_ground, stall=1,
+                     clients=clients, workers=workers, window=window, world=world, phases=phases,
+                     settle_s=settle_s)
     finally:
-        if world is not None:
-            world.close()
-    calm = runs[False][0]
-    calm_ticks = np.concatenate([r["ticks"] for r in runs[False]])
-    slow_ticks = np.concatenate([r["ticks"] for r in runs[True]])
-    latency = np.concatenate([r["latency_ms"] for r in runs[False]])
+        world.close()
+    calm = run
+    calm_ticks, slow_ticks = run["phase_ticks"][False], run["phase_ticks"][True]
+    latency = run["phase_latency_ms"]
     report.metrics["tick_p99_ms"] = float(np.percentile(calm_ticks, 99))
-    report.metrics["tick_p99_ms_whole_run"] = max(r["tick_p99_ms_whole_run"] for r in runs[False])
+    report.metrics["tick_p99_ms_whole_run"] = run["tick_p99_ms_whole_run"]
     report.metrics["latency_p50_ms"] = float(np.percentile(latency, 50))
     report.metrics["latency_p99_ms"] = float(np.percentile(latency, 99))
-    report.metrics["latency_p99_ms_whole_run"] = max(float(np.percentile(r["latency_ms_whole_run"], 99))
-                                                     for r in runs[False])
+    report.metrics["latency_p99_ms_whole_run"] = float(np.percentile(run["latency_ms_whole_run"], 99))
     ratio, what = slow_client_ratio(calm_ticks, slow_ticks, quick)
     report.metrics["slow_client_tick_ratio"] = ratio
     report.params["slow_client_tick_ratio_is"] = what
-    report.params.update(realtime_runs_tick_p99_ms={"calm": [r["tick_p99_ms"] for r in runs[False]],
-                                                    "stalled": [r["tick_p99_ms"] for r in runs[True]]})
+    # Beside it, each stalled phase against the calm phase next to it (calm, stalled | stalled,
+    # calm | ...): the median of those pairs' p99 ratios, which a slow spell of a few phases moves less.
+    p99s = [p for _, p in run["phase_tick_p99_ms"]]
+    report.metrics["slow_client_tick_ratio_paired_median"] = float(np.median(
+        [(p99s[k + 1] / p99s[k]) if not phases[k] else (p99s[k] / p99s[k + 1]) for k in range(0, len(phases) - 1, 2)]))
+    report.params.update(realtime_phases_tick_p99_ms=[["stalled" if k else "calm", p] for k, p in
+                                                      run["phase_tick_p99_ms"]],
+                         realtime_phase_s=phase_s, realtime_phase_settle_s=settle_s)
     if not quick:  # the transport's own floor, same clients and message size (bench/stream_floor.py)
         from bench.stream_floor import measure_floor
 
@@ -334,8 +397,8 @@ def bench_capacity(report: Report, terrain, quick: bool) -> None:
         report.metrics["latency_floor_loaded_p50_ms"] = float(np.percentile(loaded, 50))
         report.metrics["latency_floor_loaded_p99_ms"] = float(np.percentile(loaded, 99))
         report.params.update(floor_message_bytes=msg_bytes, floor_duty=FLOOR_DUTY)
-    report.metrics["realtime_world_rate"] = min(r["world_rate"] for r in runs[False])
-    _check_capacity(report, sizes[0], fit_ms[0], n_rt, float(np.mean([r["tick_mean_ms"] for r in runs[False]])), bare)
+    report.metrics["realtime_world_rate"] = run["world_rate"]
+    _check_capacity(report, sizes[0], fit_ms[0], n_rt, float(np.mean(calm_ticks)), bare)
     report.metrics["stream_bytes_per_state"] = calm["bytes"] / max(calm["states"], 1)
     report.metrics["server_message_reduction"] = 1.0 - calm["updates"] / max(calm["samples"], 1)
     report.params.update(steady_window_s=list(window),
@@ -351,8 +414,8 @@ def slow_client_ratio(calm_ticks, slow_ticks, quick: bool) -> tuple[float, str]:
     ``calm_ticks``, ``slow_ticks``: (n,) float, ms, the steady-window ticks of each kind."""
     q = QUICK_SLOW_CLIENT_PERCENTILE if quick else 99
     calm, slow = np.asarray(calm_ticks, np.float64), np.asarray(slow_ticks, np.float64)
-    what = (f"p{q} of the stalled-client runs' steady-window ticks over p{q} of the calm runs' "
-            f"({slow.size} and {calm.size} ticks; runs calm, stalled, stalled, calm)")
+    what = (f"p{q} of the stalled-client phases' ticks over p{q} of the calm phases' "
+            f"({slow.size} and {calm.size} ticks; one run, phases calm, stalled, stalled, calm, repeated in full runs)")
     return float(np.percentile(slow, q) / np.percentile(calm, q)), what
 
 

@@ -1,12 +1,16 @@
 """Load for ``sortie bench server``: N observer clients in one process.
 
-    python -m bench.server_clients ADDRESS N SECONDS SEED [--stall K] [--radius-m R]
+    python -m bench.server_clients ADDRESS N SECONDS SEED [--stall K] [--stall-phases] [--radius-m R]
 
 Each client joins as an observer with a 20 km area of interest around a
 random point of the N47E009 tile (seeded), watches for SECONDS, and records
 (world time, wall receive time) of every WatchUpdate; K more clients join and
-open a Watch they never read (stalled). Prints one JSON object: per-client
-receive logs, bytes and states received.
+open a Watch they never read (stalled). With --stall-phases the K stalled
+clients come and go on command instead: a line "stall" on stdin joins them and
+opens their Watches (each read up to its snapshot, then never again), "calm"
+cancels those and closes them; each command is acknowledged on stderr
+("stall ok", "calm ok") once done. Prints one JSON object: per-client receive
+logs, bytes and states received.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ def main(argv=None) -> int:
     p.add_argument("seconds", type=float)
     p.add_argument("seed", type=int)
     p.add_argument("--stall", type=int, default=0)
+    p.add_argument("--stall-phases", action="store_true")
     p.add_argument("--radius-m", type=float, default=20_000.0)
     args = p.parse_args(argv)
 
@@ -42,15 +47,23 @@ def main(argv=None) -> int:
                                                   args.radius_m))
         clients.append(c)
         pictures.append(c.watch())
-    for k in range(args.stall):
+    def stall(name: str) -> tuple:
         c = SimClient(args.address)
-        c.join(f"stalled-{k}", "observer", observer=(47.5, 9.5, 200_000.0))
+        c.join(name, "observer", observer=(47.5, 9.5, 200_000.0))
         call = pb_grpc.SimulationServiceStub(c.channel).Watch(pb.WatchRequest(session_token=c.token))
         next(call)  # the snapshot, then never read again
-        clients.append(c)
-        stalled.append(call)
+        return c, call
+
+    if not args.stall_phases:
+        for k in range(args.stall):
+            c, call = stall(f"stalled-{k}")
+            clients.append(c)
+            stalled.append(call)
     print("ready", flush=True, file=sys.stderr)
-    time.sleep(args.seconds)
+    if args.stall_phases:
+        _phases(args, stall, time.monotonic() + args.seconds)
+    else:
+        time.sleep(args.seconds)
     out = {"received": [[(t, wall) for t, wall in pic.wall_log] for pic in pictures],
            "bytes": [pic.bytes for pic in pictures], "states": [pic.states_received for pic in pictures],
            "entered": [pic.entered for pic in pictures]}
@@ -68,6 +81,30 @@ def main(argv=None) -> int:
     json.dump(out, sys.stdout)
     sys.stdout.flush()
     return 0
+
+
+def _phases(args, stall, until: float) -> None:
+    """Follow the "stall" / "calm" lines of stdin until it closes or ``until`` (monotonic) passes."""
+    present: list = []  # (client, call) of the stalled clients while a stalled phase lasts
+    generation = 0
+    for line in sys.stdin:
+        command = line.strip()
+        if command == "stall" and not present:
+            generation += 1
+            present = [stall(f"stalled-{generation}-{k}") for k in range(args.stall)]
+        elif command == "calm":
+            for c, call in present:
+                call.cancel()
+                c.leave()
+                c.close()
+            present = []
+        print(f"{command} ok", flush=True, file=sys.stderr)
+        if time.monotonic() >= until:
+            break
+    for c, call in present:
+        call.cancel()
+        c.close()
+    time.sleep(max(0.0, until - time.monotonic()))
 
 
 if __name__ == "__main__":

@@ -31,3 +31,22 @@ def test_stream_floor_measures_trigger_to_receipt():
     lat = measure_floor(clients=3, per_process=2, seconds=2.0, msg_bytes=1500, duty=0.3)
     assert lat.size >= 3 * (30 - WARM_MESSAGES)  # ~40 messages each in 2 s at 20 Hz
     assert np.all(np.isfinite(lat)) and lat.min() > 0.0 and np.median(lat) < 1000.0
+
+
+def test_phases_bring_the_stalled_client_in_and_out_and_pool_each_kinds_ticks(hgt_alps):
+    """slow_client_tick_ratio's run: calm, stalled, stalled, calm phases on one world; the
+    stalled client's Watch is open in the stalled phases only, and each kind's ticks and the
+    calm phases' latencies are collected."""
+    from bench.server import _serve
+    from terrain.dem import read_dem
+    from terrain.terrain import Terrain
+
+    terrain = Terrain([read_dem(hgt_alps)])
+    phases = (False, True, True, False)
+    r = _serve(terrain, 2, "realtime", 0.5 + 4 * 1.5 + 0.25, 1000, stall=1, clients=3, workers=0,
+               window=(0.5, 0.25), phases=phases, settle_s=0.5)
+    assert r["phase_watching"] == [3, 4, 4, 3]
+    assert [k for k, _ in r["phase_tick_p99_ms"]] == list(phases)
+    for kind in (False, True):  # ~30 ticks a phase after its settle, two phases a kind
+        assert r["phase_ticks"][kind].size >= 20 and np.all(r["phase_ticks"][kind] > 0.0)
+    assert r["phase_latency_ms"].size >= 1 and np.all(r["phase_latency_ms"] > 0.0)
