@@ -77,6 +77,7 @@ FULL_TURN_DEG = 360.0
 # Coarser rasters are refined to a touching finer one's spacing up to this factor a side (SRTM3
 # beside SRTM1 is 3; 30 m beside 1 m lidar, 30, is left separate: 900 times the posts).
 REFINE_MAX_FACTOR = 8
+REFINE_PASSES = 4  # passes of _refined: a chain of resolutions refines one link a pass
 
 
 def load_sources(paths) -> list[Raster]:
@@ -147,7 +148,11 @@ def refine(raster: Raster, ky: int, kx: int) -> Raster:
     if raster.filled is not None:
         f = raster.filled.astype(np.float64)
         filled = _subdivide(_subdivide(f, ky, axis=0), kx, axis=1) > 0.0
-    meta = {**raster.meta, "refined": {"factors": [ky, kx], "spacing": [g.dy, g.dx], "shape": list(raster.shape)}}
+    before = raster.meta.get("refined")  # refined already (a chain of resolutions): from the file's own grid
+    meta = {**raster.meta, "refined": {
+        "factors": [ky * before["factors"][0], kx * before["factors"][1]] if before else [ky, kx],
+        "spacing": before["spacing"] if before else [g.dy, g.dx],
+        "shape": before["shape"] if before else list(raster.shape)}}
     return Raster(h.astype(raster.heights.dtype), Georef(g.crs, g.x0, g.y0, g.dx / kx, g.dy / ky),
                   name=raster.name, vertical_datum=raster.vertical_datum, filled=filled, source=raster.source,
                   meta=meta)
@@ -172,26 +177,34 @@ def _subdivide(a: np.ndarray, k: int, axis: int) -> np.ndarray:
 def _refined(rasters: list[Raster]) -> list[Raster]:
     """``rasters`` with each one that touches or overlaps a finer raster on whose lattice it
     lies (:func:`refine_factors`) refined to the finest such; in place in the priority order.
-    One whose refined size would exceed MOSAIC_MAX_POSTS stays as it is."""
+    One whose refined size would exceed MOSAIC_MAX_POSTS stays as it is. Passes repeat while
+    one refines something (at most REFINE_PASSES): three resolutions in a row (9" beside 3"
+    beside 1") end at the finest."""
     out = list(rasters)
-    for i, r in enumerate(rasters):
-        best = None
-        for j, f in enumerate(rasters):
-            if j == i:
+    for _ in range(REFINE_PASSES):
+        changed = False
+        current = list(out)  # each pass decides on the rasters as the pass began
+        for i, r in enumerate(current):
+            best = None
+            for j, f in enumerate(current):
+                if j == i:
+                    continue
+                k = refine_factors(r, f)
+                if k is None or (best is not None and k[0] * k[1] <= best[0] * best[1]):
+                    continue
+                if _boxes_touch(r, f):
+                    best = k
+            if best is None:
                 continue
-            k = refine_factors(r, f)
-            if k is None or (best is not None and k[0] * k[1] <= best[0] * best[1]):
+            posts = ((r.shape[0] - 1) * best[0] + 1) * ((r.shape[1] - 1) * best[1] + 1)
+            if posts > MOSAIC_MAX_POSTS:
+                log.info("mosaic: %s is not refined %d x %d to its finer neighbour's spacing (%d posts > %d)",
+                         r.name, best[0], best[1], posts, MOSAIC_MAX_POSTS)
                 continue
-            if _boxes_touch(r, f):
-                best = k
-        if best is None:
-            continue
-        posts = ((r.shape[0] - 1) * best[0] + 1) * ((r.shape[1] - 1) * best[1] + 1)
-        if posts > MOSAIC_MAX_POSTS:
-            log.info("mosaic: %s is not refined %d x %d to its finer neighbour's spacing (%d posts > %d)",
-                     r.name, best[0], best[1], posts, MOSAIC_MAX_POSTS)
-            continue
-        out[i] = refine(r, *best)
+            out[i] = refine(r, *best)
+            changed = True
+        if not changed:
+            break
     return out
 
 

@@ -166,3 +166,39 @@ def test_refining_keeps_the_bilinear_surface(ky, kx, seed):
     assert np.all(np.abs(nan_rows - 3 * ky) < ky) and np.all(np.abs(nan_cols - 4 * kx) < kx)
     if (ky, kx) != (1, 1):
         assert f.filled is not None and f.filled[ky, kx] and f.filled.sum() == (2 * ky - 1) * (2 * kx - 1)
+
+
+def test_web_mercator_tiles_of_two_resolutions_merge_continuous(tif_grand_canyon):
+    """The same in EPSG:3857 (metres on the lattice, degrees for the boxes): the Grand Canyon
+    posts west of a tile of every second post east of them."""
+    from terrain.dem import read_dem
+
+    r = read_dem(tif_grand_canyon)
+    fine = _part(r, 0, 300, 0, 200, name="fine")
+    coarse = _part(r, 0, 300, 200, 500, step=2, name="coarse")
+    seam = coarse.bounds[1]
+    lat = np.linspace(fine.bounds[0] + 0.001, fine.bounds[2] - 0.001, 500)
+    assert _seam_step([fine, coarse], lat, seam) > 1.0
+    out = mosaic([fine, coarse])
+    assert [o.name for o in out] == ["fine+coarse"] and out[0].shape == (301, 501)
+    assert out[0].meta["members"][1]["refined"]["factors"] == [2, 2]
+    assert _seam_step(out[0], lat, seam) < 0.01
+
+
+def test_three_resolutions_in_a_row_end_at_the_finest(alps):
+    """3" | 9" | 27" side by side (each sharing its edge column with the next): the 27" tile
+    touches only the 9" one, which touches the 3" one; all three end as one raster at 3",
+    continuous at both seams, the 27" tile refined 9 x 9 from its own posts."""
+    fine = _part(alps, 0, 243, 0, 81, name="fine")
+    mid = _part(alps, 0, 243, 81, 324, step=3, name="mid")
+    coarse = _part(alps, 0, 243, 324, 648, step=9, name="coarse")
+    out = mosaic([fine, mid, coarse])
+    assert len(out) == 1 and out[0].shape == (244, 649)
+    assert [m.get("refined", {}).get("factors") for m in out[0].meta["members"]] == [None, [3, 3], [9, 9]]
+    assert out[0].meta["members"][2]["refined"]["shape"] == list(coarse.shape)
+    g = fine.georef
+    lat = np.random.default_rng(4).uniform(g.y0, g.y0 + 243 * g.dy, 1000)
+    for seam in (g.x0 + 81 * g.dx, g.x0 + 324 * g.dx):
+        assert _seam_step([fine, mid, coarse], lat, seam) > 1.0
+        assert _seam_step(out[0], lat, seam) < 0.01
+    np.testing.assert_array_equal(out[0].heights[::9, 324::9], coarse.heights)
