@@ -30,7 +30,7 @@ import numpy as np
 
 from sortie.errors import LimitExceeded, SortieError
 from terrain.geodesy import WGS84_A_M, WGS84_B_M, WGS84_E2, ecef_to_geodetic, geodetic_to_ecef
-from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster, metres_per_index
+from terrain.raster import STATUS_FILLED, STATUS_OK, STATUS_OUTSIDE, Raster, metres_per_index, normals_from_gradients
 from terrain.validate import LON_ABS_MAX_DEG, check_latlon, latlon_all_valid
 
 
@@ -401,9 +401,8 @@ class Terrain:
         warm: as for :meth:`heights`.
         """
         de, dn, status = self.gradients(lat, lon, warm=warm)
-        normal = np.stack([-de, -dn, np.ones_like(de)], axis=-1)
-        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-        slope = np.degrees(np.arctan(np.hypot(de, dn)))
+        normal, slope = np.empty((de.size, 3)), np.empty(de.size)
+        normals_from_gradients(de, dn, normal, slope)
         return NormalResult(normal, slope, status)
 
     def gradients(self, lat, lon, *, warm: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

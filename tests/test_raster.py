@@ -312,3 +312,24 @@ def test_lattice_queries_answer_as_the_points_queries(dem, request):
         Terrain([r]).height_grid([b[0]], [np.nan])
     with pytest.raises(InvalidArgument, match="row lat"):
         Terrain([r]).gradient_grid([91.0], [b[1]])
+
+
+def test_normals_from_gradients_matches_the_plane_normal_and_slope():
+    """The compiled pass against the numpy composition it replaced: unit (-de, -dn, 1)
+    normals bit for bit, slopes to rounding, NaN where a gradient is NaN; flat ground is
+    (0, 0, 1) at 0 degrees, a 45-degree ramp east is (-1, 0, 1)/sqrt(2) at 45."""
+    from terrain.raster import normals_from_gradients
+
+    rng = np.random.default_rng(8)
+    de, dn = rng.normal(0, 0.7, 5000), rng.normal(0, 0.7, 5000)
+    de[:3], dn[:3] = [0.0, 1.0, np.nan], [0.0, 0.0, 0.2]
+    normal, slope = np.empty((5000, 3)), np.empty(5000)
+    normals_from_gradients(de, dn, normal, slope)
+    want = np.stack([-de, -dn, np.ones_like(de)], axis=-1)
+    want /= np.linalg.norm(want, axis=-1, keepdims=True)
+    np.testing.assert_array_equal(normal, want)
+    np.testing.assert_allclose(slope, np.degrees(np.arctan(np.hypot(de, dn))), rtol=1e-14, atol=1e-13)
+    np.testing.assert_array_equal(normal[0], [0.0, 0.0, 1.0])
+    assert slope[0] == 0.0 and slope[1] == pytest.approx(45.0, abs=1e-12)
+    np.testing.assert_allclose(normal[1], [-np.sqrt(0.5), 0.0, np.sqrt(0.5)], rtol=0, atol=1e-15)
+    assert np.isnan(normal[2]).all() and np.isnan(slope[2])
