@@ -125,7 +125,7 @@ def add_parser(sub) -> None:
     serve.add_argument("--max-workers", type=_positive_int, default=DEFAULT_MAX_WORKERS,
                        help="threads answering calls (default %(default)s)")
     serve.add_argument("--query-threads", type=_query_threads, default=default_query_threads(),
-                       help="threads one large height batch (32,768 points or more) is answered on, "
+                       help="threads one large height or normal batch (32,768 points or more) is answered on, "
                             "1-4 (default: this machine's CPUs, at most 4: %(default)s)")
     serve.add_argument("--grace-s", type=grace_seconds, default=DEFAULT_GRACE_S,
                        help=f"seconds in-flight calls get to finish on shutdown, 0-{MAX_GRACE_S:g} "

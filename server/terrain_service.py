@@ -69,8 +69,8 @@ HEIGHT_ENCODINGS = (pb.HEIGHT_ENCODING_UNSPECIFIED, pb.HEIGHT_ENCODING_FLOAT32, 
 # Threads answering calls; the numba kernels release the GIL, so batches from
 # different clients run in parallel.
 DEFAULT_MAX_WORKERS = min(32, (os.cpu_count() or 1) + 4)
-# Threads one large height batch is answered on (terrain.terrain._heights_into: a DEM's share of
-# a batch of at least 2 x 16,384 points split in parts; the caller's thread is one of them).
+# Threads one large height or normal batch is answered on (terrain.terrain._answer_into: a DEM's
+# share of a batch of at least 2 x 16,384 points split in parts; the caller's thread is one of them).
 QUERY_THREADS_MAX = 4
 # Calls admitted at once per worker thread (running or queued); more are refused
 # with RESOURCE_EXHAUSTED instead of queueing without bound (grpc_common.Admission).
@@ -251,7 +251,7 @@ class TerrainServicer:
 
     def GetNormals(self, request: dict) -> dict:
         check_batch(request, ("lat_deg", "lon_deg"), MAX_NORMAL_POINTS)
-        result = self.terrain.normals(request["lat_deg"], request["lon_deg"], warm=True)
+        result = self.terrain.normals(request["lat_deg"], request["lon_deg"], warm=True, threads=self.query_threads)
         n = result.normal_enu
         return {"normal_east": n[:, 0], "normal_north": n[:, 1], "normal_up": n[:, 2],
                 "slope_deg": result.slope_deg, "status": sent_status(result.status)}
@@ -574,7 +574,7 @@ def method_handlers(servicer: TerrainServicer, stats: CallStats | None = None,
 def create_server(terrain, address: str = "127.0.0.1:0", max_workers: int = DEFAULT_MAX_WORKERS,
                   dem_paths=(), dem_stats=None, query_threads: int = 1) -> tuple[ManagedServer, int]:
     """A terrain server bound to ``address`` ("host:port", port 0 for any free one);
-    ``query_threads``: threads one large GetHeights batch is answered on (QUERY_THREADS_MAX);
+    ``query_threads``: threads one large GetHeights or GetNormals batch is answered on (QUERY_THREADS_MAX);
     ``dem_paths``, the DEM files ``terrain`` was read from, are named with their SHA-256
     in GetMetadata (a recording over the service keeps them), hashed from start-up on and checked
     against ``dem_stats`` (their :func:`file_stat` before they were read; None: taken now).

@@ -52,7 +52,7 @@ RAY_PART_CUT = (3.0 - math.sqrt(5.0)) / 2.0
 # Source kinds (describe()["kind"]) whose heights are made up, not measured: a
 # filled void of a DEM is not handed to them.
 SYNTHETIC_KINDS = ("procedural",)
-# Heights(threads=k) splits a raster's share of a batch into k contiguous parts, each at least
+# heights / gradients (threads=k) split a raster's share of a batch into k contiguous parts, each at least
 # this many points (smaller batches: one thread; a hand-off costs ~20-50 us, a point ~13 ns).
 PARALLEL_MIN_POINTS_PER_THREAD = 16_384
 # The shell every surface of a stack lies in (Terrain._shell): what a segment does above it or
@@ -319,7 +319,7 @@ class Terrain:
         first when the batch is large enough to gain from it (see
         :meth:`terrain.raster.Raster.warm_cache`); for callers whose caches are
         cold, like the gRPC service. threads: answer a DEM raster's share of a
-        large batch on up to this many threads (:func:`_heights_into`; the
+        large batch on up to this many threads (:func:`_answer_into`; the
         service's query threads). Results are the same either way, bit for bit.
         """
         lat, lon = check_latlon(lat, lon)
@@ -329,11 +329,11 @@ class Terrain:
             if warm:
                 _warm_cache(source, lat.size if idx is None else idx.size)
             if idx is None:
-                _heights_into(source, lat, lon, out_h, status, threads)
+                _answer_into(source, "heights_into", threads, lat, lon, out_h, status)
             else:
                 sub_h = np.full(idx.size, np.nan)
                 sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
-                _heights_into(source, lat[idx], lon[idx], sub_h, sub_status, threads)
+                _answer_into(source, "heights_into", threads, lat[idx], lon[idx], sub_h, sub_status)
                 out_h[idx] = sub_h
                 status[idx] = sub_status
         for _, idx, sub_h in self._measured_instead(lat, lon, status):
@@ -395,20 +395,20 @@ class Terrain:
                 return
             yield (None if idx.size == status.size else idx), source
 
-    def normals(self, lat, lon, *, warm: bool = False) -> NormalResult:
+    def normals(self, lat, lon, *, warm: bool = False, threads: int = 1) -> NormalResult:
         """Surface normals (ENU) and slope of the bilinear surface at (lat, lon).
 
-        warm: as for :meth:`heights`.
+        warm, threads: as for :meth:`heights`.
         """
-        de, dn, status = self.gradients(lat, lon, warm=warm)
+        de, dn, status = self.gradients(lat, lon, warm=warm, threads=threads)
         normal, slope = np.empty((de.size, 3)), np.empty(de.size)
         normals_from_gradients(de, dn, normal, slope)
         return NormalResult(normal, slope, status)
 
-    def gradients(self, lat, lon, *, warm: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def gradients(self, lat, lon, *, warm: bool = False, threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(dh/d east metre, dh/d north metre, status) of the bilinear surface at (lat, lon),
         float64 (n,) each, NaN where outside: what :meth:`normals` is made from, for callers
-        that build their own (the clipmap's normal maps). warm: as for :meth:`heights`."""
+        that build their own (the clipmap's normal maps). warm, threads: as for :meth:`heights`."""
         lat, lon = check_latlon(lat, lon)
         de = np.full(lat.shape, np.nan)
         dn = np.full(lat.shape, np.nan)
@@ -417,11 +417,11 @@ class Terrain:
             if warm:
                 _warm_cache(source, lat.size if idx is None else idx.size)
             if idx is None:
-                source.gradient_into(lat, lon, de, dn, status)
+                _answer_into(source, "gradient_into", threads, lat, lon, de, dn, status)
             else:
                 sub_de, sub_dn = np.full(idx.size, np.nan), np.full(idx.size, np.nan)
                 sub_status = np.full(idx.size, STATUS_OUTSIDE, dtype=np.uint8)
-                source.gradient_into(lat[idx], lon[idx], sub_de, sub_dn, sub_status)
+                _answer_into(source, "gradient_into", threads, lat[idx], lon[idx], sub_de, sub_dn, sub_status)
                 de[idx], dn[idx], status[idx] = sub_de, sub_dn, sub_status
         # A filled point's slope comes from the source its height comes from (heights' rule,
         # decided on heights). A source has a slope wherever it has a height
@@ -814,22 +814,22 @@ class Terrain:
         return time.perf_counter() - t0
 
 
-def _heights_into(source, lat, lon, out_h, out_status, threads: int) -> None:
-    """``source.heights_into`` over (n,) float64 C-contiguous arrays; a DEM raster's (its
-    kernel, terrain.raster.bilinear_into, releases the GIL and writes only the points it is
-    given) in up to ``threads`` contiguous parts of at least PARALLEL_MIN_POINTS_PER_THREAD
-    points, on terrain.threads' shared pool with the caller working too. Other sources
-    (stores, the procedural world, insets: caches of their own) take the batch whole."""
+def _answer_into(source, method: str, threads: int, lat, lon, *outs) -> None:
+    """``source.<method>(lat, lon, *outs)`` (heights_into or gradient_into) over (n,) float64
+    C-contiguous arrays; a DEM raster's (its kernels, terrain.raster.bilinear_into and
+    gradient_into, release the GIL, and each writes only the points it is given) in up to
+    ``threads`` contiguous parts of at least PARALLEL_MIN_POINTS_PER_THREAD points, on
+    terrain.threads' shared pool with the caller working too. Other sources (stores, the
+    procedural world, insets: caches of their own) take the batch whole."""
+    answer = getattr(source, method)
     parts = min(int(threads), lat.size // PARALLEL_MIN_POINTS_PER_THREAD)
     if parts < 2 or type(source) is not Raster:
-        source.heights_into(lat, lon, out_h, out_status)
+        answer(lat, lon, *outs)
         return
     from terrain.threads import map_shared
 
     cuts = np.linspace(0, lat.size, parts + 1).astype(np.int64).tolist()
-    map_shared(lambda k: source.heights_into(lat[cuts[k]:cuts[k + 1]], lon[cuts[k]:cuts[k + 1]],
-                                             out_h[cuts[k]:cuts[k + 1]], out_status[cuts[k]:cuts[k + 1]]),
-               list(range(parts)), parts)
+    map_shared(lambda k: answer(*(a[cuts[k]:cuts[k + 1]] for a in (lat, lon, *outs))), list(range(parts)), parts)
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
-"""Large height batches on several threads (Terrain.heights(threads=k), the terrain service's
---query-threads): the same answers, bit for bit, whatever the split, over one DEM, over a
-stack of sources (later sources answer what earlier ones left: the indexed path), and over
-the service on loopback."""
+"""Large height and normal batches on several threads (Terrain.heights / normals(threads=k),
+the terrain service's --query-threads): the same answers, bit for bit, whatever the split,
+over one DEM, over a stack of sources (later sources answer what earlier ones left: the
+indexed path), and over the service on loopback."""
 
 from __future__ import annotations
 
@@ -39,6 +39,16 @@ def test_split_batches_answer_as_one_thread_does(alps, threads, n):
     assert np.isnan(one.height_msl_m).any() and np.isfinite(one.height_msl_m).any()
 
 
+@pytest.mark.parametrize("threads", [2, 4])
+def test_split_normal_batches_answer_as_one_thread_does(alps, threads):
+    t = Terrain([alps, ProceduralTerrain(seed=4)])
+    lat, lon = _points(70_001, 20 + threads)
+    one = t.normals(lat, lon)
+    many = t.normals(lat, lon, threads=threads, warm=True)
+    assert np.array_equal(one.normal_enu, many.normal_enu) and np.array_equal(one.slope_deg, many.slope_deg)
+    assert np.array_equal(one.status, many.status)
+
+
 def test_a_stack_splits_each_rasters_share_and_leaves_the_rest_whole(alps, monkeypatch):
     """Over the Alps tile then the procedural world: the tile's points split in parts, the
     procedural world's share taken whole (its block cache is its own)."""
@@ -72,5 +82,8 @@ def test_the_service_answers_the_same_at_any_query_threads(alps, threads):
             want = t.heights(lat, lon)
             assert np.array_equal(got.height_msl_m, want.height_msl_m, equal_nan=True)
             assert np.array_equal(got.status, want.status)
+            got_n, want_n = client.normals(lat, lon), t.normals(lat, lon)
+            assert np.array_equal(got_n.normal_enu, want_n.normal_enu, equal_nan=True)
+            assert np.array_equal(got_n.slope_deg, want_n.slope_deg, equal_nan=True)
     finally:
         server.stop(0).wait()
