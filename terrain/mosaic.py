@@ -116,8 +116,7 @@ def refine_factors(coarse: Raster, fine: Raster) -> tuple[int, int] | None:
     2..REFINE_MAX_FACTOR on one axis at least (1 on the other allowed), with ``coarse``'s
     posts on ``fine``'s lattice and the same CRS and vertical datum; None otherwise."""
     gc, gf = coarse.georef, fine.georef
-    if gc.crs != gf.crs or vertical_datum_identity(coarse.vertical_datum) != vertical_datum_identity(
-            fine.vertical_datum):
+    if not _same_system(coarse, fine):
         return None
     factors = []
     for dc, df, n in ((gc.dy, gf.dy, coarse.shape[0]), (gc.dx, gf.dx, coarse.shape[1])):
@@ -126,13 +125,7 @@ def refine_factors(coarse: Raster, fine: Raster) -> tuple[int, int] | None:
         if not 1 <= k <= REFINE_MAX_FACTOR or abs(dc / (k * df) - 1.0) * k * (n - 1) > ALIGN_TOLERANCE_POSTS:
             return None
         factors.append(int(k))
-    if factors == [1, 1]:
-        return None
-    dcol = (gc.x0 - gf.x0) / gf.dx
-    if _wraps(gf):
-        dcol %= _turn(gf) / gf.dx
-    drow = (gc.y0 - gf.y0) / gf.dy
-    if not (_near_whole(dcol, gf) and abs(drow - round(drow)) <= ALIGN_TOLERANCE_POSTS):
+    if factors == [1, 1] or not _on_lattice(gc, gf):
         return None
     return factors[0], factors[1]
 
@@ -271,17 +264,29 @@ def aligned(a: Raster, b: Raster) -> bool:
     """True when a and b can share one grid: same CRS, vertical datum (by identity, whatever the
     labels), spacing, post phase."""
     ga, gb = a.georef, b.georef
-    if ga.crs != gb.crs or vertical_datum_identity(a.vertical_datum) != vertical_datum_identity(b.vertical_datum):
+    if not _same_system(a, b):
         return False
     # Spacing: b's far posts must stay within tolerance of a's grid.
     for da, db, n in ((ga.dx, gb.dx, max(a.shape[1], b.shape[1])), (ga.dy, gb.dy, max(a.shape[0], b.shape[0]))):
         if abs(db / da - 1.0) * (n - 1) > ALIGN_TOLERANCE_POSTS:
             return False
-    dcol = (gb.x0 - ga.x0) / ga.dx
-    if _wraps(ga):
-        dcol %= _turn(ga) / ga.dx
-    drow = (gb.y0 - ga.y0) / ga.dy
-    return _near_whole(dcol, ga) and abs(drow - round(drow)) <= ALIGN_TOLERANCE_POSTS
+    return _on_lattice(gb, ga)
+
+
+def _same_system(a: Raster, b: Raster) -> bool:
+    """Same CRS and vertical datum (by identity, whatever the labels)."""
+    return a.georef.crs == b.georef.crs and (vertical_datum_identity(a.vertical_datum)
+                                             == vertical_datum_identity(b.vertical_datum))
+
+
+def _on_lattice(g: Georef, lattice: Georef) -> bool:
+    """Whether ``g``'s first post lies on ``lattice``'s posts (a whole number of its spacings
+    away on each axis, within ALIGN_TOLERANCE_POSTS; longitude by whole turns where it wraps)."""
+    dcol = (g.x0 - lattice.x0) / lattice.dx
+    if _wraps(lattice):
+        dcol %= _turn(lattice) / lattice.dx
+    drow = (g.y0 - lattice.y0) / lattice.dy
+    return _near_whole(dcol, lattice) and abs(drow - round(drow)) <= ALIGN_TOLERANCE_POSTS
 
 
 def _near_whole(dcol: float, g: Georef) -> bool:
