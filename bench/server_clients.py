@@ -87,23 +87,25 @@ def _phases(args, stall, until: float) -> None:
     """Follow the "stall" / "calm" lines of stdin until it closes or ``until`` (monotonic) passes."""
     present: list = []  # (client, call) of the stalled clients while a stalled phase lasts
     generation = 0
+
+    def dismiss() -> None:
+        for c, call in present:
+            call.cancel()
+            c.leave()
+            c.close()
+        present.clear()
+
     for line in sys.stdin:
         command = line.strip()
         if command == "stall" and not present:
             generation += 1
-            present = [stall(f"stalled-{generation}-{k}") for k in range(args.stall)]
+            present.extend(stall(f"stalled-{generation}-{k}") for k in range(args.stall))
         elif command == "calm":
-            for c, call in present:
-                call.cancel()
-                c.leave()
-                c.close()
-            present = []
+            dismiss()
         print(f"{command} ok", flush=True, file=sys.stderr)
         if time.monotonic() >= until:
             break
-    for c, call in present:
-        call.cancel()
-        c.close()
+    dismiss()
     time.sleep(max(0.0, until - time.monotonic()))
 
 

@@ -165,14 +165,6 @@ def bench_los(report: Report, raster, quick: bool, rng) -> None:
     report.series["los_speed_vs_error"] = curve
 
 
-def service_query_threads(service) -> int:
-    """The --query-threads a `sortie terrain serve` process runs with: its default when not given."""
-    from server.terrain_cli import default_query_threads
-
-    args = service.args
-    return int(args[args.index("--query-threads") + 1]) if "--query-threads" in args else default_query_threads()
-
-
 def bench_grpc(report: Report, raster, dem_path: Path, quick: bool, rng) -> None:
     """The service in its own process (as deployed: no GIL shared with the
     client, its default --query-threads), queried over loopback; the in-process
@@ -183,9 +175,11 @@ def bench_grpc(report: Report, raster, dem_path: Path, quick: bool, rng) -> None
     call that does no work, the transport's floor on this machine)."""
     from client.terrain_client import TerrainClient
     from server.process import ServiceProcess
+    from server.terrain_cli import default_query_threads
     from terrain.terrain import Terrain
 
     terrain = Terrain([raster])
+    threads = default_query_threads()  # the first service's, started without --query-threads
     lat, lon, _, _ = random_points(raster, GRPC_BATCH_POINTS, rng)
     # A second service answering on one thread, as the in-process baseline does, gives the
     # transport's own share (the first splits a large batch over its --query-threads).
@@ -224,7 +218,6 @@ def bench_grpc(report: Report, raster, dem_path: Path, quick: bool, rng) -> None
             t2 = time.perf_counter()
             lat_ms.append((t1 - t0) * 1e3)
             floor_ms.append((t2 - t1) * 1e3)
-        threads = service_query_threads(service)
     report.metrics["grpc_batch_points_per_s"] = GRPC_BATCH_POINTS / t_grpc
     report.metrics["grpc_vs_inprocess"] = t_grpc / t_local
     report.metrics["grpc_one_thread_vs_inprocess"] = t_one / t_local
