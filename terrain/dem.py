@@ -300,6 +300,10 @@ def _read_zipped(path: Path, **kwargs) -> Raster:
                 if sidecar is not None:  # read_asc checks the grid's CRS from it, as beside a loose file
                     with archive.open(sidecar) as src, open(inner.with_suffix(".prj"), "wb") as dst:
                         shutil.copyfileobj(src, dst, 1 << 20)
+                pam = _zipped_pam(archive, member)
+                if pam is not None:  # read_geotiff takes a nodata from it, as beside a loose file
+                    with archive.open(pam) as src, open(inner.with_name(inner.name + ".aux.xml"), "wb") as dst:
+                        shutil.copyfileobj(src, dst, 1 << 20)
                 try:
                     raster = read_dem(inner, **kwargs)
                 except DataFormatError as e:  # named by the archive, not the scratch copy
@@ -334,6 +338,16 @@ def _zipped_prj(archive: zipfile.ZipFile, member: zipfile.ZipInfo):
                 and str(Path(m.filename).with_suffix("")).lower() == stem and m.file_size <= MAX_ZIPPED_PRJ_BYTES):
             return m
     return None
+
+
+def _zipped_pam(archive: zipfile.ZipFile, member: zipfile.ZipInfo):
+    """GDAL's PAM sidecar ``<name>.aux.xml`` beside a GeoTIFF in the archive (GDAL reads it through
+    /vsizip/ as beside a loose file; see _pam_nodata), or None."""
+    if Path(member.filename).suffix.lower() not in (".tif", ".tiff"):
+        return None
+    name = (member.filename + ".aux.xml").lower()
+    return next((m for m in archive.infolist() if not m.is_dir() and m.filename.lower() == name
+                 and m.file_size <= MAX_PAM_BYTES), None)
 
 
 # --------------------------------------------------------------------------- SRTM .hgt
@@ -734,8 +748,10 @@ def read_geotiff(path) -> Raster:
     GDAL does) puts the tie point on the outer corner of pixel (0, 0), so posts
     sit half a pixel inwards; PixelIsPoint (2) puts it on the post. Rows may
     run north->south (usual, positive ModelPixelScale y) or south->north; both
-    come out row 0 = south. GDAL_NODATA and non-finite values are voids,
-    filled by the harmonic rule. Georef x, y are in the CRS's native units.
+    come out row 0 = south. GDAL_NODATA (else the NoDataValue of GDAL's
+    ``<file>.aux.xml`` sidecar), non-finite values and, with a nodata value,
+    a sparse file's unwritten strips or tiles are voids, filled by the
+    harmonic rule; a post beyond +-HEIGHT_ABS_MAX_M is refused. Georef x, y are in the CRS's native units.
     Strips or tiles, classic TIFF or BigTIFF, uncompressed or compressed as
     GDAL writes DEMs (LZW, DEFLATE, ZSTD, PackBits; horizontal or
     floating-point predictor): tifffile decodes them with imagecodecs. Heights
@@ -751,6 +767,7 @@ def read_geotiff(path) -> Raster:
             page = tif.pages[0]
             tags = {tag.code: tag.value for tag in page.tags.values()}
             data = page.asarray()
+            unwritten = _unwritten_segments(page) if data.ndim == 2 else None
     # imagecodecs reports corrupt compressed data (DeflateError, ZstdError, LzwError, ...) as
     # RuntimeError subclasses.
     except (tifffile.TiffFileError, ValueError, OSError, KeyError, IndexError, RuntimeError) as e:
@@ -773,16 +790,20 @@ def read_geotiff(path) -> Raster:
     # (0.5, 0.5) (GeoTIFF 1.0 section 2.5.2.2; OGC 19-008r4 Annex B).
     half = 0.5 if raster_type == RASTER_PIXEL_IS_AREA else 0.0
     if sx < 0:
-        data = data[:, ::-1]
+        data, unwritten = data[:, ::-1], unwritten[:, ::-1]
     if sy < 0:
-        data = data[::-1]
+        data, unwritten = data[::-1], unwritten[::-1]
     ny, nx = data.shape
     x0 = ax + sx * ((nx - 1 if sx < 0 else 0) + half)
     y0 = ay + sy * ((ny - 1 if sy < 0 else 0) + half)
     nodata = _gdal_nodata(path, tags.get(TAG_GDAL_NODATA))
+    if nodata is None:
+        nodata = _pam_nodata(path)
     voids = ~np.isfinite(data) if data.dtype.kind == "f" else np.zeros(data.shape, bool)
     if nodata is not None and math.isfinite(nodata):
         voids |= data == (data.dtype.type(nodata) if data.dtype.kind == "f" else nodata)
+    if nodata is not None:  # GDAL reads a sparse file's unwritten blocks as the nodata value
+        voids |= unwritten
     meta = {"format": "GeoTIFF", "dtype": str(data.dtype),
             "raster_type": "PixelIsArea" if half else "PixelIsPoint",
             "nodata": nodata, "rows_south_to_north": bool(sy > 0)}
@@ -802,6 +823,23 @@ def read_geotiff(path) -> Raster:
         meta.update(scale=scale, offset=offset, vertical_units=unit_name)
     datum = _vertical_datum(path, keys)
     return _finish(path, data, voids, _make_georef(path, crs, x0, y0, abs(sx), abs(sy)), datum, meta)
+
+
+def _unwritten_segments(page) -> np.ndarray:
+    """(rows, cols) bool over a one-band page's pixels as stored (row 0 the file's first): those of
+    the strips or tiles a sparse TIFF leaves unwritten, offset or byte count 0 (GDAL's GTiff
+    driver, "Sparse files": with SPARSE_OK=TRUE blocks of nodata alone are not written, and are
+    read back as the nodata value, or 0 without one). tifffile fills them with the GDAL_NODATA it
+    could parse in the image's dtype, else 0 (an integer raster's "-9999.0", a float32 one's
+    "-3.4028234663852886e+38"), so they are found here, by their segments."""
+    rows, cols = page.shape[-2:]
+    unwritten = np.zeros((rows, cols), bool)
+    (seg_rows, seg_cols), per_row = page.chunks[:2], page.chunked[-1]
+    for k, (offset, count) in enumerate(zip(page.dataoffsets, page.databytecounts)):
+        if offset == 0 or count == 0:
+            r, c = divmod(k, per_row)
+            unwritten[r * seg_rows:(r + 1) * seg_rows, c * seg_cols:(c + 1) * seg_cols] = True
+    return unwritten
 
 
 def _vertical_datum(path: Path, keys: dict) -> str:
@@ -1008,14 +1046,40 @@ def _raster_to_model(path: Path, tags: dict) -> tuple[float, float, float, float
     return ax, sx, ay, sy
 
 
-def _gdal_nodata(path: Path, text) -> float | None:
+def _gdal_nodata(path: Path, text, where: str = f"GDAL_NODATA ({TAG_GDAL_NODATA})") -> float | None:
+    """The nodata value written as text, or None without one. A decimal comma is read as a point,
+    as GDAL reads the tag (CPLAtofM: "either a comma or a period for the decimal delimiter")."""
     if text is None:
         return None
     try:
-        return float(str(text).strip().rstrip("\x00"))
+        return float(str(text).strip().rstrip("\x00").replace(",", "."))
     except ValueError:
-        raise DataFormatError(f"{path}: GDAL_NODATA ({TAG_GDAL_NODATA}) must be a number, "
-                              f"got {text!r}") from None
+        raise DataFormatError(f"{path}: {where} must be a number, got {text!r}") from None
+
+
+# Largest GDAL PAM sidecar (<file>.aux.xml) read: its statistics and histograms are a few kilobytes.
+MAX_PAM_BYTES = 1 << 20
+
+
+def _pam_nodata(path: Path) -> float | None:
+    """Band 1's NoDataValue from GDAL's PAM sidecar ``<file>.aux.xml`` (``<PAMDataset><PAMRasterBand
+    band="1"><NoDataValue>``), or None without one. GDAL puts a GeoTIFF's nodata there when it cannot
+    write the tag (a read-only file, gdal_edit.py -a_nodata on some files, ArcGIS), and reads it from
+    there when the file has no GDAL_NODATA tag (GDAL's GTiff driver, then GDALPamRasterBand)."""
+    pam = path.with_name(path.name + ".aux.xml")
+    if not pam.is_file() or pam.stat().st_size > MAX_PAM_BYTES:
+        return None
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(pam.read_bytes())
+    except ET.ParseError as e:
+        raise DataFormatError(f"{path}: its GDAL sidecar {pam.name} is not XML ({e})") from None
+    for band in root.iter("PAMRasterBand"):
+        item = band.find("NoDataValue")
+        if band.get("band", "1") == "1" and item is not None:
+            return _gdal_nodata(path, item.text or "", f"{pam.name}'s NoDataValue")
+    return None
 
 
 # --------------------------------------------------------------------------- raw 16-bit
@@ -1380,6 +1444,35 @@ def _existing(path) -> Path:
     return path
 
 
+# Largest |height| (m) a DEM post is read with: about eleven times Mount Everest (8849 m) and nine times
+# the Challenger Deep (about -10,935 m), the bound of terrain.procedural.MAX_HEIGHT_MAX_M. A post beyond
+# it is no terrain on Earth but a nodata value the file does not declare (float32's lowest,
+# -3.4028235e+38, -1e30, ...) or heights in a unit it does not say (millimetres), which read as metres
+# would be answered with STATUS_OK.
+HEIGHT_ABS_MAX_M = 1.0e5
+
+
+def _check_height_range(path: Path, posts: np.ndarray, voids: np.ndarray) -> None:
+    """DataFormatError naming the file, the first post (row 0 south) and its value when a non-void
+    post (metres) lies beyond +-HEIGHT_ABS_MAX_M."""
+    if posts.dtype.kind in "iu" and posts.dtype.itemsize <= 2:  # within +-65535 m: no pass over an SRTM tile
+        return
+    flat = posts.reshape(-1)
+    if flat.size == 0:
+        return
+    # fmax/fmin skip NaN (a float file's voids) without a temporary the size of the grid.
+    if not (np.fmax.reduce(flat) > HEIGHT_ABS_MAX_M or np.fmin.reduce(flat) < -HEIGHT_ABS_MAX_M):
+        return
+    with np.errstate(invalid="ignore"):
+        beyond = ((posts > HEIGHT_ABS_MAX_M) | (posts < -HEIGHT_ABS_MAX_M)) & ~voids
+    if beyond.any():
+        r, c = (int(i) for i in np.argwhere(beyond)[0])
+        raise DataFormatError(f"{path}: {int(beyond.sum())} posts lie beyond +-{HEIGHT_ABS_MAX_M:g} m, the first "
+                              f"(row {r} from the south, column {c} from the west) at {float(posts[r, c])!r} m: "
+                              "a nodata value the file does not declare (GDAL_NODATA, or NODATA_value of an "
+                              "ASCII grid), or heights in a unit it does not say")
+
+
 def _make_georef(path: Path, crs: int, x0: float, y0: float, dx: float, dy: float) -> Georef:
     try:
         return Georef(crs, float(x0), float(y0), float(dx), float(dy))
@@ -1399,6 +1492,7 @@ def _finish(path: Path, posts: np.ndarray, voids: np.ndarray, georef: Georef, da
         lat_top = georef.y0 + (ny - 1) * georef.dy
         if georef.y0 < -90.0 - POLE_TOLERANCE_DEG or lat_top > 90.0 + POLE_TOLERANCE_DEG:
             raise DataFormatError(f"{path}: posts span latitudes {georef.y0}..{lat_top}, beyond the poles")
+    _check_height_range(path, posts, voids)
     dtype = _storage_dtype(posts[~voids])
     heights = posts.astype(np.float64)
     heights[voids] = np.nan
