@@ -114,6 +114,19 @@ def _duration_s(text: str) -> float:
     return value
 
 
+def _server_address(text: str) -> str:
+    """An argparse type: the simulation server's HOST:PORT, its port in 1..65535
+    (server.health_cli.check_address: gRPC keeps a port's low 16 bits, so a mistyped 99999
+    joined whatever server listens on 34463)."""
+    from server.health_cli import check_address
+
+    try:
+        check_address(text)
+    except InvalidArgument as exc:
+        raise argparse.ArgumentTypeError(f"{exc.message} (got {text!r})") from None
+    return text
+
+
 def _bot_count(text: str) -> int:
     try:
         value = int(text)
@@ -128,7 +141,7 @@ def add_parser(sub) -> None:
     c = sub.add_parser("client", help="headless observer: print the live picture",
                        description="Join a simulation server as an observer and print what it sees "
                                    "(dead-reckoned positions) every --every seconds.")
-    c.add_argument("--server", required=True, metavar="HOST:PORT")
+    c.add_argument("--server", required=True, type=_server_address, metavar="HOST:PORT")
     c.add_argument("--observe", nargs=3, type=float, metavar=("LAT", "LON", "RADIUS_M"),
                    help="centre and radius of the area of interest (default: the first target area, 100 km or "
                         "the server's observer limit when smaller)")
@@ -157,7 +170,7 @@ def add_parser(sub) -> None:
     b = sub.add_parser("bot", help="run N autopilot bots as clients of a simulation server",
                        description="Each bot joins as ROLE_BOT, takes a free controllable agent and flies or "
                                    "drives a profile with autopilot commands.")
-    b.add_argument("--server", required=True, metavar="HOST:PORT")
+    b.add_argument("--server", required=True, type=_server_address, metavar="HOST:PORT")
     b.add_argument("--count", type=_bot_count, default=1, metavar="N",
                    help=f"bots, [1, {MAX_BOTS}] (a server's session limit; default %(default)s)")
     b.add_argument("--profile", choices=PROFILES, default="patrol")

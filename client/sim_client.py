@@ -8,7 +8,7 @@ Used alike by bots, renderers, observers and tests::
         with sim.controls() as c:
             c.autopilot(heading_deg=270.0, alt_msl_m=2500.0)
         picture.wait_for(lambda p: len(p) > 0)
-        pos, quat = picture.state()                     # dead-reckoned to now
+        ids, pos, quat = picture.state()                # dead-reckoned to now
 
 :class:`Picture` is the receiver's side of the server's dead reckoning: the
 last update of every entity in view, extrapolated on demand (server
@@ -99,6 +99,12 @@ class SimClient:
     """One session with a simulation server."""
 
     def __init__(self, address: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+        """``address``: HOST:PORT, the port in 1..65535 (else InvalidArgument "address": gRPC
+        keeps a port's low 16 bits, so 99999 would join the server on 34463), or a gRPC target
+        with a scheme (unix:PATH)."""
+        from server.health_cli import check_address
+
+        check_address(address)
         self.address = address
         self.timeout_s = timeout_s
         self.channel = grpc.insecure_channel(address, options=channel_options())

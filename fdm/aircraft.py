@@ -868,6 +868,23 @@ class Aircraft:
                                          self._contact_locations_in)
         return self._terrain_msl_m(p_lat, p_lon), h
 
+    def _check_wheels_on_terrain(self, ic: InitialConditions, lon: float, alt_m: float, cg_in) -> None:
+        """A ground start whose wheel (placed level at heading, as :meth:`_start` places them)
+        stands where the terrain has no data: InvalidArgument naming lat_deg and the wheel's
+        place. No data reads as sea level (:func:`terrain_msl_m`), so a landplane parked within
+        a wheel base of a DEM's edge was refused as standing on water, on dry ground."""
+        p_lat, p_lon, _ = contact_points(ic.lat_deg, lon, alt_m, cg_in, 0.0, 0.0, math.radians(ic.heading_deg),
+                                         np.zeros(3), self._contact_locations_in)
+        gear = np.flatnonzero(~self._structure) + 1  # the CG comes first
+        raw = np.asarray(self.terrain.heights(p_lat[gear], p_lon[gear]).height_msl_m, np.float64)
+        off = np.flatnonzero(np.isnan(raw))
+        if off.size:
+            k = gear[off[0]]
+            raise InvalidArgument("lat_deg", f"a wheel of {self.name} at ({ic.lat_deg}, {ic.lon_deg}) stands outside "
+                                             f"the terrain: no terrain data at ({float(p_lat[k]):.6f}, "
+                                             f"{float(p_lon[k]):.6f}), {off.size} of its {gear.size} wheels off it; "
+                                             "move it onto the terrain, a wheel base from its edge", value=ic.lat_deg)
+
     def _rest_height_ft(self) -> float:
         """CG height above level ground when the lowest wheel just touches (attitude level)."""
         gear = [c.location_in[2] for c in self.contacts if c.kind == "gear"]
@@ -913,6 +930,7 @@ class Aircraft:
                                                  f"{self.name} to stand on (a wing tip or the tail is below "
                                                  "the terrain)", value=ic.lat_deg)
             if self._ditches and _wet(terr[1:][gear]).any():
+                self._check_wheels_on_terrain(ic, lon, alt_m, cg_in)
                 raise InvalidArgument("lat_deg", f"the ground at ({ic.lat_deg}, {ic.lon_deg}) is water (height <= "
                                                  f"sea level, {WATER_LEVEL_MSL_M:g} m): {self.name} is a "
                                                  "landplane and cannot stand on it", value=ic.lat_deg)

@@ -912,8 +912,8 @@ def _terrain(value, base_dir: Path) -> TerrainSpec:
     undulation = t.number("geoid_undulation_m", 0.0, lo=-GEOID_UNDULATION_ABS_MAX_M, hi=GEOID_UNDULATION_ABS_MAX_M)
     insets = t.boolean("insets", False)
     if "service" in value:
-        return TerrainSpec(service=_address(t.string("service"), t.key("service")), geoid_undulation_m=undulation,
-                           insets=insets)
+        return TerrainSpec(service=service_address(t.string("service"), t.key("service")),
+                           geoid_undulation_m=undulation, insets=insets)
     files = t.raw("dem")
     if not isinstance(files, list) or not files:
         raise ScenarioError(t.key("dem"), "must be a non-empty array of file paths", value=_shown(files))
@@ -934,9 +934,11 @@ def _dem_path(value, path: str, base_dir: Path) -> Path:
     return full
 
 
-def _address(value: str, path: str) -> str:
+def service_address(value: str, path: str) -> str:
     """ "host:port", or a comma list of them (replicas of one terrain service:
-    client/terrain_client.py)."""
+    client/terrain_client.py); a ScenarioError at ``path`` otherwise. Also `sortie server
+    --terrain`'s check (server/sim_cli.py): gRPC keeps a port's low 16 bits, so port 99999
+    would reach whatever serves 34463."""
     for entry in value.split(","):
         host, sep, port = entry.strip().rpartition(":")
         bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host

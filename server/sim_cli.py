@@ -29,7 +29,7 @@ import unicodedata
 from pathlib import Path
 
 from server.grpc_common import DEFAULT_GRACE_S, HOST_HELP, bare_host, listen_address, stop_signals, wait_for_signal
-from server.scenario import DURATION_MAX_S, TIME_SCALE_MAX
+from server.scenario import DURATION_MAX_S, TIME_SCALE_MAX, ScenarioError, service_address
 from server.sim_server import CLOCKS
 from sortie.config import MAX_GRACE_S, grace_seconds
 from sortie.errors import InvalidArgument
@@ -288,7 +288,16 @@ def remove_recording(path: Path | None, folders=()) -> None:
 
 
 def check_run_options(args) -> None:
-    """--time-scale and --duration, before anything is built (--grace-s is checked by argparse)."""
+    """--time-scale, --duration and --terrain, before anything is built (--grace-s is checked
+    by argparse). --terrain takes the rule of a scenario's [terrain] service (a port beyond
+    65535 reached another port's server: gRPC keeps its low 16 bits; a name with no port waited
+    10 s to say there was no terrain service)."""
+    terrain = getattr(args, "terrain", None)  # sortie resim --take-over has it too
+    if terrain is not None:
+        try:
+            service_address(terrain, "--terrain")
+        except ScenarioError as exc:
+            raise InvalidArgument("--terrain", exc.message, value=terrain) from None
     if args.time_scale is not None and not (math.isfinite(args.time_scale)
                                             and 0.0 < args.time_scale <= TIME_SCALE_MAX):
         raise InvalidArgument("time_scale", f"must be within (0, {TIME_SCALE_MAX:g}]", value=args.time_scale)
