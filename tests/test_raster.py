@@ -186,12 +186,14 @@ def test_post_beside_a_hole_keeps_its_value():
     assert res.status[1] == STATUS_OUTSIDE  # between a post and a hole: no data
 
 
-@pytest.mark.parametrize("crs", [CRS_GEOGRAPHIC, CRS_WEB_MERCATOR])
-def test_chunked_fast_path_matches_the_careful_path(crs):
+@pytest.mark.parametrize("crs, table", [(CRS_GEOGRAPHIC, False), (CRS_WEB_MERCATOR, False),
+                                        (CRS_WEB_MERCATOR, True)])
+def test_chunked_fast_path_matches_the_careful_path(crs, table):
     """bilinear_into's vectorised path and its per-point path answer every point identically:
     posts, near-posts within the snap tolerance, edges, wrapped longitudes, holes, filled voids,
-    points already answered, across chunk boundaries."""
-    from terrain.raster import _bilinear_point, bilinear_into, fractional_index
+    points already answered, across chunk boundaries (a Web Mercator raster's northings
+    computed, or read from its table as Raster's kernels read them)."""
+    from terrain.raster import _bilinear_point, bilinear_into, fractional_index_tab, mercator_row_table
 
     rng = np.random.default_rng(7)
     ny, nx = 41, 57
@@ -217,11 +219,13 @@ def test_chunked_fast_path_matches_the_careful_path(crs):
         fa = np.zeros((0, 0), np.uint8) if f is None else f
         out = np.where(answered, -1.0, np.nan)
         status = np.where(answered, STATUS_OK, STATUS_OUTSIDE).astype(np.uint8)
-        bilinear_into(h, fa, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, out, status)
+        ytab = mercator_row_table(g, ny) if table else np.zeros(0)
+        assert ytab.size > 0 or not table
+        bilinear_into(h, fa, lat, lon, g.crs, g.x0, g.y0, g.dx, g.dy, ytab, out, status)
         ref = np.where(answered, -1.0, np.nan)
         ref_status = np.where(answered, STATUS_OK, STATUS_OUTSIDE).astype(np.uint8)
         for k in np.flatnonzero(~answered):
-            r, c = fractional_index(lat[k], lon[k], g.crs, g.x0, g.y0, g.dx, g.dy)
+            r, c = fractional_index_tab(lat[k], lon[k], g.crs, g.x0, g.y0, g.dx, g.dy, ytab)
             _bilinear_point(h, fa, f is not None, r, c, ref, ref_status, k)
         np.testing.assert_array_equal(status, ref_status)
         np.testing.assert_array_equal(out, ref)
@@ -333,3 +337,80 @@ def test_normals_from_gradients_matches_the_plane_normal_and_slope():
     assert slope[0] == 0.0 and slope[1] == pytest.approx(45.0, abs=1e-12)
     np.testing.assert_allclose(normal[1], [-np.sqrt(0.5), 0.0, np.sqrt(0.5)], rtol=0, atol=1e-15)
     assert np.isnan(normal[2]).all() and np.isnan(slope[2])
+
+
+# A Web Mercator raster's kernels read its rows from a cubic Hermite table (mercator_row_table):
+# against the projection in long double, within MERCATOR_TABLE_TOLERANCE_ROWS (1e-10) plus rounding.
+# The float64 formula itself errs up to 2.5e-8 of a 1 m row at 84.9 degrees (its logarithm of a
+# rounded tangent), so the table snaps every post's latitude to its row where the formula does not.
+TABLE_BOUND_ROWS = 2e-10
+
+
+@pytest.mark.parametrize("lat_south, dy, rows", [(36.0, 76.437, 512), (-0.5, 30.0, 4000), (80.0, 10.0, 6000),
+                                                 (84.9, 1.0, 2000), (-85.0, 30.0, 3000), (-60.0, 300.0, 9000)])
+def test_the_mercator_table_gives_the_projections_rows(lat_south, dy, rows):
+    from terrain.geodesy import WGS84_A_M, web_mercator_forward, web_mercator_inverse
+    from terrain.raster import fractional_index, fractional_index_tab, mercator_row_table
+
+    y0 = float(web_mercator_forward(lat_south, 0.0)[1])
+    g = Georef(CRS_WEB_MERCATOR, -2.0e6, y0, 25.0, dy)
+    ytab = mercator_row_table(g, rows)
+    assert ytab.size >= 6
+    rng = np.random.default_rng(3)
+    r = np.concatenate([rng.uniform(-1.5, rows + 0.5, 20000), np.arange(rows, dtype=float)])
+    lat, lon = web_mercator_inverse(np.full(r.size, -1.9e6), y0 + r * dy)
+    ld = np.longdouble
+    truth = (ld(WGS84_A_M) * np.log(np.tan(ld(np.pi) / 4 + np.radians(lat.astype(ld)) / 2)) - ld(y0)) / ld(dy)
+    exact = np.array([fractional_index(a, b, g.crs, g.x0, g.y0, g.dx, g.dy) for a, b in zip(lat, lon)])
+    tab = np.array([fractional_index_tab(a, b, g.crs, g.x0, g.y0, g.dx, g.dy, ytab) for a, b in zip(lat, lon)])
+    np.testing.assert_array_equal(tab[:, 1], exact[:, 1])
+    assert float(np.max(np.abs(tab[:20000, 0] - truth[:20000]))) <= TABLE_BOUND_ROWS
+    # A post's latitude snaps to its row, where float64 latitudes can say the post to 5e-10 rows
+    # (not at 84.9 degrees with 1 m rows: an ulp of the latitude is 1.8e-8 of a row there).
+    post = np.abs(truth[20000:] - np.arange(rows)) < 5e-10
+    assert post.any() or lat_south == 84.9
+    np.testing.assert_array_equal(tab[20000:, 0][post], np.arange(rows)[post])
+
+
+def test_the_mercator_table_is_empty_where_it_would_not_pay():
+    from terrain.raster import MERCATOR_TABLE_MAX_NODES, fractional_index, fractional_index_tab, mercator_row_table
+
+    assert mercator_row_table(Georef(CRS_GEOGRAPHIC, 9.0, 47.0, 1 / 1200, 1 / 1200), 1201).size == 0
+    # The whole Web Mercator square at 1 mm posts would need more than MERCATOR_TABLE_MAX_NODES.
+    whole = Georef(CRS_WEB_MERCATOR, -20037508.34, -20037508.34, 0.001, 0.001)
+    assert mercator_row_table(whole, 40_075_016_686).size == 0
+    assert 0 < mercator_row_table(Georef(CRS_WEB_MERCATOR, -20037508.34, -20037508.34, 30.0, 30.0),
+                                  1_335_835).size <= 2 + 2 * MERCATOR_TABLE_MAX_NODES
+    assert MERCATOR_TABLE_MAX_NODES >= 1 << 16
+    # Without a table, and beyond the projection's latitude, the exact answer (NaN beyond it).
+    for lat in (40.0, 85.06, -89.0, float("nan")):
+        a = fractional_index(lat, 3.0, whole.crs, whole.x0, whole.y0, whole.dx, whole.dy)
+        b = fractional_index_tab(lat, 3.0, whole.crs, whole.x0, whole.y0, whole.dx, whole.dy, np.zeros(0))
+        np.testing.assert_array_equal(np.array(a), np.array(b))
+
+
+def test_mercator_heights_read_through_the_table_match_the_projection():
+    """Raster.heights_into over a Web Mercator raster (its table) against the same bilinear surface
+    at the float64 formula's index: within what 1e-9 rows move a height."""
+    from terrain.geodesy import web_mercator_forward
+    from terrain.raster import _bilinear_point, fractional_index
+
+    rng = np.random.default_rng(11)
+    ny, nx = 300, 200
+    h = rng.normal(1500.0, 400.0, (ny, nx))
+    g = Georef(CRS_WEB_MERCATOR, -1.26e7, float(web_mercator_forward(36.0, 0.0)[1]), 76.4, 76.4)
+    raster = Raster(h, g)
+    lat0, lon0, lat1, lon1 = raster.bounds
+    lat = rng.uniform(lat0, lat1, 5000)
+    lon = rng.uniform(lon0, lon1, 5000)
+    out, status = np.full(lat.size, np.nan), np.full(lat.size, STATUS_OUTSIDE, np.uint8)
+    raster.heights_into(lat, lon, out, status)
+    ref, ref_status = np.full(lat.size, np.nan), np.full(lat.size, STATUS_OUTSIDE, np.uint8)
+    for k in range(lat.size):
+        r, c = fractional_index(lat[k], lon[k], g.crs, g.x0, g.y0, g.dx, g.dy)
+        _bilinear_point(h, np.zeros((0, 0), np.uint8), False, r, c, ref, ref_status, k)
+    np.testing.assert_array_equal(status, ref_status)
+    steepest = np.max(np.abs(np.diff(h, axis=0)))
+    assert np.max(np.abs(out - ref)) <= 1e-9 * steepest + 1e-9  # rows within 1e-9 of the formula's
+    for k in range(0, lat.size, 97):  # one point alone, as height_at answers it: bit for bit
+        assert raster.height_at(lat[k], lon[k]) == out[k]
