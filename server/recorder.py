@@ -189,7 +189,8 @@ class Recorder:
         self._last_ids = np.zeros(0, np.int64)
         self._queue: queue.Queue = queue.Queue(MAX_QUEUED_CHUNKS)
         self.error: Exception | None = None
-        self.chunks_written = 0
+        self.chunks_coded = 0  # chunks coded and written to the file, not yet necessarily on the disk
+        self.chunks_written = 0  # chunks on the disk (fdatasync returned)
         self.cpu_s = 0.0  # CPU time of the writer thread's coding and writing
         self.sync_s = 0.0  # wall time of the writer thread's fdatasync calls (off the clock thread)
         self.closed = False
@@ -290,6 +291,7 @@ class Recorder:
                 head, body = encode_chunk(c, self.steps, self.rate_hz)
                 self._writer.write_chunk(head, body)
                 self.cpu_s += time.thread_time() - t0
+                self.chunks_coded += 1
                 t1 = time.perf_counter()
                 self._writer.sync(data_only=True)  # on the disk: a power loss loses the open chunk only
                 self.sync_s += time.perf_counter() - t1
