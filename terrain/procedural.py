@@ -127,6 +127,15 @@ BLOCK_CELLS_MAX = 4096
 CACHE_MAX_BYTES = 4 << 30
 # Upper clamp of the roughness factor's base (1 + a): see the module docstring.
 ROUGHNESS_BASE_MAX = 2.0
+# Displacements fade towards the poles from this latitude (degrees): a post's (R - W) M / L^E is
+# scaled by cos(lat) / cos(POLAR_FADE_LAT_DEG) beyond it. The lattice's columns crowd together
+# there (a post's east-west neighbour is cos(lat) as far as at the equator) while the paper's
+# displacements do not shrink with them, so slopes grew as 1 / cos(lat): p99 slope (rise over
+# run) 1.1 at 40-45 degrees, 2.6 at 70-75, 9.1 at 85-86 and 32 at 88-89 (seed 7, the default
+# parameters), a cliff field that stopped every ground vehicle near a pole. Faded, slopes beyond
+# the fade stay those of its latitude, and each pole is a single height at the water line's
+# level 0 value times ~0 (sea level). Below the fade nothing changes.
+POLAR_FADE_LAT_DEG = 70.0
 # Spherical radius used only to decide which blocks are near a viewer (IUGG mean
 # radius R1); the 0.5 % spherical error is far below a block's size.
 MEAN_EARTH_RADIUS_M = 6371008.8
@@ -188,8 +197,16 @@ def lattice_uniform(seed: int, rows, cols) -> np.ndarray:
     return (lattice_hash(seed, rows, cols) >> np.uint64(11)).astype(np.float64) * _UNIT_53
 
 
+def polar_fade(lat_deg) -> np.ndarray:
+    """The factor of a post's displacement at latitude ``lat_deg`` (degrees): 1 up to
+    POLAR_FADE_LAT_DEG, cos(lat) / cos(POLAR_FADE_LAT_DEG) beyond it (0 at the poles, to rounding)."""
+    fade = np.cos(np.radians(np.asarray(lat_deg, np.float64))) / math.cos(math.radians(POLAR_FADE_LAT_DEG))
+    return np.clip(fade, 0.0, 1.0)
+
+
 def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: float,
-                          pinned_rows: np.ndarray | None = None, preset: np.ndarray | None = None) -> np.ndarray:
+                          pinned_rows: np.ndarray | None = None, preset: np.ndarray | None = None,
+                          row_scale: np.ndarray | None = None) -> np.ndarray:
     """Normalised heights a = H / M of one block by the paper's subdivision (§3).
 
     uniform: (n + 1, n + 1) float64, R of each post, n a power of two.
@@ -197,7 +214,9 @@ def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: flo
     poles), or None. preset: (n + 1, n + 1) float64, dimensionless, the posts
     already set (the paper's borders fitted to existing neighbours), NaN
     elsewhere, or None: a preset post keeps its value and later levels
-    displace from it. Returns (n + 1, n + 1) float64, dimensionless.
+    displace from it. row_scale: (n + 1,) float64, each row's factor of its
+    posts' displacements, level 0's too (:func:`polar_fade`), or None (1).
+    Returns (n + 1, n + 1) float64, dimensionless.
 
     Vectorised per level: all centres and edge midpoints of a level are set at
     once from the previous level's posts.
@@ -209,9 +228,15 @@ def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: flo
     if preset is not None and preset.shape != uniform.shape:
         raise ValueError(f"preset must be shaped like uniform {uniform.shape}, got shape {preset.shape}")
     moves = np.ones((size, 1)) if pinned_rows is None else (~pinned_rows).astype(np.float64)[:, None]
+    if row_scale is not None:
+        if np.shape(row_scale) != (size,):
+            raise ValueError(f"row_scale must be ({size},), got shape {np.shape(row_scale)}")
+        moves = moves * np.asarray(row_scale, np.float64)[:, None]
     free = None if preset is None else np.isnan(preset)
     a = np.zeros((size, size))
-    a[::n, ::n] = uniform[::n, ::n] - water  # level 0: A = 0, L = 1
+    a[::n, ::n] = uniform[::n, ::n] - water  # level 0: A = 0, L = 1 (a pole's corners too: not displaced later)
+    if row_scale is not None:
+        a[::n, ::n] *= np.asarray(row_scale, np.float64)[::n, None]
     if free is not None:
         a[::n, ::n] = np.where(free[::n, ::n], a[::n, ::n], preset[::n, ::n])
     s, level = n, 1
@@ -231,11 +256,14 @@ def midpoint_displacement(uniform: np.ndarray, level_exponent: float, water: flo
     return a
 
 
-def line_displacement(uniform: np.ndarray, level_exponent: float, water: float, ends: np.ndarray) -> np.ndarray:
+def line_displacement(uniform: np.ndarray, level_exponent: float, water: float, ends: np.ndarray,
+                      scale: np.ndarray | None = None) -> np.ndarray:
     """Normalised heights of one block edge, displaced from its two ends alone.
 
     uniform: (n + 1,) float64, R of the edge's posts; ends: (2,) float64,
-    dimensionless, its end posts. Returns (n + 1,) float64. The same
+    dimensionless, its end posts; scale: (n + 1,) float64, each post's factor of
+    its displacement (its row's :func:`polar_fade`), or None (1). Returns
+    (n + 1,) float64. The same
     operations on the same values as :func:`midpoint_displacement` gives a
     block's border row or column (an edge's midpoints are means of that
     edge's posts only), so a block can recompute, bit for bit, the edge an
@@ -251,7 +279,7 @@ def line_displacement(uniform: np.ndarray, level_exponent: float, water: float, 
     while s > 1:
         h = s // 2
         mean = 0.5 * (a[0:n:s] + a[s::s])
-        a[h::s] = _displaced(mean, uniform[h::s], water, level**level_exponent, 1.0)
+        a[h::s] = _displaced(mean, uniform[h::s], water, level**level_exponent, 1.0 if scale is None else scale[h::s])
         s, level = h, level + 1
     return a
 
@@ -470,12 +498,13 @@ class ProceduralTerrain:
         g_cols = (col * n + np.arange(n + 1, dtype=np.int64)) % self.posts_per_turn
         pinned = (g_rows == 0) | (g_rows == self.pole_row)
         uniform = lattice_uniform(self.seed, g_rows[:, None], np.where(pinned[:, None], 0, g_cols[None, :]))
+        fade = self.row_fade(g_rows)
         m, e, w = epochs[own]
-        preset = self._preset(uniform, own, corners, edges, epochs, (bool(pinned[0]), bool(pinned[n])))
+        preset = self._preset(uniform, own, corners, edges, epochs, (bool(pinned[0]), bool(pinned[n])), fade)
         if preset is None:
-            bed = m * midpoint_displacement(uniform, e, w, pinned)
+            bed = m * midpoint_displacement(uniform, e, w, pinned, row_scale=fade)
         else:
-            bed = m * midpoint_displacement(uniform, e, w, pinned, preset / m)
+            bed = m * midpoint_displacement(uniform, e, w, pinned, preset / m, row_scale=fade)
             bed = np.where(np.isnan(preset), bed, preset)  # older posts as they made them, in metres
         surface = np.maximum(bed, 0.0)
         bed.flags.writeable = False
@@ -483,16 +512,24 @@ class ProceduralTerrain:
         return ProceduralBlock(row, col, -90.0 + row * n * self.spacing_deg, -180.0 + col * n * self.spacing_deg,
                                self.spacing_deg, bed, surface)
 
-    def _preset(self, uniform, own, corners, edges, epochs, pole_rows):
+    def row_fade(self, g_rows) -> np.ndarray:
+        """:func:`polar_fade` of global lattice rows (row 0 the south pole): each row's factor of
+        its posts' displacements, the same in every block that holds the row."""
+        return polar_fade(-90.0 + np.asarray(g_rows, np.int64) * self.spacing_deg)
+
+    def _preset(self, uniform, own, corners, edges, epochs, pole_rows, fade):
         """(n + 1, n + 1) float64 metres: the posts older blocks make (their corners and
         edges, with their parameters), NaN elsewhere; None when there are none. pole_rows:
-        (south, north) bool, whether the block's first or last row is a pole."""
+        (south, north) bool, whether the block's first or last row is a pole; fade: (n + 1,)
+        the rows' :meth:`row_fade`."""
         if min(min(corners[0]), min(corners[1]), *edges.values()) >= own:
             return None
         n = self.block_cells
         out = np.full(uniform.shape, np.nan)
-        corner_m = [[epochs[c][0] * (uniform[i * n, j * n] - epochs[c][2]) for j, c in enumerate(pair)]
-                    for i, pair in enumerate(corners)]  # level 0 of the epoch making it
+        # Level 0 of the epoch making it, as midpoint_displacement computes it (M (R - W) fade would differ in
+        # the last bit where fade is not 1).
+        corner_m = [[epochs[c][0] * ((uniform[i * n, j * n] - epochs[c][2]) * fade[i * n]) for j, c in enumerate(pair)]
+                    for i, pair in enumerate(corners)]
         for i in (0, 1):
             for j in (0, 1):
                 if corners[i][j] < own:
@@ -507,8 +544,10 @@ class ProceduralTerrain:
                 out[line] = corner_m[c0[0]][0]
                 continue
             m, e, w = epochs[epoch]
-            ends = [corner_m[i][j] / m if corners[i][j] < epoch else uniform[i * n, j * n] - w for i, j in (c0, c1)]
-            made = m * line_displacement(uniform[line], e, w, np.array(ends))
+            ends = [corner_m[i][j] / m if corners[i][j] < epoch else (uniform[i * n, j * n] - w) * fade[i * n]
+                    for i, j in (c0, c1)]
+            scale = np.broadcast_to(fade[:, None], uniform.shape)[line]  # each post's row's fade
+            made = m * line_displacement(uniform[line], e, w, np.array(ends), scale)
             for k, (i, j) in ((0, c0), (n, c1)):
                 if corners[i][j] < epoch:
                     made[k] = corner_m[i][j]

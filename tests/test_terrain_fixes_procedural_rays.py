@@ -114,12 +114,13 @@ def test_a_segment_over_the_pole_of_the_procedural_world_is_answered(lat):
 
 
 def test_a_segment_over_the_pole_near_the_ground_hits_where_heights_say():
-    """11 km over the pole, ends 20 m above the ground (the ground rises between them): the
+    """11 km over the pole, ends 1 m above the ground, which rises 2.4 m above their chord
+    between them (the sagitta d^2 / 8R; the procedural world fades to a sea-level pole): the
     contact is where dense samples of heights first go below the segment, to within the
     sampling step."""
     t = Terrain([ProceduralTerrain(seed=7)])
     g = t.heights([89.95, 89.95], [0.0, 180.0]).height_msl_m
-    rays = _ends(89.95, 0.0, g[0] + 20.0, 89.95, 180.0, g[1] + 20.0)
+    rays = _ends(89.95, 0.0, g[0] + 1.0, 89.95, 180.0, g[1] + 1.0)
     pa, pb = geodetic_to_ecef(*rays[:3])[0], geodetic_to_ecef(*rays[3:])[0]
     s = np.linspace(0.0, 1.0, 8001)
     lat, lon, h = ecef_to_geodetic(pa[None] + s[:, None] * (pb - pa)[None])
