@@ -160,7 +160,7 @@ def box_of(args) -> list:
     try:
         return list(quadtree.bounds(args.cell))
     except InvalidArgument as e:
-        raise InvalidArgument("--cell", f"is not a quad-tree cell id ({e})", value=args.cell) from None
+        raise InvalidArgument("--cell", f"{e.message} of the quad tree", value=args.cell) from None
 
 
 # The time of day of an ISO 8601 instant in its extended form (hh:mm[:ss[.fff]]), after the date.

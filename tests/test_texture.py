@@ -468,3 +468,4 @@ def test_cli_texture_of_one_quadtree_cell(tmp_path, hgt_kattegat):
     with pytest.raises(InvalidArgument) as err:
         _run(argv[:4] + ["--cell", str(-5)] + argv[6:])
     assert err.value.field == "--cell"
+    assert str(err.value).count("(got -5)") == 1  # the value named once (it was twice: the quadtree's error inside)
