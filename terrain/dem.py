@@ -69,6 +69,19 @@ from terrain.raster import CRS_GEOGRAPHIC, CRS_WEB_MERCATOR, TWO_PI_A_M, Georef,
 
 log = logging.getLogger(__name__)
 
+
+class _TifffileNodataNote(logging.Filter):
+    """Drops tifffile's warning that it could not take a GDAL_NODATA in the image's dtype
+    ("-9999.0" on int16 posts, float32's lowest printed in float64): :func:`read_geotiff`
+    reads the tag itself (:func:`_gdal_nodata`) and finds the blocks tifffile then filled with
+    0 (:func:`_unwritten_segments`), so the warning told a user of a problem there is not."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "parsing GDAL_NODATA tag raised" not in record.getMessage()
+
+
+logging.getLogger("tifffile").addFilter(_TifffileNodataNote())
+
 # SRTM marks a void post with the most negative int16 (SRTM Topography,
 # NASA JPL 2005, "Data voids").
 SRTM_VOID = -32768

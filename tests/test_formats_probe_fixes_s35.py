@@ -9,6 +9,7 @@ reference at any point is the formula. Each test names what the code before the 
 
 from __future__ import annotations
 
+import logging
 import struct
 
 import numpy as np
@@ -219,3 +220,18 @@ def test_a_zipped_geotiff_reads_the_pam_sidecar_beside_it(tmp_path):
         z.writestr("dem/pam.tif.aux.xml", pam)
     raster = read_dem(tmp_path / "pam.zip")
     assert raster.meta["void_posts_outside"] == 16 and raster.meta["void_posts_filled"] == 1
+
+
+@pytest.mark.parametrize("dtype, nodata", [(np.float32, F32_LOWEST), (np.int16, "-9999.0")],
+                         ids=["float32-lowest", "int16-9999.0"])
+def test_no_warning_about_a_nodata_the_reader_takes_itself(tmp_path, caplog, dtype, nodata):
+    """tifffile warned "parsing GDAL_NODATA tag raised ..." on every such file (a value it could not
+    take in the image's dtype); read_geotiff reads the tag itself, so nothing is logged, and the
+    nodata posts are still voids."""
+    posts = _posts(64, dtype)
+    posts[20:24, 20:24] = np.float32(F32_LOWEST) if dtype == np.float32 else -9999
+    path = _geotiff(tmp_path / "nodata.tif", posts, nodata)
+    with caplog.at_level(logging.DEBUG):
+        raster = read_geotiff(path)
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+    assert raster.filled is not None and raster.filled.sum() == 16
