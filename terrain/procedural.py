@@ -133,8 +133,8 @@ ROUGHNESS_BASE_MAX = 2.0
 # displacements do not shrink with them, so slopes grew as 1 / cos(lat): p99 slope (rise over
 # run) 1.1 at 40-45 degrees, 2.6 at 70-75, 9.1 at 85-86 and 32 at 88-89 (seed 7, the default
 # parameters), a cliff field that stopped every ground vehicle near a pole. Faded, slopes beyond
-# the fade stay those of its latitude, and each pole is a single height at the water line's
-# level 0 value times ~0 (sea level). Below the fade nothing changes.
+# the fade stay those of its latitude, and each pole is a single height at sea level (its level-0
+# value times a fade of ~1e-16). Below the fade nothing changes, bit for bit.
 POLAR_FADE_LAT_DEG = 70.0
 # Spherical radius used only to decide which blocks are near a viewer (IUGG mean
 # radius R1); the 0.5 % spherical error is far below a block's size.
