@@ -61,9 +61,13 @@ def add_parser(sub) -> None:
 
 def acmi_command(args) -> int:
     from server.recording import Recording
+    from sortie.errors import InvalidArgument
 
-    rate = check_rate(args.rate)
-    output_kind(args.output)
+    try:
+        rate = check_rate(args.rate)
+        output_kind(args.output)
+    except InvalidArgument as e:
+        raise _as_option(e) from None
     with Recording(args.recording) as r:
         stats = export_acmi(r, args.output, rate)
     print(f"{stats.path}: {stats.objects} objects, {stats.frames} frames, {stats.events} events, "
@@ -79,19 +83,18 @@ def _report_skipped(skipped: list) -> int:
     return 0
 
 
-# export_gltf's parameters as the command's options, for its errors.
+# export_acmi's and export_gltf's parameters as the commands' options, for their errors.
 GLTF_OPTIONS = {"rate": "--rate", "margin_m": "--margin-m", "size": "--size", "spacing_m": "--spacing-m",
                 "max_error_m": "--max-error-m", "output": "--output"}
 
 
 def gltf_command(args) -> int:
-    from server.gltf import export_gltf
+    from server.gltf import check_output, export_gltf
     from server.recording import Recording
     from sortie.errors import InvalidArgument
-    from terrain.mesh import output_format
 
-    output_format(args.output)
     try:
+        check_output(args.output)
         rate = check_rate(args.rate)
     except InvalidArgument as e:
         raise _as_option(e) from None
@@ -133,7 +136,7 @@ def gltf_command(args) -> int:
 
 
 def _as_option(e):
-    """An InvalidArgument of export_gltf's parameter as the command's option."""
+    """An InvalidArgument of export_acmi's or export_gltf's parameter as the command's option."""
     from sortie.errors import InvalidArgument
 
     if e.field not in GLTF_OPTIONS:

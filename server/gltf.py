@@ -175,6 +175,15 @@ class GltfStats:
     skipped: list = field(default_factory=list)  # the damaged chunks left out, each problem named
 
 
+def check_output(out_path) -> str:
+    """"glb" or "gltf", the form of a debrief scene written to ``out_path``; InvalidArgument
+    naming ``output`` for any other name (terrain/mesh.py's .obj, .ply and .stl included:
+    they hold no tracks, markers nor animation)."""
+    if Path(out_path).suffix.lower() not in (".glb", ".gltf"):
+        raise InvalidArgument("output", "a debrief scene is written as .glb or .gltf", value=str(out_path))
+    return output_format(out_path)
+
+
 def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = None,
                 margin_m: float = DEFAULT_MARGIN_M, size: str | None = None, spacing_m: float | None = None,
                 texture: bool = True, max_error_m: float | None = None) -> GltfStats:
@@ -185,8 +194,7 @@ def export_gltf(recording, out_path, terrain=None, *, rate_hz: float | None = No
     adaptive mesh within that of every sampled post, terrain/rtin.py)."""
     import trimesh
 
-    if output_format(out_path) not in ("glb", "gltf"):
-        raise InvalidArgument("output", "a debrief scene is written as .glb or .gltf", value=str(out_path))
+    check_output(out_path)
     rate_hz = check_rate(rate_hz)
     if not (math.isfinite(margin_m) and 0.0 <= margin_m <= MAX_MARGIN_M):
         raise InvalidArgument("margin_m", f"must be within [0, {MAX_MARGIN_M:g}] m", value=margin_m)
