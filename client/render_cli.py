@@ -56,6 +56,10 @@ DEFAULT_SIZE = "960x540"
 COCKPIT_EYE_BODY_M = {1: (0.0, 0.0, -1.0), 2: (0.0, 0.0, -3.0), 3: (0.0, 0.0, -12.0)}
 CHASE_BACK_UP_M = {1: (60.0, 15.0), 2: (30.0, 10.0), 3: (60.0, 30.0)}
 FOLLOW_WAIT_S = 15.0
+# --fps's floor: a frame a day. The wait between frames is a threading wait, whose timeout Python
+# turns into nanoseconds of the platform's time_t (threading.TIMEOUT_MAX, about 9.2e9 s): 1e-12
+# fps waited 1e12 s and raised OverflowError after the first frame.
+FPS_MIN = 1.0 / 86_400.0
 # --camera's altitude bound, metres MSL: 100,000 km, from where the whole Earth is 6.9 degrees across
 # (2 asin(6371 / 106371); about 110 pixels of a 960-pixel frame at 60 degrees); float32 offsets from
 # the rebased origin still place its vertices within 6 m there (2^-24 of the distance,
@@ -245,6 +249,14 @@ def check_render_options(args) -> None:
         raise InvalidArgument("--window-km", "must be in (0, 1000] km", value=window)
     if not (horizon == 0.0 or (math.isfinite(horizon) and window < horizon <= 2000.0)):
         raise InvalidArgument("--horizon-km", "must be 0 (none) or in (--window-km, 2000] km", value=horizon)
+    if getattr(args, "pixel_error", None) is not None:
+        check_pixel_error(args.pixel_error)
+
+
+def check_pixel_error(px: float) -> None:
+    """--pixel-error: a number of pixels in [0, 100] (0: every post)."""
+    if not (math.isfinite(px) and 0.0 <= px <= 100.0):
+        raise InvalidArgument("--pixel-error", "must be a number of pixels in [0, 100] (0: every post)", value=px)
 
 
 def open_terrain(dem=None, service: str | None = None, world_terrain: str = "", store: str | None = None):
@@ -283,8 +295,7 @@ def _renderer(args, terrain, geoid_undulation_m: float, profile_name: str = "obs
     layer_args = profile(args.profile or profile_name).layer_args()
     px = getattr(args, "pixel_error", None)
     if px is not None:
-        if not (math.isfinite(px) and 0.0 <= px <= 100.0):
-            raise InvalidArgument("--pixel-error", "must be a number of pixels in [0, 100] (0: every post)", value=px)
+        check_pixel_error(px)
         layer_args["pixel_error"] = px or None
     factory = None
     if args.terrain_renderer == "clipmap" and terrain is not None:
@@ -423,11 +434,13 @@ def view_command(args) -> int:
 
     if args.frames < 1:
         raise InvalidArgument("--frames", "must be >= 1", value=args.frames)
-    if not (args.fps > 0):
-        raise InvalidArgument("--fps", "must be > 0", value=args.fps)
+    if not (args.fps >= FPS_MIN):  # NaN fails too
+        raise InvalidArgument("--fps", f"must be at least {FPS_MIN:.3g} (a frame a day)", value=args.fps)
     if args.role == "observer":
         check_observe_radius(args)
     check_render_options(args)
+    _views(args)  # --views named as given, before joining
+    check_session_name(args.name)
     check_writable_dir("--out", Path(args.out))  # a file there, or no way to make it: before joining
     kind = None if args.agent_type is None else kind_from_name(args.agent_type)
     stop = threading.Event()
@@ -449,6 +462,15 @@ def check_observe_radius(args) -> None:
     radius = args.observe_radius_km
     if not (math.isfinite(radius) and radius > 0.0):
         raise InvalidArgument("--observe-radius-km", "must be a finite number of km > 0", value=radius)
+
+
+def check_session_name(name: str) -> None:
+    """--name as the server takes a session's client_name (server/sim_service.py's rule), named
+    as given, before joining (the server's own error names client_name, after connecting)."""
+    from server.sim_service import MAX_NAME_CHARS
+
+    if not (1 <= len(name) <= MAX_NAME_CHARS and name.isprintable()):
+        raise InvalidArgument("--name", f"must be 1-{MAX_NAME_CHARS} printable characters", value=name)
 
 
 _SERVER_RADIUS_BOUND = re.compile(r"must be in \(0, (?P<limit_m>[0-9.e+]+)\] m")
