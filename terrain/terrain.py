@@ -176,7 +176,8 @@ class RayBudget:
         """Refuse (LimitExceeded), before any work, segments a -> b ((n, 3) ECEF: the stretches
         to be traced) whose boxes hold more posts or new blocks of a source with ``boxes_cost``
         than the limits. A segment whose box would hold more than RASTER_FOR_MAX_POSTS posts is
-        cut into pieces of about that many (m pieces for m^2 times too many: its parts)."""
+        cut into pieces of about that many (m pieces for m^2 times too many: its parts), and a piece
+        still over it (one over a pole) in halves as the trace cuts it (:func:`_halved_pieces`)."""
         from terrain.procedural import RASTER_FOR_MAX_POSTS
 
         costly = [i for i, src in enumerate(sources) if hasattr(src, "boxes_cost")]
@@ -196,11 +197,10 @@ class RayBudget:
             d = b_ecef - a_ecef
             p0 = a_ecef[seg] + (k / m[seg])[:, None] * d[seg]
             p1 = a_ecef[seg] + ((k + 1) / m[seg])[:, None] * d[seg]
-            la0, lo0, _ = ecef_to_geodetic(p0)
-            la1, lo1, _ = ecef_to_geodetic(p1)
+            la0, lo0, la1, lo1 = _halved_pieces(p0, p1, sp)
             # Pieces a DEM before the source holds end to end are left to it (it answers them; should
             # one leave it after all, through a hole, the rasters made are counted as they are).
-            left = np.ones(seg.size, bool)
+            left = np.ones(la0.size, bool)
             for dem in (s_ for s_ in sources[:i] if isinstance(s_, Raster)):
                 left &= ~(_inside(dem.bounds, la0, lo0) & _inside(dem.bounds, la1, lo1))
             la0, lo0, la1, lo1 = la0[left], lo0[left], la1[left], lo1[left]
@@ -248,6 +248,32 @@ def _inside(bounds, lat, lon) -> np.ndarray:
 # Most pieces RayBudget.estimate cuts one segment into (a stretch 10^4 pieces long would be
 # over the posts limit on its own).
 RAY_ESTIMATE_MAX_PIECES = 4096
+# Most times RayBudget.estimate halves a piece whose own box is still over RASTER_FOR_MAX_POSTS
+# (a piece over a pole spans half a turn of longitude until it is about 30 rows tall: 7 halvings
+# of a 3-degree piece; 2^-16 of a turn-wide piece is under a block).
+RAY_ESTIMATE_MAX_HALVINGS = 16
+
+
+def _halved_pieces(p0: np.ndarray, p1: np.ndarray, spacing_deg: float):
+    """(lat0, lon0, lat1, lon1) degrees of the ends of ECEF pieces p0 -> p1 ((k, 3) metres each),
+    each piece whose box of its ends holds more than RASTER_FOR_MAX_POSTS posts of spacing_deg cut
+    in halves at its ECEF midpoint, again while so (at most RAY_ESTIMATE_MAX_HALVINGS times), as
+    Terrain._trace_in_halves traces a stretch whose box a source refuses. Equal cuts alone leave a
+    piece over a pole spanning half a turn of longitude over most of its rows: a 330 km segment
+    over the south pole, 6 M posts to trace, was refused before any work at 191 M."""
+    from terrain.procedural import RASTER_FOR_MAX_POSTS
+
+    k0 = p0.shape[0]
+    for halving in range(RAY_ESTIMATE_MAX_HALVINGS + 1):
+        la0, lo0, _ = ecef_to_geodetic(p0)
+        la1, lo1, _ = ecef_to_geodetic(p1)
+        d_lon = np.abs((lo1 - lo0 + 180.0) % 360.0 - 180.0)
+        big = (np.abs(la1 - la0) / spacing_deg + 2.0) * (d_lon / spacing_deg + 2.0) > RASTER_FOR_MAX_POSTS
+        # (more big pieces than there were pieces: not a pole's few, leave the estimate as it is)
+        if not big.any() or halving == RAY_ESTIMATE_MAX_HALVINGS or big.sum() > k0:
+            return la0, lo0, la1, lo1
+        mid = 0.5 * (p0[big] + p1[big])
+        p0, p1 = np.concatenate([p0[~big], p0[big], mid]), np.concatenate([p1[~big], mid, p1[big]])
 
 
 def _warm_cache(source, n_points: int) -> None:
