@@ -136,7 +136,14 @@ FLY_TRIM_HINT = "; here give --speed-mps or --alt-m a value it trims at, or star
 
 def fly_command(args) -> int:
     from fdm.aircraft import TRIM_OFF_HINT, InitialConditions, TrimFailed
+    from fdm.trim_survey import ALT_MAX_M
+    from sortie.errors import InvalidArgument
 
+    # The bound `sortie fdm trims` (which a failed trim's advice names) and a scenario's start
+    # take: a start past the Karman line, 100 km, is a unit mix-up; it cranked the engine for
+    # 16 s, then failed its trim with advice to run a command that refuses the value.
+    if not args.alt_m <= ALT_MAX_M:  # NaN too (the finite checks follow in InitialConditions)
+        raise InvalidArgument("--alt-m", f"must be at most {ALT_MAX_M:g} m", value=args.alt_m)
     terrain = None
     if args.dem:
         from server.terrain_cli import build_terrain
