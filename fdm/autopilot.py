@@ -24,7 +24,9 @@ stick only moves forward. The f16 rolls into turns at a limited bank rate.
 
 Every class keeps its load factor within 0.8 of its limit load (:data:`NZ_LIMIT_FRACTION`),
 and an upset (beyond 60 degrees of bank, below -30 of pitch) is recovered before the hold
-resumes: unload, wings level the shortest way, then pull out within the limit (:data:`UPSET_BANK_RAD`).
+resumes: unload, wings level the shortest way, then pull out within the limit (:data:`UPSET_BANK_RAD`);
+a nose-high one (pitch above 25 degrees, the flight path 10 above the hold's climb limit) is
+unloaded to 0 g until the flight path is back within that limit (:data:`UPSET_NOSE_HIGH_PITCH_RAD`).
 """
 
 from __future__ import annotations
@@ -149,6 +151,16 @@ UPSET_BANK_RAD = math.radians(60.0)
 UPSET_PITCH_RAD = math.radians(-30.0)
 PULL_BANK_RAD = math.radians(30.0)
 UPSET_PULL_FRACTION = 0.8
+# Nose-high upset (the Training Aid's nose-high recovery: unload, a nose-down pitch rate, until the
+# nose is back; its upset: pitch beyond +25 degrees). Entered beyond UPSET_NOSE_HIGH_PITCH_RAD of
+# pitch with the flight path UPSET_NOSE_HIGH_MARGIN_RAD above the hold's climb limit: the pitch stick
+# holds NOSE_HIGH_UNLOAD_G (cos(bank) if less) until the flight path is back within that limit, where
+# the hold takes over. The hold's flight-path loop alone pushed full forward at once: an f16 handed
+# over in a 52-degree zoom at 7.3 g (a pilot leaving mid-manoeuvre) reached -3.9 g, past its -3 g
+# limit load, before the load-factor limiter, walking the stick back, caught it.
+UPSET_NOSE_HIGH_PITCH_RAD = math.radians(25.0)
+UPSET_NOSE_HIGH_MARGIN_RAD = math.radians(10.0)
+NOSE_HIGH_UNLOAD_G = 0.0
 # Pitch stick per second per g of load-factor error in the upset's load-factor loop (integral).
 _UPSET_KI_PER_G_S = 0.2
 
@@ -292,6 +304,7 @@ class Autopilot:
         self._nz_lo = NZ_LIMIT_FRACTION * limits.nz_min_g / SAFETY_FACTOR
         self._nz_pull = UPSET_PULL_FRACTION * limits.nz_max_g / SAFETY_FACTOR  # upset pull-out, g
         self._upset = False  # recovering from an upset (UPSET_*)
+        self._nose_high = False  # that upset is nose-high (UPSET_NOSE_HIGH_*)
         self._i_upset = 0.0  # the upset recovery's integral of load-factor error, pitch stick
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
@@ -319,16 +332,27 @@ class Autopilot:
     def _in_upset(self, r, rolling: bool) -> bool:
         """Whether the aircraft is (still) in an upset (UPSET_*): entered beyond the bank or below
         the pitch of an upset, left once the wings are within PULL_BANK_RAD of level and the
-        flight path is back within the hold's descent limit."""
+        flight path is back within the hold's descent limit; or nose-high (UPSET_NOSE_HIGH_*,
+        ``_nose_high``), left once the flight path is back within the hold's climb limit."""
         if rolling:
+            self._nose_high = False
             return False
         phi = abs(r[_PHI])
+        v = max(math.sqrt(r[_VN] ** 2 + r[_VE] ** 2 + r[_VD] ** 2), 1.0)
+        climb = -r[_VD] / v  # sine of the flight path angle
         if phi > UPSET_BANK_RAD or r[_THETA] < UPSET_PITCH_RAD:
+            self._nose_high = False
+            return True
+        if (r[_THETA] > UPSET_NOSE_HIGH_PITCH_RAD
+                and climb > math.sin(self.gains.max_climb_rad + UPSET_NOSE_HIGH_MARGIN_RAD)):
+            self._nose_high = True
             return True
         if not self._upset:
             return False
-        v = max(math.sqrt(r[_VN] ** 2 + r[_VE] ** 2 + r[_VD] ** 2), 1.0)
-        return phi >= PULL_BANK_RAD or -r[_VD] / v < math.sin(self.gains.max_descent_rad)
+        if self._nose_high:
+            self._nose_high = phi >= PULL_BANK_RAD or climb > math.sin(self.gains.max_climb_rad)
+            return self._nose_high
+        return phi >= PULL_BANK_RAD or climb < math.sin(self.gains.max_descent_rad)
 
     def _upset_pitch(self, r, dt: float, entering: bool) -> float:
         """The pitch stick of an upset recovery: a load-factor command, unloaded to cos(bank) (at
@@ -339,7 +363,10 @@ class Autopilot:
         heavy jets' slow short period set a pure integral oscillating beyond their limits."""
         g = self.gains
         phi = abs(r[_PHI])
-        nz_cmd = self._nz_pull if phi < PULL_BANK_RAD else max(math.cos(phi), 0.0)
+        if self._nose_high:  # unloaded, whatever the bank
+            nz_cmd = min(NOSE_HIGH_UNLOAD_G, max(math.cos(phi), 0.0))
+        else:
+            nz_cmd = self._nz_pull if phi < PULL_BANK_RAD else max(math.cos(phi), 0.0)
         v = max(r[_VT] * FT_M, 1.0)
         q_cmd = G * (nz_cmd - math.cos(r[_THETA]) * math.cos(phi)) / v
         damping = g.kd_pitch_rate * (q_cmd - r[_Q])
