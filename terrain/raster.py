@@ -126,21 +126,20 @@ def fractional_index_tab(lat, lon, crs, x0, y0, dx, dy, ytab):
     tangent, and as accurate (tests/test_raster.py)."""
     if crs == CRS_GEOGRAPHIC:
         return _index_of(lon, lat, 360.0, x0, y0, dx, dy)
-    if ytab.shape[0] < 6:  # no table (two nodes at least)
-        return _index_of(WGS84_A_M * math.radians(lon), _mercator_y(lat), TWO_PI_A_M, x0, y0, dx, dy)
-    nodes = (ytab.shape[0] - 2) // 2
-    u = (lat - ytab[0]) * ytab[1]
-    if not (u >= 0.0 and u < nodes - 1.0):  # beyond the table (NaN too): computed
-        return _index_of(WGS84_A_M * math.radians(lon), _mercator_y(lat), TWO_PI_A_M, x0, y0, dx, dy)
-    i = int(u)
-    t = u - i
-    t2 = t * t
-    t3 = t2 * t
-    k = 2 + 2 * i
-    # The cubic Hermite basis (h00, h10, h01, h11) on the unit interval.
-    row = ((2.0 * t3 - 3.0 * t2 + 1.0) * ytab[k] + (t3 - 2.0 * t2 + t) * ytab[k + 1]
-           + (3.0 * t2 - 2.0 * t3) * ytab[k + 2] + (t3 - t2) * ytab[k + 3])
-    return _snap(row), _column_of(WGS84_A_M * math.radians(lon), TWO_PI_A_M, x0, dx)
+    x = WGS84_A_M * math.radians(lon)
+    if ytab.shape[0] >= 6:  # a table (two nodes at least)
+        u = (lat - ytab[0]) * ytab[1]
+        if u >= 0.0 and u < (ytab.shape[0] - 2) // 2 - 1.0:  # within it (not NaN)
+            i = int(u)
+            t = u - i
+            t2 = t * t
+            t3 = t2 * t
+            k = 2 + 2 * i
+            # The cubic Hermite basis (h00, h10, h01, h11) on the unit interval.
+            row = ((2.0 * t3 - 3.0 * t2 + 1.0) * ytab[k] + (t3 - 2.0 * t2 + t) * ytab[k + 1]
+                   + (3.0 * t2 - 2.0 * t3) * ytab[k + 2] + (t3 - t2) * ytab[k + 3])
+            return _snap(row), _column_of(x, TWO_PI_A_M, x0, dx)
+    return _index_of(x, _mercator_y(lat), TWO_PI_A_M, x0, y0, dx, dy)  # no table, or beyond it: computed
 
 
 @numba.njit(cache=True, nogil=True)
