@@ -722,7 +722,8 @@ def _sample_region(terrain, out: Path, key: str, index: int, row0, col0, rows, c
             with np.load(path) as z:
                 heights[b0:b1], classes[b0:b1] = z["h"], z["c"]
         else:
-            h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, (ky, kx), edges)
+            h, c = _sample_band(terrain, row0 + b0, row0 + b1, col0, cols, dlat, dlon, (ky, kx), edges,
+                                [r.bounds for r in members])
             heights[b0:b1], classes[b0:b1] = h, c
             with _writing(out, path):
                 _save_band(path, h, c)
@@ -757,24 +758,58 @@ def _aa_factor(store_spacing: float, source_spacings) -> int:
     return max(1, math.ceil(max(store_spacing / s for s in source_spacings) - 1e-9))
 
 
-def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factors=(1, 1), edges=()):
+def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factors=(1, 1), edges=(), boxes=None):
     """Posts of rows [r_a, r_b): the mean of ky x kx bilinear samples (factors (ky, kx):
     latitude, longitude) spread over each post's cell ((1, 1): the bilinear value at
     the post). A post with no sample
     on the data but within one spacing of a point a source answers (its box's edges, its voids'
     edges) takes the source's height at the nearest such point (:func:`_edge_samples`), so that
-    the store answers all the way to the sources' edges."""
+    the store answers all the way to the sources' edges.
+
+    boxes: the bounds (lat_min, lon_min, lat_max, lon_max) of every source that can answer
+    here (None: not known): the posts and offsets whose samples cannot fall inside one of them
+    are not sampled (:func:`_reaching`), as those samples would answer OUTSIDE and count for
+    nothing (a 0.1" source of 60 x 60 posts at --resolution 3600 took 12,650^2 offsets a post
+    over a band of 256 x 256 posts: 83 s)."""
     rows = np.arange(r_a, r_b, dtype=np.float64)
     cs = np.arange(col0, col0 + cols, dtype=np.float64)
     ky, kx = factors
     offsets_y = (np.arange(ky) - (ky - 1) / 2.0) / ky
     offsets_x = (np.arange(kx) - (kx - 1) / 2.0) / kx
+    ri, ci = np.arange(rows.size), np.arange(cs.size)
+    if boxes is not None:
+        ri, ci, offsets_y, offsets_x = _reaching(rows, cs, offsets_y, offsets_x, dlat, dlon, boxes)
+    acc, n_ok, filled = _sample_means(terrain, rows[ri], cs[ci], offsets_y, offsets_x, dlat, dlon)
+    if ri.size != rows.size or ci.size != cs.size:  # the rest of the band: no sample reached a source
+        grid = np.ix_(ri, ci)
+        acc_all, n_all = np.zeros((rows.size, cs.size)), np.zeros((rows.size, cs.size), np.int64)
+        filled_all = np.zeros((rows.size, cs.size), bool)
+        acc_all[grid], n_all[grid], filled_all[grid] = acc, n_ok, filled
+        acc, n_ok, filled = acc_all, n_all, filled_all
+    empty = n_ok == 0
+    if edges and empty.any():
+        i, j = np.nonzero(empty)
+        h, s = _edge_samples(edges, 90.0 - rows[i] * dlat, (cs[j] * dlon) % 360.0 - 180.0, dlat, dlon)
+        ok = s != STATUS_OUTSIDE
+        acc[i[ok], j[ok]] = h[ok]
+        n_ok[i[ok], j[ok]] = 1
+        filled[i[ok], j[ok]] = s[ok] == STATUS_FILLED
+    classes = np.where(n_ok == 0, st.CLASS_OUTSIDE, np.where(filled, st.CLASS_FILLED, st.CLASS_MEASURED))
+    heights = np.where(n_ok > 0, acc / np.maximum(n_ok, 1), 0.0)
+    return heights, classes.astype(np.uint8)
+
+
+def _sample_means(terrain, rows, cs, offsets_y, offsets_x, dlat, dlon):
+    """(sums of heights m, counts of samples answered, any sample FILLED), each (m, n), over the
+    samples at every (offsets_y, offsets_x) pair of the posts at lattice rows ``rows`` (m,) and
+    columns ``cs`` (n,) (see :func:`_sample_band`)."""
     acc = np.zeros((rows.size, cs.size))
     n_ok = np.zeros((rows.size, cs.size), np.int64)
     filled = np.zeros((rows.size, cs.size), bool)
     # The ky x kx offsets (latitude's outer), as many together as SAMPLE_CHUNK points hold: a band
     # of few posts far coarser than its source (a 0.1" DEM at --resolution 240: 3.3 M offsets) took
     # one Terrain.heights call an offset (150 s; a day at 3600"; now 3 s and 94 s).
+    ky, kx = offsets_y.size, offsets_x.size
     n_off = ky * kx
     per_call = max(1, SAMPLE_CHUNK // max(1, rows.size * cs.size))
     for o0 in range(0, n_off, per_call):
@@ -798,17 +833,50 @@ def _sample_band(terrain, r_a, r_b, col0, cols, dlat, dlon, factors=(1, 1), edge
             acc = np.concatenate((acc[None], np.where(ok, h, 0.0))).sum(axis=0)
         n_ok += ok.sum(axis=0)
         filled |= (s == STATUS_FILLED).any(axis=0)
-    empty = n_ok == 0
-    if edges and empty.any():
-        i, j = np.nonzero(empty)
-        h, s = _edge_samples(edges, 90.0 - rows[i] * dlat, (cs[j] * dlon) % 360.0 - 180.0, dlat, dlon)
-        ok = s != STATUS_OUTSIDE
-        acc[i[ok], j[ok]] = h[ok]
-        n_ok[i[ok], j[ok]] = 1
-        filled[i[ok], j[ok]] = s[ok] == STATUS_FILLED
-    classes = np.where(n_ok == 0, st.CLASS_OUTSIDE, np.where(filled, st.CLASS_FILLED, st.CLASS_MEASURED))
-    heights = np.where(n_ok > 0, acc / np.maximum(n_ok, 1), 0.0)
-    return heights, classes.astype(np.uint8)
+    return acc, n_ok, filled
+
+
+# Degrees by which a source's box is widened when choosing the samples that can reach it:
+# far more than the rounding of a sample's coordinates (1e-13 degrees), far less than a post.
+REACH_MARGIN_DEG = 1e-9
+
+
+def _lat_reach(lat_lo, lat_hi, boxes) -> np.ndarray:
+    """(n,) bool: whether latitudes [lat_lo, lat_hi] (degrees, (n,) each) meet the latitudes of
+    one of ``boxes`` (lat_min, lon_min, lat_max, lon_max degrees), widened by REACH_MARGIN_DEG."""
+    m = REACH_MARGIN_DEG
+    return np.logical_or.reduce([(lat_lo <= lat_max + m) & (lat_hi >= lat_min - m)
+                                 for lat_min, _, lat_max, _ in boxes] + [np.zeros(np.shape(lat_lo), bool)])
+
+
+def _lon_reach(lon_lo, lon_hi, boxes) -> np.ndarray:
+    """(n,) bool: whether longitudes [lon_lo, lon_hi] (degrees, unwrapped, (n,) each) meet, in
+    some turn, the longitudes of one of ``boxes`` (lon_max may pass 180), widened by
+    REACH_MARGIN_DEG."""
+    m = REACH_MARGIN_DEG
+    out = np.zeros(np.shape(lon_lo), bool)
+    for _, lon_min, _, lon_max in boxes:
+        width = (lon_max - lon_min) % 360.0 if lon_max < lon_min else lon_max - lon_min
+        # Some whole turn k puts [lon_min, lon_min + width] + 360 k over [lon_lo, lon_hi].
+        out |= np.ceil((lon_lo - (lon_min + width) - m) / 360.0) <= np.floor((lon_hi - lon_min + m) / 360.0)
+    return out
+
+
+def _reaching(rows, cs, offsets_y, offsets_x, dlat, dlon, boxes):
+    """(row indices, column indices, offsets_y, offsets_x) of :func:`_sample_band` whose samples
+    can fall inside one of ``boxes`` (see :func:`_lat_reach`, :func:`_lon_reach`): the rows and
+    columns (lattice indices, (m,) and (n,) ascending) whose samples over every offset reach a
+    box, then the offsets whose samples over those rows and columns do. A sample is inside a
+    box only if its latitude is within the box's and its longitude within the box's, so what
+    either axis drops answers OUTSIDE (and counts for nothing) wherever the other lies."""
+    north, south = offsets_y[0], offsets_y[-1]  # offsets ascend: the first is the northernmost
+    ri = np.flatnonzero(_lat_reach(90.0 - (rows + south) * dlat, 90.0 - (rows + north) * dlat, boxes))
+    ci = np.flatnonzero(_lon_reach((cs + offsets_x[0]) * dlon - 180.0, (cs + offsets_x[-1]) * dlon - 180.0, boxes))
+    if ri.size == 0 or ci.size == 0:
+        return ri, ci, offsets_y[:0], offsets_x[:0]
+    keep_y = _lat_reach(90.0 - (rows[ri[-1]] + offsets_y) * dlat, 90.0 - (rows[ri[0]] + offsets_y) * dlat, boxes)
+    keep_x = _lon_reach((cs[ci[0]] + offsets_x) * dlon - 180.0, (cs[ci[-1]] + offsets_x) * dlon - 180.0, boxes)
+    return ri, ci, offsets_y[keep_y], offsets_x[keep_x]
 
 
 def _edge_samples(edges, lat, lon, dlat, dlon):
