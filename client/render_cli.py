@@ -174,8 +174,9 @@ def parse_pose(text: str) -> tuple[float, ...]:
     from terrain.validate import LON_ABS_MAX_DEG
 
     # (Camera.from_geodetic's and the terrain's own checks name their parameters, lat_deg, lon[0].)
+    # Heading and roll within a turn either way (1e300 is no angle a camera can take).
     bounds = {"LAT": (90.0, "degrees"), "LON": (LON_ABS_MAX_DEG, "degrees"), "ALT_MSL_M": (ALT_MSL_ABS_MAX_M, "m"),
-              "PITCH_DEG": (90.0, "degrees")}
+              "HEADING_DEG": (360.0, "degrees"), "PITCH_DEG": (90.0, "degrees"), "ROLL_DEG": (360.0, "degrees")}
     for name, v in zip(("LAT", "LON", "ALT_MSL_M", "HEADING_DEG", "PITCH_DEG", "ROLL_DEG"), values):
         if not math.isfinite(v):
             raise InvalidArgument("--camera", f"{name} must be a finite number (LAT,LON,ALT_MSL_M,HEADING_DEG,"

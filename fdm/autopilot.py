@@ -236,6 +236,15 @@ HEADING_TRIM_TAU_S = 10.0
 HEADING_TRIM_MAX_BANK_RAD = math.radians(3.0)
 
 
+# What a hold may be told (Autopilot.set_targets; the scenario's and the world's bounds are the
+# same figures, server/scenario.py): a heading within a turn either way (wrapped), an altitude
+# from the Dead Sea shore's -430 m (rounded down) to the Karman line, a speed below orbital.
+TARGET_HEADING_ABS_MAX_DEG = 360.0
+TARGET_ALT_MSL_MIN_M = -500.0
+TARGET_ALT_MSL_MAX_M = 100_000.0
+TARGET_SPEED_MAX_MPS = 8_000.0
+
+
 def _check_positive(name: str, v) -> None:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         raise InvalidArgument(name, "must be a finite number", value=v)
@@ -308,11 +317,23 @@ class Autopilot:
         self._i_upset = 0.0  # the upset recovery's integral of load-factor error, pitch stick
 
     def set_targets(self, heading_deg=None, alt_msl_m=None, speed_mps=None) -> None:
+        """Hold a heading (degrees true, within a turn either way: TARGET_HEADING_ABS_MAX_DEG),
+        an altitude (m MSL, TARGET_ALT_MSL_MIN_M..TARGET_ALT_MSL_MAX_M) and a speed (m/s true,
+        positive, at most TARGET_SPEED_MAX_MPS); None leaves that axis unheld. A bad value is
+        refused naming its field, and the targets held before are kept."""
         for name, v in (("heading_deg", heading_deg), ("alt_msl_m", alt_msl_m), ("speed_mps", speed_mps)):
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
                 raise InvalidArgument(name, "must be a finite number", value=v)
         if speed_mps is not None:
             _check_positive("speed_mps", speed_mps)
+            if speed_mps > TARGET_SPEED_MAX_MPS:
+                raise InvalidArgument("speed_mps", f"must be at most {TARGET_SPEED_MAX_MPS:g} m/s", value=speed_mps)
+        if heading_deg is not None and abs(heading_deg) > TARGET_HEADING_ABS_MAX_DEG:
+            raise InvalidArgument("heading_deg", f"must be within [-{TARGET_HEADING_ABS_MAX_DEG:g}, "
+                                  f"{TARGET_HEADING_ABS_MAX_DEG:g}] degrees true", value=heading_deg)
+        if alt_msl_m is not None and not TARGET_ALT_MSL_MIN_M <= alt_msl_m <= TARGET_ALT_MSL_MAX_M:
+            raise InvalidArgument("alt_msl_m", f"must be within [{TARGET_ALT_MSL_MIN_M:g}, {TARGET_ALT_MSL_MAX_M:g}] m "
+                                  "MSL", value=alt_msl_m)
         self.targets = Targets(heading_deg, alt_msl_m, speed_mps)
 
     def _ground_steer_err(self, err: float, psi: float, r, dt: float) -> float:

@@ -1,6 +1,7 @@
 """Autopilots on real JSBSim: heading, altitude and speed hold settle and stay within bounds."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -58,6 +59,24 @@ def test_bad_targets_name_the_field():
     with pytest.raises(InvalidArgument, match="waypoints"):
         WaypointFollower(ac, [(91.0, 0.0, 100.0)], 50.0)
     assert np.isfinite(ac.state().alt_msl_m)
+
+
+@pytest.mark.parametrize("targets, field, value", [
+    ({"alt_msl_m": 1e9}, "alt_msl_m", "1000000000.0"), ({"alt_msl_m": -501.0}, "alt_msl_m", "-501.0"),
+    ({"heading_deg": 1e300}, "heading_deg", "1e+300"), ({"heading_deg": -360.5}, "heading_deg", "-360.5"),
+    ({"speed_mps": 9000.0}, "speed_mps", "9000.0")])
+def test_targets_beyond_what_an_aircraft_can_hold_are_refused(targets, field, value):
+    """A target beyond the scenario's own bounds (an altitude past the Karman line or below the
+    Dead Sea shore, a heading beyond a turn, a speed above orbital) is refused naming the field
+    and value, and the targets held are kept; the bounds themselves are accepted."""
+    ac = Aircraft("c172x", FlatTerrain(0.0), InitialConditions(47.3, 9.5, 1000.0, speed_mps=50.0))
+    ap = Autopilot(ac)
+    ap.set_targets(90.0, 1200.0, 50.0)
+    with pytest.raises(InvalidArgument, match=f"{field}.*{re.escape(value)}"):
+        ap.set_targets(**targets)
+    assert ap.targets == Targets(90.0, 1200.0, 50.0)
+    ap.set_targets(-360.0, -500.0, 8000.0)
+    ap.set_targets(360.0, 100_000.0, None)
 
 
 def _turn_and_climb(name, speed, alt, pilot="autopilot"):

@@ -491,3 +491,8 @@ def test_render_options_are_checked_naming_the_option():
     with pytest.raises(InvalidArgument, match="LON must be a finite number"):
         parse_pose("47.2,nan,3000,0,-5")
     assert parse_pose("47.2,9.5,3000,0,-5") == (47.2, 9.5, 3000.0, 0.0, -5.0, 0.0)
+    # Heading and roll within a turn either way (a later probe: 1e300 was taken as an angle).
+    for text, what in (("47.2,9.5,3000,1e300,-5", "HEADING_DEG 1e\\+300"), ("47.2,9.5,3000,0,-5,-361", "ROLL_DEG -361")):
+        with pytest.raises(InvalidArgument, match=f"{what} must be within \\[-360, 360\\] degrees"):
+            parse_pose(text)
+    assert parse_pose("47.2,9.5,3000,-360,-5,360") == (47.2, 9.5, 3000.0, -360.0, -5.0, 360.0)
