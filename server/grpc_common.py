@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import inspect
 import logging
 import re
 import signal
@@ -317,7 +318,173 @@ def tolerant_decoder(decode: Callable[[bytes], object]) -> Callable[[bytes], obj
         except Exception as exc:  # noqa: BLE001 - DecodeError, struct and numpy errors alike
             return Malformed(str(exc) or type(exc).__name__)
 
+    deserialize.tolerant = True  # tolerant_handlers leaves handlers decoding with it as they are
     return deserialize
+
+
+def _malformed_text(method: str, request: Malformed) -> str:
+    return message_of(InvalidArgument("request", f"does not decode as a {method} request: {request.reason}"))
+
+
+def tolerant_handlers(handlers: Mapping[str, grpc.RpcMethodHandler], aio: bool = False) -> dict:
+    """``handlers`` ({method: handler}) whose requests that do not decode end INVALID_ARGUMENT,
+    naming ``request`` and the decoder's reason, like the Sortie services' own (tolerant_decoder).
+
+    gRPC answers a request deserializer's exception with INTERNAL ("Exception deserializing
+    request!"; UNKNOWN "Unexpected <class DecodeError>" on a grpc.aio server) and logs it as an
+    ERROR with its traceback: so did health and reflection, and the replay's ReplayService, for
+    any client sending bytes that are not their messages. A handler already decoding with
+    tolerant_decoder is kept as it is (its behaviour answers Malformed itself); ``aio``: the
+    behaviours are coroutines (or async generators) of a grpc.aio server."""
+    return {name: _tolerant_handler(name, h, aio) for name, h in handlers.items()}
+
+
+def _behaviour_kind(handler) -> str:
+    """The RpcMethodHandler field holding ``handler``'s behaviour: "unary_unary" ... "stream_stream"."""
+    return (("stream_" if handler.request_streaming else "unary_")
+            + ("stream" if handler.response_streaming else "unary"))
+
+
+def _tolerant_handler(method: str, handler, aio: bool):
+    decode = handler.request_deserializer
+    if decode is None or getattr(decode, "tolerant", False):
+        return handler
+    kind = _behaviour_kind(handler)
+    behaviour = getattr(handler, kind)
+    if handler.request_streaming:
+        wrapped = _tolerant_stream_behaviour(method, behaviour, aio)
+    else:
+        wrapped = _tolerant_unary_behaviour(method, behaviour, aio)
+    return handler._replace(request_deserializer=tolerant_decoder(decode), **{kind: wrapped})
+
+
+def _tolerant_unary_behaviour(method: str, behaviour: Callable, aio: bool) -> Callable:
+    if not aio:
+        def checked(request, context, *args, **kwargs):
+            if isinstance(request, Malformed):
+                context.abort(grpc.StatusCode.INVALID_ARGUMENT, _malformed_text(method, request))
+            return behaviour(request, context, *args, **kwargs)
+
+        # grpcio calls a non-blocking behaviour (health Watch) with a send callback instead
+        checked.experimental_non_blocking = getattr(behaviour, "experimental_non_blocking", False)
+        return checked
+    if inspect.isasyncgenfunction(behaviour):
+        async def checked_gen(request, context):
+            if isinstance(request, Malformed):
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, _malformed_text(method, request))
+            async for response in behaviour(request, context):
+                yield response
+
+        return checked_gen
+
+    async def checked_coro(request, context):
+        if isinstance(request, Malformed):
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, _malformed_text(method, request))
+        return await behaviour(request, context)
+
+    return checked_coro
+
+
+def _tolerant_stream_behaviour(method: str, behaviour: Callable, aio: bool) -> Callable:
+    """A behaviour whose request iterator ends the call INVALID_ARGUMENT at the first message
+    that does not decode (messages before it are handled)."""
+    if not aio:
+        def checked(request_iterator, context, *args, **kwargs):
+            def requests():
+                for request in request_iterator:
+                    if isinstance(request, Malformed):
+                        context.abort(grpc.StatusCode.INVALID_ARGUMENT, _malformed_text(method, request))
+                    yield request
+
+            return behaviour(requests(), context, *args, **kwargs)
+
+        return checked
+
+    async def requests(request_iterator, context):
+        async for request in request_iterator:
+            if isinstance(request, Malformed):
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, _malformed_text(method, request))
+            yield request
+
+    if inspect.isasyncgenfunction(behaviour):
+        async def checked_gen(request_iterator, context):
+            async for response in behaviour(requests(request_iterator, context), context):
+                yield response
+
+        return checked_gen
+
+    async def checked_coro(request_iterator, context):
+        return await behaviour(requests(request_iterator, context), context)
+
+    return checked_coro
+
+
+class _Handlers:
+    """Stands for a server in a generated ``add_*Servicer_to_server``: keeps the method handlers
+    it registers, so that they can be wrapped (tolerant_handlers) before the real server gets
+    them."""
+
+    def __init__(self):
+        self.services: dict[str, dict] = {}
+
+    def add_generic_rpc_handlers(self, generic_rpc_handlers) -> None:
+        pass  # the generated code registers the same handlers by name too (next method)
+
+    def add_registered_method_handlers(self, service_name: str, method_handlers) -> None:
+        self.services[service_name] = dict(method_handlers)
+
+
+def register(server, service_name: str, handlers: Mapping[str, grpc.RpcMethodHandler]) -> None:
+    """``handlers`` as a service of ``server`` (sync or aio), as generated code registers them."""
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(service_name, handlers),))
+    server.add_registered_method_handlers(service_name, handlers)
+
+
+class ReflectionPool:
+    """The descriptor pool reflection answers from, which also finds the file of a method.
+
+    The reflection protocol's file_containing_symbol takes "<package>.<service>[.<method>] or
+    <package>.<type>" (grpc/reflection/v1alpha/reflection.proto), but protobuf's Python pool
+    finds no method by FindFileContainingSymbol: `grpcurl describe
+    sortie.v1.TerrainService.GetHeights` answered "Symbol not found". Everything else is the
+    wrapped pool's."""
+
+    def __init__(self, pool=None):
+        from google.protobuf import descriptor_pool
+
+        self._pool = pool if pool is not None else descriptor_pool.Default()
+
+    def FindFileContainingSymbol(self, symbol: str):  # noqa: N802 - the pool's interface
+        try:
+            return self._pool.FindFileContainingSymbol(symbol)
+        except KeyError:
+            try:
+                return self._pool.FindMethodByName(symbol).containing_service.file
+            except KeyError:
+                pass
+            raise
+
+    def __getattr__(self, name):
+        return getattr(self._pool, name)
+
+
+def health_and_reflection_handlers(health_servicer, service_names, aio: bool = False) -> dict:
+    """{service name: tolerant method handlers} of grpc.health.v1 (``health_servicer``) and of
+    server reflection (v1alpha, listing ``service_names``, health and itself; method symbols
+    found: ReflectionPool)."""
+    from grpc_reflection.v1alpha import reflection_pb2_grpc
+
+    names = (*service_names, health.SERVICE_NAME, reflection.SERVICE_NAME)
+    servicer = (reflection.aio.ReflectionServicer if aio else reflection.ReflectionServicer)(names, ReflectionPool())
+    captured = _Handlers()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, captured)
+    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(servicer, captured)
+    missing = {health.SERVICE_NAME, reflection.SERVICE_NAME} - set(captured.services)
+    if missing:  # generated code of a grpcio before 1.63 registers generic handlers only
+        raise RuntimeError(f"grpcio's generated code did not register {', '.join(sorted(missing))} by name "
+                           "(add_registered_method_handlers): grpcio-health-checking and grpcio-reflection "
+                           ">= 1.85.1 are required (pyproject.toml)")
+    return {name: tolerant_handlers(h, aio) for name, h in captured.services.items()}
 
 
 def unary_handler(name: str, method: Callable, field_names: Mapping[str, str],
@@ -420,6 +587,67 @@ class Admission:
             finally:
                 with self._lock:
                     self._admitted -= 1
+
+        return admitted
+
+
+# Calls a grpc.aio server (AioManagedServer) takes at once beyond the ones its AioAdmission admits
+# (health, reflection, calls about to be refused): a backstop, refused by gRPC itself.
+AIO_OTHER_CALLS_AT_ONCE = 64
+AIO_ADMISSION_WHAT = ("calls of this server's services open at once, streams included; health and reflection are "
+                      "answered beside them")
+
+
+class AioAdmission:
+    """At most ``limit`` calls of a grpc.aio server's own services open at once (streams until
+    they end); one more is refused at once with RESOURCE_EXHAUSTED naming ADMISSION_FIELD and
+    the limit. Health and reflection are not counted.
+
+    gRPC's ``maximum_concurrent_rpcs`` did this before, and counted health and reflection too:
+    one client holding that many client streams open without sending on them (a stock client
+    can; no session is needed before the first message) had the simulation server refuse its
+    health check ("Concurrent RPC limit exceeded!", naming no limit), so the container was
+    taken for dead with every session in it. Behaviours run on the server's one event loop,
+    so the count needs no lock."""
+
+    def __init__(self, limit: int, what: str = AIO_ADMISSION_WHAT):
+        if not (isinstance(limit, int) and limit >= 1):
+            raise InvalidArgument("limit", "must be an integer >= 1", value=limit)
+        self.limit, self.what = limit, what
+        self.admitted = 0
+
+    def wrap_all(self, handlers: Mapping[str, grpc.RpcMethodHandler]) -> dict:
+        """``handlers`` ({method: handler} with coroutine or async generator behaviours), admitted."""
+        out = {}
+        for name, handler in handlers.items():
+            kind = _behaviour_kind(handler)
+            out[name] = handler._replace(**{kind: self.wrap(getattr(handler, kind))})
+        return out
+
+    async def _admit(self, context) -> None:
+        if self.admitted >= self.limit:
+            await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, message_of(
+                LimitExceeded(ADMISSION_FIELD, self.admitted + 1, self.limit, self.what)))
+        self.admitted += 1
+
+    def wrap(self, behaviour: Callable) -> Callable:
+        if inspect.isasyncgenfunction(behaviour):
+            async def admitted_gen(request, context):
+                await self._admit(context)
+                try:
+                    async for response in behaviour(request, context):
+                        yield response
+                finally:
+                    self.admitted -= 1
+
+            return admitted_gen
+
+        async def admitted(request, context):
+            await self._admit(context)
+            try:
+                return await behaviour(request, context)
+            finally:
+                self.admitted -= 1
 
         return admitted
 
@@ -613,9 +841,8 @@ class ManagedServer:
         self.health = HealthServicer()
         self._serving = health_pb2.HealthCheckResponse.SERVING
         self._health_names = ("", *service_names)
-        health_pb2_grpc.add_HealthServicer_to_server(self.health, server)
-        reflection.enable_server_reflection(
-            (*service_names, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
+        for name, handlers in health_and_reflection_handlers(self.health, service_names).items():
+            register(server, name, handlers)
 
     def start(self) -> None:
         self.grpc_server.start()
@@ -707,7 +934,9 @@ class AioManagedServer:
     ``handlers_of(blocking pool)``: {method: handler} of one service whose
     behaviours are coroutines (``extra_services``: more (name, handlers_of)
     pairs served beside it); ``blocking_workers``: threads of the pool handlers offload
-    blocking calls to (:attr:`blocking`).
+    blocking calls to (:attr:`blocking`). At most ``max_rpcs`` calls of those services are
+    open at once (:class:`AioAdmission`, :attr:`admission`); health and reflection are answered
+    beside them. Requests that do not decode end INVALID_ARGUMENT (:func:`tolerant_handlers`).
     """
 
     def __init__(self, service_name: str, handlers_of, address: str, *, max_rpcs: int,
@@ -734,13 +963,17 @@ class AioManagedServer:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
 
     async def _create(self, services, address, max_rpcs, options) -> int:
-        self.grpc_server = grpc.aio.server(options=options, maximum_concurrent_rpcs=max_rpcs)
+        # The services' calls are admitted by AioAdmission (max_rpcs at once); gRPC's own limit,
+        # which counts every call, health and reflection among them, is only a backstop above it.
+        self.admission = AioAdmission(max_rpcs)
+        self.grpc_server = grpc.aio.server(options=options, maximum_concurrent_rpcs=max_rpcs + AIO_OTHER_CALLS_AT_ONCE)
         for name, handlers in services:
-            self.grpc_server.add_registered_method_handlers(name, handlers)
+            self.grpc_server.add_registered_method_handlers(
+                name, self.admission.wrap_all(tolerant_handlers(handlers, aio=True)))
         self.health = AioHealthServicer()
-        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.grpc_server)
-        reflection.enable_server_reflection((*(name for name, _ in services), health.SERVICE_NAME,
-                                             reflection.SERVICE_NAME), self.grpc_server)
+        for name, handlers in health_and_reflection_handlers(self.health, [name for name, _ in services],
+                                                             aio=True).items():
+            register(self.grpc_server, name, handlers)
         try:
             return self.grpc_server.add_insecure_port(address)
         except RuntimeError as exc:  # in use, or no such interface: a start-up error, one line
