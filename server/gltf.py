@@ -297,7 +297,7 @@ def _add_target_areas(scene, stats: GltfStats, r, terrain, frame: LocalFrame) ->
         outline = _outline(area.polygon, TARGET_AREA_STEP_M)
         ground = np.zeros(len(outline))
         if terrain is not None:
-            ground = np.nan_to_num(np.asarray(terrain.heights(outline[:, 0], outline[:, 1]).height_msl_m, float))
+            ground = outline_ground(np.asarray(terrain.heights(outline[:, 0], outline[:, 1]).height_msl_m, float))
         where = geodetic_to_ecef(outline[:, 0], outline[:, 1], ground + TARGET_AREA_LIFT_M + undulation)
         path = polylines([enu_to_gltf(frame.to_local(where))])
         path.colors = np.tile(np.array(TARGET_AREA_RGBA, np.uint8), (len(path.entities), 1))
@@ -457,6 +457,26 @@ def _target_areas(r) -> tuple:
     from server.resim import recorded_scenario
 
     return recorded_scenario(r).target_areas
+
+
+def outline_ground(height_msl_m: np.ndarray) -> np.ndarray:
+    """The ground (m MSL) under a closed outline's (k,) points (:func:`_outline`: the last is the
+    first) from the terrain's heights there, NaN where it has none (an area reaching past the
+    DEM's edge): those take the heights of the nearest points on either side along the outline
+    that have one, linearly by their place between them (round the closing vertex too), so the
+    outline runs on at the ground's level past the edge instead of dropping to MSL 0 (hundreds
+    of metres below the terrain of a mountain DEM). No height anywhere: MSL 0 (as without a
+    terrain)."""
+    h = np.asarray(height_msl_m, dtype=np.float64)
+    ok = np.isfinite(h)
+    if ok.all() or not ok.any():
+        return np.nan_to_num(h)
+    k = np.arange(h.size)
+    known = k[ok]
+    period = h.size - 1  # the last point is the first: the outline's ring of distinct points
+    xp = np.r_[known[-1] - period, known, known[0] + period]
+    fp = np.r_[h[known[-1]], h[known], h[known[0]]]
+    return np.where(ok, h, np.interp(k, xp, fp))
 
 
 def _outline(polygon, step_m: float) -> np.ndarray:

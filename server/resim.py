@@ -351,15 +351,25 @@ def apply_input(world, r) -> None:
 # -- re-simulation ---------------------------------------------------------------------------------
 
 def build_recorded_world(rec: Recording, dem=None, service: str | None = None, workers: int = 0):
-    """(world as the recording started, its scenario, terrain spec, notes)."""
+    """(world as the recording started, its scenario, terrain spec, notes). The recorded
+    scenario started on the recorded terrain; where it cannot start on a ``dem`` or ``service``
+    given instead (an agent off it or in its water), InvalidArgument names that option and the
+    recorded terrain, not the scenario's agent alone (whose scenario the user cannot change)."""
     from server.sim_server import aircraft_host, build_world, open_terrain_source
 
     scenario = recorded_scenario(rec)
     spec, notes = recorded_terrain_spec(rec, dem, service)
     with_insets(spec, scenario)
     terrain = open_terrain_source(**spec)
-    world = build_world(scenario, terrain, aircraft_host(scenario, terrain,
-                                                         functools.partial(open_terrain_source, **spec), workers))
+    try:
+        world = build_world(scenario, terrain, aircraft_host(scenario, terrain,
+                                                             functools.partial(open_terrain_source, **spec), workers))
+    except InvalidArgument as exc:
+        if dem is None and service is None:
+            raise
+        option, value = ("--dem", [str(p) for p in dem]) if dem else ("--terrain", service)
+        raise InvalidArgument(option, f"the recorded scenario cannot start on this terrain (recorded: "
+                                      f"{rec.header.terrain.description}): {exc}", value=value) from None
     if abs(1.0 / world.dt - rec.rate_hz) > 1e-9:
         raise DataFormatError(f"{rec.path.name}: recorded at {rec.rate_hz} Hz, the scenario ticks at "
                               f"{1.0 / world.dt} Hz")

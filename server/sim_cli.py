@@ -210,8 +210,13 @@ def check_recording(args, exercise_name: str) -> Path | None:
 
     check_chunk_s(args.record_chunk_s, "--record-chunk-s")
     option = recording_option(args)
-    _check_folder(path.parent, option, args.record if args.record else args.record_dir)
-    if args.record and path.exists():
+    try:
+        _check_folder(path.parent, option, args.record if args.record else args.record_dir)
+        exists = bool(args.record) and path.exists()
+    except OSError as exc:  # a name the file system cannot hold (ENAMETOOLONG), a folder it may not search
+        raise InvalidArgument(option, f"cannot be written: {exc.strerror or exc}",
+                              value=str(exc.filename or path)) from None
+    if exists:
         raise InvalidArgument("record", "the file exists (recordings are never overwritten)", value=str(path))
     return path
 
@@ -276,10 +281,16 @@ def _missing_folders(path: Path) -> list[Path]:
 
 def remove_recording(path: Path | None, folders=()) -> None:
     """Remove a recording this run made (and ``folders``, the folders made for it, where empty):
-    a server that fails to start leaves nothing behind for `sortie replay` to pick."""
+    a server that fails to start leaves nothing behind for `sortie replay` to pick. A file
+    that is not there is no error, whatever the unlink says: a read-only file system (EROFS)
+    or a name too long (ENAMETOOLONG) refuses to unlink the file it refused to make, and
+    that error replaced the one saying why the recording could not be made."""
     if path is not None:
-        with contextlib.suppress(FileNotFoundError):
+        try:
             path.unlink()
+        except OSError as exc:
+            if os.path.lexists(path):  # False for a name the file system cannot hold
+                logger.warning("could not remove the recording %s: %s", path, exc.strerror or exc)
     for folder in folders:
         try:
             folder.rmdir()
