@@ -141,7 +141,8 @@ def add_parser(sub) -> None:
     c = sub.add_parser("client", help="headless observer: print the live picture",
                        description="Join a simulation server as an observer and print what it sees "
                                    "(dead-reckoned positions) every --every seconds.")
-    c.add_argument("--server", required=True, type=_server_address, metavar="HOST:PORT")
+    c.add_argument("--server", required=True, type=_server_address, metavar="HOST:PORT",
+                   help="the simulation server (sortie server or sortie replay), port 1-65535")
     c.add_argument("--observe", nargs=3, type=float, metavar=("LAT", "LON", "RADIUS_M"),
                    help="centre and radius of the area of interest (default: the first target area, 100 km or "
                         "the server's observer limit when smaller)")
@@ -150,7 +151,8 @@ def add_parser(sub) -> None:
                         "(default %(default)s)")
     c.add_argument("--every", type=_seconds_within(*EVERY_S), default=2.0, metavar="S",
                    help=f"print period, wall seconds in [{EVERY_S[0]:g}, {EVERY_S[1]:g}] (default %(default)s)")
-    c.add_argument("--name", default="observer")
+    c.add_argument("--name", default="observer",
+                   help="the session's name, as the server's join and leave events show it (default %(default)s)")
     render = c.add_argument_group("rendering (issue #5's thin client: the same as sortie view)")
     who = render.add_mutually_exclusive_group()
     who.add_argument("--follow", metavar="AGENT", help="render, following this agent (see sortie view --help)")
@@ -170,10 +172,13 @@ def add_parser(sub) -> None:
     b = sub.add_parser("bot", help="run N autopilot bots as clients of a simulation server",
                        description="Each bot joins as ROLE_BOT, takes a free controllable agent and flies or "
                                    "drives a profile with autopilot commands.")
-    b.add_argument("--server", required=True, type=_server_address, metavar="HOST:PORT")
+    b.add_argument("--server", required=True, type=_server_address, metavar="HOST:PORT",
+                   help="the simulation server, port 1-65535 (waited for 10 s while it starts)")
     b.add_argument("--count", type=_bot_count, default=1, metavar="N",
                    help=f"bots, [1, {MAX_BOTS}] (a server's session limit; default %(default)s)")
-    b.add_argument("--profile", choices=PROFILES, default="patrol")
+    b.add_argument("--profile", choices=PROFILES, default="patrol",
+                   help="patrol: a closed box of right turns; racetrack: two parallel legs joined by right half "
+                        "turns (default %(default)s)")
     b.add_argument("--leg-s", type=_seconds_within(*LEG_S), default=20.0, metavar="S",
                    help=f"world seconds per leg, [{LEG_S[0]:g}, {LEG_S[1]:g}], counted once the agent has turned "
                         f"onto the leg's heading; a leg lasts at least {MIN_LEG_WALL_S:g} wall seconds whatever "

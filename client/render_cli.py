@@ -92,7 +92,8 @@ def add_parser(sub) -> None:
                                    "HUD line per frame and summary.json. The terrain is lit by the sun of the "
                                    "exercise's clock (its start_time plus world time, a replay's too) where the "
                                    "camera is.")
-    v.add_argument("--server", required=True, metavar="HOST:PORT")
+    v.add_argument("--server", required=True, metavar="HOST:PORT",
+                   help="the simulation server (sortie server or sortie replay)")
     who = v.add_mutually_exclusive_group(required=True)
     who.add_argument("--follow", metavar="AGENT_NAME", help="the agent's scenario name")
     who.add_argument("--agent-type", choices=("aircraft", "ground"), help="follow the first agent of this kind")
@@ -101,14 +102,16 @@ def add_parser(sub) -> None:
                    help="several views of the agent per frame from one renderer sharing its terrain textures, "
                         "e.g. cockpit,chase (frames frame_NNNN_<view>.png); overrides --chase")
     _terrain_args(v, required=False)
-    v.add_argument("--frames", type=int, required=True, metavar="N")
+    v.add_argument("--frames", type=int, required=True, metavar="N", help="frames to render, at least 1")
     v.add_argument("--fps", type=float, required=True, metavar="F", help="frames per wall second (at most)")
-    v.add_argument("--out", type=Path, required=True, metavar="DIR")
+    v.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="folder for the PNG frames and summary.json (created if missing)")
     v.add_argument("--role", choices=("gateway", "observer"), default="gateway",
                    help="session role (default %(default)s: sees every entity)")
     v.add_argument("--observe-radius-km", type=float, default=100.0,
                    help="observer role: radius of the area of interest (default %(default)s)")
-    v.add_argument("--name", default="render-client")
+    v.add_argument("--name", default="render-client",
+                   help="the session's name, 1-64 printable characters (default %(default)s)")
     _view_args(v)
     v.set_defaults(func=view_command)
 
@@ -142,7 +145,7 @@ def _view_args(p) -> None:
                         "(default %(default)s)")
     p.add_argument("--geoid-undulation-m", type=float, default=None, metavar="N",
                    help="ellipsoid height = MSL + N, metres (render: default 0; view: default the server's)")
-    p.add_argument("--no-fog", action="store_true")
+    p.add_argument("--no-fog", action="store_true", help="no distance fog (default: fog hides the terrain's end)")
     p.add_argument("--land-classes", action="store_true",
                    help="colour the clipmap terrain by land class (water, beach, farmland, forest, alpine, rock, "
                         "snow from height, slope and latitude; terrain/texture.py) instead of the height tint")

@@ -18,8 +18,8 @@ import sys
 
 def add_parser(sub) -> None:
     fdm = sub.add_parser("fdm", help="JSBSim aircraft: list the catalog, fly one, survey trims",
-                         description="List the aircraft of the JSBSim catalog, or fly one over a terrain "
-                                     "and print a short track summary.")
+                         description="List the aircraft of the JSBSim catalog, fly one over a terrain and print "
+                                     "a short track summary, or survey the speeds each trims at.")
     commands = fdm.add_subparsers(dest="fdm_command", metavar="SUBCOMMAND", required=True)
 
     lst = commands.add_parser("list", help="the aircraft the jsbsim wheel ships",

@@ -10,7 +10,8 @@ from server.acmi import check_rate, export_acmi, output_kind
 
 def add_parser(sub) -> None:
     export = sub.add_parser("export", help="convert a recording for other tools: acmi (Tacview), gltf (3-D scene)",
-                            description="Convert a Sortie recording into another tool's format.")
+                            description="Convert a Sortie recording into another tool's format: acmi (Tacview ACMI "
+                                        "2.2) or gltf (a 3-D debrief scene, glTF 2.0).")
     formats = export.add_subparsers(dest="export_format", metavar="FORMAT", required=True)
     acmi = formats.add_parser(
         "acmi", help="Tacview ACMI 2.2 (.acmi text or .zip.acmi)",

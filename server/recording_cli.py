@@ -27,7 +27,8 @@ from sortie.logs import line
 
 def add_parser(sub) -> None:
     p = sub.add_parser("recording", help="what a sortie recording holds, and whether it is whole",
-                       description="Inspect a sortie recording (server/recording.py).")
+                       description="Inspect a sortie recording (server/recording.py): what it holds (info) and "
+                                   "whether it is whole (check).")
     rsub = p.add_subparsers(dest="recording_command", metavar="COMMAND", required=True)
     info = rsub.add_parser("info", help="duration, entities, events, inputs, size",
                            description="Print what a recording holds: duration, entities, events, inputs, size.")

@@ -67,14 +67,20 @@ def add_terrain_source_args(parser: argparse.ArgumentParser) -> None:
                         help="ask a running terrain service (sortie terrain serve) instead of loading files")
 
 
+def check_one_terrain_source(args) -> None:
+    """--address with terrain files, a store or a procedural world (or its options) is refused,
+    naming --address: a command answers from one terrain."""
+    if args.dem or args.store or args.procedural is not None:
+        raise InvalidArgument("--address", "give a service address or terrain files, not both",
+                              value=args.address)
+    procedural_params(args)  # options of a procedural world without one: an error
+
+
 def terrain_source(args):
     """The terrain of :func:`add_terrain_source_args`: a TerrainClient of --address (ready), or
     the files' Terrain."""
     if args.address:
-        if args.dem or args.store or args.procedural is not None:
-            raise InvalidArgument("--address", "give a service address or terrain files, not both",
-                                  value=args.address)
-        procedural_params(args)  # options of a procedural world without one: an error
+        check_one_terrain_source(args)
         from client.terrain_client import TerrainClient
 
         client = TerrainClient(args.address)
@@ -113,7 +119,9 @@ def add_parser(sub) -> None:
 
     terrain = sub.add_parser("terrain",
                              help="terrain query service and store: serve, info, query, import, texture, mesh",
-                             description="Serve, describe or query the terrain query service.")
+                             description="The terrain query service and its tools: serve it, describe a terrain (info), query "
+                                         "heights (query), build a compressed terrain store (import), "
+                                         "synthesise an aerial texture (texture) or a mesh (mesh) of a box.")
     commands = terrain.add_subparsers(dest="terrain_command", metavar="SUBCOMMAND", required=True)
 
     serve = commands.add_parser("serve", help="run the gRPC terrain service until SIGTERM/SIGINT",
@@ -240,6 +248,7 @@ def serve_command(args) -> int:
 
 def info_command(args) -> int:
     if args.address:
+        check_one_terrain_source(args)  # (--dem beside --address was silently left out)
         from client.terrain_client import TerrainClient
 
         with TerrainClient(args.address) as client:

@@ -240,6 +240,13 @@ def _main(argv: list[str] | None) -> int:
     configure(logging.WARNING - 10 * min(args.verbose, 2), args.log_format)
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:
+        # The reader of our output left (`sortie terrain info --json | head -1`): not an error of
+        # the command's. Python's own advice (the signal module's "Note on SIGPIPE"): point stdout
+        # at the null device, so the interpreter's final flush does not fail too, and exit 1.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 1
     except SortieError as exc:
         source = _source_of(parser, argv, exc)
         _error(f"sortie {args.command}: error: {exc}" + (f" (set by {source})" if source else ""), json_logs)

@@ -27,7 +27,11 @@ DEMO_TIMING_REPEATS = 3  # figures are the best of this many calls
 
 def add_parser(sub) -> None:
     p = sub.add_parser("demo", help="run a complete local exercise on the embedded terrain",
-                       description=__doc__.split("\n\n")[0])
+                       description="Run a complete local exercise on the embedded default terrain (data/dem/): a terrain "
+                                   "service, the simulation server with bots, the DIS and Tacview "
+                                   "gateways, render clients, a recording with its replay, re-simulation, "
+                                   "Tacview and glTF exports, and a terrain store; prints where the outputs "
+                                   "are (--out).")
     p.add_argument("--dem", nargs="+", type=Path, help="DEM files (default: the embedded data/dem/*)")
     p.add_argument("--out", type=Path, default=REPO / "out" / "demo", help="output folder")
     p.set_defaults(func=run)
