@@ -15,8 +15,9 @@ of interest at random points) streaming at 20 Hz from separate processes
   ``..._after`` show the machine's drift between them).
 - ``realtime_aircraft``: f16s the server keeps in real time at that load:
   the world tick (30 Hz, 4 JSBSim steps each, the aircraft in one worker
-  process per core as ``sortie server`` runs them) plus the publish step,
-  timed by the clock thread in "fast" mode (as fast as it goes) at two
+  process per core as ``sortie server`` runs them; the publish runs beside it on
+  the server's publisher thread, the clock waiting only for a publish a whole
+  snapshot behind), timed by the clock thread in "fast" mode (as fast as it goes) at two
   fleet sizes (each twice in full runs, in the order A B B A, averaged); the
   tick time is linear in the fleet size, and the fleet whose mean tick
   fills the 33.3 ms budget is the capacity.
@@ -24,8 +25,9 @@ of interest at random points) streaming at 20 Hz from separate processes
 - ``tick_p99_ms``: p99 tick time in real time at that fleet size (75 % of
   the capacity, rounded down, to leave the realtime run room) with the
   clients streaming; ``latency_p99_ms``: world tick -> client receipt, the
-  publish's wall time on the server against the update's arrival in the
-  client process (one machine clock); ``slow_client_tick_ratio``: tick p99
+  wall time the tick ended on the server (its snapshot handed to the
+  publisher) against the update's arrival in the client process (one machine
+  clock); ``slow_client_tick_ratio``: tick p99
   with one more client that never reads its stream, over the same without it.
   One real-time run on one world serves both: its steady window is cut in
   phases, calm, stalled, stalled, calm (REALTIME_PHASES; FULL_PHASE_REPEATS
@@ -266,14 +268,14 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
         world = _world(terrain, n_aircraft, n_ground, workers=workers)
     server = SimulationServer(world, ServerConfig(clock=clock, time_scale=1000.0 if clock == "fast" else 1.0,
                                                   vanished_timeout_s=60.0))
-    published = {}
-    original = server.publisher.publish
+    published = {}  # world time -> wall time its tick ended (the clock hands its snapshot over then)
+    original = world.tick
 
-    def publish(snap, *args, **kwargs):  # whatever the server passes on, passed on
-        published[round(snap.time_s, 6)] = time.time()  # the tick is done; its updates start out
-        original(snap, *args, **kwargs)
+    def tick(*args, **kwargs):  # whatever the server passes on, passed on
+        original(*args, **kwargs)
+        published[round(world.time_s, 6)] = time.time()
 
-    server.publisher.publish = publish
+    world.tick = tick
     server.start()
     try:
         procs = _clients(server.address, clients, seconds, stall, phased=bool(phases))
@@ -303,6 +305,7 @@ def _serve(terrain, n_aircraft: int, clock: str, seconds: float, n_ground: int, 
         whole = np.array(server.tick_ms)
     finally:
         server.stop(0.5)
+        del world.tick  # the world's own again (a caller's world is served again)
         if own:
             world.close()
     ticks = whole[first:last]

@@ -791,8 +791,8 @@ class GroundVehicles:
         if bad.any():
             i = first_bad(bad)
             where = "outside the terrain" if (st[i] == STATUS_OUTSIDE).any() else "in the water (height <= sea level)"
-            raise InvalidArgument("lat", f"vehicle placed {where} (lon {float(self.lon[i])!r})", index=i,
-                                  value=float(self.lat[i]))
+            raise InvalidArgument("lat", f"vehicle placed {where} at ({float(self.lat[i])!r}, "
+                                         f"{float(self.lon[i])!r})", index=i)
         self._set_pose(self._all, h)
 
     def _set_pose(self, idx: np.ndarray, h: np.ndarray) -> None:

@@ -160,8 +160,11 @@ def simulation_metrics(server) -> list[Metric]:
         Metric("sortie_world_time_seconds", "gauge", "World time (s since the exercise start)").add(world.time_s),
         Metric("sortie_world_ticks_total", "counter", "World ticks run").add(world.tick_count),
         summary("sortie_tick_duration_milliseconds",
-                f"Wall time of a tick and its publish (quantiles: last {TICK_WINDOW} ticks; sum, count: all)",
+                f"Wall time of a world tick (quantiles: last {TICK_WINDOW} ticks; sum, count: all)",
                 server.tick_ms[-TICK_WINDOW:], ticks, tick_ms_total),
+        summary("sortie_publish_duration_milliseconds",
+                f"Wall time of a publish to the Watch streams, beside the ticks (quantiles: last {TICK_WINDOW}; "
+                "sum, count: all)", server.publish_ms[-TICK_WINDOW:], *server.publish_totals),
         Metric("sortie_tick_overruns_total", "counter", "Ticks that started late by more than a tick").add(
             server.overruns),
         entities,

@@ -230,6 +230,9 @@ def test_simulation_server_metrics_and_sigterm_flushes_the_recording(hgt_alps, t
         assert sum(v for k, v in m.items() if k.startswith("sortie_entities{")) == len(picture.infos)
         assert m["sortie_watch_bytes_total"] > 0 and m["sortie_watch_messages_total"] >= 3
         assert m['sortie_tick_duration_milliseconds{quantile="0.99"}'] > 0
+        # The publishes, beside the ticks: at least the three updates the picture got.
+        assert m["sortie_publish_duration_milliseconds_count"] >= 3
+        assert m['sortie_publish_duration_milliseconds{quantile="0.5"}'] > 0
         assert m["sortie_recording_bytes_total"] > 0 and m["sortie_recording_failed"] == 0
         proc.terminate()
         assert proc.wait(timeout=30) == 0

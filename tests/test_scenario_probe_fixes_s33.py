@@ -142,11 +142,13 @@ def test_a_service_port_of_other_digits_is_refused(tmp_path, service):
 def test_the_entities_centre_is_the_same_in_any_order_and_lies_among_the_group():
     from server.sim_server import entities_centre
 
-    # The probe's case: a lone aircraft at 0 E and four statics either side of 180.
+    # The probe's case: a lone aircraft at 0 E and four statics either side of 180. The centre is
+    # the largest group's (since the thirty-sixth session): the four statics', halfway between
+    # the two middle ones across 180 (before, the median of all five: 179.9).
     lat = [-16.5, -16.5, -16.5, -16.6, -16.6]
     lon = [0.0, 179.9, -179.9, 179.8, -179.8]
-    centres = {entities_centre([lat[k] for k in p], [lon[k] for k in p])[2] for p in itertools.permutations(range(5))}
-    assert centres == {179.9}  # the median of 0 and the group, whichever comes first (0.0 before, lone first)
+    centres = {entities_centre([lat[k] for k in p], [lon[k] for k in p]) for p in itertools.permutations(range(5))}
+    assert centres == {(5, -16.55, -180.0)}
     # an even count: halfway between the two middle ones, across 180 where they lie either side
     for p in itertools.permutations([179.9, -179.7, 179.5, -179.3]):
         assert entities_centre([0.0] * 4, list(p))[2] == pytest.approx(-179.9, abs=1e-9)

@@ -97,7 +97,8 @@ def test_a_static_off_the_terrain_is_told_to_move_it_not_to_give_an_altitude(tmp
     ('kind = "static"\ntype = "radar"\nlat_deg = 50.0\nlon_deg = 9.5',
      "agents[0]: 'lost' is placed on the ground outside the terrain"),
     ('kind = "ground"\ntype = "m1a2"\nlat_deg = 10.29\nlon_deg = 9.59',
-     "agents[0]: 'lost' (m1a2) cannot start: "),
+     "agents[0]: 'lost' (m1a2) is placed outside the terrain at (10.29, 9.59); move it onto land within the "
+     "terrain"),
     ('kind = "aircraft"\ntype = "c172x"\nlat_deg = 50.0\nlon_deg = 9.5\nalt_m = 500.0\nalt_ref = "agl"\n'
      'speed_mps = 50.0', "agents[0]: 'lost' is placed at an altitude above ground outside the terrain"),
     ('kind = "aircraft"\ntype = "f16"\nlat_deg = 47.30\nlon_deg = 9.30\nalt_m = 3000.0\nspeed_mps = 5.0',
