@@ -14,7 +14,10 @@ Shapes:
   local horizontal, along their heading. Two boxes touch when they overlap on the tangent
   plane (the separating-axis test on the four edge directions: Gottschalk, Lin and Manocha,
   "OBBTree", SIGGRAPH 1996, sec. 4, in two dimensions) and their centres are within the
-  sum of their bounding radii vertically. Boxes are tested at the start of the tick and
+  sum of their bounding radii vertically; the other's heading, which is from its own north,
+  is carried onto the first's horizontal through ECEF (near a pole two vehicles a few metres
+  apart have norths tens of degrees apart: two side by side 0.3 m apart 11 m from the pole
+  were found touching, 0.17 m deep). Boxes are tested at the start of the tick and
   then at every half of the narrower one's width of relative travel up to its end (their
   headings the end's): at 30 Hz two vehicles close by at most about 2 m a tick, so the end
   alone is tested; at a low world rate (1 Hz: up to 60 m) more instants are, so two boxes
@@ -43,6 +46,34 @@ import numpy as np
 
 # The most contacts one pass returns before it is run again with room for more.
 INITIAL_CAPACITY_PER_ENTITY = 2
+
+
+@numba.njit(cache=True, nogil=True)
+def _forward_in(lat_deg, lon_deg, heading_rad, ex, ey, nx, ny, nz):
+    """(east, north) unit components, on the horizontal whose east and north are the ECEF unit
+    vectors ``ex, ey`` (0) and ``nx, ny, nz``, of the direction ``heading_rad`` from true north
+    at (lat, lon) degrees: its ECEF vector sin(h) east + cos(h) north there, projected and
+    renormalised. Where the two norths agree (anywhere but within kilometres of a pole) it is
+    (sin h, cos h) to rounding; near a pole it turns by the meridians' convergence."""
+    sp, cp = math.sin(math.radians(lat_deg)), math.cos(math.radians(lat_deg))
+    sl, cl = math.sin(math.radians(lon_deg)), math.cos(math.radians(lon_deg))
+    sh, ch = math.sin(heading_rad), math.cos(heading_rad)
+    fx, fy, fz = -sh * sl - ch * sp * cl, sh * cl - ch * sp * sl, ch * cp
+    fe, fn = fx * ex + fy * ey, fx * nx + fy * ny + fz * nz
+    norm = math.sqrt(fe * fe + fn * fn)
+    if norm < 1e-9:  # straight up the other's horizontal: only across the globe, never a neighbour
+        return sh, ch
+    return fe / norm, fn / norm
+
+
+def forward_ecef(lat_deg, lon_deg, heading_deg) -> np.ndarray:
+    """(..., 3) ECEF unit vectors of the directions ``heading_deg`` (degrees from true north)
+    on the local horizontals at (lat, lon) degrees: sin(h) east + cos(h) north."""
+    from terrain.geodesy import enu_basis
+
+    east, north, _ = enu_basis(lat_deg, lon_deg)
+    h = np.radians(np.asarray(heading_deg, np.float64))[..., None]
+    return np.sin(h) * east + np.cos(h) * north
 
 
 @numba.njit(cache=True, nogil=True)
@@ -132,7 +163,8 @@ def _contacts_kernel(p0, p1, radius, lat_deg, lon_deg, heading_rad, half_l, half
                 nx, ny, nz = -sp * cl, -sp * sl, cp
                 ux, uy, uz = cp * cl, cp * sl, sp
                 ci, si = math.sin(heading_rad[i]), math.cos(heading_rad[i])  # heading from north, clockwise
-                cj, sj = math.sin(heading_rad[j]), math.cos(heading_rad[j])
+                # j's heading is from j's north: carried onto i's horizontal (near a pole they differ).
+                cj, sj = _forward_in(lat_deg[j], lon_deg[j], heading_rad[j], ex, ey, nx, ny, nz)
                 # Sampled at the start, then every half of the narrower box's width of relative
                 # travel to the end: at 30 Hz one sample (the end), at low world rates more, so
                 # two boxes cannot pass through each other between samples.
@@ -231,12 +263,14 @@ def new_contacts(p0, p1, radius, *, heading_deg=None, half_length_m=None, half_w
 
 
 def overlap_depth(r, lat_deg, lon_deg, heading_i_deg, heading_j_deg, half_l_i, half_w_i, half_l_j, half_w_j,
-                  radius_i, radius_j) -> np.ndarray:
+                  radius_i, radius_j, lat_j_deg=None, lon_j_deg=None) -> np.ndarray:
     """(m,) how deep entity j (at ECEF offset ``r`` (m, 3) from i, metres) overlaps i, by the
     shapes of :func:`new_contacts`: two boxes (both half lengths > 0) by the separating-axis
     test on i's local horizontal (``lat_deg``/``lon_deg``: i's position), the least of the
     four axes' overlaps; otherwise spheres, the sum of the radii less the distance. Positive
-    when they overlap."""
+    when they overlap. Headings are degrees from true north, each at its own entity's
+    position: ``lat_j_deg``/``lon_j_deg`` j's (None: i's; near a pole the two norths differ,
+    and j's heading is carried onto i's horizontal through ECEF, as :func:`new_contacts` does)."""
     from terrain.geodesy import enu_basis
 
     r = np.asarray(r, np.float64).reshape(-1, 3)
@@ -245,9 +279,18 @@ def overlap_depth(r, lat_deg, lon_deg, heading_i_deg, heading_j_deg, half_l_i, h
     if not boxes.any():
         return depth
     east, north, _ = enu_basis(lat_deg, lon_deg)
+    east, north = np.broadcast_to(east, r.shape), np.broadcast_to(north, r.shape)
     dx, dy = np.einsum("ij,ij->i", r, east), np.einsum("ij,ij->i", r, north)
-    hi, hj = np.radians(heading_i_deg), np.radians(heading_j_deg)
-    ci, si, cj, sj = np.sin(hi), np.cos(hi), np.sin(hj), np.cos(hj)  # along each length: (east, north)
+    hi = np.radians(heading_i_deg)
+    ci, si = np.sin(hi), np.cos(hi)  # along each length: (east, north)
+    if lat_j_deg is None:
+        hj = np.radians(heading_j_deg)
+        cj, sj = np.sin(hj), np.cos(hj)
+    else:
+        f = forward_ecef(lat_j_deg, lon_j_deg, heading_j_deg)
+        cj, sj = np.einsum("ij,ij->i", f, east), np.einsum("ij,ij->i", f, north)
+        norm = np.hypot(cj, sj)
+        cj, sj = cj / norm, sj / norm
     box_depth = np.full(dx.shape, np.inf)
     for ax, ay in ((ci, si), (si, -ci), (cj, sj), (sj, -cj)):
         reach = (half_l_i * np.abs(ci * ax + si * ay) + half_w_i * np.abs(si * ax - ci * ay)

@@ -9,10 +9,13 @@ heights of each other, with its centre in front of the vehicle's front (what is 
 not in its way: two vehicles parked side by side do not hold each other). The clearance is the
 free distance along the heading from the vehicle's front to the entity's near side: ahead less
 the vehicle's half length and the entity's half extent along the heading (boxes by their
-footprint); negative when they already overlap. A sphere (a site, an aircraft, a wreck of one)
-meets a vehicle where server/collisions.py says they touch, within the sum of their radii (the
-vehicle's the circle round its footprint): it reaches that much less the vehicle's half width
-across the path and less its half length along it.
+footprint); negative when they already overlap. An entity's heading is from its own north, and
+is carried onto the vehicle's horizontal through ECEF: near a pole two neighbours' norths differ
+by tens of degrees (a convoy's vehicle just past the pole, heading "south", still goes its
+follower's way; its follower braked for it as for one met head-on). A sphere (a site, an
+aircraft, a wreck of one) meets a vehicle where server/collisions.py says they touch, within
+the sum of their radii (the vehicle's the circle round its footprint): it reaches that much
+less the vehicle's half width across the path and less its half length along it.
 
 Broad phase: the entities sorted once on the ECEF axis along which they spread most; each
 vehicle looks at those within its look-ahead on that axis (binary search), so a tick of 2000
@@ -25,6 +28,8 @@ import math
 
 import numba
 import numpy as np
+
+from server.collisions import _forward_in
 
 # Free space either side of the path (m): a vehicle brakes for what would pass closer than this.
 PATH_MARGIN_M = 0.75
@@ -59,6 +64,12 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
             v += (p[i, ax] - m) ** 2
         if v > best:
             best, axis = v, ax
+    fwd = np.empty((n, 3))  # each entity's heading as an ECEF unit vector (comparable anywhere)
+    for i in range(n):
+        sp, cp = math.sin(math.radians(lat_deg[i])), math.cos(math.radians(lat_deg[i]))
+        sl, cl = math.sin(math.radians(lon_deg[i])), math.cos(math.radians(lon_deg[i]))
+        sh, ch = math.sin(heading_rad[i]), math.cos(heading_rad[i])
+        fwd[i, 0], fwd[i, 1], fwd[i, 2] = -sh * sl - ch * sp * cl, sh * cl - ch * sp * sl, ch * cp
     order = np.argsort(p[:, axis])
     keys = p[order, axis]
     r_max = 0.0
@@ -85,7 +96,7 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
         for o in range(lo, hi):
             j = order[o]
             if j == i or (group[i] >= 0 and group[j] == group[i] and place[j] <= place[i]
-                          and math.cos(heading_rad[i] - heading_rad[j]) > 0.0):
+                          and fwd[i, 0] * fwd[j, 0] + fwd[i, 1] * fwd[j, 1] + fwd[i, 2] * fwd[j, 2] > 0.0):
                 continue  # ahead of it in its own column, going its way: the convoy's law spaces it
             dx, dy, dz = p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2]
             up = dx * ux + dy * uy + dz * uz
@@ -112,7 +123,7 @@ def _ahead_kernel(p, vel, lat_deg, lon_deg, heading_rad, radius, half_l, half_w,
             if sj < min_speed:
                 continue  # only movers asked for (the lane a pass would take)
             if half_l[j] > 0.0:  # a box: its half extents along and across i's heading
-                ge, gn = math.sin(heading_rad[j]), math.cos(heading_rad[j])
+                ge, gn = _forward_in(lat_deg[j], lon_deg[j], heading_rad[j], ex, ey, nx, ny, nz)
                 c = abs(fe * ge + fn * gn)
                 s = abs(fe * gn - fn * ge)
                 ext_along = half_l[j] * c + half_w[j] * s

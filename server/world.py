@@ -72,7 +72,7 @@ from fdm.ground import BLOCKED_COLLISION, BLOCKED_NAMES, FREE, GroundVehicles
 from fdm.state import FT_M, RAW_COLUMNS, euler_to_quaternion, state_arrays
 from fdm.vehicle_types import P_BRAKE, P_RMIN
 from server.aircraft_host import LocalAircraftHost
-from server.collisions import new_contacts, overlap_depth
+from server.collisions import forward_ecef, new_contacts, overlap_depth
 from server.obstacles import MOVING_MPS, clearance_ahead
 from server.dead_reckoning import ned_to_ecef_quat
 from server.external import COALITIONS, MAX_TEXT_CHARS, ExternalTable, extrapolate_external
@@ -131,6 +131,34 @@ BACK_OFF_RETRY_S = 30.0
 # pass and for what oncoming traffic at this speed (m/s) covers meanwhile, at most this far (m).
 PASS_LANE_ONCOMING_MPS = 20.0
 PASS_LANE_MAX_M = 300.0
+
+
+# The fields an autopilot or a drive command takes (sortie.v1 AutopilotTargets, DriveControls; a
+# stick command's are fdm.aircraft.CONTROL_RANGES').
+COMMAND_FIELDS = {"autopilot": ("heading_deg", "alt_msl_m", "speed_mps"), "drive": ("speed_mps", "yaw_rate_dps")}
+
+
+def command_values(kind: str, values: dict) -> dict:
+    """The ``values`` of an autopilot or drive command (``kind``) as floats; InvalidArgument
+    naming the field ("drive.speed_mps") for one the command does not take (a drive command
+    with a misspelt field stopped the vehicle: what it does not give is 0) or a value that is
+    not a finite number (numpy's numbers are numbers, a bool is not, an integer beyond any
+    float is not finite)."""
+    out = {}
+    for k, v in values.items():
+        name = f"{kind}.{k}"
+        if k not in COMMAND_FIELDS[kind]:
+            raise InvalidArgument(name, f"unknown field; known: {', '.join(COMMAND_FIELDS[kind])}", value=v)
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise InvalidArgument(name, "must be a finite number", value=v)
+        try:
+            f = float(v)
+        except OverflowError:  # an int beyond any float
+            raise InvalidArgument(name, "must be a finite number (an integer beyond any float)") from None
+        if not math.isfinite(f):
+            raise InvalidArgument(name, "must be a finite number", value=f)
+        out[k] = f
+    return out
 
 
 @dataclass(frozen=True)
@@ -702,15 +730,13 @@ class World(EventLog):
         elif kind == "autopilot":
             if e.kind == STATIC:
                 raise InvalidArgument("autopilot", f"{e.name} is static")
+            values = command_values(kind, values)
             self._check_autopilot(e, values)
         elif kind == "drive":
             if e.kind != GROUND:
                 raise InvalidArgument("drive", f"only ground vehicles take drive commands; {e.name} is "
                                                f"{KIND_NAMES[e.kind]}")
-            for k in ("speed_mps", "yaw_rate_dps"):
-                v = values.get(k, 0.0)
-                if not (isinstance(v, (int, float)) and math.isfinite(v)):
-                    raise InvalidArgument(f"drive.{k}", "must be a finite number", value=v)
+            values = command_values(kind, values)
             self._check_ground_command(e, "drive", values.get("speed_mps", 0.0), values.get("yaw_rate_dps", 0.0))
         else:
             raise InvalidArgument("command", 'must be "stick", "autopilot" or "drive"', value=kind)
@@ -723,15 +749,12 @@ class World(EventLog):
             self._journal("command", entity_id, command=kind, values=values)
 
     def _check_autopilot(self, e: Entity, values: dict) -> None:
-        """An autopilot command's targets, within the scenario's own bounds for them
+        """An autopilot command's targets (floats, :func:`command_values`), within the scenario's own bounds for them
         (server.scenario: heading [0, 360), altitude [ALT_MSL_MIN_M, ALT_MAX_M], speed
         (0, SPEED_MAX_MPS]); a ground vehicle's speed within its type's (a value the
         vehicle model refuses would otherwise stop the world at the next tick)."""
         from server.scenario import ALT_MAX_M, ALT_MSL_MIN_M, SPEED_MAX_MPS
 
-        for k, v in values.items():
-            if not (isinstance(v, (int, float)) and math.isfinite(v)):
-                raise InvalidArgument(f"autopilot.{k}", "must be a finite number", value=v)
         heading, alt, speed = values.get("heading_deg"), values.get("alt_msl_m"), values.get("speed_mps")
         if heading is not None and not 0.0 <= heading < 360.0:
             raise InvalidArgument("autopilot.heading_deg", "must be within [0, 360) degrees true", value=heading)
@@ -1178,7 +1201,8 @@ class World(EventLog):
             i, j = ci[again], cj[again]
             r = after.ecef_m[ka[j]] - after.ecef_m[ka[i]]
             on = overlap_depth(r, after.lat_deg[ka[i]], after.lon_deg[ka[i]], heading[i], heading[j], half_l[i],
-                               half_w[i], half_l[j], half_w[j], radius[i], radius[j]) > 0.0
+                               half_w[i], half_l[j], half_w[j], radius[i], radius[j], after.lat_deg[ka[j]],
+                               after.lon_deg[ka[j]]) > 0.0
             t[again[on]] = -1.0
             keep[again[~on]] = False
         return keep
@@ -1227,10 +1251,14 @@ class World(EventLog):
         if mine.size == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         q = before.ecef_m[kb[others]]
-        where = (after.lat_deg[ka[mine]], after.lon_deg[ka[mine]])
-        sizes = (half_l[mine], half_w[mine], half_l[others], half_w[others], radius[mine], radius[others])
-        deeper_m = (overlap_depth(q - after.ecef_m[ka[mine]], *where, heading[mine], heading0[others], *sizes)
-                    - overlap_depth(q - before.ecef_m[kb[mine]], *where, heading0[mine], heading0[others], *sizes))
+        # Each heading is from the north where it was (near a pole the norths of two places metres
+        # apart differ: server/collisions.overlap_depth carries the other's onto the vehicle's).
+        sizes = (half_l[mine], half_w[mine], half_l[others], half_w[others], radius[mine], radius[others],
+                 before.lat_deg[kb[others]], before.lon_deg[kb[others]])
+        deeper_m = (overlap_depth(q - after.ecef_m[ka[mine]], after.lat_deg[ka[mine]], after.lon_deg[ka[mine]],
+                                  heading[mine], heading0[others], *sizes)
+                    - overlap_depth(q - before.ecef_m[kb[mine]], before.lat_deg[kb[mine]], before.lon_deg[kb[mine]],
+                                    heading0[mine], heading0[others], *sizes))
         keys = (after.ids[ka[mine]] << 32) | after.ids[ka[others]]  # entity ids are below 2**31
         creep = np.zeros(mine.size)
         if contact_creep[0].size:
@@ -1346,7 +1374,9 @@ class World(EventLog):
         if remaining_m is not None:  # a follower stopped on its way going our way (queued) is not passed
             en_route = np.zeros(snap.ids.size, bool)
             en_route[rows] = remaining_m > 1.0
-            facing = np.cos(np.radians(heading[j] - heading[rows[seen]])) < 0.0  # nose to nose: not a queue
+            # Nose to nose (not a queue), the headings compared in ECEF: each is from its own north,
+            # and near a pole two neighbours' norths differ by tens of degrees.
+            facing = np.einsum("ij,ij->i", forward_ecef(snap.lat_deg[j], snap.lon_deg[j], heading[j]), forward) < 0.0
             stopped &= ~en_route[j] | facing
         # The shift moves the route's path (fdm.convoy.FollowerSet._shift_goals): the obstacle's
         # place across the route is its place across the vehicle plus the vehicle's off the route.

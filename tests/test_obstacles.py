@@ -30,14 +30,17 @@ def _reference(p, lat, lon, heading, radius, half_l, half_w, group, rows, reach)
         fwd = np.sin(np.radians(heading[i])) * e + np.cos(np.radians(heading[i])) * n
         right = np.cos(np.radians(heading[i])) * e - np.sin(np.radians(heading[i])) * n
         for j in range(p.shape[0]):
-            if j == i or (group[i] >= 0 and group[j] == group[i] and np.cos(np.radians(heading[i] - heading[j])) > 0):
+            # j's heading is from its own north: compared on i's horizontal through ECEF.
+            ej, nj, _ = enu_basis(lat[j], lon[j])
+            fwd_j = np.sin(np.radians(heading[j])) * ej + np.cos(np.radians(heading[j])) * nj
+            if j == i or (group[i] >= 0 and group[j] == group[i] and fwd @ fwd_j > 0):
                 continue
             d = p[j] - p[i]
             if abs(d @ u) > radius[i] + radius[j]:
                 continue
             ahead, across = d @ fwd, d @ right
             if half_l[j] > 0:
-                rel = np.radians(heading[j] - heading[i])
+                rel = np.arctan2(fwd_j @ right, fwd_j @ fwd)
                 ext_along = half_l[j] * abs(np.cos(rel)) + half_w[j] * abs(np.sin(rel))
                 ext_across = half_l[j] * abs(np.sin(rel)) + half_w[j] * abs(np.cos(rel))
             else:
