@@ -236,9 +236,10 @@ HEADING_TRIM_TAU_S = 10.0
 HEADING_TRIM_MAX_BANK_RAD = math.radians(3.0)
 
 
-# What a hold may be told (Autopilot.set_targets; the scenario's and the world's bounds are the
-# same figures, server/scenario.py): a heading within a turn either way (wrapped), an altitude
-# from the Dead Sea shore's -430 m (rounded down) to the Karman line, a speed below orbital.
+# What a hold may be told (Autopilot.set_targets; server/scenario.py takes the same bounds for a
+# scenario's altitudes and speeds, and the world for commands): a heading within a turn either
+# way (wrapped), an altitude from the Dead Sea shore's -430 m (rounded down) to the Karman line,
+# a speed below orbital.
 TARGET_HEADING_ABS_MAX_DEG = 360.0
 TARGET_ALT_MSL_MIN_M = -500.0
 TARGET_ALT_MSL_MAX_M = 100_000.0

@@ -182,6 +182,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from fdm import catalog
+from fdm.autopilot import TARGET_ALT_MSL_MAX_M, TARGET_ALT_MSL_MIN_M, TARGET_SPEED_MAX_MPS
 from fdm.vehicle_types import VEHICLE_TYPES
 from sortie.errors import InvalidArgument, NotFound
 from terrain.geodesy import geodetic_to_ecef, radii_of_curvature
@@ -202,9 +203,12 @@ TIME_SCALE_MAX = 1_000.0
 DURATION_MAX_S = 7 * 86_400.0
 VANISH_TIMEOUT_MAX_S = 3_600.0
 GEOID_UNDULATION_ABS_MAX_M = 120.0  # EGM96 spans -107 .. +86 m
-ALT_MSL_MIN_M = -500.0  # the Dead Sea shore is at -430 m
-ALT_MAX_M = 100_000.0  # the Karman line
-SPEED_MAX_MPS = 8_000.0  # above orbital speed is a unit mix-up
+# The Dead Sea shore is at -430 m; the Karman line; above orbital speed is a unit mix-up. The
+# autopilot's own bounds on its targets (fdm.autopilot), so a scenario, a command and the
+# library take the same.
+ALT_MSL_MIN_M = TARGET_ALT_MSL_MIN_M
+ALT_MAX_M = TARGET_ALT_MSL_MAX_M
+SPEED_MAX_MPS = TARGET_SPEED_MAX_MPS
 AOI_MAX_M = 1_000_000.0
 DR_POSITION_MAX_M = 1_000.0
 DR_ORIENTATION_MAX_DEG = 180.0
