@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from sortie.errors import InvalidArgument
+
 
 def add_import_parser(commands) -> None:
     p = commands.add_parser(
@@ -31,12 +33,22 @@ def add_import_parser(commands) -> None:
     p.set_defaults(func=import_command)
 
 
+# The importer's parameters as `sortie terrain import` spells them, for its errors.
+IMPORT_OPTIONS = {"output": "--output", "step": "--step", "resolution": "--resolution", "add_detail": "--add-detail",
+                  "files": "FILE"}
+
+
 def import_command(args) -> int:
     from terrain.store_import import import_dems
 
-    summary = import_dems(args.files, args.output, resolution_arcsec=args.resolution, step_m=args.step,
-                          lossless=args.lossless, add_detail=args.add_detail, detail_seed=args.detail_seed,
-                          name=args.name, progress=not args.no_progress and not args.json)
+    try:
+        summary = import_dems(args.files, args.output, resolution_arcsec=args.resolution, step_m=args.step,
+                              lossless=args.lossless, add_detail=args.add_detail, detail_seed=args.detail_seed,
+                              name=args.name, progress=not args.no_progress and not args.json)
+    except InvalidArgument as exc:  # named as the command line names it (step: ... read as --step: ...)
+        if exc.field not in IMPORT_OPTIONS:
+            raise
+        raise exc.with_field(IMPORT_OPTIONS[exc.field]) from None
     if args.json:
         print(json.dumps(summary.to_json(), indent=2))
         return 0

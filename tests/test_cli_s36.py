@@ -33,3 +33,17 @@ def test_a_reader_leaving_the_pipe_is_no_error():
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 1, (proc.returncode, err)
     assert "Broken pipe" not in err and "Traceback" not in err, err
+
+
+def test_terrain_import_errors_name_the_options(tmp_path):
+    """The importer's parameters as the command line spells them (before: 'step: ...', 'output:
+    ...', which are its Python names)."""
+    dem = str(shared_or_embedded("N47E009.hgt"))
+    a_file = tmp_path / "afile"
+    a_file.write_text("not a directory")
+    done = _sortie("terrain", "import", dem, "-o", str(a_file), "--no-progress")
+    assert done.returncode == 2 and f"sortie terrain: error: --output: {a_file} exists and is not a directory" \
+        in done.stderr, done.stderr
+    done = _sortie("terrain", "import", dem, "-o", str(tmp_path / "st"), "--step", "0.015", "--no-progress")
+    assert done.returncode == 2 and "sortie terrain: error: --step: " in done.stderr, done.stderr
+    assert not (tmp_path / "st" / "store.json").exists()
