@@ -29,6 +29,13 @@ the set one while it keeps up, else the one measured over the last
 RATE_WINDOW_S of wall time (e.g. "fast" x100 that reaches x28 says 28), so a
 receiver's estimate of world time does not run ahead of the world.
 
+At the exercise's end (``duration_s``) and at the server's stop the last tick's snapshot is
+published, at rate 0 (the clock stopped), whether or not a network tick falls on it: every watcher's picture ends at the
+world's last time, each entity within its thresholds (the streams send what was pushed before
+the server's end closes them). While paused, the last tick's snapshot is published without the
+entities removed since (a gateway or a session's agent gone), and vanished sessions still
+time out.
+
 A server started paused runs the world's first tick before it stops (world
 time 1 / world rate): until a world has ticked it has no snapshot (its
 aircraft's states come from their first tick), and clients joining the paused
@@ -55,7 +62,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -119,6 +126,19 @@ def _noted(samples: list, totals: tuple[int, float], ms: float) -> tuple[int, fl
         del samples[:DURATIONS_KEPT // 2]
     count, total = totals
     return count + 1, total + ms
+
+
+def live_rows(snapshot, infos: dict):
+    """``snapshot`` (server.world.Snapshot) without the entities no longer in the world (not
+    keys of ``infos``, World.infos): a paused world's snapshot stays its last tick's while
+    entities are removed (a gateway leaves, a session's agent goes with it), and watchers kept
+    them in their pictures until the clock ran again. The snapshot itself where all are live."""
+    keep = np.fromiter((i in infos for i in snapshot.ids.tolist()), bool, snapshot.ids.size)
+    if keep.all():
+        return snapshot
+    return replace(snapshot, **{f: getattr(snapshot, f)[keep] for f in (
+        "ids", "ecef_m", "vel_ecef_mps", "acc_ecef_mps2", "quat_ecef2body", "body_rates_rps", "lat_deg", "lon_deg",
+        "alt_msl_m")})
 
 
 def type_params(params: dict, entities: dict, entity_id, kind: str | None = None) -> TypeParams:
@@ -423,12 +443,16 @@ class SimulationServer:
 
     # -- the clock thread -----------------------------------------------------------------------
 
-    def _hand_over(self, rate: float) -> None:
+    def _hand_over(self, rate: float, paused: bool = False) -> None:
         """Hand the world's snapshot to the publisher thread (clock thread), advertising
         ``rate`` (0: paused), with the world's entity infos and wrecks as they are now; waits
-        while the one handed over before is still waiting to be taken."""
+        while the one handed over before is still waiting to be taken. ``paused``: the
+        snapshot is the last tick's, and the entities removed since are left out of it
+        (:func:`live_rows`)."""
         world = self.world
-        request = (rate, world.snapshot, world.infos, world.wrecks, self._tick_layout)
+        infos = world.infos  # (read before the snapshot: an entity removed in between goes at the next)
+        snapshot = live_rows(world.snapshot, infos) if paused else world.snapshot
+        request = (rate, snapshot, infos, world.wrecks, self._tick_layout)
         with self._handover:
             while self._pending is not None and not self._publisher_closed:
                 self._handover.wait(0.1)
@@ -501,6 +525,15 @@ class SimulationServer:
             self._heartbeat_ids = ids
         return float(np.min(reckoner.last_sent(ids)["t0"] + self._heartbeats_s))
 
+    def _expire_due(self, next_expire: float) -> float:
+        """Expire the vanished sessions if ``next_expire`` (monotonic s) has come (clock
+        thread); when to next."""
+        now = time.monotonic()
+        if now < next_expire:
+            return next_expire
+        self.sessions.expire()
+        return now + EXPIRE_EVERY_S
+
     def _run(self) -> None:
         world, cfg = self.world, self.config
         net_dt = 1.0 / cfg.network_rate_hz
@@ -512,11 +545,14 @@ class SimulationServer:
                 # Paused: watchers learn the clock stopped; newcomers get their snapshot. A world
                 # that never ticked has none: its first tick runs first (see the module docstring).
                 if self._clock == "paused" and world.tick_count > 0:
-                    self._hand_over(0.0)
+                    self._hand_over(0.0, paused=True)
                     self._rate_marks.clear()  # the rate is measured anew when the clock runs again
                     self._resume.clear()
                     self._resume.wait(0.1)
                     wall_next = time.monotonic()
+                    # Vanished sessions time out in a pause too: their agents were held (no other
+                    # client could take them) until the clock ran again.
+                    next_expire = self._expire_due(next_expire)
                     continue
                 t0 = time.perf_counter()
                 if self.before_tick is not None:
@@ -533,10 +569,7 @@ class SimulationServer:
                     if network_tick:
                         next_net += net_dt
                 self.tick_totals = _noted(self.tick_ms, self.tick_totals, (time.perf_counter() - t0) * 1e3)
-                now = time.monotonic()
-                if now >= next_expire:
-                    self.sessions.expire()
-                    next_expire = now + EXPIRE_EVERY_S
+                next_expire = self._expire_due(next_expire)
                 if cfg.duration_s is not None and world.time_s >= cfg.duration_s - 1e-9:
                     break
                 if self._clock in ("realtime", "fast"):  # fast: time_scale x real time, or as fast as it goes
@@ -547,6 +580,10 @@ class SimulationServer:
                         wall_next = time.monotonic()
                     elif lag < 0:
                         self._stop.wait(-lag)
+            if world.tick_count > 0 and self.error is None:
+                # The exercise's end (duration_s) or the server's stop: every watcher gets the last
+                # tick's state and the stopped clock (rate 0), though no network tick may fall on it.
+                self._hand_over(0.0, paused=True)
         except Exception as exc:  # noqa: BLE001 - the clock thread must say why it died
             logger.exception("world clock stopped by an error")
             self.error = exc

@@ -19,9 +19,10 @@ parsing, and bytes that do not decode are INVALID_ARGUMENT with the decoder's
 reason. An error message shows a bad value cut short (sortie.errors.shown).
 
 Streams end with a status that says why: OK when the server stops (the end of
-the exercise), ABORTED when a new Watch of the session supersedes a Watch
-("superseded by a new Watch of this session") or the session leaves while a
-stream is open ("session left").
+the exercise; a Watch first sends what was queued for it, the exercise's last
+state, and one begun as the server stops ends at once), ABORTED when a new
+Watch of the session supersedes a Watch ("superseded by a new Watch of this
+session") or the session leaves while a stream is open ("session left").
 
 No stream holds a thread while it waits: a Watch stream awaits its queue's
 asyncio event (set by the publisher), an events stream an event that one
@@ -486,15 +487,19 @@ class SimulationServicer:
         except Exception as exc:  # noqa: BLE001
             await self._fail(context, exc)
             return
+        if self.closed:  # the server is stopping: its clock publishes no more (the stream ends OK)
+            return
         queue = ClientQueue(asyncio.get_running_loop())
         old = s.begin_stream(queue)
         if old is not None:
             old.close(SUPERSEDED)
+        if s.left:  # a Leave between the token's check and begin_stream: nobody would close this queue
+            queue.close(SESSION_LEFT)
         s.open_streams += 1
         try:
-            while not queue.closed and not context.done():
+            while not context.done():
                 queue.ready.clear()
-                p = queue.take(0.0)
+                p = queue.take(0.0)  # at the server's end, what was pushed before it (the last state)
                 s.last_seen = time.monotonic()
                 if p is not None:
                     data = encode_watch_update(p)
@@ -502,6 +507,8 @@ class SimulationServicer:
                     self.stream_stats.messages += 1
                     self.stream_stats.bytes += len(data)
                     continue
+                if queue.closed or self.closed:  # (a Watch that began as the server stopped: no queue close)
+                    break
                 try:  # asyncio.timeout, not wait_for: no task made per wait (3.11)
                     async with asyncio.timeout(STREAM_POLL_S):
                         await queue.ready.wait()

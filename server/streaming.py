@@ -110,11 +110,13 @@ class ClientQueue:
 
     def take(self, timeout_s: float | None) -> Pending | None:
         """The pending changes (clearing them), waiting up to ``timeout_s`` for some;
-        None on timeout or when closed."""
+        None on timeout, with nothing pending, or when closed for a reason (see close()).
+        A queue the server's end closed still hands over what was pushed before: the
+        exercise's last state (the clock's last publish comes just before the close)."""
         with self.cond:
             if not self._dirty and not self.closed:
                 self.cond.wait(timeout_s)
-            if self.closed or not self._dirty:
+            if not self._dirty or self.close_reason is not None:
                 return None
             out = Pending(self._time_s, self._snapshot, list(self._enter.values()),
                           [i for i in self._leave if i in self.known], list(self._states.values()),

@@ -5,6 +5,7 @@ the entities' centre a client watches by default is the largest group's.
   30 Hz tick, a real-time world still keeps real time and its ticks stay short, and every
   snapshot handed over is published, in order.
 - A "fast" clock faster than its publishes waits for them: none is dropped.
+- The server's stop publishes the last tick's snapshot with the clock stopped (rate 0).
 - An error in a publish stops the clock as one in a tick does (``server.error``).
 - entities_centre over two groups far apart is the larger group's median, in any order.
 """
@@ -38,15 +39,15 @@ def _world(alps) -> World:
 
 
 def _slow_publishes(srv: SimulationServer, delay_s: float) -> list:
-    """Make every publish ``delay_s`` slower; returns the list of (world time, wall time it began)
-    of the publishes, filled as they run."""
+    """Make every publish ``delay_s`` slower; returns the list of (world time, rate advertised)
+    of the publishes, filled as they run (the stop's last one at rate 0)."""
     seen = []
     original = srv.publisher.publish
 
-    def publish(snap, *args, **kwargs):
-        seen.append((snap.time_s, time.monotonic()))
+    def publish(snap, infos, sessions, rate=1.0, *args, **kwargs):
+        seen.append((snap.time_s, rate))
         time.sleep(delay_s)
-        return original(snap, *args, **kwargs)
+        return original(snap, infos, sessions, rate, *args, **kwargs)
 
     srv.publisher.publish = publish
     return seen
@@ -72,7 +73,9 @@ def test_a_slow_publish_does_not_hold_up_the_world_ticks(alps):
         srv.stop(0.5)
     assert rate > 0.95, rate
     assert np.percentile(ticks, 90) < 40.0, np.percentile(ticks, 90)
-    times = [t for t, _ in seen]
+    # The stop's own publish last: the last tick's snapshot, the clock stopped (rate 0).
+    assert seen[-1] == (srv.world.time_s, 0.0), (seen[-1], srv.world.time_s)
+    times = [t for t, r in seen[:-1]]
     assert times == sorted(times) and len(set(times)) == len(times)
     # 10 Hz of a 30 Hz world: every third tick (its snapshot at 1/30 s after a multiple of 0.1 s)
     gaps = np.diff(times[3:])
@@ -91,7 +94,8 @@ def test_a_fast_clock_waits_for_its_publishes_and_drops_none(alps):
         time.sleep(1.5)
     finally:
         srv.stop(0.5)
-    times = np.array([t for t, _ in seen])
+    assert seen[-1] == (srv.world.time_s, 0.0)  # the stop's own publish: the last tick, clock stopped
+    times = np.array([t for t, _ in seen[:-1]])
     assert times.size >= 20
     # A 30 Hz network on a 30 Hz world: one publish a tick, none skipped, none twice.
     assert np.all(np.abs(np.diff(times) - 1.0 / 30.0) < 1e-6), np.diff(times)
