@@ -22,7 +22,10 @@ same ``update(camera)`` / ``draw(frame)`` interface):
   convention; the terrain service answers MSL heights).
 - **Holes**: a post whose height is NaN (no source covers it) drops every
   cell it touches; nothing is invented there (the renderer's sea shell shows
-  through).
+  through). The no-data posts next to data (:func:`shore_posts`) are drawn at
+  MSL 0, as the clipmap stores every no-data post (client/render/clipmap.py),
+  so a DEM's edge or void is a wall down to the sea: without it a view from
+  beside the edge looked under the terrain's last row at the sea shell.
 - **Normals**: central differences of the ECEF post grid (one-sided at the
   edges), (P[c+1] - P[c-1]) x (P[r+1] - P[r-1]): exact on the ellipsoid, no
   local flat-earth approximation.
@@ -182,6 +185,18 @@ def grid_normals(points_ecef: np.ndarray) -> np.ndarray:
     n = np.cross(d_east, d_north)
     with np.errstate(invalid="ignore", divide="ignore"):
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def shore_posts(heights_m: np.ndarray) -> np.ndarray:
+    """(ny, nx) heights (NaN: no data) -> (ny, nx) bool: the no-data posts with a post of data
+    among their 8 neighbours, so every cell that touches data has its four corners."""
+    data = np.pad(np.isfinite(heights_m), 1)
+    near = np.zeros(heights_m.shape, bool)
+    ny, nx = heights_m.shape
+    for di in (0, 1, 2):
+        for dj in (0, 1, 2):
+            near |= data[di:di + ny, dj:dj + nx]
+    return near & ~np.isfinite(heights_m)
 
 
 def grid_triangles(valid: np.ndarray, skip_cells: np.ndarray | None = None) -> np.ndarray:
@@ -377,6 +392,8 @@ def build_mesh(terrain, lattice: Lattice, lat: float, lon: float, *, window_m: f
         shape = (i.size, j.size)
         h = all_h[start:start + la.size].reshape(shape).copy()
         start += la.size
+        nodata = ~np.isfinite(h)
+        h[shore_posts(h)] = 0.0  # a wall down to the sea where the data ends (the module docstring)
         p = geodetic_to_ecef(la, lo, h + geoid_undulation_m)
         normals = grid_normals(p)
         skip = None
@@ -387,8 +404,8 @@ def build_mesh(terrain, lattice: Lattice, lat: float, lon: float, *, window_m: f
             cj = (j[:-1] >= fj0) & (j[1:] <= fj1)
             skip = ci[:, None] & cj[None, :]
         valid = np.isfinite(h)
-        hole_i.append(np.broadcast_to(i[:, None], shape)[~valid])
-        hole_j.append(np.broadcast_to(j[None, :], shape)[~valid])
+        hole_i.append(np.broadcast_to(i[:, None], shape)[nodata])  # the sea shell's too: shore posts are water
+        hole_j.append(np.broadcast_to(j[None, :], shape)[nodata])
         up = enu_basis(la, lo)[2]
         cos_slope = np.einsum("...k,...k->...", normals, up)
         bad = ~np.isfinite(cos_slope)
