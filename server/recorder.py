@@ -22,7 +22,9 @@ chunk of no tick, which readers keep before the chunk of the tick they come
 before), and is written, flushed and synced to the disk (fdatasync) at once:
 a killed server, or a machine that loses its power, loses at most the open
 chunk, at most ``chunk_s`` (1 s by default, at most MAX_CHUNK_S) of world or
-wall time. The writer queue holds at most MAX_QUEUED_CHUNKS closed chunks; a
+wall time. A chunk also closes once it holds MAX_CHUNK_STATES entity states (entities x
+ticks), so a long ``chunk_s`` over many entities stays within memory and the format's
+chunk body limit. The writer queue holds at most MAX_QUEUED_CHUNKS closed chunks; a
 disk slower than that makes the clock wait rather than drop a chunk. A write
 error (disk full), or any other error on the writer's thread, stops the
 recording, logs it and leaves the exercise running; ``error`` says why.
@@ -56,6 +58,13 @@ DEFAULT_CHUNK_S = 1.0
 # deadline (time.monotonic() + chunk_s) stays far inside what the clocks and queue timeouts take
 # (a chunk_s of 1e300 overflowed them and killed the writer thread).
 MAX_CHUNK_S = 3600.0
+# The most entity states (entities x ticks) a chunk holds: one closes at chunk_s or at this,
+# whichever comes first. Without it an hour's chunk of the world's 10,000 entities held 1.1e9
+# states in memory (160 bytes each in its snapshots, ~400 more while it is coded: 0.6 TB) and
+# coded past the format's 1 GiB body (server/recording.py MAX_BODY_BYTES), which stops the
+# recording. At most (2^20 + 10,000) x 128 bytes of body (8 bytes a value, 16 values a state:
+# recording_codec's coded worst case), 0.13 GiB; at 10,000 entities 105 ticks (3.5 s at 30 Hz).
+MAX_CHUNK_STATES = 1 << 20
 # The longest the writer thread waits for a chunk before it looks at the open one's wall age.
 MAX_POLL_S = 0.25
 # The writer thread's nice value (Linux, per thread): its coding runs in the CPU time the clock
@@ -164,6 +173,7 @@ class _OpenChunk:
         self.events: list = []
         self.new_entities: list = []
         self.wall_start = None
+        self.states = 0  # entity states in snapshots (MAX_CHUNK_STATES)
 
 
 class Recorder:
@@ -211,12 +221,14 @@ class Recorder:
         with self._lock:
             c = self._started()
             c.snapshots.append(snapshot)
+            c.states += ids.size
             for i in new:
                 self._seen.add(i)
                 _, name, kind, type_, coalition, *external = infos[i]
                 c.new_entities.append(pb.EntityInfo(entity_id=i, name=name, kind=kind, type=type_,
                                                     coalition=coalition, external_id="".join(external)))
-            if len(c.snapshots) >= self.chunk_ticks or time.monotonic() - c.wall_start >= self.chunk_s:
+            if (len(c.snapshots) >= self.chunk_ticks or c.states >= MAX_CHUNK_STATES
+                    or time.monotonic() - c.wall_start >= self.chunk_s):
                 self._close_open()
 
     def on_input(self, tick: int, kind: str, entity_id: int, fields: dict) -> None:

@@ -300,6 +300,7 @@ class World(EventLog):
         self._backing: dict = {}  # entity id -> world time until which it backs off (fdm.convoy BACK_OFF_S)
         self._backed: dict = {}  # entity id -> world time it last began to back off
         self._followed: set = set()  # entity ids on a route
+        self._followers_stale = False  # routes changed since _followers was made (_current_followers)
         self._ground_heading_hold: dict = {}  # entity id -> {heading_deg, speed_mps} autopilot targets
         self._hold_version = 0  # bumped when a hold changes (its arrays are cached against it)
         self._hold_cache = None
@@ -356,6 +357,19 @@ class World(EventLog):
             self.recorder.on_input(self.tick_count, input_kind, entity_id, fields)
 
     # -- spawning -------------------------------------------------------------------------------
+
+    def _check_new_names(self, names: list, what: str) -> None:
+        """LimitExceeded unless ``names`` fit in the world (MAX_ENTITIES), InvalidArgument naming
+        ``name`` for one given twice or taken: what refuses a batch before any of it is made."""
+        if len(self.entities) + len(names) > MAX_ENTITIES:
+            raise LimitExceeded("entities", len(self.entities) + len(names), MAX_ENTITIES)
+        seen = set()
+        for name in names:
+            if name in seen:
+                raise InvalidArgument("name", f"appears twice among the {what} spawned", value=name)
+            if name in self._names:
+                raise InvalidArgument("name", "an entity of this name exists", value=name)
+            seen.add(name)
 
     def _new_entity(self, name: str, kind: int, type_: str, **kw) -> Entity:
         if len(self.entities) >= MAX_ENTITIES:
@@ -445,7 +459,16 @@ class World(EventLog):
             k = int(np.flatnonzero(bad)[0])
             raise InvalidArgument("speed_mps", f"must be >= 0 m/s (a vehicle starts forward or at rest) for "
                                                f"{names[k]}", index=k, value=float(speeds[k]))
+        # The route's geometry, made once here (a bad route refused before anything changes) and
+        # kept with its spec for every rebuild of the followers (_route_of).
+        spec = None
+        if route is not None:
+            spec = {"route": [tuple(p) for p in route], "cruise_mps": cruise_mps, "spacing_m": spacing_m}
+            spec["geometry"] = Route(*np.array(spec["route"], float).T)
         with self._lock:
+            # Every check that can refuse the batch before the vehicles are added: a refusal
+            # after it left vehicles in self.ground without an entity (stepped and queried, unseen).
+            self._check_new_names(names, "vehicles")
             first = self.ground is None
             if first:
                 self.ground = GroundVehicles(self.terrain, lat, lon, heading_deg, types)
@@ -455,6 +478,8 @@ class World(EventLog):
             rows = self.ground.index_of(gids)
             try:
                 self.ground.check_controls(speeds, None, index=rows, names=names)
+                if spec is not None:  # its cruise speed and spacing, checked as its follower is made
+                    self._follower(spec, rows)
             except InvalidArgument:
                 if first:
                     self.ground = None
@@ -470,15 +495,14 @@ class World(EventLog):
                                      on_vanish=on_vanish)
                 self._register(e)
                 out.append(e)
-            if route is not None:
-                spec = {"route": [tuple(p) for p in route], "cruise_mps": cruise_mps, "spacing_m": spacing_m}
+            if spec is not None:
                 ids = [e.id for e in out]
                 if spacing_m and n > 1:
-                    ids = [ids[k] for k in column_order(Route(*np.array(spec["route"], float).T), lat, lon,
-                                                         heading_deg)]
+                    ids = [ids[k] for k in column_order(spec["geometry"], lat, lon, heading_deg)]
                 self.routes.append((spec, ids))
                 self._scenario_routes.update((e.id, spec) for e in out)
-                self._rebuild_followers()
+                self._followed.update(ids)  # (not _rebuild_followers' scan of every route: n spawns, n^2)
+                self._followers_stale = True
             elif (speeds > 0.0).any():
                 for e, v in zip(out, speeds.tolist()):
                     if v > 0.0:
@@ -615,18 +639,43 @@ class World(EventLog):
         self._rebuild_followers()
 
     def _rebuild_followers(self) -> None:
-        """Route followers index vehicles by position in the arrays, which removals shift."""
-        followers = []
-        for spec, ids in self.routes:
-            idx = self.ground.index_of([self.entities[i].ground_id for i in ids])
-            route = Route(*np.array(spec["route"], float).T)
-            cruise = spec["cruise_mps"] or float(self.ground.speed_limits_mps[1][idx].min()) * 0.5
-            if spec["spacing_m"] and len(ids) > 1:
-                followers.append(Convoy(self.ground, route, idx, cruise, spec["spacing_m"]))
-            else:
-                followers.append(RouteFollower(self.ground, route, idx, cruise))
+        """Route followers index vehicles by position in the arrays, which removals shift: after
+        :attr:`routes` changed, the followers are made again, once, when the next tick needs them
+        (:meth:`_current_followers`), however many vehicles came or went meanwhile. Made again at
+        every change, a scenario of 10,000 vehicles each on its own route took hours to spawn
+        (each spawn remade every route before it, 0.4 ms each), and a driver taking one vehicle
+        off its route stalled the tick for seconds."""
         self._followed = {i for _, ids in self.routes for i in ids}
-        self._followers = FollowerSet(followers)  # every follower's update in one pass
+        self._followers_stale = True
+
+    @staticmethod
+    def _route_of(spec: dict) -> Route:
+        """The Route of a route spec, made once and kept in it (spawn_ground makes it)."""
+        route = spec.get("geometry")
+        if route is None:
+            route = spec["geometry"] = Route(*np.array(spec["route"], float).T)
+        return route
+
+    def _follower(self, spec: dict, idx: np.ndarray, top_mps: np.ndarray | None = None) -> RouteFollower:
+        """The follower (a Convoy when spaced) of the vehicles at rows ``idx`` on route ``spec``;
+        ``top_mps``: every vehicle's top speed (m/s), when the caller has it."""
+        top_mps = self.ground.speed_limits_mps[1] if top_mps is None else top_mps
+        cruise = spec["cruise_mps"] or float(top_mps[idx].min()) * 0.5
+        if spec["spacing_m"] and len(idx) > 1:
+            return Convoy(self.ground, self._route_of(spec), idx, cruise, spec["spacing_m"])
+        return RouteFollower(self.ground, self._route_of(spec), idx, cruise)
+
+    def _current_followers(self) -> FollowerSet:
+        """The followers of :attr:`routes` as they are now (made again if they changed)."""
+        if self._followers_stale:
+            self._followers_stale = False
+            rows = self.ground.index_of([self.entities[i].ground_id for _, ids in self.routes for i in ids]) \
+                if self.routes else np.zeros(0, np.int64)
+            ends = np.cumsum([len(ids) for _, ids in self.routes])
+            top = self.ground.speed_limits_mps[1]
+            self._followers = FollowerSet([self._follower(spec, idx, top) for (spec, _), idx
+                                           in zip(self.routes, np.split(rows, ends[:-1]))])
+        return self._followers
 
     # -- control --------------------------------------------------------------------------------
 
@@ -838,7 +887,7 @@ class World(EventLog):
                 self._apply_commands()
                 self.air.begin_tick(self.steps_per_tick)
             if self.ground is not None and self.ground.n:
-                fs = self._followers
+                fs = self._current_followers()
                 if fs.followers:
                     fs.update(*self._obstacles_ahead(fs.index, fs.convoy_of, place=fs.place, remaining_m=fs.remaining_m(),
                                                      cross_track_m=fs.cross_track_m()),
