@@ -122,6 +122,12 @@ class SimClient:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _keep_stream(self, stream) -> None:
+        """Keep a server stream for close(), dropping those that have ended (a client taking a
+        new Watch now and then kept every picture it ever had)."""
+        self._streams = [s for s in self._streams if (s.alive if isinstance(s, Picture) else not s.done())]
+        self._streams.append(stream)
+
     def close(self) -> None:
         """End every stream this client opened (server streams and client streams still
         open: cancelled, a client stream's unsent messages dropped), then the channel."""
@@ -214,7 +220,7 @@ class SimClient:
         those that came while it was busy merged into one (see Picture.listeners)."""
         call = self.stub.Watch(pb.WatchRequest(session_token=self.token))
         picture = Picture(call, self.world_info.time_scale if self.world_info else 1.0)
-        self._streams.append(picture)  # close() cancels it: what its listeners have not had is dropped
+        self._keep_stream(picture)  # close() cancels it: what its listeners have not had is dropped
         if listener is not None:
             picture.listeners.append(listener)
         picture.start()
@@ -223,7 +229,7 @@ class SimClient:
     def events(self):
         """Iterator over world events from now on (a server stream; cancel by close())."""
         call = self.stub.WatchEvents(pb.WatchEventsRequest(session_token=self.token))
-        self._streams.append(call)
+        self._keep_stream(call)
         try:
             yield from call
         except grpc.RpcError as exc:

@@ -621,10 +621,9 @@ class RouteFollower:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise InvalidArgument("index", f"must be within [0, {vehicles.n})", index=i, value=int(self.index[i]))
-        _, vmax = vehicles.speed_limits_mps
-        if not (math.isfinite(cruise_mps) and 0.0 < cruise_mps <= float(vmax[self.index].min())):
-            raise InvalidArgument("cruise_mps", f"must be in (0, {float(vmax[self.index].min()):.3g}] m/s",
-                                  value=cruise_mps)
+        top = float(vehicles.top_speed_mps(self.index).min())
+        if not (math.isfinite(cruise_mps) and 0.0 < cruise_mps <= top):
+            raise InvalidArgument("cruise_mps", f"must be in (0, {top:.3g}] m/s", value=cruise_mps)
         self.cruise_mps = float(cruise_mps)
         self.stop_at_end = stop_at_end
         self._hint = np.full(self.index.size, -1, np.int64)
@@ -705,7 +704,6 @@ class Convoy(RouteFollower):
     def commands(self):
         self.locate()
         v = self.vehicles
-        _, vmax = v.speed_limits_mps
         lookahead = self._lookahead()
         corner = self._corner_ceiling(lookahead)
         speed_cmd = self._speed_ceiling(corner)
@@ -718,7 +716,7 @@ class Convoy(RouteFollower):
         # A follower may exceed the cruise speed by CATCH_UP_FRAC to close a gap, within its own
         # limits and the corners'; when the leader stops, its predecessor's speed 0 brings it to
         # rest spacing_m behind (_follow_kernel: each follows the one ahead's speed or command).
-        cap = np.minimum(np.minimum(vmax[self.index[1:]], (1.0 + CATCH_UP_FRAC) * self.cruise_mps),
+        cap = np.minimum(np.minimum(v.top_speed_mps(self.index[1:]), (1.0 + CATCH_UP_FRAC) * self.cruise_mps),
                          corner[1:])
         n = self.index.size
         _follow_kernel(np.arange(1, n), np.append(self.gaps_m, -np.inf), np.full(n, self.spacing_m),

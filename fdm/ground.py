@@ -847,6 +847,11 @@ class GroundVehicles:
         """(max reverse, max forward) speed per vehicle, m/s, both >= 0."""
         return self.table[self.type_id, P_VREV], self.table[self.type_id, P_VMAX]
 
+    def top_speed_mps(self, index) -> np.ndarray:
+        """Max forward speed (m/s) of the vehicles at rows ``index``: ``speed_limits_mps[1][index]``
+        without building it for every vehicle (a route follower of a few, among 10,000)."""
+        return self.table[self.type_id[np.asarray(index, np.int64)], P_VMAX]
+
     @property
     def yaw_rate_limit_dps(self) -> np.ndarray:
         """Largest heading-rate command accepted per vehicle, deg/s (inclusive)."""

@@ -417,8 +417,10 @@ class SimulationServer:
 
     def world_info(self) -> pb.WorldInfo:
         rate = 0.0 if self._clock == "paused" else self.time_scale  # world s per wall s (as Watch says)
+        snapshot = self.world.snapshot  # (without the entities gone since, as a paused clock publishes it)
         return world_info(self.config, self.world.time_s, self._clock, rate, 1.0 / self.world.dt,
-                          self.world.geoid_undulation_m, self.world.snapshot)
+                          self.world.geoid_undulation_m,
+                          None if snapshot is None else live_rows(snapshot, self.world.infos))
 
     def _measure_rate(self, wall: float) -> None:
         """Sample (wall, world time) and update the advertised rate (clock thread, running clock)."""

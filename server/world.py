@@ -659,8 +659,8 @@ class World(EventLog):
     def _follower(self, spec: dict, idx: np.ndarray, top_mps: np.ndarray | None = None) -> RouteFollower:
         """The follower (a Convoy when spaced) of the vehicles at rows ``idx`` on route ``spec``;
         ``top_mps``: every vehicle's top speed (m/s), when the caller has it."""
-        top_mps = self.ground.speed_limits_mps[1] if top_mps is None else top_mps
-        cruise = spec["cruise_mps"] or float(top_mps[idx].min()) * 0.5
+        top = self.ground.top_speed_mps(idx) if top_mps is None else top_mps[idx]
+        cruise = spec["cruise_mps"] or float(top.min()) * 0.5
         if spec["spacing_m"] and len(idx) > 1:
             return Convoy(self.ground, self._route_of(spec), idx, cruise, spec["spacing_m"])
         return RouteFollower(self.ground, self._route_of(spec), idx, cruise)
@@ -726,7 +726,7 @@ class World(EventLog):
         """A ground vehicle's heading-and-speed hold of what it does now: its heading, and its
         forward speed within its type's limits."""
         i = self.ground.index_of([e.ground_id])[0]
-        speed = min(max(float(self.ground.speed_mps[i]), 0.0), float(self.ground.speed_limits_mps[1][i]))
+        speed = min(max(float(self.ground.speed_mps[i]), 0.0), float(self.ground.top_speed_mps([i])[0]))
         heading = float(self.ground.heading_deg[i]) % 360.0
         return {"heading_deg": 0.0 if heading >= 360.0 else heading,  # (-1e-15 % 360 is 360.0)
                 "speed_mps": speed}

@@ -101,6 +101,9 @@ def test_an_entity_removed_while_paused_leaves_every_picture(alps):
         assert sorted(pic.dr.ids.tolist()) == sorted(srv.world.entities)
         ids, _, _ = pic.state()
         assert sorted(ids.tolist()) == sorted(srv.world.entities)
+        # GetWorld's count (sortie client's default area) leaves it out too: it counted the
+        # paused snapshot's entities, the removed one among them.
+        assert obs.world().entity_count == len(srv.world.entities)
     finally:
         obs.close()
         gw.close()
@@ -214,3 +217,33 @@ def test_a_server_stopping_while_clients_take_new_watches_stops_at_once(alps, tm
             assert not pic.alive and pic.error is None and pic.updates == 0
     finally:
         srv.stop(0.5)
+
+
+def test_a_client_keeps_only_the_streams_still_running(alps):
+    """A client taking a new Watch again and again (each supersedes the one before) keeps the
+    ended pictures no longer (SimClient._streams held every one until close())."""
+    srv = _serve(alps, clock="fast", time_scale=2.0)
+    try:
+        with SimClient(srv.address) as c:
+            c.join("w", "observer", observer=WIDE)
+            pictures = []
+            for _ in range(6):
+                pictures.append(c.watch())
+                assert pictures[-1].wait_for(lambda p: len(p) > 0, 10.0)
+            deadline = time.monotonic() + 10.0
+            while any(p.alive for p in pictures[:-1]) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            c.watch()  # keeping one more drops the ended ones
+            assert len(c._streams) <= 2, len(c._streams)
+    finally:
+        srv.stop(0.5)
+
+
+def test_top_speeds_of_a_few_vehicles_are_those_of_every_vehicle(alps):
+    """fdm.ground.GroundVehicles.top_speed_mps(index): speed_limits_mps[1][index], bit for bit."""
+    from fdm.ground import GroundVehicles
+
+    types = ["m1a2", "hmmwv", "m2a3", "m1083"] * 5
+    g = GroundVehicles(alps, np.full(20, 47.3), np.linspace(9.3, 9.6, 20), np.zeros(20), types)
+    idx = np.array([3, 0, 19, 7, 7])
+    assert np.array_equal(g.top_speed_mps(idx), g.speed_limits_mps[1][idx])
