@@ -266,7 +266,7 @@ def _mean_lon_deg(lon_deg) -> float:
 def default_observe(w) -> tuple[float, float, float]:
     """(lat, lon, radius_m) an observer watches without --observe: the centre of the world's
     (a WorldInfo) first target area, else where its entities are (entity_count,
-    centre_lat_deg, centre_lon_deg), else (0, 0); 100 km, or the server's observer limit
+    centre_lat_deg, centre_lon_deg; with none, the terrain's centre), else (0, 0); 100 km, or the server's observer limit
     (observer_radius_max_m) when that is smaller."""
     radius = DEFAULT_OBSERVE_RADIUS_M
     if w.observer_radius_max_m > 0:  # 0: a server that does not say
@@ -274,7 +274,8 @@ def default_observe(w) -> tuple[float, float, float]:
     if w.target_areas:
         a = w.target_areas[0]
         return float(np.mean(a.lat_deg)), _mean_lon_deg(a.lon_deg), radius
-    if w.entity_count > 0:
+    # With no entity, a server gives the terrain's centre (entity_count 0), an older one nothing.
+    if w.entity_count > 0 or (w.centre_lat_deg, w.centre_lon_deg) != (0.0, 0.0):
         return float(w.centre_lat_deg), float(w.centre_lon_deg), radius
     return 0.0, 0.0, radius
 

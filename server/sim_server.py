@@ -224,10 +224,11 @@ def entities_centre(lat_deg, lon_deg) -> tuple[int, float, float]:
 
 
 def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_hz: float,
-               geoid_undulation_m: float = 0.0, snapshot=None) -> pb.WorldInfo:
+               geoid_undulation_m: float = 0.0, snapshot=None, terrain_centre=None) -> pb.WorldInfo:
     """GetWorld's answer: the exercise of ``config`` (a ServerConfig) at world time ``time_s``
     (live server and replay alike); ``snapshot`` (the world's last, or None) says where its
-    entities are (:func:`entities_centre`)."""
+    entities are (:func:`entities_centre`); with none, ``terrain_centre`` ((lat, lon) degrees
+    of the terrain's first bounded source, :func:`terrain_centre`, or None) is the centre."""
     areas = [pb.TargetArea(name=name, lat_deg=[p[0] for p in poly], lon_deg=[p[1] for p in poly], detail_m=d)
              for name, poly, d in config.target_areas]
     return pb.WorldInfo(exercise_name=config.exercise_name, start_time=config.start_time, time_s=time_s,
@@ -236,14 +237,29 @@ def world_info(config, time_s: float, clock: str, time_scale: float, world_rate_
                         terrain=config.terrain, geoid_undulation_m=geoid_undulation_m,
                         terrain_insets=config.insets,
                         observer_radius_max_m=type_params(config.params, {}, None, "observer").aoi_radius_m,
-                        **_centre_fields(snapshot))
+                        **_centre_fields(snapshot, terrain_centre))
 
 
-def _centre_fields(snapshot) -> dict:
-    if snapshot is None or snapshot.ids.size == 0:
+def _centre_fields(snapshot, terrain_centre=None) -> dict:
+    count = 0
+    if snapshot is not None and snapshot.ids.size:
+        count, lat, lon = entities_centre(snapshot.lat_deg, snapshot.lon_deg)
+    if count:
+        return {"entity_count": count, "centre_lat_deg": lat, "centre_lon_deg": lon}
+    if terrain_centre is None:
         return {}
-    count, lat, lon = entities_centre(snapshot.lat_deg, snapshot.lon_deg)
-    return {"entity_count": count, "centre_lat_deg": lat, "centre_lon_deg": lon}
+    return {"entity_count": 0, "centre_lat_deg": terrain_centre[0], "centre_lon_deg": terrain_centre[1]}
+
+
+def terrain_centre(terrain) -> tuple[float, float] | None:
+    """(lat, lon) degrees of the middle of the first of ``terrain``'s sources with a finite box
+    (its describe()), where a client with nothing else to look at watches; None without one.
+    A box across the antimeridian (lon_max past 180) has its middle wrapped into [-180, 180)."""
+    from terrain.terrain import source_boxes
+
+    for lat0, lon0, lat1, lon1 in source_boxes(getattr(terrain, "describe", lambda: [])())[:1]:
+        return 0.5 * (lat0 + lat1), (0.5 * (lon0 + lon1) + 180.0) % 360.0 - 180.0
+    return None
 
 
 @dataclass
@@ -305,6 +321,7 @@ class SimulationServer:
         self._track_heartbeats = 1.0 / config.network_rate_hz > HEARTBEAT_LATE_FRACTION * _shortest_heartbeat_s(
             config.params)
         self._next_heartbeat_s = math.inf
+        self._terrain_centre = False  # terrain_centre(world.terrain), found at the first GetWorld
         self._heartbeat_ids = np.zeros(0, np.int64)  # the ids _heartbeats_s holds the heartbeats of
         self._heartbeats_s = np.zeros(0)
         self._stop = threading.Event()
@@ -374,10 +391,10 @@ class SimulationServer:
         if g is not None and g.n:
             places += list(zip(g.lat[:3].tolist(), g.lon[:3].tolist()))
         places += centres
-        for d in getattr(self.world.terrain, "describe", lambda: [])():
-            box = [d.get(k) for k in ("lat_min", "lon_min", "lat_max", "lon_max")]
-            if all(v is not None and math.isfinite(float(v)) for v in box):
-                places.append((0.5 * (float(box[0]) + float(box[2])), 0.5 * (float(box[1]) + float(box[3]))))
+        from terrain.terrain import source_boxes
+
+        places += [(0.5 * (la0 + la1), 0.5 * (lo0 + lo1))
+                   for la0, lo0, la1, lo1 in source_boxes(getattr(self.world.terrain, "describe", lambda: [])())]
         seconds, place = warm_up_world(self.world, places)
         if place is None:
             logger.info("world kernels not warmed: no place of %d tried takes ground vehicles (%.2f s)",
@@ -418,9 +435,11 @@ class SimulationServer:
     def world_info(self) -> pb.WorldInfo:
         rate = 0.0 if self._clock == "paused" else self.time_scale  # world s per wall s (as Watch says)
         snapshot = self.world.snapshot  # (without the entities gone since, as a paused clock publishes it)
+        if self._terrain_centre is False:  # (asked once: a terrain service's describe() is a call)
+            self._terrain_centre = terrain_centre(self.world.terrain)
         return world_info(self.config, self.world.time_s, self._clock, rate, 1.0 / self.world.dt,
                           self.world.geoid_undulation_m,
-                          None if snapshot is None else live_rows(snapshot, self.world.infos))
+                          None if snapshot is None else live_rows(snapshot, self.world.infos), self._terrain_centre)
 
     def _measure_rate(self, wall: float) -> None:
         """Sample (wall, world time) and update the advertised rate (clock thread, running clock)."""

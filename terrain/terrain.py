@@ -238,6 +238,21 @@ class RayBudget:
             raise LimitExceeded("segments (new procedural blocks)", int(new), new_limit, why)
 
 
+def source_boxes(descriptions) -> list[tuple[float, float, float, float]]:
+    """(lat_min, lon_min, lat_max, lon_max) degrees of each source of a terrain's describe()
+    (``descriptions``, in order; a service's values may be text) that has a finite box; lon_max
+    may pass 180."""
+    out = []
+    for d in descriptions:
+        try:
+            box = tuple(float(d.get(k)) for k in ("lat_min", "lon_min", "lat_max", "lon_max"))
+        except (TypeError, ValueError):
+            continue
+        if all(math.isfinite(v) for v in box):
+            out.append(box)
+    return out
+
+
 def _inside(bounds, lat, lon) -> np.ndarray:
     """(n,) bool: points (degrees) inside a raster's bounds (lat_min, lon_min, lat_max, lon_max; lon_max
     may pass 180)."""
@@ -807,11 +822,7 @@ class Terrain:
         data), each as an intersection, a line of sight, heights and normals, in one batch."""
         t0 = time.perf_counter()
         lat, lon, h0, lat_b, lon_b, h1 = [], [], [], [], [], []
-        for d in self.describe():
-            box = [d.get(k) for k in ("lat_min", "lon_min", "lat_max", "lon_max")]
-            if any(v is None or not math.isfinite(float(v)) for v in box):
-                continue
-            la0, lo0, la1, lo1 = (float(v) for v in box)
+        for la0, lo0, la1, lo1 in source_boxes(self.describe()):
             if la1 - la0 >= 90.0 or lo1 - lo0 >= 180.0:  # (nearly) global: a small box at near
                 la0, la1 = max(-89.9, near[0] - 0.05), min(89.9, near[0] + 0.05)
                 lo0, lo1 = near[1] - 0.05, near[1] + 0.05

@@ -137,3 +137,21 @@ def test_the_entities_centre_is_the_largest_groups():
     # A chain of entities 200 km apart over 2,000 km is one group too.
     chain = np.linspace(0.0, 18.0, 11)
     assert largest_group(np.zeros(11), chain).all()
+
+
+def test_a_world_with_no_entities_is_watched_at_its_terrains_centre(alps):
+    """No entity and no target area: GetWorld's centre is the middle of the terrain's first
+    source (entity_count 0), where `sortie client` watches (it watched (0, 0), in the Atlantic)."""
+    from client.cli import default_observe
+    from terrain.terrain import source_boxes
+
+    srv = SimulationServer(World(alps), ServerConfig(clock="paused"))
+    info = srv.world_info()
+    assert info.entity_count == 0
+    (lat0, lon0, lat1, lon1), = source_boxes(alps.describe())
+    assert (info.centre_lat_deg, info.centre_lon_deg) == (0.5 * (lat0 + lat1), 0.5 * (lon0 + lon1))
+    lat, lon, _ = default_observe(info)
+    assert 47.49 < lat < 47.51 and 9.49 < lon < 9.51
+    # A source with no finite box (a description without one) is passed over.
+    assert source_boxes([{"lat_min": None}, {"lat_min": "1", "lon_min": "2", "lat_max": "3", "lon_max": "4.5"}]) \
+        == [(1.0, 2.0, 3.0, 4.5)]
